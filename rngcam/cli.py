@@ -1,0 +1,31 @@
+"""The `rngcam` command line: parse, call the library, print. Commands live here, logic does not."""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from rngcam import __version__
+from rngcam.errors import RngcamError
+
+
+class _Group(click.Group):
+    """Turns RngcamError into one line on stderr and exit code 2, never a traceback."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except RngcamError as exc:
+            click.echo(f"error: {exc}", err=True)
+            sys.exit(2)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="rngcam")
+def main():
+    """rngcam: kHz video from a rolling-shutter + global-shutter camera pair."""
+
+
+# Commands are registered below, one import each; keep the logic in the library.
+# --- commands ---

@@ -1,0 +1,1 @@
+"""One physics package for the mock cameras, the simulator and the reconstruction."""

@@ -1,0 +1,192 @@
+"""Linear forward operators with `A` and `A_adjoint` (modelled on deepinv's LinearPhysics).
+
+Shapes (DESIGN.md): video (C, T, H, W); one measurement (C, H, W); a GS stack (C, G, H, W).
+Operators work in float32 or float64, on any device, batched over colour channels. A stacked
+operator returns a tuple of measurements; `inner` and `norm_sq` handle tensors and tuples.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+Measurement = Tensor | tuple[Tensor, ...]
+
+
+def inner(a: Measurement, b: Measurement) -> Tensor:
+    """Real inner product <a, b> of tensors or tuples of tensors."""
+    if isinstance(a, tuple):
+        return sum((inner(x, y) for x, y in zip(a, b, strict=True)), torch.zeros((), dtype=a[0].dtype, device=a[0].device))
+    return (a * b).sum()
+
+
+def norm_sq(a: Measurement) -> Tensor:
+    return inner(a, a)
+
+
+def _next_fast_len(n: int) -> int:
+    """Smallest 2^a 3^b 5^c >= n (sizes pocketfft/cuFFT handle fastest)."""
+    best = 2 ** math.ceil(math.log2(max(n, 1)))
+    p5 = 1
+    while p5 < 2 * n:
+        p35 = p5
+        while p35 < 2 * n:
+            p2 = p35
+            while p2 < n:
+                p2 *= 2
+            best = min(best, p2)
+            p35 *= 3
+        p5 *= 5
+    return best
+
+
+class LinearOperator:
+    """Base class: subclasses implement A and A_adjoint; `domain_shape` is the input shape."""
+
+    domain_shape: tuple[int, ...]
+
+    def A(self, x: Tensor) -> Measurement:  # noqa: N802 (deepinv naming)
+        raise NotImplementedError
+
+    def A_adjoint(self, y: Measurement) -> Tensor:  # noqa: N802
+        raise NotImplementedError
+
+    def A_normal(self, x: Tensor) -> Tensor:  # noqa: N802
+        return self.A_adjoint(self.A(x))
+
+    def norm(self, iters: int = 50, dtype=torch.float64, device=None, seed: int = 0,
+             tol: float = 1e-7) -> float:
+        """Operator 2-norm ||A|| by power iteration on A^T A (deterministic start)."""
+        gen = torch.Generator(device="cpu").manual_seed(seed)
+        x = torch.randn(self.domain_shape, generator=gen, dtype=dtype).to(device or "cpu")
+        x = x / x.norm()
+        lam = 0.0
+        for _ in range(iters):
+            z = self.A_normal(x)
+            new = float(inner(x, z))
+            nz = float(z.norm())
+            if nz == 0.0:
+                return 0.0
+            x = z / nz
+            if abs(new - lam) <= tol * max(abs(new), 1e-30):
+                lam = new
+                break
+            lam = new
+        return math.sqrt(max(lam, 0.0))
+
+
+class PSFConvolution(LinearOperator):
+    """Linear (zero-padded, not circular) 'same' convolution of (C, ..., H, W) with a PSF.
+
+    The PSF has shape (C, Hp, Wp) or (1, Hp, Wp) (shared by all channels). Output pixel i sees
+    input pixel i through the PSF's pixel (Hp//2, Wp//2): a delta there is the identity. The
+    transfer function is computed once per dtype/device with real FFTs.
+    """
+
+    def __init__(self, psf: Tensor, image_shape: tuple[int, int], batch_shape: tuple[int, ...] = ()):
+        psf = torch.as_tensor(psf)
+        if psf.ndim == 2:
+            psf = psf[None]
+        if psf.ndim != 3:
+            raise ValueError(f"PSF must be (C, Hp, Wp), got shape {tuple(psf.shape)}")
+        if not torch.isfinite(psf).all():
+            raise ValueError("PSF contains NaN or Inf")
+        self.psf = psf
+        self.image_shape = (int(image_shape[0]), int(image_shape[1]))
+        h, w = self.image_shape
+        hp, wp = psf.shape[-2:]
+        self.fft_shape = (_next_fast_len(h + hp - 1), _next_fast_len(w + wp - 1))
+        self.offset = (hp // 2, wp // 2)
+        self.domain_shape = (psf.shape[0], *batch_shape, h, w)
+        self._cache: dict = {}
+
+    def transfer(self, dtype, device) -> Tensor:
+        key = (dtype, str(device))
+        if key not in self._cache:
+            p = self.psf.to(device=device, dtype=dtype)
+            self._cache[key] = torch.fft.rfft2(p, s=self.fft_shape)
+        return self._cache[key]
+
+    def _broadcast(self, tf: Tensor, ndim: int) -> Tensor:
+        return tf.reshape(tf.shape[0], *([1] * (ndim - 3)), *tf.shape[-2:])
+
+    def A(self, x: Tensor) -> Tensor:  # noqa: N802
+        h, w = self.image_shape
+        tf = self._broadcast(self.transfer(x.dtype, x.device), x.ndim)
+        z = torch.fft.irfft2(torch.fft.rfft2(x, s=self.fft_shape) * tf, s=self.fft_shape)
+        oy, ox = self.offset
+        return z[..., oy:oy + h, ox:ox + w]
+
+    def A_adjoint(self, y: Tensor) -> Tensor:  # noqa: N802
+        # Correlation with the PSF: embed y at the crop offset, multiply by conj(H), keep [0:h, 0:w].
+        # The FFT size >= h + hp - 1 guarantees no circular wrap-around reaches the kept region.
+        h, w = self.image_shape
+        oy, ox = self.offset
+        fh, fw = self.fft_shape
+        tf = self._broadcast(self.transfer(y.dtype, y.device), y.ndim)
+        yp = torch.nn.functional.pad(y, (ox, fw - w - ox, oy, fh - h - oy))
+        z = torch.fft.irfft2(torch.fft.rfft2(yp) * tf.conj(), s=self.fft_shape)
+        return z[..., :h, :w]
+
+
+class RollingShutter(LinearOperator):
+    """RS measurement: convolve each frame with the PSF, weight row i of frame k by W[i, k], sum over k.
+
+    v (C, K, H, W) -> b (C, H, W). W is (H, K) from RollingShutterTiming.weights.
+    """
+
+    def __init__(self, psf: Tensor, weights: Tensor, width: int):
+        self.weights = torch.as_tensor(weights)
+        rows, k = self.weights.shape
+        self.conv = PSFConvolution(psf, (rows, width), batch_shape=(k,))
+        self.domain_shape = self.conv.domain_shape
+
+    def _w(self, like: Tensor) -> Tensor:
+        return self.weights.to(dtype=like.dtype, device=like.device)
+
+    def A(self, v: Tensor) -> Tensor:  # noqa: N802
+        return torch.einsum("ckhw,hk->chw", self.conv.A(v), self._w(v))
+
+    def A_adjoint(self, b: Tensor) -> Tensor:  # noqa: N802
+        return self.conv.A_adjoint(torch.einsum("chw,hk->ckhw", b, self._w(b)))
+
+
+class GlobalShutter(LinearOperator):
+    """GS measurement: frame g is the weighted sum of video frames, sum_k W[g, k] v_k.
+
+    v (C, K, H, W) -> (C, G, H, W). W is (G, K) from GlobalShutterTiming.weights.
+    """
+
+    def __init__(self, weights: Tensor, channels: int, image_shape: tuple[int, int]):
+        self.weights = torch.as_tensor(weights)
+        self.domain_shape = (channels, self.weights.shape[1], *image_shape)
+
+    def _w(self, like: Tensor) -> Tensor:
+        return self.weights.to(dtype=like.dtype, device=like.device)
+
+    def A(self, v: Tensor) -> Tensor:  # noqa: N802
+        return torch.einsum("ckhw,gk->cghw", v, self._w(v))
+
+    def A_adjoint(self, b: Tensor) -> Tensor:  # noqa: N802
+        return torch.einsum("cghw,gk->ckhw", b, self._w(b))
+
+
+class Stacked(LinearOperator):
+    """[sqrt(psi) A_R; A_G]: so ||Stacked v - (sqrt(psi) b_R, b_G)||^2 = psi||A_R v - b_R||^2 + ||A_G v - b_G||^2."""
+
+    def __init__(self, rs: RollingShutter, gs: GlobalShutter, psi: float = 1.0):
+        if not (math.isfinite(psi) and psi >= 0):
+            raise ValueError(f"psi must be finite and >= 0, got {psi!r}")
+        if tuple(rs.domain_shape) != tuple(gs.domain_shape):
+            raise ValueError(f"RS and GS operators disagree on the video shape: "
+                             f"{rs.domain_shape} vs {gs.domain_shape}")
+        self.rs, self.gs, self.psi = rs, gs, float(psi)
+        self.domain_shape = rs.domain_shape
+
+    def A(self, v: Tensor) -> tuple[Tensor, Tensor]:  # noqa: N802
+        return math.sqrt(self.psi) * self.rs.A(v), self.gs.A(v)
+
+    def A_adjoint(self, y: tuple[Tensor, Tensor]) -> Tensor:  # noqa: N802
+        return math.sqrt(self.psi) * self.rs.A_adjoint(y[0]) + self.gs.A_adjoint(y[1])

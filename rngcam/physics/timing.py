@@ -1,0 +1,166 @@
+"""Shutter timing: exact exposure weights of RS row bins and GS frames on the video time grid.
+
+Convention (DESIGN.md): the video grid starts at the RS trigger T0 = 0; frame k covers
+[k*dt, (k+1)*dt). An exposure interval [a, b) becomes a weight vector over frames equal to
+its overlap with each frame interval divided by dt. A grid row that bins s sensor rows is
+the *mean* of those rows, so its weight is the mean of s shifted rects (a trapezoid), and
+every row's weights sum to exposure_s / dt. When exposures align with the grid the weights
+are exactly the paper's 0/1 rect indicator.
+
+All arithmetic is done in units of dt (float64) so aligned cases come out exact.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+# Relative tolerance for deciding that an exposure end falls on a frame edge.
+_EDGE_TOL = 1e-9
+
+
+def _positive(name: str, value: float) -> None:
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a finite positive number, got {value!r}")
+
+
+def _snap_to_edges(x: np.ndarray) -> np.ndarray:
+    """Times (in frames) within rounding distance of a frame edge are put on that edge."""
+    nearest = np.round(x)
+    return np.where(np.abs(x - nearest) <= _EDGE_TOL * np.maximum(1.0, np.abs(x)), nearest, x)
+
+
+def interval_weights(starts, ends, dt: float, n_frames: int) -> np.ndarray:
+    """Overlap of each interval [starts[i], ends[i]) with each frame [k dt, (k+1) dt), / dt.
+
+    `starts`/`ends` are arrays (any shape, seconds); returns shape (*starts.shape, n_frames).
+    """
+    _positive("dt", dt)
+    a = _snap_to_edges(np.asarray(starts, dtype=np.float64)[..., None] / dt)
+    b = _snap_to_edges(np.asarray(ends, dtype=np.float64)[..., None] / dt)
+    k = np.arange(n_frames, dtype=np.float64)
+    # overlap of [a, b) with [k, k+1), in frame units, computed by clipping both ends.
+    return np.clip(np.minimum(b, k + 1) - np.maximum(a, k), 0.0, None)
+
+
+def frames_needed(end_s: float, dt: float) -> int:
+    """Number of grid frames needed to cover [0, end_s), tolerant to rounding at an edge."""
+    n = end_s / dt
+    return max(1, int(math.ceil(n - _EDGE_TOL * max(1.0, n))))
+
+
+@dataclass(frozen=True)
+class RollingShutterTiming:
+    """Rolling-shutter camera timing.
+
+    Sensor row r starts exposing at trigger_s + r * line_time_s for exposure_s. Grid row i
+    is the mean of sensor rows [i*rows_per_bin, (i+1)*rows_per_bin).
+    """
+
+    line_time_s: float
+    exposure_s: float
+    rows: int  # grid rows (after binning)
+    rows_per_bin: int = 1
+    trigger_s: float = 0.0
+
+    def __post_init__(self):
+        _positive("line_time_s", self.line_time_s)
+        _positive("exposure_s", self.exposure_s)
+        if int(self.rows) != self.rows or self.rows < 1:
+            raise ValueError(f"rows must be a positive integer, got {self.rows!r}")
+        if int(self.rows_per_bin) != self.rows_per_bin or self.rows_per_bin < 1:
+            raise ValueError(f"rows_per_bin must be a positive integer, got {self.rows_per_bin!r}")
+        if not math.isfinite(self.trigger_s) or self.trigger_s < 0:
+            raise ValueError(f"trigger_s must be >= 0 (the grid starts at T0), got {self.trigger_s!r}")
+
+    @property
+    def grid_dt_s(self) -> float:
+        """The natural video frame duration: one grid row's worth of line time."""
+        return self.line_time_s * self.rows_per_bin
+
+    def sensor_row_windows(self) -> tuple[np.ndarray, np.ndarray]:
+        """(starts, ends) in seconds, shape (rows, rows_per_bin)."""
+        r = np.arange(self.rows * self.rows_per_bin, dtype=np.float64)
+        starts = self.trigger_s + r * self.line_time_s
+        starts = starts.reshape(self.rows, self.rows_per_bin)
+        return starts, starts + self.exposure_s
+
+    @property
+    def end_s(self) -> float:
+        """End of the last sensor row's exposure."""
+        last = self.rows * self.rows_per_bin - 1
+        return self.trigger_s + last * self.line_time_s + self.exposure_s
+
+    def weights(self, grid: "VideoGrid") -> np.ndarray:
+        """(rows, n_frames) weights: mean over the bin's sensor rows of overlap/dt."""
+        starts, ends = self.sensor_row_windows()
+        if self.rows_per_bin == 1:
+            return interval_weights(starts[:, 0], ends[:, 0], grid.dt_s, grid.n_frames)
+        # Integer multiples of the line time in units of dt keep aligned cases exact.
+        return interval_weights(starts, ends, grid.dt_s, grid.n_frames).mean(axis=1)
+
+
+@dataclass(frozen=True)
+class GlobalShutterTiming:
+    """Global-shutter camera: one exposure of exposure_s starting at each trigger time."""
+
+    trigger_s: tuple[float, ...]
+    exposure_s: float
+
+    def __post_init__(self):
+        _positive("exposure_s", self.exposure_s)
+        object.__setattr__(self, "trigger_s", tuple(float(t) for t in self.trigger_s))
+        for t in self.trigger_s:
+            if not math.isfinite(t) or t < 0:
+                raise ValueError(f"GS trigger times must be >= 0 (after T0), got {t!r}")
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.trigger_s)
+
+    @property
+    def end_s(self) -> float:
+        return max(self.trigger_s, default=0.0) + self.exposure_s
+
+    def weights(self, grid: "VideoGrid") -> np.ndarray:
+        """(n_gs_frames, n_frames) weights: overlap of each GS exposure with each frame, / dt."""
+        t = np.asarray(self.trigger_s, dtype=np.float64)
+        return interval_weights(t, t + self.exposure_s, grid.dt_s, grid.n_frames)
+
+    def centres_s(self) -> np.ndarray:
+        """Mid-exposure time of each GS frame (where a key frame sits in the video)."""
+        return np.asarray(self.trigger_s, dtype=np.float64) + self.exposure_s / 2
+
+
+@dataclass(frozen=True)
+class VideoGrid:
+    """The reconstruction's time grid: n_frames frames of dt_s seconds from T0 = 0."""
+
+    dt_s: float
+    n_frames: int
+
+    def __post_init__(self):
+        _positive("dt_s", self.dt_s)
+        if int(self.n_frames) != self.n_frames or self.n_frames < 1:
+            raise ValueError(f"n_frames must be a positive integer, got {self.n_frames!r}")
+
+    @classmethod
+    def covering(cls, rs: RollingShutterTiming | None, gs: GlobalShutterTiming | None = None,
+                 dt_s: float | None = None) -> "VideoGrid":
+        """The grid that covers every exposure; dt defaults to the RS line time x rows_per_bin."""
+        if dt_s is None:
+            if rs is None:
+                raise ValueError("dt_s is required when there is no rolling-shutter camera")
+            dt_s = rs.grid_dt_s
+        ends = [c.end_s for c in (rs, gs) if c is not None]
+        if not ends:
+            raise ValueError("a video grid needs at least one camera's timing")
+        return cls(dt_s=float(dt_s), n_frames=frames_needed(max(ends), dt_s))
+
+    def edges_s(self) -> np.ndarray:
+        return np.arange(self.n_frames + 1, dtype=np.float64) * self.dt_s
+
+    def centres_s(self) -> np.ndarray:
+        return (np.arange(self.n_frames, dtype=np.float64) + 0.5) * self.dt_s
