@@ -85,7 +85,8 @@ class PSFConvolution(LinearOperator):
     transfer function is computed once per dtype/device with real FFTs.
     """
 
-    def __init__(self, psf: Tensor, image_shape: tuple[int, int], batch_shape: tuple[int, ...] = ()):
+    def __init__(self, psf: Tensor, image_shape: tuple[int, int], batch_shape: tuple[int, ...] = (),
+                 channels: int | None = None):
         psf = torch.as_tensor(psf)
         if psf.ndim == 2:
             psf = psf[None]
@@ -99,7 +100,10 @@ class PSFConvolution(LinearOperator):
         hp, wp = psf.shape[-2:]
         self.fft_shape = (_next_fast_len(h + hp - 1), _next_fast_len(w + wp - 1))
         self.offset = (hp // 2, wp // 2)
-        self.domain_shape = (psf.shape[0], *batch_shape, h, w)
+        channels = psf.shape[0] if channels is None else int(channels)
+        if psf.shape[0] not in (1, channels):
+            raise ValueError(f"a {psf.shape[0]}-channel PSF cannot act on {channels} channels")
+        self.domain_shape = (channels, *batch_shape, h, w)
         self._cache: dict = {}
 
     def transfer(self, dtype, device) -> Tensor:
@@ -137,10 +141,10 @@ class RollingShutter(LinearOperator):
     v (C, K, H, W) -> b (C, H, W). W is (H, K) from RollingShutterTiming.weights.
     """
 
-    def __init__(self, psf: Tensor, weights: Tensor, width: int):
+    def __init__(self, psf: Tensor, weights: Tensor, width: int, channels: int | None = None):
         self.weights = torch.as_tensor(weights)
         rows, k = self.weights.shape
-        self.conv = PSFConvolution(psf, (rows, width), batch_shape=(k,))
+        self.conv = PSFConvolution(psf, (rows, width), batch_shape=(k,), channels=channels)
         self.domain_shape = self.conv.domain_shape
 
     def _w(self, like: Tensor) -> Tensor:
