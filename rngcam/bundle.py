@@ -283,6 +283,11 @@ def _check_truth(truth: Truth) -> list[str]:
     return problems
 
 
+def trigger_faults(errors: list) -> list[str]:
+    """Entries of a SYST:ERR? read-back that are real errors (not '+0,"No error"')."""
+    return [str(e) for e in errors if not str(e).lstrip("+ ").startswith("0,")]
+
+
 def _check_trigger(trig: TriggerRecord) -> list[str]:
     problems: list[str] = []
     if not isinstance(trig.generator, str) or not trig.generator:
@@ -292,10 +297,10 @@ def _check_trigger(trig: TriggerRecord) -> list[str]:
     if not isinstance(trig.errors, list):
         problems.append(f"trigger errors must be a list, got {type(trig.errors).__name__}")
     else:
-        real = [e for e in trig.errors if not str(e).lstrip("+ ").startswith("0,")]
+        real = trigger_faults(trig.errors)
         if real:
             problems.append(f"{WARNING_PREFIX}trigger generator reported {len(real)} error(s): "
-                            + "; ".join(str(e) for e in real[:3]))
+                            + "; ".join(real[:3]))
     return problems
 
 
@@ -840,7 +845,8 @@ def _fmt_ms(values: list[float], limit: int = 8) -> str:
     return shown + (f", ... ({len(values)} in all)" if len(values) > limit else "")
 
 
-def _render(s: dict) -> str:
+def render_summary(s: dict) -> str:
+    """Text form of a `summary_dict` (plus its 'sha256' entry when present)."""
     lines = []
 
     def row(label: str, text: str) -> None:
@@ -882,8 +888,12 @@ def _render(s: dict) -> str:
     fs = cal["field_stop_open_fraction"]
     row("field stop", f"{100 * fs:.1f} % of pixels open" if fs is not None else "none")
     trig = s["trigger"]
-    row("trigger", f"{trig['generator']}  ({len(trig['errors'])} error-queue entries)"
-        if trig else "none recorded")
+    if trig:
+        real = trigger_faults(trig["errors"])
+        row("trigger", f"{trig['generator']}  "
+            + (f"{len(real)} error(s) read back" if real else "no errors read back"))
+    else:
+        row("trigger", "none recorded")
     truth = s["truth"]
     if truth:
         c, t, h, w = (truth["shape_cthw"] + [None] * 4)[:4]
@@ -895,10 +905,27 @@ def _render(s: dict) -> str:
         row("meta", ", ".join(f"{k}={v}" for k, v in s["meta"].items()))
     for p in s["problems"]:
         row("problem", p)
+    if "sha256" in s:
+        row("sha256", s["sha256"])
     return "\n".join(lines)
 
 
 def summarise(bundle: Bundle, path: str | os.PathLike | None = None,
               problems: list[str] | None = None) -> str:
     """Human summary of a bundle (what `rngcam inspect` prints)."""
-    return _render(summary_dict(bundle, path, problems))
+    return render_summary(summary_dict(bundle, path, problems))
+
+
+def inspect_bundle(path: str | os.PathLike, checksum: bool = False) -> dict:
+    """Summary dict of a bundle file, frames left on disk; BundleError if it is unusable.
+
+    Warning-level problems are listed under 'problems'; with `checksum`, adds 'sha256'.
+    """
+    path = Path(path)
+    with _open_h5(path) as f:
+        bundle, problems = _read(f, path, lazy=True)
+        _raise_on_errors(path, problems)
+        summary = summary_dict(bundle, path, problems)
+    if checksum:
+        summary["sha256"] = bundle_checksum(path)
+    return summary
