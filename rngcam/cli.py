@@ -29,3 +29,4 @@ def main():
 
 # Commands are registered below, one import each; keep the logic in the library.
 # --- commands ---
+from rngcam.bundle_cli import inspect_cmd; main.add_command(inspect_cmd, "inspect")  # noqa: E402,E702
