@@ -537,6 +537,9 @@ def _open_h5(path: Path) -> h5py.File:
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         if "truncated" in reason.lower():
             raise BundleError(f"{path} is truncated ({reason})") from None
+        if "already open for write" in reason:
+            raise BundleError(f"{path} was not closed cleanly (an interrupted write, "
+                              "or a writer still has it open)") from None
         if "signature" in reason.lower():
             raise BundleError(f"{path} is not an HDF5 file") from None
         raise BundleError(f"cannot open {path} as HDF5: {reason}") from None
