@@ -25,10 +25,11 @@ import hashlib
 import json
 import math
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import h5py
 import numpy as np
@@ -213,8 +214,9 @@ def _check_gs_window(rs: CameraRecord, gs: CameraRecord) -> list[str]:
     if outside.size == 0:
         return []
     times = ", ".join(f"{t * 1e3:.3f}" for t in outside[:5])
-    return [f"{WARNING_PREFIX}{outside.size} GS trigger time(s) outside the RS exposure window "
-            f"[{start * 1e3:.3f}, {end * 1e3:.3f}] ms: {times} ms"]
+    message = (f"{WARNING_PREFIX}{outside.size} GS trigger time(s) outside the RS exposure window "
+               f"[{start * 1e3:.3f}, {end * 1e3:.3f}] ms: {times} ms")
+    return [message]
 
 
 def _check_calibration(cal: Calibration, rs: CameraRecord | None) -> list[str]:
@@ -552,7 +554,7 @@ def _attr_str(attrs: h5py.AttributeManager, name: str) -> str:
     if isinstance(value, np.ndarray) and value.shape == ():
         value = value[()]
     if not isinstance(value, str):
-        raise ValueError(f"attribute {name!r} is not a string")
+        raise TypeError(f"attribute {name!r} is not a string")
     return value
 
 
@@ -676,7 +678,7 @@ class _Reader:
             raise _Fatal("not an rngcam bundle (no 'format' attribute; an interrupted write?)")
         try:
             fmt = _attr_str(attrs, "format")
-        except ValueError:
+        except TypeError:
             fmt = repr(attrs["format"])
         if fmt != FORMAT_NAME:
             raise _Fatal(f"not an rngcam bundle (format {fmt!r}, expected {FORMAT_NAME!r})")
@@ -801,7 +803,7 @@ def _camera_summary(rec: CameraRecord) -> dict:
 def summary_dict(bundle: Bundle, path: str | os.PathLike | None = None,
                  problems: list[str] | None = None) -> dict:
     """The facts `summarise` prints, as a JSON-able dict (times in ms/us for reading)."""
-    from rngcam.physics.psf import spectral_support
+    from rngcam.physics.psf import spectral_support  # lazy: pulls in OpenCV
 
     out: dict[str, Any] = {}
     if path is not None:
