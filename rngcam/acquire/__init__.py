@@ -1,0 +1,1 @@
+"""Acquisition: cameras (GenTL, pylon, physics-based mock), the SCPI trigger generator, capture."""

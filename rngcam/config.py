@@ -1,0 +1,294 @@
+"""Rig files: pydantic models, loading with clear errors, and path resolution.
+
+A rig file (YAML, SI units, names carry the unit) describes the two cameras, the trigger
+timing, the function generator, the calibration inputs and, for the mock rig, the scene.
+`load_rig(path)` returns a `Rig` (the validated model, the file path and its text verbatim)
+or raises ConfigError with one line naming the file, the field and the problem.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from rngcam.errors import ConfigError
+
+Backend = Literal["genicam", "pylon", "mock"]
+Dialect = Literal["keysight_33500b", "rigol_dg", "siglent_sdg"]
+FakeFault = Literal["none", "silent", "garbage", "scpi_error"]
+
+# Relative tolerance for "equally spaced" GS triggers (a burst has one period).
+_SPACING_RTOL = 1e-6
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Roi(_Model):
+    """Sensor region of interest in pixels (offsets from the top-left corner)."""
+
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+    offset_x: int = Field(default=0, ge=0)
+    offset_y: int = Field(default=0, ge=0)
+
+
+class TriggerInput(_Model):
+    """How a camera is triggered: its input line, edge, and the generator channel wired to it."""
+
+    source: str = "Line1"
+    activation: Literal["RisingEdge", "FallingEdge"] = "RisingEdge"
+    channel: int = Field(ge=1, le=4)
+    debouncer_s: float | None = Field(default=None, ge=0)
+
+
+class MockSensor(_Model):
+    """Physics of a mock camera (it renders frames from the rig's mock scene).
+
+    line_time_s: the mock RS camera's true line time (defaults to the rig's line_time_s, set it
+    differently to exercise the capture's timing warning). readout_s: the time after an
+    exposure during which a GS mock ignores further triggers (like a real sensor's readout).
+    """
+
+    noise: bool = True
+    seed: int = 0
+    bit_depth: int = Field(default=12, ge=8, le=16)
+    black_level_dn: float = Field(default=64.0, ge=0)
+    full_well_e: float = Field(default=10_000.0, gt=0)
+    read_noise_e: float = Field(default=3.0, ge=0)
+    line_time_s: float | None = Field(default=None, gt=0)
+    readout_s: float = Field(default=1e-3, ge=0)
+
+
+class CameraConfig(_Model):
+    """One camera. `serial` identifies it (cameras are never opened by list index)."""
+
+    backend: Backend
+    serial: str = Field(min_length=1)
+    model: str = ""
+    cti: str | None = None  # genicam: GenTL producer file; else $RNGCAM_CTI
+    pylon_transport: str | None = None  # pylon: restrict to one transport layer, e.g. BaslerCamEmu
+    pixel_format: str
+    exposure_s: float = Field(gt=0, le=10.0)
+    gain_db: float = Field(default=0.0, ge=0)
+    roi: Roi
+    line_time_s: float | None = Field(default=None, gt=0, le=1e-2)  # RS: the expected line time
+    black_level_dn: float = Field(default=0.0, ge=0)
+    trigger: TriggerInput
+    fetch_timeout_s: float = Field(default=2.0, gt=0)
+    chunk_timestamps: bool = True
+    mock: MockSensor | None = None
+
+    @property
+    def bit_depth(self) -> int:
+        """Bit depth implied by the pixel format (Mono12, BayerRG12, RGB12 ... -> 12)."""
+        digits = "".join(ch for ch in self.pixel_format if ch.isdigit())
+        return int(digits) if digits else 8
+
+
+class Cameras(_Model):
+    rs: CameraConfig
+    gs: CameraConfig
+
+
+class TimingConfig(_Model):
+    """Trigger times relative to the moment the generator fires (the RS trigger is T0)."""
+
+    rs_trigger_s: float = Field(default=0.0, ge=0)
+    gs_trigger_s: list[float] = Field(min_length=1)
+    pulse_width_s: float = Field(default=100e-6, gt=0)
+
+    @field_validator("gs_trigger_s")
+    @classmethod
+    def _increasing_equally_spaced(cls, v: list[float]) -> list[float]:
+        if any(not math.isfinite(t) or t < 0 for t in v):
+            raise ValueError("GS trigger times must be finite and >= 0")
+        steps = [b - a for a, b in zip(v, v[1:])]
+        if any(s <= 0 for s in steps):
+            raise ValueError("GS trigger times must be strictly increasing")
+        if steps and max(steps) - min(steps) > _SPACING_RTOL * max(steps):
+            raise ValueError("GS trigger times must be equally spaced (the generator sends them "
+                             f"as one burst with one period); steps are {steps}")
+        return v
+
+    @property
+    def gs_period_s(self) -> float | None:
+        g = self.gs_trigger_s
+        return (g[-1] - g[0]) / (len(g) - 1) if len(g) > 1 else None
+
+    @model_validator(mode="after")
+    def _pulse_fits(self) -> "TimingConfig":
+        period = self.gs_period_s
+        if period is not None and self.pulse_width_s >= period:
+            raise ValueError(f"pulse_width_s ({self.pulse_width_s}) must be shorter than the GS "
+                             f"trigger period ({period})")
+        if self.rs_trigger_s > self.gs_trigger_s[0] + 1e-12:
+            raise ValueError("the RS trigger (T0) must not come after the first GS trigger")
+        return self
+
+
+class GeneratorConfig(_Model):
+    """The function generator: SCPI dialect and transport ('fake' spawns a simulated one)."""
+
+    dialect: Dialect
+    transport: Literal["serial", "visa", "fake"] = "serial"
+    port: str | None = None
+    visa_resource: str | None = None
+    baudrate: int = Field(default=9600, gt=0)
+    timeout_s: float = Field(default=1.0, gt=0)
+    high_v: float = 5.0
+    low_v: float = 0.0
+    fake_fault: FakeFault = "none"  # test hook for the fake instrument only
+
+    @model_validator(mode="after")
+    def _transport_fields(self) -> "GeneratorConfig":
+        if self.transport == "serial" and not self.port:
+            raise ValueError("transport 'serial' needs 'port' (e.g. /dev/ttyUSB0 or COM3)")
+        if self.transport == "visa" and not self.visa_resource:
+            raise ValueError("transport 'visa' needs 'visa_resource' (e.g. USB0::...::INSTR)")
+        if self.transport == "fake" and self.port:
+            raise ValueError("transport 'fake' opens its own pseudo-terminal; remove 'port'")
+        if self.fake_fault != "none" and self.transport != "fake":
+            raise ValueError("fake_fault only applies to transport 'fake'")
+        if not self.high_v > self.low_v:
+            raise ValueError(f"high_v ({self.high_v}) must exceed low_v ({self.low_v})")
+        return self
+
+
+class PsfConfig(_Model):
+    """PSF file (relative paths are relative to the rig file), crop fraction and dark level."""
+
+    path: str
+    crop: float = Field(default=1.0, gt=0, le=1)
+    bias: float | Literal["auto"] = "auto"
+
+
+class CalibrationConfig(_Model):
+    psf: PsfConfig | None = None
+    gs_to_rs: list[list[float]] | None = None  # 3x3 homography, GS pixel -> RS pixel
+    white_balance: list[float] | None = None
+
+    @field_validator("gs_to_rs")
+    @classmethod
+    def _three_by_three(cls, v):
+        if v is not None and (len(v) != 3 or any(len(r) != 3 for r in v)):
+            raise ValueError("gs_to_rs must be a 3x3 matrix (a list of three rows of three)")
+        return v
+
+
+class ReconConfig(_Model):
+    """How the reconstruction bins the RS sensor: one video frame = line time x rows_per_bin."""
+
+    rows_per_bin: int = Field(default=1, ge=1)
+    cols_per_bin: int = Field(default=1, ge=1)
+
+
+class MockSceneConfig(_Model):
+    """The scene mock cameras look at (rngcam.sim.scenes), rendered at the RS sensor size."""
+
+    scene: str = "sineball"
+    seed: int = 0
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class RigConfig(_Model):
+    name: str
+    description: str = ""
+    cameras: Cameras
+    timing: TimingConfig
+    generator: GeneratorConfig
+    calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
+    recon: ReconConfig = Field(default_factory=ReconConfig)
+    mock: MockSceneConfig | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "RigConfig":
+        rs, gs = self.cameras.rs, self.cameras.gs
+        if rs.line_time_s is None:
+            raise ValueError("cameras.rs.line_time_s is required (the RS row-to-row delay)")
+        if rs.trigger.channel == gs.trigger.channel:
+            raise ValueError("cameras.rs.trigger.channel and cameras.gs.trigger.channel must "
+                             "differ (one pulse for the RS camera, a burst for the GS camera)")
+        mocks = [c.backend == "mock" for c in (rs, gs)]
+        if any(mocks):
+            if not all(mocks):
+                raise ValueError("mock cameras cannot be mixed with real ones in one rig")
+            if self.mock is None:
+                raise ValueError("mock cameras need a 'mock' section naming the scene")
+            if self.generator.transport != "fake":
+                raise ValueError("mock cameras only receive triggers from generator transport 'fake'")
+            if rs.roi != gs.roi or rs.roi.width != rs.roi.height:
+                raise ValueError("mock cameras need equal, square ROIs (the scene is rendered "
+                                 "once at that size and seen by both)")
+        elif self.generator.transport == "fake":
+            raise ValueError("generator transport 'fake' can only trigger mock cameras")
+        return self
+
+
+@dataclass(frozen=True)
+class Rig:
+    """A loaded rig: the validated model, where it came from, and its text verbatim."""
+
+    config: RigConfig
+    path: Path
+    text: str
+
+    def resolve(self, relative: str | Path) -> Path:
+        """A path from the rig file, relative to the rig file's folder."""
+        p = Path(relative).expanduser()
+        return p if p.is_absolute() else (self.path.parent / p).resolve()
+
+
+def _location(loc: tuple) -> str:
+    return ".".join(str(part) for part in loc) or "(top level)"
+
+
+def format_validation_error(path: Path, exc: ValidationError) -> str:
+    """One line: 'FILE: field.path: problem' for the first error, plus how many more."""
+    errors = exc.errors()
+    first = errors[0]
+    msg = first["msg"].removeprefix("Value error, ")
+    loc = _location(first["loc"])
+    if first["type"] == "extra_forbidden":
+        msg = "unknown field (check the spelling)"
+    line = f"{path}: {loc}: {msg}"
+    if len(errors) > 1:
+        line += f" (and {len(errors) - 1} more problem{'s' if len(errors) > 2 else ''})"
+    return line
+
+
+def parse_rig(text: str, path: str | Path = "<rig>") -> Rig:
+    """Validate rig YAML text; `path` names it in errors and anchors relative paths."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}: " if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(f"{path}: {where}not valid YAML ({problem})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a rig file must be a YAML mapping, got {type(data).__name__}")
+    try:
+        config = RigConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(path, exc)) from None
+    return Rig(config=config, path=path.resolve() if path.name != "<rig>" else path, text=text)
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Read and validate a rig file; ConfigError (one line) when it is missing or invalid."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: rig file not found")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read rig file ({exc})") from None
+    return parse_rig(text, path)
