@@ -1,0 +1,386 @@
+"""Capture orchestration: rig -> cameras + trigger generator -> one bundle per shot.
+
+Steps (each reported through `progress`): prepare the PSF, connect the generator and the
+cameras (by serial), configure them and read every feature back, verify the timing, configure
+the generator (checking *OPC? and SYST:ERR?), arm the cameras, fire, fetch one RS frame and
+every GS frame, disarm, switch the generator's outputs off, and write the bundle atomically.
+Any failure raises one-line HardwareError/ConfigError after the cameras are disarmed and the
+outputs are off; no bundle is written then.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from rngcam.acquire.camera import Camera, CameraSettings, Frame
+from rngcam.acquire.generator import FunctionGenerator, PulseTrain
+from rngcam.config import CameraConfig, MockSensor, Rig
+from rngcam.errors import ConfigError, HardwareError
+from rngcam.physics.psf import load_psf, prepare_psf, spectral_support, subtract_bias
+from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+
+Progress = Callable[[str], None]
+LINE_TIME_RTOL = 0.01  # warn when the camera's line time differs from the rig's by more
+TIMESTAMP_TOL_S = 20e-6  # GS timestamp spacing may differ from the burst period by this much
+
+
+@dataclass
+class CaptureResult:
+    path: Path
+    warnings: list[str] = field(default_factory=list)
+    seconds: dict = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- paths and PSF
+
+
+def default_output(directory: Path | str = ".", now: datetime | None = None) -> Path:
+    """capture-YYYYmmdd-HHMMSS.h5 in `directory`, with -2, -3 ... if that name exists."""
+    stamp = (now or datetime.now()).strftime("%Y%m%d-%H%M%S")
+    directory = Path(directory)
+    path = directory / f"capture-{stamp}.h5"
+    n = 2
+    while path.exists():
+        path = directory / f"capture-{stamp}-{n}.h5"
+        n += 1
+    return path
+
+
+def output_paths(out: Path | None, count: int) -> list[Path]:
+    """Where each of `count` shots goes; refuses any existing file (never overwrite)."""
+    if count < 1:
+        raise ConfigError(f"--count must be >= 1, got {count}")
+    if out is None:
+        first = default_output()
+        paths = [first] if count == 1 else [first.with_name(f"{first.stem}-{i:03d}.h5") for i in range(1, count + 1)]
+    else:
+        out = Path(out)
+        paths = [out] if count == 1 else [out.with_name(f"{out.stem}-{i:03d}{out.suffix or '.h5'}")
+                                          for i in range(1, count + 1)]
+    for p in paths:
+        if p.exists():
+            raise ConfigError(f"{p} already exists; rngcam never overwrites a bundle (choose another -o)")
+        if not p.parent.is_dir():
+            raise ConfigError(f"cannot write {p}: directory {p.parent} does not exist")
+    return paths
+
+
+def _shared_data_fallback(path: Path) -> Path | None:
+    """For a path through '.../shared/data/...', the same file under rngcam.paths.shared_data()."""
+    parts = path.parts
+    for i in range(len(parts) - 1):
+        if parts[i] == "shared" and parts[i + 1] == "data":
+            from rngcam.paths import shared_data
+
+            candidate = shared_data().joinpath(*parts[i + 2:])
+            return candidate if candidate.is_file() else None
+    return None
+
+
+def resolve_psf_path(rig: Rig) -> Path:
+    """The rig's PSF file, relative to the rig file, else under the shared data folder."""
+    cfg = rig.config.calibration.psf
+    if cfg is None:
+        raise ConfigError(f"{rig.path}: calibration.psf: a PSF file is required for capture")
+    path = rig.resolve(cfg.path)
+    if path.is_file():
+        return path
+    fallback = _shared_data_fallback(Path(cfg.path))
+    if fallback is not None:
+        return fallback
+    raise ConfigError(f"{rig.path}: calibration.psf.path: PSF file not found: {path} "
+                      "(relative paths are relative to the rig file; set RNGCAM_DATA for shared data)")
+
+
+def rs_psf(rig: Rig, progress: Progress) -> tuple[np.ndarray, str, float]:
+    """(PSF (C, H, W) float64 summing to 1 per channel on the RS sensor grid, source, bias)."""
+    cfg = rig.config.calibration.psf
+    path = resolve_psf_path(rig)
+    roi = rig.config.cameras.rs.roi
+    shape = (roi.height, roi.width)
+    try:
+        raw = load_psf(path)
+        if raw.shape[-2:] == shape and cfg.crop == 1.0:
+            psf, bias = subtract_bias(raw, cfg.bias)  # already measured on this sensor grid
+            psf = psf / psf.sum(axis=(-2, -1), keepdims=True)
+        else:
+            psf, bias = prepare_psf(raw, shape, crop=cfg.crop, bias=cfg.bias)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"{rig.path}: calibration.psf: {path}: {exc}") from None
+    if not np.all(np.isfinite(psf)):
+        raise ConfigError(f"{rig.path}: calibration.psf: {path} has no usable signal")
+    if rig.config.cameras.rs.backend == "mock" and psf.shape[0] == 1:
+        psf = np.repeat(psf, 3, axis=0)
+    support = spectral_support(psf)
+    progress(f"psf: {path.name} -> {psf.shape[0]}x{psf.shape[1]}x{psf.shape[2]} on the RS grid "
+             f"(crop {cfg.crop:g}, bias {bias:g}); spectral support {support:.2%} of frequencies "
+             f"above 10% of DC")
+    return psf, str(path), bias
+
+
+# --------------------------------------------------------------------------- timing
+
+
+def nominal_timing(rig: Rig) -> tuple[RollingShutterTiming, GlobalShutterTiming, VideoGrid]:
+    """RS/GS timing relative to T0 from the rig, and the reconstruction's video grid."""
+    c = rig.config
+    rs = RollingShutterTiming(line_time_s=c.cameras.rs.line_time_s, exposure_s=c.cameras.rs.exposure_s,
+                              rows=c.cameras.rs.roi.height)
+    t0 = c.timing.rs_trigger_s
+    gs = GlobalShutterTiming(tuple(t - t0 for t in c.timing.gs_trigger_s), c.cameras.gs.exposure_s)
+    grid = VideoGrid.covering(rs, gs, dt_s=rs.line_time_s * c.recon.rows_per_bin)
+    return rs, gs, grid
+
+
+def verify_timing(rig: Rig, rs_exposure_s: float, gs_exposure_s: float,
+                  reported_line_time_s: float | None) -> tuple[list[str], list[str]]:
+    """(summary lines, warnings). Raises ConfigError when a GS exposure leaves the RS window."""
+    c = rig.config
+    rows = c.cameras.rs.roi.height
+    line = c.cameras.rs.line_time_s
+    readout = (rows - 1) * line
+    window_end = readout + rs_exposure_s
+    t0 = c.timing.rs_trigger_s
+    lines = [f"RS: {rows} rows x {line * 1e6:g} us line time = {readout * 1e3:.3f} ms readout, "
+             f"exposure {rs_exposure_s * 1e6:g} us, window [0, {window_end * 1e3:.3f}] ms after T0"]
+    warnings: list[str] = []
+    for i, t in enumerate(c.timing.gs_trigger_s):
+        start, end = t - t0, t - t0 + gs_exposure_s
+        if start < 0 or end > window_end * (1 + 1e-9):
+            raise ConfigError(f"{rig.path}: timing.gs_trigger_s: GS exposure {i + 1} "
+                              f"[{start * 1e3:.3f}, {end * 1e3:.3f}] ms is not inside the RS exposure "
+                              f"window [0, {window_end * 1e3:.3f}] ms")
+    lines.append("GS: exposures at " + ", ".join(f"{(t - t0) * 1e3:.3f}" for t in c.timing.gs_trigger_s)
+                 + f" ms ({gs_exposure_s * 1e6:g} us each), all inside the RS window")
+    if rs_exposure_s > readout:
+        warnings.append(f"RS exposure ({rs_exposure_s * 1e3:.3f} ms) is longer than its readout "
+                        f"({readout * 1e3:.3f} ms): rows overlap in time and the RS image codes little motion")
+    if reported_line_time_s is None:
+        lines.append(f"line time: camera does not report it; using the rig's {line * 1e6:g} us")
+    elif not math.isclose(reported_line_time_s, line, rel_tol=LINE_TIME_RTOL):
+        warnings.append(f"RS camera line time is {reported_line_time_s * 1e6:.4g} us but the rig says "
+                        f"{line * 1e6:.4g} us (the bundle records the rig's value)")
+    else:
+        lines.append(f"line time: camera {reported_line_time_s * 1e6:.4g} us matches the rig")
+    return lines, warnings
+
+
+def pulse_trains(rig: Rig) -> list[PulseTrain]:
+    c = rig.config
+    t = c.timing
+    return [
+        PulseTrain(c.cameras.rs.trigger.channel, t.rs_trigger_s, t.pulse_width_s),
+        PulseTrain(c.cameras.gs.trigger.channel, t.gs_trigger_s[0], t.pulse_width_s,
+                   count=len(t.gs_trigger_s), period_s=t.gs_period_s),
+    ]
+
+
+# --------------------------------------------------------------------------- hardware set-up
+
+
+def _make_camera(cfg: CameraConfig, role: str, world) -> Camera:
+    if cfg.backend == "mock":
+        from rngcam.acquire.mock_camera import MockCamera
+
+        return MockCamera(cfg.serial, role, world)
+    if cfg.backend == "pylon":
+        from rngcam.acquire.pylon_camera import PylonCamera
+
+        return PylonCamera(cfg.serial, role, transport=cfg.pylon_transport)
+    from rngcam.acquire.genicam_camera import GenicamCamera
+
+    return GenicamCamera(cfg.serial, role, cti=cfg.cti)
+
+
+def _mock_world(rig: Rig, psf: np.ndarray, gs_timing: GlobalShutterTiming, grid: VideoGrid):
+    from rngcam.acquire.mock_camera import MockDevice, MockWorld
+    from rngcam.physics.sensor import SensorModel
+
+    c = rig.config
+    world = MockWorld(c.mock.scene, c.cameras.rs.roi.height, grid, psf, seed=c.mock.seed,
+                      key_times_s=list(gs_timing.centres_s()), options=c.mock.options)
+    for role in ("rs", "gs"):
+        cam = getattr(c.cameras, role)
+        m = cam.mock or MockSensor()
+        sensor = SensorModel(bit_depth=cam.bit_depth, black_level_dn=m.black_level_dn,
+                             full_well_e=m.full_well_e, read_noise_e=m.read_noise_e)
+        if sensor.pixel_format != cam.pixel_format:
+            raise ConfigError(f"{rig.path}: cameras.{role}.pixel_format: mock cameras deliver "
+                              f"{sensor.pixel_format}, not {cam.pixel_format}")
+        world.plug(MockDevice(cam.serial, cam.model or f"mock {role.upper()}", role, sensor,
+                              noise=m.noise, seed=m.seed,
+                              line_time_s=(m.line_time_s or cam.line_time_s) if role == "rs" else None,
+                              readout_s=m.readout_s))
+    return world
+
+
+def _connect_generator(rig: Rig, stack: contextlib.ExitStack, progress: Progress):
+    """(FunctionGenerator, fake instrument or None), both closed by `stack`."""
+    from rngcam.acquire.scpi import SerialTransport, VisaTransport
+
+    g = rig.config.generator
+    fake = None
+    if g.transport == "fake":
+        from rngcam.acquire.fake_generator import FakeGenerator
+
+        fake = stack.enter_context(FakeGenerator(g.dialect, g.fake_fault))
+        port = fake.port
+        progress(f"generator: fake {g.dialect} instrument serving on {port}")
+    else:
+        port = g.port
+    if g.transport == "visa":
+        transport = VisaTransport(g.visa_resource, g.timeout_s)
+    else:
+        transport = SerialTransport(port, g.baudrate, g.timeout_s)
+    gen = stack.enter_context(FunctionGenerator(transport, g.dialect))
+    progress(f"generator: {gen.identify()} ({g.dialect} over {g.transport})")
+    return gen, fake
+
+
+# --------------------------------------------------------------------------- the capture
+
+
+def _stack(frames: list[Frame]) -> np.ndarray:
+    return np.stack([f.data for f in frames])
+
+
+def _record(cfg: CameraConfig, cam: Camera, frames: list[Frame], trigger_times_s, line_time_s):
+    from rngcam.bundle import CameraRecord
+
+    features = dict(cam.configured.features) if cam.configured else {}
+    black = (cfg.mock or MockSensor()).black_level_dn if cfg.backend == "mock" else cfg.black_level_dn
+    stamps = [f.timestamp_s for f in frames]
+    ids = [f.frame_id for f in frames]
+    info = cam.info
+    return CameraRecord(
+        frames=_stack(frames), pixel_format=frames[0].pixel_format or cfg.pixel_format,
+        bit_depth=cfg.bit_depth, black_level_dn=float(black),
+        exposure_s=float(features.get("exposure_s") or cfg.exposure_s),
+        trigger_times_s=np.asarray(trigger_times_s, dtype=np.float64), line_time_s=line_time_s,
+        gain_db=float(features.get("gain_db", cfg.gain_db)),
+        model=info.model if info else cfg.model, serial=cfg.serial,
+        timestamps_s=None if any(s is None for s in stamps) else np.asarray(stamps, np.float64),
+        frame_ids=None if any(i is None for i in ids) else np.asarray(ids, np.int64),
+        features=features)
+
+
+def _check_gs_timestamps(frames: list[Frame], period_s: float | None) -> list[str]:
+    stamps = [f.timestamp_s for f in frames]
+    if period_s is None or len(stamps) < 2 or any(s is None for s in stamps):
+        return []
+    steps = np.diff(stamps)
+    bad = np.abs(steps - period_s) > max(TIMESTAMP_TOL_S, 0.01 * period_s)
+    if bad.any():
+        return [f"GS timestamps are {', '.join(f'{s * 1e3:.3f}' for s in steps)} ms apart, "
+                f"the burst period is {period_s * 1e3:.3f} ms (dropped or extra trigger?)"]
+    return []
+
+
+def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
+            progress: Progress = print) -> list[CaptureResult]:
+    """Run `count` shots on the rig; each shot's bundle is written atomically. See module doc."""
+    from rngcam.bundle import Bundle, Calibration, Truth, TriggerRecord, write_bundle
+
+    c = rig.config
+    paths = output_paths(Path(out) if out is not None else None, count)
+    t_start = time.perf_counter()
+    psf, psf_source, psf_bias = rs_psf(rig, progress)
+    rs_timing, gs_timing, grid = nominal_timing(rig)
+    warnings: list[str] = []
+    results: list[CaptureResult] = []
+    shots = []
+    with contextlib.ExitStack() as stack:
+        world = _mock_world(rig, psf, gs_timing, grid) if c.cameras.rs.backend == "mock" else None
+        gen, fake = _connect_generator(rig, stack, progress)
+        cams: dict[str, Camera] = {}
+        for role in ("rs", "gs"):
+            cfg = getattr(c.cameras, role)
+            cam = stack.enter_context(_make_camera(cfg, role.upper(), world))
+            cams[role] = cam
+            progress(f"{role} camera: {cam.info.model} serial {cam.info.serial} ({cfg.backend})")
+            if fake is not None:
+                fake.connect(cfg.trigger.channel, cam.hardware_input)
+        for role, cam in cams.items():
+            cfg = getattr(c.cameras, role)
+            configured = cam.configure(CameraSettings.from_config(cfg))
+            warnings += configured.warnings
+            progress(f"{role} camera configured: {cfg.pixel_format}, {cfg.roi.width}x{cfg.roi.height}, "
+                     f"exposure {configured.exposure_s * 1e6:g} us, trigger {cfg.trigger.source} "
+                     f"{cfg.trigger.activation} <- generator channel {cfg.trigger.channel}")
+        summary, timing_warnings = verify_timing(rig, cams["rs"].configured.exposure_s,
+                                                 cams["gs"].configured.exposure_s,
+                                                 cams["rs"].line_time_s())
+        warnings += timing_warnings
+        for line in summary:
+            progress(f"timing: {line}")
+        gen.configure(pulse_trains(rig), c.generator.high_v, c.generator.low_v)
+        progress(f"generator configured: {c.generator.high_v:g}-{c.generator.low_v:g} V TTL pulses, "
+                 f"high-Z load; *OPC? ok, error queue empty")
+        gen.arm()
+        progress("generator armed: outputs on")
+        for w in warnings:
+            progress(f"warning: {w}")
+        for shot in range(count):
+            t_shot = time.perf_counter()
+            if world is not None:
+                world.t0_s = None
+            for cam in cams.values():
+                cam.arm()
+            for cam in cams.values():
+                cam.wait_ready(1.0)
+            progress(f"shot {shot + 1}/{count}: cameras armed and ready")
+            gen.fire()
+            progress(f"shot {shot + 1}/{count}: fired")
+            n_gs = len(c.timing.gs_trigger_s)
+            rs_frames = [cams["rs"].fetch(c.cameras.rs.fetch_timeout_s, "RS frame 1 of 1")]
+            gs_frames = [cams["gs"].fetch(c.cameras.gs.fetch_timeout_s, f"GS frame {i + 1} of {n_gs}")
+                         for i in range(n_gs)]
+            for cam in cams.values():
+                cam.disarm()
+            shot_warnings = _check_gs_timestamps(gs_frames, c.timing.gs_period_s)
+            for w in shot_warnings:
+                progress(f"warning: {w}")
+            progress(f"shot {shot + 1}/{count}: fetched 1 RS + {n_gs} GS frames "
+                     f"({time.perf_counter() - t_shot:.2f} s)")
+            truth = None
+            if world is not None:
+                truth = Truth(video=world.video(), frame_times_s=grid.edges_s()[:-1], dt_s=grid.dt_s)
+            shots.append((rs_frames, gs_frames, truth, shot_warnings))
+        gen.outputs_off()
+        progress("hardware safe: cameras disarmed, generator outputs off")
+        trigger = TriggerRecord(generator=gen.identity,
+                                settings=gen.settings | {"transport": c.generator.transport,
+                                                         "fired_channels": gen.channels},
+                                errors=list(gen.errors))
+    t0 = c.timing.rs_trigger_s
+    for path, (rs_frames, gs_frames, truth, shot_warnings) in zip(paths, shots):
+        calibration = Calibration(
+            psf=psf.astype(np.float32), psf_source=psf_source, psf_bias=psf_bias,
+            gs_to_rs=np.asarray(c.calibration.gs_to_rs if c.calibration.gs_to_rs else np.eye(3), np.float64),
+            white_balance=np.asarray(c.calibration.white_balance if c.calibration.white_balance
+                                     else np.ones(psf.shape[0]), np.float64),
+            extra={"psf_crop": c.calibration.psf.crop, "psf_spectral_support": spectral_support(psf)})
+        bundle = Bundle(
+            rs=_record(c.cameras.rs, cams["rs"], rs_frames, [0.0], c.cameras.rs.line_time_s),
+            gs=_record(c.cameras.gs, cams["gs"], gs_frames, [t - t0 for t in c.timing.gs_trigger_s], None),
+            calibration=calibration, trigger=trigger, truth=truth, rig_yaml=rig.text,
+            meta={"source": "capture", "rig_name": c.name, "rig_path": str(rig.path),
+                  "backend": c.cameras.rs.backend, "recon": c.recon.model_dump(),
+                  "grid_dt_s": grid.dt_s, "grid_frames": grid.n_frames,
+                  "scene": c.mock.model_dump() if c.mock else None,
+                  "warnings": warnings + shot_warnings})
+        t_write = time.perf_counter()
+        write_bundle(bundle, path)
+        write_s = time.perf_counter() - t_write
+        progress(f"wrote {path} ({write_s:.2f} s)")
+        results.append(CaptureResult(path, warnings + shot_warnings,
+                                     {"write_s": write_s, "total_s": time.perf_counter() - t_start}))
+    return results

@@ -1,0 +1,255 @@
+"""Physics-based mock cameras: frames rendered from a scene with rngcam.physics.
+
+A `MockWorld` holds the scene (rendered once by rngcam.sim.scenes on the video grid that starts
+at T0, the RS camera's trigger), the PSF in front of the RS sensor, and the mock devices that
+are "plugged in". A `MockCamera` behaves like a hardware-triggered machine-vision camera: it
+must be armed, it accepts a trigger edge on its input line only when ready (a GS camera is
+busy for exposure + readout, so triggers in between are missed, as on a real sensor), and a
+fetch waits for a frame with a finite timeout. Its frame is a real simulated measurement:
+
+- RS: RollingShutter(psf, RollingShutterTiming(line time, exposure, rows, trigger).weights) v
+- GS: GlobalShutter(GlobalShutterTiming(trigger, exposure).weights) v
+
+mapped to DN by rngcam.physics.sensor.SensorModel (noise seeded per camera and frame).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from rngcam.acquire.camera import Camera, CameraInfo, CameraSettings, Configured, Frame
+from rngcam.errors import HardwareError
+from rngcam.physics.operators import GlobalShutter, RollingShutter
+from rngcam.physics.sensor import SensorModel
+from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+
+TRIGGER_LINES = ("Line1", "Line2", "Line3", "Line4")
+EXPOSURE_STEP_S = 1e-6  # exposure is set in whole microseconds, like a Basler ace
+
+
+@dataclass(frozen=True)
+class MockDevice:
+    """A plugged-in mock camera: identity and sensor physics."""
+
+    serial: str
+    model: str
+    kind: str  # "rs" or "gs"
+    sensor: SensorModel
+    noise: bool = True
+    seed: int = 0
+    line_time_s: float | None = None  # RS only: the sensor's true line time
+    readout_s: float = 1e-3
+
+
+class MockWorld:
+    """The scene both mock cameras see, its video grid, the RS PSF, and the plugged devices."""
+
+    def __init__(self, scene: str, size: int, grid: VideoGrid, psf: np.ndarray | None,
+                 seed: int = 0, key_times_s=None, options: dict | None = None):
+        self.scene, self.size, self.grid, self.seed = scene, int(size), grid, seed
+        self.key_times_s = None if key_times_s is None else [float(t) for t in key_times_s]
+        self.options = dict(options or {})
+        self.psf = None if psf is None else np.asarray(psf, dtype=np.float64)
+        self.devices: dict[str, MockDevice] = {}
+        self.t0_s: float | None = None  # generator-clock time of the RS trigger
+        self._video: np.ndarray | None = None
+        self._lock = threading.Lock()
+
+    def plug(self, device: MockDevice) -> None:
+        self.devices[device.serial] = device
+
+    def video(self) -> np.ndarray:
+        """The truth video (3, K, N, N) float32 on `grid`, rendered once."""
+        with self._lock:
+            if self._video is None:
+                from rngcam.sim.scenes import render_scene
+
+                opts = dict(self.options)
+                if self.key_times_s is not None:
+                    opts.setdefault("key_times_s", self.key_times_s)
+                self._video = render_scene(self.scene, self.grid, self.size, self.seed, **opts)
+            return self._video
+
+    def relative(self, t_s: float, who: str) -> float:
+        """Generator-clock time -> time after T0, checked to lie on the video grid."""
+        if self.t0_s is None:
+            raise HardwareError(f"{who}: the mock scene has no T0 (the RS camera was never triggered)")
+        return t_s - self.t0_s
+
+    def check_inside(self, start_s: float, end_s: float, who: str) -> None:
+        span = self.grid.n_frames * self.grid.dt_s
+        if start_s < -1e-12 or end_s > span * (1 + 1e-9):
+            raise HardwareError(f"{who}: exposure [{start_s * 1e3:.3f}, {end_s * 1e3:.3f}] ms lies "
+                                f"outside the mock scene's interval [0, {span * 1e3:.3f}] ms after T0")
+
+
+class MockCamera(Camera):
+    backend = "mock"
+
+    def __init__(self, serial: str, label: str, world: MockWorld):
+        super().__init__(serial, label)
+        self.world = world
+        self.device: MockDevice | None = None
+        self.settings: CameraSettings | None = None
+        self.exposure_s = 0.0
+        self.missed_triggers = 0
+        self._pending: list[float] = []  # trigger times (generator clock) not yet fetched
+        self._busy_until_s = -np.inf
+        self._frame_count = 0
+        self._opened_at = 0.0
+        self._cv = threading.Condition()
+
+    # --- protocol ---
+    def open(self) -> CameraInfo:
+        dev = self.world.devices.get(self.serial)
+        if dev is None:
+            found = ", ".join(f"{d.model} ({s})" for s, d in self.world.devices.items()) or "none"
+            raise HardwareError(f"{self.label}: no mock camera with serial {self.serial}; found: {found}")
+        self.device = dev
+        self._opened_at = time.monotonic()
+        self.info = CameraInfo("mock", dev.model, dev.serial, "simulated", "rngcam")
+        return self.info
+
+    def _dev(self) -> MockDevice:
+        if self.device is None:
+            raise HardwareError(f"{self.label}: not open")
+        return self.device
+
+    def configure(self, settings: CameraSettings) -> Configured:
+        dev = self._dev()
+        out = Configured()
+        want = dev.sensor.pixel_format
+        if settings.pixel_format not in (None, want):
+            raise HardwareError(f"{self.label}: pixel format {settings.pixel_format!r} not supported "
+                                f"(this mock sensor gives {want!r})")
+        n = self.world.size
+        if settings.roi is not None and tuple(settings.roi) != (n, n, 0, 0):
+            raise HardwareError(f"{self.label}: ROI {settings.roi} not supported; the mock sensor is "
+                                f"{n}x{n} (offsets 0)")
+        if settings.trigger_source not in (None, "Software", *TRIGGER_LINES):
+            raise HardwareError(f"{self.label}: TriggerSource {settings.trigger_source!r} unknown")
+        if settings.trigger_activation not in ("RisingEdge", "FallingEdge"):
+            raise HardwareError(f"{self.label}: TriggerActivation {settings.trigger_activation!r} unknown")
+        exposure = settings.exposure_s if settings.exposure_s is not None else 1e-3
+        self.exposure_s = max(1, round(exposure / EXPOSURE_STEP_S)) * EXPOSURE_STEP_S
+        self.settings = settings
+        gain_db = settings.gain_db or 0.0
+        out.features = {
+            "PixelFormat": want, "Width": n, "Height": n, "OffsetX": 0, "OffsetY": 0,
+            "ExposureTime": self.exposure_s * 1e6, "exposure_s": self.exposure_s,
+            "Gain": gain_db, "gain_db": gain_db,
+            "TriggerSelector": "FrameStart",
+            "TriggerMode": "Off" if settings.trigger_source is None else "On",
+            "TriggerSource": settings.trigger_source, "TriggerActivation": settings.trigger_activation,
+            "BalanceWhiteAuto": "Off", "BlackLevel": dev.sensor.black_level_dn,
+            "DeviceModelName": dev.model, "DeviceSerialNumber": dev.serial,
+            "MockNoise": dev.noise, "MockSeed": dev.seed, "MockFullWell_e": dev.sensor.full_well_e,
+            "MockReadNoise_e": dev.sensor.read_noise_e,
+        }
+        if dev.kind == "rs":
+            out.features["SensorReadoutTime"] = (n - 1) * dev.line_time_s * 1e6
+        if settings.exposure_s is not None and abs(self.exposure_s - settings.exposure_s) > 1e-12:
+            out.warnings.append(f"{self.label}: ExposureTime is {self.exposure_s * 1e6:g} us "
+                                f"(asked for {settings.exposure_s * 1e6:g})")
+        self.configured = out
+        return out
+
+    def line_time_s(self) -> float | None:
+        dev = self._dev()
+        return dev.line_time_s if dev.kind == "rs" else None
+
+    def arm(self) -> None:
+        if self.settings is None:
+            raise HardwareError(f"{self.label}: arm before configure")
+        with self._cv:
+            self._pending.clear()  # stale frames are flushed
+            self._busy_until_s = -np.inf
+            self._frame_count = 0
+            self.missed_triggers = 0
+            self.armed = True
+
+    def software_trigger(self) -> None:
+        if self.settings is None or self.settings.trigger_source != "Software":
+            raise HardwareError(f"{self.label}: TriggerSource is not Software")
+        self._trigger(time.monotonic() - self._opened_at)
+
+    def hardware_input(self, pulses) -> None:
+        """Edges arriving on the trigger line (from the fake generator): a list of Pulse."""
+        s = self.settings
+        if s is None or s.trigger_source not in TRIGGER_LINES:
+            return
+        for p in pulses:
+            self._trigger(p.rise_s if s.trigger_activation == "RisingEdge" else p.fall_s)
+
+    def _busy_s(self) -> float:
+        dev = self._dev()
+        if dev.kind == "rs":
+            return (self.world.size - 1) * dev.line_time_s + self.exposure_s + dev.readout_s
+        return self.exposure_s + dev.readout_s
+
+    def _trigger(self, t_s: float) -> None:
+        with self._cv:
+            if not self.armed:
+                return
+            if t_s < self._busy_until_s:
+                self.missed_triggers += 1  # overtriggered: the sensor is still busy
+                return
+            self._busy_until_s = t_s + self._busy_s()
+            if self._dev().kind == "rs" and self.world.t0_s is None:
+                self.world.t0_s = t_s
+            self._pending.append(t_s)
+            self._cv.notify_all()
+
+    def fetch(self, timeout_s: float, what: str = "frame") -> Frame:
+        with self._cv:
+            if not self.armed:
+                raise HardwareError(f"{self.label}: fetch of {what} while not armed")
+            if not self._cv.wait_for(lambda: self._pending, timeout=timeout_s):
+                extra = f", {self.missed_triggers} trigger(s) missed while busy" if self.missed_triggers else ""
+                raise HardwareError(f"{self.label}: no {what} within {timeout_s:g} s "
+                                    f"(no trigger arrived{extra})")
+            t_s = self._pending.pop(0)
+            index = self._frame_count
+            self._frame_count += 1
+        data = self.render(t_s, index)
+        return Frame(data=data, pixel_format=self._dev().sensor.pixel_format, frame_id=index,
+                     timestamp_s=self._opened_at + t_s, exposure_s=self.exposure_s, trigger_time_s=t_s)
+
+    def render(self, t_s: float, index: int) -> np.ndarray:
+        """The raw frame for an exposure triggered at generator time t_s."""
+        dev, world = self._dev(), self.world
+        rel = world.relative(t_s, self.label)
+        n = world.size
+        video = torch.from_numpy(world.video()).double()
+        if dev.kind == "rs":
+            if world.psf is None:
+                raise HardwareError(f"{self.label}: the mock RS camera needs a PSF")
+            timing = RollingShutterTiming(dev.line_time_s, self.exposure_s, rows=n, trigger_s=rel)
+            world.check_inside(rel, timing.end_s, self.label)
+            op = RollingShutter(torch.from_numpy(world.psf), torch.from_numpy(timing.weights(world.grid)), n)
+            y = op.A(video)
+        else:
+            timing = GlobalShutterTiming((rel,), self.exposure_s)
+            world.check_inside(rel, timing.end_s, self.label)
+            y = GlobalShutter(torch.from_numpy(timing.weights(world.grid)), 3, (n, n)).A(video)[:, 0]
+        rng = np.random.default_rng([dev.seed, index])
+        sensor = dev.sensor
+        if self.settings and self.settings.gain_db:
+            g = 10 ** (self.settings.gain_db / 20)
+            sensor = SensorModel(sensor.bit_depth, sensor.black_level_dn, sensor.full_well_e,
+                                 sensor.read_noise_e, (g, g, g), sensor.bayer)
+        return sensor.capture(y.numpy(), self.exposure_s, world.grid.dt_s, rng=rng, noise=dev.noise)
+
+    def disarm(self) -> None:
+        with self._cv:
+            self.armed = False
+            self._pending.clear()
+
+    def close(self) -> None:
+        self.disarm()
+        self.device = None

@@ -1,0 +1,70 @@
+"""`rngcam capture` and `rngcam devices`: thin wrappers over rngcam.acquire."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import click
+
+
+@click.command("capture")
+@click.option("--rig", "rig_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Rig file (YAML), e.g. rigs/mock.yaml.")
+@click.option("-o", "--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Bundle to write (never overwritten). Default: capture-YYYYmmdd-HHMMSS.h5.")
+@click.option("--count", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Shots in a row; with N > 1 the names get -001, -002 ...")
+def capture_cmd(rig_path: Path, out: Path | None, count: int):
+    """Trigger the rig's cameras once (or N times) and write a capture bundle."""
+    from rngcam.acquire.capture import capture
+    from rngcam.config import load_rig
+
+    rig = load_rig(rig_path)
+    click.echo(f"rig: {rig.config.name} ({rig_path})")
+    results = capture(rig, out, count=count, progress=click.echo)
+    for r in results:
+        click.echo(f"done: {r.path} in {r.seconds['total_s']:.2f} s"
+                   + (f" with {len(r.warnings)} warning(s)" if r.warnings else ""))
+
+
+@click.command("devices")
+@click.option("--backend", type=click.Choice(["genicam", "pylon", "mock"]), default=None,
+              help="Camera backend to list (default: mock, plus genicam when a .cti is known).")
+@click.option("--cti", type=click.Path(dir_okay=False), default=None,
+              help="GenTL producer for the genicam backend (default: $RNGCAM_CTI).")
+@click.option("--pylon-tl", "pylon_tl", default=None,
+              help="Only this pylon transport layer (e.g. BaslerCamEmu); default: all "
+                   "(broadcasts discovery on GigE networks).")
+@click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="List the mock cameras of this rig.")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
+def devices_cmd(backend, cti, pylon_tl, rig_path, as_json):
+    """List cameras (model, serial, interface) and serial ports."""
+    import os
+
+    from rngcam.acquire.devices import list_cameras, list_serial_ports
+    from rngcam.acquire.genicam_camera import CTI_ENV
+    from rngcam.config import load_rig
+
+    rig = load_rig(rig_path) if rig_path else None
+    backends = [backend] if backend else ["mock"] + (["genicam"] if (cti or os.environ.get(CTI_ENV)) else [])
+    cameras = []
+    for b in backends:
+        cameras += list_cameras(b, cti=cti, pylon_transport=pylon_tl, rig=rig)
+    ports = list_serial_ports()
+    if as_json:
+        click.echo(json.dumps({"cameras": [asdict(c) for c in cameras],
+                               "serial_ports": [asdict(p) for p in ports]}, indent=2))
+        return
+    click.echo(f"cameras ({', '.join(backends)}):")
+    if not cameras:
+        click.echo("  none found")
+    for c in cameras:
+        click.echo(f"  {c.backend:8s} {c.model:28s} serial {c.serial:16s} {c.interface}")
+    click.echo("serial ports:")
+    if not ports:
+        click.echo("  none found")
+    for p in ports:
+        click.echo(f"  {p.device:16s} {p.description} [{p.hwid}]")
