@@ -8,6 +8,7 @@ or raises ConfigError with one line naming the file, the field and the problem.
 
 from __future__ import annotations
 
+import difflib
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -250,13 +251,20 @@ def _location(loc: tuple) -> str:
 
 
 def format_validation_error(path: Path, exc: ValidationError) -> str:
-    """One line: 'FILE: field.path: problem' for the first error, plus how many more."""
-    errors = exc.errors()
+    """One line: 'FILE: field.path: problem' for the first error, plus how many more.
+
+    Unknown fields come first (a misspelt name is also reported as a missing one), with the
+    missing name they most resemble as a suggestion.
+    """
+    errors = sorted(exc.errors(), key=lambda e: e["type"] != "extra_forbidden")
     first = errors[0]
     msg = first["msg"].removeprefix("Value error, ")
     loc = _location(first["loc"])
     if first["type"] == "extra_forbidden":
-        msg = "unknown field (check the spelling)"
+        missing = [str(e["loc"][-1]) for e in errors
+                   if e["type"] == "missing" and e["loc"][:-1] == first["loc"][:-1]]
+        close = difflib.get_close_matches(str(first["loc"][-1]), missing, n=1)
+        msg = "unknown field" + (f" (did you mean {close[0]!r}?)" if close else " (check the spelling)")
     line = f"{path}: {loc}: {msg}"
     if len(errors) > 1:
         line += f" (and {len(errors) - 1} more problem{'s' if len(errors) > 2 else ''})"

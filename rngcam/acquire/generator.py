@@ -19,7 +19,8 @@ from dataclasses import asdict, dataclass
 
 from rngcam.errors import HardwareError
 
-_ERROR_ANSWER = re.compile(r'^\s*([+-]?\d+)\s*,\s*"?(.*?)"?\s*$')
+# '<code>,"<message>"' (SCPI); some firmware omits the quotes, then the message starts with a letter.
+_ERROR_ANSWER = re.compile(r'^\s*([+-]?\d+)\s*,\s*(?:"([^"]*)"|([A-Za-z][^"]*?))\s*$')
 MAX_ERRORS_READ = 20
 
 
@@ -157,7 +158,7 @@ def parse_error_answer(answer: str) -> tuple[int, str]:
     m = _ERROR_ANSWER.match(answer)
     if not m:
         raise HardwareError(f"generator answered garbage to the error query: {answer[:60]!r}")
-    return int(m.group(1)), m.group(2)
+    return int(m.group(1)), m.group(2) if m.group(2) is not None else m.group(3)
 
 
 class FunctionGenerator:

@@ -214,3 +214,13 @@ def _chunk_value(result, name: str):
 def _chunk_timestamp(result):
     value = _chunk_value(result, "ChunkTimestamp")
     return None if value is None else int(value)
+
+
+def emulator_serve_images(camera: PylonCamera, path) -> None:
+    """Camera emulator only: serve frames from an image file or a folder of them (cycled in
+    name order). For exact 12-bit data write 16-bit PNGs holding value << 4."""
+    fm = camera.features
+    for name, value in (("TestImageSelector", "Off"), ("ImageFileMode", "On"), ("ImageFilename", str(path))):
+        if not fm.writable(name):
+            raise HardwareError(f"{camera.label}: feature {name} is missing (not the pylon camera emulator?)")
+        fm.set(name, value)

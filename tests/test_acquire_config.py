@@ -1,0 +1,104 @@
+"""Rig files: the shipped rigs validate, and every kind of mistake gives one clear line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from rngcam.acquire.capture import nominal_timing, verify_timing
+from rngcam.config import load_rig, parse_rig
+from rngcam.errors import ConfigError
+
+RIGS = Path(__file__).resolve().parents[1] / "rigs"
+MOCK_TEXT = (RIGS / "mock.yaml").read_text()
+
+
+def _bad(text: str) -> str:
+    with pytest.raises(ConfigError) as err:
+        parse_rig(text, RIGS / "mock.yaml")
+    message = str(err.value)
+    assert "\n" not in message
+    assert message.startswith(str(RIGS / "mock.yaml"))
+    return message
+
+
+def test_lab_rig_is_the_reference_prototype():
+    rig = load_rig(RIGS / "lab.yaml")
+    c = rig.config
+    assert c.cameras.rs.model == "acA5472-17uc" and c.cameras.gs.model == "acA1920-155uc"
+    assert (c.cameras.rs.roi.width, c.cameras.rs.roi.height) == (5472, 3648)
+    assert c.cameras.rs.exposure_s == c.cameras.gs.exposure_s == 650e-6
+    assert c.cameras.rs.line_time_s == 13e-6 and c.recon.rows_per_bin == 16
+    assert len(c.timing.gs_trigger_s) == 3 and c.generator.transport == "serial"
+    rs, gs, grid = nominal_timing(rig)
+    assert grid.dt_s == pytest.approx(208e-6)
+    # 228 grid rows of 16 sensor rows; the last row's exposure ends 48.061 ms after T0
+    assert grid.n_frames == 232 and (grid.n_frames - 1) * 208e-6 < 3647 * 13e-6 + 650e-6
+    lines, warnings = verify_timing(rig, rs.exposure_s, gs.exposure_s, None)
+    assert warnings == [] and "inside the RS window" in lines[1]
+    assert rig.text == (RIGS / "lab.yaml").read_text()
+
+
+def test_mock_rig_keeps_the_reference_timing_at_64_rows():
+    rig = load_rig(RIGS / "mock.yaml")
+    c = rig.config
+    assert c.cameras.rs.backend == c.cameras.gs.backend == "mock"
+    assert c.generator.transport == "fake" and c.mock.scene == "sineball"
+    _, _, grid = nominal_timing(rig)
+    assert grid.dt_s == pytest.approx(208e-6) and c.cameras.rs.roi.height == 64
+    assert rig.resolve(c.calibration.psf.path).name == "diffusercam_tutorial_psf_sample.tif"
+
+
+def test_missing_file():
+    with pytest.raises(ConfigError, match="rig file not found"):
+        load_rig(RIGS / "no-such-rig.yaml")
+
+
+def test_invalid_yaml_names_the_line():
+    assert "line 2: not valid YAML" in _bad("name: x\n  cameras: : :\n")
+
+
+def test_unknown_field_is_named():
+    message = _bad(MOCK_TEXT.replace("exposure_s: 650.0e-6\n    gain_db", "exposure_sec: 650.0e-6\n    gain_db", 1))
+    assert "cameras.rs.exposure_sec: unknown field" in message
+
+
+def test_negative_exposure_names_the_field():
+    message = _bad(MOCK_TEXT.replace("exposure_s: 650.0e-6", "exposure_s: -1.0", 1))
+    assert "cameras.rs.exposure_s" in message and "greater than 0" in message
+
+
+def test_unequal_gs_spacing_is_rejected():
+    message = _bad(MOCK_TEXT.replace("[0.0, 6.5e-3, 13.0e-3]", "[0.0, 6.0e-3, 13.0e-3]"))
+    assert "timing.gs_trigger_s" in message and "equally spaced" in message
+
+
+def test_serial_transport_needs_a_port():
+    text = MOCK_TEXT.replace("transport: fake", "transport: serial")
+    assert "generator" in _bad(text) and "needs 'port'" in _bad(text)
+
+
+def test_mock_cameras_need_the_fake_generator():
+    text = MOCK_TEXT.replace("transport: fake", "transport: serial\n  port: /dev/ttyUSB0")
+    assert "only receive triggers from generator transport 'fake'" in _bad(text)
+
+
+def test_cameras_need_separate_channels():
+    text = MOCK_TEXT.replace("activation: RisingEdge, channel: 2", "activation: RisingEdge, channel: 1")
+    assert "must differ" in _bad(text)
+
+
+def test_gs_exposure_outside_the_rs_window_fails_before_any_hardware():
+    rig = parse_rig(MOCK_TEXT.replace("[0.0, 6.5e-3, 13.0e-3]", "[0.0, 7.0e-3, 14.0e-3]"), RIGS / "mock.yaml")
+    with pytest.raises(ConfigError, match=r"GS exposure 3 .* not inside the RS exposure window"):
+        verify_timing(rig, 650e-6, 650e-6, None)
+
+
+def test_line_time_mismatch_and_long_exposure_warn():
+    rig = load_rig(RIGS / "mock.yaml")
+    _, warnings = verify_timing(rig, 650e-6, 650e-6, 200e-6)
+    assert any("line time is 200 us but the rig says 208 us" in w for w in warnings)
+    long_rig = parse_rig(MOCK_TEXT.replace("exposure_s: 650.0e-6", "exposure_s: 20.0e-3", 1), RIGS / "mock.yaml")
+    _, warnings = verify_timing(long_rig, 20e-3, 650e-6, None)
+    assert any("longer than its readout" in w for w in warnings)
