@@ -155,14 +155,20 @@ def load_state_dict(path: Path) -> dict[str, torch.Tensor]:
     return {k.removeprefix("module."): v for k, v in state.items()}
 
 
-@functools.lru_cache(maxsize=2)
 def load_ifnet(weights: str | Path | None = None, device: str = "cpu") -> IFNet:
-    """IFNet with the pretrained weights loaded strictly (every key matched), in eval mode."""
+    """IFNet with the pretrained weights loaded strictly (every key matched), in eval mode.
+
+    Cached per (weights file, device); treat the returned network as read-only."""
     path = Path(weights) if weights is not None else find_weights()
     if not path.is_file():
         raise RifeUnavailableError(f"RIFE weights file not found: {path}")
+    return _load_ifnet_cached(str(path.resolve()), str(device))
+
+
+@functools.lru_cache(maxsize=2)
+def _load_ifnet_cached(path: str, device: str) -> IFNet:
     net = IFNet()
-    net.load_state_dict(load_state_dict(path), strict=True)
+    net.load_state_dict(load_state_dict(Path(path)), strict=True)
     return net.to(device).eval()
 
 
@@ -230,7 +236,7 @@ def rife(gs, gs_times_s, frame_times_s, weights=None, device: str = "cpu") -> np
     c, g, h, w = f.shape
     if c not in (1, 3):
         raise BaselineInputError(f"rife needs 1 or 3 channels, got {c}")
-    net = load_ifnet(None if weights is None else str(weights), device)
+    net = load_ifnet(weights, device)
     if g == 1:
         return np.repeat(f, len(targets), axis=1)
     idx, frac = bracket(keys.times_s, targets)
