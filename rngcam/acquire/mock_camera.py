@@ -100,7 +100,8 @@ class MockCamera(Camera):
         self.missed_triggers = 0
         self._pending: list[float] = []  # trigger times (generator clock) not yet fetched
         self._busy_until_s = -np.inf
-        self._frame_count = 0
+        self._frame_count = 0  # frame ids, from 0 after each arm
+        self._frames_rendered = 0  # since open: seeds the noise, so every shot has fresh noise
         self._opened_at = 0.0
         self._cv = threading.Condition()
 
@@ -216,12 +217,14 @@ class MockCamera(Camera):
             t_s = self._pending.pop(0)
             index = self._frame_count
             self._frame_count += 1
-        data = self.render(t_s, index)
+            self._frames_rendered += 1
+            noise_index = self._frames_rendered
+        data = self.render(t_s, noise_index)
         return Frame(data=data, pixel_format=self._dev().sensor.pixel_format, frame_id=index,
                      timestamp_s=self._opened_at + t_s, exposure_s=self.exposure_s, trigger_time_s=t_s)
 
     def render(self, t_s: float, index: int) -> np.ndarray:
-        """The raw frame for an exposure triggered at generator time t_s."""
+        """The raw frame for an exposure triggered at generator time t_s (index seeds the noise)."""
         dev, world = self._dev(), self.world
         rel = world.relative(t_s, self.label)
         n = world.size
