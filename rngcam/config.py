@@ -184,10 +184,10 @@ class CalibrationConfig(_Model):
 
 
 class ReconConfig(_Model):
-    """How the reconstruction bins the RS sensor: one video frame = line time x rows_per_bin."""
+    """How the reconstruction bins the RS sensor (grid_bin x grid_bin sensor pixels per grid
+    pixel), so one video frame lasts line time x grid_bin. Written to the bundle's meta."""
 
-    rows_per_bin: int = Field(default=1, ge=1)
-    cols_per_bin: int = Field(default=1, ge=1)
+    grid_bin: int = Field(default=1, ge=1)
 
 
 class MockSceneConfig(_Model):

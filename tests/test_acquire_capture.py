@@ -106,6 +106,7 @@ def test_cli_capture_writes_a_bundle_matching_the_physics_within_noise(tmp_path)
     np.testing.assert_array_equal(b.calibration.white_balance, np.ones(3))
     assert b.truth.video.shape == (3, 67, 64, 64) and b.truth.dt_s == pytest.approx(208e-6)
     assert b.trigger.errors == [] and "33522B" in b.trigger.generator
+    assert b.meta["grid_bin"] == 1 and b.meta["scene"]["scene"] == "sineball"
     assert b.trigger.settings["trains"][1]["count"] == 3
     # noise on: residuals against the noiseless prediction are shot + read noise, nothing more
     for role in ("rs", "gs"):

@@ -29,7 +29,7 @@ def test_lab_rig_is_the_reference_prototype():
     assert c.cameras.rs.model == "acA5472-17uc" and c.cameras.gs.model == "acA1920-155uc"
     assert (c.cameras.rs.roi.width, c.cameras.rs.roi.height) == (5472, 3648)
     assert c.cameras.rs.exposure_s == c.cameras.gs.exposure_s == 650e-6
-    assert c.cameras.rs.line_time_s == 13e-6 and c.recon.rows_per_bin == 16
+    assert c.cameras.rs.line_time_s == 13e-6 and c.recon.grid_bin == 16
     assert len(c.timing.gs_trigger_s) == 3 and c.generator.transport == "serial"
     rs, gs, grid = nominal_timing(rig)
     assert grid.dt_s == pytest.approx(208e-6)

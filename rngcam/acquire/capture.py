@@ -136,7 +136,7 @@ def nominal_timing(rig: Rig) -> tuple[RollingShutterTiming, GlobalShutterTiming,
                               rows=c.cameras.rs.roi.height)
     t0 = c.timing.rs_trigger_s
     gs = GlobalShutterTiming(tuple(t - t0 for t in c.timing.gs_trigger_s), c.cameras.gs.exposure_s)
-    grid = VideoGrid.covering(rs, gs, dt_s=rs.line_time_s * c.recon.rows_per_bin)
+    grid = VideoGrid.covering(rs, gs, dt_s=rs.line_time_s * c.recon.grid_bin)
     return rs, gs, grid
 
 
@@ -373,7 +373,7 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
             gs=_record(c.cameras.gs, cams["gs"], gs_frames, [t - t0 for t in c.timing.gs_trigger_s], None),
             calibration=calibration, trigger=trigger, truth=truth, rig_yaml=rig.text,
             meta={"source": "capture", "rig_name": c.name, "rig_path": str(rig.path),
-                  "backend": c.cameras.rs.backend, "recon": c.recon.model_dump(),
+                  "backend": c.cameras.rs.backend, "grid_bin": c.recon.grid_bin,
                   "grid_dt_s": grid.dt_s, "grid_frames": grid.n_frames,
                   "scene": c.mock.model_dump() if c.mock else None,
                   "warnings": warnings + shot_warnings})
