@@ -9,6 +9,7 @@ or raises ConfigError with one line naming the file, the field and the problem.
 from __future__ import annotations
 
 import difflib
+import itertools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -110,7 +111,7 @@ class TimingConfig(_Model):
     def _increasing_equally_spaced(cls, v: list[float]) -> list[float]:
         if any(not math.isfinite(t) or t < 0 for t in v):
             raise ValueError("GS trigger times must be finite and >= 0")
-        steps = [b - a for a, b in zip(v, v[1:])]
+        steps = [b - a for a, b in itertools.pairwise(v)]
         if any(s <= 0 for s in steps):
             raise ValueError("GS trigger times must be strictly increasing")
         if steps and max(steps) - min(steps) > _SPACING_RTOL * max(steps):
@@ -124,7 +125,7 @@ class TimingConfig(_Model):
         return (g[-1] - g[0]) / (len(g) - 1) if len(g) > 1 else None
 
     @model_validator(mode="after")
-    def _pulse_fits(self) -> "TimingConfig":
+    def _pulse_fits(self) -> TimingConfig:
         period = self.gs_period_s
         if period is not None and self.pulse_width_s >= period:
             raise ValueError(f"pulse_width_s ({self.pulse_width_s}) must be shorter than the GS "
@@ -148,7 +149,7 @@ class GeneratorConfig(_Model):
     fake_fault: FakeFault = "none"  # test hook for the fake instrument only
 
     @model_validator(mode="after")
-    def _transport_fields(self) -> "GeneratorConfig":
+    def _transport_fields(self) -> GeneratorConfig:
         if self.transport == "serial" and not self.port:
             raise ValueError("transport 'serial' needs 'port' (e.g. /dev/ttyUSB0 or COM3)")
         if self.transport == "visa" and not self.visa_resource:
@@ -209,7 +210,7 @@ class RigConfig(_Model):
     mock: MockSceneConfig | None = None
 
     @model_validator(mode="after")
-    def _consistent(self) -> "RigConfig":
+    def _consistent(self) -> RigConfig:
         rs, gs = self.cameras.rs, self.cameras.gs
         if rs.line_time_s is None:
             raise ValueError("cameras.rs.line_time_s is required (the RS row-to-row delay)")

@@ -15,9 +15,9 @@ import pytest
 genicam = pytest.importorskip("genicam", reason="the genicam wheel (viky.cti) is not installed")
 pytest.importorskip("harvesters", reason="harvesters is not installed")
 
-from rngcam.acquire.camera import CameraSettings  # noqa: E402
-from rngcam.acquire.genicam_camera import CTI_ENV, GenicamCamera, list_genicam_cameras, resolve_cti  # noqa: E402
-from rngcam.errors import HardwareError  # noqa: E402
+from rngcam.acquire.camera import CameraSettings
+from rngcam.acquire.genicam_camera import CTI_ENV, GenicamCamera, list_genicam_cameras, resolve_cti
+from rngcam.errors import HardwareError
 
 CTI = Path(genicam.__file__).parent / "viky.cti"
 if not CTI.is_file():

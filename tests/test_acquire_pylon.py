@@ -15,10 +15,14 @@ os.environ.setdefault("PYLON_CAMEMU", "1")  # must be set before the emulator la
 pytest.importorskip("pypylon", reason="pypylon (the optional 'pylon' extra) is not installed")
 cv2 = pytest.importorskip("cv2")
 
-from rngcam.acquire.camera import CameraSettings  # noqa: E402
-from rngcam.acquire.pylon_camera import (EMULATOR_TL, PylonCamera, emulator_serve_images,  # noqa: E402
-                                         list_pylon_cameras)
-from rngcam.errors import HardwareError  # noqa: E402
+from rngcam.acquire.camera import CameraSettings
+from rngcam.acquire.pylon_camera import (
+    EMULATOR_TL,
+    PylonCamera,
+    emulator_serve_images,
+    list_pylon_cameras,
+)
+from rngcam.errors import HardwareError
 
 SERIAL = "0815-0000"
 SETTINGS = CameraSettings(exposure_s=650e-6, gain_db=0.0, pixel_format="BayerRG12", roi=(64, 48, 0, 0),

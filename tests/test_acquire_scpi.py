@@ -54,10 +54,10 @@ def test_configure_arm_fire_delivers_the_planned_pulses(dialect):
 @pytest.mark.parametrize("dialect", DIALECT_NAMES)
 def test_scpi_error_after_configuration_is_reported_and_outputs_end_off(dialect):
     with FakeGenerator(dialect, fault="scpi_error") as fake:
-        with pytest.raises(HardwareError, match=r"SCPI error.*-222,Data out of range") as err:
-            with _generator(fake) as gen:
-                gen.identify()
-                gen.configure([RS, GS])
+        with (pytest.raises(HardwareError, match=r"SCPI error.*-222,Data out of range") as err,
+              _generator(fake) as gen):
+            gen.identify()
+            gen.configure([RS, GS])
         assert "\n" not in str(err.value)
         assert not any(ch.output for ch in fake.channels.values())
 

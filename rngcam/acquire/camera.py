@@ -32,7 +32,7 @@ class CameraSettings:
     chunk_timestamps: bool = False
 
     @classmethod
-    def from_config(cls, cfg) -> "CameraSettings":
+    def from_config(cls, cfg) -> CameraSettings:
         """From a rngcam.config.CameraConfig."""
         return cls(exposure_s=cfg.exposure_s, gain_db=cfg.gain_db, pixel_format=cfg.pixel_format,
                    roi=(cfg.roi.width, cfg.roi.height, cfg.roi.offset_x, cfg.roi.offset_y),
@@ -125,7 +125,7 @@ class Camera(ABC):
         """The RS line time the camera reports or that can be measured, else None."""
         return None
 
-    def __enter__(self) -> "Camera":
+    def __enter__(self) -> Camera:
         self.open()
         return self
 

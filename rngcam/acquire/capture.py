@@ -13,17 +13,17 @@ from __future__ import annotations
 import contextlib
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from rngcam.acquire.camera import Camera, CameraSettings, Frame
 from rngcam.acquire.generator import FunctionGenerator, PulseTrain
 from rngcam.config import CameraConfig, MockSensor, Rig
-from rngcam.errors import ConfigError, HardwareError
+from rngcam.errors import ConfigError
 from rngcam.physics.psf import load_psf, prepare_psf, spectral_support, subtract_bias
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 
@@ -149,8 +149,8 @@ def verify_timing(rig: Rig, rs_exposure_s: float, gs_exposure_s: float,
     readout = (rows - 1) * line
     window_end = readout + rs_exposure_s
     t0 = c.timing.rs_trigger_s
-    lines = [f"RS: {rows} rows x {line * 1e6:g} us line time = {readout * 1e3:.3f} ms readout, "
-             f"exposure {rs_exposure_s * 1e6:g} us, window [0, {window_end * 1e3:.3f}] ms after T0"]
+    lines = [(f"RS: {rows} rows x {line * 1e6:g} us line time = {readout * 1e3:.3f} ms readout, "
+              f"exposure {rs_exposure_s * 1e6:g} us, window [0, {window_end * 1e3:.3f}] ms after T0")]
     warnings: list[str] = []
     for i, t in enumerate(c.timing.gs_trigger_s):
         start, end = t - t0, t - t0 + gs_exposure_s
@@ -279,21 +279,21 @@ def _check_gs_timestamps(frames: list[Frame], period_s: float | None) -> list[st
     steps = np.diff(stamps)
     bad = np.abs(steps - period_s) > max(TIMESTAMP_TOL_S, 0.01 * period_s)
     if bad.any():
-        return [f"GS timestamps are {', '.join(f'{s * 1e3:.3f}' for s in steps)} ms apart, "
-                f"the burst period is {period_s * 1e3:.3f} ms (dropped or extra trigger?)"]
+        return [(f"GS timestamps are {', '.join(f'{s * 1e3:.3f}' for s in steps)} ms apart, "
+                 f"the burst period is {period_s * 1e3:.3f} ms (dropped or extra trigger?)")]
     return []
 
 
 def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
             progress: Progress = print) -> list[CaptureResult]:
     """Run `count` shots on the rig; each shot's bundle is written atomically. See module doc."""
-    from rngcam.bundle import Bundle, Calibration, Truth, TriggerRecord, write_bundle
+    from rngcam.bundle import Bundle, Calibration, TriggerRecord, Truth, write_bundle
 
     c = rig.config
     paths = output_paths(Path(out) if out is not None else None, count)
     t_start = time.perf_counter()
     psf, psf_source, psf_bias = rs_psf(rig, progress)
-    rs_timing, gs_timing, grid = nominal_timing(rig)
+    _, gs_timing, grid = nominal_timing(rig)
     warnings: list[str] = []
     results: list[CaptureResult] = []
     shots = []

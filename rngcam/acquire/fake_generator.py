@@ -20,8 +20,8 @@ import select
 import threading
 import time
 import tty
-from dataclasses import dataclass, field
-from typing import Callable
+from collections.abc import Callable
+from dataclasses import dataclass
 
 TTL_THRESHOLD_V = 2.0  # a camera's opto-coupled input needs about this much to switch
 
@@ -79,7 +79,7 @@ def _f(x: str) -> float:
 def _keysight_rules():
     C = r"(?:SOUR(?:CE)?)?([12])?"
     return [
-        (rf"OUTP(?:UT)?([12])?:LOAD (INF|INFINITY|\d+)", lambda s, m: setattr(s, "load", "INF" if m[2].startswith("INF") else m[2])),
+        (r"OUTP(?:UT)?([12])?:LOAD (INF|INFINITY|\d+)", lambda s, m: setattr(s, "load", "INF" if m[2].startswith("INF") else m[2])),
         (rf"{C}:FUNC(?:TION)? (PULS|PULSE|SIN|SQU)", lambda s, m: setattr(s, "function", m[2][:4])),
         (rf"{C}:FUNC(?:TION)?:PULS(?:E)?:PER(?:IOD)? {_NUM}", lambda s, m: setattr(s, "period_s", _f(m[2]))),
         (rf"{C}:FUNC(?:TION)?:PULS(?:E)?:WIDT(?:H)? {_NUM}", lambda s, m: setattr(s, "width_s", _f(m[2]))),
@@ -89,9 +89,9 @@ def _keysight_rules():
         (rf"{C}:BURS(?:T)?:NCYC(?:LES)? (\d+)", lambda s, m: setattr(s, "count", int(m[2]))),
         (rf"{C}:BURS(?:T)?:PHAS(?:E)? {_NUM}", lambda s, m: None),
         (rf"{C}:BURS(?:T)?:STAT(?:E)? (ON|OFF|1|0)", lambda s, m: setattr(s, "burst", m[2] in ("ON", "1"))),
-        (rf"TRIG(?:GER)?([12])?:SOUR(?:CE)? (BUS|IMM|EXT)", lambda s, m: setattr(s, "trigger_source", m[2])),
+        (r"TRIG(?:GER)?([12])?:SOUR(?:CE)? (BUS|IMM|EXT)", lambda s, m: setattr(s, "trigger_source", m[2])),
         (rf"TRIG(?:GER)?([12])?:DEL(?:AY)? {_NUM}", lambda s, m: setattr(s, "delay_s", _f(m[2]))),
-        (rf"OUTP(?:UT)?([12])? (ON|OFF|1|0)", lambda s, m: setattr(s, "output", m[2] in ("ON", "1"))),
+        (r"OUTP(?:UT)?([12])? (ON|OFF|1|0)", lambda s, m: setattr(s, "output", m[2] in ("ON", "1"))),
     ]
 
 
@@ -173,7 +173,7 @@ class FakeGenerator:
         self.port = ""
 
     # --- lifecycle ---
-    def start(self) -> "FakeGenerator":
+    def start(self) -> FakeGenerator:
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)  # no echo, no line editing: bytes pass through untouched
         self.port = os.ttyname(self._slave)
@@ -193,7 +193,7 @@ class FakeGenerator:
                     pass
         self._master = self._slave = -1
 
-    def __enter__(self) -> "FakeGenerator":
+    def __enter__(self) -> FakeGenerator:
         return self.start()
 
     def __exit__(self, *exc) -> None:

@@ -46,7 +46,7 @@ class FeatureMap(ABC):
 
     def minimum(self, name: str):
         """The smallest allowed value of a numeric feature, when known."""
-        return None
+        return
 
     def first_writable(self, names) -> str | None:
         return next((n for n in names if self.writable(n)), None)

@@ -131,10 +131,10 @@ class SiglentSDG(Dialect):
         n = train.channel
         return [
             f"C{n}:OUTP LOAD,HZ",
-            f"C{n}:BSWV WVTP,PULSE,PRD,{_num(train.waveform_period_s)},WIDTH,{_num(train.width_s)},"
-            f"HLEV,{_num(high_v)},LLEV,{_num(low_v)}",
-            f"C{n}:BTWV STATE,ON,GATE_NCYC,NCYC,TIME,{train.count},TRSR,MAN,"
-            f"DLAY,{_num(train.delay_s)}",
+            (f"C{n}:BSWV WVTP,PULSE,PRD,{_num(train.waveform_period_s)},WIDTH,{_num(train.width_s)},"
+             f"HLEV,{_num(high_v)},LLEV,{_num(low_v)}"),
+            (f"C{n}:BTWV STATE,ON,GATE_NCYC,NCYC,TIME,{train.count},TRSR,MAN,"
+             f"DLAY,{_num(train.delay_s)}"),
         ]
 
     def output(self, channel, on):
@@ -176,7 +176,7 @@ class FunctionGenerator:
         self.errors: list[str] = []
         self.settings: dict = {}
 
-    def __enter__(self) -> "FunctionGenerator":
+    def __enter__(self) -> FunctionGenerator:
         return self
 
     def __exit__(self, *exc) -> None:

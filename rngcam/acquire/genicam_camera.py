@@ -200,7 +200,7 @@ class GenicamCamera(Camera):
             raise HardwareError(f"{self.label}: no {what} within {timeout_s:g} s (no trigger arrived?)")
         try:
             c = buffer.payload.components[0]
-            per_pixel = int(round(c.num_components_per_pixel)) or 1
+            per_pixel = round(c.num_components_per_pixel) or 1
             shape = (c.height, c.width) if per_pixel == 1 else (c.height, c.width, per_pixel)
             data = np.array(c.data, copy=True).reshape(shape)
             frame_id = _maybe(lambda: int(buffer.module.frame_id))
