@@ -249,3 +249,15 @@ def test_installed_command_then_inspect(tmp_path):
     inspect = CliRunner().invoke(main, ["inspect", str(tmp_path / "m.h5")])
     assert inspect.exit_code == 0, inspect.output
     assert "MOCK-RS-0001" in inspect.output
+
+
+def test_psf_falls_back_to_the_shared_data_folder(tmp_path, monkeypatch):
+    from rngcam.acquire.capture import resolve_psf_path
+
+    copy = tmp_path / "mock.yaml"
+    copy.write_text(MOCK_TEXT)  # ../../shared/data/... no longer leads anywhere from here
+    assert resolve_psf_path(load_rig(copy)) == PSF
+    monkeypatch.setenv("RNGCAM_DATA", str(tmp_path / "nowhere"))
+    with pytest.raises(ConfigError, match=r"mock.yaml: calibration.psf.path: PSF file not found.*RNGCAM_DATA"):
+        capture(load_rig(copy), tmp_path / "x.h5", progress=lambda s: None)
+    assert not (tmp_path / "x.h5").exists()

@@ -104,6 +104,8 @@ def rs_psf(rig: Rig, progress: Progress) -> tuple[np.ndarray, str, float]:
     """(PSF (C, H, W) float64 summing to 1 per channel on the RS sensor grid, source, bias)."""
     cfg = rig.config.calibration.psf
     path = resolve_psf_path(rig)
+    if path != rig.resolve(cfg.path):
+        progress(f"psf: {rig.resolve(cfg.path)} not found; using {path} from the shared data folder")
     roi = rig.config.cameras.rs.roi
     shape = (roi.height, roi.width)
     try:
