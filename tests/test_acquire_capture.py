@@ -8,6 +8,7 @@ model of the bundle's own truth video.
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -261,3 +262,11 @@ def test_psf_falls_back_to_the_shared_data_folder(tmp_path, monkeypatch):
     with pytest.raises(ConfigError, match=r"mock.yaml: calibration.psf.path: PSF file not found.*RNGCAM_DATA"):
         capture(load_rig(copy), tmp_path / "x.h5", progress=lambda s: None)
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_default_output_name_is_timestamped(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(main, ["capture", "--rig", str(MOCK)])
+    assert result.exit_code == 0, result.output
+    [written] = os.listdir(tmp_path)
+    assert re.fullmatch(r"capture-\d{8}-\d{6}\.h5", written)
