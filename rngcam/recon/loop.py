@@ -1,0 +1,210 @@
+"""The one solver loop every iterative method uses.
+
+It runs `method.step()` until a wall-clock budget and/or an iteration count is reached; logs
+time, objective, per-sensor relative residuals and, with truth, PSNR/SSIM (all frames and
+intermediate frames) at regular intervals; shows a progress bar; checkpoints and resumes; and
+guards against NaN/Inf by rolling back to the last good state with a smaller step.
+
+Time: `wall_s` is elapsed wall-clock time since the start (the budget applies to it); `solve_s`
+is the time spent inside `step()` only, excluding metric evaluation and checkpoints. Error
+against run time is reported against `solve_s`, the reconstruction's own cost.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Protocol
+
+import torch
+from torch import Tensor
+
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+class Method(Protocol):
+    """What the loop needs from an iterative method."""
+
+    name: str
+
+    def step(self) -> float:
+        """One iteration; returns the objective value (may be a stochastic estimate)."""
+
+    def estimate(self) -> Tensor:
+        """Current video (C, K, H, W)."""
+
+    def residuals(self) -> dict[str, float]:
+        """Relative data residual per sensor, e.g. {"rs": 0.1, "gs": 0.02}."""
+
+    def state_dict(self) -> dict: ...
+
+    def load_state_dict(self, state: dict) -> None: ...
+
+    def reduce_step(self, factor: float) -> None:
+        """Shrink the step size / learning rate after a NaN or Inf."""
+
+
+@dataclass
+class LoopSettings:
+    time_budget_s: float | None = 60.0
+    max_iters: int | None = None
+    log_every_s: float = 2.0
+    log_every_iters: int | None = None
+    checkpoint_dir: Path | None = None
+    checkpoint_every_s: float = 60.0
+    resume: bool = False
+    max_failures: int = 5
+    progress: bool = True
+
+    def __post_init__(self):
+        if self.time_budget_s is None and self.max_iters is None:
+            raise ValueError("set a time budget, an iteration count, or both")
+        if self.time_budget_s is not None and not (self.time_budget_s > 0 and math.isfinite(self.time_budget_s)):
+            raise ValueError(f"time budget must be a positive number of seconds, got {self.time_budget_s}")
+        if self.max_iters is not None and self.max_iters < 0:
+            raise ValueError(f"iteration count must be >= 0, got {self.max_iters}")
+
+
+@dataclass
+class RunResult:
+    log: list[dict]
+    iterations: int
+    solve_s: float
+    wall_s: float
+    events: list[str] = field(default_factory=list)
+    status: str = "ok"  # "ok" or "failed"
+    message: str = ""
+
+
+def _finite_state(state) -> bool:
+    if isinstance(state, Tensor):
+        return bool(torch.isfinite(state).all()) if state.is_floating_point() else True
+    if isinstance(state, dict):
+        return all(_finite_state(v) for v in state.values())
+    if isinstance(state, (list, tuple)):
+        return all(_finite_state(v) for v in state)
+    if isinstance(state, float):
+        return math.isfinite(state)
+    return True
+
+
+def _save_checkpoint(path: Path, payload: dict) -> None:
+    tmp = path.with_name(path.name + ".partial")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+def run(method: Method, settings: LoopSettings,
+        evaluate: Callable[[Method], dict[str, float]] | None = None) -> RunResult:
+    """Iterate `method` under `settings`; `evaluate(method)` adds truth metrics to each log row."""
+    log: list[dict] = []
+    events: list[str] = []
+    iteration, solve_s, wall_offset = 0, 0.0, 0.0
+    ckpt = None if settings.checkpoint_dir is None else Path(settings.checkpoint_dir) / CHECKPOINT_NAME
+    if settings.resume and ckpt is not None and ckpt.is_file():
+        saved = torch.load(ckpt, weights_only=False)
+        method.load_state_dict(saved["method"])
+        iteration, solve_s, wall_offset = saved["iteration"], saved["solve_s"], saved["wall_s"]
+        log, events = saved["log"], saved["events"] + [f"resumed from {ckpt.name} at iteration {iteration}"]
+        torch.set_rng_state(saved["rng"])
+
+    start = time.perf_counter() - wall_offset
+    last_good = (copy.deepcopy(method.state_dict()), iteration, solve_s)
+    failures, objective = 0, float("nan")
+    last_log_t, last_ckpt_t = -math.inf, time.perf_counter()
+
+    def wall() -> float:
+        return time.perf_counter() - start
+
+    def done() -> bool:
+        if settings.max_iters is not None and iteration >= settings.max_iters:
+            return True
+        return settings.time_budget_s is not None and wall() >= settings.time_budget_s
+
+    def record(obj: float) -> dict:
+        row = {"iteration": iteration, "wall_s": wall(), "solve_s": solve_s, "objective": obj}
+        row.update({f"residual_{k}": v for k, v in method.residuals().items()})
+        if evaluate is not None:
+            row.update(evaluate(method))
+        log.append(row)
+        return row
+
+    def checkpoint() -> None:
+        if ckpt is None:
+            return
+        ckpt.parent.mkdir(parents=True, exist_ok=True)
+        _save_checkpoint(ckpt, {"method": method.state_dict(), "iteration": iteration,
+                                "solve_s": solve_s, "wall_s": wall(), "log": log,
+                                "events": events, "rng": torch.get_rng_state()})
+
+    with _progress(settings, method.name) as bar:
+        if not log:
+            record(float("nan"))
+        while not done():
+            t0 = time.perf_counter()
+            objective = float(method.step())
+            solve_s += time.perf_counter() - t0
+            iteration += 1
+            if not math.isfinite(objective) or not _finite_state(method.state_dict()):
+                failures += 1
+                state, iteration, solve_s = last_good[0], last_good[1], last_good[2]
+                method.load_state_dict(copy.deepcopy(state))
+                method.reduce_step(0.5)
+                events.append(f"non-finite state at iteration {iteration + 1}: rolled back, step halved "
+                              f"(failure {failures} of {settings.max_failures})")
+                if failures >= settings.max_failures:
+                    record(float("nan"))
+                    return RunResult(log, iteration, solve_s, wall(), events, "failed",
+                                     f"{method.name}: {failures} non-finite steps in a row; "
+                                     f"kept the last good state (iteration {iteration})")
+                continue
+            failures = 0
+            due = (settings.log_every_iters is not None and iteration % settings.log_every_iters == 0) or (
+                settings.log_every_iters is None and wall() - last_log_t >= settings.log_every_s)
+            if due:
+                last_log_t = wall()
+                bar.show(record(objective), iteration, wall())
+                last_good = (copy.deepcopy(method.state_dict()), iteration, solve_s)
+            if ckpt is not None and time.perf_counter() - last_ckpt_t >= settings.checkpoint_every_s:
+                checkpoint()
+                last_ckpt_t = time.perf_counter()
+        if not log or log[-1]["iteration"] != iteration:
+            bar.show(record(objective), iteration, wall())
+        checkpoint()
+    return RunResult(log, iteration, solve_s, wall(), events)
+
+
+class _progress:
+    """A rich progress bar showing the latest figures (silent when progress=False)."""
+
+    def __init__(self, settings: LoopSettings, name: str):
+        self.settings, self.name, self._bar, self._task = settings, name, None, None
+
+    def __enter__(self):
+        if self.settings.progress:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self._bar = Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
+                                 TextColumn("{task.fields[figures]}"), transient=False)
+            total = self.settings.time_budget_s or self.settings.max_iters
+            self._task = self._bar.add_task(self.name, total=total, figures="")
+            self._bar.start()
+        return self
+
+    def show(self, row: dict, iteration: int, wall_s: float) -> None:
+        if self._bar is None:
+            return
+        figs = f"it {iteration}  obj {row['objective']:.4g}"
+        if "psnr_db" in row:
+            figs += f"  PSNR {row['psnr_db']:.2f} dB"
+        done = wall_s if self.settings.time_budget_s else iteration
+        self._bar.update(self._task, completed=done, figures=figs)
+
+    def __exit__(self, *exc):
+        if self._bar is not None:
+            self._bar.stop()
+        return False

@@ -1,0 +1,85 @@
+"""Error measures against truth (PSNR, SSIM) and relative data residuals.
+
+PSNR and SSIM use a data range of 1.0 (simulated truth is linear intensity in [0, 1]) and are
+computed on the estimate as it is: no rescaling towards the truth.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+def psnr(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range: float = 1.0) -> float:
+    """PSNR in dB over all elements (or the (H, W) `mask` region) of (C, T, H, W) videos."""
+    diff = (estimate.double() - truth.double()) ** 2
+    if mask is not None:
+        m = mask.to(diff.device).expand_as(diff)
+        mse = float(diff[m].mean()) if bool(m.any()) else float("nan")
+    else:
+        mse = float(diff.mean())
+    if mse == 0:
+        return float("inf")
+    return 10 * math.log10(data_range ** 2 / mse)
+
+
+def _gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float64, device="cpu") -> Tensor:
+    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
+    g = torch.exp(-(x ** 2) / (2 * sigma ** 2))
+    return g / g.sum()
+
+
+def ssim(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range: float = 1.0) -> float:
+    """Mean SSIM (Wang et al. 2004, Gaussian 11x11, sigma 1.5) over frames and channels.
+
+    Each frame of each channel is one 2-D image; windows shrink for images under 11 px.
+    """
+    x = estimate.double().reshape(-1, 1, *estimate.shape[-2:])
+    y = truth.double().to(x.device).reshape(-1, 1, *truth.shape[-2:])
+    size = min(11, x.shape[-1], x.shape[-2])
+    size -= (size + 1) % 2  # odd
+    g = _gaussian_window(size, 1.5, x.dtype, x.device)
+
+    def blur(z):
+        z = F.conv2d(z, g.view(1, 1, 1, -1), padding=(0, size // 2))
+        return F.conv2d(z, g.view(1, 1, -1, 1), padding=(size // 2, 0))
+
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    mx, my = blur(x), blur(y)
+    sxx = blur(x * x) - mx * mx
+    syy = blur(y * y) - my * my
+    sxy = blur(x * y) - mx * my
+    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+    if mask is not None:
+        m = mask.to(s.device).expand_as(s)
+        return float(s[m].mean())
+    return float(s.mean())
+
+
+def video_metrics(estimate: Tensor, truth: Tensor, intermediate: np.ndarray,
+                  mask: Tensor | None = None) -> dict[str, float]:
+    """PSNR/SSIM over all frames and over the intermediate frames (away from GS key frames)."""
+    out = {"psnr_db": psnr(estimate, truth, mask), "ssim": ssim(estimate, truth, mask)}
+    if len(intermediate):
+        idx = torch.as_tensor(intermediate, device=estimate.device)
+        e, t = estimate.index_select(1, idx), truth.index_select(1, idx.to(truth.device))
+        out["psnr_intermediate_db"] = psnr(e, t, mask)
+        out["ssim_intermediate"] = ssim(e, t, mask)
+    return out
+
+
+def relative_residual(pred: Tensor, meas: Tensor) -> float:
+    """||pred - meas|| / ||meas|| (0/0 -> 0, x/0 -> inf)."""
+    num = float(torch.linalg.vector_norm((pred - meas).double()))
+    den = float(torch.linalg.vector_norm(meas.double()))
+    if den == 0:
+        return 0.0 if num == 0 else float("inf")
+    return num / den
+
+
+def psnr_np(estimate: np.ndarray, truth: np.ndarray) -> float:
+    return psnr(torch.from_numpy(np.asarray(estimate)), torch.from_numpy(np.asarray(truth)))

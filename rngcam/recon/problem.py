@@ -1,0 +1,236 @@
+"""A reconstruction problem built from a bundle: measurements in operator units on the grid,
+exact timing weights, operators, truth and the GS key-frame times. Every method starts here.
+
+Grid: the RS frame is binned `grid_bin` x `grid_bin` (a Bayer mosaic is first binned 2x2 per
+colour, which counts towards the bin). Grid row i then averages `rows_per_bin` sensor rows, and
+the RS timing uses that bin exactly (a trapezoid). With a Bayer mosaic, R and B come from half of
+the bin's rows: the timing of those channels is off by at most half a line time, which we accept.
+GS frames are warped onto the RS sensor with the calibration's GS-to-RS homography, then binned.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from rngcam.bundle import Bundle, CameraRecord
+from rngcam.errors import BundleError
+from rngcam.physics import psf as psf_mod
+from rngcam.physics.operators import GlobalShutter, RollingShutter, Stacked
+from rngcam.physics.sensor import BAYER_FORMATS, frame_to_measurement
+from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+
+
+@dataclass
+class Problem:
+    """Everything a method needs; tensors are float64 on the CPU until `to(dtype, device)`."""
+
+    b_rs: Tensor | None  # (C, H, W)
+    b_gs: Tensor | None  # (C, G, H, W)
+    rs_weights: Tensor  # (H, K)
+    gs_weights: Tensor  # (G, K)
+    psf: Tensor  # (C or 1, Hp, Wp) on the grid, sums to 1 per channel
+    grid: VideoGrid
+    gs_times_s: np.ndarray  # (G,) mid-exposure times of the key frames
+    truth: Tensor | None = None  # (C, K, H, W)
+    mask: Tensor | None = None  # (H, W) bool: the field-stop region
+    white_balance: Tensor | None = None  # (C,) GS/RS gains (start value for Lambda)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def channels(self) -> int:
+        b = self.b_rs if self.b_rs is not None else self.b_gs
+        return b.shape[0]
+
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        """Video shape (C, K, H, W)."""
+        b = self.b_rs if self.b_rs is not None else self.b_gs
+        return (b.shape[0], self.grid.n_frames, b.shape[-2], b.shape[-1])
+
+    @property
+    def frame_times_s(self) -> np.ndarray:
+        return self.grid.centres_s()
+
+    def rs_op(self) -> RollingShutter:
+        c, _, _, w = self.shape
+        return RollingShutter(self.psf, self.rs_weights, width=w, channels=c)
+
+    def gs_op(self) -> GlobalShutter:
+        c, _, h, w = self.shape
+        return GlobalShutter(self.gs_weights, c, (h, w))
+
+    def stacked_op(self, psi: float) -> Stacked:
+        return Stacked(self.rs_op(), self.gs_op(), psi)
+
+    def key_frames(self) -> np.ndarray:
+        """Indices of the frames any GS exposure touches."""
+        return np.flatnonzero(self.gs_weights.sum(0).numpy() > 0)
+
+    def intermediate_frames(self) -> np.ndarray:
+        """Frames away from the GS key frames (not touched by a GS exposure, nor next to one)."""
+        touched = self.gs_weights.sum(0).numpy() > 0
+        near = touched | np.roll(touched, 1) | np.roll(touched, -1)
+        return np.flatnonzero(~near)
+
+    def to(self, dtype=torch.float32, device="cpu") -> "Problem":
+        def cast(t):
+            return None if t is None else t.to(device=device, dtype=dtype if t.is_floating_point() else t.dtype)
+
+        return Problem(cast(self.b_rs), cast(self.b_gs), cast(self.rs_weights), cast(self.gs_weights),
+                       cast(self.psf), self.grid, self.gs_times_s, cast(self.truth), cast(self.mask),
+                       cast(self.white_balance), list(self.notes))
+
+
+def _camera_frames(cam: CameraRecord, dt_s: float) -> list[np.ndarray]:
+    """Each raw frame -> (C, h, w) float32 operator units (Bayer binned 2x2)."""
+    return [frame_to_measurement(f, cam.pixel_format, cam.black_level_dn, cam.bit_depth,
+                                 cam.exposure_s, dt_s) for f in cam.frames]
+
+
+def _bin(img: np.ndarray, factor: int) -> np.ndarray:
+    """Box-average (C, H, W) by `factor` (cropping a remainder at the bottom/right)."""
+    if factor == 1:
+        return img
+    c, h, w = img.shape
+    h2, w2 = h // factor, w // factor
+    if h2 == 0 or w2 == 0:
+        raise BundleError(f"cannot bin a {h}x{w} frame by {factor}")
+    return img[:, :h2 * factor, :w2 * factor].reshape(c, h2, factor, w2, factor).mean(axis=(2, 4))
+
+
+def _binned_pixels(factor: int) -> np.ndarray:
+    """Homography from raw pixel coordinates to coordinates after binning by `factor` (pixel centres)."""
+    a = 1.0 / factor
+    return np.array([[a, 0, 0.5 * a - 0.5], [0, a, 0.5 * a - 0.5], [0, 0, 1.0]])
+
+
+def _warp_to(img: np.ndarray, homography: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
+    """Resample a (C, h, w) GS frame onto the RS sensor grid of `shape` with a GS->RS homography."""
+    same = img.shape[-2:] == tuple(shape)
+    if homography is None or (same and np.allclose(homography, np.eye(3))):
+        if not same:
+            raise BundleError(f"GS frames are {img.shape[-2:]} but RS is {shape}, and the bundle "
+                              "has no GS-to-RS alignment (run `rngcam calibrate align`)")
+        return img
+    out = [cv2.warpPerspective(ch, np.asarray(homography, np.float64), (shape[1], shape[0]),
+                               flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for ch in img]
+    return np.stack(out)
+
+
+def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = None,
+                  use_rs: bool = True, use_gs: bool = True) -> Problem:
+    """Turn a bundle into a Problem on the reconstruction grid (see module docstring)."""
+    rs, gs = bundle.rs if use_rs else None, bundle.gs if use_gs else None
+    if bundle.rs is None:
+        raise BundleError("the bundle has no rolling-shutter camera; the video grid is defined by it")
+    if grid_bin is None:
+        grid_bin = int(bundle.meta.get("grid_bin", 1))
+    notes: list[str] = []
+    cam = bundle.rs
+    mosaic = 2 if cam.pixel_format in BAYER_FORMATS else 1
+    if grid_bin % mosaic:
+        raise BundleError(f"grid_bin {grid_bin} must be a multiple of 2 for a Bayer RS frame")
+    sensor_rows = cam.frames.shape[1]
+    rows = sensor_rows // grid_bin
+    rs_timing = RollingShutterTiming(line_time_s=float(cam.line_time_s), exposure_s=float(cam.exposure_s),
+                                     rows=rows, rows_per_bin=grid_bin,
+                                     trigger_s=float(np.asarray(cam.trigger_times_s)[0]))
+    gs_timing = None
+    if bundle.gs is not None:
+        gs_timing = GlobalShutterTiming(trigger_s=tuple(np.asarray(bundle.gs.trigger_times_s, float)),
+                                        exposure_s=float(bundle.gs.exposure_s))
+    grid = VideoGrid.covering(rs_timing, gs_timing, dt_s=dt_s)
+
+    rs_img = _camera_frames(cam, grid.dt_s)[0]  # one RS frame per capture
+    sensor_shape = rs_img.shape[-2:]
+    b_rs = _bin(rs_img, grid_bin // mosaic)
+    b_gs = None
+    gs_w = np.zeros((0, grid.n_frames))
+    gs_times = np.zeros(0)
+    if bundle.gs is not None:
+        calib = bundle.calibration
+        h = None
+        if calib.gs_to_rs is not None:  # raw GS pixels -> raw RS pixels; re-express after Bayer binning
+            gs_mosaic = 2 if bundle.gs.pixel_format in BAYER_FORMATS else 1
+            h = _binned_pixels(mosaic) @ np.asarray(calib.gs_to_rs, np.float64) @ np.linalg.inv(_binned_pixels(gs_mosaic))
+        frames = [_bin(_warp_to(f, h, sensor_shape), grid_bin // mosaic)
+                  for f in _camera_frames(bundle.gs, grid.dt_s)]
+        b_gs = np.stack(frames, axis=1)
+        gs_w = gs_timing.weights(grid)
+        gs_times = gs_timing.centres_s()
+    if b_gs is not None and b_gs.shape[0] != b_rs.shape[0]:
+        raise BundleError(f"RS has {b_rs.shape[0]} channels but GS has {b_gs.shape[0]}")
+
+    psf = _grid_psf(bundle, grid_bin, b_rs.shape[0])
+    truth = _grid_truth(bundle, grid, b_rs.shape, notes)
+    mask = None
+    if bundle.calibration.field_stop is not None:
+        m = _bin(np.asarray(bundle.calibration.field_stop, np.float32)[None], grid_bin)[0]
+        mask = torch.from_numpy(m > 0.5)
+    wb = bundle.calibration.white_balance
+    for name, arr in (("RS", b_rs), ("GS", b_gs)):
+        if arr is not None and not np.all(np.isfinite(arr)):
+            raise BundleError(f"the {name} frames contain NaN or Inf")
+    return Problem(
+        b_rs=torch.from_numpy(np.ascontiguousarray(b_rs, np.float64)) if rs is not None else None,
+        b_gs=torch.from_numpy(np.ascontiguousarray(b_gs, np.float64)) if gs is not None and b_gs is not None else None,
+        rs_weights=torch.from_numpy(rs_timing.weights(grid)),
+        gs_weights=torch.from_numpy(gs_w),
+        psf=torch.from_numpy(psf),
+        grid=grid,
+        gs_times_s=gs_times,
+        truth=truth,
+        mask=mask,
+        white_balance=None if wb is None else torch.as_tensor(np.asarray(wb, np.float64)),
+        notes=notes,
+    )
+
+
+def _grid_psf(bundle: Bundle, grid_bin: int, channels: int) -> np.ndarray:
+    raw = bundle.calibration.psf
+    if raw is None:
+        raise BundleError("the bundle has no PSF (calibration/psf); run `rngcam calibrate psf`")
+    raw = psf_mod.as_chw(np.asarray(raw, np.float64))
+    shape = (max(1, round(raw.shape[-2] / grid_bin)), max(1, round(raw.shape[-1] / grid_bin)))
+    try:
+        psf, _ = psf_mod.prepare_psf(raw, shape, crop=1.0, bias=None,
+                                     channels=channels if raw.shape[0] == 1 else None)
+    except ValueError as exc:
+        raise BundleError(f"the bundle's PSF is unusable: {exc}") from None
+    return psf
+
+
+def _grid_truth(bundle: Bundle, grid: VideoGrid, rs_shape, notes: list[str]) -> Tensor | None:
+    if bundle.truth is None:
+        return None
+    video = np.asarray(bundle.truth.video, np.float64)
+    expected = (rs_shape[0], grid.n_frames, rs_shape[1], rs_shape[2])
+    if video.shape != expected:
+        notes.append(f"truth video {video.shape} does not match the grid {expected}: metrics against truth skipped")
+        return None
+    return torch.from_numpy(video)
+
+
+def problem_from_video(video: Tensor, psf: Tensor, rs: RollingShutterTiming | None,
+                       gs: GlobalShutterTiming | None, dt_s: float | None = None) -> Problem:
+    """A noiseless Problem whose truth is `video` (C, K, H, W), measured through the physics.
+
+    For tests and small experiments: the grid must have exactly K frames.
+    """
+    video = torch.as_tensor(video, dtype=torch.float64)
+    c, k, h, w = video.shape
+    grid = VideoGrid.covering(rs, gs, dt_s=dt_s)
+    if grid.n_frames != k:
+        raise ValueError(f"the timing needs {grid.n_frames} frames, the video has {k}")
+    rs_w = torch.from_numpy(rs.weights(grid)) if rs is not None else torch.zeros(h, k, dtype=torch.float64)
+    gs_w = torch.from_numpy(gs.weights(grid)) if gs is not None else torch.zeros(0, k, dtype=torch.float64)
+    psf = torch.as_tensor(psf, dtype=torch.float64)
+    b_rs = RollingShutter(psf, rs_w, w, channels=c).A(video) if rs is not None else None
+    b_gs = GlobalShutter(gs_w, c, (h, w)).A(video) if gs is not None else None
+    return Problem(b_rs=b_rs, b_gs=b_gs, rs_weights=rs_w, gs_weights=gs_w, psf=psf, grid=grid,
+                   gs_times_s=gs.centres_s() if gs is not None else np.zeros(0), truth=video)

@@ -1,0 +1,177 @@
+"""Run one reconstruction of a bundle with any method and write every output.
+
+Iterative methods (tv3d, stfm) go through the shared loop; GS-only baselines (blend, interp,
+rife) are one shot and give a single point of error against time. The bundle is only read.
+"""
+
+from __future__ import annotations
+
+import resource
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from rngcam.bundle import bundle_checksum, read_bundle
+from rngcam.errors import ConfigError, RngcamError
+from rngcam.recon import outputs
+from rngcam.recon.loop import LoopSettings, RunResult, run
+from rngcam.recon.metrics import relative_residual, video_metrics
+from rngcam.recon.problem import Problem, build_problem
+
+ITERATIVE = ("stfm", "tv3d")
+GS_ONLY = ("blend", "interp", "rife")
+METHODS = ITERATIVE + GS_ONLY
+
+
+@dataclass
+class ReconSettings:
+    method: str = "stfm"
+    time_budget_s: float | None = 60.0
+    max_iters: int | None = None
+    device: str = "auto"
+    grid_bin: int | None = None
+    log_every_s: float = 2.0
+    checkpoint_every_s: float = 60.0
+    resume: bool = False
+    progress: bool = True
+    options: dict = field(default_factory=dict)  # method settings (tau, beta, psi, preset, ...)
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise ConfigError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
+
+
+def resolve_device(name: str) -> str:
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError("--device cuda was asked for but no GPU is available")
+    return name
+
+
+def default_out_dir(bundle_path: Path, method: str) -> Path:
+    """A sibling folder of the bundle: <stem>-recon-<method>/."""
+    return bundle_path.with_name(f"{bundle_path.stem}-recon-{method}")
+
+
+def gs_key_frames(problem: Problem) -> np.ndarray:
+    """The GS frames as intensities (C, G, H, W): each divided by its exposure in frames."""
+    w = problem.gs_weights.sum(1).clamp_min(1e-12).view(1, -1, 1, 1)
+    return (problem.b_gs / w).cpu().float().numpy()
+
+
+def _make_method(problem: Problem, settings: ReconSettings, device: str):
+    opts = dict(settings.options)
+    if settings.method == "tv3d":
+        from rngcam.recon.tv3d import TV3D, TV3DSettings
+
+        return TV3D(problem.to(torch.float32, device), TV3DSettings(**opts))
+    from rngcam.recon.stfm import STFMSettings, make_stfm
+
+    return make_stfm(problem.to(torch.float32, device), STFMSettings(**opts), device=device)
+
+
+def _run_gs_only(problem: Problem, method: str, opts: dict) -> tuple[np.ndarray, RunResult]:
+    if problem.b_gs is None or problem.b_gs.shape[1] == 0:
+        raise RngcamError(f"--method {method} needs GS frames; the bundle has none")
+    key = gs_key_frames(problem)
+    t0 = time.perf_counter()
+    if method == "blend":
+        from rngcam.recon.baselines import blend
+
+        video = blend(key, problem.gs_times_s, problem.frame_times_s)
+    elif method == "interp":
+        from rngcam.recon.baselines import interp
+
+        video = interp(key, problem.gs_times_s, problem.frame_times_s, **opts)
+    else:
+        from rngcam.recon.rife import rife
+
+        video = rife(key, problem.gs_times_s, problem.frame_times_s, **opts)
+    secs = time.perf_counter() - t0
+    return np.asarray(video, np.float32), RunResult(log=[], iterations=1, solve_s=secs, wall_s=secs)
+
+
+def _residuals(problem: Problem, video: torch.Tensor) -> dict[str, float]:
+    out = {}
+    if problem.b_rs is not None:
+        out["rs"] = relative_residual(problem.rs_op().A(video), problem.b_rs)
+    if problem.b_gs is not None and problem.b_gs.shape[1]:
+        out["gs"] = relative_residual(problem.gs_op().A(video), problem.b_gs)
+    return out
+
+
+def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
+                settings: ReconSettings | None = None, echo=print) -> dict:
+    """Reconstruct `bundle_path` into `out_dir`; returns the metrics written to metrics.json."""
+    settings = settings or ReconSettings()
+    bundle_path = Path(bundle_path)
+    bundle = read_bundle(bundle_path)
+    out = Path(out_dir) if out_dir is not None else default_out_dir(bundle_path, settings.method)
+    out.mkdir(parents=True, exist_ok=True)
+    device = resolve_device(settings.device)
+    problem = build_problem(bundle, grid_bin=settings.grid_bin)
+    for note in problem.notes:
+        echo(f"note: {note}")
+    c, k, h, w = problem.shape
+    echo(f"{settings.method}: {k} frames of {h}x{w}x{c} at {1 / problem.grid.dt_s:,.0f} fps on {device}")
+    intermediate = problem.intermediate_frames()
+
+    def truth_metrics(video: torch.Tensor) -> dict:
+        if problem.truth is None:
+            return {}
+        return video_metrics(video.detach().double().cpu(), problem.truth, intermediate, problem.mask)
+
+    components, left_out, status, message = {}, [], "ok", ""
+    if settings.method in GS_ONLY:
+        video, result = _run_gs_only(problem, settings.method, settings.options)
+        vt = torch.from_numpy(video).double()
+        row = {"iteration": 1, "wall_s": result.solve_s, "solve_s": result.solve_s, "objective": float("nan")}
+        row.update({f"residual_{k2}": v for k2, v in _residuals(problem, vt).items()})
+        row.update(truth_metrics(vt))
+        result.log = [row]
+    else:
+        method = _make_method(problem, settings, device)
+        left_out = list(getattr(method, "left_out", []))
+        for comp, why in left_out:
+            echo(f"left out: {comp} ({why})")
+        loop = LoopSettings(time_budget_s=settings.time_budget_s, max_iters=settings.max_iters,
+                            log_every_s=settings.log_every_s, checkpoint_dir=out,
+                            checkpoint_every_s=settings.checkpoint_every_s, resume=settings.resume,
+                            progress=settings.progress)
+        result = run(method, loop, lambda m: truth_metrics(m.estimate()))
+        video = method.estimate().detach().float().cpu().numpy()
+        if hasattr(method, "components"):
+            components = method.components()
+        status, message = result.status, result.message
+        for event in result.events:
+            echo(f"event: {event}")
+
+    final = result.log[-1] if result.log else {}
+    metrics = {
+        "method": settings.method,
+        "seconds": result.solve_s,
+        "wall_seconds": result.wall_s,
+        "iterations": result.iterations,
+        "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+        "frames": k, "height": h, "width": w, "channels": c, "fps": 1 / problem.grid.dt_s,
+        "device": device, "status": status,
+        "left_out": [{"component": a, "reason": b} for a, b in left_out],
+        "events": result.events,
+    }
+    for key in ("psnr_db", "ssim", "psnr_intermediate_db", "ssim_intermediate", "residual_rs", "residual_gs"):
+        if key in final:
+            metrics[key] = final[key]
+    resolved = {**asdict(settings), "device": device, "grid_bin": settings.grid_bin}
+    outputs.write_recon_h5(out / "recon.h5", video, problem.frame_times_s, resolved,
+                           bundle_checksum(bundle_path), components, left_out)
+    outputs.write_tiff(out / "video.tif", video)
+    outputs.write_mp4(out / "preview.mp4", video)
+    outputs.write_errors(out / "errors.csv", out / "errors.png", result.log, settings.method)
+    outputs.write_metrics(out / "metrics.json", metrics)
+    if status != "ok":
+        raise RngcamError(f"{message}; outputs from the last good state are in {out}")
+    return metrics
