@@ -1,0 +1,114 @@
+"""Neural fields: positional encoding, SIREN initialisation, factorised plane fields."""
+
+import math
+
+import pytest
+import torch
+
+from rngcam.errors import ConfigError
+from rngcam.recon.fields import PlaneField, PositionalEncoding, Siren, field_on_grid, make_field
+
+
+def test_positional_encoding_values_and_size():
+    pe = PositionalEncoding(2, n_freqs=3)
+    p = torch.tensor([[0.25, -0.5]])
+    out = pe(p)
+    assert out.shape == (1, 2 * (1 + 2 * 3)) == (1, pe.out_dims)
+    assert torch.allclose(out[0, :2], p[0])
+    # sin block: (dim0 f0, dim0 f1, dim0 f2, dim1 f0, ...), then the cos block
+    expected_sin = torch.tensor([math.sin(math.pi * 2 ** l * x) for x in (0.25, -0.5) for l in range(3)])
+    expected_cos = torch.tensor([math.cos(math.pi * 2 ** l * x) for x in (0.25, -0.5) for l in range(3)])
+    assert torch.allclose(out[0, 2:8], expected_sin, atol=1e-6)
+    assert torch.allclose(out[0, 8:], expected_cos, atol=1e-6)
+
+
+def test_siren_published_initialisation():
+    torch.manual_seed(0)
+    w0, hidden = 30.0, 256
+    net = Siren(3, 4, hidden=hidden, layers=3, w0=w0)
+    first = net.body[0].linear.weight
+    assert first.abs().max() <= 1 / 3 and first.abs().max() > 0.9 / 3  # U(-1/n, 1/n), n = 3
+    for layer in list(net.body)[1:]:
+        w = layer.linear.weight
+        bound = math.sqrt(6 / hidden) / w0
+        assert w.abs().max() <= bound and w.abs().max() > 0.95 * bound
+        assert abs(float(w.detach().std()) - bound / math.sqrt(3)) < 0.05 * bound  # uniform spread
+    assert net.body[0].w0 == w0
+    # activations keep the arcsine distribution through depth (the point of the init)
+    x = torch.rand(4096, 3) * 2 - 1
+    with torch.no_grad():
+        h = net.body(x)
+    assert 0.5 < float(h.std()) < 0.9
+
+
+def test_siren_with_encoding_takes_encoded_width():
+    net = Siren(2, 3, hidden=16, layers=2, n_freqs=4)
+    assert net.body[0].linear.in_features == 2 * 9
+    assert net(torch.zeros(5, 2)).shape == (5, 3)
+
+
+@pytest.mark.parametrize("in_dims", [2, 3])
+def test_plane_field_grid_path_matches_pointwise(in_dims):
+    torch.manual_seed(1)
+    f = PlaneField(in_dims, 3, resolutions=(4, 7), time_resolutions=(3, 5), features=4, hidden=8).double()
+    with torch.no_grad():
+        for plane in f.planes:  # break the constant-in-time start so t matters
+            plane.uniform_(-1, 1)
+    axes = [torch.linspace(-1, 1, 9, dtype=torch.float64), torch.linspace(-1.2, 1, 6, dtype=torch.float64)]
+    if in_dims == 3:
+        axes.append(torch.tensor([-1.0, -0.3, 0.4, 1.0], dtype=torch.float64))
+    grid = f.forward_grid(axes)
+    mesh = torch.meshgrid(*reversed(axes), indexing="ij")
+    p = torch.stack([m.reshape(-1) for m in reversed(mesh)], dim=-1)
+    pointwise = f(p).reshape(grid.shape)
+    assert torch.allclose(grid, pointwise, atol=1e-12)
+
+
+def test_plane_field_samples_corners_exactly():
+    f = PlaneField(2, 1, resolutions=(5,), features=2, hidden=0)
+    plane = f.planes[0]
+    corners = torch.tensor([[-1.0, -1.0], [1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]])
+    feats = f.encode(corners)
+    expected = torch.stack([plane[0, :, 0, 0], plane[0, :, 0, -1], plane[0, :, -1, 0], plane[0, :, -1, -1]])
+    assert torch.allclose(feats, expected)
+
+
+def test_three_d_plane_field_starts_constant_in_time():
+    f = PlaneField(3, 2, resolutions=(4, 8), features=4, hidden=8)
+    out = field_on_grid(f, [torch.linspace(-1, 1, 5), torch.linspace(-1, 1, 5), torch.linspace(-1, 1, 7)])
+    assert out.shape == (7, 5, 5, 2)
+    assert torch.allclose(out, out[:1].expand_as(out), atol=1e-6)
+    assert float(out[0].std()) > 0  # but not constant in space
+
+
+@pytest.mark.parametrize("kind,cfg", [("siren", dict(hidden=16, layers=2, n_freqs=2)),
+                                      ("planes", dict(resolutions=(4, 8), features=4, hidden=8))])
+def test_every_parameter_gets_a_gradient(kind, cfg):
+    torch.manual_seed(2)
+    f = make_field(kind, 3, 2, **cfg)
+    with torch.no_grad():
+        for p in f.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    p = torch.rand(200, 3) * 2 - 1
+    f(p).square().sum().backward()
+    for name, param in f.named_parameters():
+        assert param.grad is not None and float(param.grad.abs().sum()) > 0, name
+
+
+def test_field_on_grid_generic_path_for_siren():
+    f = make_field("siren", 2, 3, hidden=8, layers=1)
+    xs, ys = torch.linspace(-1, 1, 4), torch.linspace(-1, 1, 3)
+    out = field_on_grid(f, [xs, ys])
+    assert out.shape == (3, 4, 3)
+    assert torch.allclose(out[2, 1], f(torch.tensor([[xs[1], ys[2]]]))[0])
+
+
+def test_bad_configuration_is_a_clear_error():
+    with pytest.raises(ConfigError, match="unknown field kind"):
+        make_field("hash", 2, 3)
+    with pytest.raises(ConfigError, match="coordinates"):
+        make_field("planes", 4, 3)
+    with pytest.raises(ConfigError, match="bad settings"):
+        make_field("siren", 2, 3, width=3)
+    with pytest.raises(ConfigError, match="resolutions"):
+        make_field("planes", 2, 3, resolutions=(1,))
