@@ -1,0 +1,139 @@
+"""The shared solver loop and the FISTA 3-D TV baseline."""
+
+import numpy as np
+import pytest
+import torch
+
+from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming
+from rngcam.recon.loop import LoopSettings, run
+from rngcam.recon.metrics import psnr
+from rngcam.recon.problem import problem_from_video
+from rngcam.recon.tv3d import TV3D, TV3DSettings
+
+DT = 1e-4
+
+
+def _video(c=2, k=6, h=8, w=7, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand((c, k, h, w), generator=g, dtype=torch.float64)
+
+
+def _psf(h=5, w=5, seed=1):
+    p = torch.rand((1, h, w), generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    return p / p.sum()
+
+
+def _full_rank_problem():
+    """GS triggers that expose every frame alone make A_G the identity: full rank."""
+    k, h = 6, 8
+    rs = RollingShutterTiming(line_time_s=DT / 2, exposure_s=DT, rows=h, rows_per_bin=1)
+    gs = GlobalShutterTiming(trigger_s=tuple(i * DT for i in range(k)), exposure_s=DT)
+    return problem_from_video(_video(k=k, h=h), _psf(), rs, gs, dt_s=DT)
+
+
+def _sineball_problem(size=12):
+    rs = RollingShutterTiming(line_time_s=DT, exposure_s=3 * DT, rows=size)
+    gs = GlobalShutterTiming(trigger_s=(0.0, (size - 1) / 2 * DT, (size - 1) * DT), exposure_s=2 * DT)
+    k = size + 2
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    v = np.zeros((3, k, size, size))
+    for i in range(k):
+        cx = 0.5 + 0.3 * np.sin(2 * np.pi * i / 5)
+        v[:, i] = 0.2 + 0.1 * xx + 0.7 * (((xx - cx) ** 2 + (yy - 0.5) ** 2) < 0.02)
+    return problem_from_video(torch.from_numpy(v), _psf(7, 7), rs, gs)
+
+
+def _settings(**kw):
+    return LoopSettings(**{"time_budget_s": None, "progress": False, **kw})
+
+
+def test_fista_without_regularisation_recovers_truth_on_full_rank_problem():
+    p = _full_rank_problem()
+    m = TV3D(p, TV3DSettings(tau=0.0, init="zeros"))
+    run(m, _settings(max_iters=300))
+    assert psnr(m.estimate(), p.truth) > 60
+
+
+@pytest.mark.parametrize("prox", ["haar", "exact"])
+def test_objective_with_restart_never_increases(prox):
+    p = _sineball_problem(8 if prox == "exact" else 12)
+    m = TV3D(p.to(torch.float64), TV3DSettings(tau=5e-3, prox=prox, restart=True, init="zeros"))
+    values = [m.state["F"]]
+    for _ in range(15 if prox == "exact" else 40):
+        values.append(m.step())
+    assert all(b <= a * (1 + 1e-12) for a, b in zip(values, values[1:]))
+    assert values[-1] < values[0]
+
+
+def test_tv3d_improves_on_its_start():
+    p = _sineball_problem()
+    m = TV3D(p.to(torch.float32), TV3DSettings(tau=1e-3))
+    start = psnr(m.estimate(), p.truth)
+    run(m, _settings(max_iters=60))
+    assert psnr(m.estimate(), p.truth) > start + 0.3
+
+
+def test_hard_anchoring_reproduces_the_gs_frames():
+    p = _sineball_problem()
+    m = TV3D(p, TV3DSettings(gs_anchor="hard", tau=1e-3))
+    run(m, _settings(max_iters=10))
+    torch.testing.assert_close(p.gs_op().A(m.estimate()), p.b_gs, atol=1e-6, rtol=1e-6)
+
+
+def test_checkpoint_then_resume_equals_uninterrupted(tmp_path):
+    p = _sineball_problem()
+    straight = TV3D(p, TV3DSettings())
+    run(straight, _settings(max_iters=12))
+    first = TV3D(p, TV3DSettings())
+    run(first, _settings(max_iters=5, checkpoint_dir=tmp_path))
+    resumed = TV3D(p, TV3DSettings())
+    result = run(resumed, _settings(max_iters=12, checkpoint_dir=tmp_path, resume=True))
+    assert result.iterations == 12
+    assert any("resumed" in e for e in result.events)
+    torch.testing.assert_close(resumed.estimate(), straight.estimate(), rtol=0, atol=0)
+
+
+class _Poisoned(TV3D):
+    """Returns NaN on chosen iterations, as a diverging step would."""
+
+    def __init__(self, problem, bad_calls):
+        super().__init__(problem, TV3DSettings())
+        self.calls, self.bad_calls, self.reductions = 0, set(bad_calls), 0
+
+    def step(self):
+        self.calls += 1
+        f = super().step()
+        if self.calls in self.bad_calls:
+            self.state["x"] = self.state["x"] * float("nan")
+            return float("nan")
+        return f
+
+    def reduce_step(self, factor):
+        self.reductions += 1
+        super().reduce_step(factor)
+
+
+def test_injected_nan_is_rolled_back_and_recorded():
+    m = _Poisoned(_sineball_problem(), bad_calls={3})
+    result = run(m, _settings(max_iters=8, log_every_iters=1))
+    assert result.status == "ok" and result.iterations == 8
+    assert m.reductions == 1 and any("non-finite" in e for e in result.events)
+    assert torch.isfinite(m.estimate()).all()
+
+
+def test_repeated_nan_stops_with_clear_message_and_last_good_state():
+    m = _Poisoned(_sineball_problem(), bad_calls=set(range(4, 100)))
+    result = run(m, _settings(max_iters=50, log_every_iters=1, max_failures=3))
+    assert result.status == "failed" and "non-finite" in result.message
+    assert torch.isfinite(m.estimate()).all() and result.iterations == 3
+
+
+def test_time_budget_stops_the_loop():
+    m = TV3D(_sineball_problem(), TV3DSettings())
+    result = run(m, LoopSettings(time_budget_s=0.5, progress=False))
+    assert 0.5 <= result.wall_s < 5 and result.iterations >= 1
+
+
+def test_loop_needs_a_stopping_rule():
+    with pytest.raises(ValueError):
+        LoopSettings(time_budget_s=None, max_iters=None)
