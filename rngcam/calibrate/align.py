@@ -1,0 +1,403 @@
+"""GS-to-RS alignment and white balance from one static scene seen by both cameras.
+
+Convention (the bundle's, rngcam.recon.problem): `gs_to_rs` is a 3x3 homography mapping a raw
+GS pixel (x, y, 1) to the raw RS sensor pixel that sees the same scene point; pixel centres
+are at integer coordinates. `white_balance[c]` multiplies GS measurements (operator units) to
+put them on the RS scale: it is the recon's Lambda in ||A_G v - Lambda b_G||^2, i.e. RS
+response / GS response per channel (1 / GS gain when the RS camera is the reference).
+
+Steps, all on a working grid (the RS image binned so its long side is at most `max_side`):
+1. Deconvolve the RS image (rngcam.calibrate.deconv: Wiener, then monotone FISTA-TV).
+2. Initial transform: the given one (the rig's), or SIFT feature matches between the GS image
+   and the deconvolved RS image with RANSAC when they give enough inliers (the better of the
+   two by ECC correlation wins).
+3. OpenCV ECC (affine or homography, coarse to fine) between the deconvolved RS image and the
+   GS image warped onto the RS grid; a similarity model keeps the best-fit similarity.
+4. Refinement in the measurement domain: the transform's parameters are fitted by least
+   squares so that Lambda * (e_RS / e_GS) * (PSF conv warped GS) matches the raw RS image,
+   with the per-channel Lambda solved in closed form at every step. This uses every RS pixel
+   and none of the deconvolution's bias; it needs the target on a dark background inside both
+   fields of view (light the GS camera misses would otherwise reach the RS sensor).
+5. Residual: local shifts (phase correlation on tiles) between the deconvolved RS image and
+   the GS image warped with the final transform; their RMS, in RS sensor pixels, is reported.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import torch
+
+from rngcam.calibrate.deconv import deconvolve
+from rngcam.errors import RngcamError
+from rngcam.physics.operators import PSFConvolution
+from rngcam.physics.psf import normalise, resample
+
+MODELS = ("similarity", "homography")
+MIN_FEATURE_INLIERS = 8
+
+
+class AlignmentError(RngcamError):
+    """The static pair cannot be aligned (no texture, no overlap, no convergence)."""
+
+
+# --------------------------------------------------------------------------- geometry helpers
+
+
+@dataclass(frozen=True)
+class Similarity:
+    """x_rs = scale * R(rotation) (x_gs - centre) + centre + shift (pixels, degrees)."""
+
+    shift_px: tuple[float, float]
+    rotation_deg: float
+    scale: float
+
+
+def similarity_matrix(shift_px, rotation_deg: float, scale: float, centre) -> np.ndarray:
+    """3x3 similarity about `centre` (x, y): rotate and scale there, then shift."""
+    t = math.radians(rotation_deg)
+    a = scale * np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    c = np.asarray(centre, dtype=np.float64)
+    h = np.eye(3)
+    h[:2, :2] = a
+    h[:2, 2] = c - a @ c + np.asarray(shift_px, dtype=np.float64)
+    return h
+
+
+def apply_homography(h: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Map (N, 2) points (x, y) through a 3x3 homography."""
+    p = np.c_[np.asarray(points, np.float64), np.ones(len(points))] @ np.asarray(h, np.float64).T
+    return p[:, :2] / p[:, 2:]
+
+
+def grid_points(shape: tuple[int, int], fraction: float = 0.6, n: int = 7) -> np.ndarray:
+    """An n x n grid of (x, y) points over the central `fraction` of an (H, W) image."""
+    h, w = shape
+    xs = (w - 1) / 2 + np.linspace(-0.5, 0.5, n) * fraction * (w - 1)
+    ys = (h - 1) / 2 + np.linspace(-0.5, 0.5, n) * fraction * (h - 1)
+    return np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+
+
+def fit_similarity(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Least-squares 3x3 similarity with dst ~ s R src + t."""
+    x, y = src[:, 0], src[:, 1]
+    one, zero = np.ones_like(x), np.zeros_like(x)
+    m = np.concatenate([np.stack([x, -y, one, zero], 1), np.stack([y, x, zero, one], 1)])
+    (a, b, tx, ty), *_ = np.linalg.lstsq(m, np.concatenate([dst[:, 0], dst[:, 1]]), rcond=None)
+    return np.array([[a, -b, tx], [b, a, ty], [0, 0, 1.0]])
+
+
+def similarity_of(h: np.ndarray, shape: tuple[int, int]) -> Similarity:
+    """The similarity (about the image centre) closest to `h` over the central region of an
+    (H, W) image: its shift, rotation and scale."""
+    pts = grid_points(shape)
+    s = fit_similarity(pts, apply_homography(h, pts))
+    centre = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2])
+    scale = math.hypot(s[0, 0], s[1, 0])
+    shift = s[:2, :2] @ centre + s[:2, 2] - centre
+    return Similarity((float(shift[0]), float(shift[1])), math.degrees(math.atan2(s[1, 0], s[0, 0])),
+                      scale)
+
+
+def transform_error_px(h_est: np.ndarray, h_true: np.ndarray, shape: tuple[int, int],
+                       fraction: float = 0.6) -> float:
+    """Largest distance (RS pixels) between where two GS->RS transforms put points spread over
+    the central `fraction` of a GS image of `shape` (H, W)."""
+    pts = grid_points(shape, fraction)
+    return float(np.linalg.norm(apply_homography(h_est, pts) - apply_homography(h_true, pts), axis=1).max())
+
+
+def bin_matrix(factor: int) -> np.ndarray:
+    """Raw pixel coordinates -> coordinates after `factor` x `factor` binning (pixel centres)."""
+    a = 1.0 / factor
+    return np.array([[a, 0, 0.5 * a - 0.5], [0, a, 0.5 * a - 0.5], [0, 0, 1.0]])
+
+
+def bin_image(img: np.ndarray, factor: int) -> np.ndarray:
+    """Box-average (C, H, W) by `factor` (a remainder at the bottom/right is dropped)."""
+    if factor == 1:
+        return np.asarray(img, np.float64)
+    c, h, w = img.shape
+    h2, w2 = h // factor, w // factor
+    return np.asarray(img[:, :h2 * factor, :w2 * factor], np.float64).reshape(
+        c, h2, factor, w2, factor).mean(axis=(2, 4))
+
+
+def warp_to(img: np.ndarray, h: np.ndarray, shape: tuple[int, int],
+            interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+    """(C, h, w) image resampled onto a grid of `shape`: out(x) = img(H^-1 x); zero outside."""
+    return np.stack([cv2.warpPerspective(np.ascontiguousarray(ch, np.float64), np.asarray(h, np.float64),
+                                         (shape[1], shape[0]), flags=interpolation,
+                                         borderMode=cv2.BORDER_CONSTANT, borderValue=0.0) for ch in img])
+
+
+def _gray(img: np.ndarray) -> np.ndarray:
+    return np.asarray(img, np.float64).mean(axis=0).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- estimation stages
+
+
+def feature_init(gs: np.ndarray, rs: np.ndarray, model: str) -> tuple[np.ndarray, int] | None:
+    """GS->RS transform from SIFT matches + RANSAC (None when too few inliers)."""
+    def u8(img):
+        g = _gray(img)
+        lo, hi = np.percentile(g, [1, 99.5])
+        return np.clip((g - lo) / max(hi - lo, 1e-12) * 255, 0, 255).astype(np.uint8)
+
+    sift = cv2.SIFT_create()
+    kg, dg = sift.detectAndCompute(u8(gs), None)
+    kr, dr = sift.detectAndCompute(u8(rs), None)
+    if dg is None or dr is None or len(kg) < MIN_FEATURE_INLIERS or len(kr) < MIN_FEATURE_INLIERS:
+        return None
+    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(dg, dr, k=2)
+    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < 0.8 * p[1].distance]
+    if len(good) < MIN_FEATURE_INLIERS:
+        return None
+    src = np.float32([kg[m.queryIdx].pt for m in good])
+    dst = np.float32([kr[m.trainIdx].pt for m in good])
+    if model == "similarity":
+        m, inliers = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=2.0)
+        h = None if m is None else np.vstack([m, [0, 0, 1]])
+    else:
+        h, inliers = cv2.findHomography(src, dst, cv2.RANSAC, 2.0)
+    n = 0 if inliers is None else int(inliers.sum())
+    if h is None or n < MIN_FEATURE_INLIERS:
+        return None
+    return np.asarray(h, np.float64), n
+
+
+def ecc_refine(rs: np.ndarray, gs: np.ndarray, h0: np.ndarray, model: str,
+               levels: int = 2) -> tuple[np.ndarray, float]:
+    """ECC (coarse to fine) between the deconvolved RS image and the GS image warped by h0.
+    Returns (GS->RS transform, final correlation coefficient)."""
+    shape = rs.shape[-2:]
+    motion = cv2.MOTION_HOMOGRAPHY if model == "homography" else cv2.MOTION_AFFINE
+    template = _gray(rs)
+    moving = _gray(warp_to(gs, h0, shape))
+    valid = (warp_to(np.ones((1, *gs.shape[-2:])), h0, shape)[0] > 0.999).astype(np.uint8)
+    w = np.eye(3, dtype=np.float32)
+    cc = float("nan")
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 200, 1e-6)
+    for level in reversed(range(levels)):
+        f = 2 ** level
+        if min(shape) // f < 16:
+            continue
+        size = (shape[1] // f, shape[0] // f)
+        t = cv2.resize(template, size, interpolation=cv2.INTER_AREA)
+        m = cv2.resize(moving, size, interpolation=cv2.INTER_AREA)
+        mask = cv2.resize(valid, size, interpolation=cv2.INTER_NEAREST)
+        s = bin_matrix(f).astype(np.float32)
+        w_level = s @ w @ np.linalg.inv(s)
+        try:
+            cc, w_level = cv2.findTransformECC(t, m, w_level[:3] if motion == cv2.MOTION_HOMOGRAPHY
+                                               else w_level[:2], motion, criteria, mask, 3)
+        except cv2.error as exc:
+            raise AlignmentError(f"ECC alignment did not converge ({str(exc).strip().splitlines()[-1]}); "
+                                 "is the target textured and inside both fields of view?") from None
+        full = np.eye(3, dtype=np.float32)
+        full[:w_level.shape[0]] = w_level
+        w = np.linalg.inv(s) @ full @ s
+    # moving(W x) ~ template(x) and moving(y) = GS(h0^-1 y), so GS->RS = W^-1 h0.
+    h = np.linalg.inv(w.astype(np.float64)) @ h0
+    if model == "similarity":
+        pts = grid_points(gs.shape[-2:], fraction=0.8)
+        h = fit_similarity(pts, apply_homography(h, pts))
+    return h / h[2, 2], cc
+
+
+def _params(h: np.ndarray, model: str) -> np.ndarray:
+    if model == "similarity":
+        return np.array([h[0, 0], h[1, 0], h[0, 2], h[1, 2]])
+    return (h / h[2, 2]).ravel()[:8]
+
+
+def _matrix(p: np.ndarray, model: str) -> np.ndarray:
+    if model == "similarity":
+        a, b, tx, ty = p
+        return np.array([[a, -b, tx], [b, a, ty], [0, 0, 1.0]])
+    return np.append(p, 1.0).reshape(3, 3)
+
+
+class ForwardFit:
+    """Predicts the RS image of a static scene from the GS image: (e_RS / e_GS) PSF * warp(GS)."""
+
+    def __init__(self, rs: np.ndarray, gs: np.ndarray, psf: np.ndarray, exposure_ratio: float):
+        self.rs, self.gs = np.asarray(rs, np.float64), np.asarray(gs, np.float64)
+        self.shape = self.rs.shape[-2:]
+        self.ratio = float(exposure_ratio)
+        self.op = PSFConvolution(torch.from_numpy(np.asarray(psf, np.float64)), self.shape,
+                                 channels=self.rs.shape[0])
+
+    def predict(self, h: np.ndarray) -> np.ndarray:
+        """Unit-gain prediction (C, H, W) for transform h."""
+        warped = torch.from_numpy(warp_to(self.gs, h, self.shape, cv2.INTER_CUBIC))
+        return self.ratio * self.op.A(warped).numpy()
+
+    def gains(self, pred: np.ndarray) -> np.ndarray:
+        """Per-channel least-squares Lambda with rs ~ Lambda * pred."""
+        num = (pred * self.rs).sum(axis=(1, 2))
+        den = (pred * pred).sum(axis=(1, 2))
+        if np.any(den <= 0):
+            raise AlignmentError("the warped GS image has no signal in some channel; "
+                                 "does the target lie inside the GS field of view?")
+        return num / den
+
+    def residual(self, h: np.ndarray) -> np.ndarray:
+        pred = self.predict(h)
+        return (self.gains(pred)[:, None, None] * pred - self.rs).ravel()
+
+    def misfit(self, h: np.ndarray) -> float:
+        """RMS residual relative to the RS image's RMS."""
+        r = self.residual(h)
+        return float(np.sqrt((r * r).mean() / (self.rs * self.rs).mean()))
+
+
+def refine_forward(fit: ForwardFit, h0: np.ndarray, model: str) -> np.ndarray:
+    """Least-squares transform parameters (module docstring, step 4)."""
+    from scipy.optimize import least_squares
+
+    p0 = _params(h0, model)
+    scale = np.abs(p0).clip(1e-3) if model == "homography" else np.array([1e-2, 1e-2, 1.0, 1.0])
+    res = least_squares(lambda p: fit.residual(_matrix(p, model)), p0, x_scale=scale,
+                        diff_step=1e-4, method="trf", max_nfev=200)
+    return _matrix(res.x, model)
+
+
+def tile_shifts(rs: np.ndarray, gs_warped: np.ndarray, valid: np.ndarray, tile: int) -> np.ndarray:
+    """(N, 2) local shifts (x, y) between two images on textured tiles fully inside `valid`."""
+    a, b = _gray(rs).astype(np.float64), _gray(gs_warped).astype(np.float64)
+    h, w = a.shape
+    window = cv2.createHanningWindow((tile, tile), cv2.CV_64F)
+    shifts = []
+    for y0 in range(0, h - tile + 1, tile // 2):
+        for x0 in range(0, w - tile + 1, tile // 2):
+            if not valid[y0:y0 + tile, x0:x0 + tile].all():
+                continue
+            ta, tb = a[y0:y0 + tile, x0:x0 + tile], b[y0:y0 + tile, x0:x0 + tile]
+            if tb.std() < 0.05 * max(b.std(), 1e-12) or ta.std() <= 0:
+                continue
+            (dx, dy), response = cv2.phaseCorrelate(tb, ta, window)
+            if response > 0.05 and abs(dx) < tile / 4 and abs(dy) < tile / 4:
+                shifts.append((dx, dy))
+    return np.asarray(shifts, np.float64).reshape(-1, 2)
+
+
+# --------------------------------------------------------------------------- the whole thing
+
+
+@dataclass
+class Alignment:
+    """Result on the working grids (gs_to_rs maps GS working pixels to RS working pixels)."""
+
+    gs_to_rs: np.ndarray
+    white_balance: np.ndarray
+    ecc: float
+    residual_px: float
+    residual_tiles: int
+    misfit: float
+    init: str
+    deconvolved: np.ndarray
+    notes: list[str] = field(default_factory=list)
+
+
+def align_images(rs: np.ndarray, gs: np.ndarray, psf: np.ndarray, exposure_ratio: float,
+                 init: np.ndarray | None = None, model: str = "similarity", refine: bool = True,
+                 deconv_iters: int = 100, tau_rel: float = 1e-3) -> Alignment:
+    """Align a GS image (C, h, w) to an RS image (C, H, W) of the same static scene (operator
+    units, on working grids) with the RS PSF (C or 1, Hp, Wp) on the RS grid. `exposure_ratio`
+    is e_RS / e_GS. See the module docstring for the steps."""
+    if model not in MODELS:
+        raise AlignmentError(f"unknown transform model {model!r}; use one of {', '.join(MODELS)}")
+    rs, gs = np.asarray(rs, np.float64), np.asarray(gs, np.float64)
+    if rs.ndim != 3 or gs.ndim != 3 or rs.shape[0] != gs.shape[0]:
+        raise AlignmentError(f"RS and GS images must be (C, H, W) with equal C, got {rs.shape} and {gs.shape}")
+    for name, img in (("RS", rs), ("GS", gs)):
+        if not np.all(np.isfinite(img)):
+            raise AlignmentError(f"the {name} image contains NaN or Inf")
+        if img.std() <= 0:
+            raise AlignmentError(f"the {name} image is flat: point the cameras at a textured target")
+    notes: list[str] = []
+    deconv = deconvolve(rs, psf, tau_rel=tau_rel, iters=deconv_iters)
+    x = deconv.image
+    candidates: list[tuple[str, np.ndarray]] = []
+    if init is not None:
+        candidates.append(("given", np.asarray(init, np.float64)))
+    found = feature_init(gs, x, model)
+    if found is not None:
+        candidates.append((f"features ({found[1]} RANSAC inliers)", found[0]))
+    if not candidates:
+        candidates.append(("identity", np.eye(3)))
+    best = None
+    for name, h0 in candidates:
+        try:
+            h, cc = ecc_refine(x, gs, h0, model)
+        except AlignmentError as exc:
+            notes.append(f"ECC from {name} start failed: {exc}")
+            continue
+        if best is None or cc > best[2]:
+            best = (name, h, cc)
+    if best is None:
+        raise AlignmentError(notes[-1].split(": ", 1)[1])
+    init_name, h, cc = best
+    fit = ForwardFit(rs, gs, psf, exposure_ratio)
+    if refine:
+        h_ecc, misfit_ecc = h, fit.misfit(h)
+        h = refine_forward(fit, h, model)
+        if fit.misfit(h) > misfit_ecc:  # never accept a worse fit
+            h = h_ecc
+    h = h / h[2, 2]
+    wb = fit.gains(fit.predict(h))
+    if np.any(~np.isfinite(wb)) or np.any(wb <= 0):
+        raise AlignmentError(f"white balance is not positive ({wb.tolist()}); check the target")
+    shape = rs.shape[-2:]
+    valid = warp_to(np.ones((1, *gs.shape[-2:])), h, shape)[0] > 0.999
+    tile = int(max(16, 2 ** round(math.log2(max(min(shape) // 4, 16)))))
+    shifts = tile_shifts(x, warp_to(gs, h, shape), valid, tile)
+    residual = float(np.sqrt((shifts ** 2).sum(1).mean())) if len(shifts) else float("nan")
+    if not len(shifts):
+        notes.append("no textured tile for the residual check")
+    return Alignment(gs_to_rs=h, white_balance=wb, ecc=float(cc), residual_px=residual,
+                     residual_tiles=len(shifts), misfit=fit.misfit(h), init=init_name,
+                     deconvolved=x, notes=notes)
+
+
+def working_factor(shape: tuple[int, int], max_side: int) -> int:
+    """Smallest integer bin that brings the long side of `shape` to at most `max_side`."""
+    return max(1, math.ceil(max(shape) / max_side))
+
+
+def align_pair(rs: np.ndarray, gs: np.ndarray, psf: np.ndarray, exposure_ratio: float,
+               rs_mosaic: int = 1, gs_mosaic: int = 1, init: np.ndarray | None = None,
+               model: str = "similarity", max_side: int = 256, refine: bool = True,
+               deconv_iters: int = 100, tau_rel: float = 1e-3) -> tuple[Alignment, dict]:
+    """Align full-size frames: `rs` (C, H, W) and `gs` (C, h, w) operator units after any Bayer
+    binning by `rs_mosaic` / `gs_mosaic`; `psf` (C or 1, Hs, Ws) on the raw RS sensor grid;
+    `init` a raw GS->RS transform. Bins both to a working grid, runs `align_images`, and
+    returns the result with gs_to_rs in raw sensor pixels, plus the working-grid facts."""
+    f_rs = working_factor(rs.shape[-2:], max_side)
+    rs_w = bin_image(rs, f_rs)
+    f_gs = max(1, round(max(gs.shape[-2:]) / max(rs_w.shape[-2:])))
+    gs_w = bin_image(gs, f_gs)
+    psf = np.asarray(psf, np.float64)
+    psf_shape = (max(1, round(psf.shape[-2] / (rs_mosaic * f_rs))), max(1, round(psf.shape[-1] / (rs_mosaic * f_rs))))
+    psf_w = normalise(resample(psf[None] if psf.ndim == 2 else psf, psf_shape))
+    b_rs, b_gs = bin_matrix(rs_mosaic * f_rs), bin_matrix(gs_mosaic * f_gs)
+    init_w = None
+    if init is not None:
+        init_w = b_rs @ np.asarray(init, np.float64) @ np.linalg.inv(b_gs)
+    elif rs_w.shape[-2:] != gs_w.shape[-2:]:  # centre the GS field on the RS field, same scale
+        s = min(rs_w.shape[-1] / gs_w.shape[-1], rs_w.shape[-2] / gs_w.shape[-2])
+        init_w = similarity_matrix((0, 0), 0.0, s, ((gs_w.shape[-1] - 1) / 2, (gs_w.shape[-2] - 1) / 2))
+        init_w[:2, 2] += np.array([(rs_w.shape[-1] - gs_w.shape[-1]) / 2, (rs_w.shape[-2] - gs_w.shape[-2]) / 2])
+    result = align_images(rs_w, gs_w, psf_w, exposure_ratio, init=init_w, model=model, refine=refine,
+                          deconv_iters=deconv_iters, tau_rel=tau_rel)
+    h_raw = np.linalg.inv(b_rs) @ result.gs_to_rs @ b_gs
+    result.gs_to_rs = h_raw / h_raw[2, 2]
+    result.residual_px *= rs_mosaic * f_rs
+    grid = {"rs_bin": rs_mosaic * f_rs, "gs_bin": gs_mosaic * f_gs, "rs_work_shape": list(rs_w.shape[-2:]),
+            "gs_work_shape": list(gs_w.shape[-2:])}
+    return result, grid

@@ -1,0 +1,217 @@
+"""The calibration file: one HDF5 per rig holding what `rngcam calibrate` measured.
+
+Where: the rig names it (`calibration.file`, relative to the rig file); without that,
+`rngcam calibrate` writes `<rig name>.calib.h5` in the current folder (or `-o FILE`) and says
+how to point the rig at it. `rngcam capture` copies what the file holds into each bundle's
+`calibration` group, in place of the rig's inline values.
+
+Layout (every part optional; each subcommand replaces only its own part, the others stay):
+
+- root attrs: ``format`` = "rngcam-calibration", ``schema_version``, ``rig_name``,
+  ``updated_utc``.
+- ``psf`` (C, H, W) float32, sums to 1 per channel, on the RS sensor grid (Bayer sensors: after
+  2x2 binning per colour). rngcam.physics.psf.load_psf reads it, so a rig's
+  ``calibration.psf.path`` may point straight at this file.
+- ``line_time_s`` scalar float64.
+- ``gs_to_rs`` (3, 3) float64: raw GS pixel -> raw RS sensor pixel.
+- ``white_balance`` (C,) float64: multiplies GS measurements to the RS scale (recon's Lambda).
+
+Each dataset's attrs are its provenance: ``created_utc``, ``method`` and the numbers that
+qualify it (frames, dark, SNR; heights and readout times; residual, ECC, model ...), as
+scalars or JSON text.
+
+Writes are atomic: the whole file is written under a temporary name and renamed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import uuid
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from rngcam.errors import ConfigError, RngcamError
+
+FORMAT_NAME = "rngcam-calibration"
+SCHEMA_VERSION = 1
+PARTS = ("psf", "line_time_s", "gs_to_rs", "white_balance")
+
+
+class CalibrationFileError(RngcamError):
+    """A calibration file is missing, unreadable or inconsistent."""
+
+
+@dataclass
+class StoredCalibration:
+    """What a calibration file holds; `provenance[part]` is that part's attributes."""
+
+    psf: np.ndarray | None = None
+    line_time_s: float | None = None
+    gs_to_rs: np.ndarray | None = None
+    white_balance: np.ndarray | None = None
+    rig_name: str = ""
+    provenance: dict[str, dict] = field(default_factory=dict)
+
+    def parts(self) -> list[str]:
+        return [p for p in PARTS if getattr(self, p) is not None]
+
+
+def now_utc() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def _attr_value(v):
+    if isinstance(v, (dict, list, tuple)):
+        return json.dumps(v)
+    if v is None:
+        return "null"
+    return v
+
+
+def _read_attrs(obj) -> dict:
+    out = {}
+    for k, v in obj.attrs.items():
+        if isinstance(v, bytes):
+            v = v.decode()
+        if isinstance(v, str) and v[:1] in "[{":
+            try:
+                v = json.loads(v)
+            except ValueError:
+                pass
+        elif isinstance(v, np.generic):
+            v = v.item()
+        out[k] = v
+    return out
+
+
+def read_calibration(path: str | Path) -> StoredCalibration:
+    """Read a calibration file; CalibrationFileError (one line) when it is not one."""
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationFileError(f"{path}: calibration file not found (run `rngcam calibrate`)")
+    try:
+        with h5py.File(path, "r") as f:
+            if f.attrs.get("format") != FORMAT_NAME:
+                raise CalibrationFileError(f"{path}: not an rngcam calibration file")
+            if int(f.attrs.get("schema_version", -1)) != SCHEMA_VERSION:
+                raise CalibrationFileError(f"{path}: calibration schema version "
+                                           f"{f.attrs.get('schema_version')} (this rngcam reads {SCHEMA_VERSION})")
+            out = StoredCalibration(rig_name=str(f.attrs.get("rig_name", "")))
+            for part in PARTS:
+                if part in f:
+                    value = f[part][()]
+                    value = float(value) if part == "line_time_s" else np.asarray(value, np.float64)
+                    setattr(out, part, value)
+                    out.provenance[part] = _read_attrs(f[part])
+    except OSError as exc:
+        raise CalibrationFileError(f"{path}: cannot read calibration file ({exc})") from None
+    _validate(out, path)
+    return out
+
+
+def _validate(cal: StoredCalibration, path: Path) -> None:
+    def bad(msg):
+        raise CalibrationFileError(f"{path}: {msg}")
+
+    if cal.psf is not None and (cal.psf.ndim != 3 or not np.all(np.isfinite(cal.psf))
+                                or np.any(cal.psf.sum(axis=(1, 2)) <= 0)):
+        bad(f"psf must be a finite (C, H, W) array with signal in every channel, got shape {cal.psf.shape}")
+    if cal.line_time_s is not None and not (np.isfinite(cal.line_time_s) and cal.line_time_s > 0):
+        bad(f"line_time_s must be finite and > 0, got {cal.line_time_s}")
+    if cal.gs_to_rs is not None and (cal.gs_to_rs.shape != (3, 3) or not np.all(np.isfinite(cal.gs_to_rs))):
+        bad(f"gs_to_rs must be a finite 3x3 matrix, got shape {cal.gs_to_rs.shape}")
+    if cal.white_balance is not None:
+        wb = cal.white_balance
+        if wb.ndim != 1 or not np.all(np.isfinite(wb)) or np.any(wb <= 0):
+            bad(f"white_balance must be finite, positive and (C,), got {wb.tolist()}")
+
+
+def update_calibration(path: str | Path, rig_name: str = "", **parts) -> StoredCalibration:
+    """Replace the given parts (name=(value, provenance dict)) in the file, keeping the others.
+    Creates the file when absent; writes atomically."""
+    path = Path(path)
+    unknown = set(parts) - set(PARTS)
+    if unknown:
+        raise ValueError(f"unknown calibration part(s): {sorted(unknown)}")
+    current = read_calibration(path) if path.exists() else StoredCalibration()
+    for name, (value, provenance) in parts.items():
+        setattr(current, name, float(value) if name == "line_time_s" else np.asarray(value, np.float64))
+        current.provenance[name] = {"created_utc": now_utc(), **provenance}
+    current.rig_name = rig_name or current.rig_name
+    _validate(current, path)
+    if not path.parent.is_dir():
+        raise CalibrationFileError(f"cannot write {path}: directory {path.parent} does not exist")
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        with h5py.File(tmp, "w") as f:
+            for name in current.parts():
+                value = getattr(current, name)
+                dtype = np.float32 if name == "psf" else np.float64
+                ds = f.create_dataset(name, data=np.asarray(value, dtype=dtype))
+                for k, v in current.provenance.get(name, {}).items():
+                    ds.attrs[k] = _attr_value(v)
+            f.attrs["rig_name"] = current.rig_name
+            f.attrs["updated_utc"] = now_utc()
+            f.attrs["schema_version"] = SCHEMA_VERSION
+            f.attrs["format"] = FORMAT_NAME
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return read_calibration(path)
+
+
+def calibration_path(rig, override: str | Path | None = None) -> Path:
+    """Where `rngcam calibrate` writes: `override`, else the rig's calibration.file, else
+    `<rig name>.calib.h5` in the current folder."""
+    if override is not None:
+        return Path(override)
+    named = getattr(rig.config.calibration, "file", None)
+    if named:
+        return rig.resolve(named)
+    return Path(f"{rig.config.name}.calib.h5")
+
+
+def rig_calibration(rig) -> tuple[StoredCalibration | None, Path | None]:
+    """The calibration file the rig names, read (None, None when it names none). A named file
+    that does not exist is a ConfigError: a capture would otherwise silently use stale values."""
+    named = getattr(rig.config.calibration, "file", None)
+    if not named:
+        return None, None
+    path = rig.resolve(named)
+    if not path.is_file():
+        raise ConfigError(f"{rig.path}: calibration.file: {path} not found (run `rngcam calibrate "
+                          f"... --rig {rig.path}` first, or remove the entry)")
+    return read_calibration(path), path
+
+
+def apply_to_bundle(stored: StoredCalibration, path: Path, calibration, rs_shape: tuple[int, int]):
+    """A copy of a bundle's rngcam.bundle.Calibration with the stored parts in place of the
+    rig's values: the PSF resampled to the RS sensor grid `rs_shape` (H, W), its source and
+    provenance recorded in `extra`."""
+    from dataclasses import replace
+
+    from rngcam.physics.psf import normalise, resample
+
+    changes: dict = {}
+    extra = dict(calibration.extra)
+    if stored.psf is not None:
+        psf = stored.psf
+        if psf.shape[-2:] != tuple(rs_shape):
+            psf = resample(psf, tuple(rs_shape))
+        changes.update(psf=normalise(np.clip(psf, 0.0, None)).astype(np.float32),
+                       psf_source=f"{path} (rngcam calibrate psf)",
+                       psf_bias=float(stored.provenance.get("psf", {}).get("dark_level_dn", 0.0)))
+    if stored.gs_to_rs is not None:
+        changes["gs_to_rs"] = stored.gs_to_rs.copy()
+    if stored.white_balance is not None:
+        changes["white_balance"] = stored.white_balance.copy()
+    extra["calibration_file"] = str(path)
+    extra["calibration_parts"] = stored.parts()
+    extra["calibration_provenance"] = {k: v for k, v in stored.provenance.items() if k in stored.parts()}
+    return replace(calibration, extra=extra, **changes)
