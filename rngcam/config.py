@@ -50,6 +50,15 @@ class TriggerInput(_Model):
     debouncer_s: float | None = Field(default=None, ge=0)
 
 
+class MockMisalignment(_Model):
+    """A mock GS camera's true GS-to-RS similarity about the image centre: GS pixel p sees the
+    scene point (RS pixel) scale * R(rotation) (p - centre) + centre + shift."""
+
+    shift_px: tuple[float, float] = (0.0, 0.0)
+    rotation_deg: float = 0.0
+    scale: float = Field(default=1.0, gt=0)
+
+
 class MockSensor(_Model):
     """Physics of a mock camera (it renders frames from the rig's mock scene).
 
@@ -66,6 +75,8 @@ class MockSensor(_Model):
     read_noise_e: float = Field(default=3.0, ge=0)
     line_time_s: float | None = Field(default=None, gt=0)
     readout_s: float = Field(default=1e-3, ge=0)
+    channel_gain: list[float] | None = None  # per-channel sensitivity (calibration tests: GS/RS gains)
+    misalignment: MockMisalignment | None = None  # GS only: how it sees the scene (calibrate align)
 
 
 class CameraConfig(_Model):
@@ -173,6 +184,7 @@ class PsfConfig(_Model):
 
 class CalibrationConfig(_Model):
     psf: PsfConfig | None = None
+    file: str | None = None  # rngcam calibrate's HDF5 (relative to the rig); overrides the values below
     gs_to_rs: list[list[float]] | None = None  # 3x3 homography, GS pixel -> RS pixel
     white_balance: list[float] | None = None
 

@@ -213,15 +213,27 @@ def _mock_world(rig: Rig, psf: np.ndarray, gs_timing: GlobalShutterTiming, grid:
         cam = getattr(c.cameras, role)
         m = cam.mock or MockSensor()
         sensor = SensorModel(bit_depth=cam.bit_depth, black_level_dn=m.black_level_dn,
-                             full_well_e=m.full_well_e, read_noise_e=m.read_noise_e)
+                             full_well_e=m.full_well_e, read_noise_e=m.read_noise_e,
+                             channel_gain=None if m.channel_gain is None else tuple(m.channel_gain))
         if sensor.pixel_format != cam.pixel_format:
             raise ConfigError(f"{rig.path}: cameras.{role}.pixel_format: mock cameras deliver "
                               f"{sensor.pixel_format}, not {cam.pixel_format}")
         world.plug(MockDevice(cam.serial, cam.model or f"mock {role.upper()}", role, sensor,
                               noise=m.noise, seed=m.seed,
                               line_time_s=(m.line_time_s or cam.line_time_s) if role == "rs" else None,
-                              readout_s=m.readout_s))
+                              readout_s=m.readout_s, gs_to_rs=_mock_gs_to_rs(m, cam) if role == "gs" else None))
     return world
+
+
+def _mock_gs_to_rs(m: MockSensor, cam: CameraConfig):
+    """The mock GS camera's true GS->RS transform (rows of a 3x3) from its misalignment, or None."""
+    if m.misalignment is None:
+        return None
+    from rngcam.calibrate.align import similarity_matrix
+
+    a = m.misalignment
+    centre = ((cam.roi.width - 1) / 2, (cam.roi.height - 1) / 2)
+    return tuple(map(tuple, similarity_matrix(a.shift_px, a.rotation_deg, a.scale, centre)))
 
 
 def _connect_generator(rig: Rig, stack: contextlib.ExitStack, progress: Progress):
@@ -296,6 +308,11 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
     t_start = time.perf_counter()
     psf, psf_source, psf_bias = rs_psf(rig, progress)
     _, gs_timing, grid = nominal_timing(rig)
+    from rngcam.calibrate.store import apply_to_bundle, rig_calibration
+
+    stored, stored_path = rig_calibration(rig)  # rngcam calibrate's file, when the rig names one
+    if stored is not None:
+        progress(f"calibration: {', '.join(stored.parts()) or 'nothing'} from {stored_path}")
     warnings: list[str] = []
     results: list[CaptureResult] = []
     shots = []
@@ -370,8 +387,11 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
             white_balance=np.asarray(c.calibration.white_balance if c.calibration.white_balance
                                      else np.ones(psf.shape[0]), np.float64),
             extra={"psf_crop": c.calibration.psf.crop, "psf_spectral_support": spectral_support(psf)})
+        if stored is not None:
+            calibration = apply_to_bundle(stored, stored_path, calibration, psf.shape[-2:])
         bundle = Bundle(
-            rs=_record(c.cameras.rs, cams["rs"], rs_frames, [0.0], c.cameras.rs.line_time_s),
+            rs=_record(c.cameras.rs, cams["rs"], rs_frames, [0.0],
+                       (stored and stored.line_time_s) or c.cameras.rs.line_time_s),
             gs=_record(c.cameras.gs, cams["gs"], gs_frames, [t - t0 for t in c.timing.gs_trigger_s], None),
             calibration=calibration, trigger=trigger, truth=truth, rig_yaml=rig.text,
             meta={"source": "capture", "rig_name": c.name, "rig_path": str(rig.path),

@@ -11,6 +11,13 @@ fetch waits for a frame with a finite timeout. Its frame is a real simulated mea
 - GS: GlobalShutter(GlobalShutterTiming(trigger, exposure).weights) v
 
 mapped to DN by rngcam.physics.sensor.SensorModel (noise seeded per camera and frame).
+
+For calibration (rngcam.calibrate) the world can show a static `target` instead of the scene:
+"point" (a point source), "chart" (a textured card on a dark surround) or "dark"; frames are
+then the static forward model, whatever the trigger time. A GS device may carry a true GS-to-RS
+transform (it sees the scene point H p at its pixel p) and every device per-channel gains
+(SensorModel.channel_gain). The RS device has a small feature map (Height, SensorReadoutTime =
+overhead + (Height - 1) x line time) so its line time is measured as on a real camera.
 """
 
 from __future__ import annotations
@@ -19,17 +26,22 @@ import threading
 import time
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import torch
 
 from rngcam.acquire.camera import Camera, CameraInfo, CameraSettings, Configured, Frame
+from rngcam.acquire.features import FeatureMap, estimate_line_time_s
 from rngcam.errors import HardwareError
-from rngcam.physics.operators import GlobalShutter, RollingShutter
+from rngcam.physics.operators import GlobalShutter, PSFConvolution, RollingShutter
 from rngcam.physics.sensor import SensorModel
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 
 TRIGGER_LINES = ("Line1", "Line2", "Line3", "Line4")
 EXPOSURE_STEP_S = 1e-6  # exposure is set in whole microseconds, like a Basler ace
+READOUT_OVERHEAD_S = 12.5e-6  # constant part of the mock RS SensorReadoutTime
+STATIC_TARGETS = ("point", "chart", "dark")
+CHART_BRIGHTNESS = 0.7  # the chart's brightest point, in units of full scale at unit gain
 
 
 @dataclass(frozen=True)
@@ -44,6 +56,7 @@ class MockDevice:
     seed: int = 0
     line_time_s: float | None = None  # RS only: the sensor's true line time
     readout_s: float = 1e-3
+    gs_to_rs: tuple[tuple[float, ...], ...] | None = None  # GS only: true GS pixel -> RS pixel map
 
 
 class MockWorld:
@@ -57,6 +70,7 @@ class MockWorld:
         self.psf = None if psf is None else np.asarray(psf, dtype=np.float64)
         self.devices: dict[str, MockDevice] = {}
         self.t0_s: float | None = None  # generator-clock time of the RS trigger
+        self.target: str | None = None  # a static calibration target shown instead of the scene
         self._video: np.ndarray | None = None
         self._lock = threading.Lock()
 
@@ -75,6 +89,24 @@ class MockWorld:
                 self._video = render_scene(self.scene, self.grid, self.size, self.seed, **opts)
             return self._video
 
+    def static_image(self, device: MockDevice) -> np.ndarray:
+        """(3, N, N) intensity of the static `target` as `device` sees it (scene coordinates
+        are RS pixels; a GS device with gs_to_rs sees the scene point H p at pixel p)."""
+        from rngcam.calibrate.targets import chart_image, point_source
+
+        if self.target not in STATIC_TARGETS:
+            raise HardwareError(f"unknown mock target {self.target!r} (choose from {', '.join(STATIC_TARGETS)})")
+        n = self.size
+        h = None if device.gs_to_rs is None else np.asarray(device.gs_to_rs, np.float64)
+        if self.target == "dark":
+            return np.zeros((3, n, n))
+        if self.target == "chart":
+            return CHART_BRIGHTNESS * chart_image(n, h, seed=self.seed)
+        if self.psf is None:
+            raise HardwareError("the mock point source needs the RS PSF to set its brightness")
+        img = point_source(n, float(self.psf.max()))
+        return img if h is None else warp_seen(img, h)
+
     def relative(self, t_s: float, who: str) -> float:
         """Generator-clock time -> time after T0, checked to lie on the video grid."""
         if self.t0_s is None:
@@ -86,6 +118,42 @@ class MockWorld:
         if start_s < -1e-12 or end_s > span * (1 + 1e-9):
             raise HardwareError(f"{who}: exposure [{start_s * 1e3:.3f}, {end_s * 1e3:.3f}] ms lies "
                                 f"outside the mock scene's interval [0, {span * 1e3:.3f}] ms after T0")
+
+
+def warp_seen(img: np.ndarray, gs_to_rs: np.ndarray) -> np.ndarray:
+    """(C, N, N) scene on the RS grid -> what a camera with pixel p -> scene point H p sees."""
+    n_h, n_w = img.shape[-2:]
+    return np.stack([cv2.warpPerspective(np.ascontiguousarray(c, np.float64), gs_to_rs, (n_w, n_h),
+                                         flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                         borderMode=cv2.BORDER_CONSTANT, borderValue=0.0) for c in img])
+
+
+class MockFeatures(FeatureMap):
+    """The mock RS sensor's feature map: a writable Height and its SensorReadoutTime (us)."""
+
+    def __init__(self, rows: int, line_time_s: float):
+        self.rows, self.line_time_s, self.height = int(rows), float(line_time_s), int(rows)
+
+    def readable(self, name: str) -> bool:
+        return name in ("Height", "SensorReadoutTime")
+
+    def writable(self, name: str) -> bool:
+        return name == "Height"
+
+    def get(self, name: str):
+        if name == "Height":
+            return self.height
+        if name == "SensorReadoutTime":  # reported to 0.01 us, like a camera's float feature
+            return round((READOUT_OVERHEAD_S + (self.height - 1) * self.line_time_s) * 1e6, 2)
+        raise HardwareError(f"mock RS camera has no feature {name!r}")
+
+    def set(self, name: str, value) -> None:
+        if name != "Height" or not 2 <= int(value) <= self.rows:
+            raise HardwareError(f"mock RS camera: cannot set {name} to {value!r}")
+        self.height = int(value)
+
+    def execute(self, name: str) -> None:
+        raise HardwareError(f"mock RS camera has no command {name!r}")
 
 
 class MockCamera(Camera):
@@ -104,6 +172,7 @@ class MockCamera(Camera):
         self._frames_rendered = 0  # since open: seeds the noise, so every shot has fresh noise
         self._opened_at = 0.0
         self._cv = threading.Condition()
+        self.features: MockFeatures | None = None  # RS only
 
     # --- protocol ---
     def open(self) -> CameraInfo:
@@ -113,6 +182,8 @@ class MockCamera(Camera):
             raise HardwareError(f"{self.label}: no mock camera with serial {self.serial}; found: {found}")
         self.device = dev
         self._opened_at = time.monotonic()
+        if dev.kind == "rs":
+            self.features = MockFeatures(self.world.size, dev.line_time_s)
         self.info = CameraInfo("mock", dev.model, dev.serial, "simulated", "rngcam")
         return self.info
 
@@ -153,7 +224,7 @@ class MockCamera(Camera):
             "MockReadNoise_e": dev.sensor.read_noise_e,
         }
         if dev.kind == "rs":
-            out.features["SensorReadoutTime"] = (n - 1) * dev.line_time_s * 1e6
+            out.features["SensorReadoutTime"] = self.features.get("SensorReadoutTime")
         if settings.exposure_s is not None and abs(self.exposure_s - settings.exposure_s) > 1e-12:
             out.warnings.append(f"{self.label}: ExposureTime is {self.exposure_s * 1e6:g} us "
                                 f"(asked for {settings.exposure_s * 1e6:g})")
@@ -162,7 +233,7 @@ class MockCamera(Camera):
 
     def line_time_s(self) -> float | None:
         dev = self._dev()
-        return dev.line_time_s if dev.kind == "rs" else None
+        return estimate_line_time_s(self.features) if dev.kind == "rs" else None
 
     def arm(self) -> None:
         if self.settings is None:
@@ -226,27 +297,47 @@ class MockCamera(Camera):
     def render(self, t_s: float, index: int) -> np.ndarray:
         """The raw frame for an exposure triggered at generator time t_s (index seeds the noise)."""
         dev, world = self._dev(), self.world
-        rel = world.relative(t_s, self.label)
         n = world.size
-        video = torch.from_numpy(world.video()).double()
-        if dev.kind == "rs":
+        if world.target is not None:
+            y = self._render_static(dev)
+        elif dev.kind == "rs":
+            rel = world.relative(t_s, self.label)
+            video = torch.from_numpy(world.video()).double()
             if world.psf is None:
                 raise HardwareError(f"{self.label}: the mock RS camera needs a PSF")
             timing = RollingShutterTiming(dev.line_time_s, self.exposure_s, rows=n, trigger_s=rel)
             world.check_inside(rel, timing.end_s, self.label)
             op = RollingShutter(torch.from_numpy(world.psf), torch.from_numpy(timing.weights(world.grid)), n)
-            y = op.A(video)
+            y = op.A(video).numpy()
         else:
+            rel = world.relative(t_s, self.label)
+            video = torch.from_numpy(world.video()).double()
             timing = GlobalShutterTiming((rel,), self.exposure_s)
             world.check_inside(rel, timing.end_s, self.label)
-            y = GlobalShutter(torch.from_numpy(timing.weights(world.grid)), 3, (n, n)).A(video)[:, 0]
+            y = GlobalShutter(torch.from_numpy(timing.weights(world.grid)), 3, (n, n)).A(video)[:, 0].numpy()
+            if dev.gs_to_rs is not None:
+                y = warp_seen(y, np.asarray(dev.gs_to_rs, np.float64))
         rng = np.random.default_rng([dev.seed, index])
         sensor = dev.sensor
         if self.settings and self.settings.gain_db:
             g = 10 ** (self.settings.gain_db / 20)
+            base = sensor.channel_gain or (1.0, 1.0, 1.0)
             sensor = SensorModel(sensor.bit_depth, sensor.black_level_dn, sensor.full_well_e,
-                                 sensor.read_noise_e, (g, g, g), sensor.bayer)
-        return sensor.capture(y.numpy(), self.exposure_s, world.grid.dt_s, rng=rng, noise=dev.noise)
+                                 sensor.read_noise_e, tuple(g * b for b in base), sensor.bayer)
+        return sensor.capture(y, self.exposure_s, world.grid.dt_s, rng=rng, noise=dev.noise)
+
+    def _render_static(self, dev: MockDevice) -> np.ndarray:
+        """Operator units (3, N, N) of the static target: a static scene s gives
+        exposure / dt x (PSF conv s) on the RS sensor and exposure / dt x s on a GS sensor."""
+        world = self.world
+        img = world.static_image(dev)
+        scale = self.exposure_s / world.grid.dt_s
+        if dev.kind != "rs":
+            return scale * img
+        if world.psf is None:
+            raise HardwareError(f"{self.label}: the mock RS camera needs a PSF")
+        conv = PSFConvolution(torch.from_numpy(world.psf), (world.size, world.size), channels=3)
+        return scale * conv.A(torch.from_numpy(img)).numpy()
 
     def disarm(self) -> None:
         with self._cv:
