@@ -25,6 +25,7 @@ import hashlib
 import json
 import math
 import os
+import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -377,79 +378,99 @@ def _fsync_path(path: Path, directory: bool = False) -> None:
         os.close(fd)
 
 
-def _write_frames(group: h5py.Group, name: str, frames: np.ndarray, compression: str | None,
-                  frame_axis: int = 0) -> None:
-    """Dataset chunked one frame per chunk, filled in blocks (bounded extra memory)."""
-    frames = np.asarray(frames)
-    chunks = list(frames.shape)
-    chunks[frame_axis] = 1
-    dset = group.create_dataset(name, shape=frames.shape, dtype=frames.dtype,
-                                chunks=tuple(max(1, c) for c in chunks) if frames.size else None,
-                                compression=compression if frames.size else None)
-    n = frames.shape[frame_axis]
-    per_frame = max(1, frames.nbytes // max(1, n))
+def _set_text(obj: h5py.HLObject, name: str, text: str) -> None:
+    """Fixed-length UTF-8 attribute: stored in the checksummed object header, unlike a
+    variable-length string (whose heap, when damaged, can send HDF5 into an endless loop)."""
+    obj.attrs.create(name, np.bytes_(text.encode("utf-8")))
+
+
+def _small_dataset(group: h5py.Group, name: str, data: Any) -> None:
+    """A small array, chunked so it can carry a Fletcher-32 checksum (damage is detected)."""
+    data = np.asarray(data)
+    if data.size:
+        group.create_dataset(name, data=data, chunks=data.shape, fletcher32=True)
+    else:
+        group.create_dataset(name, data=data)
+
+
+def _write_frames(group: h5py.Group, name: str, frames: Any, compression: str | None,
+                  frame_axis: int = 0, dtype: Any = None) -> None:
+    """Dataset chunked one frame per chunk, filled in blocks (bounded extra memory).
+
+    `frames` may be a numpy array or an h5py dataset (copied block by block, never whole).
+    """
+    if not (hasattr(frames, "shape") and hasattr(frames, "dtype")):
+        frames = np.asarray(frames)
+    dtype = np.dtype(dtype or frames.dtype)
+    shape = tuple(frames.shape)
+    size = int(np.prod(shape))
+    chunks = tuple(1 if axis == frame_axis else max(1, c) for axis, c in enumerate(shape))
+    dset = group.create_dataset(name, shape=shape, dtype=dtype, chunks=chunks if size else None,
+                                compression=compression if size else None,
+                                fletcher32=bool(size))
+    n = shape[frame_axis]
+    per_frame = max(1, size * dtype.itemsize // max(1, n))
     step = max(1, _WRITE_BLOCK_BYTES // per_frame)
     for start in range(0, n, step):
-        index = [slice(None)] * frames.ndim
+        index = [slice(None)] * len(shape)
         index[frame_axis] = slice(start, min(n, start + step))
-        dset[tuple(index)] = frames[tuple(index)]
+        dset[tuple(index)] = np.asarray(frames[tuple(index)], dtype=dtype)
 
 
 def _write_camera(f: h5py.File, name: str, rec: CameraRecord, features_json: str,
                   compression: str | None) -> None:
     g = f.create_group(name)
-    g.attrs["pixel_format"] = rec.pixel_format
+    _set_text(g, "pixel_format", rec.pixel_format)
     g.attrs["bit_depth"] = int(rec.bit_depth)
     g.attrs["black_level_dn"] = float(rec.black_level_dn)
     g.attrs["exposure_s"] = float(rec.exposure_s)
     if rec.line_time_s is not None:
         g.attrs["line_time_s"] = float(rec.line_time_s)
     g.attrs["gain_db"] = float(rec.gain_db)
-    g.attrs["model"] = rec.model
-    g.attrs["serial"] = rec.serial
-    g.attrs["features"] = features_json
-    g.create_dataset("trigger_times_s", data=np.asarray(rec.trigger_times_s, dtype=np.float64))
+    _set_text(g, "model", rec.model)
+    _set_text(g, "serial", rec.serial)
+    _set_text(g, "features", features_json)
+    _small_dataset(g, "trigger_times_s", np.asarray(rec.trigger_times_s, dtype=np.float64))
     if rec.timestamps_s is not None:
-        g.create_dataset("timestamps_s", data=np.asarray(rec.timestamps_s, dtype=np.float64))
+        _small_dataset(g, "timestamps_s", np.asarray(rec.timestamps_s, dtype=np.float64))
     if rec.frame_ids is not None:
-        g.create_dataset("frame_ids", data=np.asarray(rec.frame_ids, dtype=np.int64))
+        _small_dataset(g, "frame_ids", np.asarray(rec.frame_ids, dtype=np.int64))
     _write_frames(g, "frames", rec.frames, compression)
 
 
 def _write_contents(f: h5py.File, bundle: Bundle, texts: dict[str, str], created_utc: str,
                     compression: str | None) -> None:
     f.attrs["schema_version"] = SCHEMA_VERSION
-    f.attrs["created_utc"] = created_utc
-    f.attrs["rngcam_version"] = __version__
-    f.attrs["rig_yaml"] = bundle.rig_yaml
-    f.attrs["meta"] = texts["meta"]
+    _set_text(f, "created_utc", created_utc)
+    _set_text(f, "rngcam_version", __version__)
+    _set_text(f, "rig_yaml", bundle.rig_yaml)
+    _set_text(f, "meta", texts["meta"])
 
     cal = bundle.calibration or Calibration()
     g = f.create_group("calibration")
-    g.attrs["psf_source"] = cal.psf_source
+    _set_text(g, "psf_source", cal.psf_source)
     g.attrs["psf_bias"] = float(cal.psf_bias)
-    g.attrs["extra"] = texts["extra"]
+    _set_text(g, "extra", texts["extra"])
     if cal.psf is not None:
-        g.create_dataset("psf", data=np.asarray(cal.psf, dtype=np.float32))
+        _small_dataset(g, "psf", np.asarray(cal.psf, dtype=np.float32))
     if cal.gs_to_rs is not None:
-        g.create_dataset("gs_to_rs", data=np.asarray(cal.gs_to_rs, dtype=np.float64))
+        _small_dataset(g, "gs_to_rs", np.asarray(cal.gs_to_rs, dtype=np.float64))
     if cal.white_balance is not None:
-        g.create_dataset("white_balance", data=np.asarray(cal.white_balance, dtype=np.float64))
+        _small_dataset(g, "white_balance", np.asarray(cal.white_balance, dtype=np.float64))
     if cal.field_stop is not None:
-        g.create_dataset("field_stop", data=np.asarray(cal.field_stop, dtype=bool))
+        _small_dataset(g, "field_stop", np.asarray(cal.field_stop, dtype=bool))
 
     if bundle.trigger is not None:
         g = f.create_group("trigger")
-        g.attrs["generator"] = bundle.trigger.generator
-        g.attrs["settings"] = texts["settings"]
-        g.attrs["errors"] = texts["errors"]
+        _set_text(g, "generator", bundle.trigger.generator)
+        _set_text(g, "settings", texts["settings"])
+        _set_text(g, "errors", texts["errors"])
 
     if bundle.truth is not None:
         g = f.create_group("truth")
         g.attrs["dt_s"] = float(bundle.truth.dt_s)
-        g.create_dataset("frame_times_s", data=np.asarray(bundle.truth.frame_times_s, np.float64))
-        _write_frames(g, "video", np.asarray(bundle.truth.video, dtype=np.float32), compression,
-                      frame_axis=1)
+        _small_dataset(g, "frame_times_s", np.asarray(bundle.truth.frame_times_s, np.float64))
+        _write_frames(g, "video", bundle.truth.video, compression, frame_axis=1, dtype=np.float32)
 
     # cameras last: they hold the bulk, and an interrupted write is then missing them too
     _write_camera(f, "gs", bundle.gs, texts["gs_features"], compression)
@@ -460,7 +481,7 @@ def write_bundle(bundle: Bundle, path: str | os.PathLike, overwrite: bool = Fals
                  compression: str | None = None) -> Path:
     """Write `bundle` to `path` atomically and return the path.
 
-    The file is written as `.NAME.partial-PID` in the target directory, fsynced, then renamed.
+    The file is written as `.NAME.partial-PID-RANDOM` in the target directory, fsynced, then renamed.
     Refuses (BundleError) an inconsistent bundle, an existing target unless `overwrite`, and
     leaves no file behind on failure. `compression`: None, "lzf" (fast) or "gzip".
     """
@@ -484,11 +505,12 @@ def write_bundle(bundle: Bundle, path: str | os.PathLike, overwrite: bool = Fals
         "errors": _to_json(list(bundle.trigger.errors) if bundle.trigger else [], "trigger errors"),
     }
     created = bundle.created_utc or datetime.now(timezone.utc).isoformat(timespec="seconds")
-    tmp = path.parent / f".{path.name}.partial-{os.getpid()}"
+    # pid for humans finding a leftover; random part so two writers never share a file
+    tmp = path.parent / f".{path.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     try:
         with h5py.File(tmp, "w", libver=("v110", "latest")) as f:
             _write_contents(f, bundle, texts, created, compression)
-            f.attrs["format"] = FORMAT_NAME  # last: a file without it is never taken for a bundle
+            _set_text(f, "format", FORMAT_NAME)  # last: a file without it is never taken for a bundle
             f.flush()
         _fsync_path(tmp)
         _publish(tmp, path, overwrite)
@@ -611,6 +633,9 @@ class _Reader:
         if not isinstance(obj, h5py.Dataset):
             self.problems.append(f"'{g.name}/{name}' is not a dataset")
             return None, False
+        if obj.dtype.kind not in "uifb":
+            self.problems.append(f"'{g.name}/{name}' is not numeric (dtype {obj.dtype})")
+            return None, False
         if big and self.lazy:
             return obj, True
         return obj[()], True
@@ -711,6 +736,9 @@ def _read(f: h5py.File, path: Path, lazy: bool) -> tuple[Bundle, list[str]]:
     except (OSError, RuntimeError, KeyError) as exc:  # h5py's errors for damaged files
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise BundleError(f"{path} is damaged or truncated ({reason})") from None
+    except (ValueError, TypeError) as exc:  # content of a shape/type nobody expects
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise BundleError(f"{path} has unreadable content ({reason})") from None
     return bundle, reader.problems
 
 

@@ -74,7 +74,8 @@ def make_bundle(seed: int = 0, **changes) -> Bundle:
     truth = Truth(video=rng.random((3, 8, 12, 16)).astype(np.float32),
                   frame_times_s=np.arange(8) * 1e-4, dt_s=1e-4)
     b = Bundle(rs=rs, gs=gs, calibration=cal, trigger=trigger, truth=truth,
-               rig_yaml="name: test\ncameras: {}\n", meta={"scene": "unit", "seed": seed},
+               rig_yaml="name: test  # 13 µs line time\ncameras: {}\n",
+               meta={"scene": "unit", "seed": seed},
                created_utc="2025-01-02T03:04:05+00:00")
     return replace(b, **changes)
 
@@ -167,7 +168,9 @@ def test_frames_are_chunked_per_frame_and_compression_round_trips(tmp_path, comp
         assert f["gs/frames"].chunks == (1, 20, 30)
         assert f["truth/video"].chunks == (3, 1, 12, 16)
         assert f["rs/frames"].compression == compression
-        assert f.attrs["format"] == FORMAT_NAME and f.attrs["schema_version"] == SCHEMA_VERSION
+        assert f.attrs["format"].decode() == FORMAT_NAME
+        assert f.attrs["schema_version"] == SCHEMA_VERSION
+        assert f["rs/frames"].fletcher32 and f["gs/trigger_times_s"].fletcher32
     np.testing.assert_array_equal(read_bundle(path).gs.frames, b.gs.frames)
 
 
@@ -238,6 +241,16 @@ def test_bad_file_gives_one_clear_line(good, kind):
     assert "\n" not in message
     problems = validate_bundle(path)
     assert problems and any(phrase in p for p in problems)
+
+
+def test_damaged_frame_data_is_detected_by_its_checksum(good):
+    with h5py.File(good, "r") as f:
+        chunk = f["gs/frames"].id.get_chunk_info(1)
+    data = bytearray(good.read_bytes())
+    data[chunk.byte_offset + chunk.size // 2] ^= 0xFF
+    good.write_bytes(bytes(data))
+    with pytest.raises(BundleError, match="good.h5 is damaged"):
+        read_bundle(good)
 
 
 def test_directory_is_not_a_bundle(tmp_path):
