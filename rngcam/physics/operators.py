@@ -176,6 +176,13 @@ class GlobalShutter(LinearOperator):
     def A_adjoint(self, b: Tensor) -> Tensor:  # noqa: N802
         return torch.einsum("cghw,gk->ckhw", b, self._w(b))
 
+    def norm(self, *args, **kwargs) -> float:
+        """Exact: A^T A acts on each pixel as W^T W, so ||A|| = sqrt(largest eigenvalue of W W^T)."""
+        w = self.weights.double().cpu()
+        if w.numel() == 0:
+            return 0.0
+        return float(torch.linalg.eigvalsh(w @ w.T)[-1].clamp_min(0).sqrt())
+
 
 class Stacked(LinearOperator):
     """[sqrt(psi) A_R; A_G]: so ||Stacked v - (sqrt(psi) b_R, b_G)||^2 = psi||A_R v - b_R||^2 + ||A_G v - b_G||^2."""

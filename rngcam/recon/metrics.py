@@ -10,7 +10,6 @@ import math
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 
@@ -33,20 +32,33 @@ def _gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float64, de
     return g / g.sum()
 
 
+def _valid_filter_matrix(g: Tensor, n: int) -> Tensor:
+    """(n - len(g) + 1, n) matrix applying the 1-D filter g without padding."""
+    m = torch.zeros(n - len(g) + 1, n, dtype=g.dtype, device=g.device)
+    for i in range(m.shape[0]):
+        m[i, i:i + len(g)] = g
+    return m
+
+
 def ssim(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range: float = 1.0) -> float:
     """Mean SSIM (Wang et al. 2004, Gaussian 11x11, sigma 1.5) over frames and channels.
 
     Each frame of each channel is one 2-D image; windows shrink for images under 11 px.
     """
-    x = estimate.double().reshape(-1, 1, *estimate.shape[-2:])
-    y = truth.double().to(x.device).reshape(-1, 1, *truth.shape[-2:])
+    # float32 filtering: float64 conv2d is ~20x slower on CPU and SSIM needs no more precision.
+    x = estimate.float().reshape(-1, 1, *estimate.shape[-2:])
+    y = truth.float().to(x.device).reshape(-1, 1, *truth.shape[-2:])
     size = min(11, x.shape[-1], x.shape[-2])
     size -= (size + 1) % 2  # odd
     g = _gaussian_window(size, 1.5, x.dtype, x.device)
+    if mask is not None:
+        crop = size // 2
+        mask = mask[crop:mask.shape[-2] - crop, crop:mask.shape[-1] - crop]
 
-    def blur(z):
-        z = F.conv2d(z, g.view(1, 1, 1, -1), padding=(0, size // 2))
-        return F.conv2d(z, g.view(1, 1, -1, 1), padding=(size // 2, 0))
+    gh, gw = _valid_filter_matrix(g, x.shape[-2]), _valid_filter_matrix(g, x.shape[-1])
+
+    def blur(z):  # separable 'valid' filtering as two matrix products (border windows left out, as in scikit-image)
+        return gh @ z @ gw.T
 
     c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
     mx, my = blur(x), blur(y)

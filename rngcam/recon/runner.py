@@ -134,7 +134,9 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
         row.update(truth_metrics(vt))
         result.log = [row]
     else:
+        t0 = time.perf_counter()
         method = _make_method(problem, settings, device)
+        setup_s = time.perf_counter() - t0
         left_out = list(getattr(method, "left_out", []))
         for comp, why in left_out:
             echo(f"left out: {comp} ({why})")
@@ -142,7 +144,7 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
                             log_every_s=settings.log_every_s, checkpoint_dir=out,
                             checkpoint_every_s=settings.checkpoint_every_s, resume=settings.resume,
                             progress=settings.progress)
-        result = run(method, loop, lambda m: truth_metrics(m.estimate()))
+        result = run(method, loop, lambda m: truth_metrics(m.estimate()), setup_s=setup_s)
         video = method.estimate().detach().float().cpu().numpy()
         if hasattr(method, "components"):
             components = method.components()
