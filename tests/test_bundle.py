@@ -168,6 +168,7 @@ def test_frames_are_chunked_per_frame_and_compression_round_trips(tmp_path, comp
         assert f["gs/frames"].chunks == (1, 20, 30)
         assert f["truth/video"].chunks == (3, 1, 12, 16)
         assert f["rs/frames"].compression == compression
+        assert f["rs/frames"].shuffle == (compression is not None)
         assert f.attrs["format"].decode() == FORMAT_NAME
         assert f.attrs["schema_version"] == SCHEMA_VERSION
         assert f["rs/frames"].fletcher32 and f["gs/trigger_times_s"].fletcher32
