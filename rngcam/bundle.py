@@ -15,8 +15,9 @@ A bundle is the contract between acquisition, simulation and reconstruction. Lay
 - optional ``truth`` group: ``video`` (C, T, H, W) float32, ``frame_times_s`` (T,), attr ``dt_s``.
 
 Text attributes are fixed-length UTF-8 and every dataset carries a Fletcher-32 checksum, so a
-damaged file is reported rather than misread. The ``format`` attribute is written last, and the file is written under a temporary name and
-renamed only when complete, so an interrupted write never leaves a file that reads as a bundle.
+damaged file is reported rather than misread. The ``format`` attribute is written last and the
+file is written under a temporary name, renamed only when complete, so an interrupted write
+never leaves a file that reads as a bundle.
 """
 
 from __future__ import annotations
