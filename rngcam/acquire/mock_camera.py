@@ -245,6 +245,16 @@ class MockCamera(Camera):
             self.missed_triggers = 0
             self.armed = True
 
+    def wait_ready(self, timeout_s: float = 1.0) -> None:
+        """With software triggers, wait until the sensor has finished its last exposure and readout."""
+        if self.settings is None or self.settings.trigger_source != "Software":
+            return
+        wait = self._busy_until_s - (time.monotonic() - self._opened_at)
+        if wait > timeout_s:
+            raise HardwareError(f"{self.label}: not ready for a trigger within {timeout_s:g} s")
+        if wait > 0:
+            time.sleep(wait)
+
     def software_trigger(self) -> None:
         if self.settings is None or self.settings.trigger_source != "Software":
             raise HardwareError(f"{self.label}: TriggerSource is not Software")
