@@ -19,7 +19,9 @@ Steps, all on a working grid (the RS image binned so its long side is at most `m
    and none of the deconvolution's bias; it needs the target on a dark background inside both
    fields of view (light the GS camera misses would otherwise reach the RS sensor).
 5. Residual: local shifts (phase correlation on tiles) between the deconvolved RS image and
-   the GS image warped with the final transform; their RMS, in RS sensor pixels, is reported.
+   the GS image warped with the final transform; their median, in RS sensor pixels, is
+   reported (it includes the deconvolution's own errors, so it bounds the misregistration
+   from above), with the refined transform's 1-sigma uncertainty from the fit's covariance.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ import cv2
 import numpy as np
 import torch
 
-from rngcam.calibrate.deconv import deconvolve
+from rngcam.calibrate.deconv import deconvolve, few_threads
 from rngcam.errors import RngcamError
 from rngcam.physics.operators import PSFConvolution
 from rngcam.physics.psf import normalise, resample
@@ -134,6 +136,19 @@ def warp_to(img: np.ndarray, h: np.ndarray, shape: tuple[int, int],
                                          borderMode=cv2.BORDER_CONSTANT, borderValue=0.0) for ch in img])
 
 
+def warp_exact(img: np.ndarray, h: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Like `warp_to` but with cubic-spline interpolation at exact (unquantised) positions.
+    OpenCV's warps resolve positions to 1/32 pixel, which leaves the least-squares refinement
+    with a piecewise-constant objective."""
+    from scipy.ndimage import map_coordinates
+
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    src = apply_homography(np.linalg.inv(np.asarray(h, np.float64)), np.c_[xx.ravel(), yy.ravel()])
+    coords = np.stack([src[:, 1], src[:, 0]])
+    return np.stack([map_coordinates(np.asarray(ch, np.float64), coords, order=3, mode="grid-constant",
+                                     cval=0.0).reshape(shape) for ch in img])
+
+
 def _gray(img: np.ndarray) -> np.ndarray:
     return np.asarray(img, np.float64).mean(axis=0).astype(np.float32)
 
@@ -234,7 +249,7 @@ class ForwardFit:
 
     def predict(self, h: np.ndarray) -> np.ndarray:
         """Unit-gain prediction (C, H, W) for transform h."""
-        warped = torch.from_numpy(warp_to(self.gs, h, self.shape, cv2.INTER_CUBIC))
+        warped = torch.from_numpy(warp_exact(self.gs, h, self.shape))
         return self.ratio * self.op.A(warped).numpy()
 
     def gains(self, pred: np.ndarray) -> np.ndarray:
@@ -256,15 +271,32 @@ class ForwardFit:
         return float(np.sqrt((r * r).mean() / (self.rs * self.rs).mean()))
 
 
-def refine_forward(fit: ForwardFit, h0: np.ndarray, model: str) -> np.ndarray:
-    """Least-squares transform parameters (module docstring, step 4)."""
+def refine_forward(fit: ForwardFit, h0: np.ndarray, model: str,
+                   points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares transform parameters (module docstring, step 4). Returns the transform and
+    its 1-sigma position uncertainty (pixels; the largest over `points`, GS coordinates), from
+    the fit's covariance sigma^2 (J^T J)^-1 with sigma^2 from the residual."""
     from scipy.optimize import least_squares
 
     p0 = _params(h0, model)
     scale = np.abs(p0).clip(1e-3) if model == "homography" else np.array([1e-2, 1e-2, 1.0, 1.0])
     res = least_squares(lambda p: fit.residual(_matrix(p, model)), p0, x_scale=scale,
                         diff_step=1e-4, method="trf", max_nfev=200)
-    return _matrix(res.x, model)
+    jac = np.asarray(res.jac, np.float64)
+    dof = max(jac.shape[0] - jac.shape[1], 1)
+    try:
+        cov = np.linalg.inv(jac.T @ jac) * (2 * res.cost / dof)
+    except np.linalg.LinAlgError:
+        return _matrix(res.x, model), float("nan")
+    # Position Jacobian d(point)/d(params) by central differences, then per-point variance.
+    base = apply_homography(_matrix(res.x, model), points)
+    dpos = np.empty((len(points), 2, len(res.x)))
+    for k in range(len(res.x)):
+        step = np.zeros_like(res.x)
+        step[k] = 1e-6 * max(1.0, abs(res.x[k]))
+        dpos[:, :, k] = (apply_homography(_matrix(res.x + step, model), points) - base) / step[k]
+    var = np.einsum("nik,kl,nil->n", dpos, cov, dpos)
+    return _matrix(res.x, model), float(np.sqrt(max(var.max(), 0.0)))
 
 
 def tile_shifts(rs: np.ndarray, gs_warped: np.ndarray, valid: np.ndarray, tile: int) -> np.ndarray:
@@ -296,8 +328,9 @@ class Alignment:
     gs_to_rs: np.ndarray
     white_balance: np.ndarray
     ecc: float
-    residual_px: float
+    residual_px: float  # median local shift, deconvolved RS vs warped GS (includes deconvolution noise)
     residual_tiles: int
+    uncertainty_px: float  # 1-sigma position uncertainty of the refined transform (nan without it)
     misfit: float
     init: str
     deconvolved: np.ndarray
@@ -310,6 +343,11 @@ def align_images(rs: np.ndarray, gs: np.ndarray, psf: np.ndarray, exposure_ratio
     """Align a GS image (C, h, w) to an RS image (C, H, W) of the same static scene (operator
     units, on working grids) with the RS PSF (C or 1, Hp, Wp) on the RS grid. `exposure_ratio`
     is e_RS / e_GS. See the module docstring for the steps."""
+    with few_threads(int(np.prod(np.shape(rs)[-2:]))):
+        return _align_images(rs, gs, psf, exposure_ratio, init, model, refine, deconv_iters, tau_rel)
+
+
+def _align_images(rs, gs, psf, exposure_ratio, init, model, refine, deconv_iters, tau_rel) -> Alignment:
     if model not in MODELS:
         raise AlignmentError(f"unknown transform model {model!r}; use one of {', '.join(MODELS)}")
     rs, gs = np.asarray(rs, np.float64), np.asarray(gs, np.float64)
@@ -346,9 +384,12 @@ def align_images(rs: np.ndarray, gs: np.ndarray, psf: np.ndarray, exposure_ratio
     fit = ForwardFit(rs, gs, psf, exposure_ratio)
     if refine:
         h_ecc, misfit_ecc = h, fit.misfit(h)
-        h = refine_forward(fit, h, model)
+        h, uncertainty = refine_forward(fit, h, model, grid_points(gs.shape[-2:]))
         if fit.misfit(h) > misfit_ecc:  # never accept a worse fit
-            h = h_ecc
+            h, uncertainty = h_ecc, float("nan")
+            notes.append("the forward-model refinement did not improve on ECC; kept the ECC transform")
+    else:
+        uncertainty = float("nan")
     h = h / h[2, 2]
     wb = fit.gains(fit.predict(h))
     if np.any(~np.isfinite(wb)) or np.any(wb <= 0):
@@ -357,11 +398,11 @@ def align_images(rs: np.ndarray, gs: np.ndarray, psf: np.ndarray, exposure_ratio
     valid = warp_to(np.ones((1, *gs.shape[-2:])), h, shape)[0] > 0.999
     tile = int(max(16, 2 ** round(math.log2(max(min(shape) // 4, 16)))))
     shifts = tile_shifts(x, warp_to(gs, h, shape), valid, tile)
-    residual = float(np.sqrt((shifts ** 2).sum(1).mean())) if len(shifts) else float("nan")
+    residual = float(np.median(np.hypot(shifts[:, 0], shifts[:, 1]))) if len(shifts) else float("nan")
     if not len(shifts):
         notes.append("no textured tile for the residual check")
     return Alignment(gs_to_rs=h, white_balance=wb, ecc=float(cc), residual_px=residual,
-                     residual_tiles=len(shifts), misfit=fit.misfit(h), init=init_name,
+                     residual_tiles=len(shifts), uncertainty_px=uncertainty, misfit=fit.misfit(h), init=init_name,
                      deconvolved=x, notes=notes)
 
 
@@ -370,34 +411,67 @@ def working_factor(shape: tuple[int, int], max_side: int) -> int:
     return max(1, math.ceil(max(shape) / max_side))
 
 
-def align_pair(rs: np.ndarray, gs: np.ndarray, psf: np.ndarray, exposure_ratio: float,
-               rs_mosaic: int = 1, gs_mosaic: int = 1, init: np.ndarray | None = None,
-               model: str = "similarity", max_side: int = 256, refine: bool = True,
-               deconv_iters: int = 100, tau_rel: float = 1e-3) -> tuple[Alignment, dict]:
-    """Align full-size frames: `rs` (C, H, W) and `gs` (C, h, w) operator units after any Bayer
-    binning by `rs_mosaic` / `gs_mosaic`; `psf` (C or 1, Hs, Ws) on the raw RS sensor grid;
-    `init` a raw GS->RS transform. Bins both to a working grid, runs `align_images`, and
-    returns the result with gs_to_rs in raw sensor pixels, plus the working-grid facts."""
+@dataclass
+class WorkingPair:
+    """A static RS/GS pair binned to working grids, the PSF on the RS working grid, and the
+    maps between raw and working pixel coordinates (x_work = B x_raw)."""
+
+    rs: np.ndarray
+    gs: np.ndarray
+    psf: np.ndarray
+    b_rs: np.ndarray
+    b_gs: np.ndarray
+    grid: dict
+
+    def to_work(self, h_raw: np.ndarray) -> np.ndarray:
+        return self.b_rs @ np.asarray(h_raw, np.float64) @ np.linalg.inv(self.b_gs)
+
+    def to_raw(self, h_work: np.ndarray) -> np.ndarray:
+        h = np.linalg.inv(self.b_rs) @ h_work @ self.b_gs
+        return h / h[2, 2]
+
+    def centred_init(self) -> np.ndarray:
+        """Working-grid transform that centres the GS field on the RS field at a common scale."""
+        (hr, wr), (hg, wg) = self.rs.shape[-2:], self.gs.shape[-2:]
+        h = similarity_matrix((0, 0), 0.0, min(wr / wg, hr / hg), ((wg - 1) / 2, (hg - 1) / 2))
+        h[:2, 2] += np.array([(wr - wg) / 2, (hr - hg) / 2])
+        return h
+
+
+def working_pair(rs: np.ndarray, gs: np.ndarray, psf: np.ndarray, rs_mosaic: int = 1,
+                 gs_mosaic: int = 1, max_side: int = 256) -> WorkingPair:
+    """`rs` (C, H, W) and `gs` (C, h, w) in operator units after any Bayer binning by
+    `rs_mosaic` / `gs_mosaic`, `psf` (C or 1, Hs, Ws) on the raw RS sensor grid -> working
+    grids: the RS image binned to a long side <= max_side, the GS image binned to about the
+    same size, the PSF area-resampled to the RS working pixel."""
     f_rs = working_factor(rs.shape[-2:], max_side)
-    rs_w = bin_image(rs, f_rs)
+    rs_w = bin_image(np.asarray(rs, np.float64), f_rs)
     f_gs = max(1, round(max(gs.shape[-2:]) / max(rs_w.shape[-2:])))
-    gs_w = bin_image(gs, f_gs)
+    gs_w = bin_image(np.asarray(gs, np.float64), f_gs)
     psf = np.asarray(psf, np.float64)
-    psf_shape = (max(1, round(psf.shape[-2] / (rs_mosaic * f_rs))), max(1, round(psf.shape[-1] / (rs_mosaic * f_rs))))
-    psf_w = normalise(resample(psf[None] if psf.ndim == 2 else psf, psf_shape))
-    b_rs, b_gs = bin_matrix(rs_mosaic * f_rs), bin_matrix(gs_mosaic * f_gs)
-    init_w = None
-    if init is not None:
-        init_w = b_rs @ np.asarray(init, np.float64) @ np.linalg.inv(b_gs)
-    elif rs_w.shape[-2:] != gs_w.shape[-2:]:  # centre the GS field on the RS field, same scale
-        s = min(rs_w.shape[-1] / gs_w.shape[-1], rs_w.shape[-2] / gs_w.shape[-2])
-        init_w = similarity_matrix((0, 0), 0.0, s, ((gs_w.shape[-1] - 1) / 2, (gs_w.shape[-2] - 1) / 2))
-        init_w[:2, 2] += np.array([(rs_w.shape[-1] - gs_w.shape[-1]) / 2, (rs_w.shape[-2] - gs_w.shape[-2]) / 2])
-    result = align_images(rs_w, gs_w, psf_w, exposure_ratio, init=init_w, model=model, refine=refine,
-                          deconv_iters=deconv_iters, tau_rel=tau_rel)
-    h_raw = np.linalg.inv(b_rs) @ result.gs_to_rs @ b_gs
-    result.gs_to_rs = h_raw / h_raw[2, 2]
-    result.residual_px *= rs_mosaic * f_rs
-    grid = {"rs_bin": rs_mosaic * f_rs, "gs_bin": gs_mosaic * f_gs, "rs_work_shape": list(rs_w.shape[-2:]),
+    psf = psf[None] if psf.ndim == 2 else psf
+    bin_rs = rs_mosaic * f_rs
+    psf_shape = (max(1, round(psf.shape[-2] / bin_rs)), max(1, round(psf.shape[-1] / bin_rs)))
+    psf_w = normalise(resample(psf, psf_shape)) if psf_shape != psf.shape[-2:] else normalise(psf)
+    grid = {"rs_bin": bin_rs, "gs_bin": gs_mosaic * f_gs, "rs_work_shape": list(rs_w.shape[-2:]),
             "gs_work_shape": list(gs_w.shape[-2:])}
-    return result, grid
+    return WorkingPair(rs_w, gs_w, psf_w, bin_matrix(bin_rs), bin_matrix(gs_mosaic * f_gs), grid)
+
+
+def align_pair(pair: WorkingPair, exposure_ratio: float, init: np.ndarray | None = None,
+               model: str = "similarity", refine: bool = True, deconv_iters: int = 100,
+               tau_rel: float = 1e-3) -> Alignment:
+    """`align_images` on a working pair; `init` and the result's gs_to_rs are raw GS pixel ->
+    raw RS pixel transforms, residual_px is in raw RS pixels."""
+    if init is not None:
+        init_w = pair.to_work(init)
+    elif pair.rs.shape[-2:] != pair.gs.shape[-2:]:
+        init_w = pair.centred_init()
+    else:
+        init_w = None
+    result = align_images(pair.rs, pair.gs, pair.psf, exposure_ratio, init=init_w, model=model,
+                          refine=refine, deconv_iters=deconv_iters, tau_rel=tau_rel)
+    result.gs_to_rs = pair.to_raw(result.gs_to_rs)
+    result.residual_px *= pair.grid["rs_bin"]
+    result.uncertainty_px *= pair.grid["rs_bin"]
+    return result

@@ -177,13 +177,16 @@ def calibration_path(rig, override: str | Path | None = None) -> Path:
     return Path(f"{rig.config.name}.calib.h5")
 
 
-def rig_calibration(rig) -> tuple[StoredCalibration | None, Path | None]:
+def rig_calibration(rig, missing_ok: bool = False) -> tuple[StoredCalibration | None, Path | None]:
     """The calibration file the rig names, read (None, None when it names none). A named file
-    that does not exist is a ConfigError: a capture would otherwise silently use stale values."""
+    that does not exist is a ConfigError (a capture would otherwise silently use the rig's
+    inline values), unless `missing_ok` (calibrate is about to create it)."""
     named = getattr(rig.config.calibration, "file", None)
     if not named:
         return None, None
     path = rig.resolve(named)
+    if missing_ok and not path.exists():
+        return None, path
     if not path.is_file():
         raise ConfigError(f"{rig.path}: calibration.file: {path} not found (run `rngcam calibrate "
                           f"... --rig {rig.path}` first, or remove the entry)")

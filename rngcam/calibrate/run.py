@@ -1,0 +1,293 @@
+"""The four calibration procedures on a rig: capture on the bench, estimate, store.
+
+Each returns what it measured and the calibration file it updated (rngcam.calibrate.store);
+`progress` receives one line per step. The mock rig's true values are reported next to the
+estimates (`mock_truth`) so a run on it shows how well calibration recovers them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rngcam.calibrate import store
+from rngcam.calibrate.align import (
+    Alignment,
+    align_pair,
+    similarity_matrix,
+    similarity_of,
+    working_pair,
+)
+from rngcam.calibrate.bench import Bench
+from rngcam.calibrate.linetime import LineTimeFit, default_heights, fit_line_time, readout_samples
+from rngcam.calibrate.psf import PsfEstimate, estimate_psf
+from rngcam.calibrate.whitebalance import WhiteBalance, estimate_white_balance
+from rngcam.config import Rig
+from rngcam.errors import HardwareError, RngcamError
+from rngcam.physics.psf import normalise, resample, spectral_support
+from rngcam.physics.sensor import BAYER_FORMATS
+
+Progress = Callable[[str], None]
+Ask = Callable[[str], None] | None
+
+POINT_INSTRUCTION = ("Put a point source (pinhole or LED, far away) on the RS camera's axis and "
+                     "darken the room")
+DARK_INSTRUCTION = "Switch the point source off (or cover it); keep everything else as it was"
+CHART_INSTRUCTION = ("Put a textured, static target on a dark background, inside both cameras' "
+                     "fields of view")
+
+
+@dataclass
+class Outcome:
+    """What a procedure stored, where, and the lines worth printing."""
+
+    path: Path
+    lines: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    value: object = None
+
+
+def _camera_provenance(bench: Bench, role: str) -> dict:
+    cfg, cam = bench.config(role), bench.camera(role)
+    return {"camera_model": cam.info.model if cam.info else cfg.model, "camera_serial": cfg.serial,
+            "backend": cfg.backend, "pixel_format": cfg.pixel_format, "exposure_s": bench.exposure_s(role),
+            "gain_db": cfg.gain_db}
+
+
+def _store(rig: Rig, out, **parts) -> Path:
+    path = store.calibration_path(rig, out)
+    store.update_calibration(path, rig_name=rig.config.name, **parts)
+    return path
+
+
+def rig_hint(rig: Rig, path: Path) -> str | None:
+    """A line telling how to make captures use `path`, unless the rig already names it."""
+    named = rig.config.calibration.file
+    if named and rig.resolve(named) == path.resolve():
+        return None
+    return (f"to use it in captures, add to {rig.path.name}: calibration: {{file: {path.resolve()}}} "
+            "(a path relative to the rig file also works)")
+
+
+# --------------------------------------------------------------------------- PSF
+
+
+def calibrate_psf(rig: Rig, out=None, frames: int = 16, dark_frames: int = 0, max_saturated: int = 0,
+                  progress: Progress = print, ask: Ask = None) -> Outcome:
+    """Average `frames` point-source frames on the RS camera, subtract `dark_frames` dark frames
+    (0: the black level), check saturation and SNR, store the PSF."""
+    if frames < 1 or dark_frames < 0:
+        raise RngcamError("--frames must be >= 1 and --dark-frames >= 0")
+    with Bench(rig, roles=("rs",), progress=progress, ask=ask) as bench:
+        bench.show("point", POINT_INSTRUCTION)
+        shots = bench.grab("rs", frames)
+        progress(f"psf: {frames} point-source frame(s) captured")
+        dark = None
+        if dark_frames:
+            bench.show("dark", DARK_INSTRUCTION)
+            dark = bench.grab("rs", dark_frames)
+            progress(f"psf: {dark_frames} dark frame(s) captured")
+        cfg = bench.config("rs")
+        est: PsfEstimate = estimate_psf(shots, cfg.pixel_format, cfg.bit_depth, bench.black_level_dn("rs"),
+                                        dark_frames=dark, max_saturated=max_saturated)
+        provenance = {"method": "mean of point-source frames minus dark, clipped at 0, sum 1 per channel",
+                      "frames": est.frames, "dark": est.dark, "dark_level_dn": est.dark_level_dn,
+                      "peak_snr": est.peak_snr, "peak_fraction": est.peak_fraction,
+                      "saturated_pixels": est.saturated_pixels, "mosaic_bin": est.mosaic,
+                      "sensor_shape": [cfg.roi.height, cfg.roi.width], **_camera_provenance(bench, "rs")}
+    path = _store(rig, out, psf=(est.psf, provenance))
+    lines = [(f"PSF: {est.psf.shape[0]}x{est.psf.shape[1]}x{est.psf.shape[2]} from {est.frames} frame(s), "
+              f"{est.dark}; peak SNR {est.peak_snr:.0f}, peak at {est.peak_fraction:.0%} of full scale, "
+              f"{est.saturated_pixels} saturated pixel(s); spectral support {spectral_support(est.psf):.2%}")]
+    if bench.world is not None and bench.world.psf is not None:
+        from rngcam.calibrate.psf import correlation
+
+        truth = bench.world.psf
+        est_grid = est.psf if est.psf.shape == truth.shape else normalise(resample(est.psf, truth.shape[-2:]))
+        lines.append(f"mock truth: correlation of the PSF with the mock's PSF {correlation(est_grid, truth):.4f}")
+    lines.append(f"stored psf in {path}")
+    return Outcome(path, lines, est.warnings, est)
+
+
+# --------------------------------------------------------------------------- line time
+
+
+def calibrate_linetime(rig: Rig, out=None, heights=None, progress: Progress = print) -> Outcome:
+    """Line time = slope of SensorReadoutTime against ROI height (several heights)."""
+    with Bench(rig, roles=("rs",), progress=progress) as bench:
+        cam = bench.camera("rs")
+        features = getattr(cam, "features", None)
+        if features is None:
+            raise HardwareError(f"{cam.label}: this backend gives no access to camera features")
+        full = bench.config("rs").roi.height
+        heights = list(heights) if heights else default_heights(full)
+        samples = readout_samples(features, heights)
+        provenance_cam = _camera_provenance(bench, "rs")
+    for h, r in samples:
+        progress(f"linetime: Height {h} -> SensorReadoutTime {r * 1e6:.2f} us")
+    fit: LineTimeFit = fit_line_time([h for h, _ in samples], [r for _, r in samples])
+    rig_value = rig.config.cameras.rs.line_time_s
+    provenance = {"method": "least-squares slope of SensorReadoutTime against ROI height",
+                  "heights": list(fit.heights), "readout_s": list(fit.readout_s),
+                  "overhead_s": fit.overhead_s, "residual_s": fit.residual_s, **provenance_cam}
+    path = _store(rig, out, line_time_s=(fit.line_time_s, provenance))
+    lines = [(f"line time: {fit.line_time_s * 1e6:.4f} us (overhead {fit.overhead_s * 1e6:.2f} us, "
+              f"fit residual {fit.residual_s * 1e6:.3f} us over {len(fit.heights)} heights); "
+              f"the rig says {rig_value * 1e6:.4g} us ({(fit.line_time_s / rig_value - 1):+.2%})")]
+    mock = rig.config.cameras.rs.mock
+    if rig.config.cameras.rs.backend == "mock":
+        true = (mock.line_time_s if mock and mock.line_time_s else rig_value)
+        lines.append(f"mock truth: line time {true * 1e6:.4f} us (error {(fit.line_time_s / true - 1):+.3%})")
+    lines.append(f"stored line_time_s in {path}")
+    warnings = []
+    if abs(fit.line_time_s / rig_value - 1) > 0.01:
+        warnings.append(f"the measured line time differs from the rig's cameras.rs.line_time_s by more than 1 %; "
+                        f"captures with this calibration file record the measured {fit.line_time_s:.6g} s")
+    return Outcome(path, lines, warnings, fit)
+
+
+# --------------------------------------------------------------------------- static pair
+
+
+def _sensor_psf(rig: Rig, progress: Progress) -> tuple[np.ndarray, str, bool]:
+    """PSF on the raw RS sensor grid: the calibration file's when it holds one, else the rig's
+    (then the last item is True)."""
+    from rngcam.acquire.capture import rs_psf
+
+    roi = rig.config.cameras.rs.roi
+    stored, path = store.rig_calibration(rig, missing_ok=True)
+    if stored is not None and stored.psf is not None:
+        psf = stored.psf
+        if psf.shape[-2:] != (roi.height, roi.width):
+            psf = resample(psf, (roi.height, roi.width))
+        return normalise(np.clip(psf, 0, None)), str(path), False
+    psf, source, _ = rs_psf(rig, progress)
+    return psf, source, True
+
+
+def _initial_transform(rig: Rig) -> tuple[np.ndarray | None, str]:
+    stored, path = store.rig_calibration(rig, missing_ok=True)
+    if stored is not None and stored.gs_to_rs is not None:
+        return stored.gs_to_rs, f"calibration file {path}"
+    h = rig.config.calibration.gs_to_rs
+    if h is not None:
+        return np.asarray(h, np.float64), "rig calibration.gs_to_rs"
+    return None, "none"
+
+
+def _static_pair(rig: Rig, frames: int, progress: Progress, ask: Ask, rig_psf: np.ndarray | None):
+    """(RS, GS) mean measurements (C, H, W), normalised signal units, of the chart, and provenance."""
+    with Bench(rig, roles=("rs", "gs"), progress=progress, ask=ask, mock_psf=rig_psf) as bench:
+        bench.show("chart", CHART_INSTRUCTION)
+        raw = {role: bench.grab(role, frames) for role in ("rs", "gs")}
+        for role, shots in raw.items():
+            max_dn = 2 ** bench.config(role).bit_depth - 1
+            n = max(int(np.count_nonzero(f >= max_dn)) for f in shots)
+            if n:
+                raise RngcamError(f"{n} pixel(s) saturated in a {role.upper()} frame of the target; lower "
+                                  "the exposure, the gain or the lighting")
+        progress(f"static target: {frames} RS and {frames} GS frame(s) captured")
+        # Normalised signal (dt = exposure): in these units the recon's Lambda needs no exposure factor.
+        rs = bench.measurement("rs", raw["rs"])
+        gs = bench.measurement("gs", raw["gs"])
+        prov = {"frames": frames, "rs": _camera_provenance(bench, "rs"), "gs": _camera_provenance(bench, "gs")}
+    return rs, gs, prov
+
+
+def _mock_truth(rig: Rig) -> tuple[np.ndarray, np.ndarray] | None:
+    """(true GS->RS transform, true white balance) of a mock rig."""
+    c = rig.config.cameras
+    if c.rs.backend != "mock":
+        return None
+    gs_m, rs_m = c.gs.mock, c.rs.mock
+    h = np.eye(3)
+    if gs_m is not None and gs_m.misalignment is not None:
+        a = gs_m.misalignment
+        h = similarity_matrix(a.shift_px, a.rotation_deg, a.scale, ((c.gs.roi.width - 1) / 2, (c.gs.roi.height - 1) / 2))
+    g_gs = np.asarray(gs_m.channel_gain if gs_m and gs_m.channel_gain else [1.0] * 3, np.float64)
+    g_rs = np.asarray(rs_m.channel_gain if rs_m and rs_m.channel_gain else [1.0] * 3, np.float64)
+    return h, g_rs / g_gs
+
+
+def _describe(h: np.ndarray, gs_shape: tuple[int, int]) -> str:
+    s = similarity_of(h, gs_shape)
+    return (f"shift ({s.shift_px[0]:+.3f}, {s.shift_px[1]:+.3f}) px, rotation {s.rotation_deg:+.3f} deg, "
+            f"scale {s.scale:.5f}")
+
+
+def _matrix_lines(h: np.ndarray) -> list[str]:
+    return ["  [" + ", ".join(f"{v: .6g}" for v in row) + "]" for row in h]
+
+
+def calibrate_align(rig: Rig, out=None, frames: int = 8, model: str = "similarity", max_side: int = 256,
+                    refine: bool = True, progress: Progress = print, ask: Ask = None) -> Outcome:
+    """GS-to-RS transform and white balance from a static target seen by both cameras."""
+    if frames < 1:
+        raise RngcamError("--frames must be >= 1")
+    psf, psf_source, from_rig = _sensor_psf(rig, progress)
+    init, init_source = _initial_transform(rig)
+    rs, gs, prov = _static_pair(rig, frames, progress, ask, psf if from_rig else None)
+    c = rig.config.cameras
+    pair = working_pair(rs, gs, psf, 2 if c.rs.pixel_format in BAYER_FORMATS else 1,
+                        2 if c.gs.pixel_format in BAYER_FORMATS else 1, max_side)
+    progress(f"align: working grids RS {pair.grid['rs_work_shape']} (bin {pair.grid['rs_bin']}), "
+             f"GS {pair.grid['gs_work_shape']} (bin {pair.grid['gs_bin']}); PSF from {psf_source}; "
+             f"start: {init_source}")
+    result: Alignment = align_pair(pair, 1.0, init=init, model=model, refine=refine)
+    gs_shape = (c.gs.roi.height, c.gs.roi.width)
+    h = result.gs_to_rs
+    lines = ["GS -> RS transform (raw GS pixel -> raw RS pixel):", *_matrix_lines(h),
+             f"  = {_describe(h, gs_shape)} ({model}, start: {result.init})",
+             (f"residual: {result.residual_px:.3f} px median local shift over {result.residual_tiles} tiles "
+              f"(deconvolved RS vs warped GS); 1-sigma uncertainty {result.uncertainty_px:.3f} px; "
+              f"ECC {result.ecc:.4f}; forward-model misfit {result.misfit:.2%}"),
+             "white balance (GS -> RS scale, recon Lambda): " + ", ".join(f"{g:.4f}" for g in result.white_balance)]
+    truth = _mock_truth(rig)
+    if truth is not None:
+        from rngcam.calibrate.align import transform_error_px
+
+        h_true, wb_true = truth
+        lines.append(f"mock truth: {_describe(h_true, gs_shape)}; white balance "
+                     + ", ".join(f"{g:.4f}" for g in wb_true))
+        lines.append(f"mock error: transform {transform_error_px(h, h_true, gs_shape):.3f} px (max over the "
+                     f"central 60 %), white balance {np.max(np.abs(result.white_balance / wb_true - 1)):.2%}")
+    provenance = {"method": "Wiener + FISTA-TV deconvolution of RS, ECC against GS, forward-model "
+                            "least-squares refinement" if refine else
+                            "Wiener + FISTA-TV deconvolution of RS, ECC against GS",
+                  "model": model, "residual_px": result.residual_px, "residual_tiles": result.residual_tiles,
+                  "uncertainty_px": result.uncertainty_px,
+                  "ecc": result.ecc, "misfit": result.misfit, "start": result.init, "psf_source": psf_source,
+                  "grid": pair.grid, **prov}
+    wb_prov = {"method": "least squares of RS against PSF * warped GS, per channel (with the transform)",
+               "misfit": result.misfit, "psf_source": psf_source, **prov}
+    path = _store(rig, out, gs_to_rs=(h, provenance), white_balance=(result.white_balance, wb_prov))
+    lines.append(f"stored gs_to_rs and white_balance in {path}")
+    return Outcome(path, lines, list(result.notes), result)
+
+
+def calibrate_whitebalance(rig: Rig, out=None, frames: int = 8, max_side: int = 256,
+                           progress: Progress = print, ask: Ask = None) -> Outcome:
+    """White balance alone, for the transform in the calibration file (else the rig's)."""
+    psf, psf_source, from_rig = _sensor_psf(rig, progress)
+    h, h_source = _initial_transform(rig)
+    if h is None:
+        raise RngcamError("no GS-to-RS transform: run `rngcam calibrate align` first")
+    rs, gs, prov = _static_pair(rig, frames, progress, ask, psf if from_rig else None)
+    c = rig.config.cameras
+    pair = working_pair(rs, gs, psf, 2 if c.rs.pixel_format in BAYER_FORMATS else 1,
+                        2 if c.gs.pixel_format in BAYER_FORMATS else 1, max_side)
+    wb: WhiteBalance = estimate_white_balance(pair, h, 1.0)
+    lines = ["white balance (GS -> RS scale, recon Lambda): " + ", ".join(f"{g:.4f}" for g in wb.gains)
+             + f" with the transform from {h_source}; forward-model misfit {wb.misfit:.2%}"]
+    truth = _mock_truth(rig)
+    if truth is not None:
+        lines.append("mock truth: " + ", ".join(f"{g:.4f}" for g in truth[1])
+                     + f" (error {np.max(np.abs(wb.gains / truth[1] - 1)):.2%})")
+    provenance = {"method": "least squares of RS against PSF * warped GS, per channel",
+                  "transform_source": h_source, "misfit": wb.misfit, "psf_source": psf_source, **prov}
+    path = _store(rig, out, white_balance=(wb.gains, provenance))
+    lines.append(f"stored white_balance in {path}")
+    return Outcome(path, lines, [], wb)
