@@ -17,7 +17,7 @@ For calibration (rngcam.calibrate) the world can show a static `target` instead 
 then the static forward model, whatever the trigger time. A GS device may carry a true GS-to-RS
 transform (it sees the scene point H p at its pixel p) and every device per-channel gains
 (SensorModel.channel_gain). The RS device has a small feature map (Height, SensorReadoutTime =
-overhead + (Height - 1) x line time) so its line time is measured as on a real camera.
+overhead + Height x line time) so its line time is measured as on a real camera.
 """
 
 from __future__ import annotations
@@ -144,7 +144,7 @@ class MockFeatures(FeatureMap):
         if name == "Height":
             return self.height
         if name == "SensorReadoutTime":  # reported to 0.01 us, like a camera's float feature
-            return round((READOUT_OVERHEAD_S + (self.height - 1) * self.line_time_s) * 1e6, 2)
+            return round((READOUT_OVERHEAD_S + self.height * self.line_time_s) * 1e6, 2)
         raise HardwareError(f"mock RS camera has no feature {name!r}")
 
     def set(self, name: str, value) -> None:
