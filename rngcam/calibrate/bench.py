@@ -29,11 +29,13 @@ class Bench:
     triggers, and closes them (disarmed) on exit whatever happened."""
 
     def __init__(self, rig: Rig, roles=("rs", "gs"), progress: Progress = print,
-                 ask: Callable[[str], None] | None = None, mock_psf: np.ndarray | None = None):
+                 ask: Callable[[str], None] | None = None, mock_psf: np.ndarray | None = None,
+                 frames: bool = True):
         """`mock_psf`: the rig's PSF on the RS sensor grid when the caller has it already (the
-        mock world's optics; loaded from the rig otherwise)."""
+        mock world's optics; loaded from the rig otherwise). frames=False: features only, so
+        the mock world needs no optics."""
         self.rig, self.roles, self.progress, self.ask = rig, tuple(roles), progress, ask
-        self.mock_psf = mock_psf
+        self.mock_psf, self.frames = mock_psf, frames
         self.world = None
         self.cams: dict[str, Camera] = {}
         self.configured: dict[str, Configured] = {}
@@ -51,7 +53,9 @@ class Bench:
 
         try:
             if self.is_mock:
-                psf = self.mock_psf if self.mock_psf is not None else rs_psf(self.rig, self.progress)[0]
+                psf = self.mock_psf
+                if psf is None and self.frames:
+                    psf = rs_psf(self.rig, self.progress)[0]
                 _, gs_timing, grid = nominal_timing(self.rig)
                 self.world = _mock_world(self.rig, psf, gs_timing, grid)
             for role in self.roles:

@@ -117,7 +117,7 @@ def calibrate_psf(rig: Rig, out=None, frames: int = 16, dark_frames: int = 0, ma
 
 def calibrate_linetime(rig: Rig, out=None, heights=None, progress: Progress = print) -> Outcome:
     """Line time = slope of SensorReadoutTime against ROI height (several heights)."""
-    with Bench(rig, roles=("rs",), progress=progress) as bench:
+    with Bench(rig, roles=("rs",), progress=progress, frames=False) as bench:
         cam = bench.camera("rs")
         features = getattr(cam, "features", None)
         if features is None:
