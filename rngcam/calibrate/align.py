@@ -40,6 +40,7 @@ from rngcam.physics.psf import normalise, resample
 
 MODELS = ("similarity", "homography")
 MIN_FEATURE_INLIERS = 8
+OUTSIDE_LIGHT_WARN = 0.02  # fraction of RS light the GS camera does not see
 
 
 class AlignmentError(RngcamError):
@@ -396,6 +397,10 @@ def _align_images(rs, gs, psf, exposure_ratio, init, model, refine, deconv_iters
         raise AlignmentError(f"white balance is not positive ({wb.tolist()}); check the target")
     shape = rs.shape[-2:]
     valid = warp_to(np.ones((1, *gs.shape[-2:])), h, shape)[0] > 0.999
+    outside = float(x[:, ~valid].sum() / max(x.sum(), 1e-300))
+    if outside > OUTSIDE_LIGHT_WARN:
+        notes.append(f"{outside:.1%} of the deconvolved RS light lies outside the GS field of view; keep "
+                     "the target inside both fields (the white balance and the refinement assume it)")
     tile = int(max(16, 2 ** round(math.log2(max(min(shape) // 4, 16)))))
     shifts = tile_shifts(x, warp_to(gs, h, shape), valid, tile)
     residual = float(np.median(np.hypot(shifts[:, 0], shifts[:, 1]))) if len(shifts) else float("nan")
