@@ -20,7 +20,7 @@ With align_corners=True, -1 and +1 are the centres of the first and last pixel/f
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -151,6 +151,20 @@ class PlaneField(nn.Module):
 
     def forward(self, p: Tensor) -> Tensor:
         return self.decoder(self.encode(p))
+
+    def time_roughness(self) -> Tensor:
+        """Mean squared second difference of the time planes along t (K-planes' temporal
+        smoothness); zero for a 2-D field."""
+        total = torch.zeros((), device=self.planes[0].device)
+        count = 0
+        for s in range(self.scale_count):
+            for j, (a, b) in enumerate(self.pairs):
+                plane = self.planes[s * len(self.pairs) + j]
+                if b == 2 and plane.shape[2] >= 3:
+                    d2 = plane[:, :, 2:] - 2 * plane[:, :, 1:-1] + plane[:, :, :-2]
+                    total = total + d2.square().mean()
+                    count += 1
+        return total / max(count, 1)
 
     def forward_grid(self, axes: Sequence[Tensor]) -> Tensor:
         """The field on the Cartesian product of 1-D coordinate vectors (x, y[, t]).

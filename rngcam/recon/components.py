@@ -1,0 +1,174 @@
+"""Which parts of the STFM a problem needs (auto leave-out), and why the others were left out.
+
+Rules (components="auto"), applied after the user's ablation flags:
+- no GS frames -> RS-only fit; no RS measurement -> GS-only fit;
+- a dark or empty background (the median of the GS frames, the background estimate, is below
+  DARK_FRACTION of the brightest GS pixels) -> no static field;
+- the GS frames agree within their noise and the RS image predicted from their mean (as a
+  static video, through the RS operator) matches the RS measurement within its noise -> a
+  static scene: no motion field, no dynamic field (see `static_scene` for the tests).
+
+Noise levels are estimated from the data (robust medians: of frame differences, and of the
+finest diagonal Haar detail, Donoho & Johnstone 1994); no sensor model is needed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from rngcam.errors import ConfigError
+
+DARK_FRACTION = 0.02  # background mean below this fraction of the GS peak counts as dark
+STATIC_NOISE_FACTOR = 5.0  # a change beyond this many noise sigmas is real
+STATIC_RELATIVE_TOL = 0.002  # ... plus this fraction of the signal (model/calibration slack)
+STATIC_OUTLIER_FRACTION = 1e-3  # pixels allowed to change beyond noise in a static scene
+
+ALL_COMPONENTS = ("static", "motion", "dynamic", "motion_reg", "rs", "gs")
+
+
+@dataclass(frozen=True)
+class Components:
+    """What the fit uses; `left_out` lists (component, reason) for everything switched off."""
+
+    static: bool = True
+    motion: bool = True  # the motion field and the dynamic field (off: a static video)
+    motion_reg: bool = True
+    rs: bool = True
+    gs: bool = True
+    left_out: tuple[tuple[str, str], ...] = ()
+
+
+def noise_sigma(image: Tensor) -> float:
+    """Robust noise standard deviation of a (C, H, W) image (MAD of 2x2 diagonal Haar details)."""
+    x = image.double()
+    h, w = (x.shape[-2] // 2) * 2, (x.shape[-1] // 2) * 2
+    if h == 0 or w == 0:
+        return 0.0
+    x = x[..., :h, :w]
+    d = (x[..., 0::2, 0::2] - x[..., 1::2, 0::2] - x[..., 0::2, 1::2] + x[..., 1::2, 1::2]) / 2
+    return float(d.abs().median()) / 0.6745
+
+
+def gs_video_units(problem) -> Tensor:
+    """GS frames as video intensity (C, G, H, W): each frame divided by its exposure in frames,
+    times the GS/RS gains (problem.white_balance, else one)."""
+    exposure = problem.gs_weights.sum(1).to(problem.b_gs.dtype)  # (G,)
+    v = problem.b_gs / exposure.clamp_min(1e-12)[None, :, None, None]
+    if problem.white_balance is not None:
+        v = v * problem.white_balance.to(v.dtype)[:, None, None, None]
+    return v
+
+
+def _rms(x: Tensor) -> float:
+    return float(x.double().square().mean().sqrt())
+
+
+def dark_background(problem) -> tuple[bool, str]:
+    """Is the background (median of the GS frames) dark? Returns (dark, explanation)."""
+    v = gs_video_units(problem)
+    background = v.median(dim=1).values
+    if problem.mask is not None:
+        m = problem.mask.to(torch.bool)
+        background, v = background[:, m], v[:, :, m]
+    peak = float(torch.quantile(v.double().flatten()[:1_000_000], 0.999))
+    level = float(background.double().mean())
+    if peak <= 0:
+        return True, "the GS frames are black"
+    dark = level < DARK_FRACTION * peak
+    return dark, f"background level {level:.3g} is {100 * level / peak:.2g}% of the GS peak {peak:.3g}"
+
+
+def gs_noise_sigma(v: Tensor) -> float:
+    """Noise sigma of GS frames (C, G, H, W): the smaller of two robust estimates, the MAD of
+    frame differences (texture cancels; fooled only when most pixels move) and the Haar
+    estimate of each frame (fooled by dense texture)."""
+    g = v.shape[1]
+    pairs = [float((v[:, i] - v[:, j]).double().abs().median()) / 0.6745 / 2 ** 0.5
+             for i in range(g) for j in range(i + 1, g)]
+    return min(pairs + [noise_sigma(v[:, i]) for i in range(g)])
+
+
+def static_scene(problem, rs_on: bool) -> tuple[bool, str]:
+    """Do the GS frames agree, and (with RS) does their mean predict the RS image, within noise?
+
+    GS: no more than STATIC_OUTLIER_FRACTION of the pixels of any frame may differ from the
+    mean frame by more than STATIC_NOISE_FACTOR noise sigmas (+ STATIC_RELATIVE_TOL of the
+    value). RS: the residual of the static prediction must look like white noise: its RMS
+    within STATIC_NOISE_FACTOR / 2 of its own Haar noise estimate (+ STATIC_RELATIVE_TOL of
+    the RS image's RMS); motion leaves a smooth, structured residual behind the diffuser.
+    """
+    v = gs_video_units(problem)
+    g = v.shape[1]
+    if g < 2:
+        return False, "a single GS frame cannot show motion"
+    mean = v.mean(dim=1)
+    sigma = gs_noise_sigma(v) * ((g - 1) / g) ** 0.5
+    limit = STATIC_NOISE_FACTOR * sigma + STATIC_RELATIVE_TOL * mean.abs()
+    moving = max(float(((v[:, i] - mean).abs() > limit).double().mean()) for i in range(g))
+    if moving > STATIC_OUTLIER_FRACTION:
+        return False, f"{100 * moving:.2g}% of GS pixels change beyond noise (sigma {sigma:.3g})"
+    why = f"GS frames agree within noise (sigma {sigma:.3g}, {100 * moving:.2g}% outliers)"
+    if not rs_on:
+        return True, why
+    op = problem.rs_op()
+    mask = 1.0 if problem.mask is None else problem.mask.to(mean.dtype)
+    static_video = (mean * mask)[:, None].expand(*problem.shape).to(problem.b_rs.dtype)
+    residual = op.A(static_video.contiguous()) - problem.b_rs
+    rms, white = _rms(residual), noise_sigma(residual)
+    allowed = 0.5 * STATIC_NOISE_FACTOR * white + STATIC_RELATIVE_TOL * _rms(problem.b_rs)
+    if rms > allowed:
+        return False, (f"the RS image is not explained by a static scene (residual RMS {rms:.3g} "
+                       f"> {allowed:.3g}, noise {white:.3g})")
+    return True, f"{why}, and their mean predicts the RS image (residual RMS {rms:.3g} <= {allowed:.3g})"
+
+
+def choose_components(problem, auto: bool = True, no_static: bool = False,
+                      no_motion_reg: bool = False, no_rs: bool = False, no_gs: bool = False,
+                      tau: float = 1.0) -> Components:
+    """Decide the components from the flags and (if `auto`) from the problem itself."""
+    left: list[tuple[str, str]] = []
+    has_rs = problem.b_rs is not None
+    has_gs = problem.b_gs is not None and problem.b_gs.shape[1] > 0
+    rs = has_rs and not no_rs
+    gs = has_gs and not no_gs
+    if no_rs and has_rs:
+        left.append(("rs", "switched off (no_rs): GS-only fit"))
+    elif not has_rs:
+        left.append(("rs", "no RS measurement: GS-only fit"))
+    if no_gs and has_gs:
+        left.append(("gs", "switched off (no_gs): RS-only fit"))
+    elif not has_gs:
+        left.append(("gs", "no GS frames: RS-only fit"))
+    if not (rs or gs):
+        raise ConfigError("nothing to fit: the problem has neither a usable RS image nor GS frames")
+
+    static, motion = True, True
+    if no_static:
+        static = False
+        left.append(("static", "switched off (no_static)"))
+    elif auto and has_gs:
+        dark, why = dark_background(problem)
+        if dark:
+            static = False
+            left.append(("static", f"dark background: {why}"))
+    if auto and has_gs and not no_static:  # (a static video with no static field is a contradiction)
+        still, why = static_scene(problem, rs_on=rs)
+        if still:
+            motion = False
+            left.append(("motion", f"static scene: {why}"))
+            left.append(("dynamic", "static scene: the static field is the whole video"))
+            if not static:  # a static video needs the static field after all
+                static = True
+                left = [item for item in left if item[0] != "static"]
+    motion_reg = motion
+    if motion and no_motion_reg:
+        motion_reg = False
+        left.append(("motion_reg", "switched off (no_motion_reg)"))
+    elif motion and tau == 0:
+        motion_reg = False
+        left.append(("motion_reg", "tau = 0"))
+    return Components(static=static, motion=motion, motion_reg=motion_reg, rs=rs, gs=gs,
+                      left_out=tuple(left))

@@ -1,0 +1,713 @@
+"""The space-time fusion model (STFM), rngcam's neural reconstruction (RnGCam, ICCV 2025).
+
+Model (DESIGN.md): a static field F_S(x, y) -> RGB >= 0, a motion field F_M(x, y, t) ->
+(u_x, u_y) and a dynamic field F_D evaluated at the warped point, F_D(x + u_x, y + u_y) ->
+(RGB >= 0, alpha in [0, 1]); the video is v = alpha v_S + (1 - alpha) v_D. F_D is 2-D: it
+holds one canonical image that the motion field moves around, so the dynamics live in the
+motion field (the only field that sees t). Coordinates are in [-1, 1] (pixel and frame
+centres at the ends); u is in the same units.
+
+Loss, each data term divided by its operator's squared norm (||A|| from power iteration at
+setup) and by the number of pixels C H W, so psi is a relative weight:
+    ||A_G v - Lambda b_G||^2 / (||A_G||^2 C H W) + psi ||A_R v - b_R||^2 / (||A_R||^2 C H W)
+    + tau TV_S(U),
+TV_S(U) = mean over (t, y, x) of |D_x u| + |D_y u| + beta |D_t u| (both components, u in
+pixels). Lambda (per-channel GS/RS gains) is learned when both sensors are used, starting at
+problem.white_balance (or one). With gs_anchor="hard" the GS term is replaced by a
+projection of the video onto {A_G v = Lambda b_G}: frames inside GS exposures get
+v + W^T (W W^T)^-1 (Lambda b_G - W v) (per pixel; W the GS weights).
+
+Memory: a step samples `rows_per_step` consecutive RS row bins (random cyclic start, so each
+row is used with the same probability and the scaled term is an unbiased estimate of the full
+RS term) plus the frames those rows' exposures touch, the GS frames, and a few frames for
+the TV term (also unbiased). Frames are evaluated in chunks; with more than one chunk the RS
+term is back-propagated chunk by chunk against the residual from a first, gradient-free pass,
+so the autograd graph never holds more than one chunk. Outputs evaluate the video in chunks.
+
+Presets: "paper" (SIREN fields as published, Adam 5e-6) and "fast" (the default: factorised
+plane fields, large learning rates, initialised from the GS frames: static field from their
+median, canonical image from the middle key frame, motion from DIS optical flow between key
+frames, so the fit starts near flow interpolation and uses the RS image to refine it).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from rngcam.errors import ConfigError
+from rngcam.physics.operators import PSFConvolution
+from rngcam.recon.components import Components, choose_components, gs_video_units
+from rngcam.recon.fields import field_on_grid, make_field
+from rngcam.recon.metrics import relative_residual
+
+PRESETS = ("paper", "fast")
+MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow is skipped
+
+
+@dataclass
+class STFMSettings:
+    """User settings; None means "the preset's value"."""
+
+    preset: str = "fast"
+    beta: float | None = None  # temporal weight inside the motion TV
+    tau: float | None = None  # weight of the motion TV
+    psi: float = 1.0  # RS weight relative to GS (after operator-norm scaling)
+    components: str = "auto"  # "auto": leave out what the problem does not need; "all": keep all
+    no_static: bool = False
+    no_motion_reg: bool = False
+    no_rs: bool = False
+    no_gs: bool = False
+    gs_anchor: str = "soft"  # "soft" (loss term) or "hard" (projection onto the GS frames)
+    rows_per_step: int | None = None
+    tv_frames_per_step: int = 2
+    frame_chunk: int = 16  # frames evaluated with one autograd graph
+    seed: int = 0
+    lr: float | None = None
+    lr_half_life_steps: float | None = None  # exponential LR decay (None: preset's; inf: none)
+    init: str | None = None  # "gs" (fit fields to the GS frames first) or "random"
+    dynamic_time: bool | None = None  # F_D(x + u_x, y + u_y, t) instead of F_D(x + u_x, y + u_y)
+    time_smoothness: float | None = None  # weight of the time planes' roughness (plane fields)
+
+    def __post_init__(self):
+        if self.preset not in PRESETS:
+            raise ConfigError(f"unknown STFM preset {self.preset!r} (choose from {', '.join(PRESETS)})")
+        if self.components not in ("auto", "all"):
+            raise ConfigError(f"components must be 'auto' or 'all', got {self.components!r}")
+        if self.gs_anchor not in ("soft", "hard"):
+            raise ConfigError(f"gs_anchor must be 'soft' or 'hard', got {self.gs_anchor!r}")
+        if self.init not in (None, "gs", "random"):
+            raise ConfigError(f"init must be 'gs' or 'random', got {self.init!r}")
+        for name in ("beta", "tau", "psi", "lr"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"{name} must be a finite number >= 0, got {value!r}")
+        if self.rows_per_step is not None and self.rows_per_step < 1:
+            raise ConfigError(f"rows_per_step must be >= 1, got {self.rows_per_step}")
+        if self.tv_frames_per_step < 1 or self.frame_chunk < 1:
+            raise ConfigError("tv_frames_per_step and frame_chunk must be >= 1")
+
+
+def _preset(name: str, h: int, w: int, k: int) -> dict:
+    """Field configurations and schedule of a preset for an H x W x K video."""
+    side = max(h, w)
+    if name == "paper":
+        siren = {"w0": 30.0, "n_freqs": 6}
+        return {
+            "static": ("siren", dict(hidden=32, layers=2, **siren)),
+            "motion": ("siren", dict(hidden=32, layers=2, **siren)),
+            "dynamic": ("siren", dict(hidden=128, layers=3, **siren)),
+            "lr": 5e-6, "decoder_lr_ratio": 1.0, "gain_lr_ratio": 1.0, "lr_half_life_steps": math.inf,
+            "beta": 10.0, "tau": 1e-3, "rows_per_step": max(1, h // 4), "init": "random", "dynamic_time": False,
+            "time_smoothness": 0.0}
+
+    def scales(fractions, n):
+        return tuple(sorted({max(2, round(n * f)) for f in fractions}))
+
+    appearance = scales((0.25, 0.5, 1.0), side)
+    motion_space = scales((1 / 16, 1 / 8, 1 / 4), side)
+    def motion_time_for(space):
+        t = tuple(max(2, round(k * f)) for f in (0.25, 0.5, 1.0))[:len(space)]
+        return t + (t[-1],) * (len(space) - len(t))
+
+    motion_time = motion_time_for(motion_space)
+    return {
+        "static": ("planes", {"resolutions": appearance, "features": 8, "hidden": 32}),
+        "motion": ("planes", {"resolutions": motion_space, "time_resolutions": motion_time,
+                               "features": 8, "hidden": 32}),
+        "dynamic": ("planes", {"resolutions": appearance, "time_resolutions": motion_time_for(appearance),
+                                "features": 8, "hidden": 32}),
+        "lr": 2e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.1, "lr_half_life_steps": 400.0,
+        "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, h // 8), "init": "gs", "dynamic_time": True,
+        "time_smoothness": 1e-3}
+
+
+# ----------------------------------------------------------------------------- RS restricted
+
+
+def rs_rows_forward(psf_conv: PSFConvolution, weights: Tensor, v_frames: Tensor, rows: Tensor) -> Tensor:
+    """RS measurement of `rows` from a subset of frames: (C, R, W).
+
+    weights (R, F) are the RS weights of those rows on those frames, v_frames (C, F, H, W) the
+    frames. Summing over frame subsets that partition the video gives RollingShutter.A's rows.
+    """
+    conv = psf_conv.A(v_frames)  # (C, F, H, W)
+    return torch.einsum("cfrw,rf->crw", conv.index_select(-2, rows), weights.to(conv.dtype))
+
+
+def _chunks(idx: Tensor, size: int) -> list[Tensor]:
+    return [idx[i:i + size] for i in range(0, len(idx), size)] if len(idx) else []
+
+
+# ----------------------------------------------------------------------------- the method
+
+
+@dataclass
+class _Resolved:
+    """Settings after the preset has filled the blanks (stored in outputs)."""
+
+    settings: STFMSettings
+    beta: float
+    tau: float
+    lr: float
+    lr_half_life_steps: float
+    rows_per_step: int
+    init: str
+    dynamic_time: bool
+    time_smoothness: float
+    fields: dict = field(default_factory=dict)
+
+
+class STFM:
+    """STFM as a `rngcam.recon.loop.Method`. Build it with `make_stfm`."""
+
+    name = "stfm"
+
+    def __init__(self, problem, settings: STFMSettings, device="cpu"):
+        self.settings = settings
+        self.device = torch.device(device)
+        self.problem = problem.to(torch.float32, self.device)
+        p = self.problem
+        self.C, self.K, self.H, self.W = p.shape
+        preset = _preset(settings.preset, self.H, self.W, self.K)
+        tau = preset["tau"] if settings.tau is None else settings.tau
+        self.parts: Components = choose_components(
+            problem, auto=settings.components == "auto", no_static=settings.no_static,
+            no_motion_reg=settings.no_motion_reg, no_rs=settings.no_rs, no_gs=settings.no_gs, tau=tau)
+        self.resolved = _Resolved(
+            settings=settings, beta=preset["beta"] if settings.beta is None else settings.beta, tau=tau,
+            lr=preset["lr"] if settings.lr is None else settings.lr,
+            lr_half_life_steps=(preset["lr_half_life_steps"] if settings.lr_half_life_steps is None
+                                else settings.lr_half_life_steps),
+            rows_per_step=min(self.H, settings.rows_per_step or preset["rows_per_step"]),
+            init=settings.init or preset["init"],
+            dynamic_time=preset["dynamic_time"] if settings.dynamic_time is None else settings.dynamic_time,
+            time_smoothness=(preset["time_smoothness"] if settings.time_smoothness is None
+                             else settings.time_smoothness),
+            fields={k: preset[k] for k in ("static", "motion", "dynamic")})
+        torch.manual_seed(settings.seed)
+        self.generator = torch.Generator(device="cpu").manual_seed(settings.seed)
+        self._build_geometry()
+        self._build_fields(preset)
+        self._build_scales()
+        if self.resolved.init == "gs" and self.parts.gs:
+            self._init_from_gs()
+        self._build_optimiser(preset)
+        self.steps = 0
+        self._cache: tuple[int, Tensor] | None = None
+
+    # ------------------------------------------------------------------ setup
+
+    @property
+    def left_out(self) -> list[tuple[str, str]]:
+        return list(self.parts.left_out)
+
+    def _build_geometry(self) -> None:
+        p, dev = self.problem, self.device
+
+        def axis(n):
+            return torch.linspace(-1.0, 1.0, n, device=dev) if n > 1 else torch.zeros(1, device=dev)
+
+        self.xs, self.ys, self.ts = axis(self.W), axis(self.H), axis(self.K)
+        self.mask = None if p.mask is None else p.mask.to(dev, torch.float32)
+        self.px_per_unit = torch.tensor([(self.W - 1) / 2, (self.H - 1) / 2], device=dev).clamp_min(0.5)
+        self.w_rs = p.rs_weights.to(dev, torch.float32)
+        self.w_gs = p.gs_weights.to(dev, torch.float32)
+        self.gs_frames = torch.nonzero(self.w_gs.sum(0) > 0).flatten() if self.parts.gs else \
+            torch.zeros(0, dtype=torch.long, device=dev)
+        if self.parts.rs:
+            self.conv = PSFConvolution(p.psf, (self.H, self.W), batch_shape=(1,), channels=self.C)
+        if self.parts.gs and self.settings.gs_anchor == "hard":
+            w = self.w_gs[:, self.gs_frames].double()  # (G, S)
+            self.anchor_p = (torch.linalg.pinv(w @ w.t()) @ w).t().float()  # (S, G) = W^T (W W^T)^-1
+            self.anchor_w = w.float()
+
+    def _build_fields(self, preset: dict) -> None:
+        kind_s, cfg_s = preset["static"]
+        kind_m, cfg_m = preset["motion"]
+        kind_d, cfg_d = preset["dynamic"]
+        self.fields = nn.ModuleDict()
+        if self.parts.static:
+            self.fields["static"] = make_field(kind_s, 2, self.C, **cfg_s)
+        if self.parts.motion:
+            self.fields["motion"] = make_field(kind_m, 3, 2, **cfg_m)
+            dims = 3 if self.resolved.dynamic_time else 2
+            if dims == 2:
+                cfg_d = {k: v for k, v in cfg_d.items() if k != "time_resolutions"}
+            self.fields["dynamic"] = make_field(kind_d, dims, self.C + 1, **cfg_d)
+            if kind_m == "planes":  # start without motion; gradients still reach every plane
+                head = self.fields["motion"].decoder[-1]
+                nn.init.zeros_(head.weight)
+                nn.init.zeros_(head.bias)
+        self.fields.to(self.device)
+        wb = self.problem.white_balance
+        start = torch.ones(self.C, device=self.device) if wb is None else wb.to(self.device).float()
+        if not torch.all(start > 0):
+            raise ConfigError(f"white balance gains must be > 0, got {start.tolist()}")
+        self.log_gain = nn.Parameter(start.log())
+
+    def _build_scales(self) -> None:
+        """Constants c_G, c_R that normalise the data terms (see module docstring)."""
+        pixels = self.C * self.H * self.W
+        self.c_gs = self.c_rs = 0.0
+        if self.parts.gs:
+            norm_sq = float(torch.linalg.matrix_norm(self.w_gs.double(), ord=2)) ** 2
+            self.c_gs = 1.0 / (max(norm_sq, 1e-12) * pixels)
+        if self.parts.rs:
+            self.rs_norm = self._rs_norm()
+            self.c_rs = self.settings.psi / (max(self.rs_norm ** 2, 1e-12) * pixels)
+
+    def _rs_norm(self, iters: int = 20, tol: float = 1e-3) -> float:
+        """||A_R|| by power iteration on A_R^T A_R, applied frame chunk by frame chunk. It starts
+        near a constant video (close to the top singular vector: the PSF is a low-pass filter)."""
+        gen = torch.Generator(device="cpu").manual_seed(0)
+        x = 1 + 0.1 * torch.randn((self.C, self.K, self.H, self.W), generator=gen).to(self.device)
+        x /= x.norm()
+        lam = 0.0
+        all_rows = torch.arange(self.H, device=self.device)
+        for _ in range(iters):
+            y = self._rs_apply(lambda idx, x=x: x[:, idx], all_rows)
+            z = torch.empty_like(x)
+            for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):
+                z[:, idx] = self.conv.A_adjoint(torch.einsum("chw,hk->ckhw", y, self.w_rs[:, idx]))
+            new = float((x * z).sum())
+            x = z / z.norm().clamp_min(1e-30)
+            if abs(new - lam) <= tol * abs(new):
+                lam = new
+                break
+            lam = new
+        return math.sqrt(max(lam, 0.0))
+
+    def _rs_apply(self, frames_fn, rows: Tensor, frames: Tensor | None = None) -> Tensor:
+        """sum over frame chunks of rs_rows_forward; frames_fn(idx) -> (C, n, H, W)."""
+        if frames is None:
+            frames = torch.nonzero(self.w_rs[rows].sum(0) > 0).flatten()
+        out = torch.zeros(self.C, len(rows), self.W, device=self.device)
+        for idx in _chunks(frames, self.settings.frame_chunk):
+            out += rs_rows_forward(self.conv, self.w_rs[rows][:, idx], frames_fn(idx), rows)
+        return out
+
+    def _build_optimiser(self, preset: dict) -> None:
+        lr = self.resolved.lr
+        planes, decoders = [], []
+        for module in self.fields.values():
+            for pname, param in module.named_parameters():
+                (planes if pname.startswith("planes") else decoders).append(param)
+        groups = [{"params": planes, "lr_ratio": 1.0}] if planes else []
+        if decoders:
+            ratio = preset["decoder_lr_ratio"] if planes else 1.0
+            groups.append({"params": decoders, "lr_ratio": ratio})
+        self.learn_gain = self.parts.rs and self.parts.gs
+        if self.learn_gain:
+            groups.append({"params": [self.log_gain], "lr_ratio": preset["gain_lr_ratio"]})
+        for g in groups:
+            g["lr"] = lr * g["lr_ratio"]
+        self.optimiser = torch.optim.Adam(groups, lr=lr)
+        self.base_lr = lr
+
+    # ------------------------------------------------------------------ the model
+
+    def _static(self) -> Tensor:
+        """(C, H, W) static image."""
+        raw = field_on_grid(self.fields["static"], [self.xs, self.ys])  # (H, W, C)
+        return F.softplus(raw).permute(2, 0, 1)
+
+    def _motion(self, idx: Tensor) -> Tensor:
+        """(n, H, W, 2) displacement in coordinate units at frames idx."""
+        return field_on_grid(self.fields["motion"], [self.xs, self.ys, self.ts[idx]])
+
+    def _dynamic_at(self, u: Tensor, idx: Tensor) -> tuple[Tensor, Tensor]:
+        """Dynamic colour (C, n, H, W) and alpha (1, n, H, W) at the points warped by u (n, H, W, 2)
+        (frames idx: the time coordinate when the dynamic field has one)."""
+        n = u.shape[0]
+        x = self.xs.view(1, 1, -1) + u[..., 0]
+        y = self.ys.view(1, -1, 1) + u[..., 1]
+        coords = [x, y]
+        if self.resolved.dynamic_time:
+            coords.append(self.ts[idx].view(-1, 1, 1).expand_as(x))
+        raw = self.fields["dynamic"](torch.stack(coords, dim=-1).reshape(-1, len(coords)))
+        raw = raw.reshape(n, self.H, self.W, self.C + 1).permute(3, 0, 1, 2)
+        return F.softplus(raw[:self.C]), torch.sigmoid(raw[self.C:])
+
+    def _gain(self) -> Tensor:
+        return self.log_gain.exp()
+
+    def frames(self, idx: Tensor, static: Tensor | None = None) -> Tensor:
+        """Video frames idx (C, n, H, W), before any hard GS anchoring (zero outside the mask).
+
+        `static` may pass in the static image already evaluated for this step."""
+        n = len(idx)
+        if self.parts.static and static is None:
+            static = self._static()
+        if not self.parts.motion:
+            v = static[:, None].expand(self.C, n, self.H, self.W)
+        else:
+            colour, alpha = self._dynamic_at(self._motion(idx), idx)
+            v = colour if not self.parts.static else alpha * static[:, None] + (1 - alpha) * colour
+        return v if self.mask is None else v * self.mask
+
+    def _anchored(self, v_gs: Tensor) -> Tensor:
+        """Hard anchoring of the GS-window frames (C, S, H, W) onto Lambda b_G."""
+        target = self._gain()[:, None, None, None] * self.problem.b_gs
+        miss = target - torch.einsum("gs,cshw->cghw", self.anchor_w, v_gs)
+        if self.mask is not None:
+            miss = miss * self.mask
+        return v_gs + torch.einsum("sg,cghw->cshw", self.anchor_p, miss)
+
+    def _gs_window(self) -> Tensor:
+        v = self.frames(self.gs_frames)
+        return self._anchored(v) if self.settings.gs_anchor == "hard" else v
+
+    def _video_frames(self, idx: Tensor) -> Tensor:
+        """Frames idx of the video as output (with hard anchoring where it applies)."""
+        if self.settings.gs_anchor != "hard" or not self.parts.gs:
+            return self.frames(idx)
+        inside = torch.isin(idx, self.gs_frames)
+        if not bool(inside.any()):
+            return self.frames(idx)
+        window = self._gs_window()
+        out = self.frames(idx)
+        out[:, inside] = window[:, torch.searchsorted(self.gs_frames, idx[inside])]
+        return out
+
+    # ------------------------------------------------------------------ loss terms
+
+    def gs_term(self, v_gs: Tensor) -> Tensor:
+        """Normalised GS data term from the GS-window frames (C, S, H, W)."""
+        pred = torch.einsum("gs,cshw->cghw", self.w_gs[:, self.gs_frames], v_gs)
+        miss = pred - self._gain()[:, None, None, None] * self.problem.b_gs
+        if self.mask is not None:
+            miss = miss * self.mask
+        return self.c_gs * miss.square().sum()
+
+    def rs_scale(self, n_rows: int) -> float:
+        return self.c_rs * self.H / n_rows
+
+    def tv_term(self, idx: Tensor) -> Tensor:
+        """Unbiased estimate of tau TV_S(U) from frames idx (uniform sample without replacement)."""
+        nxt = (idx + 1).clamp(max=self.K - 1)
+        u = self._motion(torch.cat([idx, nxt])) * self.px_per_unit  # pixels
+        u0, u1 = u[:len(idx)], u[len(idx):]
+        spatial = (u0[:, 1:] - u0[:, :-1]).abs().sum() + (u0[:, :, 1:] - u0[:, :, :-1]).abs().sum()
+        temporal = (u1 - u0).abs().sum()  # zero for the last frame (nxt == idx)
+        per_frame = (spatial + self.resolved.beta * temporal) / (self.H * self.W)
+        return self.resolved.tau * per_frame / len(idx)
+
+    def sample_rows(self) -> Tensor:
+        start = int(torch.randint(self.H, (1,), generator=self.generator))
+        return (start + torch.arange(self.resolved.rows_per_step)) % self.H
+
+    def sample_tv_frames(self) -> Tensor:
+        n = min(self.settings.tv_frames_per_step, self.K)
+        return torch.randperm(self.K, generator=self.generator)[:n].sort().values
+
+    def loss_terms(self, rows: Tensor | None, tv_frames: Tensor | None, backward: bool = False) -> dict:
+        """The step's terms {"gs", "rs", "tv"} as floats for given samples (full terms: all rows,
+        all frames). With `backward` the gradient of their sum is accumulated, chunk by chunk."""
+        dev = self.device
+        terms = {"gs": 0.0, "rs": 0.0, "tv": 0.0, "smooth": 0.0}
+        static = self._static() if self.parts.static else None
+        graph_loss = torch.zeros((), device=dev)
+        if self.resolved.time_smoothness > 0:
+            rough = [f.time_roughness() for f in self.fields.values() if hasattr(f, "time_roughness")]
+            if rough:
+                smooth = self.resolved.time_smoothness * sum(rough)
+                terms["smooth"] = float(smooth.detach())
+                graph_loss = graph_loss + smooth
+        # Frames the sampled RS rows touch, split into those inside GS windows and the rest.
+        rest = torch.zeros(0, dtype=torch.long, device=dev)
+        if self.parts.rs and rows is not None:
+            rows = rows.to(dev)
+            w = self.w_rs[rows]
+            touched = torch.nonzero(w.sum(0) > 0).flatten()
+            rest = touched[~torch.isin(touched, self.gs_frames)]
+        chunks = _chunks(rest, self.settings.frame_chunk)
+        single = len(chunks) <= 1
+        # One evaluation for the GS windows and (when it fits in one chunk) the RS frames.
+        n_gs = len(self.gs_frames)
+        first = torch.cat([self.gs_frames] + ([chunks[0]] if single and chunks else []))
+        v_first = self.frames(first, static) if len(first) else None
+        v_gs = None
+        if n_gs:
+            v_gs = v_first[:, :n_gs]
+            if self.settings.gs_anchor == "hard":
+                v_gs = self._anchored(v_gs)
+            else:
+                gs = self.gs_term(v_gs)
+                terms["gs"] = float(gs.detach())
+                graph_loss = graph_loss + gs
+        if self.parts.motion and self.parts.motion_reg and tv_frames is not None:
+            tv = self.tv_term(tv_frames.to(dev))
+            terms["tv"] = float(tv.detach())
+            graph_loss = graph_loss + tv
+        chunk_jobs = []
+        if self.parts.rs and rows is not None:
+            target = self.problem.b_rs.index_select(1, rows)
+            scale = self.rs_scale(len(rows))
+            shared = touched[torch.isin(touched, self.gs_frames)]
+            pred = torch.zeros(self.C, len(rows), self.W, device=dev)
+            if len(shared):
+                pos = torch.searchsorted(self.gs_frames, shared)
+                pred = pred + rs_rows_forward(self.conv, w[:, shared], v_gs[:, pos], rows)
+            if single:
+                if chunks:
+                    pred = pred + rs_rows_forward(self.conv, w[:, chunks[0]], v_first[:, n_gs:], rows)
+                rs = scale * (pred - target).square().sum()
+                terms["rs"] = float(rs.detach())
+                graph_loss = graph_loss + rs
+            else:  # two passes: residual without a graph, then chunk-wise back-propagation
+                with torch.no_grad():
+                    pred_rest = sum(rs_rows_forward(self.conv, w[:, c], self.frames(c, static), rows)
+                                    for c in chunks)
+                residual = pred.detach() + pred_rest - target
+                terms["rs"] = scale * float(residual.square().sum())
+                grad = 2 * scale * residual
+                graph_loss = graph_loss + (pred * grad).sum()
+                chunk_jobs = [(c, grad) for c in chunks]
+        if backward:
+            last = len(chunk_jobs) - 1
+            if graph_loss.requires_grad:
+                graph_loss.backward(retain_graph=bool(chunk_jobs) and static is not None)
+            for i, (c, grad) in enumerate(chunk_jobs):
+                surrogate = (rs_rows_forward(self.conv, w[:, c], self.frames(c, static), rows) * grad).sum()
+                surrogate.backward(retain_graph=i < last and static is not None)
+        return terms
+
+    def full_objective(self) -> dict:
+        """The exact objective terms (all rows, all frames), without gradients."""
+        with torch.no_grad():
+            return self.loss_terms(torch.arange(self.H) if self.parts.rs else None,
+                                   torch.arange(self.K) if self.parts.motion_reg else None)
+
+    # ------------------------------------------------------------------ Method protocol
+
+    def _lr_now(self) -> float:
+        half = self.resolved.lr_half_life_steps
+        decay = 1.0 if not math.isfinite(half) else max(0.5 ** (self.steps / half), 0.05)
+        return self.base_lr * decay
+
+    def step(self) -> float:
+        lr = self._lr_now()
+        for g in self.optimiser.param_groups:
+            g["lr"] = lr * g["lr_ratio"]
+        self.optimiser.zero_grad(set_to_none=True)
+        rows = self.sample_rows() if self.parts.rs else None
+        tv_frames = self.sample_tv_frames() if (self.parts.motion and self.parts.motion_reg) else None
+        terms = self.loss_terms(rows, tv_frames, backward=True)
+        self.optimiser.step()
+        self.steps += 1
+        self._cache = None
+        return sum(terms.values())
+
+    @torch.no_grad()
+    def estimate(self) -> Tensor:
+        if self._cache is not None and self._cache[0] == self.steps:
+            return self._cache[1]
+        video = torch.empty(self.C, self.K, self.H, self.W, device=self.device)
+        for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):
+            video[:, idx] = self._video_frames(idx)
+        self._cache = (self.steps, video)
+        return video
+
+    @torch.no_grad()
+    def residuals(self) -> dict[str, float]:
+        video = self.estimate()
+        out = {}
+        if self.problem.b_rs is not None:
+            conv = self.conv if self.parts.rs else PSFConvolution(self.problem.psf, (self.H, self.W),
+                                                                    batch_shape=(1,), channels=self.C)
+            pred = torch.zeros_like(self.problem.b_rs)
+            rows = torch.arange(self.H, device=self.device)
+            for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):
+                pred += rs_rows_forward(conv, self.w_rs[:, idx], video[:, idx], rows)
+            out["rs"] = relative_residual(pred, self.problem.b_rs)
+        if self.problem.b_gs is not None and self.problem.b_gs.shape[1] > 0:
+            pred = torch.einsum("gk,ckhw->cghw", self.w_gs, video)
+            target = self._gain()[:, None, None, None] * self.problem.b_gs
+            if self.mask is not None:
+                pred, target = pred * self.mask, target * self.mask
+            out["gs"] = relative_residual(pred, target)
+        return out
+
+    @torch.no_grad()
+    def components(self) -> dict[str, np.ndarray]:
+        """static (C, H, W), alpha (1, K, H, W) and motion (2, K, H, W, in pixels) as numpy."""
+        static = self._static() if self.parts.static else torch.zeros(self.C, self.H, self.W, device=self.device)
+        alpha = torch.ones(1, self.K, self.H, self.W, device=self.device) if self.parts.static else \
+            torch.zeros(1, self.K, self.H, self.W, device=self.device)
+        motion = torch.zeros(2, self.K, self.H, self.W, device=self.device)
+        if self.parts.motion:
+            for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):
+                u = self._motion(idx)
+                motion[:, idx] = (u * self.px_per_unit).permute(3, 0, 1, 2)
+                if self.parts.static:
+                    alpha[:, idx] = self._dynamic_at(u, idx)[1]
+        return {"static": static.cpu().numpy(), "alpha": alpha.cpu().numpy(), "motion": motion.cpu().numpy()}
+
+    def gains(self) -> np.ndarray:
+        return self._gain().detach().cpu().numpy()
+
+    def state_dict(self) -> dict:
+        return {"fields": self.fields.state_dict(), "log_gain": self.log_gain.detach().clone(),
+                "optimiser": self.optimiser.state_dict(), "steps": self.steps, "base_lr": self.base_lr,
+                "generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.fields.load_state_dict(state["fields"])
+        with torch.no_grad():
+            self.log_gain.copy_(state["log_gain"])
+        self.optimiser.load_state_dict(state["optimiser"])
+        self.steps = int(state["steps"])
+        self.base_lr = float(state["base_lr"])
+        self.generator.set_state(state["generator"])
+        self._cache = None
+
+    def reduce_step(self, factor: float) -> None:
+        self.base_lr *= factor
+        for g in self.optimiser.param_groups:
+            g["lr"] = self._lr_now() * g["lr_ratio"]
+
+    def resolved_settings(self) -> dict:
+        """The settings as used (preset values filled in), for the outputs."""
+        out = asdict(self.resolved.settings)
+        out.update({k: getattr(self.resolved, k) for k in
+                    ("beta", "tau", "lr", "lr_half_life_steps", "rows_per_step", "init")})
+        out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}
+        out["left_out"] = [list(x) for x in self.left_out]
+        return out
+
+    # ------------------------------------------------------------------ initialisation from GS
+
+    def _init_from_gs(self, steps: int = 100) -> None:
+        """Fit the fields to what the GS frames say before the main fit (see module docstring).
+
+        Static field: the per-pixel median of the key frames (the background). Alpha: one where
+        every key frame agrees with that background. With a time-dependent dynamic field, its
+        colour is fitted to the cross-fade of the key frames (the fit starts at the blend
+        baseline); otherwise to the key frame nearest the middle, and the motion field to DIS
+        optical flow between that frame and the others, linearly interpolated in time."""
+        v = gs_video_units(self.problem).float()  # (C, G, H, W): Lambda b_G / exposure
+        background = v.median(dim=1).values
+        times = torch.as_tensor(self._gs_centre_frames(), device=self.device).float()
+        middle = int(torch.argmin((times - (self.K - 1) / 2).abs()))
+        if self.parts.static:
+            _fit_image(self.fields["static"], self.xs, self.ys, background, steps)
+        if not self.parts.motion:
+            return
+        alpha = None
+        if self.parts.static:
+            change = (v - background[:, None]).abs().mean(0).amax(0)  # (H, W)
+            thr = 0.1 * float(background.mean()) + 1e-6
+            alpha = (1 - change / thr).clamp(0, 1)
+        if self.resolved.dynamic_time:
+            self._fit_dynamic_to_blend(v, times, alpha, steps)
+        else:
+            _fit_image(self.fields["dynamic"], self.xs, self.ys, v[:, middle], steps, alpha)
+            self._fit_motion(self._key_flows(v, middle), times, steps)
+
+    def _blend_weights(self, times: Tensor) -> Tensor:
+        """(K, G) cross-fade weights of the key frames (centres `times`, in frames) per frame."""
+        order = torch.argsort(times)
+        t = times[order]
+        k = torch.arange(self.K, device=self.device, dtype=torch.float32)
+        weights = torch.zeros(self.K, len(t), device=self.device)
+        if len(t) == 1:
+            weights[:, 0] = 1
+        else:
+            right = torch.searchsorted(t, k).clamp(1, len(t) - 1)
+            left = right - 1
+            a = ((k - t[left]) / (t[right] - t[left]).clamp_min(1e-6)).clamp(0, 1)
+            rows = torch.arange(self.K, device=self.device)
+            weights[rows, order[left]] = 1 - a
+            weights[rows, order[right]] += a
+        return weights
+
+    def _fit_dynamic_to_blend(self, v: Tensor, times: Tensor, alpha: Tensor | None, steps: int) -> None:
+        weights = self._blend_weights(times)  # (K, G)
+        field = self.fields["dynamic"]
+        opt = torch.optim.Adam(field.parameters(), lr=2e-2)
+        gen = torch.Generator(device="cpu").manual_seed(self.settings.seed + 2)
+        for _ in range(steps):
+            idx = torch.randperm(self.K, generator=gen)[:4].to(self.device)
+            target = torch.einsum("kg,cghw->ckhw", weights[idx], v)
+            opt.zero_grad()
+            raw = field_on_grid(field, [self.xs, self.ys, self.ts[idx]]).permute(3, 0, 1, 2)
+            loss = (F.softplus(raw[:self.C]) - target).square().mean()
+            if alpha is not None:
+                loss = loss + 0.1 * (torch.sigmoid(raw[self.C]) - alpha).square().mean()
+            loss.backward()
+            opt.step()
+
+    def _gs_centre_frames(self) -> np.ndarray:
+        """Fractional frame index of each GS exposure's centre of mass."""
+        w = self.w_gs.double().cpu()
+        k = torch.arange(self.K, dtype=torch.float64) + 0.5
+        return ((w * k).sum(1) / w.sum(1).clamp_min(1e-12) - 0.5).numpy()
+
+    def _key_flows(self, v: Tensor, middle: int) -> Tensor:
+        """(G, H, W, 2) displacement (coordinate units) with frame_g(x) ~ frame_middle(x + u)."""
+        g = v.shape[1]
+        flows = torch.zeros(g, self.H, self.W, 2, device=self.device)
+        if min(self.H, self.W) < MIN_FLOW_SIZE_PX:
+            return flows
+        frames = v.detach().cpu().numpy()
+        scale = max(float(frames.max()), 1e-12)
+        grey = [_grey_u8(frames[:, i], scale) for i in range(g)]
+        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        for i in range(g):
+            if i != middle:
+                try:
+                    f = dis.calc(grey[i], grey[middle], None)
+                except cv2.error:  # DIS refuses some tiny images: start without motion
+                    return flows.zero_()
+                flows[i] = torch.from_numpy(f).to(self.device) / self.px_per_unit
+        return flows
+
+    def _fit_motion(self, flows: Tensor, times: Tensor, steps: int) -> None:
+        """Fit the motion field to the key-frame flows, linearly interpolated in time."""
+        if float(flows.abs().max()) == 0:
+            return
+        target = torch.einsum("kg,ghwc->khwc", self._blend_weights(times), flows)
+        params = list(self.fields["motion"].parameters())
+        opt = torch.optim.Adam(params, lr=2e-2)
+        gen = torch.Generator(device="cpu").manual_seed(self.settings.seed + 1)
+        for _ in range(steps):
+            idx = torch.randperm(self.K, generator=gen)[:4].to(self.device)
+            opt.zero_grad()
+            loss = (self._motion(idx) - target[idx]).square().mean()
+            loss.backward()
+            opt.step()
+
+
+def _grey_u8(frame: np.ndarray, scale: float) -> np.ndarray:
+    from rngcam.recon.baselines import linear_to_srgb
+
+    grey = frame.mean(0) if frame.shape[0] != 3 else 0.2126 * frame[0] + 0.7152 * frame[1] + 0.0722 * frame[2]
+    return np.round(linear_to_srgb(grey / scale) * 255).astype(np.uint8)
+
+
+def _fit_image(module: nn.Module, xs: Tensor, ys: Tensor, image: Tensor, steps: int,
+               alpha: Tensor | None = None) -> None:
+    """Fit a 2-D field so softplus(colour) = image (C, H, W) (and sigmoid(last) = alpha)."""
+    params = list(module.parameters())
+    opt = torch.optim.Adam(params, lr=2e-2)
+    c = image.shape[0]
+    for _ in range(steps):
+        opt.zero_grad()
+        raw = field_on_grid(module, [xs, ys]).permute(2, 0, 1)
+        loss = (F.softplus(raw[:c]) - image).square().mean()
+        if alpha is not None:
+            loss = loss + 0.1 * (torch.sigmoid(raw[c]) - alpha).square().mean()
+        loss.backward()
+        opt.step()
+
+
+def make_stfm(problem, settings: STFMSettings | None = None, device="cpu") -> STFM:
+    """The STFM method for `problem` (see STFM and STFMSettings)."""
+    return STFM(problem, settings or STFMSettings(), device)

@@ -1,0 +1,402 @@
+"""STFM: restricted RS operator, gradients, constraints, unbiased stochastic loss, auto
+leave-out, memory-bounded steps, checkpoint/resume, and short fits that improve PSNR."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from rngcam.errors import ConfigError
+from rngcam.physics.operators import GlobalShutter, PSFConvolution, RollingShutter
+from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+from rngcam.recon.components import choose_components, noise_sigma
+from rngcam.recon.loop import LoopSettings, run
+from rngcam.recon.metrics import psnr
+from rngcam.recon.problem import Problem
+from rngcam.recon.stfm import STFMSettings, make_stfm, rs_rows_forward
+from rngcam.sim.scenes import render_scene
+
+DT_S, EXPOSURE_S = 208e-6, 650e-6  # the reference rig scaled to the grid (see rngcam.sim)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Small tensors: one thread is faster on a shared 2-core machine."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def synthetic_psf(size: int, seed: int = 0) -> torch.Tensor:
+    """A caustic-like PSF: a few random bright spots on a weak floor, summing to 1."""
+    rng = np.random.default_rng(seed)
+    psf = np.full((size, size), 1e-3)
+    for y, x in rng.integers(0, size, (6, 2)):
+        psf[y, x] += rng.uniform(0.5, 1.0)
+    psf /= psf.sum()
+    return torch.from_numpy(np.repeat(psf[None], 3, axis=0))
+
+
+def video_problem(video: np.ndarray, noise: float = 0.0, seed: int = 0, with_rs=True, with_gs=True,
+                  mask=None) -> Problem:
+    """Measure a (3, K, N, N) truth on the simulator's timing (K must match the grid)."""
+    size = video.shape[-1]
+    rs, gs, grid = timing(size)
+    assert video.shape[1] == grid.n_frames
+    truth = torch.from_numpy(video).double()
+    w_rs, w_gs = torch.from_numpy(rs.weights(grid)), torch.from_numpy(gs.weights(grid))
+    psf = synthetic_psf(size, seed)
+    gen = torch.Generator().manual_seed(seed + 7)
+    scale = EXPOSURE_S / DT_S
+    b_rs = RollingShutter(psf, w_rs, size, 3).A(truth)
+    b_gs = GlobalShutter(w_gs, 3, (size, size)).A(truth)
+    b_rs = b_rs + noise * scale * torch.randn(b_rs.shape, generator=gen, dtype=torch.float64)
+    b_gs = b_gs + noise * scale * torch.randn(b_gs.shape, generator=gen, dtype=torch.float64)
+    return Problem(b_rs=b_rs if with_rs else None, b_gs=b_gs if with_gs else None, rs_weights=w_rs,
+                   gs_weights=w_gs if with_gs else torch.zeros(0, grid.n_frames, dtype=torch.float64),
+                   psf=psf, grid=grid, gs_times_s=gs.centres_s() if with_gs else np.zeros(0),
+                   truth=truth, mask=mask)
+
+
+def timing(size: int):
+    rs = RollingShutterTiming(line_time_s=DT_S, exposure_s=EXPOSURE_S, rows=size)
+    end = (size - 1) * DT_S
+    gs = GlobalShutterTiming(trigger_s=(0.0, end / 2, end), exposure_s=EXPOSURE_S)
+    return rs, gs, VideoGrid.covering(rs, gs)
+
+
+def scene_problem(scene: str, size: int, noise: float = 0.002, **kw) -> Problem:
+    _rs, gs, grid = timing(size)
+    video = render_scene(scene, grid, size, seed=0, key_times_s=gs.centres_s())
+    return video_problem(video, noise, **kw)
+
+
+def small_settings(**kw) -> STFMSettings:
+    base = {"components": "all", "seed": 0}
+    base.update(kw)
+    return STFMSettings(**base)
+
+
+# ----------------------------------------------------------------------------- RS restricted
+
+
+def test_rs_rows_forward_matches_rolling_shutter():
+    torch.manual_seed(0)
+    c, k, h, w = 3, 9, 7, 6
+    psf = torch.rand(c, 5, 4, dtype=torch.float64)
+    weights = torch.rand(h, k, dtype=torch.float64) * (torch.rand(h, k) > 0.4)
+    v = torch.rand(c, k, h, w, dtype=torch.float64)
+    full = RollingShutter(psf, weights, w, c).A(v)
+    conv = PSFConvolution(psf, (h, w), batch_shape=(1,), channels=c)
+    rows = torch.arange(h)
+    assert torch.allclose(rs_rows_forward(conv, weights, v, rows), full, rtol=0, atol=1e-13)
+    # any partition of the frames sums to the same rows; any row subset picks those rows
+    parts = [torch.tensor([0, 3, 4]), torch.tensor([1, 2]), torch.tensor([5, 6, 7, 8])]
+    some = torch.tensor([5, 0, 2])
+    total = sum(rs_rows_forward(conv, weights[some][:, f], v[:, f], some) for f in parts)
+    assert torch.allclose(total, full[:, some], rtol=0, atol=1e-13)
+
+
+# ----------------------------------------------------------------------------- model basics
+
+
+@pytest.fixture(scope="module")
+def sineball16():
+    return scene_problem("sineball", 16)
+
+
+def test_gradient_reaches_every_field(sineball16):
+    m = make_stfm(sineball16, small_settings())
+    assert set(m.fields) == {"static", "motion", "dynamic"}
+    m.optimiser.zero_grad()
+    m.loss_terms(torch.arange(16), torch.arange(4), backward=True)
+    for name, field in m.fields.items():
+        grads = [p.grad for p in field.parameters()]
+        assert all(g is not None for g in grads), name
+        assert sum(float(g.abs().sum()) for g in grads) > 0, name
+    assert m.log_gain.grad is not None and float(m.log_gain.grad.abs().sum()) > 0
+
+
+@pytest.mark.parametrize("preset", ["fast", "paper"])
+def test_alpha_in_unit_interval_and_colours_non_negative(sineball16, preset):
+    m = make_stfm(sineball16, small_settings(preset=preset, lr=0.05 if preset == "fast" else 1e-3))
+    for _ in range(5):
+        m.step()
+    comps = m.components()
+    video = m.estimate()
+    assert video.shape == sineball16.shape and torch.isfinite(video).all()
+    assert float(video.min()) >= 0
+    assert comps["static"].min() >= 0 and comps["static"].shape == (3, 16, 16)
+    assert comps["alpha"].shape == (1, video.shape[1], 16, 16)
+    assert 0 <= comps["alpha"].min() and comps["alpha"].max() <= 1
+    assert comps["motion"].shape == (2, video.shape[1], 16, 16)
+
+
+def test_mask_zeroes_the_video_outside_the_field_stop():
+    p = scene_problem("sineball", 12)
+    mask = torch.zeros(12, 12, dtype=torch.bool)
+    mask[2:10, 3:11] = True
+    p.mask = mask
+    m = make_stfm(p, small_settings())
+    m.step()
+    video = m.estimate()
+    assert float(video[..., ~mask].abs().max()) == 0
+    assert float(video[..., mask].min()) > 0
+
+
+# ----------------------------------------------------------------------------- the stochastic loss
+
+
+def test_stochastic_loss_is_unbiased():
+    """Exactly, by enumerating every row start and every TV frame on a tiny case."""
+    p = scene_problem("sineball", 10)
+    m = make_stfm(p, small_settings(rows_per_step=3, tv_frames_per_step=1, tau=0.05, beta=3.0))
+    for _ in range(3):  # move away from the initialisation so every term is non-trivial
+        m.step()
+    full = m.full_objective()
+    assert full["rs"] > 0 and full["gs"] > 0 and full["tv"] > 0
+    with torch.no_grad():
+        rs = [m.loss_terms((s + torch.arange(3)) % 10, None)["rs"] for s in range(10)]
+        tv = [m.loss_terms(None, torch.tensor([k]))["tv"] for k in range(m.K)]
+    assert np.mean(rs) == pytest.approx(full["rs"], rel=1e-5)
+    assert np.mean(tv) == pytest.approx(full["tv"], rel=1e-5)
+    assert np.std(rs) > 0.01 * np.mean(rs)  # the samples do differ
+
+
+def test_sampled_rows_cover_each_row_equally():
+    p = scene_problem("sineball", 10)
+    m = make_stfm(p, small_settings(rows_per_step=4))
+    counts = np.zeros(10)
+    for _ in range(2000):
+        counts[m.sample_rows().numpy()] += 1
+    assert counts.sum() == 8000
+    assert np.allclose(counts / 800, 1, atol=0.15)
+
+
+def test_chunked_backpropagation_gives_the_same_gradient(sineball16):
+    grads = []
+    for chunk in (64, 2):  # one graph for all frames vs. two-pass chunk-wise
+        m = make_stfm(sineball16, small_settings(frame_chunk=chunk, init="random"))
+        m.optimiser.zero_grad()
+        terms = m.loss_terms(torch.arange(2, 10), torch.tensor([1, 5]), backward=True)
+        grads.append(([p.grad.clone() for p in m.fields.parameters()], terms))
+    (g1, t1), (g2, t2) = grads
+    assert t1 == pytest.approx(t2, rel=1e-5)
+    for a, b in zip(g1, g2):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-7)
+
+
+def test_memory_per_step_does_not_grow_with_the_frame_count():
+    """Frames evaluated under one autograd graph stay bounded when K doubles (finer grid)."""
+    def max_graph_frames(dt_factor):
+        size = 12
+        rs = RollingShutterTiming(line_time_s=DT_S, exposure_s=EXPOSURE_S, rows=size)
+        gs = GlobalShutterTiming(trigger_s=(0.0, 5 * DT_S, 11 * DT_S), exposure_s=EXPOSURE_S)
+        grid = VideoGrid.covering(rs, gs, dt_s=DT_S / dt_factor)
+        video = render_scene("sineball", grid, size, key_times_s=gs.centres_s())
+        truth = torch.from_numpy(video).double()
+        w_rs, w_gs = torch.from_numpy(rs.weights(grid)), torch.from_numpy(gs.weights(grid))
+        psf = synthetic_psf(size)
+        p = Problem(RollingShutter(psf, w_rs, size, 3).A(truth), GlobalShutter(w_gs, 3, (size, size)).A(truth),
+                    w_rs, w_gs, psf, grid, gs.centres_s(), truth)
+        m = make_stfm(p, small_settings(rows_per_step=4, frame_chunk=6))
+        sizes = []
+        original = m.frames
+
+        def counting(idx, static=None):
+            out = original(idx, static)
+            if out.requires_grad:
+                sizes.append(len(idx))
+            return out
+
+        m.frames = counting
+        for _ in range(6):
+            m.step()
+        return grid.n_frames, len(m.gs_frames), max(sizes)
+
+    k1, gs1, n1 = max_graph_frames(1)
+    k2, gs2, n2 = max_graph_frames(2)
+    assert k2 >= 2 * k1 - 2
+    assert n1 <= gs1 + 6 and n2 <= gs2 + 6  # GS windows + one chunk, never the whole video
+
+
+# ----------------------------------------------------------------------------- hard anchoring, gains
+
+
+def test_hard_anchoring_reproduces_the_gs_frames(sineball16):
+    m = make_stfm(sineball16, small_settings(gs_anchor="hard"))
+    for _ in range(3):
+        m.step()
+    video = m.estimate().double()
+    pred = torch.einsum("gk,ckhw->cghw", sineball16.gs_weights, video)
+    target = torch.from_numpy(m.gains()).double()[:, None, None, None] * sineball16.b_gs
+    assert torch.allclose(pred, target, rtol=1e-4, atol=1e-4)
+    assert m.residuals()["gs"] < 1e-4
+
+
+def test_gains_start_from_the_white_balance(sineball16):
+    p = scene_problem("sineball", 16)
+    p.white_balance = torch.tensor([1.5, 1.0, 0.5], dtype=torch.float64)
+    m = make_stfm(p, small_settings())
+    assert np.allclose(m.gains(), [1.5, 1.0, 0.5])
+    bad = scene_problem("sineball", 16)
+    bad.white_balance = torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
+    with pytest.raises(ConfigError, match="white balance"):
+        make_stfm(bad, small_settings())
+
+
+def test_data_terms_are_normalised_by_operator_norms(sineball16):
+    m = make_stfm(sineball16, small_settings(psi=2.0))
+    assert m.rs_norm == pytest.approx(sineball16.rs_op().norm(), rel=1e-2)
+    pixels = 3 * 16 * 16
+    assert m.c_rs == pytest.approx(2.0 / (m.rs_norm ** 2 * pixels))
+    gs_norm = sineball16.gs_op().norm()
+    assert m.c_gs == pytest.approx(1.0 / (gs_norm ** 2 * pixels), rel=1e-4)
+
+
+# ----------------------------------------------------------------------------- leave-out
+
+
+def moving_dot(size=16, background=0.4, seed=0):
+    _, _gs, grid = timing(size)
+    k = grid.n_frames
+    rng = np.random.default_rng(seed)
+    bg = background * (0.7 + 0.3 * rng.random((3, size, size)))
+    video = np.repeat(bg[:, None], k, axis=1).astype(np.float32)
+    for t in range(k):
+        x = int(2 + (size - 5) * t / (k - 1))
+        video[:, t, 6:10, x:x + 3] = 0.9
+    return video
+
+
+def test_leave_out_no_gs_is_rs_only():
+    p = video_problem(moving_dot(), with_gs=False)
+    parts = choose_components(p)
+    assert not parts.gs and parts.rs
+    assert ("gs", "no GS frames: RS-only fit") in parts.left_out
+    m = make_stfm(p, STFMSettings())
+    assert not m.parts.gs and m.step() > 0
+
+
+def test_leave_out_no_rs_is_gs_only():
+    p = video_problem(moving_dot(), with_rs=False)
+    m = make_stfm(p, STFMSettings())
+    assert ("rs", "no RS measurement: GS-only fit") in m.left_out
+    assert not m.learn_gain  # gains are only identifiable with both sensors
+    m.step()
+    assert set(m.residuals()) == {"gs"}
+
+
+def test_leave_out_dark_background_drops_the_static_field():
+    p = video_problem(moving_dot(background=0.0), noise=0.002)
+    m = make_stfm(p, STFMSettings())
+    assert [c for c, _ in m.left_out] == ["static"]
+    assert "static" not in m.fields and "dark background" in m.left_out[0][1]
+
+
+def test_leave_out_static_scene_keeps_only_the_static_field():
+    size = 16
+    _, _, grid = timing(size)
+    still = np.repeat(moving_dot(size)[:, :1], grid.n_frames, axis=1)
+    p = video_problem(still, noise=0.002)
+    m = make_stfm(p, STFMSettings())
+    assert {c for c, _ in m.left_out} == {"motion", "dynamic"}
+    assert set(m.fields) == {"static"}
+    for _ in range(30):
+        m.step()
+    assert psnr(m.estimate(), p.truth.float()) > 30
+
+
+def test_leave_out_keeps_everything_for_a_moving_scene():
+    p = video_problem(moving_dot(), noise=0.002)
+    assert choose_components(p).left_out == ()
+    # the RS check matters: GS frames that agree do not make a scene static by themselves
+    size = 16
+    _, _gs, grid = timing(size)
+    video = np.repeat(moving_dot(size)[:, :1], grid.n_frames, axis=1)
+    between = [k for k in range(grid.n_frames) if p.gs_weights[:, k].sum() == 0]
+    video[:, between, 2:5, 2:5] = 1.0  # something happens only between the key frames
+    parts = choose_components(video_problem(video, noise=0.002))
+    assert parts.motion and "static scene" not in str(parts.left_out)
+
+
+def test_ablation_flags_are_reported():
+    p = video_problem(moving_dot(), noise=0.002)
+    parts = choose_components(p, no_static=True, no_motion_reg=True, no_rs=True)
+    names = [c for c, _ in parts.left_out]
+    assert names == ["rs", "static", "motion_reg"]
+    assert not parts.static and not parts.motion_reg and not parts.rs and parts.gs
+    with pytest.raises(ConfigError, match="nothing to fit"):
+        choose_components(p, no_rs=True, no_gs=True)
+
+
+def test_noise_sigma_estimates_gaussian_noise():
+    gen = torch.Generator().manual_seed(0)
+    flat = 0.5 + 0.01 * torch.randn(3, 64, 64, generator=gen, dtype=torch.float64)
+    assert noise_sigma(flat) == pytest.approx(0.01, rel=0.1)
+
+
+# ----------------------------------------------------------------------------- the Method protocol
+
+
+def test_checkpoint_and_resume_reproduce_an_uninterrupted_run(sineball16):
+    straight = make_stfm(sineball16, small_settings())
+    for _ in range(6):
+        straight.step()
+    first = make_stfm(sineball16, small_settings())
+    for _ in range(3):
+        first.step()
+    saved = first.state_dict()
+    resumed = make_stfm(sineball16, small_settings(seed=5))  # a different start, overwritten
+    resumed.load_state_dict(saved)
+    for _ in range(3):
+        resumed.step()
+    assert torch.equal(straight.estimate(), resumed.estimate())
+
+
+def test_reduce_step_scales_the_learning_rate(sineball16):
+    m = make_stfm(sineball16, small_settings(lr=0.02, lr_half_life_steps=math.inf))
+    m.reduce_step(0.5)
+    assert m.optimiser.param_groups[0]["lr"] == pytest.approx(0.01)
+    m.step()
+    assert m.optimiser.param_groups[0]["lr"] == pytest.approx(0.01)
+
+
+def test_runs_in_the_shared_loop(sineball16):
+    m = make_stfm(sineball16, small_settings())
+    truth = sineball16.truth.float()
+    result = run(m, LoopSettings(time_budget_s=None, max_iters=4, log_every_iters=2, progress=False),
+                 evaluate=lambda meth: {"psnr_db": psnr(meth.estimate(), truth)})
+    assert result.status == "ok" and result.iterations == 4
+    assert {"residual_rs", "residual_gs", "psnr_db"} <= set(result.log[-1])
+
+
+def test_settings_are_validated():
+    with pytest.raises(ConfigError, match="preset"):
+        STFMSettings(preset="slow")
+    with pytest.raises(ConfigError, match="gs_anchor"):
+        STFMSettings(gs_anchor="firm")
+    with pytest.raises(ConfigError, match="tau"):
+        STFMSettings(tau=-1.0)
+    with pytest.raises(ConfigError, match="components"):
+        STFMSettings(components="some")
+
+
+# ----------------------------------------------------------------------------- it learns
+
+
+def test_short_fit_improves_psnr_on_average():
+    """PSNR after 2x steps > after x steps > at the start (sineball, 20 px, fast preset)."""
+    p = scene_problem("sineball", 20)
+    truth = p.truth.float()
+    m = make_stfm(p, STFMSettings(components="all", seed=0))
+    start = psnr(m.estimate(), truth)
+    for _ in range(60):
+        m.step()
+    mid = psnr(m.estimate(), truth)
+    for _ in range(60):
+        m.step()
+    end = psnr(m.estimate(), truth)
+    assert start < mid < end, (start, mid, end)
