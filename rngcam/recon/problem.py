@@ -88,8 +88,12 @@ class Problem:
 
 def _camera_frames(cam: CameraRecord, dt_s: float) -> list[np.ndarray]:
     """Each raw frame -> (C, h, w) float32 operator units (Bayer binned 2x2)."""
-    return [frame_to_measurement(f, cam.pixel_format, cam.black_level_dn, cam.bit_depth,
-                                 cam.exposure_s, dt_s) for f in cam.frames]
+    try:
+        return [frame_to_measurement(f, cam.pixel_format, cam.black_level_dn, cam.bit_depth,
+                                     cam.exposure_s, dt_s) for f in cam.frames]
+    except ValueError as exc:  # NaN/Inf or misshapen frames: a bad bundle, not a crash
+        which = "RS" if cam.line_time_s is not None else "GS"
+        raise BundleError(f"the {which} frames are unusable: {exc}") from None
 
 
 def _bin(img: np.ndarray, factor: int) -> np.ndarray:
