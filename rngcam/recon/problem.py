@@ -6,11 +6,20 @@ colour, which counts towards the bin). Grid row i then averages `rows_per_bin` s
 the RS timing uses that bin exactly (a trapezoid). With a Bayer mosaic, R and B come from half of
 the bin's rows: the timing of those channels is off by at most half a line time, which we accept.
 GS frames are warped onto the RS sensor with the calibration's GS-to-RS homography, then binned.
+
+Held-out split (for choosing settings without truth, rngcam.scale.holdout): `with_holdout` sets
+`rs_train_rows` (H,) and `gs_train_mask` (G, H, W) (or (H, W) for every key frame), both bool
+with True = fitted, False = held out. None (the default) means every measurement is fitted. A
+method that honours the split fits only the training measurements: multiply its residuals by
+`rs_fit_mask()` / `gs_fit_mask()` (0/1 float, broadcastable to b_rs (C, H, W) and b_gs
+(C, G, H, W); rows of rs_fit_mask can be sliced like b_rs's rows) and set the class attribute
+`supports_holdout = True` so that the runner accepts a split for it. The mask is a diagonal
+0/1 operator after A: the masked operator is M A with adjoint A^T M.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -18,7 +27,7 @@ import torch
 from torch import Tensor
 
 from rngcam.bundle import Bundle, CameraRecord
-from rngcam.errors import BundleError
+from rngcam.errors import BundleError, ConfigError
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter, Stacked
 from rngcam.physics.sensor import BAYER_FORMATS, frame_to_measurement
@@ -40,6 +49,8 @@ class Problem:
     mask: Tensor | None = None  # (H, W) bool: the field-stop region
     white_balance: Tensor | None = None  # (C,) GS/RS gains (start value for Lambda)
     notes: list[str] = field(default_factory=list)
+    rs_train_rows: Tensor | None = None  # (H,) bool: True = RS row bin fitted (None: all)
+    gs_train_mask: Tensor | None = None  # (H, W) or (G, H, W) bool: True = GS pixel fitted (None: all)
 
     @property
     def channels(self) -> int:
@@ -83,7 +94,74 @@ class Problem:
 
         return Problem(cast(self.b_rs), cast(self.b_gs), cast(self.rs_weights), cast(self.gs_weights),
                        cast(self.psf), self.grid, self.gs_times_s, cast(self.truth), cast(self.mask),
-                       cast(self.white_balance), list(self.notes))
+                       cast(self.white_balance), list(self.notes),
+                       rs_train_rows=cast(self.rs_train_rows), gs_train_mask=cast(self.gs_train_mask))
+
+    # --- held-out split (see the module docstring) ---
+
+    @property
+    def has_holdout(self) -> bool:
+        return self.rs_train_rows is not None or self.gs_train_mask is not None
+
+    def with_holdout(self, fraction_rs: float = 0.1, fraction_gs: float = 0.1, seed: int = 0) -> "Problem":
+        """A copy with a seeded random split: that fraction of RS row bins and of GS pixels
+        (drawn independently per key frame) is held out from fitting. Deterministic for a seed."""
+        for name, f in (("fraction_rs", fraction_rs), ("fraction_gs", fraction_gs)):
+            if not (0.0 <= f < 1.0):
+                raise ConfigError(f"held-out {name} must be in [0, 1), got {f}")
+        rng = np.random.default_rng(seed)
+        rows = gs_mask = None
+        if self.b_rs is not None and fraction_rs > 0:
+            rows = _train_flags(self.b_rs.shape[-2], fraction_rs, rng).reshape(-1)
+        if self.b_gs is not None and self.b_gs.shape[1] > 0 and fraction_gs > 0:
+            gs_mask = _train_flags(int(np.prod(self.b_gs.shape[1:])), fraction_gs, rng).reshape(self.b_gs.shape[1:])
+        dev = (self.b_rs if self.b_rs is not None else self.b_gs).device
+        return replace(self, notes=list(self.notes),
+                       rs_train_rows=None if rows is None else torch.from_numpy(rows).to(dev),
+                       gs_train_mask=None if gs_mask is None else torch.from_numpy(gs_mask).to(dev))
+
+    def rs_fit_mask(self, heldout: bool = False) -> Tensor | None:
+        """(1, H, 1) 0/1 float mask of the fitted (or, with heldout, the held-out) RS rows; None without a split."""
+        if self.rs_train_rows is None:
+            return None
+        keep = ~self.rs_train_rows if heldout else self.rs_train_rows
+        return keep.to(self.rs_weights.dtype).view(1, -1, 1)
+
+    def gs_fit_mask(self, heldout: bool = False) -> Tensor | None:
+        """(1, G or 1, H, W) 0/1 float mask of the fitted (or held-out) GS pixels; None without a split."""
+        if self.gs_train_mask is None:
+            return None
+        keep = ~self.gs_train_mask if heldout else self.gs_train_mask
+        m = keep.to(self.gs_weights.dtype)
+        return m.view(1, 1, *m.shape) if m.ndim == 2 else m.unsqueeze(0)
+
+    def b_gs_training(self) -> Tensor | None:
+        """b_gs with every held-out pixel replaced by the mean of the nearest fitted pixels of
+        the same key frame (growing 3x3 windows): what an initialisation may look at."""
+        if self.b_gs is None or self.gs_train_mask is None:
+            return self.b_gs
+        keep = self.gs_fit_mask()[0].expand(self.b_gs.shape[1:]).to(self.b_gs.dtype)  # (G, H, W)
+        filled, known = self.b_gs * keep, keep.clone()
+        box = torch.ones(1, 1, 3, 3, dtype=filled.dtype, device=filled.device)
+        for _ in range(max(keep.shape[-2:])):
+            if bool(known.all()):
+                break
+            c, g, h, w = filled.shape
+            total = torch.nn.functional.conv2d((filled * known).reshape(c * g, 1, h, w), box, padding=1)
+            count = torch.nn.functional.conv2d(known.reshape(g, 1, h, w), box, padding=1).reshape(1, g, h, w)
+            new = (count > 0) & (known == 0)
+            filled = torch.where(new, total.reshape(c, g, h, w) / count.clamp_min(1), filled)
+            known = torch.where(new[0], torch.ones_like(known), known)
+        return filled
+
+
+def _train_flags(n: int, fraction: float, rng: np.random.Generator) -> np.ndarray:
+    """n bools, True = fitted; round(fraction * n) (at least one, at most n - 1) are False."""
+    held = min(max(1, round(fraction * n)), n - 1)
+    flags = np.ones(n, dtype=bool)
+    if held > 0:
+        flags[rng.choice(n, size=held, replace=False)] = False
+    return flags
 
 
 def _camera_frames(cam: CameraRecord, dt_s: float) -> list[np.ndarray]:

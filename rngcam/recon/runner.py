@@ -2,6 +2,11 @@
 
 Iterative methods (tv3d, stfm) go through the shared loop; GS-only baselines (blend, interp,
 rife) are one shot and give a single point of error against time. The bundle is only read.
+
+With `holdout` set (a fraction), iterative methods fit only a seeded training split of the
+measurements (Problem.with_holdout) and every log row, errors.csv and metrics.json carry the
+relative residual on the held-out part (`heldout_rs`, `heldout_gs`, `heldout`; see
+rngcam.scale.holdout) next to the training residuals.
 """
 
 from __future__ import annotations
@@ -38,10 +43,18 @@ class ReconSettings:
     resume: bool = False
     progress: bool = True
     options: dict = field(default_factory=dict)  # method settings (tau, beta, psi, preset, ...)
+    holdout: float | None = None  # fraction of RS row bins and GS pixels held out of the fit
+    holdout_seed: int = 0
 
     def __post_init__(self):
         if self.method not in METHODS:
             raise ConfigError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
+        if self.holdout is not None:
+            if not 0 < self.holdout < 1:
+                raise ConfigError(f"holdout must be a fraction in (0, 1), got {self.holdout}")
+            if self.method not in ITERATIVE:
+                raise ConfigError(f"--holdout applies to fitted methods ({', '.join(ITERATIVE)}), "
+                                  f"not {self.method}")
 
 
 def resolve_device(name: str) -> str:
@@ -63,15 +76,21 @@ def gs_key_frames(problem: Problem) -> np.ndarray:
     return (problem.b_gs / w).cpu().float().numpy()
 
 
-def _make_method(problem: Problem, settings: ReconSettings, device: str):
+def make_method(problem: Problem, settings: ReconSettings, device: str):
+    """The iterative method of `settings` on `problem` (float32 on `device`)."""
     opts = dict(settings.options)
     if settings.method == "tv3d":
         from rngcam.recon.tv3d import TV3D, TV3DSettings
 
-        return TV3D(problem.to(torch.float32, device), TV3DSettings(**opts))
-    from rngcam.recon.stfm import STFMSettings, make_stfm
+        method = TV3D(problem.to(torch.float32, device), TV3DSettings(**opts))
+    else:
+        from rngcam.recon.stfm import STFMSettings, make_stfm
 
-    return make_stfm(problem.to(torch.float32, device), STFMSettings(**opts), device=device)
+        method = make_stfm(problem.to(torch.float32, device), STFMSettings(**opts), device=device)
+    if problem.has_holdout and not getattr(method, "supports_holdout", False):
+        raise ConfigError(f"{settings.method} does not fit a held-out split yet (--holdout)")
+    return method
+
 
 
 def _run_gs_only(problem: Problem, method: str, opts: dict) -> tuple[np.ndarray, RunResult]:
@@ -114,6 +133,12 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
     out.mkdir(parents=True, exist_ok=True)
     device = resolve_device(settings.device)
     problem = build_problem(bundle, grid_bin=settings.grid_bin)
+    scorer = None
+    if settings.holdout is not None:
+        from rngcam.scale.holdout import HoldoutScorer
+
+        problem = problem.with_holdout(settings.holdout, settings.holdout, settings.holdout_seed)
+        scorer = HoldoutScorer(problem)
     for note in problem.notes:
         echo(f"note: {note}")
     c, k, h, w = problem.shape
@@ -135,7 +160,7 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
         result.log = [row]
     else:
         t0 = time.perf_counter()
-        method = _make_method(problem, settings, device)
+        method = make_method(problem, settings, device)
         setup_s = time.perf_counter() - t0
         left_out = list(getattr(method, "left_out", []))
         for comp, why in left_out:
@@ -144,7 +169,11 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
                             log_every_s=settings.log_every_s, checkpoint_dir=out,
                             checkpoint_every_s=settings.checkpoint_every_s, resume=settings.resume,
                             progress=settings.progress)
-        result = run(method, loop, lambda m: truth_metrics(m.estimate()), setup_s=setup_s)
+        def evaluate(m) -> dict:
+            row = scorer(m.estimate().detach()) if scorer is not None else {}
+            return {**row, **truth_metrics(m.estimate())}
+
+        result = run(method, loop, evaluate, setup_s=setup_s)
         video = method.estimate().detach().float().cpu().numpy()
         if hasattr(method, "components"):
             components = method.components()
@@ -164,7 +193,8 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
         "left_out": [{"component": a, "reason": b} for a, b in left_out],
         "events": result.events,
     }
-    for key in ("psnr_db", "ssim", "psnr_intermediate_db", "ssim_intermediate", "residual_rs", "residual_gs"):
+    for key in ("psnr_db", "ssim", "psnr_intermediate_db", "ssim_intermediate", "residual_rs", "residual_gs",
+                "heldout", "heldout_rs", "heldout_gs"):
         if key in final:
             metrics[key] = final[key]
     resolved = {**asdict(settings), "device": device, "grid_bin": settings.grid_bin}

@@ -11,6 +11,11 @@ term leaves the objective and every iterate is projected onto {A_G v = b_G} afte
 clipped at zero (a heuristic splitting, documented as such; the projection is exact per pixel).
 With `restart=True` the iteration is monotone: a step that would raise F is rejected and the
 momentum restarted (O'Donoghue & Candes 2015, with the MFISTA safeguard of Beck & Teboulle).
+
+With a held-out split on the problem (Problem.with_holdout) only the training measurements are
+fitted: each data term becomes ||M (A v - b)||^2 with M the 0/1 mask, i.e. the operator M A
+(adjoint A^T M, since M is diagonal and 0/1); ||M A|| <= ||A|| keeps the step valid. Hard
+anchoring then projects onto the fitted GS pixels only. `residuals()` reports the training fit.
 """
 
 from __future__ import annotations
@@ -65,10 +70,24 @@ class _Scaled(LinearOperator):
         return sum(c * op.A_adjoint(yi) for (op, c), yi in zip(self.blocks, y))
 
 
+class _Masked(LinearOperator):
+    """M A for a 0/1 mask M broadcast over A's output; the adjoint is A^T M."""
+
+    def __init__(self, op: LinearOperator, mask: Tensor):
+        self.op, self.mask, self.domain_shape = op, mask, op.domain_shape
+
+    def A(self, v):  # noqa: N802
+        return self.mask * self.op.A(v)
+
+    def A_adjoint(self, y):  # noqa: N802
+        return self.op.A_adjoint(self.mask * y)
+
+
 class TV3D:
     """FISTA for the 3-D TV objective above; a `Method` for rngcam.recon.loop."""
 
     name = "tv3d"
+    supports_holdout = True  # fits only the training measurements when the problem has a split
 
     def __init__(self, problem: Problem, settings: TV3DSettings | None = None):
         self.p, self.s = problem, settings or TV3DSettings()
@@ -80,19 +99,28 @@ class TV3D:
         self.gs = problem.gs_op() if use_gs else None
         self.hard = use_gs and self.s.gs_anchor == "hard"
         dev, dt = problem.b_rs.device if use_rs else problem.b_gs.device, (problem.b_rs if use_rs else problem.b_gs).dtype
+        # The operators and measurements that are fitted: all, or the training split.
+        self.rs_fit, self.b_rs_fit = self.rs, problem.b_rs
+        self.gs_fit, self.b_gs_fit = self.gs, problem.b_gs
+        if use_rs and problem.rs_train_rows is not None:
+            m = problem.rs_fit_mask().to(dtype=dt, device=dev)
+            self.rs_fit, self.b_rs_fit = _Masked(self.rs, m), m * problem.b_rs
+        if use_gs and problem.gs_train_mask is not None:
+            m = problem.gs_fit_mask().to(dtype=dt, device=dev)
+            self.gs_fit, self.b_gs_fit = _Masked(self.gs, m), m * problem.b_gs
         blocks, meas, norms_sq = [], [], []
         if use_rs and self.s.psi > 0 or (use_rs and not use_gs):
             # Power iteration underestimates; a 2 % margin keeps the step safe.
             n_r = 1.02 * self.rs.norm(iters=20, tol=1e-3, dtype=dt, device=dev) ** 2
             c = math.sqrt((self.s.psi if use_gs else 1.0) / max(n_r, 1e-30))
-            blocks.append((self.rs, c))
-            meas.append(c * problem.b_rs)
+            blocks.append((self.rs_fit, c))
+            meas.append(c * self.b_rs_fit)
             norms_sq.append(n_r)
         if use_gs and not self.hard:
             n_g = self.gs.norm() ** 2
             c = math.sqrt(1.0 / max(n_g, 1e-30))
-            blocks.append((self.gs, c))
-            meas.append(c * problem.b_gs)
+            blocks.append((self.gs_fit, c))
+            meas.append(c * self.b_gs_fit)
             norms_sq.append(n_g)
         self.op = _Scaled(blocks, problem.shape)
         self.b = tuple(meas)
@@ -101,6 +129,8 @@ class TV3D:
         if self.hard:
             w = self.gs.weights.to(dtype=dt, device=dev)
             self._gram_inv_w = torch.linalg.pinv(w @ w.T) @ w  # (G, K): projection onto A_G v = b_G
+            if problem.gs_train_mask is not None:
+                self._anchor_patterns = self._masked_projections(w, problem.gs_fit_mask()[0].to(device=dev))
         x0 = self._initial(dt, dev)
         self.state = {"x": x0, "x_prev": x0.clone(), "y": x0.clone(), "t": 1.0, "L": self.L,
                       "F": self.objective(x0), "restarts": 0}
@@ -108,18 +138,35 @@ class TV3D:
     def _initial(self, dtype, device) -> Tensor:
         p = self.p
         if self.s.init == "blend" and p.b_gs is not None and p.b_gs.shape[1] > 0:
-            frames = p.b_gs / p.gs_weights.sum(1).view(1, -1, 1, 1).clamp_min(1e-12)
+            # Held-out GS pixels must not leak into the start: they are filled from fitted ones.
+            frames = p.b_gs_training() / p.gs_weights.sum(1).view(1, -1, 1, 1).clamp_min(1e-12)
             x = torch.from_numpy(blend(frames.cpu().float().numpy(), p.gs_times_s, p.frame_times_s))
             x = x.to(dtype=dtype, device=device).clamp_min(0)
         else:
             x = torch.zeros(p.shape, dtype=dtype, device=device)
         return self._project(x)
 
+    @staticmethod
+    def _masked_projections(w: Tensor, mask: Tensor) -> list[tuple[Tensor, Tensor]]:
+        """Per pattern of fitted key frames at a pixel: (pixels (H, W) bool, pinv(M W)^T (G, K))."""
+        mask = mask.expand(w.shape[0], *mask.shape[-2:]).bool()  # (G, H, W)
+        code = sum(mask[g].long() << g for g in range(mask.shape[0]))
+        out = []
+        for c in torch.unique(code).tolist():
+            m = torch.tensor([(c >> g) & 1 for g in range(w.shape[0])], dtype=w.dtype, device=w.device)
+            out.append((code == c, torch.linalg.pinv(m[:, None] * w).T))
+        return out
+
     def _project(self, x: Tensor) -> Tensor:
         if not self.hard:
             return x
-        r = self.p.b_gs - self.gs.A(x)  # (C, G, H, W)
-        x = x + torch.einsum("cghw,gk->ckhw", r, self._gram_inv_w)
+        r = self.b_gs_fit - self.gs_fit.A(x)  # (C, G, H, W), zero where held out
+        if self.p.gs_train_mask is None:
+            x = x + torch.einsum("cghw,gk->ckhw", r, self._gram_inv_w)
+        else:  # the projection onto the fitted rows of W differs with the pattern of fitted frames
+            x = x.clone()
+            for pixels, proj in self._anchor_patterns:
+                x[:, :, pixels] += torch.einsum("cgn,gk->ckn", r[:, :, pixels], proj)
         return x.clamp_min(0)
 
     def objective(self, x: Tensor) -> float:
@@ -159,9 +206,9 @@ class TV3D:
     def residuals(self) -> dict[str, float]:
         x, out = self.state["x"], {}
         if self.rs is not None:
-            out["rs"] = relative_residual(self.rs.A(x), self.p.b_rs)
+            out["rs"] = relative_residual(self.rs_fit.A(x), self.b_rs_fit)
         if self.gs is not None:
-            out["gs"] = relative_residual(self.gs.A(x), self.p.b_gs)
+            out["gs"] = relative_residual(self.gs_fit.A(x), self.b_gs_fit)
         return out
 
     def state_dict(self) -> dict:
