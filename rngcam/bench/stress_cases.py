@@ -1,0 +1,134 @@
+"""The stress matrix: which inputs every method must survive (or refuse clearly).
+
+A case is either a Problem built directly (parameters, PSF, timing, sizes) or a capture bundle
+written through the sensor model (cases about the data: dark, saturated, NaN/Inf frames), so
+those go through the same path as a user's capture (`reconstruct`). `expect` says whether the
+input is valid ("valid": every method must run and give a finite video) or must be refused
+with a clear error ("reject").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from rngcam.bench.synthetic import CaptureSpec, make_bundle, make_problem
+
+BASE = CaptureSpec()
+ITERATIVE = ("tv3d-haar", "tv3d-exact", "stfm-fast")
+GS_ONLY = ("blend", "interp", "rife")
+ALL_METHODS = ITERATIVE + GS_ONLY
+
+
+@dataclass(frozen=True)
+class StressCase:
+    """One row group of the matrix. `options` go to the iterative methods (tau, beta, psi, ...);
+    `methods` limits which methods the case concerns (GS-only baselines ignore RS parameters)."""
+
+    name: str
+    group: str
+    spec: CaptureSpec = BASE
+    expect: str = "valid"  # "valid" or "reject"
+    options: dict = field(default_factory=dict)
+    methods: tuple[str, ...] = ALL_METHODS
+    bundle: bool = False  # go through a written bundle and `reconstruct`
+    noise: bool = True  # sensor noise in the bundle
+    tamper: Callable | None = None  # (rs_frames, gs_frames) -> (rs_frames, gs_frames), before writing
+    after_write: Callable[[Path], None] | None = None  # alter the written file (e.g. NaN in the PSF)
+    needs_data: bool = False  # needs the shared data folder (real PSF)
+    operators_expect: str | None = None  # None: as `expect` (bad options leave the operators valid)
+
+    @property
+    def expect_operators(self) -> str:
+        return self.expect if self.operators_expect is None else self.operators_expect
+
+    def problem(self, data_dir: Path | None):
+        return make_problem(self.spec, data_dir)
+
+    def write_bundle(self, path: Path, data_dir: Path | None) -> Path:
+        make_bundle(self.spec, path, noise=self.noise, tamper=self.tamper, data_dir=data_dir)
+        if self.after_write is not None:
+            self.after_write(path)
+        return path
+
+
+def _float_frames_with(value: float, camera: str):
+    """A tamper hook: the frames as float32 with one pixel of `camera` set to `value`."""
+
+    def tamper(rs, gs):
+        rs, gs = rs.astype(np.float32), gs.astype(np.float32)
+        target = rs if camera == "rs" else gs
+        target[0, target.shape[1] // 2, target.shape[2] // 2, 0] = value
+        return rs, gs
+
+    return tamper
+
+
+def _nan_in_psf(path: Path) -> None:
+    """Overwrite one PSF value in a written bundle (checksums are rewritten by h5py)."""
+    with h5py.File(path, "r+") as f:
+        psf = f["calibration/psf"][()]
+        psf[0, 0, 0] = np.nan
+        f["calibration/psf"][...] = psf
+
+
+def _nan_in_measurement(problem):
+    problem.b_rs[0, 0, 0] = float("nan")
+    return problem
+
+
+@dataclass(frozen=True)
+class ProblemTamperCase(StressCase):
+    """A Problem-level case whose measurements are altered after the physics (NaN in b_rs)."""
+
+    alter: Callable | None = None
+
+    def problem(self, data_dir: Path | None):
+        return self.alter(make_problem(self.spec, data_dir))
+
+
+def stress_cases() -> list[StressCase]:
+    """Every case of the matrix, in report order."""
+    it = ITERATIVE
+    cases: list[StressCase] = [StressCase("reference", "reference")]
+    cases += [StressCase(f"beta={b:g}", "beta", options={"beta": b}, methods=it) for b in (0.0, 10.0, 1e4, 1e6)]
+    cases += [StressCase(f"psi={p:g}", "psi", options={"psi": p}, methods=it) for p in (0.0, 1e-3, 1e3)]
+    cases += [StressCase(f"tau={t:g}", "tau", options={"tau": t}, methods=it) for t in (0.0, 1e-12, 1e6)]
+    cases += [StressCase("gs_anchor=hard", "anchor", options={"gs_anchor": "hard"}, methods=it),
+              StressCase("gs_anchor=hard, psi=0", "anchor", options={"gs_anchor": "hard", "psi": 0.0},
+                         methods=it)]
+    cases += [StressCase(f"{k}={v}", "bad parameter", expect="reject", options={k: v}, methods=it,
+                         operators_expect="valid")
+              for k, v in (("beta", -1.0), ("tau", float("nan")), ("psi", float("inf")))]
+    cases += [StressCase("psf=delta", "psf", BASE.with_(psf="delta"), methods=it),
+              StressCase("psf=flat", "psf", BASE.with_(psf="flat"), methods=it),
+              StressCase("psf=real", "psf", BASE.with_(psf="real"), methods=it, needs_data=True)]
+    cases += [StressCase("rs exposure 0.3 line", "timing", BASE.with_(exposure_lines=0.3)),
+              StressCase("rs exposure 3x readout", "timing", BASE.with_(exposure_lines=36.0)),
+              StressCase("gs exposure 0.4 line", "timing", BASE.with_(gs_exposure_lines=0.4))]
+    cases += [StressCase("dark (zero)", "data", BASE.with_(brightness=0.0)),
+              StressCase("very bright (x1e6)", "data", BASE.with_(brightness=1e6)),
+              ProblemTamperCase("NaN in b_rs (Problem)", "data", expect="reject", methods=it,
+                                operators_expect="valid", alter=_nan_in_measurement)]
+    bundle = {"group": "bundle", "bundle": True}
+    cases += [StressCase("bundle reference", **bundle),
+              StressCase("bundle dark (read noise)", spec=BASE.with_(brightness=0.0), **bundle),
+              StressCase("bundle dark (noiseless)", spec=BASE.with_(brightness=0.0), noise=False, **bundle),
+              StressCase("bundle saturated", spec=BASE.with_(brightness=50.0), **bundle),
+              StressCase("bundle NaN in RS frame", expect="reject", tamper=_float_frames_with(np.nan, "rs"),
+                         **bundle),
+              StressCase("bundle Inf in GS frame", expect="reject", tamper=_float_frames_with(np.inf, "gs"),
+                         **bundle),
+              StressCase("bundle NaN in PSF", expect="reject", after_write=_nan_in_psf, **bundle)]
+    cases += [StressCase("tiny 1x1", "size", BASE.with_(height=1, width=1, exposure_lines=4.0)),
+              StressCase("tiny 2x3", "size", BASE.with_(height=2, width=3, exposure_lines=3.0)),
+              StressCase("odd 7x9", "size", BASE.with_(height=7, width=9)),
+              StressCase("non-square 5x16", "size", BASE.with_(height=5, width=16)),
+              StressCase("non-square 17x6", "size", BASE.with_(height=17, width=6)),
+              StressCase("1 frame", "size", BASE.with_(frame_lines=1000.0)),
+              StressCase("1203 frames (4x4)", "size", BASE.with_(height=4, width=4, exposure_lines=1200.0))]
+    return cases

@@ -1,0 +1,52 @@
+"""One benchmark run in a fresh process: `python -m rngcam.bench.worker JOB.json`.
+
+The job names the bundle, the output folder, the runner method, its options, the time budget
+and the log spacing. It calls `rngcam.recon.runner.reconstruct` (which writes every output)
+and adds `bench_worker.json` with this process's peak resident set size.
+
+Peak memory is read from /proc/self/status (VmHWM: the high-water mark of this process's own
+address space, which starts afresh at exec). `ru_maxrss` is not used for this: Linux carries
+the parent's peak over fork and exec into it, so a child of a large process reports at least
+the parent's size.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import sys
+from pathlib import Path
+
+
+def peak_rss_bytes() -> int:
+    """This process's peak resident set size (VmHWM), or ru_maxrss where /proc is missing."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def main(job_path: str) -> int:
+    job = json.loads(Path(job_path).read_text())
+    out = Path(job["out"])
+    out.mkdir(parents=True, exist_ok=True)
+    report = {"error": ""}
+    try:
+        from rngcam.recon.runner import ReconSettings, reconstruct
+
+        settings = ReconSettings(method=job["method"], time_budget_s=job["time_budget_s"], progress=False,
+                                 log_every_s=job["log_every_s"], checkpoint_every_s=1e9,
+                                 options=job.get("options", {}))
+        reconstruct(job["bundle"], out, settings, echo=lambda _msg: None)
+    except Exception as exc:  # noqa: BLE001 - reported in the results table, not raised
+        report["error"] = f"{type(exc).__name__}: {exc}"
+    report["peak_rss_bytes"] = peak_rss_bytes()
+    (out / "bench_worker.json").write_text(json.dumps(report))
+    return 1 if report["error"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1]))
