@@ -33,3 +33,4 @@ from rngcam.bundle_cli import inspect_cmd; main.add_command(inspect_cmd, "inspec
 from rngcam.recon_cli import recon_cmd; main.add_command(recon_cmd, "recon")  # noqa: E402,E702
 from rngcam.acquire_cli import capture_cmd, devices_cmd; main.add_command(capture_cmd, "capture"); main.add_command(devices_cmd, "devices")  # noqa: E402,E702,E501
 from rngcam.calibrate_cli import calibrate_group; main.add_command(calibrate_group, "calibrate")  # noqa: E402,E702
+from rngcam.bench_cli import bench_cmd; main.add_command(bench_cmd, "bench")  # noqa: E402,E702
