@@ -150,7 +150,7 @@ def test_mask_zeroes_the_video_outside_the_field_stop():
 
 
 def test_stochastic_loss_is_unbiased():
-    """Exactly, by enumerating every row start and every TV frame on a tiny case."""
+    """Exactly, by enumerating every row start, TV frame and GS frame sample on a tiny case."""
     p = scene_problem("sineball", 10)
     m = make_stfm(p, small_settings(rows_per_step=3, tv_frames_per_step=1, tau=0.05, beta=3.0))
     for _ in range(3):  # move away from the initialisation so every term is non-trivial
@@ -160,9 +160,14 @@ def test_stochastic_loss_is_unbiased():
     with torch.no_grad():
         rs = [m.loss_terms((s + torch.arange(3)) % 10, None)["rs"] for s in range(10)]
         tv = [m.loss_terms(None, torch.tensor([k]))["tv"] for k in range(m.K)]
+        gs = [m.loss_terms(None, None, gs_windows=torch.tensor([g]))["gs"] for g in range(3)]
+        gs_pairs = [m.loss_terms(None, None, gs_windows=torch.tensor(g))["gs"] for g in ([0, 1], [0, 2], [1, 2])]
     assert np.mean(rs) == pytest.approx(full["rs"], rel=1e-5)
     assert np.mean(tv) == pytest.approx(full["tv"], rel=1e-5)
-    assert np.std(rs) > 0.01 * np.mean(rs)  # the samples do differ
+    assert np.mean(gs) == pytest.approx(full["gs"], rel=1e-5)
+    assert np.mean(gs_pairs) == pytest.approx(full["gs"], rel=1e-5)
+    for samples in (rs, tv, gs):
+        assert np.std(samples) > 0.01 * np.mean(samples)  # the samples do differ
 
 
 def test_sampled_rows_cover_each_row_equally():

@@ -48,6 +48,7 @@ from rngcam.recon.fields import field_on_grid, make_field
 from rngcam.recon.metrics import relative_residual
 
 PRESETS = ("paper", "fast")
+INIT_STEPS = 100
 MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow is skipped
 
 
@@ -72,6 +73,7 @@ class STFMSettings:
     lr: float | None = None
     lr_half_life_steps: float | None = None  # exponential LR decay (None: preset's; inf: none)
     init: str | None = None  # "gs" (fit fields to the GS frames first) or "random"
+    gs_windows_per_step: int | None = None  # GS frames per step (soft anchoring; 0: all)
     dynamic_time: bool | None = None  # F_D(x + u_x, y + u_y, t) instead of F_D(x + u_x, y + u_y)
     time_smoothness: float | None = None  # weight of the time planes' roughness (plane fields)
 
@@ -90,8 +92,13 @@ class STFMSettings:
                 raise ConfigError(f"{name} must be a finite number >= 0, got {value!r}")
         if self.rows_per_step is not None and self.rows_per_step < 1:
             raise ConfigError(f"rows_per_step must be >= 1, got {self.rows_per_step}")
+        if self.gs_windows_per_step is not None and self.gs_windows_per_step < 0:
+            raise ConfigError(f"gs_windows_per_step must be >= 0, got {self.gs_windows_per_step}")
         if self.tv_frames_per_step < 1 or self.frame_chunk < 1:
             raise ConfigError("tv_frames_per_step and frame_chunk must be >= 1")
+
+
+dynamic_features = 4
 
 
 def _preset(name: str, h: int, w: int, k: int) -> dict:
@@ -105,6 +112,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
             "dynamic": ("siren", dict(hidden=128, layers=3, **siren)),
             "lr": 5e-6, "decoder_lr_ratio": 1.0, "gain_lr_ratio": 1.0, "lr_half_life_steps": math.inf,
             "beta": 10.0, "tau": 1e-3, "rows_per_step": max(1, h // 4), "init": "random", "dynamic_time": False,
+            "gs_windows_per_step": 0,
             "time_smoothness": 0.0}
 
     def scales(fractions, n):
@@ -112,6 +120,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
 
     appearance = scales((0.25, 0.5, 1.0), side)
     motion_space = scales((1 / 16, 1 / 8, 1 / 4), side)
+
     def motion_time_for(space):
         t = tuple(max(2, round(k * f)) for f in (0.25, 0.5, 1.0))[:len(space)]
         return t + (t[-1],) * (len(space) - len(t))
@@ -122,9 +131,10 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
         "motion": ("planes", {"resolutions": motion_space, "time_resolutions": motion_time,
                                "features": 8, "hidden": 32}),
         "dynamic": ("planes", {"resolutions": appearance, "time_resolutions": motion_time_for(appearance),
-                                "features": 8, "hidden": 32}),
-        "lr": 2e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.1, "lr_half_life_steps": 400.0,
+                                "features": dynamic_features, "hidden": 32}),
+        "lr": 2e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
         "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, h // 8), "init": "gs", "dynamic_time": True,
+        "gs_windows_per_step": 1,
         "time_smoothness": 1e-3}
 
 
@@ -161,6 +171,7 @@ class _Resolved:
     init: str
     dynamic_time: bool
     time_smoothness: float
+    gs_windows_per_step: int
     fields: dict = field(default_factory=dict)
 
 
@@ -190,6 +201,8 @@ class STFM:
                                 else settings.lr_half_life_steps),
             rows_per_step=min(self.H, settings.rows_per_step or preset["rows_per_step"]),
             init=settings.init or preset["init"],
+            gs_windows_per_step=(preset["gs_windows_per_step"] if settings.gs_windows_per_step is None
+                                 else settings.gs_windows_per_step),
             dynamic_time=preset["dynamic_time"] if settings.dynamic_time is None else settings.dynamic_time,
             time_smoothness=(preset["time_smoothness"] if settings.time_smoothness is None
                              else settings.time_smoothness),
@@ -381,13 +394,14 @@ class STFM:
 
     # ------------------------------------------------------------------ loss terms
 
-    def gs_term(self, v_gs: Tensor) -> Tensor:
-        """Normalised GS data term from the GS-window frames (C, S, H, W)."""
-        pred = torch.einsum("gs,cshw->cghw", self.w_gs[:, self.gs_frames], v_gs)
-        miss = pred - self._gain()[:, None, None, None] * self.problem.b_gs
+    def gs_term(self, v_win: Tensor, windows: Tensor, win_frames: Tensor) -> Tensor:
+        """Normalised GS data term of GS frames `windows` from the frames their exposures touch,
+        `win_frames` (values v_win (C, S, H, W)); an unbiased estimate for a uniform sample."""
+        pred = torch.einsum("gs,cshw->cghw", self.w_gs[windows][:, win_frames], v_win)
+        miss = pred - self._gain()[:, None, None, None] * self.problem.b_gs.index_select(1, windows)
         if self.mask is not None:
             miss = miss * self.mask
-        return self.c_gs * miss.square().sum()
+        return self.c_gs * self.w_gs.shape[0] / len(windows) * miss.square().sum()
 
     def rs_scale(self, n_rows: int) -> float:
         return self.c_rs * self.H / n_rows
@@ -410,10 +424,19 @@ class STFM:
         n = min(self.settings.tv_frames_per_step, self.K)
         return torch.randperm(self.K, generator=self.generator)[:n].sort().values
 
-    def loss_terms(self, rows: Tensor | None, tv_frames: Tensor | None, backward: bool = False) -> dict:
-        """The step's terms {"gs", "rs", "tv"} as floats for given samples (full terms: all rows,
-        all frames). With `backward` the gradient of their sum is accumulated, chunk by chunk."""
+    def loss_terms(self, rows: Tensor | None, tv_frames: Tensor | None, backward: bool = False,
+                   gs_windows: Tensor | None = None) -> dict:
+        """The step's terms {"gs", "rs", "tv", "smooth"} as floats for given samples of RS rows, TV
+        frames and GS frames (`gs_windows`, None: all; full terms: all rows, all frames). With
+        `backward` the gradient of their sum is accumulated, chunk by chunk."""
         dev = self.device
+        if not self.parts.gs:
+            windows = win_frames = torch.zeros(0, dtype=torch.long, device=dev)
+        elif gs_windows is None or self.settings.gs_anchor == "hard":
+            windows, win_frames = torch.arange(self.w_gs.shape[0], device=dev), self.gs_frames
+        else:
+            windows = gs_windows.to(dev)
+            win_frames = torch.nonzero(self.w_gs[windows].sum(0) > 0).flatten()
         terms = {"gs": 0.0, "rs": 0.0, "tv": 0.0, "smooth": 0.0}
         static = self._static() if self.parts.static else None
         graph_loss = torch.zeros((), device=dev)
@@ -429,12 +452,12 @@ class STFM:
             rows = rows.to(dev)
             w = self.w_rs[rows]
             touched = torch.nonzero(w.sum(0) > 0).flatten()
-            rest = touched[~torch.isin(touched, self.gs_frames)]
+            rest = touched[~torch.isin(touched, win_frames)]
         chunks = _chunks(rest, self.settings.frame_chunk)
         single = len(chunks) <= 1
         # One evaluation for the GS windows and (when it fits in one chunk) the RS frames.
-        n_gs = len(self.gs_frames)
-        first = torch.cat([self.gs_frames] + ([chunks[0]] if single and chunks else []))
+        n_gs = len(win_frames)
+        first = torch.cat([win_frames] + ([chunks[0]] if single and chunks else []))
         v_first = self.frames(first, static) if len(first) else None
         v_gs = None
         if n_gs:
@@ -442,7 +465,7 @@ class STFM:
             if self.settings.gs_anchor == "hard":
                 v_gs = self._anchored(v_gs)
             else:
-                gs = self.gs_term(v_gs)
+                gs = self.gs_term(v_gs, windows, win_frames)
                 terms["gs"] = float(gs.detach())
                 graph_loss = graph_loss + gs
         if self.parts.motion and self.parts.motion_reg and tv_frames is not None:
@@ -453,10 +476,10 @@ class STFM:
         if self.parts.rs and rows is not None:
             target = self.problem.b_rs.index_select(1, rows)
             scale = self.rs_scale(len(rows))
-            shared = touched[torch.isin(touched, self.gs_frames)]
+            shared = touched[torch.isin(touched, win_frames)]
             pred = torch.zeros(self.C, len(rows), self.W, device=dev)
             if len(shared):
-                pos = torch.searchsorted(self.gs_frames, shared)
+                pos = torch.searchsorted(win_frames, shared)
                 pred = pred + rs_rows_forward(self.conv, w[:, shared], v_gs[:, pos], rows)
             if single:
                 if chunks:
@@ -502,7 +525,11 @@ class STFM:
         self.optimiser.zero_grad(set_to_none=True)
         rows = self.sample_rows() if self.parts.rs else None
         tv_frames = self.sample_tv_frames() if (self.parts.motion and self.parts.motion_reg) else None
-        terms = self.loss_terms(rows, tv_frames, backward=True)
+        windows = None
+        n_win = self.resolved.gs_windows_per_step
+        if self.parts.gs and n_win and n_win < self.w_gs.shape[0]:
+            windows = torch.randperm(self.w_gs.shape[0], generator=self.generator)[:n_win].sort().values
+        terms = self.loss_terms(rows, tv_frames, backward=True, gs_windows=windows)
         self.optimiser.step()
         self.steps += 1
         self._cache = None
@@ -580,14 +607,15 @@ class STFM:
         """The settings as used (preset values filled in), for the outputs."""
         out = asdict(self.resolved.settings)
         out.update({k: getattr(self.resolved, k) for k in
-                    ("beta", "tau", "lr", "lr_half_life_steps", "rows_per_step", "init")})
+                    ("beta", "tau", "lr", "lr_half_life_steps", "rows_per_step", "init", "dynamic_time",
+                     "time_smoothness", "gs_windows_per_step")})
         out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}
         out["left_out"] = [list(x) for x in self.left_out]
         return out
 
     # ------------------------------------------------------------------ initialisation from GS
 
-    def _init_from_gs(self, steps: int = 100) -> None:
+    def _init_from_gs(self, steps: int = INIT_STEPS) -> None:
         """Fit the fields to what the GS frames say before the main fit (see module docstring).
 
         Static field: the per-pixel median of the key frames (the background). Alpha: one where

@@ -1,0 +1,307 @@
+"""Side-by-side benchmark of STFM against the baselines, run by hand (not part of the tests).
+
+    .venv/bin/python bench/stfm_compare.py --budget 60 --out bench/stfm_compare.md
+
+In one process on the CPU, under the same time budget per iterative method:
+1. STFM fast, STFM paper, tv3d, blend, interp and rife on `sineball`, `smoke` and a real
+   clip (bikes_car_256.npz, span 8) at 64x64; STFM fast and the GS-only baselines also at 128x128;
+2. on `smoke` at 64x64: STFM fast with all components against the four ablations
+   (no_static, no_motion_reg, no_rs, no_gs);
+3. the time the fast preset needs to reach the paper preset's final PSNR, as a ratio of the
+   paper preset's run time;
+4. peak memory of an STFM fit at K and 2K frames (the same scene on a grid with half the
+   frame duration): peak resident set size (ru_maxrss) of a fresh subprocess per K, which
+   sees torch's CPU allocations (tracemalloc does not); also its growth over the RSS just
+   before the fit starts (interpreter, torch and the problem), which is what the fit adds.
+
+Problems come from `rngcam.sim.simulate` (the bundle path) when it exists, else from an
+equivalent in-process simulation (same timing; Gaussian noise) - the report says which.
+PSNR is over all frames / over the intermediate frames (away from the GS key frames).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from rngcam.paths import shared_data
+from rngcam.physics import psf as psf_mod
+from rngcam.physics.operators import GlobalShutter, RollingShutter
+from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+from rngcam.recon.loop import LoopSettings, run
+from rngcam.recon.metrics import video_metrics
+from rngcam.recon.problem import Problem
+from rngcam.recon.stfm import STFMSettings, make_stfm
+from rngcam.sim.scenes import render_scene
+
+DT_S, EXPOSURE_S = 208e-6, 650e-6  # the reference rig scaled to the grid (see the sim module)
+CLIP = "videos/bikes_car_256.npz"
+
+
+# ----------------------------------------------------------------------------- problems
+
+
+def simulated_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1) -> tuple[Problem, str]:
+    """A problem with truth: through rngcam.sim.simulate + build_problem when available."""
+    clip_opts = {"clip": str(shared_data() / CLIP), "span": 8} if scene == "clip" else {}
+    if dt_factor == 1:
+        try:
+            from rngcam.sim.simulate import simulate
+
+            from rngcam.bundle import read_bundle
+            from rngcam.recon.problem import build_problem
+        except ImportError:
+            pass
+        else:
+            with tempfile.TemporaryDirectory() as tmp:
+                out = Path(tmp) / f"{scene}.h5"
+                simulate(scene, out, size=size, seed=seed, **clip_opts)
+                return build_problem(read_bundle(out)), "rngcam.sim.simulate"
+    return inline_problem(scene, size, seed, dt_factor), "in-process simulation (Gaussian noise 0.3 %)"
+
+
+def inline_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1, noise: float = 0.003) -> Problem:
+    """The simulator's timing and forward model without the bundle (and with Gaussian noise)."""
+    rs = RollingShutterTiming(line_time_s=DT_S, exposure_s=EXPOSURE_S, rows=size)
+    end = (size - 1) * DT_S
+    gs = GlobalShutterTiming(trigger_s=(0.0, end / 2, end), exposure_s=EXPOSURE_S)
+    grid = VideoGrid.covering(rs, gs, dt_s=DT_S / dt_factor)
+    opts = {"path": str(shared_data() / CLIP), "span": 8} if scene == "clip" else {"key_times_s": gs.centres_s()}
+    truth = torch.from_numpy(render_scene(scene, grid, size, seed, **opts)).double()
+    raw = psf_mod.load_psf(shared_data() / "psf" / "diffusercam_tutorial_psf_sample.tif")
+    psf = torch.from_numpy(psf_mod.prepare_psf(raw, (size, size), channels=3)[0])
+    w_rs, w_gs = torch.from_numpy(rs.weights(grid)), torch.from_numpy(gs.weights(grid))
+    b_rs = RollingShutter(psf, w_rs, size, 3).A(truth)
+    b_gs = GlobalShutter(w_gs, 3, (size, size)).A(truth)
+    gen = torch.Generator().manual_seed(seed + 99)
+    scale = noise * EXPOSURE_S / DT_S
+    b_rs = b_rs + scale * torch.randn(b_rs.shape, generator=gen, dtype=torch.float64)
+    b_gs = b_gs + scale * torch.randn(b_gs.shape, generator=gen, dtype=torch.float64)
+    return Problem(b_rs=b_rs, b_gs=b_gs, rs_weights=w_rs, gs_weights=w_gs, psf=psf, grid=grid,
+                   gs_times_s=gs.centres_s(), truth=truth)
+
+
+# ----------------------------------------------------------------------------- methods
+
+
+def key_frames(p: Problem) -> np.ndarray:
+    w = p.gs_weights.sum(1).clamp_min(1e-12).view(1, -1, 1, 1)
+    return (p.b_gs / w).float().numpy()
+
+
+def run_gs_only(name: str, p: Problem) -> dict:
+    from rngcam.recon import baselines
+
+    t0 = time.perf_counter()
+    try:
+        if name == "rife":
+            from rngcam.recon.rife import rife
+
+            video = rife(key_frames(p), p.gs_times_s, p.frame_times_s)
+        else:
+            video = getattr(baselines, name)(key_frames(p), p.gs_times_s, p.frame_times_s)
+    except Exception as exc:  # noqa: BLE001 (a missing optional model must not stop the benchmark)
+        return {"error": f"{type(exc).__name__}: {exc}"}
+    secs = time.perf_counter() - t0
+    m = video_metrics(torch.from_numpy(np.asarray(video)), p.truth.float(), p.intermediate_frames())
+    return {**m, "setup_s": 0.0, "solve_s": secs, "iterations": 1, "log": []}
+
+
+def make_iterative(name: str, p: Problem, opts: dict):
+    if name == "tv3d":
+        from rngcam.recon.tv3d import TV3D, TV3DSettings
+
+        return TV3D(p.to(torch.float32), TV3DSettings(**opts))
+    return make_stfm(p, STFMSettings(**opts))
+
+
+def run_iterative(name: str, p: Problem, budget_s: float, opts: dict | None = None) -> dict:
+    """Setup + the shared loop for `budget_s` seconds; PSNR logged against solve time."""
+    truth = p.truth.float()
+    inter = p.intermediate_frames()
+    t0 = time.perf_counter()
+    try:
+        method = make_iterative(name, p, opts or {})
+    except ImportError as exc:
+        return {"error": f"not available: {exc}"}
+    setup_s = time.perf_counter() - t0
+    result = run(method, LoopSettings(time_budget_s=budget_s, log_every_s=max(budget_s / 20, 0.5), progress=False),
+                 evaluate=lambda m: video_metrics(m.estimate().float().cpu(), truth, inter))
+    final = result.log[-1]
+    out = {k: final[k] for k in ("psnr_db", "psnr_intermediate_db", "ssim") if k in final}
+    out.update(setup_s=setup_s, solve_s=result.solve_s, iterations=result.iterations,
+               log=[(r["solve_s"], r.get("psnr_db")) for r in result.log], status=result.status)
+    if hasattr(method, "left_out"):
+        out["left_out"] = [c for c, _ in method.left_out]
+    return out
+
+
+# ----------------------------------------------------------------------------- memory
+
+
+def memory_child(problem_path: str, steps: int) -> None:
+    """Run in a fresh process: print JSON with RSS before the fit and the peak RSS (MiB)."""
+    p = torch.load(problem_path, weights_only=False)
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # import the optimiser machinery first
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    m = make_stfm(p, STFMSettings())
+    for _ in range(steps):
+        m.step()
+    m.estimate()
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(json.dumps({"frames": p.grid.n_frames, "before_mib": before, "peak_mib": peak}))
+
+
+def measure_memory(scene: str, size: int, steps: int) -> list[dict]:
+    """Problems are built here and loaded by the children, so that reading the PSF file does not
+    set the children's high-water mark."""
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for factor in (1, 2):
+            path = Path(tmp) / f"problem{factor}.pt"
+            torch.save(inline_problem(scene, size, dt_factor=factor), path)
+            cmd = [sys.executable, __file__, "--memory-child", str(path), str(steps)]
+            out = subprocess.run(cmd, capture_output=True, text=True, check=True)
+            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    return rows
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def fmt(r: dict) -> str:
+    if "error" in r:
+        return "n/a"
+    return f"{r['psnr_db']:.2f} / {r.get('psnr_intermediate_db', float('nan')):.2f}"
+
+
+def time_to_reach(log: list[tuple[float, float]], target: float) -> float | None:
+    for t, value in log:
+        if value is not None and value >= target:
+            return t
+    return None
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--budget", type=float, default=60.0, help="seconds per iterative method")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "stfm_compare.md")
+    ap.add_argument("--scenes", default="sineball,smoke,clip")
+    ap.add_argument("--sizes", default="64,128")
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--skip", default="", help="comma-separated parts to skip: main,ablation,memory")
+    ap.add_argument("--memory-child", nargs=2, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if args.memory_child:
+        memory_child(args.memory_child[0], int(args.memory_child[1]))
+        return
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # pay torch.optim's first-use import here
+    skip = set(filter(None, args.skip.split(",")))
+    scenes = args.scenes.split(",")
+    sizes = [int(s) for s in args.sizes.split(",")]
+    lines = [(f"# STFM benchmark ({time.strftime('%Y-%m-%d %H:%M')}, torch {torch.__version__}, "
+             f"{torch.get_num_threads()} threads, budget {args.budget:g} s per iterative method)"), ""]
+    results: dict = {}
+    sources = set()
+    if "main" not in skip:
+        methods = ["stfm_fast", "stfm_paper", "tv3d", "blend", "interp", "rife"]
+        for size in sizes:
+            for scene in scenes:
+                p, source = simulated_problem(scene, size)
+                sources.add(source)
+                for name in methods:
+                    if size > 64 and name in ("stfm_paper", "tv3d"):
+                        continue
+                    print(f"[{scene} {size}] {name}", flush=True)
+                    if name.startswith("stfm"):
+                        r = run_iterative("stfm", p, args.budget, {"preset": name.split("_")[1]})
+                    elif name == "tv3d":
+                        r = run_iterative("tv3d", p, args.budget)
+                    else:
+                        r = run_gs_only(name, p)
+                    results[(scene, size, name)] = r
+                    print("   ", fmt(r), r.get("error", ""), flush=True)
+        lines += ["## PSNR (dB): all frames / intermediate frames", "",
+                  (f"Problems: {', '.join(sorted(sources))}. Iterative methods: setup, then "
+                  f"{args.budget:g} s of the shared loop (setup time in the second table)."), "",
+                  "| scene | size | " + " | ".join(methods) + " |", "|---|---|" + "---|" * len(methods)]
+        for size in sizes:
+            for scene in scenes:
+                cells = [fmt(results[(scene, size, n)]) if (scene, size, n) in results else "-" for n in methods]
+                lines.append(f"| {scene} | {size} | " + " | ".join(cells) + " |")
+        lines += ["", "| scene | size | method | setup s | solve s | iterations | left out |", "|---|---|---|---|---|---|---|"]
+        for (scene, size, name), r in results.items():
+            if "error" in r:
+                lines.append(f"| {scene} | {size} | {name} | {r['error']} | | | |")
+            elif name in ("stfm_fast", "stfm_paper", "tv3d"):
+                lines.append(f"| {scene} | {size} | {name} | {r['setup_s']:.1f} | {r['solve_s']:.1f} | "
+                             f"{r['iterations']} | {', '.join(r.get('left_out', [])) or '-'} |")
+        lines += ["", "## Targets (intermediate-frame PSNR)", ""]
+        for size in sizes:
+            for scene in scenes:
+                fast = results.get((scene, size, "stfm_fast"))
+                gs_best = max((results[(scene, size, n)].get("psnr_intermediate_db", -math.inf)
+                               for n in ("blend", "interp", "rife") if (scene, size, n) in results
+                               and "error" not in results[(scene, size, n)]), default=None)
+                tv = results.get((scene, size, "tv3d"))
+                if fast and "error" not in fast and gs_best is not None:
+                    msg = f"- {scene} {size}: STFM fast - best GS-only = {fast['psnr_intermediate_db'] - gs_best:+.2f} dB"
+                    if tv and "error" not in tv:
+                        msg += f"; STFM fast - tv3d = {fast['psnr_intermediate_db'] - tv['psnr_intermediate_db']:+.2f} dB"
+                    lines.append(msg)
+        lines += ["", "## Fast preset: time to reach the paper preset's final PSNR", ""]
+        for scene in scenes:
+            fast, paper = results.get((scene, sizes[0], "stfm_fast")), results.get((scene, sizes[0], "stfm_paper"))
+            if not fast or not paper or "error" in fast or "error" in paper:
+                continue
+            t = time_to_reach(fast["log"], paper["psnr_db"])
+            paper_total = paper["setup_s"] + paper["solve_s"]
+            if t is None:
+                lines.append(f"- {scene}: fast never reached {paper['psnr_db']:.2f} dB")
+            else:
+                total = fast["setup_s"] + t
+                lines.append(f"- {scene}: paper {paper['psnr_db']:.2f} dB after {paper_total:.1f} s; fast reached it "
+                             f"after {total:.1f} s (setup {fast['setup_s']:.1f} + solve {t:.1f}): "
+                             f"ratio {total / paper_total:.3f}")
+    if "ablation" not in skip:
+        p, source = simulated_problem("smoke", sizes[0])
+        lines += ["", f"## Ablations on smoke {sizes[0]}x{sizes[0]} (STFM fast, components='all')", "",
+                  "| variant | PSNR all / intermediate | iterations |", "|---|---|---|"]
+        for flag in ("full", "no_static", "no_motion_reg", "no_rs", "no_gs"):
+            opts = {"components": "all"} | ({flag: True} if flag != "full" else {})
+            print(f"[ablation] {flag}", flush=True)
+            r = run_iterative("stfm", p, args.budget, opts)
+            print("   ", fmt(r), flush=True)
+            lines.append(f"| {flag} | {fmt(r)} | {r.get('iterations', '-')} |")
+    if "memory" not in skip:
+        print("[memory]", flush=True)
+        rows = measure_memory("sineball", sizes[0], steps=20)
+        lines += ["", f"## Peak memory, STFM fast, sineball {sizes[0]}x{sizes[0]}, 20 steps + one full estimate", "",
+                  ("Peak RSS (ru_maxrss) of a fresh subprocess per frame count; 'fit adds' is the peak minus "
+                  "the RSS before the STFM was built (interpreter, torch, problem)."), "",
+                  "| frames K | RSS before MiB | peak MiB | fit adds MiB |", "|---|---|---|---|"]
+        for r in rows:
+            lines.append(f"| {r['frames']} | {r['before_mib']:.0f} | {r['peak_mib']:.0f} | {r['peak_mib'] - r['before_mib']:.0f} |")
+        lines.append(f"\nRatio of peaks at 2K vs K: {rows[1]['peak_mib'] / rows[0]['peak_mib']:.3f}; "
+                     f"of what the fit adds: {(rows[1]['peak_mib'] - rows[1]['before_mib']) / max(rows[0]['peak_mib'] - rows[0]['before_mib'], 1e-9):.3f}")
+    args.out.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
