@@ -1,7 +1,11 @@
-"""The `rngcam` command line: parse, call the library, print. Commands live here, logic does not."""
+"""The `rngcam` command line: parse, call the library, print. Commands live here, logic does not.
+
+Commands are imported only when invoked, so `rngcam inspect` does not pay for importing torch.
+"""
 
 from __future__ import annotations
 
+import importlib
 import sys
 
 import click
@@ -9,9 +13,36 @@ import click
 from rngcam import __version__
 from rngcam.errors import RngcamError
 
+# name -> "module:attribute" of a click command
+COMMANDS = {
+    "simulate": "rngcam.sim_cli:simulate_cmd",
+    "capture": "rngcam.acquire_cli:capture_cmd",
+    "devices": "rngcam.acquire_cli:devices_cmd",
+    "calibrate": "rngcam.calibrate_cli:calibrate_group",
+    "inspect": "rngcam.bundle_cli:inspect_cmd",
+    "recon": "rngcam.recon_cli:recon_cmd",
+    "sweep": "rngcam.scale_cli:sweep_cmd",
+    "recon-batch": "rngcam.scale_cli:recon_batch_cmd",
+    "bench": "rngcam.bench_cli:bench_cmd",
+}
+
 
 class _Group(click.Group):
-    """Turns RngcamError into one line on stderr and exit code 2, never a traceback."""
+    """Loads commands lazily and turns RngcamError into one line on stderr and exit code 2."""
+
+    def list_commands(self, ctx):
+        return sorted(set(super().list_commands(ctx)) | set(COMMANDS))
+
+    def get_command(self, ctx, name):
+        if name in self.commands or name not in COMMANDS:
+            return super().get_command(ctx, name)
+        module, attr = COMMANDS[name].split(":")
+        try:
+            return getattr(importlib.import_module(module), attr)
+        except ModuleNotFoundError as exc:
+            if exc.name == module:  # a command whose module is not part of this install
+                return None
+            raise
 
     def invoke(self, ctx):
         try:
@@ -27,10 +58,4 @@ def main():
     """rngcam: kHz video from a rolling-shutter + global-shutter camera pair."""
 
 
-# Commands are registered below, one import each; keep the logic in the library.
 # --- commands ---
-from rngcam.bundle_cli import inspect_cmd; main.add_command(inspect_cmd, "inspect")  # noqa: E402,E702
-from rngcam.recon_cli import recon_cmd; main.add_command(recon_cmd, "recon")  # noqa: E402,E702
-from rngcam.acquire_cli import capture_cmd, devices_cmd; main.add_command(capture_cmd, "capture"); main.add_command(devices_cmd, "devices")  # noqa: E402,E702,E501
-from rngcam.calibrate_cli import calibrate_group; main.add_command(calibrate_group, "calibrate")  # noqa: E402,E702
-from rngcam.bench_cli import bench_cmd; main.add_command(bench_cmd, "bench")  # noqa: E402,E702
