@@ -1,0 +1,360 @@
+"""Ground-truth scenes rendered on a video time grid.
+
+Every scene returns a video (3, K, N, N) float32 of linear intensity in [0, 1], one frame per
+grid frame, sampled at the frame's centre time (rngcam.physics.timing.VideoGrid.centres_s).
+Scenes are deterministic for a seed. `key_times_s` are the mid-exposure times of the GS key
+frames (GlobalShutterTiming.centres_s); scenes that are built to defeat key-frame
+interpolation use them (default: first, middle and last grid frame centres).
+
+- sineball: a soft-edged bright disc oscillating horizontally (with a slow vertical drift)
+  over a smooth, gently textured gradient; it reverses direction at least twice between
+  every pair of consecutive key frames.
+- smoke: a semi-transparent turbulent plume that starts after the first key frame, rises
+  out of a nozzle and grows, over a dense brick texture.
+- clip: a real clip (npz `frames` (T, H, W, 3) uint8 sRGB): `span` consecutive source frames
+  stretched over the capture, in-between frames made by bidirectional optical-flow
+  interpolation. sRGB is linearised with a plain power law, linear = (u8 / 255) ** 2.2
+  (close to the sRGB curve; exactness does not matter for simulation), then area-resized.
+"""
+
+from __future__ import annotations
+
+import inspect
+from pathlib import Path
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from rngcam.errors import RngcamError
+from rngcam.paths import shared_data
+from rngcam.physics.timing import VideoGrid
+
+SCENES = ("sineball", "smoke", "clip")
+GAMMA = 2.2
+DEFAULT_CLIP = "videos/bikes_car_256.npz"
+
+
+class SceneError(RngcamError):
+    """A scene cannot be rendered from the given options or clip file."""
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def default_key_times(grid: VideoGrid) -> np.ndarray:
+    """Centres of the first, middle and last grid frames."""
+    c = grid.centres_s()
+    return c[[0, (len(c) - 1) // 2, len(c) - 1]]
+
+
+def _key_times(grid: VideoGrid, key_times_s: Sequence[float] | None) -> np.ndarray:
+    keys = default_key_times(grid) if key_times_s is None else np.sort(np.asarray(key_times_s, float))
+    if keys.ndim != 1 or len(keys) < 2 or not np.all(np.isfinite(keys)) or np.any(np.diff(keys) <= 0):
+        raise SceneError(f"key_times_s must be >= 2 distinct finite times, got {key_times_s!r}")
+    return keys
+
+
+def _check_size(size: int) -> int:
+    if int(size) != size or size < 8:
+        raise SceneError(f"scene size must be an integer >= 8, got {size!r}")
+    return int(size)
+
+
+def _value_noise(rng: np.random.Generator, shape: tuple[int, int], cell_px: float,
+                 octaves: int = 3) -> np.ndarray:
+    """Fractal value noise (H, W) in [0, 1]: random lattices, cubic-upsampled, summed over octaves."""
+    h, w = shape
+    total = np.zeros(shape, np.float64)
+    norm = 0.0
+    for o in range(octaves):
+        cell = max(cell_px / 2 ** o, 1.0)
+        lattice = rng.random((int(np.ceil(h / cell)) + 3, int(np.ceil(w / cell)) + 3))
+        big = cv2.resize(lattice, (int(lattice.shape[1] * cell), int(lattice.shape[0] * cell)),
+                         interpolation=cv2.INTER_CUBIC)
+        total += 0.5 ** o * big[int(cell):int(cell) + h, int(cell):int(cell) + w]
+        norm += 0.5 ** o
+    total /= norm
+    lo, hi = total.min(), total.max()
+    return (total - lo) / (hi - lo) if hi > lo else np.zeros(shape)
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3 - 2 * x)
+
+
+def srgb_to_linear(frames_u8: np.ndarray) -> np.ndarray:
+    """uint8 sRGB -> float32 linear intensity in [0, 1] (power law, gamma 2.2)."""
+    return ((np.asarray(frames_u8, np.float32) / 255.0) ** GAMMA).astype(np.float32)
+
+
+def _resize_area(image_hwc: np.ndarray, size: int) -> np.ndarray:
+    if image_hwc.shape[:2] == (size, size):
+        return image_hwc
+    return cv2.resize(image_hwc, (size, size), interpolation=cv2.INTER_AREA)
+
+
+# --------------------------------------------------------------------------- sineball
+
+
+def sineball_path(grid: VideoGrid, size: int, seed: int = 0,
+                  key_times_s: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """Ball centre (x, y) in pixels at each grid frame centre, and its radius."""
+    size = _check_size(size)
+    keys = _key_times(grid, key_times_s)
+    rng = np.random.default_rng([seed, 1])
+    t = grid.centres_s()
+    # Period 1/1.6 of the shortest key-frame gap: any such gap spans 3.2 half periods, so
+    # the ball turns round at least three times between consecutive key frames.
+    period_s = np.diff(keys).min() / 1.6
+    phase = rng.uniform(0, 2 * np.pi)
+    amplitude = 0.28 * size
+    x = size / 2 + amplitude * np.sin(2 * np.pi * t / period_s + phase)
+    drift = 0.2 * size * rng.choice([-1.0, 1.0])
+    span_s = max(t[-1] - t[0], grid.dt_s)
+    y = size / 2 + drift * ((t - t[0]) / span_s - 0.5)
+    return x, y, 0.11 * size
+
+
+def render_sineball(grid: VideoGrid, size: int, seed: int = 0,
+                    key_times_s: Sequence[float] | None = None) -> np.ndarray:
+    """The paper's toy: a bright ball oscillating faster than the key frames can follow."""
+    size = _check_size(size)
+    rng = np.random.default_rng([seed, 2])
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64) + 0.5
+    # Background: diagonal gradient between two muted colours, plus a gentle texture.
+    c0 = np.array([0.10, 0.16, 0.30]) + rng.uniform(-0.04, 0.04, 3)
+    c1 = np.array([0.35, 0.40, 0.30]) + rng.uniform(-0.04, 0.04, 3)
+    ramp = ((xx + yy) / (2 * size))[None]
+    texture = _value_noise(rng, (size, size), cell_px=size / 6, octaves=3)[None]
+    background = c0[:, None, None] * (1 - ramp) + c1[:, None, None] * ramp
+    background = background * (0.85 + 0.3 * texture)
+    colour = np.array([0.95, 0.62, 0.12]) + rng.uniform(-0.05, 0.03, 3)
+
+    xs, ys, radius = sineball_path(grid, size, seed, key_times_s)
+    video = np.empty((3, grid.n_frames, size, size), np.float32)
+    for k, (cx, cy) in enumerate(zip(xs, ys)):
+        d = np.hypot(xx - cx, yy - cy)
+        alpha = _smoothstep((radius + 0.75 - d) / 1.5)[None]  # 1.5 px soft edge
+        shade = 1.0 - 0.35 * np.clip(d / radius, 0, 1) ** 2  # a little roundness
+        ball = colour[:, None, None] * shade[None]
+        video[:, k] = background * (1 - alpha) + ball * alpha
+    return np.clip(video, 0.0, 1.0)
+
+
+# --------------------------------------------------------------------------- smoke
+
+
+def _texture_background(size: int, rng: np.random.Generator) -> np.ndarray:
+    """A dense brick texture (scikit-image's bundled image; procedural if unavailable), (3, N, N)."""
+    try:
+        from skimage import data as skdata
+
+        gray = np.asarray(skdata.brick(), np.float32) / 255.0
+        crop = 3 * min(gray.shape) // 4
+        y0, x0 = rng.integers(0, gray.shape[0] - crop + 1), rng.integers(0, gray.shape[1] - crop + 1)
+        gray = cv2.resize(gray[y0:y0 + crop, x0:x0 + crop], (size, size), interpolation=cv2.INTER_AREA)
+    except Exception:  # pragma: no cover - depends on the installed scikit-image data
+        gray = 0.5 * _value_noise(rng, (size, size), cell_px=2.0, octaves=2) + 0.25
+    gray = np.clip(gray, 0, 1) ** GAMMA
+    tint = np.array([0.95, 0.70, 0.55])
+    return (0.05 + 0.75 * gray[None] * tint[:, None, None]).astype(np.float64)
+
+
+def render_smoke(grid: VideoGrid, size: int, seed: int = 0,
+                 key_times_s: Sequence[float] | None = None, onset_s: float | None = None) -> np.ndarray:
+    """A turbulent plume that appears after the first key frame and rises out of a nozzle.
+
+    Frames whose centre time is <= onset_s (default: a quarter of the way from the first to
+    the second key frame) are exactly the static background.
+    """
+    size = _check_size(size)
+    keys = _key_times(grid, key_times_s)
+    if onset_s is None:
+        onset_s = keys[0] + 0.25 * (keys[1] - keys[0])
+    rng = np.random.default_rng([seed, 3])
+    background = _texture_background(size, rng)
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64) + 0.5
+
+    nozzle_x = size * (0.5 + rng.uniform(-0.08, 0.08))
+    nozzle_y = size * 0.92
+    nozzle = (np.abs(xx - nozzle_x) < 0.05 * size) & (yy > nozzle_y)
+    background[:, nozzle] = 0.08
+
+    # The front reaches near the top by the last key frame.
+    rise_s = max(keys[-1] - onset_s, grid.dt_s)
+    front_speed = 0.95 * nozzle_y / rise_s  # px per second
+    t = grid.centres_s()
+    travel = front_speed * max(t[-1] - onset_s, 0.0)
+    margin = 8
+    # Two noise canvases tall enough to be advected through the whole capture.
+    tall = (int(np.ceil(size + travel)) + 2 * margin, size + 2 * margin)
+    noise_a = _value_noise(rng, tall, cell_px=max(size / 5, 2.0), octaves=4).astype(np.float32)
+    noise_b = _value_noise(rng, tall, cell_px=max(size / 9, 2.0), octaves=3).astype(np.float32)
+    sway_phase = rng.uniform(0, 2 * np.pi)
+    smoke_colour = np.array([0.90, 0.90, 0.93])
+
+    video = np.empty((3, grid.n_frames, size, size), np.float32)
+    height = nozzle_y - yy  # height above the nozzle, px
+    for k, tk in enumerate(t):
+        age = tk - onset_s
+        front = front_speed * age
+        if front <= 0:
+            video[:, k] = background
+            continue
+        # Advection: the pattern moves up by rise = speed * age (second layer slower, swaying).
+        rise = front_speed * age
+        wobble = 0.06 * size * np.sin(2 * np.pi * yy / (0.45 * size) + 2 * np.pi * age / rise_s * 3
+                                      + sway_phase)
+        map_ya = (yy + margin + rise).astype(np.float32)
+        map_yb = (yy + margin + 0.6 * rise).astype(np.float32)
+        map_x = (xx + margin).astype(np.float32)
+        map_xb = (xx + margin + wobble).astype(np.float32)
+        n_a = cv2.remap(noise_a, map_x, map_ya, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        n_b = cv2.remap(noise_b, map_xb, map_yb, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        density = np.clip(1.6 * (0.6 * n_a + 0.4 * n_b) - 0.35, 0, 1)
+        # Envelope: a cone widening with height whose centreline meanders more higher up.
+        h = np.clip(height, 0, None)
+        centre = nozzle_x + 0.12 * size * (h / size) * np.sin(2 * np.pi * h / (0.6 * size)
+                                                                - 2 * np.pi * age / rise_s * 2)
+        half_width = 0.05 * size + 0.35 * h
+        envelope = np.exp(-(((xx - centre) / half_width) ** 2))
+        top = _smoothstep((front - h) / (0.12 * size))
+        base = _smoothstep(height / 2.0 + 1.0)
+        alpha = np.clip(0.9 * density * envelope * top * base, 0.0, 0.85)[None]
+        video[:, k] = background * (1 - alpha) + smoke_colour[:, None, None] * alpha
+    return np.clip(video, 0.0, 1.0)
+
+
+# --------------------------------------------------------------------------- clip
+
+
+def load_clip(path: str | Path | None = None) -> np.ndarray:
+    """Read `frames` (T, H, W, 3) uint8 from an npz (default: the shared car clip)."""
+    path = Path(path) if path is not None else shared_data() / DEFAULT_CLIP
+    if not path.is_file():
+        raise SceneError(f"clip file not found: {path}")
+    try:
+        with np.load(path) as data:
+            frames = data["frames"]
+    except KeyError:
+        raise SceneError(f"clip {path} has no 'frames' array") from None
+    except Exception as exc:
+        raise SceneError(f"cannot read clip {path}: {exc}") from None
+    if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8 or len(frames) < 2:
+        raise SceneError(f"clip {path}: 'frames' must be (T>=2, H, W, 3) uint8, "
+                         f"got {frames.shape} {frames.dtype}")
+    return frames
+
+
+def choose_clip_start(frames: np.ndarray, span: int) -> int:
+    """First source frame of the `span`-frame window with the most motion (mean |frame diff|)."""
+    _check_span(frames, span, 0)
+    small = np.stack([cv2.resize(cv2.cvtColor(f, cv2.COLOR_RGB2GRAY), (64, 64),
+                                 interpolation=cv2.INTER_AREA) for f in frames]).astype(np.float32)
+    motion = np.abs(np.diff(small, axis=0)).mean(axis=(1, 2))  # (T-1,)
+    window = np.convolve(motion, np.ones(span - 1), mode="valid")  # sums over span-1 pairs
+    return int(np.argmax(window))
+
+
+def _check_span(frames: np.ndarray, span: int, start: int) -> None:
+    if int(span) != span or span < 2:
+        raise SceneError(f"span must be an integer >= 2 source frames, got {span!r}")
+    if int(start) != start or start < 0 or start + span > len(frames):
+        raise SceneError(f"clip has {len(frames)} frames; start={start} span={span} does not fit")
+
+
+class FlowInterpolator:
+    """Frames at fractional source times by bidirectional optical flow (OpenCV DIS).
+
+    For time j + a between source frames j and j+1, both neighbours are warped towards the
+    intermediate time (backward warp along -a F01 and -(1-a) F10) and blended with weights
+    (1-a, a). Integer times return the source frame exactly. Output is linear (H, W, 3).
+    """
+
+    def __init__(self, frames_u8: np.ndarray):
+        self.linear = srgb_to_linear(frames_u8)
+        self._gray = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames_u8]
+        self._dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        self._flows: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        h, w = frames_u8.shape[1:3]
+        self._grid_y, self._grid_x = np.mgrid[0:h, 0:w].astype(np.float32)
+
+    def _flow_pair(self, j: int) -> tuple[np.ndarray, np.ndarray]:
+        if j not in self._flows:
+            f01 = self._dis.calc(self._gray[j], self._gray[j + 1], None)
+            f10 = self._dis.calc(self._gray[j + 1], self._gray[j], None)
+            self._flows[j] = (f01, f10)
+        return self._flows[j]
+
+    def _warp(self, image: np.ndarray, flow: np.ndarray, scale: float) -> np.ndarray:
+        map_x = self._grid_x + scale * flow[..., 0]
+        map_y = self._grid_y + scale * flow[..., 1]
+        return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def __call__(self, s: float) -> np.ndarray:
+        last = len(self.linear) - 1
+        if not (0 <= s <= last):
+            raise SceneError(f"source time {s} outside the clip [0, {last}]")
+        j = int(np.floor(s))
+        a = s - j
+        if a == 0.0 or j == last:
+            return self.linear[j].copy()
+        f01, f10 = self._flow_pair(j)
+        warped0 = self._warp(self.linear[j], f01, -a)
+        warped1 = self._warp(self.linear[j + 1], f10, -(1 - a))
+        return (1 - a) * warped0 + a * warped1
+
+
+def clip_source_times(grid: VideoGrid, span: int, start: int) -> np.ndarray:
+    """Source-frame time of each grid frame centre: the first centre is `start`, the last
+    `start + span - 1` (times within 1e-9 of an integer are snapped to it)."""
+    t = grid.centres_s()
+    if len(t) == 1:
+        return np.array([float(start)])
+    s = start + (span - 1) * (t - t[0]) / (t[-1] - t[0])
+    nearest = np.round(s)
+    return np.where(np.abs(s - nearest) < 1e-9, nearest, s)
+
+
+def render_clip(grid: VideoGrid, size: int, seed: int = 0, key_times_s=None,
+                path: str | Path | None = None, span: int = 8, start: int | None = None,
+                frames: np.ndarray | None = None) -> np.ndarray:
+    """A real clip spread over the capture: `span` source frames from `start` (default: the
+    window with the most motion), flow-interpolated in between, linearised, area-resized.
+
+    `seed` and `key_times_s` are accepted for a uniform scene signature and not used.
+    """
+    size = _check_size(size)
+    frames = load_clip(path) if frames is None else frames
+    if start is None:
+        start = choose_clip_start(frames, span)
+    _check_span(frames, span, start)
+    interp = FlowInterpolator(frames[start:start + span])
+    source_times = clip_source_times(grid, span, 0)
+    video = np.empty((3, grid.n_frames, size, size), np.float32)
+    for k, s in enumerate(source_times):
+        video[:, k] = np.moveaxis(_resize_area(interp(float(s)), size), -1, 0)
+    return np.clip(video, 0.0, 1.0)
+
+
+# --------------------------------------------------------------------------- dispatch
+
+_RENDERERS = {"sineball": render_sineball, "smoke": render_smoke, "clip": render_clip}
+
+
+def render_scene(name: str, grid: VideoGrid, size: int, seed: int = 0, **opts) -> np.ndarray:
+    """Render scene `name` on `grid` at size x size: (3, K, size, size) float32 in [0, 1]."""
+    if name not in _RENDERERS:
+        raise SceneError(f"unknown scene {name!r} (choose from {', '.join(SCENES)})")
+    renderer = _RENDERERS[name]
+    accepted = set(inspect.signature(renderer).parameters) - {"grid", "size", "seed"}
+    unknown = sorted(set(opts) - accepted)
+    if unknown:
+        raise SceneError(f"scene {name!r} does not take option(s) {', '.join(unknown)} "
+                         f"(it takes {', '.join(sorted(accepted))})")
+    video = renderer(grid, size, seed, **opts)
+    if not np.all(np.isfinite(video)):
+        raise SceneError(f"scene {name!r} rendered non-finite values")  # pragma: no cover
+    return video
