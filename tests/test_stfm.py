@@ -227,6 +227,27 @@ def test_memory_per_step_does_not_grow_with_the_frame_count():
     assert n1 <= gs1 + 6 and n2 <= gs2 + 6  # GS windows + one chunk, never the whole video
 
 
+def test_held_out_measurements_are_never_fitted(sineball16):
+    split = sineball16.with_holdout(0.25, 0.25, seed=1)
+    spoiled = split.with_holdout(0.25, 0.25, seed=1)
+    held_rows = ~split.rs_train_rows
+    spoiled.b_rs = split.b_rs.clone()
+    spoiled.b_rs[:, held_rows] = 50.0  # garbage where nothing may look
+    spoiled.b_gs = torch.where(split.gs_train_mask, split.b_gs, torch.full_like(split.b_gs, 50.0))
+    for anchor in ("soft", "hard"):
+        a = make_stfm(split, small_settings(gs_anchor=anchor))
+        b = make_stfm(spoiled, small_settings(gs_anchor=anchor))
+        assert a.supports_holdout
+        fitted = set(torch.nonzero(split.rs_train_rows).flatten().tolist())
+        probe = make_stfm(split, small_settings(init="random"))
+        assert all(set(probe.sample_rows().tolist()) <= fitted for _ in range(20))
+        assert a.full_objective() == pytest.approx(b.full_objective(), rel=1e-6)
+        for _ in range(2):
+            a.step()
+            b.step()
+        assert torch.allclose(a.estimate(), b.estimate(), atol=1e-6)
+
+
 # ----------------------------------------------------------------------------- hard anchoring, gains
 
 

@@ -54,9 +54,11 @@ def noise_sigma(image: Tensor) -> float:
 
 def gs_video_units(problem) -> Tensor:
     """GS frames as video intensity (C, G, H, W): each frame divided by its exposure in frames,
-    times the GS/RS gains (problem.white_balance, else one)."""
-    exposure = problem.gs_weights.sum(1).to(problem.b_gs.dtype)  # (G,)
-    v = problem.b_gs / exposure.clamp_min(1e-12)[None, :, None, None]
+    times the GS/RS gains (problem.white_balance, else one). Held-out pixels (a split) are
+    replaced by their fitted neighbours (Problem.b_gs_training)."""
+    b_gs = problem.b_gs_training() if hasattr(problem, "b_gs_training") else problem.b_gs
+    exposure = problem.gs_weights.sum(1).to(b_gs.dtype)  # (G,)
+    v = b_gs / exposure.clamp_min(1e-12)[None, :, None, None]
     if problem.white_balance is not None:
         v = v * problem.white_balance.to(v.dtype)[:, None, None, None]
     return v
@@ -117,6 +119,8 @@ def static_scene(problem, rs_on: bool) -> tuple[bool, str]:
     mask = 1.0 if problem.mask is None else problem.mask.to(mean.dtype)
     static_video = (mean * mask)[:, None].expand(*problem.shape).to(problem.b_rs.dtype)
     residual = op.A(static_video.contiguous()) - problem.b_rs
+    if getattr(problem, "rs_train_rows", None) is not None:  # held-out rows are not looked at
+        residual = residual[:, problem.rs_train_rows.to(residual.device)]
     rms, white = _rms(residual), noise_sigma(residual)
     allowed = 0.5 * STATIC_NOISE_FACTOR * white + STATIC_RELATIVE_TOL * _rms(problem.b_rs)
     if rms > allowed:

@@ -179,6 +179,7 @@ class STFM:
     """STFM as a `rngcam.recon.loop.Method`. Build it with `make_stfm`."""
 
     name = "stfm"
+    supports_holdout = True  # fits only the training measurements when the problem has a split
 
     def __init__(self, problem, settings: STFMSettings, device="cpu"):
         self.settings = settings
@@ -234,6 +235,11 @@ class STFM:
         self.mask = None if p.mask is None else p.mask.to(dev, torch.float32)
         self.px_per_unit = torch.tensor([(self.W - 1) / 2, (self.H - 1) / 2], device=dev).clamp_min(0.5)
         self.w_rs = p.rs_weights.to(dev, torch.float32)
+        # Held-out split (rngcam.recon.problem): fit only the training rows and GS pixels.
+        self.rs_rows_fit = (torch.arange(self.H) if p.rs_train_rows is None
+                            else torch.nonzero(p.rs_train_rows.cpu()).flatten())
+        fit = p.gs_fit_mask() if p.b_gs is not None else None
+        self.gs_fit = None if fit is None else fit.to(dev, torch.float32)
         self.w_gs = p.gs_weights.to(dev, torch.float32)
         self.gs_frames = torch.nonzero(self.w_gs.sum(0) > 0).flatten() if self.parts.gs else \
             torch.zeros(0, dtype=torch.long, device=dev)
@@ -374,6 +380,8 @@ class STFM:
         miss = target - torch.einsum("gs,cshw->cghw", self.anchor_w, v_gs)
         if self.mask is not None:
             miss = miss * self.mask
+        if self.gs_fit is not None:  # exact while GS exposures do not overlap in time
+            miss = miss * self.gs_fit
         return v_gs + torch.einsum("sg,cghw->cshw", self.anchor_p, miss)
 
     def _gs_window(self) -> Tensor:
@@ -401,10 +409,12 @@ class STFM:
         miss = pred - self._gain()[:, None, None, None] * self.problem.b_gs.index_select(1, windows)
         if self.mask is not None:
             miss = miss * self.mask
+        if self.gs_fit is not None:  # held-out GS pixels are not fitted
+            miss = miss * (self.gs_fit if self.gs_fit.shape[1] == 1 else self.gs_fit.index_select(1, windows))
         return self.c_gs * self.w_gs.shape[0] / len(windows) * miss.square().sum()
 
     def rs_scale(self, n_rows: int) -> float:
-        return self.c_rs * self.H / n_rows
+        return self.c_rs * len(self.rs_rows_fit) / n_rows
 
     def tv_term(self, idx: Tensor) -> Tensor:
         """Unbiased estimate of tau TV_S(U) from frames idx (uniform sample without replacement)."""
@@ -417,8 +427,10 @@ class STFM:
         return self.resolved.tau * per_frame / len(idx)
 
     def sample_rows(self) -> Tensor:
-        start = int(torch.randint(self.H, (1,), generator=self.generator))
-        return (start + torch.arange(self.resolved.rows_per_step)) % self.H
+        """A cyclic block of the fitted rows with a uniform random start (every row equally likely)."""
+        n = len(self.rs_rows_fit)
+        start = int(torch.randint(n, (1,), generator=self.generator))
+        return self.rs_rows_fit[(start + torch.arange(min(self.resolved.rows_per_step, n))) % n]
 
     def sample_tv_frames(self) -> Tensor:
         n = min(self.settings.tv_frames_per_step, self.K)
@@ -508,7 +520,7 @@ class STFM:
     def full_objective(self) -> dict:
         """The exact objective terms (all rows, all frames), without gradients."""
         with torch.no_grad():
-            return self.loss_terms(torch.arange(self.H) if self.parts.rs else None,
+            return self.loss_terms(self.rs_rows_fit if self.parts.rs else None,
                                    torch.arange(self.K) if self.parts.motion_reg else None)
 
     # ------------------------------------------------------------------ Method protocol
