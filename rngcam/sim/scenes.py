@@ -20,8 +20,9 @@ interpolation use them (default: first, middle and last grid frame centres).
 from __future__ import annotations
 
 import inspect
+import zipfile
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import cv2
 import numpy as np
@@ -155,7 +156,7 @@ def _texture_background(size: int, rng: np.random.Generator) -> np.ndarray:
         crop = 3 * min(gray.shape) // 4
         y0, x0 = rng.integers(0, gray.shape[0] - crop + 1), rng.integers(0, gray.shape[1] - crop + 1)
         gray = cv2.resize(gray[y0:y0 + crop, x0:x0 + crop], (size, size), interpolation=cv2.INTER_AREA)
-    except Exception:  # pragma: no cover - depends on the installed scikit-image data
+    except (ImportError, OSError, ValueError):  # pragma: no cover - scikit-image data missing
         gray = 0.5 * _value_noise(rng, (size, size), cell_px=2.0, octaves=2) + 0.25
     gray = np.clip(gray, 0, 1) ** GAMMA
     tint = np.array([0.95, 0.70, 0.55])
@@ -240,7 +241,7 @@ def load_clip(path: str | Path | None = None) -> np.ndarray:
             frames = data["frames"]
     except KeyError:
         raise SceneError(f"clip {path} has no 'frames' array") from None
-    except Exception as exc:
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:
         raise SceneError(f"cannot read clip {path}: {exc}") from None
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8 or len(frames) < 2:
         raise SceneError(f"clip {path}: 'frames' must be (T>=2, H, W, 3) uint8, "

@@ -1,0 +1,1 @@
+"""Simulation: ground-truth scenes (rngcam.sim.scenes) and simulated capture bundles (rngcam.sim.simulate)."""
