@@ -28,7 +28,7 @@ from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.sensor import SensorModel
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
-from rngcam.sim.scenes import SCENES, choose_clip_start, load_clip, render_scene
+from rngcam.sim.scenes import DEFAULT_CLIP, SCENES, choose_clip_start, load_clip, render_scene
 
 GRID_DT_S = 208e-6  # reference: 13 us line time x 16 sensor rows per grid row
 EXPOSURE_S = 650e-6  # both cameras, as in the reference prototype
@@ -237,15 +237,14 @@ def simulate(scene: str, out: str | Path, size: int = 64, seed: int = 0,
     scene_options: dict = {}
     meta_clip: dict = {}
     if scene == "clip":
-        frames = load_clip(clip)
+        clip_path = Path(clip) if clip is not None else shared_data() / DEFAULT_CLIP
+        frames = load_clip(clip_path)
         if start is None:
             start = choose_clip_start(frames, span) if len(frames) >= span else 0
         scene_options = {"span": int(span), "start": int(start)}
-        meta_clip = {"clip": str(Path(clip).resolve()) if clip else "default: shared car clip",
-                     "clip_start": int(start)}
+        meta_clip = {"clip": str(clip_path.resolve()), "clip_start": int(start)}
         video = render_scene(scene, timing.grid, size, seed, frames=frames, **scene_options)
-        if clip is not None:
-            scene_options["path"] = str(Path(clip).resolve())
+        scene_options["path"] = str(clip_path.resolve())
     else:
         scene_options = {"key_times_s": [float(t) for t in timing.gs.centres_s()]}
         video = render_scene(scene, timing.grid, size, seed, **scene_options)
