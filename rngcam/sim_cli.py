@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from rngcam.sim.scenes import SCENES
+from rngcam.sim.simulate import DEFAULT_PSF_CROP
 
 
 @click.command("simulate")
@@ -18,7 +19,7 @@ from rngcam.sim.scenes import SCENES
 @click.option("--seed", default=0, show_default=True, type=int, help="Scene and noise seed.")
 @click.option("--psf", "psf", default=None, type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="PSF image (default: the shared DiffuserCam PSF, else a synthetic caustic).")
-@click.option("--psf-crop", default=1.0, show_default=True, type=click.FloatRange(0, 1, min_open=True),
+@click.option("--psf-crop", default=DEFAULT_PSF_CROP, show_default=True, type=click.FloatRange(0, 1, min_open=True),
               help="Central fraction of the PSF kept before resampling (zoom in to keep caustic detail).")
 @click.option("--noise/--no-noise", default=True, show_default=True, help="Shot and read noise.")
 @click.option("--clip", default=None, type=click.Path(exists=True, dir_okay=False, path_type=Path),

@@ -36,6 +36,11 @@ DEFAULT_PSF = "psf/diffusercam_tutorial_psf_sample.tif"
 SYNTHETIC_PSF = "synthetic caustic (random Voronoi cell edges)"
 
 
+# Zoom into the caustic so its detail survives at small grids (0.76 % of frequencies above 10 %
+# of DC at 64 px against 0.38 % for the full PSF); the mock rig uses the same crop.
+DEFAULT_PSF_CROP = 0.25
+
+
 class SimulationError(RngcamError):
     """The simulation cannot run with the given options."""
 
@@ -213,7 +218,7 @@ def rig_yaml(scene: str, seed: int, size: int, timing: SimTiming, sensor: Sensor
 
 
 def simulate(scene: str, out: str | Path, size: int = 64, seed: int = 0,
-             psf: str | Path | None = None, psf_crop: float = 1.0, noise: bool = True,
+             psf: str | Path | None = None, psf_crop: float = DEFAULT_PSF_CROP, noise: bool = True,
              clip: str | Path | None = None, span: int = 8, start: int | None = None,
              bayer: bool = False, overwrite: bool = False) -> Bundle:
     """Simulate `scene` at size x size and write the bundle to `out`; returns the bundle.
