@@ -24,7 +24,8 @@ from rngcam.errors import RngcamError
 @click.option("--method", "methods", multiple=True,
               type=click.Choice(["stfm-fast", "stfm-paper", "tv3d", "blend", "interp", "rife"]),
               help="Only this method (repeatable).")
-def bench_cmd(quick, stress, out_dir, time_budget, size, clips, scene_names, methods):
+@click.option("--threads", type=int, default=None, help="CPU threads per run [1].")
+def bench_cmd(quick, stress, out_dir, time_budget, size, clips, scene_names, methods, threads):
     """Benchmark every method on every scene under one time budget (results.md/.csv, plots)."""
     from rngcam.paths import shared_data
 
@@ -33,26 +34,31 @@ def bench_cmd(quick, stress, out_dir, time_budget, size, clips, scene_names, met
     t0 = time.perf_counter()
     if stress:
         given = [n for n, v in (("--quick", quick), ("--time-budget", time_budget), ("--size", size),
-                                ("--clip", clips), ("--scene", scene_names), ("--method", methods)) if v]
+                                ("--clip", clips), ("--scene", scene_names), ("--method", methods),
+                                ("--threads", threads)) if v]
         if given:
             raise click.UsageError(f"{', '.join(given)} does not apply to --stress")
         _stress(out_dir or Path("bench/out/stress"), data_dir)
     else:
-        _bench(out_dir or Path("bench/out"), quick, time_budget, size, clips, scene_names, methods, data_dir)
+        _bench(out_dir or Path("bench/out"), quick, time_budget, size, clips, scene_names, methods, threads,
+               data_dir)
     click.echo(f"done in {time.perf_counter() - t0:.0f} s")
 
 
-def _bench(out, quick, time_budget, size, clips, scene_names, methods, data_dir) -> None:
+def _bench(out, quick, time_budget, size, clips, scene_names, methods, threads, data_dir) -> None:
     from rngcam.bench.runner import BenchSettings, run_bench
     from rngcam.bench.scenes import bench_scenes
 
-    overrides = {k: v for k, v in (("time_budget_s", time_budget), ("size", size)) if v is not None}
+    overrides = {k: v for k, v in (("time_budget_s", time_budget), ("size", size), ("threads", threads))
+                 if v is not None}
     if methods:
         overrides["methods"] = tuple(methods)
     if time_budget is not None and not time_budget > 0:
         raise click.BadParameter("must be > 0", param_hint="--time-budget")
     if size is not None and size < 8:
         raise click.BadParameter("must be >= 8", param_hint="--size")
+    if threads is not None and threads < 1:
+        raise click.BadParameter("must be >= 1", param_hint="--threads")
     settings = BenchSettings.quick(**overrides) if quick else BenchSettings(**overrides)
     scenes = bench_scenes(data_dir, tuple(clips), tuple(scene_names))
     click.echo(f"bench: {len(scenes)} scenes x {len(settings.methods)} methods, {settings.size} px, "

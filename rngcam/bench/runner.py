@@ -32,12 +32,15 @@ KILL_GRACE_S = 300.0  # extra time a run may take beyond its budget before it is
 
 @dataclass(frozen=True)
 class BenchSettings:
-    """Image size (pixels on a side), time budget per iterative run (s), methods, seed."""
+    """Image size (pixels on a side), time budget per iterative run (s), methods, seed, and
+    the CPU threads each run may use. One thread by default: on a shared 2-core machine two
+    OpenMP threads made runs 20-80x slower whenever another process was busy."""
 
     size: int = 64
     time_budget_s: float = 60.0
     methods: tuple[str, ...] = METHODS
     seed: int = 0
+    threads: int = 1
 
     @classmethod
     def quick(cls, **overrides) -> BenchSettings:
@@ -95,12 +98,14 @@ def run_one(bundle: Path, out: Path, method: str, settings: BenchSettings) -> di
     name, options = runner_method(method)
     out.mkdir(parents=True, exist_ok=True)
     job = {"bundle": str(bundle), "out": str(out), "method": name, "options": options,
-           "time_budget_s": settings.time_budget_s, "log_every_s": max(settings.time_budget_s / 40, 0.2)}
+           "time_budget_s": settings.time_budget_s, "log_every_s": max(settings.time_budget_s / 40, 0.2),
+           "threads": settings.threads}
     job_path = out / "bench_job.json"
     job_path.write_text(json.dumps(job))
     timeout = settings.time_budget_s + KILL_GRACE_S
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "rngcam.bench.worker", str(job_path)],
+    env = {**os.environ, "OMP_NUM_THREADS": str(settings.threads), "MKL_NUM_THREADS": str(settings.threads)}
+    proc = subprocess.Popen([sys.executable, "-m", "rngcam.bench.worker", str(job_path)], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         output, _ = proc.communicate(timeout=timeout)
@@ -229,6 +234,9 @@ HEADERS = {"psnr_db": "PSNR dB", "psnr_intermediate_db": "PSNR inter.", "ssim": 
            "process_s": "process s"}
 
 
+_LEVEL_NAMES = {"t_gs_s": "best GS-only", "t_gs+1dB_s": "+1 dB", "t_gs+3dB_s": "+3 dB"}
+
+
 def write_results(out: Path, rows: list[dict], settings: BenchSettings, levels: dict, sources: dict,
                   skipped: dict, elapsed_s: float) -> None:
     """results.csv (one row per scene and method) and results.md (a table per scene)."""
@@ -238,7 +246,8 @@ def write_results(out: Path, rows: list[dict], settings: BenchSettings, levels: 
     md = ["# rngcam bench", "",
           (f"{settings.size}x{settings.size} px scenes; iterative methods get {settings.time_budget_s:g} s "
            f"each (wall clock, set-up included); GS-only baselines run once. Every run is its own "
-           f"process, one at a time, on {os.cpu_count()} CPU cores (load average {load:.1f} at the end). "
+           f"process, one at a time, with {settings.threads} CPU thread(s) on a {os.cpu_count()}-core machine "
+           f"(load average {load:.1f} at the end). "
            f"Total {elapsed_s / 60:.1f} min."),
           "",
           ("Columns: PSNR/SSIM against the simulated truth over all frames and over the intermediate "
@@ -252,7 +261,7 @@ def write_results(out: Path, rows: list[dict], settings: BenchSettings, levels: 
         lv = levels.get(scene, {})
         md += [f"## {scene}", "", f"Simulated by {sources.get(scene, '?')}."]
         if lv:
-            md.append("Levels: " + ", ".join(f"{HEADERS[c]} = {v:.2f} dB" for c, v in lv.items()) + ".")
+            md.append("PSNR levels: " + ", ".join(f"{_LEVEL_NAMES[c]} {v:.2f} dB" for c, v in lv.items()) + ".")
         md += ["", report.markdown_table([r for r in flat if r["scene"] == scene],
                                          [c for c in COLUMNS if c != "scene"], HEADERS),
                "", f"![error against run time, {scene}](errors_{scene}.png)", ""]

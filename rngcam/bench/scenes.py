@@ -63,23 +63,26 @@ def bench_scenes(data_dir: Path | None, extra_clips: tuple[Path, ...] = (),
 def make_scene_bundle(scene: BenchScene, path: Path, size: int, data_dir: Path | None,
                       seed: int = 0) -> str:
     """Simulate `scene` at size x size into the bundle `path`; returns how it was simulated."""
-    simulate = _simulator()
-    clip_opts = {"clip": str(scene.clip), "span": CLIP_SPAN} if scene.kind == "clip" else {}
+    kwargs = {"size": size, "seed": seed}
+    if scene.kind == "clip":
+        kwargs.update(clip=str(scene.clip), span=CLIP_SPAN)
+    simulate = _simulator(set(kwargs))
     if simulate is not None:
-        simulate(scene.kind, path, size=size, seed=seed, **clip_opts)
+        simulate(scene.kind, path, **kwargs)
         return "rngcam.sim.simulate"
     _stand_in(scene, path, size, data_dir, seed)
     return "in-process stand-in for rngcam.sim.simulate (reference timing, real PSF, 12-bit sensor noise)"
 
 
-def _simulator():
-    """rngcam.sim.simulate.simulate if it is there and takes (scene, out, size=, seed=)."""
+def _simulator(keywords: set[str]):
+    """rngcam.sim.simulate.simulate if it exists and takes (scene, out, **keywords), else None."""
     try:
         from rngcam.sim.simulate import simulate
     except ImportError:
         return None
     params = inspect.signature(simulate).parameters
-    return simulate if {"size", "seed"} <= set(params) else None
+    takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+    return simulate if takes_any or keywords <= set(params) else None
 
 
 def _stand_in(scene: BenchScene, path: Path, size: int, data_dir: Path | None, seed: int) -> None:

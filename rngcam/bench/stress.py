@@ -284,6 +284,7 @@ def run_case(case: StressCase, methods: list[str], settings: StressSettings, out
     clear: tuple[type, ...] = (RngcamError,) if case.bundle else (RngcamError, ValueError)
     if case.bundle:
         try:
+            (out / "bundles").mkdir(parents=True, exist_ok=True)
             bundle_path = case.write_bundle(out / "bundles" / f"{_slug(case.name)}.h5", data_dir)
         except Exception as exc:  # noqa: BLE001 - the harness's own failure, reported not raised
             return [{**base, "method": "bundle", "outcome": "FAILED",

@@ -35,7 +35,13 @@ def main(job_path: str) -> int:
     out.mkdir(parents=True, exist_ok=True)
     report = {"error": ""}
     try:
+        import cv2
+        import torch
+
         from rngcam.recon.runner import ReconSettings, reconstruct
+
+        torch.set_num_threads(int(job.get("threads", 1)))
+        cv2.setNumThreads(int(job.get("threads", 1)))
 
         settings = ReconSettings(method=job["method"], time_budget_s=job["time_budget_s"], progress=False,
                                  log_every_s=job["log_every_s"], checkpoint_every_s=1e9,
