@@ -169,7 +169,7 @@ def test_prox_exact_beats_haar_and_perturbations():
     gen = torch.Generator().manual_seed(5)
     v = torch.rand(2, 5, 6, 7, generator=gen, dtype=torch.float64)
     lam, beta_t = 0.08, 3.0
-    u = prox_tv_exact(v, lam, beta_t, iters=1000, tol=1e-6)  # objective excess <= (1e-6 |v|)^2/2
+    u = prox_tv_exact(v, lam, beta_t, iters=1000, tol=1e-5)  # objective excess <= (1e-5 |v|)^2/2
     best = objective(u, v, lam, beta_t)
     assert best < objective(prox_tv_haar(v, lam, beta_t), v, lam, beta_t)
     assert best < objective(v, v, lam, beta_t)
