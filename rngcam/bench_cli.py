@@ -63,7 +63,7 @@ def _bench(out, quick, time_budget, size, clips, scene_names, methods, threads, 
     scenes = bench_scenes(data_dir, tuple(clips), tuple(scene_names))
     click.echo(f"bench: {len(scenes)} scenes x {len(settings.methods)} methods, {settings.size} px, "
                f"{settings.time_budget_s:g} s per iterative run -> {out}")
-    rows = run_bench(out, scenes, settings, data_dir, echo=click.echo)
+    rows = run_bench(out, scenes, settings, echo=click.echo)
     bad = [r for r in rows if r["status"] != "ok"]
     click.echo(f"results: {out / 'results.md'} ({len(rows)} runs, {len(bad)} not ok)")
 

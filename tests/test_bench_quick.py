@@ -74,7 +74,7 @@ def test_tiny_bench_end_to_end(tmp_path):
     _needs_data()
     settings = BenchSettings(size=16, time_budget_s=2.0, methods=("tv3d", "blend"))
     scenes = bench_scenes(shared_data(), only=("sineball",))
-    rows = run_bench(tmp_path, scenes, settings, shared_data(), echo=lambda _m: None)
+    rows = run_bench(tmp_path, scenes, settings, echo=lambda _m: None)
     assert [(r["scene"], r["method"], r["status"]) for r in rows] == [("sineball", "tv3d", "ok"),
                                                                       ("sineball", "blend", "ok")]
     tv3d, blend = rows

@@ -190,7 +190,7 @@ def plot_scene(png: Path, rows: list[dict], budget_s: float) -> None:
 # ----------------------------------------------------------------------------- the benchmark
 
 
-def run_bench(out: Path, scenes: list[BenchScene], settings: BenchSettings, data_dir: Path | None,
+def run_bench(out: Path, scenes: list[BenchScene], settings: BenchSettings,
               echo=print) -> list[dict]:
     """Simulate each scene, run every method on it, write results.csv/.md and the plots."""
     out = Path(out)
@@ -206,7 +206,7 @@ def run_bench(out: Path, scenes: list[BenchScene], settings: BenchSettings, data
     for scene in scenes:
         bundle = out / "bundles" / f"{scene.name}.h5"
         t0 = time.perf_counter()
-        sources[scene.name] = make_scene_bundle(scene, bundle, settings.size, data_dir, settings.seed)
+        sources[scene.name] = make_scene_bundle(scene, bundle, settings.size, settings.seed)
         echo(f"{scene.name}: simulated in {time.perf_counter() - t0:.1f} s")
         scene_rows = []
         for method in methods:
@@ -259,7 +259,7 @@ def write_results(out: Path, rows: list[dict], settings: BenchSettings, levels: 
         md += ["Not run: " + "; ".join(f"{m} ({why})" for m, why in skipped.items()), ""]
     for scene in dict.fromkeys(r["scene"] for r in rows):
         lv = levels.get(scene, {})
-        md += [f"## {scene}", "", f"Simulated by {sources.get(scene, '?')}."]
+        md += [f"## {scene}", "", f"Simulated: {sources.get(scene, '?')}."]
         if lv:
             md.append("PSNR levels: " + ", ".join(f"{_LEVEL_NAMES[c]} {v:.2f} dB" for c, v in lv.items()) + ".")
         md += ["", report.markdown_table([r for r in flat if r["scene"] == scene],

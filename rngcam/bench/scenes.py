@@ -1,28 +1,15 @@
-"""Benchmark scenes: `sineball`, `smoke` and real clips, simulated into bundles with truth.
-
-Bundles come from `rngcam.sim.simulate` when it exists. Until then (or when it cannot be
-imported) an in-process stand-in with the same ingredients is used: the reference rig's
-timing scaled to the grid (RS exposure 650 us over 208 us grid frames, three GS key frames
-of 650 us at the start, middle and end of the readout), the scene renderers of
-`rngcam.sim.scenes`, the real DiffuserCam PSF and a noisy 12-bit sensor. The report says which.
-"""
+"""Benchmark scenes: `sineball`, `smoke` and real clips, simulated into bundles with truth
+by `rngcam.sim.simulate` (reference-rig timing, the shared PSF, a noisy 12-bit sensor)."""
 
 from __future__ import annotations
 
-import inspect
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from rngcam.errors import RngcamError
-from rngcam.physics import psf as psf_mod
-from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 
 PROCEDURAL = ("sineball", "smoke")
 CLIP_FOLDER = "videos"
-GRID_DT_S, EXPOSURE_S = 208e-6, 650e-6  # the reference rig on the grid (13 us lines x 16 rows)
-PSF_FILE = "psf/diffusercam_tutorial_psf_sample.tif"
 CLIP_SPAN = 8  # source frames covered by one capture (DESIGN: realistic motion for kHz capture)
 
 
@@ -60,44 +47,16 @@ def bench_scenes(data_dir: Path | None, extra_clips: tuple[Path, ...] = (),
     return scenes
 
 
-def make_scene_bundle(scene: BenchScene, path: Path, size: int, data_dir: Path | None,
-                      seed: int = 0) -> str:
-    """Simulate `scene` at size x size into the bundle `path`; returns how it was simulated."""
-    kwargs = {"size": size, "seed": seed}
+def make_scene_bundle(scene: BenchScene, path: Path, size: int, seed: int = 0) -> str:
+    """Simulate `scene` at size x size into the bundle `path` (replaced); returns a one-line
+    description (frames, frame rate, PSF and how much of its spectrum survives)."""
+    from rngcam.sim.simulate import simulate
+
+    opts = {"clip": scene.clip, "span": CLIP_SPAN} if scene.kind == "clip" else {}
+    bundle = simulate(scene.kind, path, size=size, seed=seed, overwrite=True, **opts)
+    m = bundle.meta
+    text = (f"{m['n_frames']} frames of {size}x{size} px at {1 / m['dt_s']:,.0f} fps; PSF {m['psf_source']} "
+            f"(crop {m['psf_crop']:g}, {100 * m['psf_spectral_support']:.1f} % of frequencies above 10 % of DC)")
     if scene.kind == "clip":
-        kwargs.update(clip=str(scene.clip), span=CLIP_SPAN)
-    simulate = _simulator(set(kwargs))
-    if simulate is not None:
-        simulate(scene.kind, path, **kwargs)
-        return "rngcam.sim.simulate"
-    _stand_in(scene, path, size, data_dir, seed)
-    return "in-process stand-in for rngcam.sim.simulate (reference timing, real PSF, 12-bit sensor noise)"
-
-
-def _simulator(keywords: set[str]):
-    """rngcam.sim.simulate.simulate if it exists and takes (scene, out, **keywords), else None."""
-    try:
-        from rngcam.sim.simulate import simulate
-    except ImportError:
-        return None
-    params = inspect.signature(simulate).parameters
-    takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
-    return simulate if takes_any or keywords <= set(params) else None
-
-
-def _stand_in(scene: BenchScene, path: Path, size: int, data_dir: Path | None, seed: int) -> None:
-    from rngcam.bench.synthetic import write_capture
-    from rngcam.sim.scenes import render_scene
-
-    if data_dir is None or not (data_dir / PSF_FILE).is_file():
-        raise RngcamError(f"the benchmark needs the real PSF {PSF_FILE} in the shared data folder")
-    rs = RollingShutterTiming(line_time_s=GRID_DT_S, exposure_s=EXPOSURE_S, rows=size)
-    end = (size - 1) * GRID_DT_S
-    gs = GlobalShutterTiming(trigger_s=(0.0, end / 2, end), exposure_s=EXPOSURE_S)
-    grid = VideoGrid.covering(rs, gs)
-    opts = {"path": str(scene.clip), "span": CLIP_SPAN} if scene.kind == "clip" else {"key_times_s": gs.centres_s()}
-    video = render_scene(scene.kind, grid, size, seed, **opts)
-    raw = psf_mod.load_psf(data_dir / PSF_FILE)
-    psf, _ = psf_mod.prepare_psf(raw, (size, size), crop=0.5, channels=3)
-    write_capture(np.asarray(video, np.float64), psf, rs, gs, grid, path, noise=True, seed=seed,
-                  source=f"rngcam bench stand-in simulation of {scene.name}")
+        text += f"; clip {scene.clip.name}, {CLIP_SPAN} source frames from frame {m.get('clip_start')}"
+    return text
