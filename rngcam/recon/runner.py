@@ -3,8 +3,9 @@
 Iterative methods (tv3d, stfm) go through the shared loop; GS-only baselines (blend, interp,
 rife) are one shot and give a single point of error against time. The bundle is only read.
 
-With `holdout` set (a fraction), iterative methods fit only a seeded training split of the
-measurements (Problem.with_holdout) and every log row, errors.csv and metrics.json carry the
+With `holdout` set (a fraction of RS row bins; `holdout_gs`, a fraction of GS pixels, is 0 by
+default), iterative methods fit only a seeded training split of the measurements
+(Problem.with_holdout) and every log row, errors.csv and metrics.json carry the
 relative residual on the held-out part (`heldout_rs`, `heldout_gs`, `heldout`; see
 rngcam.scale.holdout) next to the training residuals.
 """
@@ -43,7 +44,8 @@ class ReconSettings:
     resume: bool = False
     progress: bool = True
     options: dict = field(default_factory=dict)  # method settings (tau, beta, psi, preset, ...)
-    holdout: float | None = None  # fraction of RS row bins and GS pixels held out of the fit
+    holdout: float | None = None  # fraction of RS row bins held out of the fit (None: fit everything)
+    holdout_gs: float = 0.0  # fraction of GS pixels also held out (with holdout set)
     holdout_seed: int = 0
 
     def __post_init__(self):
@@ -137,7 +139,7 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
     if settings.holdout is not None:
         from rngcam.scale.holdout import HoldoutScorer
 
-        problem = problem.with_holdout(settings.holdout, settings.holdout, settings.holdout_seed)
+        problem = problem.with_holdout(settings.holdout, settings.holdout_gs, settings.holdout_seed)
         scorer = HoldoutScorer(problem)
     for note in problem.notes:
         echo(f"note: {note}")

@@ -76,10 +76,10 @@ class _Masked(LinearOperator):
     def __init__(self, op: LinearOperator, mask: Tensor):
         self.op, self.mask, self.domain_shape = op, mask, op.domain_shape
 
-    def A(self, v):  # noqa: N802
+    def A(self, v):
         return self.mask * self.op.A(v)
 
-    def A_adjoint(self, y):  # noqa: N802
+    def A_adjoint(self, y):
         return self.op.A_adjoint(self.mask * y)
 
 
