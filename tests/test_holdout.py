@@ -38,7 +38,14 @@ def test_split_is_seeded_and_holds_out_the_asked_fraction():
     a, b, c = p.with_holdout(0.2, 0.1, seed=3), p.with_holdout(0.2, 0.1, seed=3), p.with_holdout(0.2, 0.1, seed=4)
     assert torch.equal(a.rs_train_rows, b.rs_train_rows) and torch.equal(a.gs_train_mask, b.gs_train_mask)
     assert not torch.equal(a.gs_train_mask, c.gs_train_mask)
-    assert a.rs_train_rows.shape == (20,) and int((~a.rs_train_rows).sum()) == 4
+    # RS rows go in blocks spanning one exposure (3 line times here): 0.2 * 20 rows -> one block of 3.
+    assert p.rows_per_exposure() == 3
+    held = torch.nonzero(~a.rs_train_rows).flatten().tolist()
+    assert a.rs_train_rows.shape == (20,) and len(held) == 3 and held == list(range(held[0], held[0] + 3))
+    single = p.with_holdout(0.2, 0.0, seed=3, rs_block=1)
+    assert int((~single.rs_train_rows).sum()) == 4 and single.gs_train_mask is None
+    spread = torch.nonzero(~p.with_holdout(0.5, 0.0, seed=0, rs_block=2).rs_train_rows).flatten()
+    assert len(spread) == 10 and spread.min() < 5 and spread.max() >= 15  # strata cover all rows
     assert a.gs_train_mask.shape == (3, 20, 20) and int((~a.gs_train_mask).sum()) == 120
     assert p.rs_train_rows is None and not p.has_holdout and a.has_holdout  # the original is untouched
     held = a.rs_fit_mask(heldout=True)

@@ -1,23 +1,31 @@
 """Held-out measurement validation: score a reconstruction on measurements it was not fitted to.
 
-The split lives on the Problem (`Problem.with_holdout`: held-out RS row bins and GS pixels). A
-method fitted on the training part predicts the held-out part through the same operators; the
-relative residual there measures how well settings (beta, tau, psi) generalise, with no truth.
+The split lives on the Problem (`Problem.with_holdout`: held-out RS row bins and, optionally, GS
+pixels). A method fitted on the training part predicts the held-out part through the same
+operators; the relative residual there measures how well settings (beta, tau, psi) generalise,
+with no truth.
 
     heldout_rs = ||M_R (A_R v - b_R)|| / ||M_R b_R||      (M_R: held-out RS rows)
     heldout_gs = ||M_G (A_G v - b_G)|| / ||M_G b_G||      (M_G: held-out GS pixels)
     heldout    = sqrt( sum_s ||M_s (A_s v - b_s)||^2 / n_s  /  sum_s ||M_s b_s||^2 / n_s )
 
-with n_s = ||A_s||^2, the operator-norm balance of the fit objectives at psi = 1 (the RS
-operator's norm is often ~40x below the GS one, so plain sums would ignore the RS image). The
-combined score does not depend on psi, so psi can be swept against it.
+over the sensors with a split, with n_s = ||A_s||^2: the operator-norm balance of the fit
+objectives at psi = 1 (the RS operator's norm is often ~40x below the GS one, so plain sums
+would ignore the RS image). The combined score does not depend on psi. With only RS rows held
+out (the default split) `heldout` equals `heldout_rs`.
+
+Why RS rows by default: held-out RS rows are exposures at times between the key frames, which
+is what the reconstruction has to get right. On 4x3 beta/tau grids of tv3d fits (moving square
+and smoke scenes, 16-24 px, caustic and real PSFs, soft and hard GS anchoring) their residual
+ranked settings like the true PSNR (Spearman 0.5-0.9) and picked the best or near-best setting
+every time, while the residual on isolated held-out GS pixels (a spatial inpainting test that
+rewards heavy spatial smoothing) ranked them against it (Spearman -0.5 to -0.2).
 """
 
 from __future__ import annotations
 
 import math
 
-import torch
 from torch import Tensor
 
 from rngcam.recon.problem import Problem

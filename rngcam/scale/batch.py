@@ -1,0 +1,143 @@
+"""Reconstruct many bundles: one task per bundle, skip what is done, a summary table at the end.
+
+Each bundle goes to <out>/<bundle stem>/ (rngcam.recon.runner.reconstruct, every usual output)
+and is marked done there with its checksum and settings (batch-done.json): a re-run skips it.
+A bundle that fails (bad file, failed fit, lost worker) is a row in the summary, not the end
+of the batch. Summary: <out>/batch.csv and <out>/batch.md.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import torch
+
+from rngcam.bundle import bundle_checksum
+from rngcam.errors import RngcamError
+from rngcam.recon.runner import ReconSettings, reconstruct
+from rngcam.scale import tables
+from rngcam.scale.backend import Backend, make_backend
+
+DONE_NAME = "batch-done.json"
+SKIPPED_NOTE = "done before (skipped)"
+METRIC_KEYS = ("seconds", "iterations", "psnr_db", "psnr_intermediate_db", "ssim", "residual_rs", "residual_gs")
+COLUMNS = ["bundle", "status", *METRIC_KEYS, "out", "note"]
+
+
+@dataclass
+class BatchResult:
+    rows: list[dict]
+    out_dir: Path
+    backend: str
+    ran: int
+    skipped: int
+    failed: int
+
+
+def _stamp(checksum: str, settings: ReconSettings) -> dict:
+    s = asdict(settings)
+    for volatile in ("progress", "resume", "log_every_s", "checkpoint_every_s"):
+        s.pop(volatile, None)
+    return {"bundle_sha256": checksum, "settings": s}
+
+
+def _destinations(bundles: list[Path], out: Path) -> list[Path]:
+    """<out>/<stem>, with a short path hash when two bundles share a stem."""
+    stems = [b.stem for b in bundles]
+    dests = []
+    for b in bundles:
+        name = b.stem
+        if stems.count(b.stem) > 1:
+            name += "-" + hashlib.sha256(str(b.resolve()).encode()).hexdigest()[:6]
+        dests.append(out / name)
+    return dests
+
+
+def batch_task(item: dict, shared: object = None) -> dict:
+    """Reconstruct one bundle (a Ray task or an in-process call); never raises."""
+    threads = torch.get_num_threads()
+    if item.get("threads"):
+        torch.set_num_threads(item["threads"])
+    lines: list[str] = []
+    t0 = time.perf_counter()
+    try:
+        settings = ReconSettings(**item["settings"])
+        metrics = reconstruct(item["bundle"], item["out"], settings, echo=lines.append)
+        (Path(item["out"]) / DONE_NAME).write_text(json.dumps(item["stamp"]))
+        res = {"status": "ok", "message": "", **{k: metrics.get(k) for k in METRIC_KEYS}}
+    except RngcamError as exc:
+        res = {"status": "failed", "message": str(exc)}
+    except Exception as exc:  # noqa: BLE001 - one bundle must not stop the batch
+        res = {"status": "failed", "message": f"{type(exc).__name__}: {exc}".splitlines()[0]}
+    finally:
+        torch.set_num_threads(threads)
+    res["wall_s"] = time.perf_counter() - t0
+    res["log"] = lines[-20:]
+    return res
+
+
+def recon_batch(bundles: list[str | Path], out_dir: str | Path, settings: ReconSettings | None = None,
+                backend_factory: Callable[[], Backend] | None = None, task_fn=batch_task,
+                echo: Callable[[str], None] = print) -> BatchResult:
+    """Reconstruct every bundle with `settings` (see the module docstring)."""
+    settings = replace(settings or ReconSettings(), progress=False, resume=False)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [Path(b) for b in bundles]
+    dests = _destinations(paths, out)
+    rows: list[dict] = []
+    todo: list[tuple[int, dict]] = []
+    for path, dest in zip(paths, dests):
+        row = {"bundle": str(path), "out": str(dest), "status": "", "note": ""}
+        rows.append(row)
+        try:
+            stamp = _stamp(bundle_checksum(path), settings)
+        except RngcamError as exc:
+            row.update(status="failed", note=str(exc))
+            continue
+        done = _read_json(dest / DONE_NAME)
+        if done == stamp and (dest / "metrics.json").is_file():
+            metrics = _read_json(dest / "metrics.json") or {}
+            row.update(status="ok", note=SKIPPED_NOTE, **{k: metrics.get(k) for k in METRIC_KEYS})
+            continue
+        todo.append((len(rows) - 1, {"bundle": str(path), "out": str(dest), "stamp": stamp,
+                                     "settings": asdict(settings)}))
+    backend_name = "none (nothing to do)"
+    if todo:
+        backend = (backend_factory or (lambda: make_backend(echo=echo)))()
+        backend_name = backend.name
+        echo(f"{len(todo)} bundle(s) to reconstruct on {backend_name}, {len(rows) - len(todo)} skipped or unreadable")
+        items = [{**item, "threads": backend.threads_per_task} for _, item in todo]
+
+        def report(j: int, res: dict) -> None:
+            name = Path(items[j]["bundle"]).name
+            echo(f"  {name}: " + (f"done in {res.get('seconds') or 0:.1f} s" if res["status"] == "ok"
+                                  else f"FAILED: {res.get('message', '')}"))
+
+        try:
+            results = backend.map(task_fn, items, None, on_result=report)
+        finally:
+            backend.close()
+        for (i, _), res in zip(todo, results):
+            rows[i].update(status=res["status"], note=res.get("message", ""),
+                           **{k: res.get(k) for k in METRIC_KEYS})
+    tables.write_csv(out / "batch.csv", rows, COLUMNS)
+    fmt = {"seconds": lambda v: "-" if v is None else f"{v:.1f}", "psnr_db": lambda v: "-" if v is None else f"{v:.2f}"}
+    md = tables.markdown([{**r, "bundle": Path(r["bundle"]).name, "out": Path(r["out"]).name} for r in rows],
+                         COLUMNS, fmt)
+    tables.write_text(out / "batch.md", f"# Batch reconstruction ({settings.method})\n\n{md}")
+    return BatchResult(rows=rows, out_dir=out, backend=backend_name, ran=len(todo),
+                       skipped=sum(r["note"] == SKIPPED_NOTE for r in rows),
+                       failed=sum(r["status"] != "ok" for r in rows))
+
+
+def _read_json(path: Path):
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
