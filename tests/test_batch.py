@@ -87,16 +87,16 @@ def test_ray_batch_gives_the_same_table_as_in_process(bundles, tmp_path):
 
     from rngcam.scale.ray_backend import RayBackend
 
-    a, b, junk = bundles
+    a, _, junk = bundles
     started = not ray.is_initialized()
     if started:
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
-        on_ray = recon_batch([a, junk, b], tmp_path / "ray", SETTINGS, backend_factory=RayBackend, echo=lambda s: None)
+        on_ray = recon_batch([junk, a], tmp_path / "ray", SETTINGS, backend_factory=RayBackend, echo=lambda s: None)
     finally:
         if started:
             ray.shutdown()
-    here = recon_batch([a, junk, b], tmp_path / "seq", SETTINGS, backend_factory=SequentialBackend, echo=lambda s: None)
+    here = recon_batch([junk, a], tmp_path / "seq", SETTINGS, backend_factory=SequentialBackend, echo=lambda s: None)
     assert on_ray.backend.startswith("Ray (local")
     keys = ("status", "iterations", "psnr_db", "residual_rs", "residual_gs")
     assert [[r[k] for k in keys] for r in on_ray.rows] == [[r[k] for k in keys] for r in here.rows]

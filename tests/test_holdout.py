@@ -121,3 +121,23 @@ def test_score_of_a_diverged_video_is_infinite_not_nan():
     p = _problem().with_holdout(0.25, 0.2, seed=0)
     s = holdout_residuals(p, torch.full_like(p.truth, float("nan")))
     assert all(v == float("inf") for v in s.values())
+
+
+def test_reconstruct_logs_the_held_out_score_next_to_the_training_residual(tmp_path):
+    import csv
+    import json
+
+    from rngcam.bench.synthetic import CaptureSpec, make_bundle
+    from rngcam.recon.runner import ReconSettings, reconstruct
+
+    bundle = make_bundle(CaptureSpec(height=12, width=12), tmp_path / "b.h5")
+    settings = ReconSettings(method="tv3d", time_budget_s=None, max_iters=4, progress=False, holdout=0.25)
+    metrics = reconstruct(bundle, tmp_path / "out", settings, echo=lambda s: None)
+    assert 0 < metrics["heldout_rs"] < 1 and "heldout_gs" not in metrics
+    assert metrics["heldout"] == pytest.approx(metrics["heldout_rs"], rel=1e-12)  # RS rows only by default
+    with open(tmp_path / "out" / "errors.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert {"residual_rs", "residual_gs", "heldout", "heldout_rs"} <= set(rows[0])
+    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["heldout"] == metrics["heldout"]
+    with pytest.raises(ConfigError, match="fitted methods"):
+        ReconSettings(method="blend", holdout=0.1)

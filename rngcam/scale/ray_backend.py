@@ -9,6 +9,7 @@ paths that every node must reach (a shared file system).
 
 from __future__ import annotations
 
+import logging
 import os
 
 from rngcam.errors import RngcamError
@@ -29,10 +30,11 @@ class RayBackend:
         if not ray.is_initialized():
             os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
             try:
+                quiet = {"log_to_driver": False, "logging_level": logging.ERROR}  # our own lines say what runs
                 if address:
-                    ray.init(address=address, log_to_driver=False)
+                    ray.init(address=address, **quiet)
                 else:
-                    ray.init(num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
+                    ray.init(num_cpus=num_cpus, include_dashboard=False, **quiet)
             except Exception as exc:  # noqa: BLE001 - connection and start-up failures vary by version
                 where = f"the Ray cluster at {address}" if address else "a local Ray"
                 raise RngcamError(f"cannot start or join {where}: {exc}".splitlines()[0]) from None
