@@ -2,6 +2,7 @@
 
 import csv
 import json
+import os
 import shutil
 
 import pytest
@@ -90,6 +91,7 @@ def test_ray_batch_gives_the_same_table_as_in_process(bundles, tmp_path):
     a, _, junk = bundles
     started = not ray.is_initialized()
     if started:
+        os.environ.setdefault("RAY_worker_niceness", "0")  # as RayBackend: workers not starved at nice 15
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
         on_ray = recon_batch([junk, a], tmp_path / "ray", SETTINGS, backend_factory=RayBackend, echo=lambda s: None)

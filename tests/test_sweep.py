@@ -130,6 +130,7 @@ def ray_session():
 
     started = not ray.is_initialized()
     if started:
+        os.environ.setdefault("RAY_worker_niceness", "0")  # as RayBackend: workers not starved at nice 15
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # ship _dying_trial by value
     yield ray
@@ -187,3 +188,21 @@ def test_stfm_trials_run_through_the_same_code(bundle, tmp_path):
         assert "does not fit a held-out split" in str(exc)
     else:
         assert all(r["status"] == "ok" and math.isfinite(r["heldout"]) for r in res.rows)
+
+
+def test_an_interrupted_sweep_keeps_the_trials_it_finished(bundle, tmp_path):
+    calls = []
+
+    def interrupted(spec, problem):
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # Ctrl-C during the third trial
+        calls.append(spec.key)
+        return run_trial(spec, problem)
+
+    settings = SweepSettings(method="tv3d", grid={"beta": [0.1, 1.0, 10.0]}, max_iters=5, holdout=0.2,
+                             rungs=1, refit=False)
+    with pytest.raises(KeyboardInterrupt):
+        sweep(bundle, tmp_path, settings, backend_factory=SequentialBackend, trial_fn=interrupted, **QUIET)
+    res = sweep(bundle, tmp_path, settings, backend_factory=SequentialBackend, **QUIET)
+    assert res.cached_runs == 2 and res.new_runs == 1
+    assert [r["key"] for r in res.rows[:2]] == calls

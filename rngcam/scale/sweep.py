@@ -203,16 +203,16 @@ def sweep(bundle_path: str | Path, out_dir: str | Path | None = None, settings: 
                 echo(f"rung {r + 1}/{rungs} ({tag}): {len(todo)} trial(s) to fit, "
                      f"{len(alive) - len(todo)} already done")
 
-                def report(j: int, res: dict, r=r, todo=todo) -> None:
-                    echo(f"  rung {r + 1}/{rungs} trial {trials[todo[j]]['trial']} "
-                         f"{_describe(trials[todo[j]]['values'])}: {_summary(res)}")
+                def finished(j: int, res: dict, r=r, todo=todo, tag=tag) -> None:
+                    t = trials[todo[j]]
+                    echo(f"  rung {r + 1}/{rungs} trial {t['trial']} {_describe(t['values'])}: {_summary(res)}")
+                    if "key" in res:  # came back from the trial itself (not a lost worker): keep it now
+                        _save_cached(t["dir"] / f"result-{tag}.json", res)
 
-                results = b.map(trial_fn, specs, p, on_result=report)
+                results = b.map(trial_fn, specs, p, on_result=finished)
                 for i, res in zip(todo, results):
                     last[i] = res
                     new_runs += 1
-                    if "key" in res:  # came back from the trial itself (not a lost worker): keep it
-                        _save_cached(trials[i]["dir"] / f"result-{tag}.json", res)
             for i in alive:
                 reached[i] = r + 1
             ok = sorted((i for i in alive if last[i].get("status") == "ok"), key=lambda i: (_score(last[i]), i))
