@@ -206,7 +206,7 @@ def test_memory_per_step_does_not_grow_with_the_frame_count():
         psf = synthetic_psf(size)
         p = Problem(RollingShutter(psf, w_rs, size, 3).A(truth), GlobalShutter(w_gs, 3, (size, size)).A(truth),
                     w_rs, w_gs, psf, grid, gs.centres_s(), truth)
-        m = make_stfm(p, small_settings(rows_per_step=4, frame_chunk=6))
+        m = make_stfm(p, small_settings(rows_per_step=4, frame_chunk=6, init="random"))
         sizes = []
         original = m.frames
 
@@ -234,9 +234,9 @@ def test_held_out_measurements_are_never_fitted(sineball16):
     spoiled.b_rs = split.b_rs.clone()
     spoiled.b_rs[:, held_rows] = 50.0  # garbage where nothing may look
     spoiled.b_gs = torch.where(split.gs_train_mask, split.b_gs, torch.full_like(split.b_gs, 50.0))
-    for anchor in ("soft", "hard"):
-        a = make_stfm(split, small_settings(gs_anchor=anchor))
-        b = make_stfm(spoiled, small_settings(gs_anchor=anchor))
+    for anchor, init in (("soft", "gs"), ("hard", "random")):  # the GS init looks at training pixels only
+        a = make_stfm(split, small_settings(gs_anchor=anchor, init=init))
+        b = make_stfm(spoiled, small_settings(gs_anchor=anchor, init=init))
         assert a.supports_holdout
         fitted = set(torch.nonzero(split.rs_train_rows).flatten().tolist())
         probe = make_stfm(split, small_settings(init="random"))
@@ -368,14 +368,15 @@ def test_noise_sigma_estimates_gaussian_noise():
 
 
 def test_checkpoint_and_resume_reproduce_an_uninterrupted_run(sineball16):
-    straight = make_stfm(sineball16, small_settings())
+    settings = small_settings(init="random")
+    straight = make_stfm(sineball16, settings)
     for _ in range(6):
         straight.step()
-    first = make_stfm(sineball16, small_settings())
+    first = make_stfm(sineball16, settings)
     for _ in range(3):
         first.step()
     saved = first.state_dict()
-    resumed = make_stfm(sineball16, small_settings(seed=5))  # a different start, overwritten
+    resumed = make_stfm(sineball16, small_settings(init="random", seed=5))  # overwritten below
     resumed.load_state_dict(saved)
     for _ in range(3):
         resumed.step()
@@ -383,7 +384,7 @@ def test_checkpoint_and_resume_reproduce_an_uninterrupted_run(sineball16):
 
 
 def test_reduce_step_scales_the_learning_rate(sineball16):
-    m = make_stfm(sineball16, small_settings(lr=0.02, lr_half_life_steps=math.inf))
+    m = make_stfm(sineball16, small_settings(lr=0.02, lr_half_life_steps=math.inf, init="random"))
     m.reduce_step(0.5)
     assert m.optimiser.param_groups[0]["lr"] == pytest.approx(0.01)
     m.step()
@@ -408,6 +409,21 @@ def test_settings_are_validated():
         STFMSettings(tau=-1.0)
     with pytest.raises(ConfigError, match="components"):
         STFMSettings(components="some")
+
+
+def test_fast_preset_starts_at_the_cross_fade_of_the_key_frames(sineball16):
+    from rngcam.recon.baselines import blend
+
+    keys = (sineball16.b_gs / sineball16.gs_weights.sum(1).view(1, -1, 1, 1)).float().numpy()
+    cross_fade = torch.from_numpy(blend(keys, sineball16.gs_times_s, sineball16.frame_times_s))
+    m = make_stfm(sineball16, small_settings(dynamic_base="blend"))  # exactly, up to the static part
+    assert m.base_keys is not None
+    assert psnr(m.estimate(), cross_fade) > 40
+    fitted = make_stfm(sineball16, small_settings())  # the default: fields pre-fitted to it
+    assert fitted.base_keys is None
+    assert psnr(fitted.estimate(), cross_fade) > 30
+    paper = make_stfm(sineball16, small_settings(preset="paper"))
+    assert paper.base_keys is None and not paper.resolved.dynamic_time
 
 
 # ----------------------------------------------------------------------------- it learns

@@ -1,33 +1,48 @@
 """The space-time fusion model (STFM), rngcam's neural reconstruction (RnGCam, ICCV 2025).
 
 Model (DESIGN.md): a static field F_S(x, y) -> RGB >= 0, a motion field F_M(x, y, t) ->
-(u_x, u_y) and a dynamic field F_D evaluated at the warped point, F_D(x + u_x, y + u_y) ->
-(RGB >= 0, alpha in [0, 1]); the video is v = alpha v_S + (1 - alpha) v_D. F_D is 2-D: it
-holds one canonical image that the motion field moves around, so the dynamics live in the
-motion field (the only field that sees t). Coordinates are in [-1, 1] (pixel and frame
-centres at the ends); u is in the same units.
+(u_x, u_y) and a dynamic field evaluated at the warped point, F_D(x + u_x, y + u_y) ->
+(RGB >= 0, alpha in [0, 1]); the video is v = alpha v_S + (1 - alpha) v_D. As in DESIGN.md
+F_D is 2-D: one canonical image that the motion field moves around, so the dynamics live in
+the motion field (the only field that sees t). This is the "paper" preset and
+`dynamic_time=False`. Deviation, opt-in and the "fast" default (`dynamic_time=True`):
+F_D(x + u_x, y + u_y, t), a factorised plane field whose time planes start at one; it can
+represent the cross-fade of the key frames exactly, so the fit starts at the blend baseline,
+and appearance changes that no warp explains (smoke appearing) - the motion field still moves
+content, but it no longer has to carry all the dynamics. Coordinates are in [-1, 1] (pixel
+and frame centres at the ends); u is in the same units.
 
 Loss, each data term divided by its operator's squared norm (||A|| from power iteration at
 setup) and by the number of pixels C H W, so psi is a relative weight:
     ||A_G v - Lambda b_G||^2 / (||A_G||^2 C H W) + psi ||A_R v - b_R||^2 / (||A_R||^2 C H W)
-    + tau TV_S(U),
+    + tau TV_S(U) + time_smoothness * (roughness of the plane fields' time planes),
 TV_S(U) = mean over (t, y, x) of |D_x u| + |D_y u| + beta |D_t u| (both components, u in
-pixels). Lambda (per-channel GS/RS gains) is learned when both sensors are used, starting at
+pixels); the roughness is the mean squared second difference along t (as in K-planes).
+Lambda (per-channel GS/RS gains) is learned (slowly) when both sensors are used, starting at
 problem.white_balance (or one). With gs_anchor="hard" the GS term is replaced by a
 projection of the video onto {A_G v = Lambda b_G}: frames inside GS exposures get
 v + W^T (W W^T)^-1 (Lambda b_G - W v) (per pixel; W the GS weights).
 
-Memory: a step samples `rows_per_step` consecutive RS row bins (random cyclic start, so each
-row is used with the same probability and the scaled term is an unbiased estimate of the full
-RS term) plus the frames those rows' exposures touch, the GS frames, and a few frames for
-the TV term (also unbiased). Frames are evaluated in chunks; with more than one chunk the RS
-term is back-propagated chunk by chunk against the residual from a first, gradient-free pass,
-so the autograd graph never holds more than one chunk. Outputs evaluate the video in chunks.
+Memory and unbiased steps: a step samples `rows_per_step` consecutive RS row bins (random
+cyclic start, so each row is used with the same probability and the scaled term is an
+unbiased estimate of the full RS term) plus the frames those rows' exposures touch;
+`gs_windows_per_step` GS frames drawn uniformly (scaled by G / n: unbiased) with the frames
+their exposures touch; a few frames, drawn uniformly, for the TV term (unbiased too). Frames
+are evaluated in chunks; with more than one chunk the RS term is back-propagated chunk by
+chunk against the residual of a first, gradient-free pass, so no autograd graph holds more
+than one chunk plus the GS windows. Outputs evaluate the video in chunks. A held-out split
+(Problem.with_holdout) is honoured: only training rows and GS pixels are fitted or looked at.
 
-Presets: "paper" (SIREN fields as published, Adam 5e-6) and "fast" (the default: factorised
-plane fields, large learning rates, initialised from the GS frames: static field from their
-median, canonical image from the middle key frame, motion from DIS optical flow between key
-frames, so the fit starts near flow interpolation and uses the RS image to refine it).
+Presets: "paper" (SIREN fields as published: dynamic 3x128, static and motion 2x32, with
+positional encoding; Adam 5e-6, random initialisation) and "fast" (the default: plane
+fields, Adam 2e-2 with exponential decay, initialised from the GS frames: static field from
+their per-pixel median, alpha where every key frame agrees with it, the dynamic field from
+their cross-fade; with `dynamic_time=False` instead the canonical image from the middle key
+frame and the motion from DIS optical flow between key frames, interpolated in time).
+Option `dynamic_base="blend"`: F_D's colour is softplus(softplus^-1(cross-fade at the warped
+point) + field), with the field's colour head at zero, so the fit starts exactly at the blend
+baseline (key frames are kept, not the video: memory O(G)); it is safe but learns slowly, so
+it is not the default.
 """
 
 from __future__ import annotations
@@ -75,6 +90,8 @@ class STFMSettings:
     init: str | None = None  # "gs" (fit fields to the GS frames first) or "random"
     gs_windows_per_step: int | None = None  # GS frames per step (soft anchoring; 0: all)
     dynamic_time: bool | None = None  # F_D(x + u_x, y + u_y, t) instead of F_D(x + u_x, y + u_y)
+    init_video: str = "blend"  # what a time-dependent F_D starts from: "blend" or "interp"
+    dynamic_base: str | None = None  # "blend": F_D's colour corrects the warped cross-fade; "none"
     time_smoothness: float | None = None  # weight of the time planes' roughness (plane fields)
 
     def __post_init__(self):
@@ -86,6 +103,10 @@ class STFMSettings:
             raise ConfigError(f"gs_anchor must be 'soft' or 'hard', got {self.gs_anchor!r}")
         if self.init not in (None, "gs", "random"):
             raise ConfigError(f"init must be 'gs' or 'random', got {self.init!r}")
+        if self.init_video not in ("blend", "interp"):
+            raise ConfigError(f"init_video must be 'blend' or 'interp', got {self.init_video!r}")
+        if self.dynamic_base not in (None, "blend", "none"):
+            raise ConfigError(f"dynamic_base must be 'blend' or 'none', got {self.dynamic_base!r}")
         for name in ("beta", "tau", "psi", "lr"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value >= 0):
@@ -111,7 +132,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
             "motion": ("siren", dict(hidden=32, layers=2, **siren)),
             "dynamic": ("siren", dict(hidden=128, layers=3, **siren)),
             "lr": 5e-6, "decoder_lr_ratio": 1.0, "gain_lr_ratio": 1.0, "lr_half_life_steps": math.inf,
-            "beta": 10.0, "tau": 1e-3, "rows_per_step": max(1, h // 4), "init": "random", "dynamic_time": False,
+            "beta": 10.0, "tau": 1e-3, "rows_per_step": max(1, h // 4), "init": "random", "dynamic_time": False, "dynamic_base": "none",
             "gs_windows_per_step": 0,
             "time_smoothness": 0.0}
 
@@ -133,7 +154,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
         "dynamic": ("planes", {"resolutions": appearance, "time_resolutions": motion_time_for(appearance),
                                 "features": dynamic_features, "hidden": 32}),
         "lr": 2e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
-        "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, h // 8), "init": "gs", "dynamic_time": True,
+        "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, h // 8), "init": "gs", "dynamic_time": True, "dynamic_base": "none",
         "gs_windows_per_step": 1,
         "time_smoothness": 1e-3}
 
@@ -170,6 +191,8 @@ class _Resolved:
     rows_per_step: int
     init: str
     dynamic_time: bool
+    init_video: str
+    dynamic_base: str
     time_smoothness: float
     gs_windows_per_step: int
     fields: dict = field(default_factory=dict)
@@ -205,12 +228,15 @@ class STFM:
             gs_windows_per_step=(preset["gs_windows_per_step"] if settings.gs_windows_per_step is None
                                  else settings.gs_windows_per_step),
             dynamic_time=preset["dynamic_time"] if settings.dynamic_time is None else settings.dynamic_time,
+            init_video=settings.init_video,
+            dynamic_base=settings.dynamic_base or preset["dynamic_base"],
             time_smoothness=(preset["time_smoothness"] if settings.time_smoothness is None
                              else settings.time_smoothness),
             fields={k: preset[k] for k in ("static", "motion", "dynamic")})
         torch.manual_seed(settings.seed)
         self.generator = torch.Generator(device="cpu").manual_seed(settings.seed)
         self._build_geometry()
+        self._build_base()
         self._build_fields(preset)
         self._build_scales()
         if self.resolved.init == "gs" and self.parts.gs:
@@ -250,6 +276,19 @@ class STFM:
             self.anchor_p = (torch.linalg.pinv(w @ w.t()) @ w).t().float()  # (S, G) = W^T (W W^T)^-1
             self.anchor_w = w.float()
 
+    def _build_base(self) -> None:
+        """Key frames (without gains) and cross-fade weights for a dynamic field on a base."""
+        self.base_keys = self.base_weights = None
+        if not (self.resolved.dynamic_base == "blend" and self.resolved.dynamic_time
+                and self.parts.gs and self.parts.motion):
+            return
+        p = self.problem
+        b_gs = p.b_gs_training() if hasattr(p, "b_gs_training") else p.b_gs
+        keys = b_gs / self.w_gs.sum(1).clamp_min(1e-12)[None, :, None, None]
+        self.base_keys = keys.reshape(1, -1, self.H, self.W).to(self.device, torch.float32)
+        times = torch.as_tensor(self._gs_centre_frames(), device=self.device).float()
+        self.base_weights = self._blend_weights(times)
+
     def _build_fields(self, preset: dict) -> None:
         kind_s, cfg_s = preset["static"]
         kind_m, cfg_m = preset["motion"]
@@ -263,6 +302,11 @@ class STFM:
             if dims == 2:
                 cfg_d = {k: v for k, v in cfg_d.items() if k != "time_resolutions"}
             self.fields["dynamic"] = make_field(kind_d, dims, self.C + 1, **cfg_d)
+            if self.base_keys is not None and kind_d == "planes":  # start exactly at the cross-fade
+                head = self.fields["dynamic"].decoder[-1]
+                with torch.no_grad():
+                    head.weight[:self.C] = 0
+                    head.bias[:self.C] = 0
             if kind_m == "planes":  # start without motion; gradients still reach every plane
                 head = self.fields["motion"].decoder[-1]
                 nn.init.zeros_(head.weight)
@@ -285,7 +329,7 @@ class STFM:
             self.rs_norm = self._rs_norm()
             self.c_rs = self.settings.psi / (max(self.rs_norm ** 2, 1e-12) * pixels)
 
-    def _rs_norm(self, iters: int = 20, tol: float = 1e-3) -> float:
+    def _rs_norm(self, iters: int = 10, tol: float = 1e-3) -> float:
         """||A_R|| by power iteration on A_R^T A_R, applied frame chunk by frame chunk. It starts
         near a constant video (close to the top singular vector: the PSF is a low-pass filter)."""
         gen = torch.Generator(device="cpu").manual_seed(0)
@@ -355,7 +399,14 @@ class STFM:
             coords.append(self.ts[idx].view(-1, 1, 1).expand_as(x))
         raw = self.fields["dynamic"](torch.stack(coords, dim=-1).reshape(-1, len(coords)))
         raw = raw.reshape(n, self.H, self.W, self.C + 1).permute(3, 0, 1, 2)
-        return F.softplus(raw[:self.C]), torch.sigmoid(raw[self.C:])
+        colour = raw[:self.C]
+        if self.base_keys is not None:  # the field is a correction to the warped cross-fade
+            grid = torch.stack([x, y], dim=-1).reshape(1, n * self.H, self.W, 2)
+            keys = F.grid_sample(self.base_keys, grid, mode="bilinear", padding_mode="border",
+                                 align_corners=True).view(self.C, -1, n, self.H, self.W)
+            base = torch.einsum("cgnhw,ng->cnhw", keys, self.base_weights[idx])
+            colour = colour + _inverse_softplus(base * self._gain()[:, None, None, None])
+        return F.softplus(colour), torch.sigmoid(raw[self.C:])
 
     def _gain(self) -> Tensor:
         return self.log_gain.exp()
@@ -673,15 +724,25 @@ class STFM:
 
     def _fit_dynamic_to_blend(self, v: Tensor, times: Tensor, alpha: Tensor | None, steps: int) -> None:
         weights = self._blend_weights(times)  # (K, G)
+        video = None
+        if self.resolved.init_video == "interp" and min(self.H, self.W) >= MIN_FLOW_SIZE_PX:
+            from rngcam.recon.baselines import interp
+
+            video = torch.from_numpy(interp(v.cpu().numpy(), self.problem.gs_times_s,
+                                            self.problem.frame_times_s)).to(self.device)
         field = self.fields["dynamic"]
         opt = torch.optim.Adam(field.parameters(), lr=2e-2)
         gen = torch.Generator(device="cpu").manual_seed(self.settings.seed + 2)
         for _ in range(steps):
             idx = torch.randperm(self.K, generator=gen)[:4].to(self.device)
-            target = torch.einsum("kg,cghw->ckhw", weights[idx], v)
+            target = (torch.einsum("kg,cghw->ckhw", weights[idx], v) if video is None
+                      else video[:, idx])
             opt.zero_grad()
             raw = field_on_grid(field, [self.xs, self.ys, self.ts[idx]]).permute(3, 0, 1, 2)
-            loss = (F.softplus(raw[:self.C]) - target).square().mean()
+            if self.base_keys is not None:  # the colour is already the cross-fade: keep it
+                loss = raw[:self.C].square().mean()
+            else:
+                loss = (F.softplus(raw[:self.C]) - target).square().mean()
             if alpha is not None:
                 loss = loss + 0.1 * (torch.sigmoid(raw[self.C]) - alpha).square().mean()
             loss.backward()
@@ -726,6 +787,12 @@ class STFM:
             loss = (self._motion(idx) - target[idx]).square().mean()
             loss.backward()
             opt.step()
+
+
+def _inverse_softplus(y: Tensor) -> Tensor:
+    """x with softplus(x) = y (y clamped to >= 1e-4): y + log(1 - exp(-y)), stable."""
+    y = y.clamp_min(1e-4)
+    return y + torch.log(-torch.expm1(-y))
 
 
 def _grey_u8(frame: np.ndarray, scale: float) -> np.ndarray:
