@@ -121,6 +121,8 @@ def run_one(bundle: Path, out: Path, method: str, settings: BenchSettings) -> di
     info = json.loads(worker.read_text()) if worker.is_file() else {}
     if info.get("peak_rss_bytes"):
         row["peak_rss_mb"] = info["peak_rss_bytes"] / 2**20
+        if info.get("base_rss_bytes"):
+            row["added_rss_mb"] = (info["peak_rss_bytes"] - info["base_rss_bytes"]) / 2**20
     message = info.get("error", "")
     if status == "timeout":
         message = f"stopped after {timeout:.0f} s"
@@ -226,11 +228,13 @@ def run_bench(out: Path, scenes: list[BenchScene], settings: BenchSettings,
 
 
 COLUMNS = ["scene", "method", "status", "psnr_db", "psnr_intermediate_db", "ssim", "ssim_intermediate",
-           "t_gs_s", "t_gs+1dB_s", "t_gs+3dB_s", "seconds", "iterations", "peak_rss_mb", "process_s",
+           "t_gs_s", "t_gs+1dB_s", "t_gs+3dB_s", "seconds", "iterations", "peak_rss_mb", "added_rss_mb",
+           "process_s",
            "message"]
 HEADERS = {"psnr_db": "PSNR dB", "psnr_intermediate_db": "PSNR inter.", "ssim": "SSIM",
            "ssim_intermediate": "SSIM inter.", "t_gs_s": "t(GS best) s", "t_gs+1dB_s": "t(+1 dB) s",
            "t_gs+3dB_s": "t(+3 dB) s", "seconds": "solve s", "peak_rss_mb": "peak MB",
+           "added_rss_mb": "added MB",
            "process_s": "process s"}
 
 
@@ -253,7 +257,9 @@ def write_results(out: Path, rows: list[dict], settings: BenchSettings, levels: 
           ("Columns: PSNR/SSIM against the simulated truth over all frames and over the intermediate "
            "frames (away from the GS key frames); t(...) = solve time at which the PSNR first reached the "
            "best GS-only PSNR of the scene, and that +1 dB, +3 dB ('-' = never); solve s = time spent "
-           "solving (set-up included); peak MB = the run's peak resident memory (its own process); "
+           "solving (set-up included); peak MB = the run's peak resident memory (its own process, "
+           "outputs written); added MB = peak minus the process's size before the run (interpreter, "
+           "torch and output writers loaded); "
            "process s = the whole process (start-up and outputs included)."), ""]
     if skipped:
         md += ["Not run: " + "; ".join(f"{m} ({why})" for m, why in skipped.items()), ""]

@@ -55,8 +55,9 @@ def make_scene_bundle(scene: BenchScene, path: Path, size: int, seed: int = 0) -
     opts = {"clip": scene.clip, "span": CLIP_SPAN} if scene.kind == "clip" else {}
     bundle = simulate(scene.kind, path, size=size, seed=seed, overwrite=True, **opts)
     m = bundle.meta
-    text = (f"{m['n_frames']} frames of {size}x{size} px at {1 / m['dt_s']:,.0f} fps; PSF {m['psf_source']} "
-            f"(crop {m['psf_crop']:g}, {100 * m['psf_spectral_support']:.1f} % of frequencies above 10 % of DC)")
+    text = (f"{m['n_frames']} frames of {size}x{size} px at {1 / m['dt_s']:,.0f} fps; "
+            f"PSF {Path(m['psf_source']).name} (crop {m['psf_crop']:g}, "
+            f"{100 * m['psf_spectral_support']:.1f} % of frequencies above 10 % of DC)")
     if scene.kind == "clip":
         text += f"; clip {scene.clip.name}, {CLIP_SPAN} source frames from frame {m.get('clip_start')}"
     return text
