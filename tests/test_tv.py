@@ -22,7 +22,7 @@ from rngcam.recon.tv import (
     tv3,
 )
 
-TIGHT = dict(iters=2000, tol=1e-7)  # ~1e-7 is the float64 floor of the gap certificate
+TIGHT = {"iters": 2000, "tol": 1e-7}  # ~1e-7 is the float64 floor of the gap certificate
 
 
 # ----------------------------------------------------------------------------- references
@@ -62,8 +62,9 @@ def reference_prox(v, lam, beta_t):
 
 def reference_prox_nonneg(v, lam, beta_t):
     """prox of lam*TV + indicator(u >= 0): dual min 1/2||(v - D^T p)_+||^2 over the box."""
+    shape = np.shape(v)
     v = np.asarray(v, dtype=np.float64).ravel()
-    d, w = difference_matrix(V_SHAPE_NN, beta_t)
+    d, w = difference_matrix(shape, beta_t)
 
     def dual(p):
         q = np.maximum(v - d.T @ p, 0.0)
@@ -71,11 +72,8 @@ def reference_prox_nonneg(v, lam, beta_t):
 
     fit = minimize(dual, np.zeros(w.size), jac=True, method="L-BFGS-B",
                    bounds=list(zip(-lam * w, lam * w)),
-                   options=dict(ftol=1e-16, gtol=1e-13, maxiter=20000, maxcor=30))
-    return np.maximum(v - d.T @ fit.x, 0.0).reshape(V_SHAPE_NN)
-
-
-V_SHAPE_NN = (2, 3, 3, 3)
+                   options={"ftol": 1e-16, "gtol": 1e-13, "maxiter": 20000, "maxcor": 30})
+    return np.maximum(v - d.T @ fit.x, 0.0).reshape(shape)
 
 
 def objective(u, v, lam, beta_t):
@@ -295,7 +293,7 @@ def test_extreme_settings_stay_finite(method, dtype, shape):
 
 
 def test_exact_prox_then_clamp_is_prox_of_tv_plus_nonneg_in_3d():
-    v = torch.tensor(np.random.default_rng(10).normal(size=V_SHAPE_NN))
+    v = torch.tensor(np.random.default_rng(10).normal(size=(2, 3, 3, 3)))
     for lam, beta_t in ((0.1, 1.0), (0.3, 10.0)):
         got = prox_tv_nonneg(v, lam, beta_t, method="exact", **TIGHT)
         ref = reference_prox_nonneg(v.numpy(), lam, beta_t)
