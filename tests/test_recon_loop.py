@@ -1,5 +1,7 @@
 """The shared solver loop and the FISTA 3-D TV baseline."""
 
+import itertools
+
 import numpy as np
 import pytest
 import torch
@@ -61,7 +63,7 @@ def test_objective_with_restart_never_increases(prox):
     values = [m.state["F"]]
     for _ in range(15 if prox == "exact" else 40):
         values.append(m.step())
-    assert all(b <= a * (1 + 1e-12) for a, b in zip(values, values[1:]))
+    assert all(b <= a * (1 + 1e-12) for a, b in itertools.pairwise(values))
     assert values[-1] < values[0]
 
 
@@ -119,6 +121,23 @@ def test_injected_nan_is_rolled_back_and_recorded():
     assert result.status == "ok" and result.iterations == 8
     assert m.reductions == 1 and any("non-finite" in e for e in result.events)
     assert torch.isfinite(m.estimate()).all()
+
+
+def test_an_overflowing_step_reaches_the_nan_guard():
+    m = TV3D(_sineball_problem().to(torch.float32), TV3DSettings(restart=False))
+    m.state["L"] *= 1e-30  # an absurd step: the objective overflows float32
+    result = run(m, _settings(max_iters=3, log_every_iters=1, max_failures=2))
+    assert result.status == "failed" and torch.isfinite(m.estimate()).all()
+    assert any("non-finite" in e for e in result.events)
+
+
+def test_backtracking_recovers_from_a_far_too_long_step():
+    m = TV3D(_sineball_problem(), TV3DSettings(restart=True))
+    sane_L, start = m.state["L"], m.state["F"]
+    m.state["L"] *= 1e-12
+    values = [m.step() for _ in range(5)]
+    assert values[-1] < start and all(b <= a for a, b in itertools.pairwise(values))
+    assert m.state["L"] >= sane_L / 2
 
 
 def test_repeated_nan_stops_with_clear_message_and_last_good_state():

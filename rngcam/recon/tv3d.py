@@ -10,7 +10,9 @@ squared norm of the scaled stacked operator (power iteration). With `gs_anchor="
 term leaves the objective and every iterate is projected onto {A_G v = b_G} after the prox, then
 clipped at zero (a heuristic splitting, documented as such; the projection is exact per pixel).
 With `restart=True` the iteration is monotone: a step that would raise F is rejected and the
-momentum restarted (O'Donoghue & Candes 2015, with the MFISTA safeguard of Beck & Teboulle).
+momentum restarted (O'Donoghue & Candes 2015, with the MFISTA safeguard of Beck & Teboulle);
+if the restarted step still raises F the step is too long and L is doubled until it does not
+(backtracking). A non-finite objective is returned as is, for the loop's NaN guard.
 
 With a held-out split on the problem (Problem.with_holdout) only the training measurements are
 fitted: each data term becomes ||M (A v - b)||^2 with M the 0/1 mask, i.e. the operator M A
@@ -32,6 +34,9 @@ from rngcam.recon import tv
 from rngcam.recon.baselines import blend
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.problem import Problem
+
+_MAX_BACKTRACKS = 60  # 2^60: enough to recover from any step length a float can hold
+_BACKTRACK_RTOL = 1e-9  # an approximate prox may raise F by rounding; don't backtrack for that
 
 
 @dataclass
@@ -63,10 +68,10 @@ class _Scaled(LinearOperator):
     def __init__(self, blocks: list[tuple[LinearOperator, float]], domain_shape):
         self.blocks, self.domain_shape = blocks, domain_shape
 
-    def A(self, v):  # noqa: N802
+    def A(self, v):
         return tuple(c * op.A(v) for op, c in self.blocks)
 
-    def A_adjoint(self, y):  # noqa: N802
+    def A_adjoint(self, y):
         return sum(c * op.A_adjoint(yi) for (op, c), yi in zip(self.blocks, y))
 
 
@@ -180,6 +185,8 @@ class TV3D:
         if self.op.blocks:
             res = tuple(a - b for a, b in zip(self.op.A(y), self.b))
             y = y - self.op.A_adjoint(res) / L
+        if not bool(torch.isfinite(y).all()):
+            return y  # diverged: the loop's NaN guard rolls back (the prox refuses NaN/Inf)
         z = tv.prox_tv_nonneg(y, self.s.tau / L, self.s.beta, method=self.s.prox)
         return self._project(z)
 
@@ -187,12 +194,21 @@ class TV3D:
         st = self.state
         z = self._prox_grad(st["y"], st["L"])
         f_z = self.objective(z)
+        if not math.isfinite(f_z):
+            return f_z  # overflow or NaN: the loop's guard rolls back and halves the step
         if self.s.restart and f_z > st["F"]:
-            # Reject the step, restart momentum from the current iterate.
+            # Reject the step and restart momentum from the current iterate; if even that step
+            # raises F, the step is too long: backtrack (double L) until it does not.
             st["restarts"] += 1
             st["t"], st["y"] = 1.0, st["x"].clone()
-            z = self._prox_grad(st["y"], st["L"])
-            f_z = self.objective(z)
+            for _ in range(_MAX_BACKTRACKS + 1):
+                z = self._prox_grad(st["y"], st["L"])
+                f_z = self.objective(z)
+                if math.isfinite(f_z) and f_z <= st["F"] * (1 + _BACKTRACK_RTOL):
+                    break
+                st["L"] *= 2.0
+            else:
+                return st["F"]  # no decrease at any step length: keep x
             if f_z > st["F"]:
                 return st["F"]  # the (approximate) prox made no progress; keep x
         t_new = (1 + math.sqrt(1 + 4 * st["t"] ** 2)) / 2
