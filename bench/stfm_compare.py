@@ -10,9 +10,10 @@ In one process on the CPU, under the same time budget per iterative method:
 3. the time the fast preset needs to reach the paper preset's final PSNR, as a ratio of the
    paper preset's run time;
 4. peak memory of an STFM fit at K and 2K frames (the same scene on a grid with half the
-   frame duration): peak resident set size (ru_maxrss) of a fresh subprocess per K, which
-   sees torch's CPU allocations (tracemalloc does not); also its growth over the RSS just
-   before the fit starts (interpreter, torch and the problem), which is what the fit adds.
+   frame duration): peak resident set size (VmHWM from /proc/self/status) of a fresh
+   subprocess per K, which sees torch's CPU allocations (tracemalloc does not); also its
+   growth over the peak just before the fit starts (interpreter, torch and the problem),
+   which is what the fit adds. The problems are built by the parent and loaded by the children.
 
 Problems come from `rngcam.sim.simulate` (the bundle path) when it exists, else from an
 equivalent in-process simulation (same timing; Gaussian noise) - the report says which.
@@ -59,10 +60,9 @@ def simulated_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1) 
     clip_opts = {"clip": str(shared_data() / CLIP), "span": 8} if scene == "clip" else {}
     if dt_factor == 1:
         try:
-            from rngcam.sim.simulate import simulate
-
             from rngcam.bundle import read_bundle
             from rngcam.recon.problem import build_problem
+            from rngcam.sim.simulate import simulate
         except ImportError:
             pass
         else:
@@ -73,7 +73,8 @@ def simulated_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1) 
     return inline_problem(scene, size, seed, dt_factor), "in-process simulation (Gaussian noise 0.3 %)"
 
 
-def inline_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1, noise: float = 0.003) -> Problem:
+def inline_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1, noise: float = 0.003,
+                   psf_crop: float = 0.25) -> Problem:
     """The simulator's timing and forward model without the bundle (and with Gaussian noise)."""
     rs = RollingShutterTiming(line_time_s=DT_S, exposure_s=EXPOSURE_S, rows=size)
     end = (size - 1) * DT_S
@@ -82,7 +83,7 @@ def inline_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1, noi
     opts = {"path": str(shared_data() / CLIP), "span": 8} if scene == "clip" else {"key_times_s": gs.centres_s()}
     truth = torch.from_numpy(render_scene(scene, grid, size, seed, **opts)).double()
     raw = psf_mod.load_psf(shared_data() / "psf" / "diffusercam_tutorial_psf_sample.tif")
-    psf = torch.from_numpy(psf_mod.prepare_psf(raw, (size, size), channels=3)[0])
+    psf = torch.from_numpy(psf_mod.prepare_psf(raw, (size, size), crop=psf_crop, channels=3)[0])
     w_rs, w_gs = torch.from_numpy(rs.weights(grid)), torch.from_numpy(gs.weights(grid))
     b_rs = RollingShutter(psf, w_rs, size, 3).A(truth)
     b_gs = GlobalShutter(w_gs, 3, (size, size)).A(truth)
@@ -152,16 +153,25 @@ def run_iterative(name: str, p: Problem, budget_s: float, opts: dict | None = No
 # ----------------------------------------------------------------------------- memory
 
 
+def peak_rss_mib() -> float:
+    """This process's peak resident set size (VmHWM). Unlike ru_maxrss it does not inherit the
+    parent's high-water mark across fork + exec."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return float(line.split()[1]) / 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def memory_child(problem_path: str, steps: int) -> None:
     """Run in a fresh process: print JSON with RSS before the fit and the peak RSS (MiB)."""
     p = torch.load(problem_path, weights_only=False)
     torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # import the optimiser machinery first
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    before = peak_rss_mib()
     m = make_stfm(p, STFMSettings())
     for _ in range(steps):
         m.step()
     m.estimate()
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak = peak_rss_mib()
     print(json.dumps({"frames": p.grid.n_frames, "before_mib": before, "peak_mib": peak}))
 
 
@@ -292,8 +302,8 @@ def main() -> None:
         print("[memory]", flush=True)
         rows = measure_memory("sineball", sizes[0], steps=20)
         lines += ["", f"## Peak memory, STFM fast, sineball {sizes[0]}x{sizes[0]}, 20 steps + one full estimate", "",
-                  ("Peak RSS (ru_maxrss) of a fresh subprocess per frame count; 'fit adds' is the peak minus "
-                  "the RSS before the STFM was built (interpreter, torch, problem)."), "",
+                  ("Peak RSS (VmHWM) of a fresh subprocess per frame count; 'fit adds' is the peak minus "
+                  "the peak before the STFM was built (interpreter, torch, problem)."), "",
                   "| frames K | RSS before MiB | peak MiB | fit adds MiB |", "|---|---|---|---|"]
         for r in rows:
             lines.append(f"| {r['frames']} | {r['before_mib']:.0f} | {r['peak_mib']:.0f} | {r['peak_mib'] - r['before_mib']:.0f} |")

@@ -154,7 +154,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
         "dynamic": ("planes", {"resolutions": appearance, "time_resolutions": motion_time_for(appearance),
                                 "features": dynamic_features, "hidden": 32}),
         "lr": 2e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
-        "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, h // 8), "init": "gs", "dynamic_time": True, "dynamic_base": "none",
+        "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 8)), "init": "gs", "dynamic_time": True, "dynamic_base": "none",
         "gs_windows_per_step": 1,
         "time_smoothness": 1e-3}
 
@@ -329,7 +329,7 @@ class STFM:
             self.rs_norm = self._rs_norm()
             self.c_rs = self.settings.psi / (max(self.rs_norm ** 2, 1e-12) * pixels)
 
-    def _rs_norm(self, iters: int = 10, tol: float = 1e-3) -> float:
+    def _rs_norm(self, iters: int = 6, tol: float = 1e-3) -> float:
         """||A_R|| by power iteration on A_R^T A_R, applied frame chunk by frame chunk. It starts
         near a constant video (close to the top singular vector: the PSF is a low-pass filter)."""
         gen = torch.Generator(device="cpu").manual_seed(0)
