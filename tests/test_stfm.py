@@ -275,7 +275,9 @@ def test_gains_start_from_the_white_balance(sineball16):
 
 def test_data_terms_are_normalised_by_operator_norms(sineball16):
     m = make_stfm(sineball16, small_settings(psi=2.0))
-    assert m.rs_norm == pytest.approx(sineball16.rs_op().norm(), rel=1e-2)
+    # a few power iterations (from a near-constant start) suffice for a normalising constant
+    assert m.rs_norm == pytest.approx(sineball16.rs_op().norm(), rel=3e-2)
+    assert m.rs_norm <= sineball16.rs_op().norm() * (1 + 1e-6)
     pixels = 3 * 16 * 16
     assert m.c_rs == pytest.approx(2.0 / (m.rs_norm ** 2 * pixels))
     gs_norm = sineball16.gs_op().norm()
