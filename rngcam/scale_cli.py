@@ -56,13 +56,13 @@ def _with(options):
 @click.option("--time-budget", type=float, default=None,
               help="Wall-clock seconds per trial at the full budget [30 unless --iters is given].")
 @click.option("--iters", type=int, default=None, help="Iterations per trial at the full budget (reproducible).")
-@click.option("--holdout", type=float, default=0.1, show_default=True,
+@click.option("--holdout", type=float, default=0.2, show_default=True,
               help="Fraction of RS row bins held out to score the trials.")
 @click.option("--holdout-gs", type=float, default=0.0, show_default=True,
               help="Fraction of GS pixels also held out (scored with the RS rows).")
 @click.option("--holdout-seed", type=int, default=0, show_default=True)
-@click.option("--folds", type=int, default=1, show_default=True,
-              help="Held-out splits per trial (one fit each); the score is their mean.")
+@click.option("--folds", type=int, default=2, show_default=True,
+              help="Held-out splits per trial (one fit each); the score is their mean (steadier than one).")
 @click.option("--eta", type=int, default=3, show_default=True, help="Successive halving: keep the best 1/eta per rung.")
 @click.option("--rungs", type=int, default=None, help="Successive-halving rungs (1: no early stopping) [auto, <= 3].")
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda (one GPU per trial).")

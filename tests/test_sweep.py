@@ -99,7 +99,7 @@ def test_rerunning_a_finished_sweep_does_no_new_work(full_grid, bundle):
 
 
 def test_successive_halving_stops_poor_trials_and_resumes_the_rest(bundle, tmp_path):
-    settings = SweepSettings(method="tv3d", grid=GRID, max_iters=90, holdout=0.2, refit=False)
+    settings = SweepSettings(method="tv3d", grid=GRID, max_iters=90, holdout=0.2, folds=1, refit=False)
     res = sweep(bundle, tmp_path, settings, backend_factory=SequentialBackend, **QUIET)
     reached = [r["rungs"] for r in res.rows]
     assert sorted(reached) == [1] * 8 + [2, 2] + [3, 3]  # 12 -> 4 -> 2 trials
@@ -148,7 +148,7 @@ def test_ray_and_in_process_give_identical_tables_and_a_killed_worker_is_retried
     from rngcam.scale.ray_backend import RayBackend
 
     settings = SweepSettings(method="tv3d", grid={"beta": [0.1, 1.0, 10.0], "tau": [1e-3]}, max_iters=30,
-                             holdout=0.2, refit=False)
+                             holdout=0.2, folds=1, refit=False)
     sweep(bundle, tmp_path / "seq", settings, backend_factory=SequentialBackend, **QUIET)
     on_ray = sweep(bundle, tmp_path / "ray", settings, backend_factory=RayBackend, **QUIET)
     assert on_ray.backend.startswith("Ray (local")
@@ -163,7 +163,7 @@ def test_ray_and_in_process_give_identical_tables_and_a_killed_worker_is_retried
 def test_cli_sweep_without_ray_and_clear_errors(bundle, tmp_path):
     out = tmp_path / "cli"
     args = ["sweep", str(bundle), "--method", "tv3d", "--beta", "1,10", "--tau", "1e-3", "--iters", "10",
-            "--holdout", "0.2", "--no-ray", "-o", str(out)]
+            "--holdout", "0.2", "--folds", "1", "--no-ray", "-o", str(out)]
     res = CliRunner().invoke(main, args)
     assert res.exit_code == 0, res.output
     assert "in-process" in res.output and "| trial | beta | tau |" in res.output
@@ -181,7 +181,7 @@ def test_cli_sweep_without_ray_and_clear_errors(bundle, tmp_path):
 
 def test_stfm_trials_run_through_the_same_code(bundle, tmp_path):
     """STFM either fits the split (once wired) or every trial fails with one clear message."""
-    settings = SweepSettings(method="stfm", grid={"beta": [10.0, 100.0]}, max_iters=3, holdout=0.2, refit=False)
+    settings = SweepSettings(method="stfm", grid={"beta": [10.0, 100.0]}, max_iters=3, holdout=0.2, folds=1, refit=False)
     try:
         res = sweep(bundle, tmp_path, settings, backend_factory=SequentialBackend, **QUIET)
     except Exception as exc:  # noqa: BLE001
@@ -199,7 +199,7 @@ def test_an_interrupted_sweep_keeps_the_trials_it_finished(bundle, tmp_path):
         calls.append(spec.key)
         return run_trial(spec, problem)
 
-    settings = SweepSettings(method="tv3d", grid={"beta": [0.1, 1.0, 10.0]}, max_iters=5, holdout=0.2,
+    settings = SweepSettings(method="tv3d", grid={"beta": [0.1, 1.0, 10.0]}, max_iters=5, holdout=0.2, folds=1,
                              rungs=1, refit=False)
     with pytest.raises(KeyboardInterrupt):
         sweep(bundle, tmp_path, settings, backend_factory=SequentialBackend, trial_fn=interrupted, **QUIET)

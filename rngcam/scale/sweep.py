@@ -48,10 +48,10 @@ class SweepSettings:
     preset: str | None = None  # STFM preset
     time_budget_s: float | None = None  # per trial at the full budget (None with max_iters: none)
     max_iters: int | None = None  # per trial at the full budget
-    holdout: float = 0.1  # fraction of RS row bins held out to score the trials
+    holdout: float = 0.2  # fraction of RS row bins held out to score the trials
     holdout_gs: float = 0.0  # fraction of GS pixels also held out (see rngcam.scale.holdout)
     holdout_seed: int = 0
-    folds: int = 1  # held-out splits per trial (one fit each, blocks at other places); the score is their mean
+    folds: int = 2  # held-out splits per trial (one fit each, blocks at other places); the score is their mean
     eta: int = 3  # successive halving: keep the best 1/eta at each rung
     rungs: int | None = None  # None: as many as the grid size supports, at most 3
     device: str = "cpu"
