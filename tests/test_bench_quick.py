@@ -63,7 +63,7 @@ def test_scene_list_has_the_procedural_scenes_every_clip_and_extra_clips(tmp_pat
 def test_child_peak_memory_does_not_include_the_parent():
     """ru_maxrss of a child includes the parent's size at fork; the worker's figure must not."""
     ballast = np.ones(300 * 2**20 // 8)  # 300 MB touched in this process
-    code = "from rngcam.bench.worker import peak_rss_bytes; print(peak_rss_bytes())"
+    code = "from rngcam.memory import peak_rss_bytes; print(peak_rss_bytes())"
     child = int(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                                check=True).stdout)
     assert ballast.sum() > 0

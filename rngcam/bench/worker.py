@@ -6,39 +6,16 @@ and adds `bench_worker.json` with this process's peak resident set size and its 
 resident size once the interpreter, torch and the output writers are loaded, before the run):
 peak - base is what the method itself added.
 
-Peak memory is read from /proc/self/status (VmHWM: the high-water mark of this process's own
-address space, which starts afresh at exec). `ru_maxrss` is not used for this: Linux carries
-the parent's peak over fork and exec into it, so a child of a large process reports at least
-the parent's size.
+Peak memory comes from rngcam.memory (VmHWM, which starts afresh at exec; not ru_maxrss).
 """
 
 from __future__ import annotations
 
 import json
-import resource
 import sys
 from pathlib import Path
 
-
-def _status_kib(field: str) -> int | None:
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith(field + ":"):
-                return int(line.split()[1])
-    except OSError:
-        pass
-    return None
-
-
-def peak_rss_bytes() -> int:
-    """This process's peak resident set size (VmHWM), or ru_maxrss where /proc is missing."""
-    kib = _status_kib("VmHWM")
-    return kib * 1024 if kib is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-
-
-def current_rss_bytes() -> int:
-    """This process's resident set size now (VmRSS; 0 where /proc is missing)."""
-    return (_status_kib("VmRSS") or 0) * 1024
+from rngcam.memory import current_rss_bytes, peak_rss_bytes
 
 
 def _import_output_writers() -> None:

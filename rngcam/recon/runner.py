@@ -12,7 +12,6 @@ rngcam.scale.holdout) next to the training residuals.
 
 from __future__ import annotations
 
-import resource
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -22,6 +21,7 @@ import torch
 
 from rngcam.bundle import bundle_checksum, read_bundle
 from rngcam.errors import ConfigError, RngcamError
+from rngcam.memory import peak_rss_bytes
 from rngcam.recon import outputs
 from rngcam.recon.loop import LoopSettings, RunResult, run
 from rngcam.recon.metrics import relative_residual, video_metrics
@@ -189,7 +189,7 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
         "seconds": result.solve_s,
         "wall_seconds": result.wall_s,
         "iterations": result.iterations,
-        "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+        "peak_rss_bytes": peak_rss_bytes(),  # this process only (VmHWM)
         "frames": k, "height": h, "width": w, "channels": c, "fps": 1 / problem.grid.dt_s,
         "device": device, "status": status,
         "left_out": [{"component": a, "reason": b} for a, b in left_out],

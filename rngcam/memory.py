@@ -1,0 +1,33 @@
+"""This process's memory figures, honest under fork/exec.
+
+Peak memory is read from /proc/self/status (VmHWM: the high-water mark of this process's own
+address space, which starts afresh at exec). `ru_maxrss` is only the fallback where /proc is
+missing: Linux carries the parent's peak over fork and exec into it, so a child of a large
+process reports at least the parent's size.
+"""
+
+from __future__ import annotations
+
+import resource
+from pathlib import Path
+
+
+def _status_kib(field: str) -> int | None:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(field + ":"):
+                return int(line.split()[1])
+    except OSError:
+        pass
+    return None
+
+
+def peak_rss_bytes() -> int:
+    """This process's peak resident set size (VmHWM), or ru_maxrss where /proc is missing."""
+    kib = _status_kib("VmHWM")
+    return kib * 1024 if kib is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def current_rss_bytes() -> int:
+    """This process's resident set size now (VmRSS; 0 where /proc is missing)."""
+    return (_status_kib("VmRSS") or 0) * 1024
