@@ -60,14 +60,14 @@ def write_mp4(path: Path, video: np.ndarray, fps: float = 30.0) -> None:
     import av
 
     frames = to_display(video)
-    k, h, w, _ = frames.shape
+    _k, h, w, _ = frames.shape
     scale = max(1, 256 // max(h, w))
     frames = np.repeat(np.repeat(frames, scale, axis=1), scale, axis=2)
     h2, w2 = frames.shape[1] + frames.shape[1] % 2, frames.shape[2] + frames.shape[2] % 2
     frames = np.pad(frames, ((0, 0), (0, h2 - frames.shape[1]), (0, w2 - frames.shape[2]), (0, 0)))
     tmp = path.with_name(f".{path.name}.partial-{os.getpid()}.mp4")
     with av.open(str(tmp), "w") as out:
-        stream = out.add_stream("libx264", rate=int(round(fps)))
+        stream = out.add_stream("libx264", rate=round(fps))
         stream.width, stream.height, stream.pix_fmt = w2, h2, "yuv420p"
         for frame in frames:
             for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
@@ -107,18 +107,21 @@ def plot_errors(png_path: Path, runs: dict[str, list[dict]]) -> None:
     has_psnr = any("psnr_db" in r for log in runs.values() for r in log)
     fig, axes = plt.subplots(1, 2 if has_psnr else 1, figsize=(11 if has_psnr else 6, 4), squeeze=False)
     ax_r = axes[0, 0]
-    for name, log in runs.items():
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, (name, log) in enumerate(runs.items()):
+        c = colours[i % len(colours)]
         t = [max(r["solve_s"], 1e-3) for r in log]
-        for key, style in (("residual_rs", "-"), ("residual_gs", "--")):
+        style = {"color": c, "marker": "o", "markersize": 3 if len(log) > 1 else 6}
+        for key, ls in (("residual_rs", "-"), ("residual_gs", "--")):
             vals = [r.get(key, np.nan) for r in log]
             if np.isfinite(vals).any():
-                ax_r.plot(t, vals, style, label=f"{name} {key[9:].upper()}")
+                ax_r.plot(t, vals, ls, label=f"{name} {key[9:].upper()}", **style)
         if has_psnr:
             ax_p = axes[0, 1]
-            ax_p.plot(t, [r.get("psnr_db", np.nan) for r in log], "-", label=f"{name} all")
+            ax_p.plot(t, [r.get("psnr_db", np.nan) for r in log], "-", label=f"{name} all", **style)
             if any("psnr_intermediate_db" in r for r in log):
                 ax_p.plot(t, [r.get("psnr_intermediate_db", np.nan) for r in log], ":",
-                          label=f"{name} intermediate")
+                          label=f"{name} intermediate", **{**style, "marker": "x"})
     ax_r.set(xlabel="solve time (s)", ylabel="relative data residual", yscale="log", title="data residual")
     ax_r.legend(fontsize=7)
     if has_psnr:
