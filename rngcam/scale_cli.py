@@ -61,7 +61,7 @@ def _with(options):
 @click.option("--holdout-gs", type=float, default=0.0, show_default=True,
               help="Fraction of GS pixels also held out (scored with the RS rows).")
 @click.option("--holdout-seed", type=int, default=0, show_default=True)
-@click.option("--folds", type=int, default=2, show_default=True,
+@click.option("--folds", type=int, default=3, show_default=True,
               help="Held-out splits per trial (one fit each); the score is their mean (steadier than one).")
 @click.option("--eta", type=int, default=3, show_default=True, help="Successive halving: keep the best 1/eta per rung.")
 @click.option("--rungs", type=int, default=None, help="Successive-halving rungs (1: no early stopping) [auto, <= 3].")

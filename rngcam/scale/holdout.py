@@ -18,9 +18,10 @@ Why RS rows by default: held-out RS rows are exposures at times between the key 
 is what the reconstruction has to get right; they are held out in blocks one exposure long, so
 a block is not just the average of its fitted neighbours (Problem.with_holdout). Measured with
 tv3d on 4x3 beta/tau grids (2 cores, 100 iterations):
-- moving square, caustic PSF, 16 px: Spearman(score, true PSNR) 0.80-0.82 with one split,
-  0.89 with two folds; the best setting picked every time. Isolated held-out GS pixels (a
-  spatial inpainting test that rewards heavy smoothing) ranked against the PSNR (-0.5 to -0.2).
+- moving square, caustic PSF, 16 px, 0.2 of the rows held out, 5 split seeds: Spearman(score,
+  true PSNR) 0.75-0.82 with two folds, 0.85-0.96 with three (hence the sweep's default); the
+  pick within 0.3 dB of the best. Isolated held-out GS pixels (a spatial inpainting test that
+  rewards heavy smoothing) ranked against the PSNR (-0.5 to -0.2).
 - smoke scene (rngcam simulate), 32 px: 0.39, best setting picked; 64 px, two folds: -0.28,
   the pick 0.65 dB below the best. There the PSNR rewards a nearly static video (beta 100),
   while the RS rows, seen through a PSF with <1 % of its frequencies above 10 % of DC, favour

@@ -51,7 +51,7 @@ class SweepSettings:
     holdout: float = 0.2  # fraction of RS row bins held out to score the trials
     holdout_gs: float = 0.0  # fraction of GS pixels also held out (see rngcam.scale.holdout)
     holdout_seed: int = 0
-    folds: int = 2  # held-out splits per trial (one fit each, blocks at other places); the score is their mean
+    folds: int = 3  # held-out splits per trial (one fit each, blocks at other places); the score is their mean
     eta: int = 3  # successive halving: keep the best 1/eta at each rung
     rungs: int | None = None  # None: as many as the grid size supports, at most 3
     device: str = "cpu"
