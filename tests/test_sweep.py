@@ -203,3 +203,23 @@ def test_an_interrupted_sweep_keeps_the_trials_it_finished(bundle, tmp_path):
     res = sweep(bundle, tmp_path, settings, backend_factory=SequentialBackend, **QUIET)
     assert res.cached_runs == 2 and res.new_runs == 1
     assert [r["key"] for r in res.rows[:2]] == calls
+
+
+def test_a_shorter_budget_never_resumes_a_longer_fit(bundle, tmp_path):
+    """Trial folders are keyed by setting, not budget: a checkpoint past the budget is dropped."""
+    grid = {"beta": [1.0, 10.0]}
+    longer = SweepSettings(method="tv3d", grid=grid, max_iters=12, holdout=0.2, folds=1, rungs=1, refit=False)
+    shorter = SweepSettings(method="tv3d", grid=grid, max_iters=6, holdout=0.2, folds=1, rungs=1, refit=False)
+    sweep(bundle, tmp_path / "reused", longer, backend_factory=SequentialBackend, **QUIET)
+    after_long = sweep(bundle, tmp_path / "reused", shorter, backend_factory=SequentialBackend, **QUIET)
+    fresh = sweep(bundle, tmp_path / "fresh", shorter, backend_factory=SequentialBackend, **QUIET)
+    assert [r["iterations"] for r in after_long.rows] == [6, 6]
+    assert [r["heldout"] for r in after_long.rows] == [r["heldout"] for r in fresh.rows]
+
+
+def test_time_budget_per_trial(bundle, tmp_path):
+    settings = SweepSettings(method="tv3d", grid={"beta": [1.0, 10.0]}, time_budget_s=0.5, holdout=0.2, folds=1,
+                             rungs=1, refit=False)
+    res = sweep(bundle, tmp_path, settings, backend_factory=SequentialBackend, **QUIET)
+    assert all(r["status"] == "ok" and r["iterations"] >= 1 for r in res.rows)
+    assert "s0.5" in (tmp_path / "sweep.md").read_text()  # the budget is part of the cache key
