@@ -102,3 +102,16 @@ def test_ray_batch_gives_the_same_table_as_in_process(bundles, tmp_path):
     assert on_ray.backend.startswith("Ray (local")
     keys = ("status", "iterations", "psnr_db", "residual_rs", "residual_gs")
     assert [[r[k] for k in keys] for r in on_ray.rows] == [[r[k] for k in keys] for r in here.rows]
+
+
+def test_without_ray_everything_runs_in_process_and_says_so(monkeypatch):
+    from rngcam.errors import RngcamError
+    from rngcam.scale import backend
+
+    monkeypatch.setattr(backend, "ray_available", lambda: False)
+    said = []
+    chosen = backend.make_backend(echo=said.append)
+    assert isinstance(chosen, SequentialBackend) and "Ray is not installed" in said[0]
+    with pytest.raises(RngcamError, match="pip install 'rngcam\\[cluster\\]'"):
+        backend.make_backend(address="auto", echo=said.append)
+    assert isinstance(backend.make_backend(use_ray=False), SequentialBackend)
