@@ -102,7 +102,7 @@ class Camera(ABC):
     def arm(self) -> None:
         """Flush stale buffers and start acquisition (frames then come on triggers)."""
 
-    def wait_ready(self, timeout_s: float = 1.0) -> None:
+    def wait_ready(self, timeout_s: float = 1.0) -> None:  # noqa: B027 (a default, not abstract)
         """Block until the camera accepts a trigger (default: ready once armed)."""
 
     @abstractmethod

@@ -75,11 +75,16 @@ def _f(x: str) -> float:
     return float(x)
 
 
+def _set_load(state, m) -> None:
+    """OUTP:LOAD INF|INFINITY|<ohms>."""
+    state.load = "INF" if m[2].startswith("INF") else m[2]
+
+
 # Each rule: (regex, handler(state_of_channel, match)). Group 1 is always the channel.
 def _keysight_rules():
     C = r"(?:SOUR(?:CE)?)?([12])?"
     return [
-        (r"OUTP(?:UT)?([12])?:LOAD (INF|INFINITY|\d+)", lambda s, m: setattr(s, "load", "INF" if m[2].startswith("INF") else m[2])),
+        (r"OUTP(?:UT)?([12])?:LOAD (INF|INFINITY|\d+)", _set_load),
         (rf"{C}:FUNC(?:TION)? (PULS|PULSE|SIN|SQU)", lambda s, m: setattr(s, "function", m[2][:4])),
         (rf"{C}:FUNC(?:TION)?:PULS(?:E)?:PER(?:IOD)? {_NUM}", lambda s, m: setattr(s, "period_s", _f(m[2]))),
         (rf"{C}:FUNC(?:TION)?:PULS(?:E)?:WIDT(?:H)? {_NUM}", lambda s, m: setattr(s, "width_s", _f(m[2]))),
@@ -98,7 +103,7 @@ def _keysight_rules():
 def _rigol_rules():
     C = r":?(?:SOUR(?:CE)?)?([12])?"
     return [
-        (r":?OUTP(?:UT)?([12])?:LOAD (INF|INFINITY|\d+)", lambda s, m: setattr(s, "load", "INF" if m[2].startswith("INF") else m[2])),
+        (r":?OUTP(?:UT)?([12])?:LOAD (INF|INFINITY|\d+)", _set_load),
         (rf"{C}:FUNC(?:TION)? (PULS|PULSE|SIN|SQU)", lambda s, m: setattr(s, "function", m[2][:4])),
         (rf"{C}:PER(?:IOD)? {_NUM}", lambda s, m: setattr(s, "period_s", _f(m[2]))),
         (rf"{C}:FUNC(?:TION)?:PULS(?:E)?:WIDT(?:H)? {_NUM}", lambda s, m: setattr(s, "width_s", _f(m[2]))),

@@ -206,7 +206,8 @@ def _mock_truth(rig: Rig) -> tuple[np.ndarray, np.ndarray] | None:
     h = np.eye(3)
     if gs_m is not None and gs_m.misalignment is not None:
         a = gs_m.misalignment
-        h = similarity_matrix(a.shift_px, a.rotation_deg, a.scale, ((c.gs.roi.width - 1) / 2, (c.gs.roi.height - 1) / 2))
+        centre = ((c.gs.roi.width - 1) / 2, (c.gs.roi.height - 1) / 2)
+        h = similarity_matrix(a.shift_px, a.rotation_deg, a.scale, centre)
     g_gs = np.asarray(gs_m.channel_gain if gs_m and gs_m.channel_gain else [1.0] * 3, np.float64)
     g_rs = np.asarray(rs_m.channel_gain if rs_m and rs_m.channel_gain else [1.0] * 3, np.float64)
     return h, g_rs / g_gs

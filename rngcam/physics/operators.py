@@ -18,7 +18,8 @@ Measurement = Tensor | tuple[Tensor, ...]
 def inner(a: Measurement, b: Measurement) -> Tensor:
     """Real inner product <a, b> of tensors or tuples of tensors."""
     if isinstance(a, tuple):
-        return sum((inner(x, y) for x, y in zip(a, b, strict=True)), torch.zeros((), dtype=a[0].dtype, device=a[0].device))
+        zero = torch.zeros((), dtype=a[0].dtype, device=a[0].device)
+        return sum((inner(x, y) for x, y in zip(a, b, strict=True)), zero)
     return (a * b).sum()
 
 

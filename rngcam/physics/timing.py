@@ -93,7 +93,7 @@ class RollingShutterTiming:
         last = self.rows * self.rows_per_bin - 1
         return self.trigger_s + last * self.line_time_s + self.exposure_s
 
-    def weights(self, grid: "VideoGrid") -> np.ndarray:
+    def weights(self, grid: VideoGrid) -> np.ndarray:
         """(rows, n_frames) weights: mean over the bin's sensor rows of overlap/dt."""
         starts, ends = self.sensor_row_windows()
         if self.rows_per_bin == 1:
@@ -124,7 +124,7 @@ class GlobalShutterTiming:
     def end_s(self) -> float:
         return max(self.trigger_s, default=0.0) + self.exposure_s
 
-    def weights(self, grid: "VideoGrid") -> np.ndarray:
+    def weights(self, grid: VideoGrid) -> np.ndarray:
         """(n_gs_frames, n_frames) weights: overlap of each GS exposure with each frame, / dt."""
         t = np.asarray(self.trigger_s, dtype=np.float64)
         return interval_weights(t, t + self.exposure_s, grid.dt_s, grid.n_frames)
@@ -148,7 +148,7 @@ class VideoGrid:
 
     @classmethod
     def covering(cls, rs: RollingShutterTiming | None, gs: GlobalShutterTiming | None = None,
-                 dt_s: float | None = None) -> "VideoGrid":
+                 dt_s: float | None = None) -> VideoGrid:
         """The grid that covers every exposure; dt defaults to the RS line time x rows_per_bin."""
         if dt_s is None:
             if rs is None:

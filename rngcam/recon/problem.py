@@ -90,7 +90,7 @@ class Problem:
         near = touched | np.roll(touched, 1) | np.roll(touched, -1)
         return np.flatnonzero(~near)
 
-    def to(self, dtype=torch.float32, device="cpu") -> "Problem":
+    def to(self, dtype=torch.float32, device="cpu") -> Problem:
         def cast(t):
             return None if t is None else t.to(device=device, dtype=dtype if t.is_floating_point() else t.dtype)
 
@@ -287,7 +287,8 @@ def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | Non
         h = None
         if calib.gs_to_rs is not None:  # raw GS pixels -> raw RS pixels; re-express after Bayer binning
             gs_mosaic = 2 if bundle.gs.pixel_format in BAYER_FORMATS else 1
-            h = _binned_pixels(mosaic) @ np.asarray(calib.gs_to_rs, np.float64) @ np.linalg.inv(_binned_pixels(gs_mosaic))
+            h = np.asarray(calib.gs_to_rs, np.float64)
+            h = _binned_pixels(mosaic) @ h @ np.linalg.inv(_binned_pixels(gs_mosaic))
         frames = [_bin(_warp_to(f, h, sensor_shape), grid_bin // mosaic)
                   for f in _camera_frames(bundle.gs, grid.dt_s)]
         b_gs = np.stack(frames, axis=1)

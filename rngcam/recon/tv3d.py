@@ -106,7 +106,8 @@ class TV3D:
         self.rs = problem.rs_op() if use_rs else None
         self.gs = problem.gs_op() if use_gs else None
         self.hard = use_gs and self.s.gs_anchor == "hard"
-        dev, dt = problem.b_rs.device if use_rs else problem.b_gs.device, (problem.b_rs if use_rs else problem.b_gs).dtype
+        first = problem.b_rs if use_rs else problem.b_gs
+        dev, dt = first.device, first.dtype
         # The operators and measurements that are fitted: all, or the training split.
         self.rs_fit, self.b_rs_fit = self.rs, problem.b_rs
         self.gs_fit, self.b_gs_fit = self.gs, problem.b_gs
