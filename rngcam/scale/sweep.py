@@ -346,9 +346,9 @@ def plot_sweep(png_path: Path, rows: list[dict], has_truth: bool, title: str = "
         ax2.plot(x, [r.get("psnr_db") if r.get("psnr_db") is not None else math.nan for r in rows],
                  "s--", color="C1", ms=4, label="PSNR vs truth")
         ax2.set_ylabel("PSNR (dB)", color="C1")
-        ax2.legend(loc="upper right", fontsize=7)
+        ax2.legend(loc="lower right", fontsize=7, framealpha=0.6)
     if best:
-        ax.legend(loc="upper left", fontsize=7)
+        ax.legend(loc="lower left", fontsize=7, framealpha=0.6)
     fig.tight_layout()
     fig.savefig(png_path, dpi=110)
     plt.close(fig)
