@@ -46,8 +46,10 @@ def _method_options(method: str, given: dict) -> dict:
 @click.option("--no-motion-reg", is_flag=True)
 @click.option("--no-rs", is_flag=True)
 @click.option("--no-gs", is_flag=True)
+@click.option("--holdout", type=float, default=None,
+              help="Hold this fraction of RS row bins out of the fit and report the residual on them.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def recon_cmd(bundle, method, out_dir, time_budget, iters, resume, device, grid_bin, quiet, **opts):
+def recon_cmd(bundle, method, out_dir, time_budget, iters, resume, device, grid_bin, holdout, quiet, **opts):
     """Reconstruct the high-speed video in BUNDLE and report error against run time."""
     if not bundle.exists():
         raise click.BadParameter(f"{bundle} does not exist", param_hint="BUNDLE")
@@ -57,7 +59,7 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, resume, device, grid_
         opts["use_rs"] = False if opts.pop("no_rs") else None
         opts["use_gs"] = False if opts.pop("no_gs") else None
     settings = ReconSettings(method=method, time_budget_s=time_budget, max_iters=iters, device=device,
-                             grid_bin=grid_bin, resume=resume, progress=not quiet,
+                             grid_bin=grid_bin, resume=resume, progress=not quiet, holdout=holdout,
                              options=_method_options(method, opts))
     out = out_dir or default_out_dir(bundle, method)
     m = reconstruct(bundle, out, settings, echo=click.echo)
@@ -67,5 +69,7 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, resume, device, grid_
         if "psnr_intermediate_db" in m:
             line += f" (intermediate {m['psnr_intermediate_db']:.2f} dB)"
         line += f", SSIM {m['ssim']:.3f}"
+    if "heldout" in m:
+        line += f", held-out residual {m['heldout']:.4g}"
     click.echo(line)
     click.echo(f"outputs: {out}")
