@@ -1,13 +1,11 @@
 """Held-out measurement validation: the split, masked fitting without leakage, the score."""
 
-import numpy as np
 import pytest
 import torch
+from tiny_scenes import tiny_sineball_problem
 
 from rngcam.errors import ConfigError
-from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming
 from rngcam.recon.loop import LoopSettings, run
-from rngcam.recon.problem import problem_from_video
 from rngcam.recon.tv3d import TV3D, TV3DSettings, _Masked
 from rngcam.scale.holdout import HoldoutScorer, holdout_residuals
 
@@ -15,16 +13,7 @@ DT = 1e-4
 
 
 def _problem(size=12, seed=0):
-    rs = RollingShutterTiming(line_time_s=DT, exposure_s=3 * DT, rows=size)
-    gs = GlobalShutterTiming(trigger_s=(0.0, (size - 1) / 2 * DT, (size - 1) * DT), exposure_s=2 * DT)
-    k = size + 2
-    yy, xx = np.mgrid[0:size, 0:size] / size
-    v = np.zeros((3, k, size, size))
-    for i in range(k):
-        cx = 0.5 + 0.3 * np.sin(2 * np.pi * i / 5)
-        v[:, i] = 0.2 + 0.1 * xx + 0.7 * (((xx - cx) ** 2 + (yy - 0.5) ** 2) < 0.02)
-    psf = torch.rand((1, 7, 7), generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
-    return problem_from_video(torch.from_numpy(v), psf / psf.sum(), rs, gs)
+    return tiny_sineball_problem(size, psf_seed=seed)
 
 
 def _fit(problem, iters=15, **settings):

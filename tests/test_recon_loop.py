@@ -2,9 +2,9 @@
 
 import itertools
 
-import numpy as np
 import pytest
 import torch
+from tiny_scenes import tiny_sineball_problem
 
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming
 from rngcam.recon.loop import LoopSettings, run
@@ -34,15 +34,7 @@ def _full_rank_problem():
 
 
 def _sineball_problem(size=12):
-    rs = RollingShutterTiming(line_time_s=DT, exposure_s=3 * DT, rows=size)
-    gs = GlobalShutterTiming(trigger_s=(0.0, (size - 1) / 2 * DT, (size - 1) * DT), exposure_s=2 * DT)
-    k = size + 2
-    yy, xx = np.mgrid[0:size, 0:size] / size
-    v = np.zeros((3, k, size, size))
-    for i in range(k):
-        cx = 0.5 + 0.3 * np.sin(2 * np.pi * i / 5)
-        v[:, i] = 0.2 + 0.1 * xx + 0.7 * (((xx - cx) ** 2 + (yy - 0.5) ** 2) < 0.02)
-    return problem_from_video(torch.from_numpy(v), _psf(7, 7), rs, gs)
+    return tiny_sineball_problem(size, psf_seed=1)
 
 
 def _settings(**kw):
