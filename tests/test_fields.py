@@ -16,8 +16,8 @@ def test_positional_encoding_values_and_size():
     assert out.shape == (1, 2 * (1 + 2 * 3)) == (1, pe.out_dims)
     assert torch.allclose(out[0, :2], p[0])
     # sin block: (dim0 f0, dim0 f1, dim0 f2, dim1 f0, ...), then the cos block
-    expected_sin = torch.tensor([math.sin(math.pi * 2 ** l * x) for x in (0.25, -0.5) for l in range(3)])
-    expected_cos = torch.tensor([math.cos(math.pi * 2 ** l * x) for x in (0.25, -0.5) for l in range(3)])
+    expected_sin = torch.tensor([math.sin(math.pi * 2 ** f * x) for x in (0.25, -0.5) for f in range(3)])
+    expected_cos = torch.tensor([math.cos(math.pi * 2 ** f * x) for x in (0.25, -0.5) for f in range(3)])
     assert torch.allclose(out[0, 2:8], expected_sin, atol=1e-6)
     assert torch.allclose(out[0, 8:], expected_cos, atol=1e-6)
 

@@ -117,7 +117,7 @@ class PlaneField(nn.Module):
         self.planes = nn.ParameterList()
         self.scale_count = len(resolutions)
         for res, t_res in zip(resolutions, time_resolutions):
-            for a, b in self.pairs:
+            for _a, b in self.pairs:
                 size_a = int(res)  # a is always a space axis (x or y)
                 size_b = int(res) if b < 2 else max(int(t_res), 2)
                 plane = torch.empty(1, features, size_b, size_a)
@@ -158,7 +158,7 @@ class PlaneField(nn.Module):
         total = torch.zeros((), device=self.planes[0].device)
         count = 0
         for s in range(self.scale_count):
-            for j, (a, b) in enumerate(self.pairs):
+            for j, (_a, b) in enumerate(self.pairs):
                 plane = self.planes[s * len(self.pairs) + j]
                 if b == 2 and plane.shape[2] >= 3:
                     d2 = plane[:, :, 2:] - 2 * plane[:, :, 1:-1] + plane[:, :, :-2]
