@@ -141,8 +141,9 @@ class TV3D:
             if problem.gs_train_mask is not None:
                 self._anchor_patterns = self._masked_projections(w, problem.gs_fit_mask()[0].to(device=dev))
         x0 = self._initial(dt, dev)
-        self.state = {"x": x0, "x_prev": x0.clone(), "y": x0.clone(), "t": 1.0, "L": self.L,
-                      "F": self.objective(x0), "restarts": 0}
+        ax0 = self.op.A(x0)
+        self.state = {"x": x0, "Ax": ax0, "y": x0, "Ay": ax0, "t": 1.0, "L": self.L,
+                      "F": self._objective(x0, ax0), "restarts": 0}
 
     def _initial(self, dtype, device) -> Tensor:
         p = self.p
@@ -179,35 +180,40 @@ class TV3D:
         return x.clamp_min(0)
 
     def objective(self, x: Tensor) -> float:
-        data = 0.0
-        if self.op.blocks:
-            res = tuple(a - b for a, b in zip(self.op.A(x), self.b))
-            data = 0.5 * sum(float((r * r).sum()) for r in res)
+        return self._objective(x, self.op.A(x))
+
+    def _objective(self, x: Tensor, ax: tuple) -> float:
+        """F(x) given the scaled measurements' prediction ax = op.A(x)."""
+        data = 0.5 * sum(float(((a - b) ** 2).sum()) for a, b in zip(ax, self.b))
         return data + self.s.tau * float(tv.tv3(x, self.s.beta))
 
-    def _prox_grad(self, y: Tensor, L: float) -> Tensor:
+    def _prox_grad(self, y: Tensor, ay: tuple, L: float) -> Tensor:
         if self.op.blocks:
-            res = tuple(a - b for a, b in zip(self.op.A(y), self.b))
-            y = y - self.op.A_adjoint(res) / L
+            y = y - self.op.A_adjoint(tuple(a - b for a, b in zip(ay, self.b))) / L
         if not bool(torch.isfinite(y).all()):
             return y  # diverged: the loop's NaN guard rolls back (the prox refuses NaN/Inf)
         z = tv.prox_tv_nonneg(y, self.s.tau / L, self.s.beta, method=self.s.prox)
         return self._project(z)
 
+    def _try(self, y: Tensor, ay: tuple, L: float) -> tuple[Tensor, tuple, float]:
+        z = self._prox_grad(y, ay, L)
+        az = self.op.A(z)
+        return z, az, self._objective(z, az)
+
     def step(self) -> float:
+        # A is linear, so A(y) for the extrapolated point comes from the cached A(x) and A(z):
+        # one forward and one adjoint per iteration, not two forwards.
         st = self.state
-        z = self._prox_grad(st["y"], st["L"])
-        f_z = self.objective(z)
+        z, az, f_z = self._try(st["y"], st["Ay"], st["L"])
         if not math.isfinite(f_z):
             return f_z  # overflow or NaN: the loop's guard rolls back and halves the step
         if self.s.restart and f_z > st["F"]:
             # Reject the step and restart momentum from the current iterate; if even that step
             # raises F, the step is too long: backtrack (double L) until it does not.
             st["restarts"] += 1
-            st["t"], st["y"] = 1.0, st["x"].clone()
+            st["t"], st["y"], st["Ay"] = 1.0, st["x"], st["Ax"]
             for _ in range(_MAX_BACKTRACKS + 1):
-                z = self._prox_grad(st["y"], st["L"])
-                f_z = self.objective(z)
+                z, az, f_z = self._try(st["y"], st["Ay"], st["L"])
                 if math.isfinite(f_z) and f_z <= st["F"] * (1 + _BACKTRACK_RTOL):
                     break
                 st["L"] *= 2.0
@@ -216,8 +222,10 @@ class TV3D:
             if f_z > st["F"]:
                 return st["F"]  # the (approximate) prox made no progress; keep x
         t_new = (1 + math.sqrt(1 + 4 * st["t"] ** 2)) / 2
-        st["y"] = z + ((st["t"] - 1) / t_new) * (z - st["x"])
-        st["x_prev"], st["x"], st["t"], st["F"] = st["x"], z, t_new, f_z
+        momentum = (st["t"] - 1) / t_new
+        st["y"] = z + momentum * (z - st["x"])
+        st["Ay"] = tuple(a + momentum * (a - b) for a, b in zip(az, st["Ax"]))
+        st["x"], st["Ax"], st["t"], st["F"] = z, az, t_new, f_z
         return f_z
 
     def estimate(self) -> Tensor:
@@ -231,12 +239,13 @@ class TV3D:
             out["gs"] = relative_residual(self.gs_fit.A(x), self.b_gs_fit)
         return out
 
+    # Tensors are never modified in place, so the state can be shared rather than cloned.
     def state_dict(self) -> dict:
-        return {k: (v.clone() if isinstance(v, Tensor) else v) for k, v in self.state.items()}
+        return dict(self.state)
 
     def load_state_dict(self, state: dict) -> None:
-        self.state = {k: (v.clone() if isinstance(v, Tensor) else v) for k, v in state.items()}
+        self.state = dict(state)
 
     def reduce_step(self, factor: float) -> None:
         self.state["L"] /= factor
-        self.state["t"], self.state["y"] = 1.0, self.state["x"].clone()
+        self.state["t"], self.state["y"], self.state["Ay"] = 1.0, self.state["x"], self.state["Ax"]
