@@ -157,10 +157,20 @@ def run(method: Method, settings: LoopSettings,
             objective = float(method.step())
             solve_s += time.perf_counter() - t0
             iteration += 1
-            if not math.isfinite(objective) or not _finite_state(method.state_dict()):
+            due = (settings.log_every_iters is not None and iteration % settings.log_every_iters == 0) or (
+                settings.log_every_iters is None
+                and solve_s - last_log_solve >= max(settings.log_every_s, 4 * eval_s))
+            ckpt_due = ckpt is not None and time.perf_counter() - last_ckpt_t >= settings.checkpoint_every_s
+            # A non-finite state shows in the next objective; the whole state is checked only
+            # where it is kept (log snapshot, checkpoint, the end), not after every step.
+            bad, state = not math.isfinite(objective), None
+            if not bad and (due or ckpt_due or done()):
+                state = method.state_dict()
+                bad = not _finite_state(state)
+            if bad:
                 failures += 1
-                state, iteration, solve_s = last_good[0], last_good[1], last_good[2]
-                method.load_state_dict(copy.deepcopy(state))
+                good, iteration, solve_s = last_good
+                method.load_state_dict(copy.deepcopy(good))
                 method.reduce_step(0.5)
                 events.append(f"non-finite state at iteration {iteration + 1}: rolled back, step halved "
                               f"(failure {failures} of {settings.max_failures})")
@@ -171,14 +181,11 @@ def run(method: Method, settings: LoopSettings,
                                      f"kept the last good state (iteration {iteration})")
                 continue
             failures = 0
-            due = (settings.log_every_iters is not None and iteration % settings.log_every_iters == 0) or (
-                settings.log_every_iters is None
-                and solve_s - last_log_solve >= max(settings.log_every_s, 4 * eval_s))
             if due:
                 last_log_solve = solve_s
                 bar.show(record(objective), iteration, wall())
-                last_good = (copy.deepcopy(method.state_dict()), iteration, solve_s)
-            if ckpt is not None and time.perf_counter() - last_ckpt_t >= settings.checkpoint_every_s:
+                last_good = (copy.deepcopy(state), iteration, solve_s)
+            if ckpt_due:
                 checkpoint()
                 last_ckpt_t = time.perf_counter()
         if not log or log[-1]["iteration"] != iteration:
