@@ -90,6 +90,12 @@ class Problem:
         near = touched | np.roll(touched, 1) | np.roll(touched, -1)
         return np.flatnonzero(~near)
 
+    def check_finite(self, who: str) -> None:
+        """Refuse NaN/Inf measurements up front (a method would only fail after rolled-back steps)."""
+        for name, meas in (("RS", self.b_rs), ("GS", self.b_gs)):
+            if meas is not None and not bool(torch.isfinite(meas).all()):
+                raise ConfigError(f"{who}: the {name} measurement contains NaN or Inf")
+
     def to(self, dtype=torch.float32, device="cpu") -> Problem:
         def cast(t):
             return None if t is None else t.to(device=device, dtype=dtype if t.is_floating_point() else t.dtype)

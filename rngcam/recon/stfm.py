@@ -207,9 +207,7 @@ class STFM:
         self.device = torch.device(device)
         self.problem = problem.to(torch.float32, self.device)
         p = self.problem
-        for name, meas in (("RS", p.b_rs), ("GS", p.b_gs)):
-            if meas is not None and not bool(torch.isfinite(meas).all()):
-                raise ConfigError(f"stfm: the {name} measurement contains NaN or Inf")
+        p.check_finite("stfm")
         self.C, self.K, self.H, self.W = p.shape
         preset = _preset(settings.preset, self.H, self.W, self.K)
         tau = preset["tau"] if settings.tau is None else settings.tau

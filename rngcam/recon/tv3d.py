@@ -100,9 +100,7 @@ class TV3D:
         use_gs = self.s.use_gs and problem.b_gs is not None and problem.b_gs.shape[1] > 0
         if not (use_rs or use_gs):
             raise ConfigError("tv3d needs RS or GS measurements; the problem has neither in use")
-        for name, meas, used in (("RS", problem.b_rs, use_rs), ("GS", problem.b_gs, use_gs)):
-            if used and not bool(torch.isfinite(meas).all()):
-                raise ConfigError(f"tv3d: the {name} measurement contains NaN or Inf")
+        problem.check_finite("tv3d")
         self.rs = problem.rs_op() if use_rs else None
         self.gs = problem.gs_op() if use_gs else None
         self.hard = use_gs and self.s.gs_anchor == "hard"
