@@ -148,3 +148,26 @@ def test_time_budget_stops_the_loop():
 def test_loop_needs_a_stopping_rule():
     with pytest.raises(ValueError):
         LoopSettings(time_budget_s=None, max_iters=None)
+
+
+class _StopsAt(TV3D):
+    """TV3D that declares itself converged after a given number of steps."""
+
+    def __init__(self, problem, stop_after):
+        super().__init__(problem, TV3DSettings())
+        self.stop_after, self.steps = stop_after, 0
+
+    def step(self):
+        self.steps += 1
+        return super().step()
+
+    def converged(self):
+        return "enough" if self.steps >= self.stop_after else None
+
+
+def test_a_converged_method_ends_the_run_early_with_its_reason():
+    m = _StopsAt(_sineball_problem(), stop_after=4)
+    result = run(m, _settings(max_iters=50, log_every_iters=10))
+    assert result.status == "ok" and result.iterations == 4
+    assert result.log[-1]["iteration"] == 4  # the final state is logged
+    assert any("stopped at iteration 4: enough" in e for e in result.events)

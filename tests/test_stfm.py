@@ -10,7 +10,7 @@ import torch
 from rngcam.errors import ConfigError
 from rngcam.physics.operators import GlobalShutter, PSFConvolution, RollingShutter
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
-from rngcam.recon.components import choose_components, noise_sigma
+from rngcam.recon.components import choose_components
 from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.metrics import psnr
 from rngcam.recon.problem import Problem
@@ -360,12 +360,6 @@ def test_ablation_flags_are_reported():
         choose_components(p, no_rs=True, no_gs=True)
 
 
-def test_noise_sigma_estimates_gaussian_noise():
-    gen = torch.Generator().manual_seed(0)
-    flat = 0.5 + 0.01 * torch.randn(3, 64, 64, generator=gen, dtype=torch.float64)
-    assert noise_sigma(flat) == pytest.approx(0.01, rel=0.1)
-
-
 # ----------------------------------------------------------------------------- the Method protocol
 
 
@@ -413,19 +407,68 @@ def test_settings_are_validated():
         STFMSettings(components="some")
 
 
-def test_fast_preset_starts_at_the_cross_fade_of_the_key_frames(sineball16):
-    from rngcam.recon.baselines import blend
+def _key_frames(p):
+    return (p.b_gs / p.gs_weights.sum(1).view(1, -1, 1, 1)).float().numpy()
 
-    keys = (sineball16.b_gs / sineball16.gs_weights.sum(1).view(1, -1, 1, 1)).float().numpy()
-    cross_fade = torch.from_numpy(blend(keys, sineball16.gs_times_s, sineball16.frame_times_s))
-    m = make_stfm(sineball16, small_settings(dynamic_base="blend"))  # exactly, up to the static part
-    assert m.base_keys is not None
-    assert psnr(m.estimate(), cross_fade) > 40
-    fitted = make_stfm(sineball16, small_settings())  # the default: fields pre-fitted to it
-    assert fitted.base_keys is None
-    assert psnr(fitted.estimate(), cross_fade) > 30
-    paper = make_stfm(sineball16, small_settings(preset="paper"))
-    assert paper.base_keys is None and not paper.resolved.dynamic_time
+
+def test_dynamic_field_on_a_base_starts_exactly_at_that_base(sineball16):
+    from rngcam.recon.baselines import blend, interp
+
+    p = sineball16
+    for base, baseline in (("blend", blend), ("interp", interp)):
+        video = torch.from_numpy(np.asarray(baseline(_key_frames(p), p.gs_times_s, p.frame_times_s)))
+        m = make_stfm(p, small_settings(dynamic_base=base, no_static=True))
+        assert m.base_source == base
+        assert psnr(m.estimate(), video) > 60  # zero correction, zero motion: the base itself
+    paper = make_stfm(p, small_settings(preset="paper"))
+    assert paper.base_source is None and not paper.resolved.dynamic_time
+
+
+def test_fast_preset_corrects_the_rife_video_when_rife_is_installed(sineball16):
+    from rngcam.recon.rife import RifeUnavailableError, rife
+
+    p = sineball16
+    try:
+        video = torch.from_numpy(rife(_key_frames(p), p.gs_times_s, p.frame_times_s))
+    except RifeUnavailableError as exc:
+        pytest.skip(f"RIFE weights not installed: {exc}")
+    m = make_stfm(p, small_settings(no_static=True))
+    assert m.base_source == "rife" and m.resolved_settings()["base_video"] == "rife"
+    assert psnr(m.estimate(), video) > 60
+
+
+def test_a_moving_base_video_needs_the_motion_field():
+    p = scene_problem("sineball", 16, noise=0.0)
+    m = make_stfm(p, small_settings(dynamic_base="interp", no_static=True))
+    m.step()
+    assert all(param.grad is not None for param in m.fields["motion"].parameters())
+
+
+def test_discrepancy_stop_ends_the_fit_at_the_noise_level(sineball16):
+    from rngcam.recon.stfm import NOISE_CHECK_STEPS
+
+    m = make_stfm(sineball16, small_settings())
+    assert m.rs_noise_level > 0 and m.resolved.stop_at_noise
+    m.rs_noise_level = 1.0  # every fit is "at the noise level": stop at the first check
+    result = run(m, LoopSettings(time_budget_s=None, max_iters=3 * NOISE_CHECK_STEPS, progress=False))
+    assert result.iterations == NOISE_CHECK_STEPS
+    assert any("noise level" in e for e in result.events)
+    m = make_stfm(sineball16, small_settings())
+    m.rs_noise_level = 0.0  # never reached: the iteration count decides
+    assert run(m, LoopSettings(time_budget_s=None, max_iters=NOISE_CHECK_STEPS + 1, progress=False)).iterations == \
+        NOISE_CHECK_STEPS + 1
+    off = make_stfm(sineball16, small_settings(stop_at_noise=False))
+    off.rs_noise_level = 1.0
+    assert off.converged() is None
+
+
+def test_noise_level_comes_from_the_fitted_rows_only(sineball16):
+    from rngcam.recon.noise import relative_noise_level
+
+    split = sineball16.with_holdout(0.25, seed=0)
+    m = make_stfm(split, small_settings())
+    rows = torch.nonzero(split.rs_train_rows).flatten()
+    assert m.rs_noise_level == pytest.approx(relative_noise_level(split.b_rs[:, rows].float()), rel=1e-6)
 
 
 # ----------------------------------------------------------------------------- it learns

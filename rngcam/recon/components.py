@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.recon.noise import image_noise_std
 
 DARK_FRACTION = 0.02  # background mean below this fraction of the GS peak counts as dark
 STATIC_NOISE_FACTOR = 5.0  # a change beyond this many noise sigmas is real
@@ -39,17 +40,6 @@ class Components:
     rs: bool = True
     gs: bool = True
     left_out: tuple[tuple[str, str], ...] = ()
-
-
-def noise_sigma(image: Tensor) -> float:
-    """Robust noise standard deviation of a (C, H, W) image (MAD of 2x2 diagonal Haar details)."""
-    x = image.double()
-    h, w = (x.shape[-2] // 2) * 2, (x.shape[-1] // 2) * 2
-    if h == 0 or w == 0:
-        return 0.0
-    x = x[..., :h, :w]
-    d = (x[..., 0::2, 0::2] - x[..., 1::2, 0::2] - x[..., 0::2, 1::2] + x[..., 1::2, 1::2]) / 2
-    return float(d.abs().median()) / 0.6745
 
 
 def gs_video_units(problem) -> Tensor:
@@ -83,14 +73,14 @@ def dark_background(problem) -> tuple[bool, str]:
     return dark, f"background level {level:.3g} is {100 * level / peak:.2g}% of the GS peak {peak:.3g}"
 
 
-def gs_noise_sigma(v: Tensor) -> float:
+def gs_image_noise_std(v: Tensor) -> float:
     """Noise sigma of GS frames (C, G, H, W): the smaller of two robust estimates, the MAD of
     frame differences (texture cancels; fooled only when most pixels move) and the Haar
     estimate of each frame (fooled by dense texture)."""
     g = v.shape[1]
     pairs = [float((v[:, i] - v[:, j]).double().abs().median()) / 0.6745 / 2 ** 0.5
              for i in range(g) for j in range(i + 1, g)]
-    return min(pairs + [noise_sigma(v[:, i]) for i in range(g)])
+    return min(pairs + [image_noise_std(v[:, i]) for i in range(g)])
 
 
 def static_scene(problem, rs_on: bool) -> tuple[bool, str]:
@@ -107,7 +97,7 @@ def static_scene(problem, rs_on: bool) -> tuple[bool, str]:
     if g < 2:
         return False, "a single GS frame cannot show motion"
     mean = v.mean(dim=1)
-    sigma = gs_noise_sigma(v) * ((g - 1) / g) ** 0.5
+    sigma = gs_image_noise_std(v) * ((g - 1) / g) ** 0.5
     limit = STATIC_NOISE_FACTOR * sigma + STATIC_RELATIVE_TOL * mean.abs()
     moving = max(float(((v[:, i] - mean).abs() > limit).double().mean()) for i in range(g))
     if moving > STATIC_OUTLIER_FRACTION:
@@ -121,7 +111,7 @@ def static_scene(problem, rs_on: bool) -> tuple[bool, str]:
     residual = op.A(static_video.contiguous()) - problem.b_rs
     if getattr(problem, "rs_train_rows", None) is not None:  # held-out rows are not looked at
         residual = residual[:, problem.rs_train_rows.to(residual.device)]
-    rms, white = _rms(residual), noise_sigma(residual)
+    rms, white = _rms(residual), image_noise_std(residual)
     allowed = 0.5 * STATIC_NOISE_FACTOR * white + STATIC_RELATIVE_TOL * _rms(problem.b_rs)
     if rms > allowed:
         return False, (f"the RS image is not explained by a static scene (residual RMS {rms:.3g} "

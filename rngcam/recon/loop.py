@@ -48,6 +48,9 @@ class Method(Protocol):
     def reduce_step(self, factor: float) -> None:
         """Shrink the step size / learning rate after a NaN or Inf."""
 
+    # Optional: `converged() -> str | None`, asked after every step; a reason ends the run early
+    # (e.g. STFM's discrepancy-principle stop) and is kept in the events.
+
 
 @dataclass
 class LoopSettings:
@@ -149,10 +152,12 @@ def run(method: Method, settings: LoopSettings,
                                 "solve_s": solve_s, "wall_s": wall(), "log": log,
                                 "events": events, "rng": torch.get_rng_state()})
 
+    converged = getattr(method, "converged", None)
+    stop_reason = None
     with _progress(settings, method.name) as bar:
         if not log:
             record(float("nan"))
-        while not done():
+        while not done() and stop_reason is None:
             t0 = time.perf_counter()
             objective = float(method.step())
             solve_s += time.perf_counter() - t0
@@ -164,7 +169,9 @@ def run(method: Method, settings: LoopSettings,
             # A non-finite state shows in the next objective; the whole state is checked only
             # where it is kept (log snapshot, checkpoint, the end), not after every step.
             bad, state = not math.isfinite(objective), None
-            if not bad and (due or ckpt_due or done()):
+            if not bad and converged is not None:
+                stop_reason = converged()
+            if not bad and (due or ckpt_due or done() or stop_reason):
                 state = method.state_dict()
                 bad = not _finite_state(state)
             if bad:
@@ -179,6 +186,7 @@ def run(method: Method, settings: LoopSettings,
                     return RunResult(log, iteration, solve_s, wall(), events, "failed",
                                      f"{method.name}: {failures} non-finite steps in a row; "
                                      f"kept the last good state (iteration {iteration})")
+                stop_reason = None
                 continue
             failures = 0
             if due:
@@ -188,6 +196,8 @@ def run(method: Method, settings: LoopSettings,
             if ckpt_due:
                 checkpoint()
                 last_ckpt_t = time.perf_counter()
+        if stop_reason:
+            events.append(f"stopped at iteration {iteration}: {stop_reason}")
         if not log or log[-1]["iteration"] != iteration:
             bar.show(record(objective), iteration, wall())
         checkpoint()

@@ -61,9 +61,11 @@ from rngcam.physics.operators import PSFConvolution
 from rngcam.recon.components import Components, choose_components, gs_video_units
 from rngcam.recon.fields import field_on_grid, make_field
 from rngcam.recon.metrics import relative_residual
+from rngcam.recon.noise import relative_noise_level
 
 PRESETS = ("paper", "fast")
 INIT_STEPS = 100
+NOISE_CHECK_STEPS = 20  # steps between discrepancy-principle checks (one full RS forward each)
 MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow is skipped
 
 
@@ -93,6 +95,7 @@ class STFMSettings:
     init_video: str = "blend"  # what a time-dependent F_D starts from: "blend" or "interp"
     dynamic_base: str | None = None  # "blend": F_D's colour corrects the warped cross-fade; "none"
     time_smoothness: float | None = None  # weight of the time planes' roughness (plane fields)
+    stop_at_noise: bool | None = None  # stop once the RS residual reaches the estimated noise level
 
     def __post_init__(self):
         if self.preset not in PRESETS:
@@ -105,8 +108,9 @@ class STFMSettings:
             raise ConfigError(f"init must be 'gs' or 'random', got {self.init!r}")
         if self.init_video not in ("blend", "interp"):
             raise ConfigError(f"init_video must be 'blend' or 'interp', got {self.init_video!r}")
-        if self.dynamic_base not in (None, "blend", "none"):
-            raise ConfigError(f"dynamic_base must be 'blend' or 'none', got {self.dynamic_base!r}")
+        if self.dynamic_base not in (None, "blend", "none", *BASE_VIDEOS):
+            raise ConfigError(f"dynamic_base must be one of blend, none, {', '.join(BASE_VIDEOS)}; "
+                              f"got {self.dynamic_base!r}")
         for name in ("beta", "tau", "psi", "lr"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value >= 0):
@@ -119,6 +123,7 @@ class STFMSettings:
             raise ConfigError("tv_frames_per_step and frame_chunk must be >= 1")
 
 
+BASE_VIDEOS = ("video", "rife", "interp")  # "video": rife when its weights are installed, else interp
 DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
 
 
@@ -133,7 +138,8 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
             "dynamic": ("siren", dict(hidden=128, layers=3, **siren)),
             "lr": 5e-6, "decoder_lr_ratio": 1.0, "gain_lr_ratio": 1.0, "lr_half_life_steps": math.inf,
             "beta": 10.0, "tau": 1e-3, "rows_per_step": max(1, h // 4), "init": "random",
-            "dynamic_time": False, "dynamic_base": "none", "gs_windows_per_step": 0, "time_smoothness": 0.0}
+            "dynamic_time": False, "dynamic_base": "none", "gs_windows_per_step": 0, "time_smoothness": 0.0,
+            "stop_at_noise": False}
 
     def scales(fractions, n):
         return tuple(sorted({max(2, round(n * f)) for f in fractions}))
@@ -154,7 +160,8 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
                                 "features": DYNAMIC_FEATURES, "hidden": 32}),
         "lr": 2e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
         "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 8)), "init": "gs",
-        "dynamic_time": True, "dynamic_base": "none", "gs_windows_per_step": 1, "time_smoothness": 1e-3}
+        "dynamic_time": True, "dynamic_base": "video", "gs_windows_per_step": 1, "time_smoothness": 3e-2,
+        "stop_at_noise": True}
 
 
 # ----------------------------------------------------------------------------- RS restricted
@@ -193,6 +200,7 @@ class _Resolved:
     dynamic_base: str
     time_smoothness: float
     gs_windows_per_step: int
+    stop_at_noise: bool
     fields: dict = field(default_factory=dict)
 
 
@@ -228,6 +236,7 @@ class STFM:
             dynamic_base=settings.dynamic_base or preset["dynamic_base"],
             time_smoothness=(preset["time_smoothness"] if settings.time_smoothness is None
                              else settings.time_smoothness),
+            stop_at_noise=preset["stop_at_noise"] if settings.stop_at_noise is None else settings.stop_at_noise,
             fields={k: preset[k] for k in ("static", "motion", "dynamic")})
         torch.manual_seed(settings.seed)
         self.generator = torch.Generator(device="cpu").manual_seed(settings.seed)
@@ -240,6 +249,8 @@ class STFM:
         self._build_optimiser(preset)
         self.steps = 0
         self._cache: tuple[int, Tensor] | None = None
+        self.rs_noise_level = (relative_noise_level(self.problem.b_rs.index_select(1, self.rs_rows_fit.to(self.device)))
+                               if self.parts.rs else None)
 
     # ------------------------------------------------------------------ setup
 
@@ -274,13 +285,19 @@ class STFM:
 
     def _build_base(self) -> None:
         """Key frames (without gains) and cross-fade weights for a dynamic field on a base."""
-        self.base_keys = self.base_weights = None
-        if not (self.resolved.dynamic_base == "blend" and self.resolved.dynamic_time
-                and self.parts.gs and self.parts.motion):
+        self.base_keys = self.base_weights = self.base_video = None
+        self.base_source = None
+        kind = self.resolved.dynamic_base
+        if not (kind != "none" and self.resolved.dynamic_time and self.parts.gs and self.parts.motion):
             return
         p = self.problem
         b_gs = p.b_gs_training() if hasattr(p, "b_gs_training") else p.b_gs
         keys = b_gs / self.w_gs.sum(1).clamp_min(1e-12)[None, :, None, None]
+        if kind in BASE_VIDEOS:
+            self.base_video, self.base_source = _base_video(keys, p.gs_times_s, p.frame_times_s, kind)
+            self.base_video = self.base_video.to(self.device, torch.float32)
+            return
+        self.base_source = "blend"
         self.base_keys = keys.reshape(1, -1, self.H, self.W).to(self.device, torch.float32)
         times = torch.as_tensor(self._gs_centre_frames(), device=self.device).float()
         self.base_weights = self._blend_weights(times)
@@ -298,7 +315,7 @@ class STFM:
             if dims == 2:
                 cfg_d = {k: v for k, v in cfg_d.items() if k != "time_resolutions"}
             self.fields["dynamic"] = make_field(kind_d, dims, self.C + 1, **cfg_d)
-            if self.base_keys is not None and kind_d == "planes":  # start exactly at the cross-fade
+            if self.base_source is not None and kind_d == "planes":  # start exactly at the base
                 head = self.fields["dynamic"].decoder[-1]
                 with torch.no_grad():
                     head.weight[:self.C] = 0
@@ -396,13 +413,22 @@ class STFM:
         raw = self.fields["dynamic"](torch.stack(coords, dim=-1).reshape(-1, len(coords)))
         raw = raw.reshape(n, self.H, self.W, self.C + 1).permute(3, 0, 1, 2)
         colour = raw[:self.C]
-        if self.base_keys is not None:  # the field is a correction to the warped cross-fade
-            grid = torch.stack([x, y], dim=-1).reshape(1, n * self.H, self.W, 2)
-            keys = F.grid_sample(self.base_keys, grid, mode="bilinear", padding_mode="border",
-                                 align_corners=True).view(self.C, -1, n, self.H, self.W)
-            base = torch.einsum("cgnhw,ng->cnhw", keys, self.base_weights[idx])
-            colour = colour + _inverse_softplus(base * self._gain()[:, None, None, None])
+        if self.base_source is not None:  # the field is a correction to the warped base video
+            colour = colour + _inverse_softplus(self._base_at(x, y, idx) * self._gain()[:, None, None, None])
         return F.softplus(colour), torch.sigmoid(raw[self.C:])
+
+    def _base_at(self, x: Tensor, y: Tensor, idx: Tensor) -> Tensor:
+        """The base video (C, n, H, W) of frames idx sampled at the points (x, y) (n, H, W)."""
+        n = len(idx)
+        if self.base_video is not None:
+            grid = torch.stack([x, y], dim=-1)  # (n, H, W, 2)
+            frames = self.base_video.index_select(1, idx).permute(1, 0, 2, 3)  # (n, C, H, W)
+            out = F.grid_sample(frames, grid, mode="bilinear", padding_mode="border", align_corners=True)
+            return out.permute(1, 0, 2, 3)
+        grid = torch.stack([x, y], dim=-1).reshape(1, n * self.H, self.W, 2)
+        keys = F.grid_sample(self.base_keys, grid, mode="bilinear", padding_mode="border",
+                             align_corners=True).view(self.C, -1, n, self.H, self.W)
+        return torch.einsum("cgnhw,ng->cnhw", keys, self.base_weights[idx])
 
     def _gain(self) -> Tensor:
         return self.log_gain.exp()
@@ -595,6 +621,20 @@ class STFM:
         return sum(terms.values())
 
     @torch.no_grad()
+    def converged(self) -> str | None:
+        """The discrepancy principle: every NOISE_CHECK_STEPS steps, the relative RS residual on the
+        fitted rows against the noise level estimated from the RS image (rngcam.recon.noise); at or
+        below it the fit would start fitting noise, so it stops (fast preset; `stop_at_noise`)."""
+        if not (self.resolved.stop_at_noise and self.parts.rs and self.steps % NOISE_CHECK_STEPS == 0):
+            return None
+        rows = self.rs_rows_fit.to(self.device)
+        residual = relative_residual(self._rs_apply(self._video_frames, rows), self.problem.b_rs.index_select(1, rows))
+        if residual > self.rs_noise_level:
+            return None
+        return (f"RS residual {residual:.4f} reached the noise level estimated from the RS image "
+                f"({self.rs_noise_level:.4f}): more steps would fit noise")
+
+    @torch.no_grad()
     def estimate(self) -> Tensor:
         if self._cache is not None and self._cache[0] == self.steps:
             return self._cache[1]
@@ -667,7 +707,9 @@ class STFM:
         out = asdict(self.resolved.settings)
         out.update({k: getattr(self.resolved, k) for k in
                     ("beta", "tau", "lr", "lr_half_life_steps", "rows_per_step", "init", "dynamic_time",
-                     "time_smoothness", "gs_windows_per_step")})
+                     "dynamic_base", "time_smoothness", "gs_windows_per_step", "stop_at_noise")})
+        out["base_video"] = self.base_source
+        out["rs_noise_level"] = self.rs_noise_level
         out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}
         out["left_out"] = [list(x) for x in self.left_out]
         return out
@@ -735,7 +777,7 @@ class STFM:
                       else video[:, idx])
             opt.zero_grad()
             raw = field_on_grid(field, [self.xs, self.ys, self.ts[idx]]).permute(3, 0, 1, 2)
-            if self.base_keys is not None:  # the colour is already the cross-fade: keep it
+            if self.base_source is not None:  # the colour is already the base video: keep it
                 loss = raw[:self.C].square().mean()
             else:
                 loss = (F.softplus(raw[:self.C]) - target).square().mean()
@@ -783,6 +825,22 @@ class STFM:
             loss = (self._motion(idx) - target[idx]).square().mean()
             loss.backward()
             opt.step()
+
+
+def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str) -> tuple[Tensor, str]:
+    """The GS-only video (C, K, H, W) a dynamic field corrects, and which baseline made it."""
+    from rngcam.recon.baselines import interp
+
+    frames = keys.detach().float().cpu().numpy()
+    if kind in ("video", "rife") and frames.shape[0] in (1, 3) and min(frames.shape[-2:]) >= MIN_FLOW_SIZE_PX:
+        from rngcam.recon.rife import RifeUnavailableError, rife
+
+        try:
+            return torch.from_numpy(rife(frames, gs_times_s, frame_times_s)), "rife"
+        except RifeUnavailableError:
+            if kind == "rife":
+                raise
+    return torch.from_numpy(np.asarray(interp(frames, gs_times_s, frame_times_s), np.float32)), "interp"
 
 
 def _inverse_softplus(y: Tensor) -> Tensor:
