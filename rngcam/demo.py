@@ -22,6 +22,7 @@ OUT = Path("demo-out")
 PLAN = [
     ("blend", {}, None),
     ("interp", {}, None),
+    ("rife", {}, None),
     ("tv3d", {}, 30.0),
     ("stfm", {"preset": "fast"}, 90.0),
 ]

@@ -14,7 +14,8 @@ def _method_options(method: str, given: dict) -> dict:
     common = {"tau", "beta", "psi", "gs_anchor"}
     allowed = {
         "tv3d": common | {"prox", "use_rs", "use_gs"},
-        "stfm": common | {"preset", "components", "no_static", "no_motion_reg", "no_rs", "no_gs"},
+        "stfm": common | {"preset", "components", "no_static", "no_motion_reg", "no_rs", "no_gs",
+                          "dynamic_base", "stop_at_noise"},
     }.get(method, set())
     opts = {k: v for k, v in given.items() if v is not None}
     bad = sorted(set(opts) - allowed)
@@ -42,6 +43,11 @@ def _method_options(method: str, given: dict) -> dict:
 @click.option("--gs-anchor", type=click.Choice(["soft", "hard"]), default=None)
 @click.option("--components", type=click.Choice(["auto", "all"]), default=None,
               help="STFM: drop what the scene does not need (auto) or keep all.")
+@click.option("--base", "dynamic_base", type=click.Choice(["video", "rife", "interp", "blend", "none"]),
+              default=None, help="STFM fast: the GS-only video the dynamic field corrects [video: rife, else interp].")
+@click.option("--stop-at-noise/--no-stop-at-noise", default=None,
+              help="STFM: stop once the RS residual reaches the noise level estimated from the RS image "
+                   "[fast: on].")
 @click.option("--no-static", is_flag=True)
 @click.option("--no-motion-reg", is_flag=True)
 @click.option("--no-rs", is_flag=True)

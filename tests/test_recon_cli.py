@@ -75,3 +75,15 @@ def test_clear_errors(tmp_path, mock_bundle):
     assert len([ln for ln in res.output.splitlines() if ln.startswith("error:")]) == 1
     bad = CliRunner().invoke(main, ["recon", str(mock_bundle), "--method", "blend", "--tau", "1"])
     assert bad.exit_code != 0 and "--tau does not apply" in bad.output
+
+
+def test_stfm_base_and_stop_options_reach_the_method(mock_bundle, tmp_path):
+    out = tmp_path / "s"
+    res = CliRunner().invoke(main, ["recon", str(mock_bundle), "-o", str(out), "--quiet", "--iters", "2",
+                                    "--base", "interp", "--no-stop-at-noise"])
+    assert res.exit_code == 0, res.output
+    with h5py.File(out / "recon.h5") as f:
+        settings = json.loads(f.attrs["settings"])
+    used = settings["method_settings"]
+    assert used["base_video"] == "interp" and used["stop_at_noise"] is False and used["rs_noise_level"] > 0
+    assert json.loads((out / "metrics.json").read_text())["method_settings"]["base_video"] == "interp"

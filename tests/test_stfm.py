@@ -487,3 +487,22 @@ def test_short_fit_improves_psnr_on_average():
         m.step()
     end = psnr(m.estimate(), truth)
     assert start < mid < end, (start, mid, end)
+
+
+def test_outputs_use_the_moving_average_and_training_keeps_its_weights(sineball16):
+    m = make_stfm(sineball16, small_settings(ema_decay=0.9))
+    for _ in range(5):
+        m.step()
+    current = [q.detach().clone() for q in m._params]
+    assert any(not torch.equal(q, a) for q, a in zip(current, m._ema, strict=True))
+    averaged = m.estimate()
+    assert all(torch.equal(q, c) for q, c in zip(m._params, current, strict=True))  # restored
+    with m._averaged():
+        assert all(torch.equal(q, a) for q, a in zip(m._params, m._ema, strict=True))
+    raw = make_stfm(sineball16, small_settings(ema_decay=0.0))
+    for _ in range(5):
+        raw.step()
+    assert raw._ema is None and torch.equal(raw.estimate(), raw.frames(torch.arange(raw.K)))
+    assert not torch.equal(averaged, raw.estimate())
+    with pytest.raises(ConfigError, match="ema_decay"):
+        STFMSettings(ema_decay=1.0)

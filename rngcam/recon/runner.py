@@ -152,7 +152,7 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
             return {}
         return video_metrics(video.detach().double().cpu(), problem.truth, intermediate, problem.mask)
 
-    components, left_out, status, message = {}, [], "ok", ""
+    components, left_out, status, message, method_settings = {}, [], "ok", "", None
     if settings.method in GS_ONLY:
         video, result = _run_gs_only(problem, settings.method, settings.options)
         vt = torch.from_numpy(video).double()
@@ -179,6 +179,8 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
         video = method.estimate().detach().float().cpu().numpy()
         if hasattr(method, "components"):
             components = method.components()
+        if hasattr(method, "resolved_settings"):
+            method_settings = method.resolved_settings()
         status, message = result.status, result.message
         for event in result.events:
             echo(f"event: {event}")
@@ -199,7 +201,11 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
                 "heldout", "heldout_rs", "heldout_gs"):
         if key in final:
             metrics[key] = final[key]
+    if method_settings is not None:
+        metrics["method_settings"] = method_settings  # the preset's values filled in
     resolved = {**asdict(settings), "device": device, "grid_bin": settings.grid_bin}
+    if method_settings is not None:
+        resolved["method_settings"] = method_settings
     outputs.write_recon_h5(out / "recon.h5", video, problem.frame_times_s, resolved,
                            bundle_checksum(bundle_path), components, left_out)
     outputs.write_tiff(out / "video.tif", video)

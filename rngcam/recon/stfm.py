@@ -5,11 +5,14 @@ Model (DESIGN.md): a static field F_S(x, y) -> RGB >= 0, a motion field F_M(x, y
 (RGB >= 0, alpha in [0, 1]); the video is v = alpha v_S + (1 - alpha) v_D. As in DESIGN.md
 F_D is 2-D: one canonical image that the motion field moves around, so the dynamics live in
 the motion field (the only field that sees t). This is the "paper" preset and
-`dynamic_time=False`. Deviation, opt-in and the "fast" default (`dynamic_time=True`):
-F_D(x + u_x, y + u_y, t), a factorised plane field whose time planes start at one; it can
-represent the cross-fade of the key frames exactly, so the fit starts at the blend baseline,
-and appearance changes that no warp explains (smoke appearing) - the motion field still moves
-content, but it no longer has to carry all the dynamics. Coordinates are in [-1, 1] (pixel
+`dynamic_time=False`. Deviations in the "fast" default (`dynamic_time=True`, `dynamic_base=
+"video"`): F_D(x + u_x, y + u_y, t) is a factorised plane field, and its colour is a correction
+to a base video B, the best GS-only interpolation of the key frames (RIFE when its weights are
+installed, else optical-flow interpolation): colour = softplus(softplus^-1(B_t(x + u)) + field).
+The correction head and the motion start at zero, so the fit starts exactly at that baseline;
+the RS image then moves content (motion field) and changes appearance where no warp explains
+it (smoke appearing). B costs one video-sized buffer (C K H W floats, like the output).
+Coordinates are in [-1, 1] (pixel
 and frame centres at the ends); u is in the same units.
 
 Loss, each data term divided by its operator's squared norm (||A|| from power iteration at
@@ -33,21 +36,27 @@ chunk against the residual of a first, gradient-free pass, so no autograd graph 
 than one chunk plus the GS windows. Outputs evaluate the video in chunks. A held-out split
 (Problem.with_holdout) is honoured: only training rows and GS pixels are fitted or looked at.
 
+Stopping (fast preset, `stop_at_noise`): every NOISE_CHECK_STEPS steps the relative RS
+residual on the fitted rows is compared with the noise level estimated from the RS image alone
+(rngcam.recon.noise); once the fit reaches it, further steps would fit noise (the discrepancy
+principle), so the loop stops and says so. Where the base video already explains the RS image
+(slow, smooth motion) this returns that baseline almost unchanged.
+
 Presets: "paper" (SIREN fields as published: dynamic 3x128, static and motion 2x32, with
 positional encoding; Adam 5e-6, random initialisation) and "fast" (the default: plane
-fields, Adam 2e-2 with exponential decay, initialised from the GS frames: static field from
-their per-pixel median, alpha where every key frame agrees with it, the dynamic field from
-their cross-fade; with `dynamic_time=False` instead the canonical image from the middle key
-frame and the motion from DIS optical flow between key frames, interpolated in time).
-Option `dynamic_base="blend"`: F_D's colour is softplus(softplus^-1(cross-fade at the warped
-point) + field), with the field's colour head at zero, so the fit starts exactly at the blend
-baseline (key frames are kept, not the video: memory O(G)); it is safe but learns slowly, so
-it is not the default.
+fields, Adam 2e-2 with exponential decay, the base video above, initialised from the GS frames:
+static field from their per-pixel median, alpha where every key frame agrees with it). Other
+dynamic bases: "rife" or "interp" (that baseline), "blend" (the cross-fade of the warped key
+frames: memory O(G) instead of O(K), but it starts lower), "none" (F_D alone, fitted to the
+cross-fade or, with `init_video="interp"`, the interpolation first; with `dynamic_time=False`
+the canonical image from the middle key frame and the motion from DIS optical flow between key
+frames, interpolated in time).
 """
 
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 
 import cv2
@@ -96,6 +105,7 @@ class STFMSettings:
     dynamic_base: str | None = None  # "blend": F_D's colour corrects the warped cross-fade; "none"
     time_smoothness: float | None = None  # weight of the time planes' roughness (plane fields)
     stop_at_noise: bool | None = None  # stop once the RS residual reaches the estimated noise level
+    ema_decay: float | None = None  # outputs use an exponential moving average of the weights (0: off)
 
     def __post_init__(self):
         if self.preset not in PRESETS:
@@ -111,6 +121,8 @@ class STFMSettings:
         if self.dynamic_base not in (None, "blend", "none", *BASE_VIDEOS):
             raise ConfigError(f"dynamic_base must be one of blend, none, {', '.join(BASE_VIDEOS)}; "
                               f"got {self.dynamic_base!r}")
+        if self.ema_decay is not None and not 0 <= self.ema_decay < 1:
+            raise ConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay!r}")
         for name in ("beta", "tau", "psi", "lr"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value >= 0):
@@ -139,7 +151,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
             "lr": 5e-6, "decoder_lr_ratio": 1.0, "gain_lr_ratio": 1.0, "lr_half_life_steps": math.inf,
             "beta": 10.0, "tau": 1e-3, "rows_per_step": max(1, h // 4), "init": "random",
             "dynamic_time": False, "dynamic_base": "none", "gs_windows_per_step": 0, "time_smoothness": 0.0,
-            "stop_at_noise": False}
+            "stop_at_noise": False, "ema_decay": 0.0}
 
     def scales(fractions, n):
         return tuple(sorted({max(2, round(n * f)) for f in fractions}))
@@ -161,7 +173,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
         "lr": 2e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
         "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 8)), "init": "gs",
         "dynamic_time": True, "dynamic_base": "video", "gs_windows_per_step": 1, "time_smoothness": 3e-2,
-        "stop_at_noise": True}
+        "stop_at_noise": True, "ema_decay": 0.95}
 
 
 # ----------------------------------------------------------------------------- RS restricted
@@ -201,6 +213,7 @@ class _Resolved:
     time_smoothness: float
     gs_windows_per_step: int
     stop_at_noise: bool
+    ema_decay: float
     fields: dict = field(default_factory=dict)
 
 
@@ -237,6 +250,7 @@ class STFM:
             time_smoothness=(preset["time_smoothness"] if settings.time_smoothness is None
                              else settings.time_smoothness),
             stop_at_noise=preset["stop_at_noise"] if settings.stop_at_noise is None else settings.stop_at_noise,
+            ema_decay=preset["ema_decay"] if settings.ema_decay is None else settings.ema_decay,
             fields={k: preset[k] for k in ("static", "motion", "dynamic")})
         torch.manual_seed(settings.seed)
         self.generator = torch.Generator(device="cpu").manual_seed(settings.seed)
@@ -247,6 +261,8 @@ class STFM:
         if self.resolved.init == "gs" and self.parts.gs:
             self._init_from_gs()
         self._build_optimiser(preset)
+        self._params = [*self.fields.parameters(), self.log_gain]
+        self._ema = [q.detach().clone() for q in self._params] if self.resolved.ema_decay > 0 else None
         self.steps = 0
         self._cache: tuple[int, Tensor] | None = None
         self.rs_noise_level = (relative_noise_level(self.problem.b_rs.index_select(1, self.rs_rows_fit.to(self.device)))
@@ -617,8 +633,30 @@ class STFM:
         terms = self.loss_terms(rows, tv_frames, backward=True, gs_windows=windows)
         self.optimiser.step()
         self.steps += 1
+        if self._ema is not None:  # warm-up as in TF's ExponentialMovingAverage(num_updates)
+            decay = min(self.resolved.ema_decay, (1 + self.steps) / (10 + self.steps))
+            with torch.no_grad():
+                for a, q in zip(self._ema, self._params, strict=True):
+                    a.lerp_(q, 1 - decay)
         self._cache = None
         return sum(terms.values())
+
+    @contextmanager
+    def _averaged(self):
+        """Inside: the weights are their moving average (outputs, residuals, the stop test)."""
+        if self._ema is None:
+            yield
+            return
+        with torch.no_grad():
+            current = [q.detach().clone() for q in self._params]
+            for q, a in zip(self._params, self._ema, strict=True):
+                q.copy_(a)
+        try:
+            yield
+        finally:
+            with torch.no_grad():
+                for q, c in zip(self._params, current, strict=True):
+                    q.copy_(c)
 
     @torch.no_grad()
     def converged(self) -> str | None:
@@ -628,7 +666,9 @@ class STFM:
         if not (self.resolved.stop_at_noise and self.parts.rs and self.steps % NOISE_CHECK_STEPS == 0):
             return None
         rows = self.rs_rows_fit.to(self.device)
-        residual = relative_residual(self._rs_apply(self._video_frames, rows), self.problem.b_rs.index_select(1, rows))
+        with self._averaged():
+            pred = self._rs_apply(self._video_frames, rows)
+        residual = relative_residual(pred, self.problem.b_rs.index_select(1, rows))
         if residual > self.rs_noise_level:
             return None
         return (f"RS residual {residual:.4f} reached the noise level estimated from the RS image "
@@ -639,13 +679,18 @@ class STFM:
         if self._cache is not None and self._cache[0] == self.steps:
             return self._cache[1]
         video = torch.empty(self.C, self.K, self.H, self.W, device=self.device)
-        for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):
-            video[:, idx] = self._video_frames(idx)
+        with self._averaged():
+            for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):
+                video[:, idx] = self._video_frames(idx)
         self._cache = (self.steps, video)
         return video
 
     @torch.no_grad()
     def residuals(self) -> dict[str, float]:
+        with self._averaged():
+            return self._residuals()
+
+    def _residuals(self) -> dict[str, float]:
         video = self.estimate()
         out = {}
         if self.problem.b_rs is not None:
@@ -667,6 +712,10 @@ class STFM:
     @torch.no_grad()
     def components(self) -> dict[str, np.ndarray]:
         """static (C, H, W), alpha (1, K, H, W) and motion (2, K, H, W, in pixels) as numpy."""
+        with self._averaged():
+            return self._components()
+
+    def _components(self) -> dict[str, np.ndarray]:
         static = self._static() if self.parts.static else torch.zeros(self.C, self.H, self.W, device=self.device)
         alpha = torch.ones(1, self.K, self.H, self.W, device=self.device) if self.parts.static else \
             torch.zeros(1, self.K, self.H, self.W, device=self.device)
@@ -680,12 +729,14 @@ class STFM:
         return {"static": static.cpu().numpy(), "alpha": alpha.cpu().numpy(), "motion": motion.cpu().numpy()}
 
     def gains(self) -> np.ndarray:
-        return self._gain().detach().cpu().numpy()
+        with self._averaged():
+            return self._gain().detach().cpu().numpy()
 
     def state_dict(self) -> dict:
         return {"fields": self.fields.state_dict(), "log_gain": self.log_gain.detach().clone(),
                 "optimiser": self.optimiser.state_dict(), "steps": self.steps, "base_lr": self.base_lr,
-                "generator": self.generator.get_state()}
+                "generator": self.generator.get_state(),
+                "ema": None if self._ema is None else [a.clone() for a in self._ema]}
 
     def load_state_dict(self, state: dict) -> None:
         self.fields.load_state_dict(state["fields"])
@@ -695,6 +746,10 @@ class STFM:
         self.steps = int(state["steps"])
         self.base_lr = float(state["base_lr"])
         self.generator.set_state(state["generator"])
+        if self._ema is not None and state.get("ema") is not None:
+            with torch.no_grad():
+                for a, saved in zip(self._ema, state["ema"], strict=True):
+                    a.copy_(saved)
         self._cache = None
 
     def reduce_step(self, factor: float) -> None:
@@ -707,7 +762,7 @@ class STFM:
         out = asdict(self.resolved.settings)
         out.update({k: getattr(self.resolved, k) for k in
                     ("beta", "tau", "lr", "lr_half_life_steps", "rows_per_step", "init", "dynamic_time",
-                     "dynamic_base", "time_smoothness", "gs_windows_per_step", "stop_at_noise")})
+                     "dynamic_base", "time_smoothness", "gs_windows_per_step", "stop_at_noise", "ema_decay")})
         out["base_video"] = self.base_source
         out["rs_noise_level"] = self.rs_noise_level
         out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}
@@ -836,7 +891,8 @@ def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str) -> tuple[Ten
         from rngcam.recon.rife import RifeUnavailableError, rife
 
         try:
-            return torch.from_numpy(rife(frames, gs_times_s, frame_times_s)), "rife"
+            with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
+                return torch.from_numpy(rife(frames, gs_times_s, frame_times_s)), "rife"
         except RifeUnavailableError:
             if kind == "rife":
                 raise
