@@ -172,7 +172,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
                                 "features": DYNAMIC_FEATURES, "hidden": 32}),
         "lr": 2e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
         "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 8)), "init": "gs",
-        "dynamic_time": True, "dynamic_base": "video", "gs_windows_per_step": 1, "time_smoothness": 3e-2,
+        "dynamic_time": True, "dynamic_base": "video", "gs_windows_per_step": 1, "time_smoothness": 0.3,
         "stop_at_noise": True, "ema_decay": 0.95}
 
 
