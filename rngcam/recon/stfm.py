@@ -12,8 +12,7 @@ installed, else optical-flow interpolation): colour = softplus(softplus^-1(B_t(x
 The correction head and the motion start at zero, so the fit starts exactly at that baseline;
 the RS image then moves content (motion field) and changes appearance where no warp explains
 it (smoke appearing). B costs one video-sized buffer (C K H W floats, like the output).
-Coordinates are in [-1, 1] (pixel
-and frame centres at the ends); u is in the same units.
+Coordinates are in [-1, 1] (pixel and frame centres at the ends); u is in the same units.
 
 Loss, each data term divided by its operator's squared norm (||A|| from power iteration at
 setup) and by the number of pixels C H W, so psi is a relative weight:
@@ -666,8 +665,8 @@ class STFM:
         if not (self.resolved.stop_at_noise and self.parts.rs and self.steps % NOISE_CHECK_STEPS == 0):
             return None
         rows = self.rs_rows_fit.to(self.device)
-        with self._averaged():
-            pred = self._rs_apply(self._video_frames, rows)
+        video = self.estimate()  # cached per step: a log at this step reuses it
+        pred = self._rs_apply(lambda idx: video[:, idx], rows)
         residual = relative_residual(pred, self.problem.b_rs.index_select(1, rows))
         if residual > self.rs_noise_level:
             return None
