@@ -100,8 +100,7 @@ def inline_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1, noi
 
 
 def key_frames(p: Problem) -> np.ndarray:
-    w = p.gs_weights.sum(1).clamp_min(1e-12).view(1, -1, 1, 1)
-    return (p.b_gs / w).float().numpy()
+    return p.gs_images().float().numpy()
 
 
 def run_gs_only(name: str, p: Problem) -> dict:

@@ -42,25 +42,13 @@ class Components:
     left_out: tuple[tuple[str, str], ...] = ()
 
 
-def gs_video_units(problem) -> Tensor:
-    """GS frames as video intensity (C, G, H, W): each frame divided by its exposure in frames,
-    times the GS/RS gains (problem.white_balance, else one). Held-out pixels (a split) are
-    replaced by their fitted neighbours (Problem.b_gs_training)."""
-    b_gs = problem.b_gs_training() if hasattr(problem, "b_gs_training") else problem.b_gs
-    exposure = problem.gs_weights.sum(1).to(b_gs.dtype)  # (G,)
-    v = b_gs / exposure.clamp_min(1e-12)[None, :, None, None]
-    if problem.white_balance is not None:
-        v = v * problem.white_balance.to(v.dtype)[:, None, None, None]
-    return v
-
-
 def _rms(x: Tensor) -> float:
     return float(x.double().square().mean().sqrt())
 
 
 def dark_background(problem) -> tuple[bool, str]:
     """Is the background (median of the GS frames) dark? Returns (dark, explanation)."""
-    v = gs_video_units(problem)
+    v = problem.gs_images(gains=True)
     background = v.median(dim=1).values
     if problem.mask is not None:
         m = problem.mask.to(torch.bool)
@@ -92,7 +80,7 @@ def static_scene(problem, rs_on: bool) -> tuple[bool, str]:
     within STATIC_NOISE_FACTOR / 2 of its own Haar noise estimate (+ STATIC_RELATIVE_TOL of
     the RS image's RMS); motion leaves a smooth, structured residual behind the diffuser.
     """
-    v = gs_video_units(problem)
+    v = problem.gs_images(gains=True)
     g = v.shape[1]
     if g < 2:
         return False, "a single GS frame cannot show motion"

@@ -189,6 +189,16 @@ class Problem:
             known = torch.where(new[0], torch.ones_like(known), known)
         return filled
 
+    def gs_images(self, gains: bool = False) -> Tensor:
+        """The GS frames as video intensity (C, G, H, W): each divided by its exposure in frames,
+        held-out pixels filled from fitted ones (b_gs_training); with `gains`, times the GS/RS
+        gains (white_balance, else one), i.e. on the RS scale."""
+        exposure = self.gs_weights.sum(1).clamp_min(1e-12)
+        frames = self.b_gs_training() / exposure.to(self.b_gs.dtype)[None, :, None, None]
+        if gains and self.white_balance is not None:
+            frames = frames * self.white_balance.to(frames.dtype)[:, None, None, None]
+        return frames
+
 
 def _train_flags(n: int, fraction: float, rng: np.random.Generator) -> np.ndarray:
     """n bools, True = fitted; round(fraction * n) (at least one, at most n - 1) drawn at random are False."""

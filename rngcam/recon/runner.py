@@ -74,8 +74,7 @@ def default_out_dir(bundle_path: Path, method: str) -> Path:
 
 def gs_key_frames(problem: Problem) -> np.ndarray:
     """The GS frames as intensities (C, G, H, W): each divided by its exposure in frames."""
-    w = problem.gs_weights.sum(1).clamp_min(1e-12).view(1, -1, 1, 1)
-    return (problem.b_gs / w).cpu().float().numpy()
+    return problem.gs_images().cpu().float().numpy()
 
 
 def make_method(problem: Problem, settings: ReconSettings, device: str):

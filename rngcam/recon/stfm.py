@@ -66,7 +66,7 @@ from torch import Tensor, nn
 
 from rngcam.errors import ConfigError
 from rngcam.physics.operators import PSFConvolution
-from rngcam.recon.components import Components, choose_components, gs_video_units
+from rngcam.recon.components import Components, choose_components
 from rngcam.recon.fields import field_on_grid, make_field
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
@@ -306,8 +306,7 @@ class STFM:
         if not (kind != "none" and self.resolved.dynamic_time and self.parts.gs and self.parts.motion):
             return
         p = self.problem
-        b_gs = p.b_gs_training() if hasattr(p, "b_gs_training") else p.b_gs
-        keys = b_gs / self.w_gs.sum(1).clamp_min(1e-12)[None, :, None, None]
+        keys = p.gs_images()  # without gains: the current Lambda multiplies the base
         if kind in BASE_VIDEOS:
             self.base_video, self.base_source = _base_video(keys, p.gs_times_s, p.frame_times_s, kind)
             self.base_video = self.base_video.to(self.device, torch.float32)
@@ -686,11 +685,7 @@ class STFM:
 
     @torch.no_grad()
     def residuals(self) -> dict[str, float]:
-        with self._averaged():
-            return self._residuals()
-
-    def _residuals(self) -> dict[str, float]:
-        video = self.estimate()
+        video = self.estimate()  # from the averaged weights, like the gains below
         out = {}
         if self.problem.b_rs is not None:
             conv = self.conv if self.parts.rs else PSFConvolution(self.problem.psf, (self.H, self.W),
@@ -702,7 +697,7 @@ class STFM:
             out["rs"] = relative_residual(pred, self.problem.b_rs)
         if self.problem.b_gs is not None and self.problem.b_gs.shape[1] > 0:
             pred = torch.einsum("gk,ckhw->cghw", self.w_gs, video)
-            target = self._gain()[:, None, None, None] * self.problem.b_gs
+            target = torch.from_numpy(self.gains()).to(self.device)[:, None, None, None] * self.problem.b_gs
             if self.mask is not None:
                 pred, target = pred * self.mask, target * self.mask
             out["gs"] = relative_residual(pred, target)
@@ -778,7 +773,7 @@ class STFM:
         colour is fitted to the cross-fade of the key frames (the fit starts at the blend
         baseline); otherwise to the key frame nearest the middle, and the motion field to DIS
         optical flow between that frame and the others, linearly interpolated in time."""
-        v = gs_video_units(self.problem).float()  # (C, G, H, W): Lambda b_G / exposure
+        v = self.problem.gs_images(gains=True).float()  # (C, G, H, W): Lambda b_G / exposure
         background = v.median(dim=1).values
         times = torch.as_tensor(self._gs_centre_frames(), device=self.device).float()
         middle = int(torch.argmin((times - (self.K - 1) / 2).abs()))

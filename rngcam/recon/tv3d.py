@@ -146,8 +146,7 @@ class TV3D:
     def _initial(self, dtype, device) -> Tensor:
         p = self.p
         if self.s.init == "blend" and p.b_gs is not None and p.b_gs.shape[1] > 0:
-            # Held-out GS pixels must not leak into the start: they are filled from fitted ones.
-            frames = p.b_gs_training() / p.gs_weights.sum(1).view(1, -1, 1, 1).clamp_min(1e-12)
+            frames = p.gs_images()  # held-out GS pixels are filled from fitted ones: no leak
             x = torch.from_numpy(blend(frames.cpu().float().numpy(), p.gs_times_s, p.frame_times_s))
             x = x.to(dtype=dtype, device=device).clamp_min(0)
         else:
