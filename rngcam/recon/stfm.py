@@ -47,9 +47,8 @@ fields, Adam 2e-2 with exponential decay, the base video above, initialised from
 static field from their per-pixel median, alpha where every key frame agrees with it). Other
 dynamic bases: "rife" or "interp" (that baseline), "blend" (the cross-fade of the warped key
 frames: memory O(G) instead of O(K), but it starts lower), "none" (F_D alone, fitted to the
-cross-fade or, with `init_video="interp"`, the interpolation first; with `dynamic_time=False`
-the canonical image from the middle key frame and the motion from DIS optical flow between key
-frames, interpolated in time).
+cross-fade first; with `dynamic_time=False` the canonical image from the middle key frame and
+the motion from DIS optical flow between key frames, interpolated in time).
 """
 
 from __future__ import annotations
@@ -100,7 +99,6 @@ class STFMSettings:
     init: str | None = None  # "gs" (fit fields to the GS frames first) or "random"
     gs_windows_per_step: int | None = None  # GS frames per step (soft anchoring; 0: all)
     dynamic_time: bool | None = None  # F_D(x + u_x, y + u_y, t) instead of F_D(x + u_x, y + u_y)
-    init_video: str = "blend"  # what a time-dependent F_D starts from: "blend" or "interp"
     dynamic_base: str | None = None  # "blend": F_D's colour corrects the warped cross-fade; "none"
     time_smoothness: float | None = None  # weight of the time planes' roughness (plane fields)
     stop_at_noise: bool | None = None  # stop once the RS residual reaches the estimated noise level
@@ -115,8 +113,6 @@ class STFMSettings:
             raise ConfigError(f"gs_anchor must be 'soft' or 'hard', got {self.gs_anchor!r}")
         if self.init not in (None, "gs", "random"):
             raise ConfigError(f"init must be 'gs' or 'random', got {self.init!r}")
-        if self.init_video not in ("blend", "interp"):
-            raise ConfigError(f"init_video must be 'blend' or 'interp', got {self.init_video!r}")
         if self.dynamic_base not in (None, "blend", "none", *BASE_VIDEOS):
             raise ConfigError(f"dynamic_base must be one of blend, none, {', '.join(BASE_VIDEOS)}; "
                               f"got {self.dynamic_base!r}")
@@ -207,7 +203,6 @@ class _Resolved:
     rows_per_step: int
     init: str
     dynamic_time: bool
-    init_video: str
     dynamic_base: str
     time_smoothness: float
     gs_windows_per_step: int
@@ -244,7 +239,6 @@ class STFM:
             gs_windows_per_step=(preset["gs_windows_per_step"] if settings.gs_windows_per_step is None
                                  else settings.gs_windows_per_step),
             dynamic_time=preset["dynamic_time"] if settings.dynamic_time is None else settings.dynamic_time,
-            init_video=settings.init_video,
             dynamic_base=settings.dynamic_base or preset["dynamic_base"],
             time_smoothness=(preset["time_smoothness"] if settings.time_smoothness is None
                              else settings.time_smoothness),
@@ -811,24 +805,17 @@ class STFM:
 
     def _fit_dynamic_to_blend(self, v: Tensor, times: Tensor, alpha: Tensor | None, steps: int) -> None:
         weights = self._blend_weights(times)  # (K, G)
-        video = None
-        if self.resolved.init_video == "interp" and min(self.H, self.W) >= MIN_FLOW_SIZE_PX:
-            from rngcam.recon.baselines import interp
-
-            video = torch.from_numpy(interp(v.cpu().numpy(), self.problem.gs_times_s,
-                                            self.problem.frame_times_s)).to(self.device)
         field = self.fields["dynamic"]
         opt = torch.optim.Adam(field.parameters(), lr=2e-2)
         gen = torch.Generator(device="cpu").manual_seed(self.settings.seed + 2)
         for _ in range(steps):
             idx = torch.randperm(self.K, generator=gen)[:4].to(self.device)
-            target = (torch.einsum("kg,cghw->ckhw", weights[idx], v) if video is None
-                      else video[:, idx])
             opt.zero_grad()
             raw = field_on_grid(field, [self.xs, self.ys, self.ts[idx]]).permute(3, 0, 1, 2)
             if self.base_source is not None:  # the colour is already the base video: keep it
                 loss = raw[:self.C].square().mean()
             else:
+                target = torch.einsum("kg,cghw->ckhw", weights[idx], v)
                 loss = (F.softplus(raw[:self.C]) - target).square().mean()
             if alpha is not None:
                 loss = loss + 0.1 * (torch.sigmoid(raw[self.C]) - alpha).square().mean()
