@@ -16,6 +16,7 @@ from rngcam.recon.baselines import (
     BaselineInputError,
     blend,
     interp,
+    interp_warps,
     linear_to_srgb,
     srgb_to_linear,
 )
@@ -226,3 +227,53 @@ def test_rife_grid_exact_at_keys_one_channel_and_odd_size():
 def test_rife_rejects_two_channels():
     with pytest.raises(ValueError, match="1 or 3 channels"):
         rife_mod.rife(random_frames(c=2), [0, 1, 2], [0.5])
+
+
+def _render(warps) -> np.ndarray:
+    """frame k = w0 key[left](x + flow0) + (1 - w0) key[left + 1](x + flow1), in torch."""
+    keys = torch.from_numpy(warps.keys).permute(1, 0, 2, 3)  # (G, C, H, W)
+    _, _, h, w = keys.shape
+    gy, gx = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32), indexing="ij")
+
+    def warp(img, flow):
+        grid = torch.stack([2 * (gx + flow[..., 0]) / (w - 1) - 1, 2 * (gy + flow[..., 1]) / (h - 1) - 1], -1)
+        return torch.nn.functional.grid_sample(img[None], grid[None], align_corners=True, padding_mode="border")[0]
+
+    frames = []
+    for k, i in enumerate(warps.left):
+        f0, f1 = torch.from_numpy(warps.flow0[k]), torch.from_numpy(warps.flow1[k])
+        w0 = torch.from_numpy(warps.weight0[k])
+        frames.append(w0 * warp(keys[i], f0) + (1 - w0) * warp(keys[i + 1], f1))
+    return torch.stack(frames, 1).numpy()
+
+
+def test_interp_warps_describe_interp_exactly():
+    gs, _ = translating_square(32, shift_px=4)
+    gs = np.concatenate([gs, np.roll(gs[:, 1:], 4, axis=-1)], axis=1)  # three key frames
+    targets = np.array([0.0, 0.3, 0.5, 1.0, 1.25, 2.0])
+    warps = interp_warps(gs, [0.0, 1.0, 2.0], targets)
+    assert warps.left.tolist() == [0, 0, 0, 1, 1, 1]  # a target at a key frame starts a new pair
+    assert ((warps.weight0 >= 0) & (warps.weight0 <= 1)).all()
+    for exact in (0, 3, 5):  # key frames themselves: the key, unmoved
+        assert np.all(warps.weight0[exact] == (0 if exact == 5 else 1)) and not warps.flow0[exact].any()
+    assert np.abs(warps.flow0[2]).max() > 1  # the square moves: half-way it is about 2 px from key 0
+    np.testing.assert_allclose(_render(warps), interp(gs, [0.0, 1.0, 2.0], targets), atol=2e-5)
+    with pytest.raises(BaselineInputError, match="two key frames"):
+        interp_warps(gs[:, :1], [0.0], targets)
+
+
+def test_rife_warps_at_the_midpoint_are_the_networks_midpoint():
+    _weights_or_skip()
+    gs, truth = translating_square(64, shift_px=8)
+    warps = rife_mod.rife_warps(gs, [0.0, 1.0], [0.0, 0.5, 1.0])
+    net = rife_mod.load_ifnet()
+    scale = float(gs.max())
+    ends = rife_mod._to_network(gs, scale, "cpu")
+    with torch.inference_mode():
+        mid = rife_mod._from_network(net(ends[:1], ends[1:]), 3, 64, 64, scale)[:, 0]
+    rendered = _render(warps)
+    np.testing.assert_allclose(rendered[:, 0], gs[:, 0], atol=1e-6)
+    np.testing.assert_allclose(rendered[:, 2], gs[:, 1], atol=1e-6)
+    # the network blends in sRGB, the warps in linear intensity: close, not equal
+    assert psnr(rendered[:, 1], mid) > 30
+    assert psnr(rendered[:, 1], truth) > psnr(blend(gs, [0.0, 1.0], [0.5])[:, 0], truth) + 6.0

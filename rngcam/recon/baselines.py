@@ -216,26 +216,53 @@ def _flow_pair(frame0, frame1, engine, scale, grid) -> _FlowPair:
     return _FlowPair(f01, f10, _consistency_mask(f01, f10, grid), _consistency_mask(f10, f01, grid))
 
 
-def _interpolate_between(frame0, frame1, pair: _FlowPair, a: float, grid, occlusion: bool):
-    """The frame at fraction a in (0, 1) between frame0 and frame1.
+@dataclass(frozen=True)
+class KeyWarps:
+    """How `interp` builds each target frame from its two key frames (sorted by time):
+    frame k = weight0[k] * key[left[k]](x + flow0[k]) + (1 - weight0[k]) * key[left[k] + 1](x + flow1[k])."""
 
-    The flow from the target time to each key frame is unknown; like Super SloMo (Jiang et
-    al. 2018) we approximate it from the key-frame flows evaluated at the same pixel, assuming
-    linear motion:  F_t0 = -(1-a) a F01 + a^2 F10,  F_t1 = (1-a)^2 F01 - a (1-a) F10.
-    Each approximation leans on the flow of the key frame nearer in time.
-    """
-    ft0 = -(1 - a) * a * pair.f01 + a * a * pair.f10
-    ft1 = (1 - a) ** 2 * pair.f01 - a * (1 - a) * pair.f10
-    warped0 = _backward_warp(frame0, ft0, grid)
-    warped1 = _backward_warp(frame1, ft1, grid)
-    if occlusion:
-        m0 = _backward_warp(pair.m0, ft0, grid) + _MASK_FLOOR
-        m1 = _backward_warp(pair.m1, ft1, grid) + _MASK_FLOOR
-    else:
-        m0 = m1 = np.ones(warped0.shape[1:], np.float32)
-    w0 = (1 - a) * m0
-    w1 = a * m1
-    return (w0 * warped0 + w1 * warped1) / (w0 + w1)
+    keys: np.ndarray  # (C, G, H, W), sorted by time
+    left: np.ndarray  # (K,) int
+    flow0: np.ndarray  # (K, H, W, 2) pixels
+    flow1: np.ndarray  # (K, H, W, 2) pixels
+    weight0: np.ndarray  # (K, H, W) in [0, 1]
+
+
+def interp_warps(gs, gs_times_s, frame_times_s, method: str = "dis", occlusion: bool = True) -> KeyWarps:
+    """The flows and blend weights of `interp` per target frame (needs G >= 2 and images of at
+    least MIN_FLOW_SIZE_PX a side).
+
+    The flow from the target time to each key frame is unknown; like Super SloMo (Jiang et al.
+    2018) we approximate it from the key-frame flows evaluated at the same pixel, assuming
+    linear motion:  F_t0 = -(1-a) a F01 + a^2 F10,  F_t1 = (1-a)^2 F01 - a (1-a) F10 (each
+    leans on the flow of the key frame nearer in time)."""
+    keys, targets = validate_key_frames(gs, gs_times_s, frame_times_s)
+    f = keys.frames
+    c, g, h, w = f.shape
+    if g < 2 or min(h, w) < MIN_FLOW_SIZE_PX:
+        raise BaselineInputError(f"interp_warps needs two key frames of >= {MIN_FLOW_SIZE_PX} px, got {g} of {h}x{w}")
+    engine, scale, grid = _flow_engine(method), encoding_scale(f), _pixel_grid(h, w)
+    idx, frac = bracket(keys.times_s, targets)
+    k = len(targets)
+    flow0, flow1 = np.zeros((k, h, w, 2), np.float32), np.zeros((k, h, w, 2), np.float32)
+    weight0 = np.empty((k, h, w), np.float32)
+    pairs: dict[int, _FlowPair] = {}
+    for j, (i, a) in enumerate(zip(idx, frac)):
+        a = float(a)
+        if a in (0.0, 1.0):
+            weight0[j] = 1.0 - a
+            continue
+        if i not in pairs:
+            pairs[i] = _flow_pair(f[:, i], f[:, i + 1], engine, scale, grid)
+        pair = pairs[i]
+        flow0[j] = -(1 - a) * a * pair.f01 + a * a * pair.f10
+        flow1[j] = (1 - a) ** 2 * pair.f01 - a * (1 - a) * pair.f10
+        m0 = m1 = np.ones((h, w), np.float32)
+        if occlusion:
+            m0 = _backward_warp(pair.m0, flow0[j], grid) + _MASK_FLOOR
+            m1 = _backward_warp(pair.m1, flow1[j], grid) + _MASK_FLOOR
+        weight0[j] = (1 - a) * m0 / ((1 - a) * m0 + a * m1)
+    return KeyWarps(f, idx.astype(np.int64), flow0, flow1, weight0)
 
 
 def interp(gs, gs_times_s, frame_times_s, method: str = "dis", occlusion: bool = True) -> np.ndarray:
@@ -248,7 +275,6 @@ def interp(gs, gs_times_s, frame_times_s, method: str = "dis", occlusion: bool =
     Images smaller than MIN_FLOW_SIZE_PX on a side fall back to `blend` (logged as a warning).
     """
     keys, targets = validate_key_frames(gs, gs_times_s, frame_times_s)
-    engine = _flow_engine(method)
     f = keys.frames
     c, g, h, w = f.shape
     if g == 1:
@@ -257,18 +283,16 @@ def interp(gs, gs_times_s, frame_times_s, method: str = "dis", occlusion: bool =
         log.warning("interp: %dx%d px is below %d px, optical flow skipped; using blend",
                     h, w, MIN_FLOW_SIZE_PX)
         return blend(f, keys.times_s, targets)
-    idx, frac = bracket(keys.times_s, targets)
-    out = np.empty((c, len(targets), h, w), np.float32)
-    scale = encoding_scale(f)
+    warps = interp_warps(f, keys.times_s, targets, method, occlusion)
     grid = _pixel_grid(h, w)
-    pairs: dict[int, _FlowPair] = {}
-    for k, (i, a) in enumerate(zip(idx, frac)):
-        if a == 0.0:
+    out = np.empty((c, len(targets), h, w), np.float32)
+    for k, i in enumerate(warps.left):
+        w0 = warps.weight0[k]
+        if np.all(w0 == 1.0):
             out[:, k] = f[:, i]
-        elif a == 1.0:
+        elif np.all(w0 == 0.0):
             out[:, k] = f[:, i + 1]
         else:
-            if i not in pairs:
-                pairs[i] = _flow_pair(f[:, i], f[:, i + 1], engine, scale, grid)
-            out[:, k] = _interpolate_between(f[:, i], f[:, i + 1], pairs[i], float(a), grid, occlusion)
+            out[:, k] = (w0 * _backward_warp(f[:, i], warps.flow0[k], grid)
+                         + (1 - w0) * _backward_warp(f[:, i + 1], warps.flow1[k], grid))
     return out
