@@ -109,6 +109,13 @@ class IFNet(nn.Module):
         self.block_tea = IFBlock(10 + 4)
 
     def forward(self, img0: torch.Tensor, img1: torch.Tensor, scales=(4.0, 2.0, 1.0)) -> torch.Tensor:
+        flow, mask = self.flows(img0, img1, scales)
+        weight0 = torch.sigmoid(mask)
+        return backward_warp(img0, flow[:, :2]) * weight0 + backward_warp(img1, flow[:, 2:4]) * (1 - weight0)
+
+    def flows(self, img0: torch.Tensor, img1: torch.Tensor, scales=(4.0, 2.0, 1.0)):
+        """Flows (N, 4, H, W) in pixels from the midpoint to img0 and to img1, and the blend
+        logit (N, 1, H, W) of img0: midpoint = sigmoid(m) img0(x + f0) + (1 - sigmoid(m)) img1(x + f1)."""
         n, _, h, w = img0.shape
         flow = img0.new_zeros(n, 4, h, w)
         mask = img0.new_zeros(n, 1, h, w)
@@ -122,8 +129,7 @@ class IFNet(nn.Module):
             mask = mask + (m0 - m1) / 2
             warped0 = backward_warp(img0, flow[:, :2])
             warped1 = backward_warp(img1, flow[:, 2:4])
-        weight0 = torch.sigmoid(mask)
-        return warped0 * weight0 + warped1 * (1 - weight0)
+        return flow, mask
 
 
 # --------------------------------------------------------------------------- weights
@@ -276,3 +282,34 @@ def _bisect(net: IFNet, frame0, frame1, needed: set[int], depth: int, scale: flo
             for j, mid in zip(chunk, net(left, right)):
                 nodes[j] = mid.clamp(0, 1)
     return nodes
+
+
+@torch.inference_mode()
+def rife_warps(gs, gs_times_s, frame_times_s, weights=None, device: str = "cpu"):
+    """RIFE's midpoint flows and blend weights between neighbouring key frames, scaled to every
+    target time assuming linear motion (flow to key 0: 2a f0, to key 1: 2(1 - a) f1 at fraction
+    a; weight of key 0: (1 - a) m / ((1 - a) m + a (1 - m))), as `baselines.KeyWarps`. One
+    network pass per key-frame pair (no bisection), so the frames are close to, not equal to, `rife`'s."""
+    from rngcam.recon.baselines import KeyWarps
+
+    keys, targets = validate_key_frames(gs, gs_times_s, frame_times_s)
+    f = keys.frames
+    c, g, h, w = f.shape
+    if c not in (1, 3) or g < 2:
+        raise BaselineInputError(f"rife_warps needs 1 or 3 channels and two key frames, got {c} and {g}")
+    net = load_ifnet(weights, device)
+    idx, frac = bracket(keys.times_s, targets)
+    scale = encoding_scale(f)
+    k = len(targets)
+    flow0, flow1 = np.zeros((k, h, w, 2), np.float32), np.zeros((k, h, w, 2), np.float32)
+    weight0 = np.empty((k, h, w), np.float32)
+    for i in np.unique(idx):
+        ends = _to_network(f[:, [i, i + 1]], scale, device)
+        flow, mask = net.flows(ends[:1], ends[1:])
+        f_mid = flow[0, :, :h, :w].permute(1, 2, 0).cpu().numpy()  # (H, W, 4)
+        m = torch.sigmoid(mask[0, 0, :h, :w]).cpu().numpy()
+        for j in np.flatnonzero(idx == i):
+            a = float(frac[j])
+            flow0[j], flow1[j] = 2 * a * f_mid[..., :2], 2 * (1 - a) * f_mid[..., 2:]
+            weight0[j] = 1.0 if a == 0 else 0.0 if a == 1 else (1 - a) * m / ((1 - a) * m + a * (1 - m))
+    return KeyWarps(f, idx.astype(np.int64), flow0, flow1, weight0)
