@@ -43,8 +43,11 @@ def _method_options(method: str, given: dict) -> dict:
 @click.option("--gs-anchor", type=click.Choice(["soft", "hard"]), default=None)
 @click.option("--components", type=click.Choice(["auto", "all"]), default=None,
               help="STFM: drop what the scene does not need (auto) or keep all.")
-@click.option("--base", "dynamic_base", type=click.Choice(["video", "rife", "interp", "blend", "none"]),
-              default=None, help="STFM fast: the GS-only video the dynamic field corrects [video: rife, else interp].")
+@click.option("--base", "dynamic_base", default=None,
+              help="STFM fast: the GS-only start the dynamic field corrects: video (rife, else interp), rife, "
+                   "interp, keys (key frames warped by RIFE's flows, else DIS's), keys_rife, keys_interp, blend or "
+                   "none; a comma-separated list averages one fit per base; ensemble = video,keys,keys_interp "
+                   "[video].")
 @click.option("--stop-at-noise/--no-stop-at-noise", default=None,
               help="STFM: stop once the RS residual reaches the noise level estimated from the RS image "
                    "[fast: on].")

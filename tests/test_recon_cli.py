@@ -87,3 +87,15 @@ def test_stfm_base_and_stop_options_reach_the_method(mock_bundle, tmp_path):
     used = settings["method_settings"]
     assert used["base_video"] == "interp" and used["stop_at_noise"] is False and used["rs_noise_level"] > 0
     assert json.loads((out / "metrics.json").read_text())["method_settings"]["base_video"] == "interp"
+
+
+def test_stfm_base_list_runs_an_ensemble_and_a_bad_base_is_a_clear_error(mock_bundle, tmp_path):
+    out = tmp_path / "e"
+    res = CliRunner().invoke(main, ["recon", str(mock_bundle), "-o", str(out), "--quiet", "--iters", "4",
+                                    "--base", "interp,keys_interp"])
+    assert res.exit_code == 0, res.output
+    used = json.loads((out / "metrics.json").read_text())["method_settings"]
+    assert used["base_video"] == ["interp", "keys_interp"] and used["member_steps"] == [2, 2]
+    bad = CliRunner().invoke(main, ["recon", str(mock_bundle), "-o", str(tmp_path / "b"), "--quiet", "--iters", "1",
+                                    "--base", "interp,warp"])
+    assert bad.exit_code == 2 and "dynamic_base must be one of" in bad.output and "Traceback" not in bad.output

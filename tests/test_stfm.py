@@ -73,6 +73,11 @@ def scene_problem(scene: str, size: int, noise: float = 0.002, **kw) -> Problem:
     return video_problem(video, noise, **kw)
 
 
+def fits(m) -> list:
+    """The STFM fits inside a method: the ensemble's members, or the method itself."""
+    return list(getattr(m, "members", [m]))
+
+
 def small_settings(**kw) -> STFMSettings:
     base = {"components": "all", "seed": 0}
     base.update(kw)
@@ -312,7 +317,7 @@ def test_leave_out_no_rs_is_gs_only():
     p = video_problem(moving_dot(), with_rs=False)
     m = make_stfm(p, STFMSettings())
     assert ("rs", "no RS measurement: GS-only fit") in m.left_out
-    assert not m.learn_gain  # gains are only identifiable with both sensors
+    assert not any(f.learn_gain for f in fits(m))  # gains are only identifiable with both sensors
     m.step()
     assert set(m.residuals()) == {"gs"}
 
@@ -321,7 +326,7 @@ def test_leave_out_dark_background_drops_the_static_field():
     p = video_problem(moving_dot(background=0.0), noise=0.002)
     m = make_stfm(p, STFMSettings())
     assert [c for c, _ in m.left_out] == ["static"]
-    assert "static" not in m.fields and "dark background" in m.left_out[0][1]
+    assert all("static" not in f.fields for f in fits(m)) and "dark background" in m.left_out[0][1]
 
 
 def test_leave_out_static_scene_keeps_only_the_static_field():
@@ -506,3 +511,84 @@ def test_outputs_use_the_moving_average_and_training_keeps_its_weights(sineball1
     assert not torch.equal(averaged, raw.estimate())
     with pytest.raises(ConfigError, match="ema_decay"):
         STFMSettings(ema_decay=1.0)
+
+
+# ----------------------------------------------------------------------------- the ensemble
+
+
+def test_keys_base_starts_exactly_at_the_flow_interpolation(sineball16):
+    from rngcam.recon.baselines import interp
+
+    p = sineball16
+    video = torch.from_numpy(interp(_key_frames(p), p.gs_times_s, p.frame_times_s))
+    m = make_stfm(p, small_settings(dynamic_base="keys_interp", no_static=True))
+    assert m.base_source == "keys_interp" and m.fields["motion"].decoder[-1].out_features == 4
+    assert psnr(m.estimate(), video) > 60  # zero flow corrections and blend logit: interp itself
+    m.step()
+    assert all(param.grad is not None for param in m.fields["motion"].parameters())
+
+
+def test_ensemble_averages_fits_on_distinct_bases(sineball16):
+    from rngcam.recon.stfm import STFMEnsemble
+
+    assert not isinstance(make_stfm(sineball16, STFMSettings(components="all")), STFMEnsemble)  # fast: one fit
+    m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="ensemble"))
+    assert isinstance(m, STFMEnsemble)
+    sources = [f.base_source for f in fits(m)]
+    assert len(set(sources)) == len(sources) >= 2 and "keys_interp" in sources
+    for _ in range(2 * len(sources)):
+        m.step()
+    assert [f.steps for f in fits(m)] == [2] * len(sources)  # steps go round the members
+    members = torch.stack([f.estimate() for f in fits(m)])
+    assert torch.allclose(m.estimate(), members.mean(0), atol=1e-6)
+    # linear operators: the average fits the RS image at least as well as the members on average
+    assert m.residuals()["rs"] <= np.mean([f.residuals()["rs"] for f in fits(m)]) + 1e-7
+    assert m.resolved_settings()["base_video"] == sources
+
+
+def test_ensemble_without_rife_drops_the_duplicate_base(sineball16, monkeypatch):
+    from rngcam.recon import rife as rife_mod
+
+    def unavailable(*args, **kwargs):
+        raise rife_mod.RifeUnavailableError("not installed (test)")
+
+    monkeypatch.setattr(rife_mod, "rife", unavailable)
+    monkeypatch.setattr(rife_mod, "rife_warps", unavailable)
+    m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="ensemble"))
+    assert [f.base_source for f in fits(m)] == ["interp", "keys_interp"]  # "keys" fell back to DIS flows
+
+
+def test_ensemble_stops_only_when_every_member_reached_the_noise_level(sineball16):
+    from rngcam.recon.stfm import NOISE_CHECK_STEPS
+
+    m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video,keys_interp"))
+    first, second = fits(m)
+    first.rs_noise_level, second.rs_noise_level = 1.0, 0.0  # the first is done at its first check
+    result = run(m, LoopSettings(time_budget_s=None, max_iters=3 * NOISE_CHECK_STEPS, progress=False))
+    assert result.iterations == 3 * NOISE_CHECK_STEPS and not result.events  # the second goes on alone
+    assert first.steps == NOISE_CHECK_STEPS and second.steps == 2 * NOISE_CHECK_STEPS
+    second.rs_noise_level = 1.0
+    result = run(m, LoopSettings(time_budget_s=None, max_iters=5 * NOISE_CHECK_STEPS, progress=False))
+    assert any("all 2 ensemble members stopped" in e for e in result.events)
+
+
+def test_ensemble_checkpoint_and_resume_reproduce_an_uninterrupted_run(sineball16):
+    settings = STFMSettings(components="all", dynamic_base="interp,keys_interp", init="random")
+    straight = make_stfm(sineball16, settings)
+    for _ in range(6):
+        straight.step()
+    first = make_stfm(sineball16, settings)
+    for _ in range(3):
+        first.step()
+    resumed = make_stfm(sineball16, settings)
+    resumed.load_state_dict(first.state_dict())
+    for _ in range(3):
+        resumed.step()
+    assert torch.equal(straight.estimate(), resumed.estimate())
+
+
+def test_base_lists_are_validated():
+    with pytest.raises(ConfigError, match="comma-separated"):
+        STFMSettings(dynamic_base="video,video")
+    with pytest.raises(ConfigError, match="dynamic_base"):
+        STFMSettings(dynamic_base="video,warp")

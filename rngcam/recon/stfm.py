@@ -12,6 +12,16 @@ installed, else optical-flow interpolation): colour = softplus(softplus^-1(B_t(x
 The correction head and the motion start at zero, so the fit starts exactly at that baseline;
 the RS image then moves content (motion field) and changes appearance where no warp explains
 it (smoke appearing). B costs one video-sized buffer (C K H W floats, like the output).
+With a "keys" base (`dynamic_base="keys"`, "keys_rife", "keys_interp") there is no base video:
+the base of frame t is m K_a(x + f_a + u_a) + (1 - m) K_b(x + f_b + u_b), its two key frames
+warped by the flows f of RIFE's midpoint (scaled to t, "keys_rife") or of DIS interpolation
+("keys_interp") and blended with that interpolation's weights m0 as m = sigmoid(logit m0 + l);
+the motion field gives the corrections (u_a, u_b) (4 outputs) and the dynamic field, at (x, y, t),
+the colour correction, alpha and l. This starts exactly at that interpolation and can move each
+key frame on its own, which a warp of an already blended video cannot. It costs the flows and
+weights per frame: 5 floats per pixel and frame (5/3 of a colour video).
+With several bases (`dynamic_base="video,keys,keys_interp"`, or "ensemble" for that list) the
+method is an STFMEnsemble: one fit per base, averaged; see that class.
 Coordinates are in [-1, 1] (pixel and frame centres at the ends); u is in the same units.
 
 Loss, each data term divided by its operator's squared norm (||A|| from power iteration at
@@ -55,7 +65,7 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -113,9 +123,12 @@ class STFMSettings:
             raise ConfigError(f"gs_anchor must be 'soft' or 'hard', got {self.gs_anchor!r}")
         if self.init not in (None, "gs", "random"):
             raise ConfigError(f"init must be 'gs' or 'random', got {self.init!r}")
-        if self.dynamic_base not in (None, "blend", "none", *BASE_VIDEOS):
-            raise ConfigError(f"dynamic_base must be one of blend, none, {', '.join(BASE_VIDEOS)}; "
-                              f"got {self.dynamic_base!r}")
+        if self.dynamic_base is not None:
+            bases = _base_list(self.dynamic_base)
+            bad = [b for b in bases if b not in ALL_BASES]
+            if bad or len(set(bases)) != len(bases):
+                raise ConfigError(f"dynamic_base must be one of {', '.join(ALL_BASES)}, a comma-separated list "
+                                  f"of distinct ones, or 'ensemble' ({ENSEMBLE_BASES}); got {self.dynamic_base!r}")
         if self.ema_decay is not None and not 0 <= self.ema_decay < 1:
             raise ConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay!r}")
         for name in ("beta", "tau", "psi", "lr"):
@@ -131,6 +144,11 @@ class STFMSettings:
 
 
 BASE_VIDEOS = ("video", "rife", "interp")  # "video": rife when its weights are installed, else interp
+KEY_WARPS = ("keys", "keys_rife", "keys_interp")  # "keys": RIFE's flows when installed, else DIS flows
+ALL_BASES = (*BASE_VIDEOS, *KEY_WARPS, "blend", "none")
+# dynamic_base="ensemble": one fit on each of these bases, averaged (STFMEnsemble). Their errors
+# in what the RS image cannot see differ, so the average is closer to the truth than any one of them.
+ENSEMBLE_BASES = "video,keys,keys_interp"
 DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
 
 
@@ -217,8 +235,11 @@ class STFM:
     name = "stfm"
     supports_holdout = True  # fits only the training measurements when the problem has a split
 
-    def __init__(self, problem, settings: STFMSettings, device="cpu"):
+    def __init__(self, problem, settings: STFMSettings, device="cpu", static_from: STFM | None = None):
+        """`static_from`: an STFM of the same problem and preset whose initialised static field
+        this one copies instead of fitting it again (ensemble members share that start)."""
         self.settings = settings
+        self._static_from = static_from
         self.device = torch.device(device)
         self.problem = problem.to(torch.float32, self.device)
         p = self.problem
@@ -245,6 +266,8 @@ class STFM:
             stop_at_noise=preset["stop_at_noise"] if settings.stop_at_noise is None else settings.stop_at_noise,
             ema_decay=preset["ema_decay"] if settings.ema_decay is None else settings.ema_decay,
             fields={k: preset[k] for k in ("static", "motion", "dynamic")})
+        if "," in self.resolved.dynamic_base or self.resolved.dynamic_base == "ensemble":
+            raise ConfigError(f"dynamic_base {self.resolved.dynamic_base!r} is an ensemble: build it with make_stfm")
         torch.manual_seed(settings.seed)
         self.generator = torch.Generator(device="cpu").manual_seed(settings.seed)
         self._build_geometry()
@@ -301,6 +324,10 @@ class STFM:
             return
         p = self.problem
         keys = p.gs_images()  # without gains: the current Lambda multiplies the base
+        if kind in KEY_WARPS:
+            if self._build_key_warps(keys, kind):
+                return
+            kind = "interp"  # too few key frames or too small for flow
         if kind in BASE_VIDEOS:
             self.base_video, self.base_source = _base_video(keys, p.gs_times_s, p.frame_times_s, kind)
             self.base_video = self.base_video.to(self.device, torch.float32)
@@ -310,6 +337,38 @@ class STFM:
         times = torch.as_tensor(self._gs_centre_frames(), device=self.device).float()
         self.base_weights = self._blend_weights(times)
 
+    def _build_key_warps(self, keys: Tensor, kind: str) -> bool:
+        """Per frame, the flows to its two key frames and their blend weights, from RIFE's midpoint
+        flows ("keys_rife"; "keys" when RIFE is installed) or DIS optical-flow interpolation
+        ("keys_interp"), that the motion and dynamic fields correct. False where no flow can be
+        computed (fewer than two key frames, images under MIN_FLOW_SIZE_PX)."""
+        from rngcam.recon.baselines import BaselineInputError, interp_warps
+        from rngcam.recon.rife import RifeUnavailableError, rife_warps
+
+        args = (keys.detach().float().cpu().numpy(), self.problem.gs_times_s, self.problem.frame_times_s)
+        warps = None
+        if kind != "keys_interp" and keys.shape[0] in (1, 3):
+            try:
+                with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
+                    warps, source = rife_warps(*args), "keys_rife"
+            except (RifeUnavailableError, BaselineInputError):
+                if kind == "keys_rife":
+                    raise
+        try:
+            if warps is None:
+                warps, source = interp_warps(*args), "keys_interp"
+        except BaselineInputError:
+            return False
+        dev, px = self.device, self.px_per_unit.repeat(2)
+        self.key_images = torch.from_numpy(warps.keys).permute(1, 0, 2, 3).contiguous().to(dev)  # (G, C, H, W)
+        self.key_left = torch.from_numpy(warps.left).to(dev)
+        flows = torch.from_numpy(np.concatenate([warps.flow0, warps.flow1], axis=-1)).to(dev)
+        self.key_flow = flows / px  # (K, H, W, 4), coordinate units
+        w0 = torch.from_numpy(warps.weight0).to(dev).clamp(1e-6, 1 - 1e-6)
+        self.key_logit = torch.log(w0) - torch.log1p(-w0)
+        self.base_source = source
+        return True
+
     def _build_fields(self, preset: dict) -> None:
         kind_s, cfg_s = preset["static"]
         kind_m, cfg_m = preset["motion"]
@@ -318,16 +377,18 @@ class STFM:
         if self.parts.static:
             self.fields["static"] = make_field(kind_s, 2, self.C, **cfg_s)
         if self.parts.motion:
-            self.fields["motion"] = make_field(kind_m, 3, 2, **cfg_m)
+            keys = self._key_warps
+            self.fields["motion"] = make_field(kind_m, 3, 4 if keys else 2, **cfg_m)
             dims = 3 if self.resolved.dynamic_time else 2
             if dims == 2:
                 cfg_d = {k: v for k, v in cfg_d.items() if k != "time_resolutions"}
-            self.fields["dynamic"] = make_field(kind_d, dims, self.C + 1, **cfg_d)
+            self.fields["dynamic"] = make_field(kind_d, dims, self.C + (2 if keys else 1), **cfg_d)
             if self.base_source is not None and kind_d == "planes":  # start exactly at the base
                 head = self.fields["dynamic"].decoder[-1]
                 with torch.no_grad():
-                    head.weight[:self.C] = 0
-                    head.bias[:self.C] = 0
+                    for ch in self._correction_channels():
+                        head.weight[ch] = 0
+                        head.bias[ch] = 0
             if kind_m == "planes":  # start without motion; gradients still reach every plane
                 head = self.fields["motion"].decoder[-1]
                 nn.init.zeros_(head.weight)
@@ -409,10 +470,43 @@ class STFM:
         """(n, H, W, 2) displacement in coordinate units at frames idx."""
         return field_on_grid(self.fields["motion"], [self.xs, self.ys, self.ts[idx]])
 
+    @property
+    def _key_warps(self) -> bool:
+        return self.base_source in ("keys_rife", "keys_interp")
+
+    def _correction_channels(self) -> list[int]:
+        """Dynamic-field outputs that correct a base (zero at the start): colour, and with
+        base "keys" the blend logit."""
+        return list(range(self.C)) + ([self.C + 1] if self._key_warps else [])
+
+    def _motion_px(self) -> Tensor:
+        """Pixels per coordinate unit for each motion component."""
+        return self.px_per_unit.repeat(2) if self._key_warps else self.px_per_unit
+
+    def _keys_at(self, u: Tensor, blend_logit: Tensor, idx: Tensor) -> Tensor:
+        """Base "keys": the two key frames around each frame idx warped by the interpolation's
+        flows plus u (n, H, W, 4) and blended with its weights plus blend_logit (n, H, W)."""
+        flow = self.key_flow.index_select(0, idx) + u
+        left = self.key_left.index_select(0, idx)
+        gx, gy = self.xs.view(1, 1, -1), self.ys.view(1, -1, 1)
+
+        def warped(keys, f):
+            grid = torch.stack([gx + f[..., 0], gy + f[..., 1]], dim=-1)
+            return F.grid_sample(keys, grid, mode="bilinear", padding_mode="border", align_corners=True)
+
+        w0 = warped(self.key_images.index_select(0, left), flow[..., :2])
+        w1 = warped(self.key_images.index_select(0, left + 1), flow[..., 2:])
+        m = torch.sigmoid(self.key_logit.index_select(0, idx) + blend_logit)[:, None]
+        return (m * w0 + (1 - m) * w1).permute(1, 0, 2, 3)
+
     def _dynamic_at(self, u: Tensor, idx: Tensor) -> tuple[Tensor, Tensor]:
         """Dynamic colour (C, n, H, W) and alpha (1, n, H, W) at the points warped by u (n, H, W, 2)
         (frames idx: the time coordinate when the dynamic field has one)."""
         n = u.shape[0]
+        if self._key_warps:  # the motion moves the key frames; the field sits at (x, y, t)
+            raw = field_on_grid(self.fields["dynamic"], [self.xs, self.ys, self.ts[idx]]).permute(3, 0, 1, 2)
+            base = self._keys_at(u, raw[self.C + 1], idx) * self._gain()[:, None, None, None]
+            return F.softplus(raw[:self.C] + _inverse_softplus(base)), torch.sigmoid(raw[self.C:self.C + 1])
         x = self.xs.view(1, 1, -1) + u[..., 0]
         y = self.ys.view(1, -1, 1) + u[..., 1]
         coords = [x, y]
@@ -500,7 +594,7 @@ class STFM:
     def tv_term(self, idx: Tensor) -> Tensor:
         """Unbiased estimate of tau TV_S(U) from frames idx (uniform sample without replacement)."""
         nxt = (idx + 1).clamp(max=self.K - 1)
-        u = self._motion(torch.cat([idx, nxt])) * self.px_per_unit  # pixels
+        u = self._motion(torch.cat([idx, nxt])) * self._motion_px()  # pixels
         u0, u1 = u[:len(idx)], u[len(idx):]
         spatial = (u0[:, 1:] - u0[:, :-1]).abs().sum() + (u0[:, :, 1:] - u0[:, :, :-1]).abs().sum()
         temporal = (u1 - u0).abs().sum()  # zero for the last frame (nxt == idx)
@@ -679,7 +773,11 @@ class STFM:
 
     @torch.no_grad()
     def residuals(self) -> dict[str, float]:
-        video = self.estimate()  # from the averaged weights, like the gains below
+        return self.residuals_of(self.estimate(), self.gains())  # both from the averaged weights
+
+    @torch.no_grad()
+    def residuals_of(self, video: Tensor, gains: np.ndarray) -> dict[str, float]:
+        """Relative RS and GS residuals of a video (C, K, H, W) with GS/RS gains (C,)."""
         out = {}
         if self.problem.b_rs is not None:
             conv = self.conv if self.parts.rs else PSFConvolution(self.problem.psf, (self.H, self.W),
@@ -691,7 +789,7 @@ class STFM:
             out["rs"] = relative_residual(pred, self.problem.b_rs)
         if self.problem.b_gs is not None and self.problem.b_gs.shape[1] > 0:
             pred = torch.einsum("gk,ckhw->cghw", self.w_gs, video)
-            target = torch.from_numpy(self.gains()).to(self.device)[:, None, None, None] * self.problem.b_gs
+            target = torch.from_numpy(gains).to(self.device)[:, None, None, None] * self.problem.b_gs
             if self.mask is not None:
                 pred, target = pred * self.mask, target * self.mask
             out["gs"] = relative_residual(pred, target)
@@ -711,7 +809,8 @@ class STFM:
         if self.parts.motion:
             for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):
                 u = self._motion(idx)
-                motion[:, idx] = (u * self.px_per_unit).permute(3, 0, 1, 2)
+                total = u[..., :2] + (self.key_flow[idx][..., :2] if self._key_warps else 0)
+                motion[:, idx] = (total * self.px_per_unit).permute(3, 0, 1, 2)
                 if self.parts.static:
                     alpha[:, idx] = self._dynamic_at(u, idx)[1]
         return {"static": static.cpu().numpy(), "alpha": alpha.cpu().numpy(), "motion": motion.cpu().numpy()}
@@ -771,7 +870,9 @@ class STFM:
         background = v.median(dim=1).values
         times = torch.as_tensor(self._gs_centre_frames(), device=self.device).float()
         middle = int(torch.argmin((times - (self.K - 1) / 2).abs()))
-        if self.parts.static:
+        if self.parts.static and self._static_from is not None and "static" in self._static_from.fields:
+            self.fields["static"].load_state_dict(self._static_from.fields["static"].state_dict())
+        elif self.parts.static:
             _fit_image(self.fields["static"], self.xs, self.ys, background, steps)
         if not self.parts.motion:
             return
@@ -813,7 +914,7 @@ class STFM:
             opt.zero_grad()
             raw = field_on_grid(field, [self.xs, self.ys, self.ts[idx]]).permute(3, 0, 1, 2)
             if self.base_source is not None:  # the colour is already the base video: keep it
-                loss = raw[:self.C].square().mean()
+                loss = raw[self._correction_channels()].square().mean()
             else:
                 target = torch.einsum("kg,cghw->ckhw", weights[idx], v)
                 loss = (F.softplus(raw[:self.C]) - target).square().mean()
@@ -880,6 +981,11 @@ def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str) -> tuple[Ten
     return torch.from_numpy(np.asarray(interp(frames, gs_times_s, frame_times_s), np.float32)), "interp"
 
 
+def _base_list(bases: str) -> list[str]:
+    """The dynamic bases of a `dynamic_base` setting ("ensemble" is ENSEMBLE_BASES)."""
+    return (ENSEMBLE_BASES if bases == "ensemble" else bases).split(",")
+
+
 def _inverse_softplus(y: Tensor) -> Tensor:
     """x with softplus(x) = y (y clamped to >= 1e-4): y + log(1 - exp(-y)), stable."""
     y = y.clamp_min(1e-4)
@@ -909,6 +1015,126 @@ def _fit_image(module: nn.Module, xs: Tensor, ys: Tensor, image: Tensor, steps: 
         opt.step()
 
 
-def make_stfm(problem, settings: STFMSettings | None = None, device="cpu") -> STFM:
-    """The STFM method for `problem` (see STFM and STFMSettings)."""
-    return STFM(problem, settings or STFMSettings(), device)
+class STFMEnsemble:
+    """Several STFM fits, one per dynamic base, stepped in turn; the output is their average.
+
+    Each fit starts from a different GS-only guess (the RIFE video, or the key frames warped by
+    RIFE's or DIS's flows) and the RS image corrects what it sees; what it cannot see (its null
+    space) keeps each start's error, and those errors differ, so averaging shrinks them. The
+    average stays consistent with the data: the operators are linear, so its residual is at most
+    the members' mean residual. Steps go to the member with the fewest so far (members that have
+    reached the noise level are done); the run is done when all are. Memory: one set of fields
+    and one base per member, and the output evaluated chunk by chunk into one buffer."""
+
+    name = "stfm"
+    supports_holdout = True
+
+    def __init__(self, problem, settings: STFMSettings, bases: list[str], device="cpu", first: STFM | None = None):
+        self.settings = settings
+        self.members: list[STFM] = []
+        sources = set()
+        for i, base in enumerate(bases):
+            if i == 0 and first is not None:
+                member = first
+            else:
+                member = STFM(problem, replace(settings, dynamic_base=base, seed=settings.seed + i), device,
+                              static_from=self.members[0] if self.members else None)
+            if member.base_source in sources:  # e.g. "keys" falls back to DIS flows without RIFE
+                continue
+            sources.add(member.base_source)
+            self.members.append(member)
+        self.device = self.members[0].device
+        self.steps = 0
+        self._done: list[str | None] = [None] * len(self.members)
+        self._cache: tuple[int, Tensor] | None = None
+
+    @property
+    def left_out(self) -> list[tuple[str, str]]:
+        return self.members[0].left_out
+
+    @property
+    def rs_noise_level(self) -> float | None:
+        return self.members[0].rs_noise_level
+
+    def step(self) -> float:
+        i = min((j for j, done in enumerate(self._done) if done is None),
+                key=lambda j: self.members[j].steps, default=0)
+        member = self.members[i]
+        value = member.step()
+        self._done[i] = member.converged() if hasattr(member, "converged") else None
+        member._cache = None  # the stop test's video: do not keep one per member
+        self.steps += 1
+        return value
+
+    def converged(self) -> str | None:
+        if any(done is None for done in self._done):
+            return None
+        return f"all {len(self.members)} ensemble members stopped; first: {self._done[0]}"
+
+    @torch.no_grad()
+    def estimate(self) -> Tensor:
+        if self._cache is not None and self._cache[0] == self.steps:
+            return self._cache[1]
+        m0 = self.members[0]
+        video = torch.zeros(m0.C, m0.K, m0.H, m0.W, device=self.device)
+        for member in self.members:
+            with member._averaged():
+                for idx in _chunks(torch.arange(m0.K, device=self.device), self.settings.frame_chunk):
+                    video[:, idx] += member._video_frames(idx)
+        video /= len(self.members)
+        self._cache = (self.steps, video)
+        return video
+
+    def gains(self) -> np.ndarray:
+        return np.mean([m.gains() for m in self.members], axis=0)
+
+    @torch.no_grad()
+    def residuals(self) -> dict[str, float]:
+        return self.members[0].residuals_of(self.estimate(), self.gains())
+
+    @torch.no_grad()
+    def components(self) -> dict[str, np.ndarray]:
+        """static and alpha averaged over the members; motion of the first member."""
+        parts = [m.components() for m in self.members]
+        out = dict(parts[0])
+        for key in ("static", "alpha"):
+            out[key] = np.mean([p[key] for p in parts], axis=0)
+        return out
+
+    def state_dict(self) -> dict:
+        return {"members": [m.state_dict() for m in self.members], "steps": self.steps, "done": list(self._done)}
+
+    def load_state_dict(self, state: dict) -> None:
+        for m, saved in zip(self.members, state["members"], strict=True):
+            m.load_state_dict(saved)
+        self.steps = int(state["steps"])
+        self._done = list(state["done"])
+        self._cache = None
+
+    def reduce_step(self, factor: float) -> None:
+        for m in self.members:
+            m.reduce_step(factor)
+
+    def resolved_settings(self) -> dict:
+        out = self.members[0].resolved_settings()
+        out["dynamic_base"] = ",".join(m.resolved.dynamic_base for m in self.members)
+        out["base_video"] = [m.base_source for m in self.members]
+        out["member_steps"] = [m.steps for m in self.members]
+        return out
+
+
+def make_stfm(problem, settings: STFMSettings | None = None, device="cpu") -> STFM | STFMEnsemble:
+    """The STFM method for `problem` (see STFM and STFMSettings): an STFMEnsemble when the
+    dynamic base (the setting, else the preset's) lists several bases and the problem uses them."""
+    settings = settings or STFMSettings()
+    bases = settings.dynamic_base
+    if bases is None:
+        probe = _preset(settings.preset, 2, 2, 2)
+        bases = probe["dynamic_base"]
+    names = _base_list(bases)
+    if len(names) == 1:
+        return STFM(problem, replace(settings, dynamic_base=names[0]), device)
+    first = STFM(problem, replace(settings, dynamic_base=names[0]), device)
+    if first.base_source is None:  # no dynamic base applies (no GS frames, no motion, ...): one fit
+        return first
+    return STFMEnsemble(problem, settings, names, device, first=first)
