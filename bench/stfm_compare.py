@@ -130,8 +130,10 @@ def make_iterative(name: str, p: Problem, opts: dict):
     return make_stfm(p, STFMSettings(**opts))
 
 
-def run_iterative(name: str, p: Problem, budget_s: float, opts: dict | None = None) -> dict:
-    """Setup + the shared loop for `budget_s` seconds; PSNR logged against solve time."""
+def run_iterative(name: str, p: Problem, budget_s: float, opts: dict | None = None,
+                  max_iters: int | None = None) -> dict:
+    """Setup + the shared loop for `budget_s` seconds (and at most `max_iters` iterations);
+    PSNR logged against solve time."""
     truth = p.truth.float()
     inter = p.intermediate_frames()
     t0 = time.perf_counter()
@@ -140,7 +142,8 @@ def run_iterative(name: str, p: Problem, budget_s: float, opts: dict | None = No
     except ImportError as exc:
         return {"error": f"not available: {exc}"}
     setup_s = time.perf_counter() - t0
-    result = run(method, LoopSettings(time_budget_s=budget_s, log_every_s=max(budget_s / 20, 0.5), progress=False),
+    result = run(method, LoopSettings(time_budget_s=budget_s, max_iters=max_iters,
+                                      log_every_s=max(budget_s / 20, 0.5), progress=False),
                  evaluate=lambda m: video_metrics(m.estimate().float().cpu(), truth, inter))
     final = result.log[-1]
     out = {k: final[k] for k in ("psnr_db", "psnr_intermediate_db", "ssim") if k in final}
@@ -229,6 +232,9 @@ def main() -> None:
     ap.add_argument("--sizes", default="64,128")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--methods", default=",".join(METHODS), help="methods of the main table")
+    ap.add_argument("--max-iters", type=int, default=None,
+                    help="also stop iterative methods after this many iterations (with a long --budget: "
+                         "run each to its own stop)")
     ap.add_argument("--skip", default="", help="comma-separated parts to skip: main,ablation,memory")
     ap.add_argument("--memory-child", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -241,8 +247,9 @@ def main() -> None:
     skip = set(filter(None, args.skip.split(",")))
     scenes = args.scenes.split(",")
     sizes = [int(s) for s in args.sizes.split(",")]
+    cap = f", at most {args.max_iters} iterations" if args.max_iters else ""
     lines = [(f"# STFM benchmark ({time.strftime('%Y-%m-%d %H:%M')}, torch {torch.__version__}, "
-             f"{torch.get_num_threads()} threads, budget {args.budget:g} s per iterative method)"), ""]
+             f"{torch.get_num_threads()} threads, budget {args.budget:g} s per iterative method{cap})"), ""]
     results: dict = {}
     sources = set()
     if "main" not in skip:
@@ -258,9 +265,9 @@ def main() -> None:
                         continue
                     print(f"[{scene} {size}] {name}", flush=True)
                     if name.startswith("stfm"):
-                        r = run_iterative("stfm", p, args.budget, STFM_VARIANTS[name])
+                        r = run_iterative("stfm", p, args.budget, STFM_VARIANTS[name], args.max_iters)
                     elif name == "tv3d":
-                        r = run_iterative("tv3d", p, args.budget)
+                        r = run_iterative("tv3d", p, args.budget, max_iters=args.max_iters)
                     else:
                         r = run_gs_only(name, p)
                     results[(scene, size, name)] = r
