@@ -230,7 +230,8 @@ def main() -> None:
     ap.add_argument("--scenes", default="sineball,smoke,car,walk,vtest")
     ap.add_argument("--paper-scenes", default="sineball,smoke,car", help="scenes that also run the paper preset")
     ap.add_argument("--sizes", default="64,128")
-    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch threads (1: two benches can share 2 cores; oversubscribed threads ran 6-60x slower)")
     ap.add_argument("--methods", default=",".join(METHODS), help="methods of the main table")
     ap.add_argument("--max-iters", type=int, default=None,
                     help="also stop iterative methods after this many iterations (with a long --budget: "
