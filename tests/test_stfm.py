@@ -410,6 +410,8 @@ def test_settings_are_validated():
         STFMSettings(tau=-1.0)
     with pytest.raises(ConfigError, match="components"):
         STFMSettings(components="some")
+    with pytest.raises(ConfigError, match="stall_drop"):
+        STFMSettings(stall_drop=1.0)
 
 
 def _key_frames(p):
@@ -465,6 +467,24 @@ def test_discrepancy_stop_ends_the_fit_at_the_noise_level(sineball16):
     off = make_stfm(sineball16, small_settings(stop_at_noise=False))
     off.rs_noise_level = 1.0
     assert off.converged() is None
+
+
+def test_stall_stop_ends_a_fit_whose_residual_no_longer_falls(sineball16):
+    from rngcam.recon.stfm import NOISE_CHECK_STEPS, STALL_PASSES
+
+    m = make_stfm(sineball16, small_settings(stall_drop=0.999))  # demands a 99.9 % fall: stalls at once
+    m.rs_noise_level = 0.0  # the noise test never fires
+    window = m._stall_window()
+    assert window % NOISE_CHECK_STEPS == 0
+    assert window >= STALL_PASSES * len(m.rs_rows_fit) / m.resolved.rows_per_step
+    result = run(m, LoopSettings(time_budget_s=None, max_iters=window + 3 * NOISE_CHECK_STEPS, progress=False))
+    assert result.iterations == window + NOISE_CHECK_STEPS  # the first check with a residual a window back
+    assert any("fell less than 99.9%" in e for e in result.events)
+    m._rs_history[m.steps - window] = 1e3  # a residual that fell from far above: not a stall
+    assert m.converged() is None
+    m.resolved.stall_drop = 0.0  # off
+    m._rs_history[m.steps - window] = 0.0
+    assert m.converged() is None
 
 
 def test_noise_level_comes_from_the_fitted_rows_only(sineball16):
