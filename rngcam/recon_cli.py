@@ -47,7 +47,7 @@ def _method_options(method: str, given: dict) -> dict:
               help="STFM fast: the GS-only start the dynamic field corrects: video (rife, else interp), rife, "
                    "interp, keys (key frames warped by RIFE's flows, else DIS's), keys_rife, keys_interp, blend or "
                    "none; a comma-separated list averages one fit per base; ensemble = video,keys,keys_interp "
-                   "[video].")
+                   "[ensemble].")
 @click.option("--stop-at-noise/--no-stop-at-noise", default=None,
               help="STFM: stop once the RS residual reaches the noise level estimated from the RS image, "
                    "or falls by less than 3% over 15 passes over the RS rows [fast: on].")

@@ -79,7 +79,8 @@ def fits(m) -> list:
 
 
 def small_settings(**kw) -> STFMSettings:
-    base = {"components": "all", "seed": 0}
+    """One fit (base "video") unless said otherwise: most tests look inside a single fit."""
+    base = {"components": "all", "seed": 0, "dynamic_base": "video"}
     base.update(kw)
     return STFMSettings(**base)
 
@@ -551,9 +552,9 @@ def test_keys_base_starts_exactly_at_the_flow_interpolation(sineball16):
 def test_ensemble_averages_fits_on_distinct_bases(sineball16):
     from rngcam.recon.stfm import STFMEnsemble
 
-    assert not isinstance(make_stfm(sineball16, STFMSettings(components="all")), STFMEnsemble)  # fast: one fit
-    m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="ensemble"))
-    assert isinstance(m, STFMEnsemble)
+    assert not isinstance(make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video")), STFMEnsemble)
+    m = make_stfm(sineball16, STFMSettings(components="all"))  # the fast preset's default
+    assert isinstance(m, STFMEnsemble) and m.resolved_settings()["dynamic_base"].count(",") >= 1
     sources = [f.base_source for f in fits(m)]
     assert len(set(sources)) == len(sources) >= 2 and "keys_interp" in sources
     for _ in range(2 * len(sources)):
