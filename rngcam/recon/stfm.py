@@ -7,8 +7,9 @@ F_D is 2-D: one canonical image that the motion field moves around, so the dynam
 the motion field (the only field that sees t). This is the "paper" preset and
 `dynamic_time=False`. Deviations in the "fast" preset (`dynamic_time=True`; its default is the
 ensemble below, whose first fit is `dynamic_base="video"`): F_D(x + u_x, y + u_y, t) is a
-factorised plane field, and its colour is a correction to a base video B, the best GS-only interpolation of the key frames (RIFE when its weights are
-installed, else optical-flow interpolation): colour = softplus(softplus^-1(B_t(x + u)) + field).
+factorised plane field, and its colour is a correction to a base video B, the best GS-only
+interpolation of the key frames (RIFE when its weights are installed, else optical-flow
+interpolation): colour = softplus(softplus^-1(B_t(x + u)) + field).
 The correction head and the motion start at zero, so the fit starts exactly at that baseline;
 the RS image then moves content (motion field) and changes appearance where no warp explains
 it (smoke appearing). B costs one video-sized buffer (C K H W floats, like the output).
