@@ -50,7 +50,7 @@ def _method_options(method: str, given: dict) -> dict:
                    "[ensemble].")
 @click.option("--stop-at-noise/--no-stop-at-noise", default=None,
               help="STFM: stop once the RS residual reaches the noise level estimated from the RS image, "
-                   "or falls by less than 3% over 15 passes over the RS rows [fast: on].")
+                   "or falls by less than 2% over 15 passes over the RS rows [fast: on].")
 @click.option("--no-static", is_flag=True)
 @click.option("--no-motion-reg", is_flag=True)
 @click.option("--no-rs", is_flag=True)

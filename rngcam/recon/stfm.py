@@ -53,7 +53,7 @@ Stopping (fast preset, `stop_at_noise`): every NOISE_CHECK_STEPS steps the relat
 residual on the fitted rows is compared with the noise level estimated from the RS image alone
 (rngcam.recon.noise); once the fit reaches it, further steps would fit noise (the discrepancy
 principle), so the loop stops and says so. It also stops once that residual has fallen by less
-than `stall_drop` (3 %) over the last STALL_PASSES passes over the rows: on the benchmark scenes
+than `stall_drop` (2 %) over the last STALL_PASSES passes over the rows: on the benchmark scenes
 the truth-PSNR peaked about there and then fell (by 0.7-8 dB over the next 150 s on the real
 clips) while the residual crept towards the noise level, because the fields then buy residual
 with structure the truth does not have. Where the base video already explains the RS image
@@ -198,7 +198,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
         "lr": 2e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
         "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 8)), "init": "gs",
         "dynamic_time": True, "dynamic_base": "ensemble", "gs_windows_per_step": 1, "time_smoothness": 0.3,
-        "stop_at_noise": True, "stall_drop": 0.03, "ema_decay": 0.95}
+        "stop_at_noise": True, "stall_drop": 0.02, "ema_decay": 0.95}
 
 
 # ----------------------------------------------------------------------------- RS restricted
