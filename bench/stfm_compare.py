@@ -286,7 +286,7 @@ def main() -> None:
                 cells = [fmt(results[(scene, size, n)]) if (scene, size, n) in results else "-" for n in methods]
                 lines.append(f"| {scene} | {size} | " + " | ".join(cells) + " |")
         lines += ["", ("Scenes car, walk and vtest are the real clips bikes_car_256, bikes_walk_256 and vtest_256 "
-                       "at --span 8. 'stopped' = ended before the budget by the discrepancy principle."), "",
+                       "at --span 8. 'stopped' = ended before the budget by its own stop (RS residual at the noise level, or stalled)."), "",
                   "| scene | size | method | setup s | solve s | iterations | stopped | left out |",
                   "|---|---|---|---|---|---|---|---|"]
         for (scene, size, name), r in results.items():
