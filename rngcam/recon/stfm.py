@@ -120,7 +120,7 @@ class STFMSettings:
     dynamic_time: bool | None = None  # F_D(x + u_x, y + u_y, t) instead of F_D(x + u_x, y + u_y)
     dynamic_base: str | None = None  # "blend": F_D's colour corrects the warped cross-fade; "none"
     time_smoothness: float | None = None  # weight of the time planes' roughness (plane fields)
-    stop_at_noise: bool | None = None  # stop once the RS residual reaches the estimated noise level
+    stop_at_noise: bool | None = None  # stop once the RS residual reaches the estimated noise level, or stalls
     stall_drop: float | None = None  # ... or once it fell less than this fraction over STALL_PASSES (0: off)
     ema_decay: float | None = None  # outputs use an exponential moving average of the weights (0: off)
 
