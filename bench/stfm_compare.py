@@ -1,6 +1,6 @@
 """Side-by-side benchmark of STFM against the baselines, run by hand (not part of the tests).
 
-    .venv/bin/python bench/stfm_compare.py --budget 60 --out bench/stfm_compare.md
+    .venv/bin/python bench/stfm_compare.py --budget 150 --out bench/stfm_compare.md
 
 In one process on the CPU, under the same time budget per iterative method:
 1. STFM fast (the default: three fits on different GS-only starts, averaged), STFM single

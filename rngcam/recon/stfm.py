@@ -24,7 +24,7 @@ weights per frame: 5 floats per pixel and frame (5/3 of a colour video).
 With several bases (`dynamic_base="video,keys,keys_interp"`, or "ensemble" for that list, the
 fast preset's default) the method is an STFMEnsemble: one fit per base, averaged; see that class.
 On the 64 px benchmark scenes, each fit run to its own stop, the ensemble beat one fit on the
-RIFE video by about 1.1 dB on smoke and 0.3 dB on the car clip, for about three times the time
+RIFE video by 1.2 dB on smoke and 0.4 dB on the car clip, for about three times the time
 (bench/stfm_compare.md); `dynamic_base="video"` is that single fit.
 Coordinates are in [-1, 1] (pixel and frame centres at the ends); u is in the same units.
 
@@ -773,11 +773,13 @@ class STFM:
         video = self.estimate()  # cached per step: a log at this step reuses it
         pred = self._rs_apply(lambda idx: video[:, idx], rows)
         residual = relative_residual(pred, self.problem.b_rs.index_select(1, rows))
-        self._rs_history[self.steps] = residual
+        window = self._stall_window()
+        self._rs_history = {s: r for s, r in self._rs_history.items() if s >= self.steps - window}
+        self._rs_history[self.steps] = residual  # only the last window is kept (and checkpointed)
         if residual <= self.rs_noise_level:
             return (f"RS residual {residual:.4f} reached the noise level estimated from the RS image "
                     f"({self.rs_noise_level:.4f}): more steps would fit noise")
-        then = self.steps - self._stall_window()
+        then = self.steps - window
         drop = self.resolved.stall_drop
         if drop > 0 and then in self._rs_history and residual > (1 - drop) * self._rs_history[then]:
             return (f"RS residual {residual:.4f} fell less than {100 * drop:g}% in {STALL_PASSES} passes over the "
