@@ -582,7 +582,7 @@ def test_ensemble_without_rife_drops_the_duplicate_base(sineball16, monkeypatch)
 def test_ensemble_stops_only_when_every_member_reached_the_noise_level(sineball16):
     from rngcam.recon.stfm import NOISE_CHECK_STEPS
 
-    m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video,keys_interp"))
+    m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video,keys_interp", refine=False))
     first, second = fits(m)
     first.rs_noise_level, second.rs_noise_level = 1.0, 0.0  # the first is done at its first check
     result = run(m, LoopSettings(time_budget_s=None, max_iters=3 * NOISE_CHECK_STEPS, progress=False))
@@ -591,6 +591,62 @@ def test_ensemble_stops_only_when_every_member_reached_the_noise_level(sineball1
     second.rs_noise_level = 1.0
     result = run(m, LoopSettings(time_budget_s=None, max_iters=5 * NOISE_CHECK_STEPS, progress=False))
     assert any("all 2 ensemble members stopped" in e for e in result.events)
+
+
+def _stopped_members(m):
+    for f in fits(m):
+        f.rs_noise_level = 1.0  # every member is done at its first stop check
+
+
+def test_ensemble_refines_the_members_average_once_they_have_stopped(sineball16):
+    from rngcam.recon.stfm import NOISE_CHECK_STEPS, REFINE_LR_RATIO
+
+    m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video,keys_interp"))
+    _stopped_members(m)
+    result = run(m, LoopSettings(time_budget_s=None, max_iters=2 * NOISE_CHECK_STEPS, progress=False))
+    assert m.refined is None and not result.events and [f.steps for f in fits(m)] == [NOISE_CHECK_STEPS] * 2
+    average = m.estimate().clone()
+    assert torch.allclose(average, torch.stack([f.estimate() for f in fits(m)]).mean(0), atol=1e-6)
+    m.step()  # the members are done: this step builds the refinement fit and takes its first step
+    refined = m.refined
+    assert refined is not None and refined.steps == 1 and [f.steps for f in fits(m)] == [NOISE_CHECK_STEPS] * 2
+    gains = torch.as_tensor(np.mean([f.gains() for f in fits(m)], axis=0))[:, None, None, None]
+    assert torch.allclose(refined.base_video * gains, average, atol=1e-6)  # its base is the average
+    assert refined.resolved.lr == pytest.approx(REFINE_LR_RATIO * fits(m)[0].resolved.lr)
+    assert torch.equal(m.estimate(), refined.estimate()) and m.converged() is None
+    refined.rs_noise_level = 1.0
+    result = run(m, LoopSettings(time_budget_s=None, max_iters=2 * NOISE_CHECK_STEPS, progress=False))
+    assert any("refinement: RS residual" in e for e in result.events), result.events
+    assert refined.steps == NOISE_CHECK_STEPS and m.resolved_settings()["refine_steps"] == NOISE_CHECK_STEPS
+    assert np.all(np.isfinite(m.estimate().numpy())) and set(m.components()) >= {"static", "alpha", "motion"}
+
+
+def test_ensemble_without_refinement_stops_with_its_members_and_returns_their_average(sineball16):
+    m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video,keys_interp", refine=False))
+    _stopped_members(m)
+    from rngcam.recon.stfm import NOISE_CHECK_STEPS
+
+    result = run(m, LoopSettings(time_budget_s=None, max_iters=4 * NOISE_CHECK_STEPS, progress=False))
+    assert result.iterations == 2 * NOISE_CHECK_STEPS and m.refined is None
+    assert torch.allclose(m.estimate(), torch.stack([f.estimate() for f in fits(m)]).mean(0), atol=1e-6)
+
+
+def test_ensemble_resumes_inside_its_refinement(sineball16):
+    from rngcam.recon.stfm import NOISE_CHECK_STEPS
+
+    settings = STFMSettings(components="all", dynamic_base="video,keys_interp")
+    straight, first, resumed = (make_stfm(sineball16, settings) for _ in range(3))
+    for m in (straight, first, resumed):
+        _stopped_members(m)
+    for _ in range(2 * NOISE_CHECK_STEPS + 6):
+        straight.step()
+    for _ in range(2 * NOISE_CHECK_STEPS + 3):
+        first.step()
+    resumed.load_state_dict(first.state_dict())
+    assert resumed.refined is not None and resumed.refined.steps == 3
+    for _ in range(3):
+        resumed.step()
+    assert torch.equal(straight.estimate(), resumed.estimate())
 
 
 def test_ensemble_checkpoint_and_resume_reproduce_an_uninterrupted_run(sineball16):

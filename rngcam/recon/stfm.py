@@ -22,7 +22,8 @@ the colour correction, alpha and l. This starts exactly at that interpolation an
 key frame on its own, which a warp of an already blended video cannot. It costs the flows and
 weights per frame: 5 floats per pixel and frame (5/3 of a colour video).
 With several bases (`dynamic_base="video,keys,keys_interp"`, or "ensemble" for that list, the
-fast preset's default) the method is an STFMEnsemble: one fit per base, averaged; see that class.
+fast preset's default) the method is an STFMEnsemble: one fit per base, averaged, then one more
+fit on that average (`refine`); see that class.
 On the 64 px benchmark scenes, each fit run to its own stop, the ensemble beat one fit on the
 RIFE video by 1.2 dB on smoke and 0.4 dB on the car clip, for about three times the time
 (bench/stfm_compare.md); `dynamic_base="video"` is that single fit.
@@ -123,6 +124,7 @@ class STFMSettings:
     stop_at_noise: bool | None = None  # stop once the RS residual reaches the estimated noise level, or stalls
     stall_drop: float | None = None  # ... or once it fell less than this fraction over STALL_PASSES (0: off)
     ema_decay: float | None = None  # outputs use an exponential moving average of the weights (0: off)
+    refine: bool | None = None  # ensemble: one more fit on the members' average once they have stopped
 
     def __post_init__(self):
         if self.preset not in PRESETS:
@@ -161,6 +163,7 @@ ALL_BASES = (*BASE_VIDEOS, *KEY_WARPS, "blend", "none")
 # dynamic_base="ensemble": one fit on each of these bases, averaged (STFMEnsemble). Their errors
 # in what the RS image cannot see differ, so the average is closer to the truth than any one of them.
 ENSEMBLE_BASES = "video,keys,keys_interp"
+REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
 DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
 
 
@@ -176,7 +179,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
             "lr": 5e-6, "decoder_lr_ratio": 1.0, "gain_lr_ratio": 1.0, "lr_half_life_steps": math.inf,
             "beta": 10.0, "tau": 1e-3, "rows_per_step": max(1, h // 4), "init": "random",
             "dynamic_time": False, "dynamic_base": "none", "gs_windows_per_step": 0, "time_smoothness": 0.0,
-            "stop_at_noise": False, "stall_drop": 0.0, "ema_decay": 0.0}
+            "stop_at_noise": False, "stall_drop": 0.0, "ema_decay": 0.0, "refine": False}
 
     def scales(fractions, n):
         return tuple(sorted({max(2, round(n * f)) for f in fractions}))
@@ -198,7 +201,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
         "lr": 2e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
         "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 8)), "init": "gs",
         "dynamic_time": True, "dynamic_base": "ensemble", "gs_windows_per_step": 1, "time_smoothness": 0.3,
-        "stop_at_noise": True, "stall_drop": 0.02, "ema_decay": 0.95}
+        "stop_at_noise": True, "stall_drop": 0.02, "ema_decay": 0.95, "refine": True}
 
 
 # ----------------------------------------------------------------------------- RS restricted
@@ -248,11 +251,15 @@ class STFM:
     name = "stfm"
     supports_holdout = True  # fits only the training measurements when the problem has a split
 
-    def __init__(self, problem, settings: STFMSettings, device="cpu", static_from: STFM | None = None):
+    def __init__(self, problem, settings: STFMSettings, device="cpu", static_from: STFM | None = None,
+                 base_video: Tensor | None = None):
         """`static_from`: an STFM of the same problem and preset whose initialised static field
-        this one copies instead of fitting it again (ensemble members share that start)."""
+        this one copies instead of fitting it again (ensemble members share that start).
+        `base_video` (C, K, H, W), without GS gains: the base of a "video" dynamic base, instead
+        of RIFE's or the flow interpolation's (the ensemble's refinement fit)."""
         self.settings = settings
         self._static_from = static_from
+        self._given_base = base_video
         self.device = torch.device(device)
         self.problem = problem.to(torch.float32, self.device)
         p = self.problem
@@ -338,6 +345,9 @@ class STFM:
         if not (kind != "none" and self.resolved.dynamic_time and self.parts.gs and self.parts.motion):
             return
         p = self.problem
+        if self._given_base is not None and kind in BASE_VIDEOS:
+            self.base_video, self.base_source = self._given_base.to(self.device, torch.float32), "given"
+            return
         keys = p.gs_images()  # without gains: the current Lambda multiplies the base
         if kind in KEY_WARPS:
             if self._build_key_warps(keys, kind):
@@ -1049,21 +1059,31 @@ def _fit_image(module: nn.Module, xs: Tensor, ys: Tensor, image: Tensor, steps: 
 
 
 class STFMEnsemble:
-    """Several STFM fits, one per dynamic base, stepped in turn; the output is their average.
+    """Several STFM fits, one per dynamic base, stepped in turn; the output is their average,
+    refined by one more fit.
 
     Each fit starts from a different GS-only guess (the RIFE video, or the key frames warped by
     RIFE's or DIS's flows) and the RS image corrects what it sees; what it cannot see (its null
     space) keeps each start's error, and those errors differ, so averaging shrinks them. The
     average stays consistent with the data: the operators are linear, so its residual is at most
     the members' mean residual. Steps go to the member with the fewest so far (members that have
-    reached the noise level are done); the run is done when all are. Memory: one set of fields
-    and one base per member, and the output evaluated chunk by chunk into one buffer."""
+    reached the noise level are done).
+
+    Refinement (`refine`, fast preset): once every member has stopped, one more fit takes their
+    average as its base video, with REFINE_LR_RATIO of the learning rate, until its own stop test
+    fires; it is then the output. Like every fit it starts from the GS frames' static composition
+    (alpha * static + (1 - alpha) * base, alpha where every key frame agrees with their median),
+    which the members' fits had eroded; the RS image keeps that composition where it fits the data
+    and undoes it where something moved between the key frames (bench/stfm_compare.md).
+    Memory: one set of fields and one base per fit, and the output evaluated chunk by chunk into
+    one buffer."""
 
     name = "stfm"
     supports_holdout = True
 
     def __init__(self, problem, settings: STFMSettings, bases: list[str], device="cpu", first: STFM | None = None):
         self.settings = settings
+        self.problem = problem
         self.members: list[STFM] = []
         sources = set()
         for i, base in enumerate(bases):
@@ -1079,6 +1099,10 @@ class STFMEnsemble:
         self.device = self.members[0].device
         self.steps = 0
         self._done: list[str | None] = [None] * len(self.members)
+        self.use_refine = (_preset(settings.preset, 2, 2, 2)["refine"] if settings.refine is None
+                           else settings.refine)
+        self.refined: STFM | None = None
+        self._refine_done: str | None = None
         self._cache: tuple[int, Tensor] | None = None
 
     @property
@@ -1089,37 +1113,66 @@ class STFMEnsemble:
     def rs_noise_level(self) -> float | None:
         return self.members[0].rs_noise_level
 
+    def _members_done(self) -> bool:
+        return all(done is not None for done in self._done)
+
     def step(self) -> float:
-        i = min((j for j, done in enumerate(self._done) if done is None),
-                key=lambda j: self.members[j].steps, default=0)
-        member = self.members[i]
-        value = member.step()
-        self._done[i] = member.converged() if hasattr(member, "converged") else None
-        member._cache = None  # the stop test's video: do not keep one per member
+        if self._members_done() and self.use_refine:
+            if self.refined is None:
+                self._start_refinement()
+            value = self.refined.step()
+            self._refine_done = self.refined.converged()
+        else:
+            i = min((j for j, done in enumerate(self._done) if done is None),
+                    key=lambda j: self.members[j].steps, default=0)
+            member = self.members[i]
+            value = member.step()
+            self._done[i] = member.converged()
+            member._cache = None  # the stop test's video: do not keep one per member
         self.steps += 1
         return value
 
+    def _start_refinement(self) -> None:
+        first = self.members[0]
+        lr = REFINE_LR_RATIO * first.resolved.lr
+        base = self.average() / torch.as_tensor(self._mean_gains(), device=self.device)[:, None, None, None]
+        settings = replace(self.settings, dynamic_base="video", seed=self.settings.seed + len(self.members), lr=lr)
+        self.refined = STFM(self.problem, settings, self.device, static_from=first, base_video=base)
+
     def converged(self) -> str | None:
-        if any(done is None for done in self._done):
+        if not self._members_done():
             return None
-        return f"all {len(self.members)} ensemble members stopped; first: {self._done[0]}"
+        done = f"all {len(self.members)} ensemble members stopped; first: {self._done[0]}"
+        if not self.use_refine:
+            return done
+        if self._refine_done is None:
+            return None
+        return f"{done}; refinement: {self._refine_done}"
 
     @torch.no_grad()
-    def estimate(self) -> Tensor:
-        if self._cache is not None and self._cache[0] == self.steps:
-            return self._cache[1]
+    def average(self) -> Tensor:
+        """The members' average video (C, K, H, W)."""
         m0 = self.members[0]
         video = torch.zeros(m0.C, m0.K, m0.H, m0.W, device=self.device)
         for member in self.members:
             with member._averaged():
                 for idx in _chunks(torch.arange(m0.K, device=self.device), self.settings.frame_chunk):
                     video[:, idx] += member._video_frames(idx)
-        video /= len(self.members)
-        self._cache = (self.steps, video)
-        return video
+        return video / len(self.members)
+
+    @torch.no_grad()
+    def estimate(self) -> Tensor:
+        if self.refined is not None:
+            return self.refined.estimate()
+        if self._cache is None or self._cache[0] != self.steps:
+            self._cache = (self.steps, self.average())
+        return self._cache[1]
+
+    def _mean_gains(self) -> np.ndarray:
+        return np.mean([m.gains() for m in self.members], axis=0)
 
     def gains(self) -> np.ndarray:
-        return np.mean([m.gains() for m in self.members], axis=0)
+        return self.refined.gains() if self.refined is not None else self._mean_gains()
 
     @torch.no_grad()
     def residuals(self) -> dict[str, float]:
@@ -1127,25 +1180,37 @@ class STFMEnsemble:
 
     @torch.no_grad()
     def components(self) -> dict[str, np.ndarray]:
-        """static and alpha averaged over the members; motion of the first member."""
+        """static and alpha of the refinement, else averaged over the members; motion of the
+        first member (the refinement's motion moves the average, not the scene)."""
         parts = [m.components() for m in self.members]
         out = dict(parts[0])
+        if self.refined is not None:
+            refined = self.refined.components()
+            out.update({k: refined[k] for k in ("static", "alpha")})
+            return out
         for key in ("static", "alpha"):
             out[key] = np.mean([p[key] for p in parts], axis=0)
         return out
 
     def state_dict(self) -> dict:
-        return {"members": [m.state_dict() for m in self.members], "steps": self.steps, "done": list(self._done)}
+        return {"members": [m.state_dict() for m in self.members], "steps": self.steps, "done": list(self._done),
+                "refined": None if self.refined is None else self.refined.state_dict(),
+                "refine_done": self._refine_done}
 
     def load_state_dict(self, state: dict) -> None:
         for m, saved in zip(self.members, state["members"], strict=True):
             m.load_state_dict(saved)
         self.steps = int(state["steps"])
         self._done = list(state["done"])
+        self.refined = None
+        if state.get("refined") is not None:  # rebuilt from the restored members, then restored
+            self._start_refinement()
+            self.refined.load_state_dict(state["refined"])
+        self._refine_done = state.get("refine_done")
         self._cache = None
 
     def reduce_step(self, factor: float) -> None:
-        for m in self.members:
+        for m in [*self.members, *([self.refined] if self.refined is not None else [])]:
             m.reduce_step(factor)
 
     def resolved_settings(self) -> dict:
@@ -1153,6 +1218,8 @@ class STFMEnsemble:
         out["dynamic_base"] = ",".join(m.resolved.dynamic_base for m in self.members)
         out["base_video"] = [m.base_source for m in self.members]
         out["member_steps"] = [m.steps for m in self.members]
+        out["refine"] = self.use_refine
+        out["refine_steps"] = None if self.refined is None else self.refined.steps
         return out
 
 
