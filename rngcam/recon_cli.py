@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from rngcam.recon.runner import METHODS, ReconSettings, default_out_dir, reconstruct
+from rngcam.recon.runner import DEFAULT_TIME_BUDGET_S, METHODS, ReconSettings, default_out_dir, reconstruct
 
 
 def _method_options(method: str, given: dict) -> dict:
@@ -30,7 +30,9 @@ def _method_options(method: str, given: dict) -> dict:
 @click.option("--method", type=click.Choice(METHODS), default="stfm", show_default=True)
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder [default: <bundle>-recon-<method>/ beside the bundle].")
-@click.option("--time-budget", type=float, default=60.0, show_default=True, help="Wall-clock seconds.")
+@click.option("--time-budget", type=float, default=None,
+              help="Wall-clock seconds [stfm: 600 (the fast preset stops itself once the data are fitted); "
+                   "otherwise 60].")
 @click.option("--iters", type=int, default=None, help="Stop after this many iterations.")
 @click.option("--resume", is_flag=True, help="Continue from the checkpoint in the output folder.")
 @click.option("--device", default="auto", show_default=True, help="auto, cpu or cuda[:N].")
@@ -67,6 +69,8 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, resume, device, grid_
     if method == "tv3d":
         opts["use_rs"] = False if opts.pop("no_rs") else None
         opts["use_gs"] = False if opts.pop("no_gs") else None
+    if time_budget is None:
+        time_budget = DEFAULT_TIME_BUDGET_S.get(method, 60.0)
     settings = ReconSettings(method=method, time_budget_s=time_budget, max_iters=iters, device=device,
                              grid_bin=grid_bin, resume=resume, progress=not quiet, holdout=holdout,
                              options=_method_options(method, opts))

@@ -99,3 +99,20 @@ def test_stfm_base_list_runs_an_ensemble_and_a_bad_base_is_a_clear_error(mock_bu
     bad = CliRunner().invoke(main, ["recon", str(mock_bundle), "-o", str(tmp_path / "b"), "--quiet", "--iters", "1",
                                     "--base", "interp,warp"])
     assert bad.exit_code == 2 and "dynamic_base must be one of" in bad.output and "Traceback" not in bad.output
+
+
+@pytest.mark.parametrize("method,args,budget", [("stfm", [], 600.0), ("tv3d", [], 60.0), ("stfm", ["--time-budget", "7"], 7.0)])
+def test_recon_time_budget_defaults_by_method(mock_bundle, tmp_path, monkeypatch, method, args, budget):
+    from rngcam import recon_cli
+
+    seen = {}
+
+    def fake_reconstruct(bundle, out, settings, echo):
+        seen["budget"] = settings.time_budget_s
+        return {"seconds": 0.0, "iterations": 0}
+
+    monkeypatch.setattr(recon_cli, "reconstruct", fake_reconstruct)
+    res = CliRunner().invoke(main, ["recon", str(mock_bundle), "--method", method, "-o", str(tmp_path / "o"),
+                                    "--quiet", *args])
+    assert res.exit_code == 0, res.output
+    assert seen["budget"] == budget  # STFM stops itself: its default only caps a fit that never settles

@@ -30,6 +30,9 @@ from rngcam.recon.problem import Problem, build_problem
 ITERATIVE = ("stfm", "tv3d")
 GS_ONLY = ("blend", "interp", "rife")
 METHODS = ITERATIVE + GS_ONLY
+# `rngcam recon`'s budget when none is given: STFM's fast preset stops by itself (after 1-3 min at
+# 64 px on one CPU thread), so its cap only guards against a fit that never settles.
+DEFAULT_TIME_BUDGET_S = {"stfm": 600.0, "tv3d": 60.0}
 
 
 @dataclass
