@@ -85,7 +85,7 @@ def main(out: Path = OUT) -> int:
     rows, videos, logs = [], {}, {}
     for label, method, opts, budget in PLAN:
         click.echo(f"== {label}")
-        settings = ReconSettings(method=method, time_budget_s=budget or 60.0, options=opts,
+        settings = ReconSettings(method=method, time_budget_s=budget or "auto", options=opts,
                                  progress=sys.stdout.isatty())
         try:
             m = reconstruct(bundle, out / label, settings, echo=click.echo)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from rngcam.recon.runner import DEFAULT_TIME_BUDGET_S, METHODS, ReconSettings, default_out_dir, reconstruct
+from rngcam.recon.runner import METHODS, ReconSettings, default_out_dir, reconstruct
 
 
 def _method_options(method: str, given: dict) -> dict:
@@ -69,9 +69,8 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, resume, device, grid_
     if method == "tv3d":
         opts["use_rs"] = False if opts.pop("no_rs") else None
         opts["use_gs"] = False if opts.pop("no_gs") else None
-    if time_budget is None:
-        time_budget = DEFAULT_TIME_BUDGET_S.get(method, 60.0)
-    settings = ReconSettings(method=method, time_budget_s=time_budget, max_iters=iters, device=device,
+    budget = "auto" if time_budget is None else time_budget
+    settings = ReconSettings(method=method, time_budget_s=budget, max_iters=iters, device=device,
                              grid_bin=grid_bin, resume=resume, progress=not quiet, holdout=holdout,
                              options=_method_options(method, opts))
     out = out_dir or default_out_dir(bundle, method)

@@ -101,7 +101,8 @@ def sweep_cmd(bundle, beta, tau, psi, method, preset, time_budget, iters, holdou
 @click.option("--method", type=click.Choice(METHODS), default="stfm", show_default=True)
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("recon-batch"),
               show_default=True, help="Output folder: one sub-folder per bundle, batch.csv and batch.md.")
-@click.option("--time-budget", type=float, default=60.0, show_default=True, help="Wall-clock seconds per bundle.")
+@click.option("--time-budget", type=float, default=None,
+              help="Wall-clock seconds per bundle [stfm: 600 (the fast preset stops itself); otherwise 60].")
 @click.option("--iters", type=int, default=None, help="Stop each fit after this many iterations.")
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda (one GPU per bundle).")
 @click.option("--bin", "grid_bin", type=int, default=None, help="Sensor pixels per grid pixel.")
@@ -120,8 +121,8 @@ def recon_batch_cmd(bundles, method, out_dir, time_budget, iters, device, grid_b
         raise click.UsageError(f"{', '.join('--' + k for k in opts)} does not apply to --method {method}")
     if "preset" in opts and method != "stfm":
         raise click.UsageError("--preset applies to --method stfm only")
-    settings = ReconSettings(method=method, time_budget_s=time_budget, max_iters=iters, device=device,
-                             grid_bin=grid_bin, progress=False, options=opts)
+    settings = ReconSettings(method=method, time_budget_s="auto" if time_budget is None else time_budget,
+                             max_iters=iters, device=device, grid_bin=grid_bin, progress=False, options=opts)
     result = recon_batch(bundles, out_dir, settings, backend_factory=_backend_factory(address, no_ray, device),
                          echo=click.echo)
     click.echo((result.out_dir / "batch.md").read_text().split("\n\n", 1)[-1].rstrip())

@@ -116,3 +116,11 @@ def test_recon_time_budget_defaults_by_method(mock_bundle, tmp_path, monkeypatch
                                     "--quiet", *args])
     assert res.exit_code == 0, res.output
     assert seen["budget"] == budget  # STFM stops itself: its default only caps a fit that never settles
+
+
+def test_recon_settings_budget_auto_is_the_methods_default():
+    from rngcam.recon.runner import ReconSettings
+
+    assert ReconSettings().time_budget_s == 600.0  # stfm, the default method
+    assert ReconSettings(method="tv3d").time_budget_s == 60.0
+    assert ReconSettings(method="tv3d", time_budget_s=None, max_iters=3).time_budget_s is None

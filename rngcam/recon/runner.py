@@ -30,15 +30,16 @@ from rngcam.recon.problem import Problem, build_problem
 ITERATIVE = ("stfm", "tv3d")
 GS_ONLY = ("blend", "interp", "rife")
 METHODS = ITERATIVE + GS_ONLY
-# `rngcam recon`'s budget when none is given: STFM's fast preset stops by itself (after 1-3 min at
-# 64 px on one CPU thread), so its cap only guards against a fit that never settles.
-DEFAULT_TIME_BUDGET_S = {"stfm": 600.0, "tv3d": 60.0}
+# The budget of time_budget_s="auto": STFM's fast preset stops by itself (after 1-3 min at 64 px on
+# one CPU thread), so its cap only guards against a fit that never settles.
+DEFAULT_TIME_BUDGET_S = {"stfm": 600.0}
+FALLBACK_TIME_BUDGET_S = 60.0
 
 
 @dataclass
 class ReconSettings:
     method: str = "stfm"
-    time_budget_s: float | None = 60.0
+    time_budget_s: float | str | None = "auto"  # "auto": the method's (DEFAULT_TIME_BUDGET_S, else 60 s)
     max_iters: int | None = None
     device: str = "auto"
     grid_bin: int | None = None
@@ -54,6 +55,8 @@ class ReconSettings:
     def __post_init__(self):
         if self.method not in METHODS:
             raise ConfigError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
+        if self.time_budget_s == "auto":
+            self.time_budget_s = DEFAULT_TIME_BUDGET_S.get(self.method, FALLBACK_TIME_BUDGET_S)
         if self.holdout is not None:
             if not 0 < self.holdout < 1:
                 raise ConfigError(f"holdout must be a fraction in (0, 1), got {self.holdout}")
