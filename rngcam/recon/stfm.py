@@ -345,7 +345,10 @@ class STFM:
         if not (kind != "none" and self.resolved.dynamic_time and self.parts.gs and self.parts.motion):
             return
         p = self.problem
-        if self._given_base is not None and kind in BASE_VIDEOS:
+        if self._given_base is not None:
+            if kind not in BASE_VIDEOS:
+                raise ConfigError(f"a given base video needs a video dynamic base ({', '.join(BASE_VIDEOS)}), "
+                                  f"not {kind!r}")
             self.base_video, self.base_source = self._given_base.to(self.device, torch.float32), "given"
             return
         keys = p.gs_images()  # without gains: the current Lambda multiplies the base
@@ -1024,6 +1027,13 @@ def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str) -> tuple[Ten
     return torch.from_numpy(np.asarray(interp(frames, gs_times_s, frame_times_s), np.float32)), "interp"
 
 
+def _setting_or_preset(settings: STFMSettings, name: str):
+    """A setting's value, or its preset's where the setting is None (for values that do not
+    depend on the problem's size)."""
+    value = getattr(settings, name)
+    return _preset(settings.preset, 2, 2, 2)[name] if value is None else value
+
+
 def _base_list(bases: str) -> list[str]:
     """The dynamic bases of a `dynamic_base` setting ("ensemble" is ENSEMBLE_BASES)."""
     return (ENSEMBLE_BASES if bases == "ensemble" else bases).split(",")
@@ -1099,8 +1109,7 @@ class STFMEnsemble:
         self.device = self.members[0].device
         self.steps = 0
         self._done: list[str | None] = [None] * len(self.members)
-        self.use_refine = (_preset(settings.preset, 2, 2, 2)["refine"] if settings.refine is None
-                           else settings.refine)
+        self.use_refine = _setting_or_preset(settings, "refine")
         self.refined: STFM | None = None
         self._refine_done: str | None = None
         self._cache: tuple[int, Tensor] | None = None
@@ -1135,7 +1144,7 @@ class STFMEnsemble:
     def _start_refinement(self) -> None:
         first = self.members[0]
         lr = REFINE_LR_RATIO * first.resolved.lr
-        base = self.average() / torch.as_tensor(self._mean_gains(), device=self.device)[:, None, None, None]
+        base = self.estimate() / torch.as_tensor(self._mean_gains(), device=self.device)[:, None, None, None]
         settings = replace(self.settings, dynamic_base="video", seed=self.settings.seed + len(self.members), lr=lr)
         self.refined = STFM(self.problem, settings, self.device, static_from=first, base_video=base)
 
@@ -1182,15 +1191,12 @@ class STFMEnsemble:
     def components(self) -> dict[str, np.ndarray]:
         """static and alpha of the refinement, else averaged over the members; motion of the
         first member (the refinement's motion moves the average, not the scene)."""
-        parts = [m.components() for m in self.members]
-        out = dict(parts[0])
+        out = self.members[0].components()
         if self.refined is not None:
             refined = self.refined.components()
-            out.update({k: refined[k] for k in ("static", "alpha")})
-            return out
-        for key in ("static", "alpha"):
-            out[key] = np.mean([p[key] for p in parts], axis=0)
-        return out
+            return {**out, "static": refined["static"], "alpha": refined["alpha"]}
+        parts = [out, *(m.components() for m in self.members[1:])]
+        return {**out, **{key: np.mean([p[key] for p in parts], axis=0) for key in ("static", "alpha")}}
 
     def state_dict(self) -> dict:
         return {"members": [m.state_dict() for m in self.members], "steps": self.steps, "done": list(self._done),
@@ -1227,11 +1233,7 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu") -> ST
     """The STFM method for `problem` (see STFM and STFMSettings): an STFMEnsemble when the
     dynamic base (the setting, else the preset's) lists several bases and the problem uses them."""
     settings = settings or STFMSettings()
-    bases = settings.dynamic_base
-    if bases is None:
-        probe = _preset(settings.preset, 2, 2, 2)
-        bases = probe["dynamic_base"]
-    names = _base_list(bases)
+    names = _base_list(_setting_or_preset(settings, "dynamic_base"))
     if len(names) == 1:
         return STFM(problem, replace(settings, dynamic_base=names[0]), device)
     first = STFM(problem, replace(settings, dynamic_base=names[0]), device)
