@@ -1,5 +1,5 @@
 """bench/stfm_compare.py, the issue's side-by-side STFM benchmark, end to end at a tiny size: every
-method of the main table runs and the report carries its tables and target verdicts."""
+method of the main table runs and the report carries its tables, the seed spread and target verdicts."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ def test_stfm_compare_runs_every_method_and_reports_targets(tmp_path):
     out = tmp_path / "report.md"
     args = ["--budget", "0.5", "--paper-budget", "0.3", "--sizes", "16", "--scenes", "smoke",
             "--paper-scenes", "smoke", "--methods", "stfm_fast,stfm_single,stfm_paper,tv3d,blend,interp",
-            "--skip", "ablation,memory", "--out", str(out)]
+            "--seeds", "2", "--skip", "ablation,memory", "--out", str(out)]
     res = subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-2000:]
     report = out.read_text()
@@ -32,3 +32,9 @@ def test_stfm_compare_runs_every_method_and_reports_targets(tmp_path):
                      report)
     assert "STFM single - best GS-only" in report
     assert "Fast preset: time to reach the paper preset's final PSNR" in report
+    # seed spread: seed 0 is the main table's run, seed 1 a new one; the mean carries the verdicts
+    seeds = [line for line in report.splitlines() if re.match(r"\| [01] \| ", line)]
+    assert [r.split("|")[1].strip() for r in seeds] == ["0", "1"]
+    assert seeds[0].split("|")[2].strip() == cells[0]
+    assert re.search(r"Mean -?\d+\.\d\d dB \(min .*\): mean margin over tv3d [+-]\d+\.\d\d dB "
+                     r"\(target \+6\.0: (met|NOT met)\)", report)
