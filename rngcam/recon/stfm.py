@@ -62,8 +62,12 @@ with structure the truth does not have. Where the base video already explains th
 
 Presets: "paper" (SIREN fields as published: dynamic 3x128, static and motion 2x32, with
 positional encoding; Adam 5e-6, random initialisation) and "fast" (the default: plane
-fields, Adam 2e-2 with exponential decay, the ensemble of bases above, initialised from the GS frames:
-static field from their per-pixel median, alpha where every key frame agrees with it). Other
+fields, Adam 1e-2 with exponential decay, the ensemble of bases above, initialised from the GS frames:
+static field from their per-pixel median, alpha where every key frame agrees with it). The
+learning rate sets how far a fit strays from its start in what the RS image cannot see; on smoke
+(three seeds) single fits scored 26.9 / 27.4 / 27.9 dB at 2e-2 / 1e-2 / 5e-3, but the ensemble
+scored 28.4 / 28.7 / 28.5 dB: slower fits stay closer to their starts, so they differ less and
+their average gains less (bench/stfm_compare.md). Other
 dynamic bases: "rife" or "interp" (that baseline), "blend" (the cross-fade of the warped key
 frames: memory O(G) instead of O(K), but it starts lower), "none" (F_D alone, fitted to the
 cross-fade first; with `dynamic_time=False` the canonical image from the middle key frame and
@@ -198,7 +202,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
                                "features": 8, "hidden": 32}),
         "dynamic": ("planes", {"resolutions": appearance, "time_resolutions": motion_time_for(appearance),
                                 "features": DYNAMIC_FEATURES, "hidden": 32}),
-        "lr": 2e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
+        "lr": 1e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
         "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 8)), "init": "gs",
         "dynamic_time": True, "dynamic_base": "ensemble", "gs_windows_per_step": 1, "time_smoothness": 0.3,
         "stop_at_noise": True, "stall_drop": 0.02, "ema_decay": 0.95, "refine": True}
