@@ -1,9 +1,9 @@
 """Side-by-side benchmark of STFM against the baselines, run by hand (not part of the tests).
 
-    .venv/bin/python bench/stfm_compare.py --budget 150 --out bench/stfm_compare.md
+    .venv/bin/python bench/stfm_compare.py --budget 200 --out bench/stfm_compare.md
 
 In one process on the CPU, under the same time budget per iterative method:
-1. STFM fast (the default: three fits on different GS-only starts, averaged), STFM single
+1. STFM fast (the default: three fits on different GS-only starts, averaged, then refined), STFM single
    (`dynamic_base="video"`: one fit on the RIFE video), tv3d, blend, interp and rife on `sineball`, `smoke` and the three real clips
    (`car`, `walk`, `vtest`: bikes_car_256, bikes_walk_256, vtest_256 at span 8) at 64x64, STFM
    paper on sineball, smoke and car; STFM fast, single and the GS-only baselines also at 128x128;
