@@ -25,7 +25,7 @@ With several bases (`dynamic_base="video,keys,keys_interp"`, or "ensemble" for t
 fast preset's default) the method is an STFMEnsemble: one fit per base, averaged, then one more
 fit on that average (`refine`); see that class.
 On the 64 px benchmark scenes, each fit run to its own stop, the ensemble beat one fit on the
-RIFE video by 1.4 dB on smoke and 0.4 dB on the car clip, for three to four times the time
+RIFE video by 1.4 dB on smoke, 1.2 dB on sineball and 0.5 dB on the car clip, for three to four times the time
 (bench/stfm_compare.md); `dynamic_base="video"` is that single fit.
 Coordinates are in [-1, 1] (pixel and frame centres at the ends); u is in the same units.
 
