@@ -593,6 +593,19 @@ def test_ensemble_stops_only_when_every_member_reached_the_noise_level(sineball1
     assert any("all 2 ensemble members stopped" in e for e in result.events)
 
 
+def test_ensemble_fits_share_one_float32_copy_of_the_problem(sineball16):
+    from rngcam.recon.stfm import NOISE_CHECK_STEPS
+
+    m = make_stfm(sineball16.to(torch.float64), STFMSettings(components="all", dynamic_base="video,keys_interp",
+                                                             refine=True))
+    _stopped_members(m)
+    for _ in range(2 * NOISE_CHECK_STEPS + 1):
+        m.step()  # both members stop at their first check; the next step builds the refinement
+    problems = [f.problem for f in (*fits(m), m.refined)]
+    assert problems[0].b_rs.dtype == torch.float32
+    assert len({p.b_rs.data_ptr() for p in problems}) == 1 and len({p.truth.data_ptr() for p in problems}) == 1
+
+
 def _stopped_members(m):
     for f in fits(m):
         f.rs_noise_level = 1.0  # every member is done at its first stop check

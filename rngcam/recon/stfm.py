@@ -1243,4 +1243,5 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu") -> ST
     first = STFM(problem, replace(settings, dynamic_base=names[0]), device)
     if first.base_source is None:  # no dynamic base applies (no GS frames, no motion, ...): one fit
         return first
-    return STFMEnsemble(problem, settings, names, device, first=first)
+    # first.problem is float32 on the device: the other fits share its tensors instead of casting again
+    return STFMEnsemble(first.problem, settings, names, device, first=first)
