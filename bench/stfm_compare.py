@@ -362,7 +362,8 @@ def main() -> None:
                     if single and "error" not in single:
                         msg += f" (STFM single - best GS-only = {single['psnr_intermediate_db'] - gs_best:+.2f} dB)"
                     lines.append(msg)
-        lines += ["", "## Fast preset: time to reach the paper preset's final PSNR", ""]
+        if any(name == "stfm_paper" for _, _, name in results):
+            lines += ["", "## Fast preset: time to reach the paper preset's final PSNR", ""]
         for scene in scenes:
             fast, paper = results.get((scene, sizes[0], "stfm_fast")), results.get((scene, sizes[0], "stfm_paper"))
             if not fast or not paper or "error" in fast or "error" in paper:
