@@ -10,7 +10,9 @@ In one process on the CPU, under the same time budget per iterative method:
 2. on `smoke` at 64x64: STFM fast with all components against the four ablations
    (no_static, no_motion_reg, no_rs, no_gs); and STFM fast with `--seeds` seeds (the fields'
    initialisation and the sampling of rows and frames; the measurement stays the same), against
-   tv3d and the best GS-only baseline on that problem: one seed's margin is one draw;
+   tv3d and the best GS-only baseline on that problem: one seed's margin is one draw; and tv3d
+   with each temporal weight in `--tv3d-betas`, the best chosen by the truth (the most
+   favourable setting for tv3d), with STFM fast's margin over it;
 3. the time the fast preset needs to reach the paper preset's final PSNR, as a ratio of the
    paper preset's run time;
 4. peak memory of an STFM fit at K and 2K frames (the same scene on a grid with half the
@@ -240,6 +242,7 @@ def seed_spread(args, results: dict) -> list[str]:
         if r is None:
             print(f"[seeds] {name}", flush=True)
             r = run_iterative("tv3d", p, args.budget) if name == "tv3d" else run_gs_only(name, p)
+            results[("smoke", size, name)] = r  # later parts reuse it
         if "error" not in r:
             ref[name] = r["psnr_intermediate_db"]
     gs_best = max((ref[n] for n in ("blend", "interp", "rife") if n in ref), default=math.nan)
@@ -255,6 +258,8 @@ def seed_spread(args, results: dict) -> list[str]:
             print(f"[seeds] stfm_fast seed {seed}", flush=True)
             r = run_iterative("stfm", p, args.budget, {"preset": "fast", "seed": seed})
             print("   ", fmt(r), flush=True)
+            if seed == 0:
+                results[("smoke", size, "stfm_fast")] = r
         if "error" in r:
             continue
         value = r["psnr_intermediate_db"]
@@ -263,10 +268,52 @@ def seed_spread(args, results: dict) -> list[str]:
                      f"{value - ref.get('tv3d', math.nan):+.2f} | {value - gs_best:+.2f} |")
     if values:
         mean = float(np.mean(values))
+        results["seeds_mean"] = mean
         lines += ["", (f"Mean {mean:.2f} dB (min {min(values):.2f}, max {max(values):.2f}, sd {np.std(values):.2f}): "
                        f"mean margin over tv3d {mean - ref.get('tv3d', math.nan):+.2f} dB"
                        f"{verdict(mean - ref.get('tv3d', math.nan), TV_TARGETS['smoke'])}, over the best GS-only "
                        f"{mean - gs_best:+.2f} dB{verdict(mean - gs_best, GS_TARGETS['smoke'])}.")]
+    return lines
+
+
+def tv3d_beta(args, results: dict) -> list[str]:
+    """tv3d on smoke with each temporal weight beta in args.tv3d_betas, scored by the truth: the most
+    favourable beta for tv3d (an oracle; a sweep scored on held-out RS rows can only do as well or
+    worse), and STFM fast's margin over it (seed 0 and, when the seeds part ran, the seeds' mean)."""
+    from rngcam.recon.tv3d import TV3DSettings
+
+    size = int(args.sizes.split(",")[0])
+    p, _ = simulated_problem("smoke", size)
+    default_beta = TV3DSettings().beta
+    lines = ["", f"## tv3d's temporal weight on smoke {size}x{size} (intermediate-frame PSNR)", "",
+             (f"tv3d with each beta (the default is {default_beta:g}; tau stays at its default) for the same budget, "
+              "scored by the truth: the best row is the most favourable beta for tv3d, an oracle that a sweep on "
+              "held-out RS rows (`rngcam sweep`) can at best match."), "",
+             "| beta | PSNR all / intermediate | iterations |", "|---|---|---|"]
+    scores = {}
+    for beta in (float(b) for b in args.tv3d_betas.split(",")):
+        r = results.get(("smoke", size, "tv3d")) if beta == default_beta else None
+        if r is None:
+            print(f"[tv3d beta] {beta:g}", flush=True)
+            r = run_iterative("tv3d", p, args.budget, {"beta": beta}, args.max_iters)
+            print("   ", fmt(r), flush=True)
+        if "error" in r:
+            continue
+        scores[beta] = r["psnr_intermediate_db"]
+        lines.append(f"| {beta:g} | {fmt(r)} | {r['iterations']} |")
+    fast = results.get(("smoke", size, "stfm_fast"))
+    if fast is None:
+        print("[tv3d beta] stfm_fast", flush=True)
+        fast = run_iterative("stfm", p, args.budget, {"preset": "fast"})
+    if scores and "error" not in fast:
+        best = max(scores, key=scores.get)
+        gain = fast["psnr_intermediate_db"] - scores[best]
+        text = (f"Best beta {best:g} ({scores[best]:.2f} dB). STFM fast - tv3d at that beta: {gain:+.2f} dB at seed 0"
+                f"{verdict(gain, TV_TARGETS['smoke'])}")
+        if "seeds_mean" in results:
+            mean_gain = results["seeds_mean"] - scores[best]
+            text += f"; {mean_gain:+.2f} dB on the seeds' mean{verdict(mean_gain, TV_TARGETS['smoke'])}"
+        lines += ["", text + "."]
     return lines
 
 
@@ -287,7 +334,10 @@ def main() -> None:
                     help="also stop iterative methods after this many iterations (with a long --budget: "
                          "run each to its own stop)")
     ap.add_argument("--seeds", type=int, default=5, help="STFM fast seeds on smoke (the 'seeds' part)")
-    ap.add_argument("--skip", default="", help="comma-separated parts to skip: main,ablation,seeds,memory")
+    ap.add_argument("--tv3d-betas", default="1,10,30,100",
+                    help="tv3d temporal weights tried on smoke (the 'tv3d_beta' part)")
+    ap.add_argument("--skip", default="",
+                    help="comma-separated parts to skip: main,ablation,seeds,tv3d_beta,memory")
     ap.add_argument("--memory-child", nargs=2, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.threads:
@@ -389,6 +439,8 @@ def main() -> None:
             lines.append(f"| {flag} | {fmt(r)} | {r.get('iterations', '-')} |")
     if "seeds" not in skip:
         lines += seed_spread(args, results)
+    if "tv3d_beta" not in skip:
+        lines += tv3d_beta(args, results)
     if "memory" not in skip:
         print("[memory]", flush=True)
         rows = measure_memory("sineball", sizes[0], steps=0)

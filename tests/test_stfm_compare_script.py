@@ -1,5 +1,6 @@
 """bench/stfm_compare.py, the issue's side-by-side STFM benchmark, end to end at a tiny size: every
-method of the main table runs and the report carries its tables, the seed spread and target verdicts."""
+method of the main table runs and the report carries its tables, the seed spread, tv3d's beta
+sweep and target verdicts."""
 
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ def test_stfm_compare_runs_every_method_and_reports_targets(tmp_path):
     out = tmp_path / "report.md"
     args = ["--budget", "0.5", "--paper-budget", "0.3", "--sizes", "16", "--scenes", "smoke",
             "--paper-scenes", "smoke", "--methods", "stfm_fast,stfm_single,stfm_paper,tv3d,blend,interp",
-            "--seeds", "2", "--skip", "ablation,memory", "--out", str(out)]
+            "--seeds", "2", "--tv3d-betas", "1,10", "--skip", "ablation,memory", "--out", str(out)]
     res = subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-2000:]
     report = out.read_text()
@@ -33,8 +34,15 @@ def test_stfm_compare_runs_every_method_and_reports_targets(tmp_path):
     assert "STFM single - best GS-only" in report
     assert "Fast preset: time to reach the paper preset's final PSNR" in report
     # seed spread: seed 0 is the main table's run, seed 1 a new one; the mean carries the verdicts
-    seeds = [line for line in report.splitlines() if re.match(r"\| [01] \| ", line)]
+    spread, section = report.split("## Seed spread")[1].split("## tv3d's temporal weight on smoke 16x16")
+    seeds = [line for line in spread.splitlines() if re.match(r"\| \d+ \| ", line)]
     assert [r.split("|")[1].strip() for r in seeds] == ["0", "1"]
     assert seeds[0].split("|")[2].strip() == cells[0]
     assert re.search(r"Mean -?\d+\.\d\d dB \(min .*\): mean margin over tv3d [+-]\d+\.\d\d dB "
                      r"\(target \+6\.0: (met|NOT met)\)", report)
+    # tv3d's temporal weight: the default's row is the main table's run, beta 10 a new one
+    betas = [line for line in section.splitlines() if re.match(r"\| \d+ \| ", line)]
+    assert [r.split("|")[1].strip() for r in betas] == ["1", "10"]
+    assert betas[0].split("|")[2].strip() == cells[3]  # the main table's tv3d
+    assert re.search(r"Best beta (1|10) \(-?\d+\.\d\d dB\)\. STFM fast - tv3d at that beta: [+-]\d+\.\d\d dB at "
+                     r"seed 0 \(target \+6\.0: (met|NOT met)\); [+-]\d+\.\d\d dB on the seeds' mean", section)
