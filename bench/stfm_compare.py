@@ -304,7 +304,7 @@ def tv3d_beta(args, results: dict) -> list[str]:
     fast = results.get(("smoke", size, "stfm_fast"))
     if fast is None:
         print("[tv3d beta] stfm_fast", flush=True)
-        fast = run_iterative("stfm", p, args.budget, {"preset": "fast"})
+        fast = run_iterative("stfm", p, args.budget, {"preset": "fast"}, args.max_iters)
     if scores and "error" not in fast:
         best = max(scores, key=scores.get)
         gain = fast["psnr_intermediate_db"] - scores[best]
