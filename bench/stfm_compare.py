@@ -231,6 +231,16 @@ def time_to_reach(log: list[tuple[float, float]], target: float) -> float | None
     return None
 
 
+def reuse_or_run(results: dict, key: tuple, label: str, run_fn) -> dict:
+    """results[key] when an earlier part ran it, else run_fn() (printed and stored for later parts)."""
+    r = results.get(key)
+    if r is None:
+        print(label, flush=True)
+        r = results[key] = run_fn()
+        print("   ", fmt(r), r.get("error", ""), flush=True)
+    return r
+
+
 def seed_spread(args, results: dict) -> list[str]:
     """STFM fast on smoke with seeds 0..args.seeds-1; tv3d and the GS-only baselines from the main
     table when it ran, else run here."""
@@ -238,11 +248,9 @@ def seed_spread(args, results: dict) -> list[str]:
     p, _ = simulated_problem("smoke", size)
     ref = {}
     for name in ("tv3d", "blend", "interp", "rife"):
-        r = results.get(("smoke", size, name))
-        if r is None:
-            print(f"[seeds] {name}", flush=True)
-            r = run_iterative("tv3d", p, args.budget) if name == "tv3d" else run_gs_only(name, p)
-            results[("smoke", size, name)] = r  # later parts reuse it
+        run_fn = (lambda: run_iterative("tv3d", p, args.budget, max_iters=args.max_iters)) if name == "tv3d" \
+            else (lambda name=name: run_gs_only(name, p))
+        r = reuse_or_run(results, ("smoke", size, name), f"[seeds] {name}", run_fn)
         if "error" not in r:
             ref[name] = r["psnr_intermediate_db"]
     gs_best = max((ref[n] for n in ("blend", "interp", "rife") if n in ref), default=math.nan)
@@ -253,13 +261,10 @@ def seed_spread(args, results: dict) -> list[str]:
              "|---|---|---|---|---|---|"]
     values = []
     for seed in range(args.seeds):
-        r = results.get(("smoke", size, "stfm_fast")) if seed == 0 else None
-        if r is None:
-            print(f"[seeds] stfm_fast seed {seed}", flush=True)
-            r = run_iterative("stfm", p, args.budget, {"preset": "fast", "seed": seed})
-            print("   ", fmt(r), flush=True)
-            if seed == 0:
-                results[("smoke", size, "stfm_fast")] = r
+        key = ("smoke", size, "stfm_fast") if seed == 0 else ("smoke", size, f"stfm_fast seed {seed}")
+        r = reuse_or_run(results, key, f"[seeds] stfm_fast seed {seed}",
+                         lambda seed=seed: run_iterative("stfm", p, args.budget, {"preset": "fast", "seed": seed},
+                                                         args.max_iters))
         if "error" in r:
             continue
         value = r["psnr_intermediate_db"]
@@ -292,19 +297,15 @@ def tv3d_beta(args, results: dict) -> list[str]:
              "| beta | PSNR all / intermediate | iterations |", "|---|---|---|"]
     scores = {}
     for beta in (float(b) for b in args.tv3d_betas.split(",")):
-        r = results.get(("smoke", size, "tv3d")) if beta == default_beta else None
-        if r is None:
-            print(f"[tv3d beta] {beta:g}", flush=True)
-            r = run_iterative("tv3d", p, args.budget, {"beta": beta}, args.max_iters)
-            print("   ", fmt(r), flush=True)
+        key = ("smoke", size, "tv3d") if beta == default_beta else ("smoke", size, f"tv3d beta {beta:g}")
+        r = reuse_or_run(results, key, f"[tv3d beta] {beta:g}",
+                         lambda beta=beta: run_iterative("tv3d", p, args.budget, {"beta": beta}, args.max_iters))
         if "error" in r:
             continue
         scores[beta] = r["psnr_intermediate_db"]
         lines.append(f"| {beta:g} | {fmt(r)} | {r['iterations']} |")
-    fast = results.get(("smoke", size, "stfm_fast"))
-    if fast is None:
-        print("[tv3d beta] stfm_fast", flush=True)
-        fast = run_iterative("stfm", p, args.budget, {"preset": "fast"}, args.max_iters)
+    fast = reuse_or_run(results, ("smoke", size, "stfm_fast"), "[tv3d beta] stfm_fast",
+                        lambda: run_iterative("stfm", p, args.budget, {"preset": "fast"}, args.max_iters))
     if scores and "error" not in fast:
         best = max(scores, key=scores.get)
         gain = fast["psnr_intermediate_db"] - scores[best]
