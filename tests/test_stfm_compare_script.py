@@ -1,6 +1,6 @@
 """bench/stfm_compare.py, the issue's side-by-side STFM benchmark, end to end at a tiny size: every
 method of the main table runs and the report carries its tables, the seed spread, tv3d's beta
-sweep and target verdicts."""
+sweep, what the measurements see of each run's error, and target verdicts."""
 
 from __future__ import annotations
 
@@ -34,7 +34,8 @@ def test_stfm_compare_runs_every_method_and_reports_targets(tmp_path):
     assert "STFM single - best GS-only" in report
     assert "Fast preset: time to reach the paper preset's final PSNR" in report
     # seed spread: seed 0 is the main table's run, seed 1 a new one; the mean carries the verdicts
-    spread, section = report.split("## Seed spread")[1].split("## tv3d's temporal weight on smoke 16x16")
+    spread, rest = report.split("## Seed spread")[1].split("## tv3d's temporal weight on smoke 16x16")
+    section, seen = rest.split("## What the measurements see of the remaining error")
     seeds = [line for line in spread.splitlines() if re.match(r"\| \d+ \| ", line)]
     assert [r.split("|")[1].strip() for r in seeds] == ["0", "1"]
     assert seeds[0].split("|")[2].strip() == cells[0]
@@ -46,3 +47,11 @@ def test_stfm_compare_runs_every_method_and_reports_targets(tmp_path):
     assert betas[0].split("|")[2].strip() == cells[3]  # the main table's tv3d
     assert re.search(r"Best beta (1|10) \(-?\d+\.\d\d dB\)\. STFM fast - tv3d at that beta: [+-]\d+\.\d\d dB at "
                      r"seed 0 \(target \+6\.0: (met|NOT met)\); [+-]\d+\.\d\d dB on the seeds' mean", section)
+    # what the measurements see of each run's error: a row per run, the main table's figures
+    seen_rows = {r.split("|")[3].strip(): [c.strip() for c in r.strip("|").split("|")]
+                 for r in seen.splitlines() if r.startswith("| smoke | 16 |")}
+    assert {"stfm_fast", "stfm_single", "stfm_paper", "tv3d", "blend", "interp", "stfm_fast seed 1",
+            "tv3d beta 10"} <= set(seen_rows)
+    assert seen_rows["stfm_fast"][3] == cells[0] and seen_rows["tv3d"][3] == cells[3]
+    for cols in seen_rows.values():
+        assert all(re.fullmatch(r"\d+\.\d\d", c) for c in cols[4:6]), cols

@@ -95,3 +95,25 @@ def relative_residual(pred: Tensor, meas: Tensor) -> float:
 
 def psnr_np(estimate: np.ndarray, truth: np.ndarray) -> float:
     return psnr(torch.from_numpy(np.asarray(estimate)), torch.from_numpy(np.asarray(truth)))
+
+
+def error_visibility(problem, estimate: Tensor) -> dict[str, float]:
+    """What each measurement sees of an estimate's error, in units of its noise: per sensor
+    ("rs", "gs"), ||A (estimate - truth)|| / ||A truth - b|| (needs the truth; gains taken as 1).
+
+    Below 1 the error hides under the measurement's noise: no closer fit to the data can find it,
+    only a better prior. inf when a measurement has no noise but sees the error; nan without truth.
+    """
+    out = {}
+    for name, meas, op in (("rs", problem.b_rs, problem.rs_op), ("gs", problem.b_gs, problem.gs_op)):
+        if meas is None:
+            continue
+        if problem.truth is None:
+            out[name] = math.nan
+            continue
+        a = op()
+        truth = problem.truth
+        seen = float(torch.linalg.vector_norm(a.A(estimate.to(truth.device, truth.dtype) - truth).double()))
+        noise = float(torch.linalg.vector_norm((a.A(truth) - meas).double()))
+        out[name] = seen / noise if noise > 0 else (0.0 if seen == 0 else math.inf)
+    return out
