@@ -81,6 +81,9 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, resume, device, grid_
         if "psnr_intermediate_db" in m:
             line += f" (intermediate {m['psnr_intermediate_db']:.2f} dB)"
         line += f", SSIM {m['ssim']:.3f}"
+    seen = m.get("error_visibility", {})
+    if seen:
+        line += ", error seen at " + " / ".join(f"{v:.2f}x the {k.upper()} noise" for k, v in seen.items())
     if "heldout" in m:
         line += f", held-out residual {m['heldout']:.4g}"
     click.echo(line)

@@ -42,6 +42,9 @@ def test_recon_writes_every_output(mock_bundle, tmp_path, method, extra):
     for key in ("psnr_db", "ssim", "psnr_intermediate_db", "seconds", "iterations", "peak_rss_bytes", "method"):
         assert key in metrics, key
     assert metrics["method"] == method and np.isfinite(metrics["psnr_db"]) and metrics["psnr_db"] > 15
+    seen = metrics["error_visibility"]  # the mock bundle is noisy, so both ratios are finite
+    assert set(seen) == {"rs", "gs"} and all(np.isfinite(v) and v > 0 for v in seen.values())
+    assert f"error seen at {seen['rs']:.2f}x the RS noise / {seen['gs']:.2f}x the GS noise" in res.output
     with h5py.File(out / "recon.h5") as f:
         video = f["video"][()]
         assert video.shape == (3, 67, 64, 64) and np.isfinite(video).all()
