@@ -19,7 +19,9 @@ In one process on the CPU, under the same time budget per iterative method:
    frame duration): peak resident set size (VmHWM from /proc/self/status) of a fresh
    subprocess per K, which sees torch's CPU allocations (tracemalloc does not); also its
    growth over the peak just before the fit starts (interpreter, torch and the problem),
-   which is what the fit adds. The problems are built by the parent and loaded by the children.
+   which is what the fit adds. The problems are built by the parent and loaded by the children;
+5. for every run (and, when the main table did not run, for smoke's): what each measurement sees
+   of its remaining error, ||A (estimate - truth)|| over the noise norm ||A truth - b||.
 
 Problems come from `rngcam.sim.simulate` (the bundle path) when it exists, else from an
 equivalent in-process simulation (same timing; Gaussian noise) - the report says which.
