@@ -23,6 +23,8 @@ def test_visibility_is_the_error_signal_over_the_noise_norm():
     assert math.isclose(seen["rs"], float(rs.A(error).norm() / (rs.A(p.truth) - p.b_rs).norm()), rel_tol=1e-9)
     assert math.isclose(seen["gs"], float(gs.A(error).norm() / (gs.A(p.truth) - p.b_gs).norm()), rel_tol=1e-9)
     assert error_visibility(p, p.truth) == {"rs": 0.0, "gs": 0.0}
+    chunked = error_visibility(p, p.truth + error, frame_chunk=3)  # 14 frames: chunks of 3, 3, 3, 3, 2
+    assert all(math.isclose(chunked[k], seen[k], rel_tol=1e-9) for k in seen)
     # Twice the error, twice as visible; a float32 estimate is measured the same.
     doubled = error_visibility(p, (p.truth + 2 * error).float())
     assert math.isclose(doubled["rs"], 2 * seen["rs"], rel_tol=1e-5)

@@ -12,6 +12,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from rngcam.physics.operators import GlobalShutter, RollingShutter
+
 
 def psnr(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range: float = 1.0) -> float:
     """PSNR in dB over all elements (or the (H, W) `mask` region) of (C, T, H, W) videos."""
@@ -97,23 +99,36 @@ def psnr_np(estimate: np.ndarray, truth: np.ndarray) -> float:
     return psnr(torch.from_numpy(np.asarray(estimate)), torch.from_numpy(np.asarray(truth)))
 
 
-def error_visibility(problem, estimate: Tensor) -> dict[str, float]:
+def error_visibility(problem, estimate: Tensor, frame_chunk: int = 16) -> dict[str, float]:
     """What each measurement sees of an estimate's error, in units of its noise: per sensor
     ("rs", "gs"), ||A (estimate - truth)|| / ||A truth - b|| (needs the truth; gains taken as 1).
 
     Below 1 the error hides under the measurement's noise: no closer fit to the data can find it,
     only a better prior. inf when a measurement has no noise but sees the error; nan without truth.
+    Frames go through the operators `frame_chunk` at a time, so memory does not grow with K.
     """
+    sensors = {name: meas for name, meas in (("rs", problem.b_rs), ("gs", problem.b_gs)) if meas is not None}
+    if problem.truth is None:
+        return {name: math.nan for name in sensors}
+    truth = problem.truth
+    c, k, h, w = truth.shape
+    seen = {name: torch.zeros_like(meas) for name, meas in sensors.items()}
+    clean = {name: torch.zeros_like(meas) for name, meas in sensors.items()}
+    for start in range(0, k, frame_chunk):
+        frames = slice(start, start + frame_chunk)
+        t = truth[:, frames]
+        error = estimate[:, frames].to(truth.device, truth.dtype) - t
+        if "rs" in sensors:
+            rs = RollingShutter(problem.psf, problem.rs_weights[:, frames], w, channels=c)
+            seen["rs"] += rs.A(error)
+            clean["rs"] += rs.A(t)
+        if "gs" in sensors:
+            gs = GlobalShutter(problem.gs_weights[:, frames], c, (h, w))
+            seen["gs"] += gs.A(error)
+            clean["gs"] += gs.A(t)
     out = {}
-    for name, meas, op in (("rs", problem.b_rs, problem.rs_op), ("gs", problem.b_gs, problem.gs_op)):
-        if meas is None:
-            continue
-        if problem.truth is None:
-            out[name] = math.nan
-            continue
-        a = op()
-        truth = problem.truth
-        seen = float(torch.linalg.vector_norm(a.A(estimate.to(truth.device, truth.dtype) - truth).double()))
-        noise = float(torch.linalg.vector_norm((a.A(truth) - meas).double()))
-        out[name] = seen / noise if noise > 0 else (0.0 if seen == 0 else math.inf)
+    for name, meas in sensors.items():
+        signal = float(torch.linalg.vector_norm(seen[name].double()))
+        noise = float(torch.linalg.vector_norm((clean[name] - meas).double()))
+        out[name] = signal / noise if noise > 0 else (0.0 if signal == 0 else math.inf)
     return out
