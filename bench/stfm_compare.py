@@ -4,7 +4,8 @@
 
 In one process on the CPU, under the same time budget per iterative method:
 1. STFM fast (the default: three fits on different GS-only starts, averaged, then refined), STFM single
-   (`dynamic_base="video"`: one fit on the RIFE video), tv3d, blend, interp and rife on `sineball`, `smoke` and the three real clips
+   (`dynamic_base="video"`: one fit on the RIFE video), tv3d, blend, interp, rife and gs_mean (the plain
+   average of the three GS-only videos, a GS-only ensemble) on `sineball`, `smoke` and the three real clips
    (`car`, `walk`, `vtest`: bikes_car_256, bikes_walk_256, vtest_256 at span 8) at 64x64, STFM
    paper on sineball, smoke and car; STFM fast, single and the GS-only baselines also at 128x128;
 2. on `smoke` at 64x64: STFM fast with all components against the four ablations
@@ -110,21 +111,38 @@ def key_frames(p: Problem) -> np.ndarray:
     return p.gs_images().float().numpy()
 
 
-def run_gs_only(name: str, p: Problem) -> dict:
-    from rngcam.recon import baselines
+GS_ONLY = ("blend", "interp", "rife")
 
+
+def gs_only_video(name: str, p: Problem) -> np.ndarray:
+    """A GS-only baseline's video; "gs_mean" is the plain average of the three baselines' videos
+    (of blend and interp when RIFE's weights are not installed)."""
+    from rngcam.recon import baselines
+    from rngcam.recon.rife import RifeUnavailableError
+
+    if name == "gs_mean":
+        videos = []
+        for n in GS_ONLY:
+            try:
+                videos.append(gs_only_video(n, p))
+            except RifeUnavailableError:
+                pass
+        return np.mean(videos, axis=0)
+    if name == "rife":
+        from rngcam.recon.rife import rife
+
+        return np.asarray(rife(key_frames(p), p.gs_times_s, p.frame_times_s))
+    return np.asarray(getattr(baselines, name)(key_frames(p), p.gs_times_s, p.frame_times_s))
+
+
+def run_gs_only(name: str, p: Problem) -> dict:
     t0 = time.perf_counter()
     try:
-        if name == "rife":
-            from rngcam.recon.rife import rife
-
-            video = rife(key_frames(p), p.gs_times_s, p.frame_times_s)
-        else:
-            video = getattr(baselines, name)(key_frames(p), p.gs_times_s, p.frame_times_s)
+        video = gs_only_video(name, p)
     except Exception as exc:  # noqa: BLE001 (a missing optional model must not stop the benchmark)
         return {"error": f"{type(exc).__name__}: {exc}"}
     secs = time.perf_counter() - t0
-    video = torch.from_numpy(np.asarray(video))
+    video = torch.from_numpy(video)
     m = video_metrics(video, p.truth.float(), p.intermediate_frames())
     return {**m, "setup_s": 0.0, "solve_s": secs, "iterations": 1, "log": [],
             "visibility": error_visibility(p, video)}
@@ -216,7 +234,7 @@ def fmt(r: dict) -> str:
     return f"{r['psnr_db']:.2f} / {r.get('psnr_intermediate_db', float('nan')):.2f}"
 
 
-METHODS = ("stfm_fast", "stfm_single", "stfm_paper", "tv3d", "blend", "interp", "rife")
+METHODS = ("stfm_fast", "stfm_single", "stfm_paper", "tv3d", "blend", "interp", "rife", "gs_mean")
 STFM_VARIANTS = {"stfm_fast": {"preset": "fast"}, "stfm_single": {"preset": "fast", "dynamic_base": "video"},
                  "stfm_paper": {"preset": "paper"}}
 
@@ -248,7 +266,7 @@ def reuse_or_run(results: dict, key: tuple, label: str, run_fn) -> dict:
 
 def smoke_run(args, results: dict, p: Problem, size: int, name: str, part: str) -> dict:
     """Method `name` of the main table on smoke at `size`: its main-table run when there was one."""
-    if name in ("blend", "interp", "rife"):
+    if name in (*GS_ONLY, "gs_mean"):
         def run_fn():
             return run_gs_only(name, p)
     elif name == "tv3d":
@@ -266,11 +284,11 @@ def seed_spread(args, results: dict) -> list[str]:
     size = int(args.sizes.split(",")[0])
     p, _ = simulated_problem("smoke", size)
     ref = {}
-    for name in ("tv3d", "blend", "interp", "rife"):
+    for name in ("tv3d", *GS_ONLY):
         r = smoke_run(args, results, p, size, name, "seeds")
         if "error" not in r:
             ref[name] = r["psnr_intermediate_db"]
-    gs_best = max((ref[n] for n in ("blend", "interp", "rife") if n in ref), default=math.nan)
+    gs_best = max((ref[n] for n in GS_ONLY if n in ref), default=math.nan)
     lines = ["", f"## Seed spread: STFM fast on smoke {size}x{size} (intermediate-frame PSNR)", "",
              ("The same measurement each time; the seed sets the fields' initialisation and the sampling of "
               f"rows and frames. tv3d {ref.get('tv3d', math.nan):.2f} dB, best GS-only {gs_best:.2f} dB."), "",
@@ -340,7 +358,7 @@ def visibility(args, results: dict) -> list[str]:
     noise, so only a better prior, not a closer fit, can remove it."""
     size = int(args.sizes.split(",")[0])
     p, _ = simulated_problem("smoke", size)
-    for name in ("stfm_fast", "tv3d", "blend", "interp", "rife"):
+    for name in ("stfm_fast", "tv3d", *GS_ONLY):
         smoke_run(args, results, p, size, name, "visibility")
     lines = ["", "## What the measurements see of the remaining error", "",
              ("||A (estimate - truth)|| over the noise norm ||A truth - b||, per sensor. Below 1 the error hides "
@@ -439,7 +457,7 @@ def main() -> None:
             for scene in scenes:
                 fast = results.get((scene, size, "stfm_fast"))
                 gs_best = max((results[(scene, size, n)].get("psnr_intermediate_db", -math.inf)
-                               for n in ("blend", "interp", "rife") if (scene, size, n) in results
+                               for n in GS_ONLY if (scene, size, n) in results
                                and "error" not in results[(scene, size, n)]), default=None)
                 tv = results.get((scene, size, "tv3d"))
                 if fast and "error" not in fast and gs_best is not None:
@@ -448,6 +466,9 @@ def main() -> None:
                     if tv and "error" not in tv:
                         gain = fast['psnr_intermediate_db'] - tv['psnr_intermediate_db']
                         msg += f"; STFM fast - tv3d = {gain:+.2f} dB{verdict(gain, TV_TARGETS.get(scene))}"
+                    mean = results.get((scene, size, "gs_mean"))
+                    if mean and "error" not in mean:
+                        msg += f"; STFM fast - GS-only mean = {fast['psnr_intermediate_db'] - mean['psnr_intermediate_db']:+.2f} dB"
                     single = results.get((scene, size, "stfm_single"))
                     if single and "error" not in single:
                         msg += f" (STFM single - best GS-only = {single['psnr_intermediate_db'] - gs_best:+.2f} dB)"
