@@ -171,3 +171,13 @@ def test_a_converged_method_ends_the_run_early_with_its_reason():
     assert result.status == "ok" and result.iterations == 4
     assert result.log[-1]["iteration"] == 4  # the final state is logged
     assert any("stopped at iteration 4: enough" in e for e in result.events)
+    assert not any("time budget" in e for e in result.events)
+
+
+def test_a_budget_that_ends_a_run_before_the_methods_own_stop_says_so():
+    cut = run(_StopsAt(_sineball_problem(), stop_after=10 ** 9), LoopSettings(time_budget_s=0.3, progress=False))
+    assert any(e.startswith("time budget of 0.3 s reached at iteration") and "own stop" in e for e in cut.events)
+    # an iteration cap is the user's explicit choice, and a method without its own stop has nothing to miss
+    capped = run(_StopsAt(_sineball_problem(), stop_after=10 ** 9), _settings(max_iters=3))
+    plain = run(TV3D(_sineball_problem(), TV3DSettings()), LoopSettings(time_budget_s=0.3, progress=False))
+    assert not any("time budget" in e for e in capped.events + plain.events)

@@ -198,6 +198,9 @@ def run(method: Method, settings: LoopSettings,
                 last_ckpt_t = time.perf_counter()
         if stop_reason:
             events.append(f"stopped at iteration {iteration}: {stop_reason}")
+        elif converged is not None and settings.time_budget_s is not None and wall() >= settings.time_budget_s:
+            events.append(f"time budget of {settings.time_budget_s:g} s reached at iteration {iteration}, before "
+                          f"{method.name}'s own stop: a larger --time-budget with --resume may improve it")
         if not log or log[-1]["iteration"] != iteration:
             bar.show(record(objective), iteration, wall())
         checkpoint()
