@@ -79,6 +79,14 @@ def test_adjoint_equals_autograd_vjp(name):
     torch.testing.assert_close(op.A_adjoint(y), vjp, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("chunk", [1, 2, 5, 100])
+def test_rolling_shutter_in_frame_chunks_equals_all_frames_at_once(chunk):
+    for name in ("rolling-shutter", "rolling-shutter-colour-psf"):
+        op = OPS[name]
+        x = _rand(_domain(op), 13)
+        torch.testing.assert_close(op.A(x, frame_chunk=chunk), op.A(x), rtol=1e-12, atol=1e-12)
+
+
 @pytest.mark.parametrize("name", sorted(OPS))
 @pytest.mark.parametrize("device", DEVICES)
 def test_float32_matches_float64(name, device):

@@ -155,7 +155,9 @@ class RollingShutter(LinearOperator):
         """Weights as (K, H, 1) for broadcasting against (C, K, H, W)."""
         return self._w(like).T[:, :, None]
 
-    def A(self, v: Tensor) -> Tensor:  # noqa: N802
+    def A(self, v: Tensor, frame_chunk: int | None = None) -> Tensor:  # noqa: N802
+        """With `frame_chunk`, frames go through the FFTs that many at a time: the same result
+        with temporaries bounded by the chunk instead of growing with K."""
         # The row weights and the sum over frames commute with the inverse FFT along x, so
         # invert along y per frame, keep the sensor rows, sum over frames, and only then
         # invert along x once per channel (irfft2 dominated the cost of convolving every frame).
@@ -164,9 +166,14 @@ class RollingShutter(LinearOperator):
         oy, ox = conv.offset
         fh, fw = conv.fft_shape
         tf = conv._broadcast(conv.transfer(v.dtype, v.device), v.ndim)
-        spec = torch.fft.ifft(torch.fft.rfft2(v, s=conv.fft_shape) * tf, dim=-2)[..., oy:oy + h, :]
-        w_kh1 = self._w_kh1(v).to(spec.dtype)
-        rows = (spec * w_kh1).sum(dim=1)  # (C, H, fw // 2 + 1)
+        w_kh1 = self._w_kh1(v)
+        k = v.shape[1]
+        step = k if frame_chunk is None else max(1, int(frame_chunk))
+        rows = 0
+        for start in range(0, k, step):
+            frames = slice(start, start + step)
+            spec = torch.fft.ifft(torch.fft.rfft2(v[:, frames], s=conv.fft_shape) * tf, dim=-2)[..., oy:oy + h, :]
+            rows = rows + (spec * w_kh1[frames].to(spec.dtype)).sum(dim=1)  # (C, H, fw // 2 + 1)
         return torch.fft.irfft(rows, n=fw, dim=-1)[..., ox:ox + w]
 
     def A_adjoint(self, b: Tensor) -> Tensor:  # noqa: N802

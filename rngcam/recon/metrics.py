@@ -12,8 +12,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from rngcam.physics.operators import GlobalShutter, RollingShutter
-
 
 def psnr(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range: float = 1.0) -> float:
     """PSNR in dB over all elements (or the (H, W) `mask` region) of (C, T, H, W) videos."""
@@ -105,30 +103,19 @@ def error_visibility(problem, estimate: Tensor, frame_chunk: int = 16) -> dict[s
 
     Below 1 the error hides under the measurement's noise: no closer fit to the data can find it,
     only a better prior. inf when a measurement has no noise but sees the error; nan without truth.
-    Frames go through the operators `frame_chunk` at a time, so memory does not grow with K.
+    The RS operator takes `frame_chunk` frames at a time, so memory does not grow with K beyond
+    the error video itself.
     """
-    sensors = {name: meas for name, meas in (("rs", problem.b_rs), ("gs", problem.b_gs)) if meas is not None}
+    sensors = {"rs": (problem.b_rs, lambda x: problem.rs_op().A(x, frame_chunk=frame_chunk)),
+               "gs": (problem.b_gs, lambda x: problem.gs_op().A(x))}
+    sensors = {name: pair for name, pair in sensors.items() if pair[0] is not None}
     if problem.truth is None:
         return {name: math.nan for name in sensors}
     truth = problem.truth
-    c, k, h, w = truth.shape
-    seen = {name: torch.zeros_like(meas) for name, meas in sensors.items()}
-    clean = {name: torch.zeros_like(meas) for name, meas in sensors.items()}
-    for start in range(0, k, frame_chunk):
-        frames = slice(start, start + frame_chunk)
-        t = truth[:, frames]
-        error = estimate[:, frames].to(truth.device, truth.dtype) - t
-        if "rs" in sensors:
-            rs = RollingShutter(problem.psf, problem.rs_weights[:, frames], w, channels=c)
-            seen["rs"] += rs.A(error)
-            clean["rs"] += rs.A(t)
-        if "gs" in sensors:
-            gs = GlobalShutter(problem.gs_weights[:, frames], c, (h, w))
-            seen["gs"] += gs.A(error)
-            clean["gs"] += gs.A(t)
+    error = estimate.to(truth.device, truth.dtype) - truth
     out = {}
-    for name, meas in sensors.items():
-        signal = float(torch.linalg.vector_norm(seen[name].double()))
-        noise = float(torch.linalg.vector_norm((clean[name] - meas).double()))
+    for name, (meas, forward) in sensors.items():
+        signal = float(torch.linalg.vector_norm(forward(error).double()))
+        noise = float(torch.linalg.vector_norm((forward(truth) - meas).double()))
         out[name] = signal / noise if noise > 0 else (0.0 if signal == 0 else math.inf)
     return out
