@@ -53,6 +53,10 @@ class Problem:
     notes: list[str] = field(default_factory=list)
     rs_train_rows: Tensor | None = None  # (H,) bool: True = RS row bin fitted (None: all)
     gs_train_mask: Tensor | None = None  # (H, W) or (G, H, W) bool: True = GS pixel fitted (None: all)
+    # Pixels that carry linear information (not saturated): every method multiplies its data
+    # residuals by these (rs_valid_mask() / gs_valid_mask()); None means every pixel is valid.
+    rs_valid: Tensor | None = None  # (C or 1, H, W) bool
+    gs_valid: Tensor | None = None  # (C or 1, G, H, W) bool
 
     @property
     def channels(self) -> int:
@@ -103,7 +107,16 @@ class Problem:
         return Problem(cast(self.b_rs), cast(self.b_gs), cast(self.rs_weights), cast(self.gs_weights),
                        cast(self.psf), self.grid, self.gs_times_s, cast(self.truth), cast(self.mask),
                        cast(self.white_balance), list(self.notes),
-                       rs_train_rows=cast(self.rs_train_rows), gs_train_mask=cast(self.gs_train_mask))
+                       rs_train_rows=cast(self.rs_train_rows), gs_train_mask=cast(self.gs_train_mask),
+                       rs_valid=cast(self.rs_valid), gs_valid=cast(self.gs_valid))
+
+    def rs_valid_mask(self) -> Tensor | None:
+        """(C or 1, H, W) 0/1 float mask of the RS pixels that carry information; None: all do."""
+        return None if self.rs_valid is None else self.rs_valid.to(self.rs_weights.dtype)
+
+    def gs_valid_mask(self) -> Tensor | None:
+        """(C or 1, G, H, W) 0/1 float mask of the GS pixels that carry information; None: all do."""
+        return None if self.gs_valid is None else self.gs_valid.to(self.gs_weights.dtype)
 
     # --- held-out split (see the module docstring) ---
 
