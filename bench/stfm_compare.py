@@ -47,7 +47,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from rngcam.paths import shared_data
+from rngcam.paths import DATA_HINT, MEASURED_PSF, external_data, package_data
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
@@ -61,12 +61,19 @@ DT_S, EXPOSURE_S = 208e-6, 650e-6  # the reference rig scaled to the grid (see t
 CLIPS = {"car": "videos/bikes_car_256.npz", "walk": "videos/bikes_walk_256.npz", "vtest": "videos/vtest_256.npz"}
 
 
+def clip_path(scene: str) -> str:
+    """The clip scene's npz under $RNGCAM_DATA (the larger clips do not ship with rngcam)."""
+    if external_data() is None:
+        raise SystemExit(f"scene {scene}: {DATA_HINT}")
+    return str(external_data() / CLIPS[scene])
+
+
 # ----------------------------------------------------------------------------- problems
 
 
 def simulated_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1) -> tuple[Problem, str]:
     """A problem with truth: through rngcam.sim.simulate + build_problem when available."""
-    clip_opts = {"clip": str(shared_data() / CLIPS[scene]), "span": 8} if scene in CLIPS else {}
+    clip_opts = {"clip": clip_path(scene), "span": 8} if scene in CLIPS else {}
     if dt_factor == 1:
         try:
             from rngcam.bundle import read_bundle
@@ -89,9 +96,9 @@ def inline_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1, noi
     end = (size - 1) * DT_S
     gs = GlobalShutterTiming(trigger_s=(0.0, end / 2, end), exposure_s=EXPOSURE_S)
     grid = VideoGrid.covering(rs, gs, dt_s=DT_S / dt_factor)
-    opts = {"path": str(shared_data() / CLIPS[scene]), "span": 8} if scene in CLIPS else {"key_times_s": gs.centres_s()}
+    opts = {"path": clip_path(scene), "span": 8} if scene in CLIPS else {"key_times_s": gs.centres_s()}
     truth = torch.from_numpy(render_scene("clip" if scene in CLIPS else scene, grid, size, seed, **opts)).double()
-    raw = psf_mod.load_psf(shared_data() / "psf" / "diffusercam_tutorial_psf_sample.tif")
+    raw = psf_mod.load_psf(package_data(MEASURED_PSF))
     psf = torch.from_numpy(psf_mod.prepare_psf(raw, (size, size), crop=psf_crop, channels=3)[0])
     w_rs, w_gs = torch.from_numpy(rs.weights(grid)), torch.from_numpy(gs.weights(grid))
     b_rs = RollingShutter(psf, w_rs, size, 3).A(truth)

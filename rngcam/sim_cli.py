@@ -17,13 +17,14 @@ from rngcam.sim.simulate import DEFAULT_PSF_CROP
 @click.option("--size", default=64, show_default=True, type=click.IntRange(min=8),
               help="Grid size N: the video is N x N pixels, the RS sensor has N rows.")
 @click.option("--seed", default=0, show_default=True, type=int, help="Scene and noise seed.")
-@click.option("--psf", "psf", default=None, type=click.Path(exists=True, dir_okay=False, path_type=Path),
-              help="PSF image (default: the shared DiffuserCam PSF, else a synthetic caustic).")
+@click.option("--psf", "psf", default=None, metavar="PATH|lenslets",
+              help="PSF image (default: the measured DiffuserCam caustic shipped in rngcam/data), or "
+                   "'lenslets': a random unifocal-lenslet diffuser (the paper's kind), rendered.")
 @click.option("--psf-crop", default=DEFAULT_PSF_CROP, show_default=True, type=click.FloatRange(0, 1, min_open=True),
               help="Central fraction of the PSF kept before resampling (zoom in to keep caustic detail).")
 @click.option("--noise/--no-noise", default=True, show_default=True, help="Shot and read noise.")
 @click.option("--clip", default=None, type=click.Path(exists=True, dir_okay=False, path_type=Path),
-              help="Clip scene: npz with frames (T, H, W, 3) uint8 (default: the shared car clip).")
+              help="Clip scene: npz with frames (T, H, W, 3) uint8 (default: a short car clip in rngcam/data).")
 @click.option("--span", default=8, show_default=True, type=click.IntRange(min=2),
               help="Clip scene: number of consecutive source frames the capture covers.")
 @click.option("--start", default=None, type=click.IntRange(min=0),

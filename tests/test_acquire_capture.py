@@ -25,7 +25,7 @@ from rngcam.bundle import read_bundle
 from rngcam.cli import main
 from rngcam.config import load_rig, parse_rig
 from rngcam.errors import ConfigError, HardwareError
-from rngcam.paths import shared_data
+from rngcam.paths import DATA_DIR, MEASURED_PSF
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.sensor import SensorModel
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
@@ -33,8 +33,7 @@ from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, Vid
 REPO = Path(__file__).resolve().parents[1]
 MOCK = REPO / "rigs" / "mock.yaml"
 MOCK_TEXT = MOCK.read_text()
-PSF = shared_data() / "psf" / "diffusercam_tutorial_psf_sample.tif"
-pytestmark = pytest.mark.skipif(not PSF.is_file(), reason=f"shared PSF not found at {PSF} (set RNGCAM_DATA)")
+PSF = DATA_DIR / MEASURED_PSF
 
 
 def _rig(**replacements):
@@ -252,14 +251,19 @@ def test_installed_command_then_inspect(tmp_path):
     assert "MOCK-RS-0001" in inspect.output
 
 
-def test_psf_falls_back_to_the_shared_data_folder(tmp_path, monkeypatch):
+def test_psf_paths_are_package_resources_or_relative_to_the_rig(tmp_path, monkeypatch):
     from rngcam.acquire.capture import resolve_psf_path
 
+    monkeypatch.delenv("RNGCAM_DATA", raising=False)
     copy = tmp_path / "mock.yaml"
-    copy.write_text(MOCK_TEXT)  # ../../shared/data/... no longer leads anywhere from here
-    assert resolve_psf_path(load_rig(copy)) == PSF
-    monkeypatch.setenv("RNGCAM_DATA", str(tmp_path / "nowhere"))
-    with pytest.raises(ConfigError, match=r"mock.yaml: calibration.psf.path: PSF file not found.*RNGCAM_DATA"):
+    copy.write_text(MOCK_TEXT)  # package:NAME resolves wherever the rig file is
+    assert resolve_psf_path(load_rig(copy)) == PSF and PSF.is_file()
+    (tmp_path / "psfs").mkdir()
+    (tmp_path / "psfs" / "mine.png").write_bytes(PSF.read_bytes())
+    copy.write_text(MOCK_TEXT.replace(f"package:{MEASURED_PSF}", "psfs/mine.png"))
+    assert resolve_psf_path(load_rig(copy)) == tmp_path / "psfs" / "mine.png"
+    copy.write_text(MOCK_TEXT.replace(f"package:{MEASURED_PSF}", "psfs/missing.png"))
+    with pytest.raises(ConfigError, match=r"mock.yaml: calibration.psf.path: PSF file not found.*relative to the rig"):
         capture(load_rig(copy), tmp_path / "x.h5", progress=lambda s: None)
     assert not (tmp_path / "x.h5").exists()
 

@@ -16,12 +16,7 @@ from rngcam.bench.runner import BenchSettings, add_level_times, run_bench, time_
 from rngcam.bench.scenes import bench_scenes
 from rngcam.cli import main
 from rngcam.errors import RngcamError
-from rngcam.paths import shared_data
-
-
-def _needs_data():
-    if not (shared_data() / "psf").is_dir():
-        pytest.skip("shared data folder (PSF, clips) not available")
+from rngcam.sim.scenes import default_clip_path
 
 
 def test_time_to_level_is_the_first_solve_time_at_or_above_the_level():
@@ -46,18 +41,20 @@ def test_levels_start_at_the_best_gs_only_psnr():
 
 
 def test_scene_list_has_the_procedural_scenes_every_clip_and_extra_clips(tmp_path):
-    _needs_data()
-    names = [s.name for s in bench_scenes(shared_data())]
-    clips = sorted(p.stem for p in (shared_data() / "videos").glob("*.npz"))
-    assert names == ["sineball", "smoke", *clips] and clips
+    # without a data folder: the short clip that ships in rngcam/data
+    assert [s.name for s in bench_scenes(None)] == ["sineball", "smoke", default_clip_path().stem]
+    (tmp_path / "videos").mkdir()
+    for name in ("b_clip", "a_clip"):
+        np.savez(tmp_path / "videos" / f"{name}.npz", frames=np.zeros((9, 16, 16, 3), np.uint8))
+    assert [s.name for s in bench_scenes(tmp_path)] == ["sineball", "smoke", "a_clip", "b_clip"]
     extra = tmp_path / "mine.npz"
     np.savez(extra, frames=np.zeros((9, 16, 16, 3), np.uint8))
-    assert bench_scenes(shared_data(), (extra,))[-1].name == "mine"
-    assert [s.name for s in bench_scenes(shared_data(), only=("smoke",))] == ["smoke"]
+    assert bench_scenes(tmp_path, (extra,))[-1].name == "mine"
+    assert [s.name for s in bench_scenes(tmp_path, only=("smoke",))] == ["smoke"]
     with pytest.raises(RngcamError, match="unknown scene"):
-        bench_scenes(shared_data(), only=("nope",))
+        bench_scenes(tmp_path, only=("nope",))
     with pytest.raises(RngcamError, match="does not exist"):
-        bench_scenes(shared_data(), (tmp_path / "missing.npz",))
+        bench_scenes(tmp_path, (tmp_path / "missing.npz",))
 
 
 def test_child_peak_memory_does_not_include_the_parent():
@@ -71,9 +68,8 @@ def test_child_peak_memory_does_not_include_the_parent():
 
 
 def test_tiny_bench_end_to_end(tmp_path):
-    _needs_data()
     settings = BenchSettings(size=16, time_budget_s=1.0, methods=("tv3d", "blend"))
-    scenes = bench_scenes(shared_data(), only=("sineball",))
+    scenes = bench_scenes(None, only=("sineball",))
     rows = run_bench(tmp_path, scenes, settings, echo=lambda _m: None)
     assert [(r["scene"], r["method"], r["status"]) for r in rows] == [("sineball", "tv3d", "ok"),
                                                                       ("sineball", "blend", "ok")]

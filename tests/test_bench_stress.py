@@ -24,7 +24,6 @@ from rngcam.bench.stress_cases import BASE, StressCase, stress_cases
 from rngcam.bench.synthetic import CaptureSpec, make_problem
 from rngcam.cli import main
 from rngcam.errors import ConfigError, RngcamError
-from rngcam.paths import shared_data
 
 SHORT = StressSettings(tv3d_iters=6, tv3d_exact_iters=2, stfm_iters=2, time_cap_s=10.0)
 
@@ -218,9 +217,7 @@ def test_cli_refuses_bench_options_with_stress():
     assert res.exit_code == 2 and "--time-budget does not apply to --stress" in res.output
 
 
-def test_real_psf_case_runs_when_the_data_is_there(tmp_path):
-    if not (shared_data() / "psf").is_dir():
-        pytest.skip("shared data folder (real PSF) not available")
+def test_real_psf_case_runs_on_the_packaged_psf(tmp_path):
     case = next(c for c in stress_cases() if c.name == "psf=real")
-    rows = run_case(case, ["tv3d-haar"], SHORT, tmp_path, shared_data())
+    rows = run_case(case, ["tv3d-haar"], SHORT, tmp_path, None)
     assert [r["outcome"] for r in rows] == ["finite", "finite"]

@@ -31,36 +31,21 @@ from rngcam.calibrate.psf import PsfCalibrationError, correlation, estimate_psf
 from rngcam.calibrate.targets import chart_image
 from rngcam.calibrate.whitebalance import estimate_white_balance
 from rngcam.errors import HardwareError, RngcamError
-from rngcam.paths import shared_data
+from rngcam.paths import HAND_BIAS_DN, HAND_MEASUREMENT, MEASURED_PSF, MEASURED_PSF_BIAS_DN, package_data
 from rngcam.physics.operators import PSFConvolution
 from rngcam.physics.psf import load_psf, prepare_psf
 from rngcam.physics.sensor import SensorModel, frame_to_measurement
 
 N = 64
 CENTRE = ((N - 1) / 2, (N - 1) / 2)
-PSF_DIR = shared_data() / "psf"
-PSF_FILE = PSF_DIR / "diffusercam_tutorial_psf_sample.tif"
-RAW_FILE = PSF_DIR / "diffusercam_tutorial_rawdata_hand_sample.tif"
-
-
-def _caustic_psf(n: int = N, seed: int = 3) -> np.ndarray:
-    """A caustic-like PSF (random thin bright curves) that needs no data file."""
-    rng = np.random.default_rng(seed)
-    yy, xx = np.mgrid[0:n, 0:n].astype(float)
-    img = np.zeros((n, n))
-    for _ in range(12):
-        cx, cy, r = rng.uniform(0.2 * n, 0.8 * n, 2).tolist() + [rng.uniform(0.1 * n, 0.35 * n)]
-        img += np.exp(-((np.hypot(xx - cx, yy - cy) - r) ** 2) / 0.8)
-    img *= np.exp(-((xx - n / 2) ** 2 + (yy - n / 2) ** 2) / (2 * (0.3 * n) ** 2))
-    return np.repeat((img / img.sum())[None], 3, axis=0)
+PSF_FILE = package_data(MEASURED_PSF)
+RAW_FILE = package_data(HAND_MEASUREMENT)  # 4x binned
 
 
 @pytest.fixture(scope="module")
 def psf() -> np.ndarray:
-    if PSF_FILE.is_file():  # the mock rig's PSF: the shared measured one, zoomed in
-        p, _ = prepare_psf(load_psf(PSF_FILE), (N, N), crop=0.25)
-        return np.repeat(p, 3, axis=0)
-    return _caustic_psf()
+    p, _ = prepare_psf(load_psf(PSF_FILE), (N, N), crop=0.25)  # the mock rig's PSF, zoomed in
+    return np.repeat(p, 3, axis=0)
 
 
 def _measure(y: np.ndarray, rng, frames: int = 8, gains=None) -> np.ndarray:
@@ -120,14 +105,10 @@ def test_deconvolution_rejects_bad_input(psf):
         deconvolve(np.ones((3, N, N)), psf[:2], iters=2)
 
 
-@pytest.mark.skipif(not (PSF_FILE.is_file() and RAW_FILE.is_file()),
-                    reason=f"DiffuserCam tutorial PSF/measurement not found in {PSF_DIR} (set RNGCAM_DATA)")
 def test_real_diffusercam_measurement_deconvolves_with_decreasing_objective():
-    import tifffile
-
     shape = (1200 // 8, 1600 // 8)  # 8x downsampled, as the DiffuserCam tutorial does
-    psf, _ = prepare_psf(tifffile.imread(PSF_FILE).astype(float), shape, bias=34.0)
-    b, _ = prepare_psf(tifffile.imread(RAW_FILE).astype(float), shape, bias=393.0)  # background 393
+    psf, _ = prepare_psf(load_psf(PSF_FILE), shape, bias=MEASURED_PSF_BIAS_DN)
+    b, _ = prepare_psf(load_psf(RAW_FILE), shape, bias=HAND_BIAS_DN)
     res = deconvolve(b, psf, tau_rel=1e-3, iters=12)
     obj = np.array(res.objective)
     assert res.image.shape == (1, *shape) and np.all(np.isfinite(res.image)) and res.image.max() > 0

@@ -25,12 +25,11 @@ from rngcam.calibrate.run import (
 from rngcam.cli import main
 from rngcam.config import parse_rig
 from rngcam.errors import ConfigError
-from rngcam.paths import shared_data
+from rngcam.paths import DATA_DIR, MEASURED_PSF
 
 REPO = Path(__file__).resolve().parents[1]
 MOCK = REPO / "rigs" / "mock.yaml"
-PSF = shared_data() / "psf" / "diffusercam_tutorial_psf_sample.tif"
-pytestmark = pytest.mark.skipif(not PSF.is_file(), reason=f"shared PSF not found at {PSF} (set RNGCAM_DATA)")
+PSF = DATA_DIR / MEASURED_PSF
 
 N = 64
 SHIFT, ROTATION, SCALE = (1.5, -2.0), 1.2, 1.02
@@ -142,7 +141,7 @@ def test_a_rig_naming_a_missing_calibration_file_cannot_capture(tmp_path):
 
 def test_cli_align_prints_transform_residual_and_truth(tmp_path, monkeypatch):
     rig_path = tmp_path / "calib-mock.yaml"
-    text = _rig_text(None).replace("../../shared/data/psf/", f"{PSF.parent}/")
+    text = _rig_text(None).replace(f"package:{MEASURED_PSF}", str(PSF))  # an absolute path works too
     rig_path.write_text(text)
     monkeypatch.chdir(tmp_path)
     result = CliRunner().invoke(main, ["calibrate", "align", "--rig", str(rig_path), "-y", "--frames", "4"])

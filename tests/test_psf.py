@@ -1,16 +1,14 @@
 """PSF loading, bias, area resampling, normalisation and the spectral-support figure."""
 
-from pathlib import Path
-
 import cv2
 import h5py
 import numpy as np
 import pytest
 import tifffile
 
+from rngcam.paths import MEASURED_PSF, package_data
 from rngcam.physics import psf as P
 
-SHARED_PSF = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "psf"
 
 
 def _caustic(h=40, w=50, seed=0):
@@ -91,11 +89,76 @@ def test_spectral_support_extremes():
 
 
 def test_real_psf_prepares_with_reported_support():
-    path = SHARED_PSF / "diffusercam_tutorial_psf_sample.tif"
-    if not path.is_file():
-        pytest.skip(f"shared PSF data not present at {path}")
-    raw = P.load_psf(path)
+    raw = P.load_psf(package_data(MEASURED_PSF))
     psf, bias = P.prepare_psf(raw, (64, 64))
     assert 20 < bias < 50  # PROVENANCE: background about 34
     assert np.isfinite(psf).all() and psf.min() >= 0
     assert 0.0 < P.spectral_support(psf) < 0.05
+
+
+# ----------------------------------------------------------------------------- lenslet diffuser model
+
+
+def test_lenslet_spots_are_where_the_seed_says():
+    from scipy import ndimage
+
+    sensor, fwhm = (128, 160), 3.0
+    centres, energy = P.lenslet_spots(sensor, lenslets=20, spot_fwhm_px=fwhm, coverage=0.6, seed=4)
+    assert centres.shape == (20, 2) and energy.sum() == pytest.approx(1.0) and energy.min() > 0
+    # coverage: every spot in the central 60 % of each side, and together they span most of it
+    lo, hi = np.array(sensor) * 0.2, np.array(sensor) * 0.8
+    assert np.all(centres >= lo) and np.all(centres <= hi)
+    assert np.all(np.ptp(centres, axis=0) > 0.7 * (hi - lo))
+    img = P.render_spots(sensor, centres, energy, fwhm)
+    assert img.sum() == pytest.approx(1.0, rel=1e-6)  # every spot's light lands on the sensor
+    # count: one bright blob per lenslet, each centred where the seed put it
+    labels, count = ndimage.label(img > 0.5 * img.max() * energy.min() / energy.max())
+    assert count == 20
+    found = np.array(ndimage.center_of_mass(img, labels, range(1, count + 1))) + 0.5  # pixel i spans [i, i+1)
+    nearest = np.min(np.hypot(*(found[:, None] - centres[None]).transpose(2, 0, 1)), axis=1)
+    assert nearest.max() < 0.2
+    # size: the brightest spot's full width at half maximum is the one asked for
+    for (cy, cx) in centres[:5]:
+        y, x = int(cy), int(cx)
+        row = img[y, x - 5:x + 6]  # spots are at least two widths (6 px) apart
+        above = np.flatnonzero(row > row.max() / 2)
+        assert above[-1] - above[0] + 1 == pytest.approx(fwhm, abs=1.01)
+    # the same seed gives the same spots, another seed others
+    again, _ = P.lenslet_spots(sensor, lenslets=20, spot_fwhm_px=fwhm, coverage=0.6, seed=4)
+    other, _ = P.lenslet_spots(sensor, lenslets=20, spot_fwhm_px=fwhm, coverage=0.6, seed=5)
+    np.testing.assert_array_equal(again, centres)
+    assert not np.allclose(other, centres)
+
+
+def test_lenslet_binning_conserves_energy_and_same_seed_same_psf():
+    rng = np.random.default_rng(0)
+    img = rng.random((2, 24, 36))
+    binned = P.bin_sum(img, 4)
+    assert binned.shape == (2, 6, 9) and binned.sum() == pytest.approx(img.sum())
+    assert binned[1, 2, 3] == pytest.approx(img[1, 8:12, 12:16].sum())
+    with pytest.raises(ValueError, match="does not bin"):
+        P.bin_sum(img, 5)
+    a = P.lenslet_psf((32, 32), binning=4, lenslets=12, seed=3)
+    assert a.shape == (1, 32, 32) and a.sum() == pytest.approx(1.0) and a.min() >= 0
+    np.testing.assert_array_equal(a, P.lenslet_psf((32, 32), binning=4, lenslets=12, seed=3))
+    assert not np.allclose(a, P.lenslet_psf((32, 32), binning=4, lenslets=12, seed=9))
+    with pytest.raises(ValueError, match="cannot place"):
+        P.lenslet_spots((16, 16), lenslets=200, spot_fwhm_px=3.0)
+
+
+def test_resolvable_fraction_follows_the_noise_floor():
+    delta = np.zeros((1, 16, 16))
+    delta[0, 5, 7] = 1
+    flat = np.full((1, 16, 16), 1 / 256)
+    # a delta passes every frequency unattenuated: all clear once contrast x SNR x sqrt(N) / 2 >= 1
+    assert P.resolvable_fraction(delta, snr_px=1.0, contrast=0.5) == 1.0  # 0.5 x 1 x 16 / 2 = 4
+    assert P.resolvable_fraction(delta, snr_px=0.2, contrast=0.5) == 0.0  # 0.8 < 1
+    # a flat box passes only DC and the frequencies its zeros miss (none on a 16 grid but DC)
+    assert P.resolvable_fraction(flat, snr_px=1e6) == pytest.approx(1 / (16 * 9))
+    assert P.resolvable_fraction(delta, snr_px=float("nan")) == 0.0
+    assert P.resolvable_fraction(np.zeros((1, 4, 4)), snr_px=10) == 0.0
+    # more signal never clears fewer frequencies
+    psf = P.lenslet_psf((32, 32), binning=2, lenslets=30, spot_fwhm_px=2.0, seed=1)
+    figures = [P.resolvable_fraction(psf, snr) for snr in (1, 5, 25, 125)]
+    assert figures == sorted(figures) and figures[0] < figures[-1]
+    assert P.snr_of_mean_signal(100.0, 0.0) == pytest.approx(10.0)

@@ -11,11 +11,8 @@ import tifffile
 from click.testing import CliRunner
 
 from rngcam.cli import main
-from rngcam.paths import shared_data
 
 REPO = Path(__file__).resolve().parents[1]
-PSF = shared_data() / "psf" / "diffusercam_tutorial_psf_sample.tif"
-pytestmark = pytest.mark.skipif(not PSF.is_file(), reason=f"the mock rig's PSF is not at {PSF} (set RNGCAM_DATA)")
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from rngcam.paths import shared_data
+from rngcam.sim.scenes import default_clip_path
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 from rngcam.sim.scenes import (
     FlowInterpolator,
@@ -136,9 +136,7 @@ def test_clip_start_defaults_to_the_window_with_most_motion(tmp_path):
 
 
 def test_real_clip_renders():
-    path = shared_data() / "videos" / "bikes_walk_256.npz"
-    if not path.is_file():
-        pytest.skip(f"shared clip {path} not available")
+    path = default_clip_path()  # the short car clip shipped in rngcam/data
     grid, _ = simulator_timing(16)
     video = render_scene("clip", grid, 16, path=path, span=8)
     assert video.shape == (3, grid.n_frames, 16, 16) and np.all(np.isfinite(video))

@@ -12,7 +12,7 @@ from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.sensor import BAYER_FORMATS, demosaic_bin, frame_to_measurement
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
-from rngcam.sim.simulate import SYNTHETIC_PSF, simulate
+from rngcam.sim.simulate import LENSLETS, simulate
 
 SIZE = 24
 HALF_DN = 0.5 / 4095 * 650e-6 / 208e-6  # half a 12-bit DN in operator units
@@ -130,13 +130,18 @@ def test_refuses_to_overwrite_without_permission(tmp_path):
     assert read_bundle(out).meta["scene"] == "smoke"
 
 
-def test_falls_back_to_a_synthetic_psf_without_shared_data(tmp_path, monkeypatch):
-    monkeypatch.setenv("RNGCAM_DATA", str(tmp_path / "nothing-here"))
-    b = simulate("sineball", tmp_path / "s.h5", size=16, noise=False)
-    assert b.meta["psf_synthetic"] is True and b.calibration.psf_source == SYNTHETIC_PSF
-    psf = b.calibration.psf
-    assert psf.shape == (3, 16, 16) and np.all(np.isfinite(psf))
-    assert psf_mod.spectral_support(psf) > 0.01  # caustic-like, not a blob
+def test_defaults_are_package_data_and_lenslets_is_a_rendered_model(tmp_path, monkeypatch):
+    monkeypatch.delenv("RNGCAM_DATA", raising=False)
+    measured = simulate("clip", tmp_path / "c.h5", size=16, noise=False)  # default clip and PSF
+    assert measured.meta["psf_source"] == "package:diffusercam_tutorial_psf.png"
+    assert measured.meta["clip"].endswith("bikes_car_short.npz") and measured.meta["psf_model"] is False
+    lens = simulate("sineball", tmp_path / "s.h5", size=16, noise=False, psf=LENSLETS)
+    assert lens.meta["psf_model"] is True and "lenslet" in lens.calibration.psf_source
+    psf = lens.calibration.psf
+    assert psf.shape == (3, 16, 16) and np.all(np.isfinite(psf)) and np.allclose(psf.sum(axis=(1, 2)), 1)
+    assert "psf" not in (read_bundle(tmp_path / "s.h5").rig_yaml.split("calibration:")[1].split("recon:")[0])
+    for b in (measured, lens):  # the PSF figure is in the meta, a fraction
+        assert 0 < b.meta["psf_resolvable_fraction"] <= 1 and b.meta["rs_snr_px"] > 1
 
 
 def test_bad_options_are_clear_errors(tmp_path, clip_file):

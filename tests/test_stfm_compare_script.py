@@ -9,16 +9,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
-from rngcam.paths import shared_data
-
 SCRIPT = Path(__file__).resolve().parents[1] / "bench" / "stfm_compare.py"
 
 
 def test_stfm_compare_runs_every_method_and_reports_targets(tmp_path):
-    if not (shared_data() / "psf").is_dir():
-        pytest.skip("shared data folder (PSF) not available")
     out = tmp_path / "report.md"
     args = ["--budget", "0.5", "--paper-budget", "0.3", "--sizes", "16", "--scenes", "smoke",
             "--paper-scenes", "smoke", "--methods", "stfm_fast,stfm_single,stfm_paper,tv3d,blend,interp,gs_mean",

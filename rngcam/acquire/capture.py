@@ -73,39 +73,25 @@ def output_paths(out: Path | None, count: int) -> list[Path]:
     return paths
 
 
-def _shared_data_fallback(path: Path) -> Path | None:
-    """For a path through '.../shared/data/...', the same file under rngcam.paths.shared_data()."""
-    parts = path.parts
-    for i in range(len(parts) - 1):
-        if parts[i] == "shared" and parts[i + 1] == "data":
-            from rngcam.paths import shared_data
-
-            candidate = shared_data().joinpath(*parts[i + 2:])
-            return candidate if candidate.is_file() else None
-    return None
-
-
 def resolve_psf_path(rig: Rig) -> Path:
-    """The rig's PSF file, relative to the rig file, else under the shared data folder."""
+    """The rig's PSF file: `package:NAME` is a file shipped in rngcam/data, a relative path is
+    relative to the rig file."""
+    from rngcam.paths import resolve_data_ref
+
     cfg = rig.config.calibration.psf
     if cfg is None:
         raise ConfigError(f"{rig.path}: calibration.psf: a PSF file is required for capture")
-    path = rig.resolve(cfg.path)
+    path = resolve_data_ref(cfg.path, rig.path.parent)
     if path.is_file():
         return path
-    fallback = _shared_data_fallback(Path(cfg.path))
-    if fallback is not None:
-        return fallback
     raise ConfigError(f"{rig.path}: calibration.psf.path: PSF file not found: {path} "
-                      "(relative paths are relative to the rig file; set RNGCAM_DATA for shared data)")
+                      "(relative paths are relative to the rig file; package:NAME names a file in rngcam/data)")
 
 
 def rs_psf(rig: Rig, progress: Progress) -> tuple[np.ndarray, str, float]:
     """(PSF (C, H, W) float64 summing to 1 per channel on the RS sensor grid, source, bias)."""
     cfg = rig.config.calibration.psf
     path = resolve_psf_path(rig)
-    if path != rig.resolve(cfg.path):
-        progress(f"psf: {rig.resolve(cfg.path)} not found; using {path} from the shared data folder")
     roi = rig.config.cameras.rs.roi
     shape = (roi.height, roi.width)
     try:

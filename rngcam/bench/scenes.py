@@ -1,5 +1,8 @@
 """Benchmark scenes: `sineball`, `smoke` and real clips, simulated into bundles with truth
-by `rngcam.sim.simulate` (reference-rig timing, the shared PSF, a noisy 12-bit sensor)."""
+by `rngcam.sim.simulate` (reference-rig timing, the measured caustic PSF, a noisy 12-bit sensor).
+
+Without a data folder the clip scene is the short car clip shipped in rngcam/data; the larger
+clips live in `$RNGCAM_DATA/videos/` (rngcam.paths.DATA_HINT says where they come from)."""
 
 from __future__ import annotations
 
@@ -10,7 +13,7 @@ from rngcam.errors import RngcamError
 
 PROCEDURAL = ("sineball", "smoke")
 CLIP_FOLDER = "videos"
-CLIP_SPAN = 8  # source frames covered by one capture (DESIGN: realistic motion for kHz capture)
+CLIP_SPAN = 8  # source frames covered by one capture (docs/design.md: realistic motion for kHz capture)
 
 
 @dataclass(frozen=True)
@@ -24,11 +27,15 @@ class BenchScene:
 
 def bench_scenes(data_dir: Path | None, extra_clips: tuple[Path, ...] = (),
                  only: tuple[str, ...] = ()) -> list[BenchScene]:
-    """sineball, smoke, every `videos/*.npz` in the shared data folder and any extra clip.
+    """sineball, smoke, every `videos/*.npz` in `data_dir` (else the short clip in rngcam/data)
+    and any extra clip.
 
     `only` keeps the scenes with those names (clip scenes are named after the file stem)."""
+    from rngcam.sim.scenes import default_clip_path
+
     scenes = [BenchScene(n, n) for n in PROCEDURAL]
     clips = sorted((data_dir / CLIP_FOLDER).glob("*.npz")) if data_dir and (data_dir / CLIP_FOLDER).is_dir() else []
+    clips = clips or [default_clip_path()]
     for path in list(clips) + [Path(c) for c in extra_clips]:
         if not path.is_file():
             raise RngcamError(f"clip {path} does not exist")

@@ -106,7 +106,7 @@ def stress_cases() -> list[StressCase]:
               for k, v in (("beta", -1.0), ("tau", float("nan")), ("psi", float("inf")))]
     cases += [StressCase("psf=delta", "psf", BASE.with_(psf="delta"), methods=it),
               StressCase("psf=flat", "psf", BASE.with_(psf="flat"), methods=it),
-              StressCase("psf=real", "psf", BASE.with_(psf="real"), methods=it, needs_data=True)]
+              StressCase("psf=real", "psf", BASE.with_(psf="real"), methods=it)]
     cases += [StressCase("rs exposure 0.3 line", "timing", BASE.with_(exposure_lines=0.3)),
               StressCase("rs exposure 3x readout", "timing", BASE.with_(exposure_lines=36.0)),
               StressCase("gs exposure 0.4 line", "timing", BASE.with_(gs_exposure_lines=0.4))]

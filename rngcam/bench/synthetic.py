@@ -23,7 +23,6 @@ from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, Vid
 from rngcam.recon.problem import Problem, problem_from_video
 
 PSF_KINDS = ("delta", "flat", "caustic", "real")
-REAL_PSF = "psf/diffusercam_tutorial_psf_sample.tif"
 
 
 @dataclass(frozen=True)
@@ -80,7 +79,8 @@ def moving_square(channels: int, frames: int, height: int, width: int, brightnes
 def make_psf(kind: str, height: int, width: int, seed: int = 0, data_dir: Path | None = None) -> np.ndarray:
     """(1, Hp, Wp) PSF summing to 1: a delta (identity), flat (a box: rank-deficient, every
     image with the same sum looks alike), caustic (sparse random bright points, slightly
-    blurred) or real (the DiffuserCam tutorial PSF resampled; needs `data_dir`)."""
+    blurred) or real (the measured DiffuserCam tutorial PSF in rngcam/data, resampled;
+    `data_dir` is not used)."""
     if kind == "delta":
         return np.ones((1, 1, 1))
     if kind == "flat":
@@ -93,9 +93,9 @@ def make_psf(kind: str, height: int, width: int, seed: int = 0, data_dir: Path |
         img = cv2.GaussianBlur(img, (3, 3), 0.6)
         return (img / img.sum())[None]
     if kind == "real":
-        if data_dir is None or not (data_dir / REAL_PSF).is_file():
-            raise FileNotFoundError(f"the real PSF {REAL_PSF} is not in the shared data folder")
-        raw = psf_mod.load_psf(data_dir / REAL_PSF)
+        from rngcam.paths import MEASURED_PSF, package_data
+
+        raw = psf_mod.load_psf(package_data(MEASURED_PSF))
         psf, _ = psf_mod.prepare_psf(raw, (height, width), crop=0.5, bias="auto")
         return psf.mean(axis=0, keepdims=True) / psf.mean(axis=0).sum()
     raise ValueError(f"unknown PSF kind {kind!r}; choose one of {PSF_KINDS}")

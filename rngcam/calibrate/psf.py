@@ -128,3 +128,51 @@ def correlation(a: np.ndarray, b: np.ndarray) -> float:
         raise ValueError(f"shapes differ: {a.shape} vs {b.shape}")
     a, b = a - a.mean(), b - b.mean()
     return float((a @ b) / np.sqrt((a @ a) * (b @ b)))
+
+
+FIGURE_CONTRAST = 0.1  # the PSF figure counts frequencies that carry a 10 % contrast pattern
+
+
+def frame_snr(frame: np.ndarray, pixel_format: str, black_level_dn: float) -> float:
+    """Per-pixel signal-to-noise of one raw frame: its mean above black over its noise
+    (estimated from the frame itself, 2x2 Haar details; Bayer frames binned per colour first)."""
+    img = _chw(frame, pixel_format) - float(black_level_dn)
+    noise = max(_haar_noise(img), 1 / np.sqrt(12))  # never below the quantisation noise
+    return max(float(img.mean()), 0.0) / noise
+
+
+def psf_figure(psf: np.ndarray, snr_px: float, shape: tuple[int, int] | None = None) -> tuple[float, str]:
+    """(fraction, report line): the PSF (resampled to `shape` when given) against the RS noise
+    floor of per-pixel SNR `snr_px` (rngcam.physics.psf.resolvable_fraction)."""
+    from rngcam.physics.psf import figure_line, resample, resolvable_fraction
+
+    psf = np.clip(np.nan_to_num(np.asarray(psf, np.float64)), 0, None)
+    if shape is not None and psf.shape[-2:] != tuple(shape):
+        psf = resample(psf, tuple(shape))
+    fraction = resolvable_fraction(psf, snr_px, FIGURE_CONTRAST)
+    return fraction, figure_line(fraction, snr_px, FIGURE_CONTRAST)
+
+
+def bundle_psf_figure(path) -> str:
+    """The PSF figure of a capture bundle, at the noise floor of its own RS image."""
+    from rngcam.bundle import read_bundle
+
+    b = read_bundle(path)
+    if b.calibration is None or b.calibration.psf is None or b.rs is None:
+        return "PSF figure: no PSF or no RS image in this bundle"
+    frame = np.asarray(b.rs.frames[0])
+    snr = frame_snr(frame, b.rs.pixel_format, b.rs.black_level_dn)
+    shape = _chw(frame, b.rs.pixel_format).shape[-2:]
+    return psf_figure(b.calibration.psf, snr, shape)[1]
+
+
+def rig_snr(camera) -> tuple[float, str]:
+    """(per-pixel SNR, how it was set) of an RS image at half full scale for a rig's camera
+    config: its mock sensor's full well and read noise, else a typical 10,000 e- / 3 e- sensor."""
+    from rngcam.physics.psf import snr_of_mean_signal
+
+    mock = getattr(camera, "mock", None)
+    full_well, read = (mock.full_well_e, mock.read_noise_e) if mock is not None else (10_000.0, 3.0)
+    how = "mock sensor" if mock is not None else "assumed sensor"
+    return (snr_of_mean_signal(full_well / 2, read),
+            f"scene at half full scale, {how} of {full_well:g} e- full well, {read:g} e- read noise")

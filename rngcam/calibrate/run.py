@@ -102,6 +102,7 @@ def calibrate_psf(rig: Rig, out=None, frames: int = 16, dark_frames: int = 0, ma
     lines = [(f"PSF: {est.psf.shape[0]}x{est.psf.shape[1]}x{est.psf.shape[2]} from {est.frames} frame(s), "
               f"{est.dark}; peak SNR {est.peak_snr:.0f}, peak at {est.peak_fraction:.0%} of full scale, "
               f"{est.saturated_pixels} saturated pixel(s); spectral support {spectral_support(est.psf):.2%}")]
+    lines.append(_psf_figure_line(est.psf, cfg))
     if bench.world is not None and bench.world.psf is not None:
         from rngcam.calibrate.psf import correlation
 
@@ -150,6 +151,14 @@ def calibrate_linetime(rig: Rig, out=None, heights=None, progress: Progress = pr
 
 
 # --------------------------------------------------------------------------- static pair
+
+
+def _psf_figure_line(psf: np.ndarray, camera) -> str:
+    """The PSF figure against the noise floor of an RS image with this camera (calibrate.psf)."""
+    from rngcam.calibrate.psf import psf_figure, rig_snr
+
+    snr, how = rig_snr(camera)
+    return f"{psf_figure(psf, snr)[1]}; {how}"
 
 
 def _sensor_psf(rig: Rig, progress: Progress) -> tuple[np.ndarray, str, bool]:

@@ -134,3 +134,109 @@ def prepare_psf(psf: np.ndarray, shape: tuple[int, int], crop: float = 1.0,
             raise ValueError(f"cannot map a {psf.shape[0]}-channel PSF to {channels} channels")
         psf = np.repeat(psf, channels, axis=0)
     return psf, used
+
+
+def resolvable_fraction(psf: np.ndarray, snr_px: float, contrast: float = 0.1) -> float:
+    """Fraction of the grid's spatial frequencies at which the PSF carries a scene pattern of
+    `contrast` above the RS image's noise floor.
+
+    A sinusoid of contrast c in a scene of mean intensity I puts c I |H(f)| N/2 into the DFT
+    bin f of an image of N pixels seen through the PSF (H(0) = 1), while white noise of
+    standard deviation s per pixel puts s sqrt(N) into every bin. With snr_px = (the RS image's
+    mean) / s, the pattern clears the noise where c |H(f)| snr_px sqrt(N) / 2 >= 1. Unlike a
+    threshold relative to DC, this does not fall as the grid grows: a finer grid has more,
+    weaker frequencies, and also more pixels to measure each one with.
+    """
+    mono = np.asarray(psf, dtype=np.float64).reshape(-1, *psf.shape[-2:]).mean(axis=0)
+    dc = mono.sum()
+    if not (np.isfinite(dc) and dc > 0 and np.isfinite(snr_px) and snr_px > 0 and contrast > 0):
+        return 0.0
+    transfer = np.abs(np.fft.rfft2(mono)) / dc
+    return float((contrast * transfer * snr_px * np.sqrt(mono.size) / 2 >= 1).mean())
+
+
+def figure_line(fraction: float, snr_px: float, contrast: float = 0.1) -> str:
+    """The PSF figure as one report line."""
+    return (f"PSF figure: {100 * fraction:.1f} % of the grid's frequencies carry a {100 * contrast:g} % "
+            f"contrast pattern above the RS noise (RS SNR {snr_px:.0f} per pixel)")
+
+
+def snr_of_mean_signal(mean_electrons: float, read_noise_e: float) -> float:
+    """Per-pixel signal-to-noise of a mean signal in electrons under shot and read noise."""
+    mean_electrons = max(float(mean_electrons), 0.0)
+    noise = np.sqrt(mean_electrons + read_noise_e ** 2)
+    return float(mean_electrons / noise) if noise > 0 else 0.0
+
+
+# --------------------------------------------------------------------------- lenslet diffuser
+
+
+def lenslet_spots(sensor_shape: tuple[int, int], lenslets: int = 64, spot_fwhm_px: float = 4.0,
+                  coverage: float = 0.85, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Focal-spot centres (n, 2) as (row, col) in sensor pixels (pixel i spans [i, i + 1)) and their
+    energies (n,) summing to 1.
+
+    Unifocal lenslets at random places on the diffuser focus a point source to one spot each;
+    the spots fall uniformly at random (no periodicity) in the central `coverage` fraction of
+    each sensor side, at least two spot widths apart (two lenslets' foci do not merge). Each
+    spot's energy is proportional to its lenslet's area, which varies from dent to dent.
+    """
+    h, w = sensor_shape
+    if lenslets < 1 or not 0 < coverage <= 1 or not spot_fwhm_px > 0:
+        raise ValueError("lenslets must be >= 1, coverage in (0, 1], spot_fwhm_px > 0")
+    rng = np.random.default_rng([seed, 28])
+    margin = 2.5 * spot_fwhm_px  # keeps every spot's light on the sensor
+    lo = np.array([max(margin, h * (1 - coverage) / 2), max(margin, w * (1 - coverage) / 2)])
+    hi = np.array([h, w]) - lo
+    if np.any(hi <= lo):
+        raise ValueError(f"a {h}x{w} sensor is too small for {spot_fwhm_px:g} px spots")
+    min_sep = 2 * spot_fwhm_px
+    centres: list[np.ndarray] = []
+    for _ in range(200 * lenslets):
+        p = lo + rng.random(2) * (hi - lo)
+        if all(np.hypot(*(p - q)) >= min_sep for q in centres):
+            centres.append(p)
+            if len(centres) == lenslets:
+                break
+    else:
+        raise ValueError(f"cannot place {lenslets} spots {min_sep:g} px apart on a {h}x{w} sensor "
+                         f"(coverage {coverage:g})")
+    energy = rng.uniform(0.5, 1.5, lenslets)
+    return np.array(centres), energy / energy.sum()
+
+
+def bin_sum(img: np.ndarray, binning: int) -> np.ndarray:
+    """Sum (..., H, W) over binning x binning blocks, as a camera's binning does (energy kept)."""
+    h, w = img.shape[-2:]
+    if h % binning or w % binning:
+        raise ValueError(f"a {h}x{w} image does not bin by {binning}")
+    return img.reshape(*img.shape[:-2], h // binning, binning, w // binning, binning).sum(axis=(-3, -1))
+
+
+def render_spots(sensor_shape: tuple[int, int], centres: np.ndarray, energy: np.ndarray,
+                 spot_fwhm_px: float) -> np.ndarray:
+    """(H, W) float64: Gaussian spots integrated over each pixel (each spot's pixels sum to its energy)."""
+    from scipy.special import erf
+
+    img = np.zeros(sensor_shape)
+    sigma = spot_fwhm_px / (2 * np.sqrt(2 * np.log(2)))
+    r = int(np.ceil(5 * sigma)) + 1
+    for (cy, cx), e in zip(centres, energy):
+        y0, x0 = max(int(cy) - r, 0), max(int(cx) - r, 0)
+        y1, x1 = min(int(cy) + r + 1, sensor_shape[0]), min(int(cx) + r + 1, sensor_shape[1])
+        ey = np.diff(erf((np.arange(y0, y1 + 1) - cy) / (np.sqrt(2) * sigma))) / 2
+        ex = np.diff(erf((np.arange(x0, x1 + 1) - cx) / (np.sqrt(2) * sigma))) / 2
+        img[y0:y1, x0:x1] += e * np.outer(ey, ex)
+    return img
+
+
+def lenslet_psf(grid_shape: tuple[int, int], binning: int = 8, lenslets: int = 64,
+                spot_fwhm_px: float = 4.0, coverage: float = 0.85, seed: int = 0) -> np.ndarray:
+    """(1, *grid_shape) PSF of a random unifocal-lenslet diffuser (the RnGCam paper's kind).
+
+    Rendered on a sensor of grid_shape x binning pixels (spot width `spot_fwhm_px` in those
+    pixels), then binned like a measured PSF and normalised to sum 1.
+    """
+    sensor = (grid_shape[0] * binning, grid_shape[1] * binning)
+    centres, energy = lenslet_spots(sensor, lenslets, spot_fwhm_px, coverage, seed)
+    return normalise(bin_sum(render_spots(sensor, centres, energy, spot_fwhm_px), binning)[None])

@@ -28,12 +28,11 @@ import cv2
 import numpy as np
 
 from rngcam.errors import RngcamError
-from rngcam.paths import shared_data
+from rngcam.paths import SHORT_CLIP, package_data
 from rngcam.physics.timing import VideoGrid
 
 SCENES = ("sineball", "smoke", "clip")
 GAMMA = 2.2
-DEFAULT_CLIP = "videos/bikes_car_256.npz"
 
 
 class SceneError(RngcamError):
@@ -231,9 +230,14 @@ def render_smoke(grid: VideoGrid, size: int, seed: int = 0,
 # --------------------------------------------------------------------------- clip
 
 
+def default_clip_path() -> Path:
+    """The short fast-car clip shipped in rngcam/data (12 frames, 256x256)."""
+    return package_data(SHORT_CLIP)
+
+
 def load_clip(path: str | Path | None = None) -> np.ndarray:
-    """Read `frames` (T, H, W, 3) uint8 from an npz (default: the shared car clip)."""
-    path = Path(path) if path is not None else shared_data() / DEFAULT_CLIP
+    """Read `frames` (T, H, W, 3) uint8 from an npz (default: the short car clip in rngcam/data)."""
+    path = Path(path) if path is not None else default_clip_path()
     if not path.is_file():
         raise SceneError(f"clip file not found: {path}")
     try:

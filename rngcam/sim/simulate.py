@@ -23,17 +23,21 @@ import yaml
 from rngcam import __version__
 from rngcam.bundle import Bundle, Calibration, CameraRecord, Truth, write_bundle
 from rngcam.errors import RngcamError
-from rngcam.paths import shared_data
+from rngcam.paths import MEASURED_PSF, PACKAGE_PREFIX, package_data
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.sensor import SensorModel
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
-from rngcam.sim.scenes import DEFAULT_CLIP, SCENES, choose_clip_start, load_clip, render_scene
+from rngcam.sim.scenes import SCENES, choose_clip_start, default_clip_path, load_clip, render_scene
 
 GRID_DT_S = 208e-6  # reference: 13 us line time x 16 sensor rows per grid row
 EXPOSURE_S = 650e-6  # both cameras, as in the reference prototype
-DEFAULT_PSF = "psf/diffusercam_tutorial_psf_sample.tif"
-SYNTHETIC_PSF = "synthetic caustic (random Voronoi cell edges)"
+LENSLETS = "lenslets"  # --psf lenslets: the paper's kind of diffuser, rendered (physics.psf.lenslet_psf)
+LENSLET_SOURCE = "lenslet model ({lenslets} lenslets, {fwhm:g} px spots, sensor {bin}x binned, seed {seed})"
+LENSLET_BINNING = 8  # the model's sensor has 8x8 pixels per grid pixel
+LENSLET_COUNT = 64
+LENSLET_SPOT_FWHM_PX = 4.0  # in sensor pixels
+FIGURE_CONTRAST = 0.1  # the PSF figure: frequencies that carry a 10 % contrast pattern above the noise
 
 
 # Zoom into the caustic so its detail survives at small grids (0.76 % of frequencies above 10 %
@@ -80,64 +84,45 @@ def default_sensor(bayer: bool = False) -> SensorModel:
 # --------------------------------------------------------------------------- PSF
 
 
-def synthetic_caustic_psf(size: int, seed: int = 0, cells: int = 40) -> np.ndarray:
-    """(1, size, size) caustic-like PSF: bright, slightly blurred edges of random Voronoi cells.
-
-    Rendered at up to 4x and area-averaged; sums to 1.
-    """
-    fine = min(4 * size, 1024)
-    rng = np.random.default_rng([seed, 7])
-    points = rng.uniform(0, fine, size=(cells, 2))
-    yy, xx = np.mgrid[0:fine, 0:fine].astype(np.float32) + 0.5
-    d = np.sqrt((yy[None] - points[:, 0, None, None]) ** 2 + (xx[None] - points[:, 1, None, None]) ** 2)
-    d.partition(1, axis=0)
-    gap = d[1] - d[0]  # 0 on the edge between two cells
-    lines = np.exp(-((gap / (0.004 * fine + 0.5)) ** 2))
-    brightness = cv2.GaussianBlur(rng.uniform(0.3, 1.0, (fine, fine)).astype(np.float32), (0, 0), fine / 16)
-    vignette = np.exp(-(((yy - fine / 2) ** 2 + (xx - fine / 2) ** 2) / (0.45 * fine) ** 2))
-    img = cv2.GaussianBlur(lines * brightness * vignette, (0, 0), 0.6)
-    psf, _ = psf_mod.prepare_psf(img.astype(np.float64), (size, size), bias=None)
-    return psf
-
-
 @dataclass(frozen=True)
 class PreparedPSF:
     sensor: np.ndarray  # (3, Hs, Ws) float32 on the RS sensor grid (stored in the bundle)
     grid: np.ndarray  # (3, N, N) float64 on the reconstruction grid (used by the physics)
     source: str
     bias: float
-    synthetic: bool
+    model: bool  # rendered by a model (lenslets), not read from a file
 
 
 def prepare_simulation_psf(psf: str | Path | None, sensor_size: int, grid_size: int, crop: float,
                            seed: int = 0) -> PreparedPSF:
-    """Load (or synthesise) the PSF at the RS sensor size; derive the grid PSF exactly as the
-    reconstruction does from the stored float32 copy (rngcam.recon.problem)."""
-    synthetic = False
-    if psf is None:
-        path = shared_data() / DEFAULT_PSF
-        if not path.is_file():
-            synthetic = True
-    else:
-        path = Path(psf)
-        if not path.is_file():
-            raise SimulationError(f"PSF file not found: {path}")
+    """Load the PSF (default: the measured caustic shipped in rngcam/data; 'lenslets': the lenslet
+    model) at the RS sensor size; derive the grid PSF exactly as the reconstruction does from the
+    stored float32 copy (rngcam.recon.problem)."""
     if not (isinstance(crop, (int, float)) and 0 < crop <= 1):
         raise SimulationError(f"--psf-crop must be in (0, 1], got {crop!r}")
-    if synthetic:
-        sensor = np.repeat(synthetic_caustic_psf(sensor_size, seed), 3, axis=0)
-        source, bias = SYNTHETIC_PSF, 0.0
+    model = str(psf) == LENSLETS
+    if model:
+        try:
+            sensor = np.repeat(psf_mod.lenslet_psf((sensor_size, sensor_size), LENSLET_BINNING, LENSLET_COUNT,
+                                                   LENSLET_SPOT_FWHM_PX, seed=seed), 3, axis=0)
+        except ValueError as exc:
+            raise SimulationError(f"--psf {LENSLETS}: {exc} (use a larger --size)") from None
+        source, bias = LENSLET_SOURCE.format(lenslets=LENSLET_COUNT, fwhm=LENSLET_SPOT_FWHM_PX,
+                                             bin=LENSLET_BINNING, seed=seed), 0.0
     else:
+        path = package_data(MEASURED_PSF) if psf is None else Path(psf)
+        if not path.is_file():
+            raise SimulationError(f"PSF file not found: {path} (or --psf {LENSLETS})")
         try:
             raw = psf_mod.load_psf(path)
             sensor, bias = psf_mod.prepare_psf(raw, (sensor_size, sensor_size), crop=crop, bias="auto",
                                                channels=3)
         except ValueError as exc:
             raise SimulationError(f"PSF {path}: {exc}") from None
-        source = str(path.resolve())
+        source = PACKAGE_PREFIX + MEASURED_PSF if psf is None else str(path.resolve())
     sensor = sensor.astype(np.float32)
     grid, _ = psf_mod.prepare_psf(sensor.astype(np.float64), (grid_size, grid_size), bias=None)
-    return PreparedPSF(sensor, grid, source, float(bias), synthetic)
+    return PreparedPSF(sensor, grid, source, float(bias), model)
 
 
 # --------------------------------------------------------------------------- physics
@@ -211,7 +196,7 @@ def rig_yaml(scene: str, seed: int, size: int, timing: SimTiming, sensor: Sensor
         "recon": {"grid_bin": timing.grid_bin},
         "mock": {"scene": scene, "seed": seed, "options": scene_options},
     }
-    if not psf.synthetic:
+    if not psf.model:
         rig["calibration"]["psf"] = {"path": psf.source, "crop": psf_crop, "bias": "auto"}
     header = "# rngcam rig written by `rngcam simulate`: the simulated cameras, timing and PSF.\n"
     return header + yaml.safe_dump(rig, sort_keys=False)
@@ -223,8 +208,8 @@ def simulate(scene: str, out: str | Path, size: int = 64, seed: int = 0,
              bayer: bool = False, overwrite: bool = False) -> Bundle:
     """Simulate `scene` at size x size and write the bundle to `out`; returns the bundle.
 
-    psf: PSF file (default: the shared DiffuserCam PSF, else a synthetic caustic, noted in
-    meta). clip/span/start: the clip scene's source file, source frames covered, first frame
+    psf: PSF file (default: the measured DiffuserCam caustic in rngcam/data), or 'lenslets' for
+    the lenslet diffuser model. clip/span/start: the clip scene's source file, source frames covered, first frame
     (default: most motion). bayer: BayerRG12 frames at 2x size (grid_bin 2).
     """
     if scene not in SCENES:
@@ -242,7 +227,7 @@ def simulate(scene: str, out: str | Path, size: int = 64, seed: int = 0,
     scene_options: dict = {}
     meta_clip: dict = {}
     if scene == "clip":
-        clip_path = Path(clip) if clip is not None else shared_data() / DEFAULT_CLIP
+        clip_path = Path(clip) if clip is not None else default_clip_path()
         frames = load_clip(clip_path)
         if start is None:
             start = choose_clip_start(frames, span) if len(frames) >= span else 0
@@ -273,12 +258,16 @@ def simulate(scene: str, out: str | Path, size: int = 64, seed: int = 0,
                                       "read_noise_e": sensor.read_noise_e})
 
     support = psf_mod.spectral_support(prepared.grid)
+    snr_px = psf_mod.snr_of_mean_signal(float(sensor.expected_electrons(rs_y, EXPOSURE_S, dt).mean()),
+                                        sensor.read_noise_e)  # the rig's noise floor, also with --no-noise
+    resolvable = psf_mod.resolvable_fraction(prepared.grid, snr_px * timing.grid_bin, FIGURE_CONTRAST)
     meta = {
         "source": f"rngcam simulate {__version__}",
         "scene": scene, "seed": int(seed), "size": int(size),
         "span": int(span) if scene == "clip" else None, **meta_clip,
         "psf_crop": float(psf_crop), "psf_spectral_support": support,
-        "psf_source": prepared.source, "psf_synthetic": prepared.synthetic,
+        "psf_source": prepared.source, "psf_model": prepared.model,
+        "psf_resolvable_fraction": resolvable, "rs_snr_px": snr_px,
         "noise": bool(noise), "bayer": bool(bayer), "grid_bin": timing.grid_bin,
         "dt_s": dt, "n_frames": timing.grid.n_frames,
         "key_times_s": [float(t) for t in timing.gs.centres_s()],
@@ -309,14 +298,12 @@ def summary(bundle: Bundle, out: str | Path) -> list[str]:
          f"{rs.line_time_s * 1e6:.0f} us, exposure {rs.exposure_s * 1e6:.0f} us"),
         (f"GS: {len(gs.frames)} frames {tuple(gs.frames.shape[1:])} {gs.pixel_format}, triggers at "
          + ", ".join(f"{t * 1e3:.3f}" for t in gs.trigger_times_s) + " ms"),
-        (f"PSF: {m['psf_source']} (crop {m['psf_crop']:g}); spectral support "
+        (f"PSF: {m['psf_source']}" + ("" if m.get("psf_model") else f" (crop {m['psf_crop']:g})") + "; spectral support "
          f"{100 * m['psf_spectral_support']:.2f} % of frequencies above 10 % of DC"),
+        psf_mod.figure_line(m["psf_resolvable_fraction"], m["rs_snr_px"], FIGURE_CONTRAST),
         f"noise {'on' if m['noise'] else 'off'}" + (f"; clip start {m['clip_start']}, span {m['span']}"
                                                      if m["scene"] == "clip" else ""),
     ]
-    if m.get("psf_synthetic"):
-        lines.append(f"note: the shared PSF was not found under {shared_data()}; "
-                     "used a synthetic caustic PSF")
     if not math.isfinite(m["psf_spectral_support"]) or m["psf_spectral_support"] < 0.005:
         lines.append("note: little PSF detail survives at this size (try --psf-crop < 1 or a larger --size)")
     return lines
