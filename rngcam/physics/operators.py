@@ -1,6 +1,6 @@
 """Linear forward operators with `A` and `A_adjoint` (modelled on deepinv's LinearPhysics).
 
-Shapes (DESIGN.md): video (C, T, H, W); one measurement (C, H, W); a GS stack (C, G, H, W).
+Shapes (docs/design.md): video (C, T, H, W); one measurement (C, H, W); a GS stack (C, G, H, W).
 Operators work in float32 or float64, on any device, batched over colour channels. A stacked
 operator returns a tuple of measurements; `inner` and `norm_sq` handle tensors and tuples.
 """

@@ -1,6 +1,6 @@
 """Shutter timing: exact exposure weights of RS row bins and GS frames on the video time grid.
 
-Convention (DESIGN.md): the video grid starts at the RS trigger T0 = 0; frame k covers
+Convention (docs/design.md): the video grid starts at the RS trigger T0 = 0; frame k covers
 [k*dt, (k+1)*dt). An exposure interval [a, b) becomes a weight vector over frames equal to
 its overlap with each frame interval divided by dt. A grid row that bins s sensor rows is
 the *mean* of those rows, so its weight is the mean of s shifted rects (a trapezoid), and

@@ -1,8 +1,8 @@
 """The space-time fusion model (STFM), rngcam's neural reconstruction (RnGCam, ICCV 2025).
 
-Model (DESIGN.md): a static field F_S(x, y) -> RGB >= 0, a motion field F_M(x, y, t) ->
+Model (docs/design.md): a static field F_S(x, y) -> RGB >= 0, a motion field F_M(x, y, t) ->
 (u_x, u_y) and a dynamic field evaluated at the warped point, F_D(x + u_x, y + u_y) ->
-(RGB >= 0, alpha in [0, 1]); the video is v = alpha v_S + (1 - alpha) v_D. As in DESIGN.md
+(RGB >= 0, alpha in [0, 1]); the video is v = alpha v_S + (1 - alpha) v_D. As in docs/design.md
 F_D is 2-D: one canonical image that the motion field moves around, so the dynamics live in
 the motion field (the only field that sees t). This is the "paper" preset and
 `dynamic_time=False`. Deviations in the "fast" preset (`dynamic_time=True`; its default is the
