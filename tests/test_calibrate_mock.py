@@ -80,6 +80,8 @@ def test_psf_matches_the_mock_optics(calibrated):
     assert correlation(est.psf, true_psf) > 0.99
     assert est.peak_snr > 50 and est.saturated_pixels == 0 and est.dark.startswith("dark frame")
     assert any("mock truth: correlation" in line for line in outcomes["psf"].lines)
+    assert any(line.startswith("PSF figure:") and "mock sensor of 10000 e- full well" in line
+               for line in outcomes["psf"].lines)
 
 
 def test_line_time_is_recovered_from_readout_times(calibrated):

@@ -34,7 +34,7 @@ def test_inspect_prints_the_summary(good):
     assert result.exit_code == 0, result.output
     for fact in ("good.h5", "RS camera", "acA5472-17uc", "exposure 0.650 ms", "line time 13.000 us",
                  "trigger times 0.000, 0.300, 0.600 ms", "spectral support", "white bal.",
-                 "field stop", "FAKE,33500B", "10000.0 fps"):
+                 "field stop", "FAKE,33500B", "10000.0 fps", "PSF figure:"):
         assert fact in result.stdout, fact
     assert result.stderr == ""
 
