@@ -10,7 +10,6 @@ from rngcam.paths import MEASURED_PSF, package_data
 from rngcam.physics import psf as P
 
 
-
 def _caustic(h=40, w=50, seed=0):
     rng = np.random.default_rng(seed)
     img = np.full((h, w), 20.0)

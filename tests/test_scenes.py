@@ -6,12 +6,12 @@ import cv2
 import numpy as np
 import pytest
 
-from rngcam.sim.scenes import default_clip_path
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 from rngcam.sim.scenes import (
     FlowInterpolator,
     SceneError,
     choose_clip_start,
+    default_clip_path,
     render_scene,
     srgb_to_linear,
 )

@@ -15,7 +15,6 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 import yaml
@@ -298,8 +297,8 @@ def summary(bundle: Bundle, out: str | Path) -> list[str]:
          f"{rs.line_time_s * 1e6:.0f} us, exposure {rs.exposure_s * 1e6:.0f} us"),
         (f"GS: {len(gs.frames)} frames {tuple(gs.frames.shape[1:])} {gs.pixel_format}, triggers at "
          + ", ".join(f"{t * 1e3:.3f}" for t in gs.trigger_times_s) + " ms"),
-        (f"PSF: {m['psf_source']}" + ("" if m.get("psf_model") else f" (crop {m['psf_crop']:g})") + "; spectral support "
-         f"{100 * m['psf_spectral_support']:.2f} % of frequencies above 10 % of DC"),
+        (f"PSF: {m['psf_source']}" + ("" if m.get("psf_model") else f" (crop {m['psf_crop']:g})")
+         + f"; spectral support {100 * m['psf_spectral_support']:.2f} % of frequencies above 10 % of DC"),
         psf_mod.figure_line(m["psf_resolvable_fraction"], m["rs_snr_px"], FIGURE_CONTRAST),
         f"noise {'on' if m['noise'] else 'off'}" + (f"; clip start {m['clip_start']}, span {m['span']}"
                                                      if m["scene"] == "clip" else ""),
