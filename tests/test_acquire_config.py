@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from rngcam.acquire.capture import nominal_timing, verify_timing
+from rngcam.acquire.capture import nominal_timing, resolve_psf_path, verify_timing
 from rngcam.config import load_rig, parse_rig
 from rngcam.errors import ConfigError
 
@@ -47,7 +47,7 @@ def test_mock_rig_keeps_the_reference_timing_at_64_rows():
     assert c.generator.transport == "fake" and c.mock.scene == "sineball"
     _, _, grid = nominal_timing(rig)
     assert grid.dt_s == pytest.approx(208e-6) and c.cameras.rs.roi.height == 64
-    assert rig.resolve(c.calibration.psf.path).name == "diffusercam_tutorial_psf_sample.tif"
+    assert resolve_psf_path(rig).name == "diffusercam_tutorial_psf.png"  # shipped in rngcam/data
 
 
 def test_missing_file():
