@@ -64,7 +64,8 @@ def make_scene_bundle(scene: BenchScene, path: Path, size: int, seed: int = 0) -
     m = bundle.meta
     text = (f"{m['n_frames']} frames of {size}x{size} px at {1 / m['dt_s']:,.0f} fps; "
             f"PSF {Path(m['psf_source']).name} (crop {m['psf_crop']:g}, "
-            f"{100 * m['psf_spectral_support']:.1f} % of frequencies above 10 % of DC)")
+            f"{100 * m['psf_spectral_support']:.1f} % of frequencies above 10 % of DC; "
+            f"{100 * m['psf_resolvable_fraction']:.0f} % carry a 10 % contrast pattern above the RS noise)")
     if scene.kind == "clip":
         text += f"; clip {scene.clip.name}, {CLIP_SPAN} source frames from frame {m.get('clip_start')}"
     return text
