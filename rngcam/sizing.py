@@ -117,16 +117,21 @@ def gib(n: float) -> str:
     return f"{n / 2**30:,.1f} GiB"
 
 
-def check_size(plan: GridPlan, method: str, truth: bool = False, max_frames: int | None = None,
-               max_memory_bytes: int | None = None) -> int:
-    """Estimated bytes; ConfigError (one line naming the figure and how to change it) past a limit."""
+def check_frames(plan: GridPlan, max_frames: int | None = None) -> None:
+    """ConfigError (one line) when the grid has more than `max_frames` frames."""
     max_frames = DEFAULT_MAX_FRAMES if max_frames is None else max_frames
-    max_memory_bytes = default_max_memory_bytes() if max_memory_bytes is None else max_memory_bytes
     k = plan.grid.n_frames
     if k > max_frames:
         raise ConfigError(f"the video would have {k:,} frames ({plan.describe()}; RS line time "
                           f"{plan.rs.line_time_s * 1e6:.4g} us), above --max-frames {max_frames:,}: "
                           "check the bundle's timing, or raise --max-frames")
+
+
+def check_size(plan: GridPlan, method: str, truth: bool = False, max_frames: int | None = None,
+               max_memory_bytes: int | None = None) -> int:
+    """Estimated bytes; ConfigError (one line naming the figure and how to change it) past a limit."""
+    check_frames(plan, max_frames)
+    max_memory_bytes = default_max_memory_bytes() if max_memory_bytes is None else max_memory_bytes
     need = method_bytes(plan, method, truth)
     if need > max_memory_bytes:
         raise ConfigError(f"{method} would need about {gib(need)} for {plan.describe()}, above "

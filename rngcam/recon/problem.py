@@ -35,7 +35,7 @@ from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter, Stacked
 from rngcam.physics.sensor import BAYER_FORMATS, frame_to_measurement
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
-from rngcam.sizing import plan_grid
+from rngcam.sizing import check_frames, plan_grid
 
 
 @dataclass
@@ -308,14 +308,16 @@ def _masked_note(name: str, invalid: np.ndarray) -> str | None:
 
 
 def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = None,
-                  use_rs: bool = True, use_gs: bool = True) -> Problem:
+                  use_rs: bool = True, use_gs: bool = True, max_frames: int | None = None) -> Problem:
     """Turn a bundle into a Problem on the reconstruction grid (see module docstring).
 
     Saturated and clipped pixels become rs_valid / gs_valid; a frame beyond use (almost no valid
     pixel, flat, or dark while the others see light) and a GS frame whose exposure misses the
-    RS window are left out, each with its reason in `left_out`. BundleError when nothing is left.
+    RS window are left out, each with its reason in `left_out`. BundleError when nothing is left;
+    ConfigError when the grid would have more than `max_frames` (default: sizing's) frames.
     """
     plan = plan_grid(bundle, grid_bin, dt_s)
+    check_frames(plan, max_frames)  # before allocating anything frame-sized
     grid_bin = plan.rs.rows_per_bin
     grid = plan.grid
     notes: list[str] = []

@@ -183,7 +183,7 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
     need = check_size(plan, settings.method, truth=bundle.truth is not None,
                       max_frames=settings.max_frames, max_memory_bytes=settings.max_memory_bytes)
     device = resolve_device(settings.device)
-    problem = build_problem(bundle, grid_bin=settings.grid_bin)
+    problem = build_problem(bundle, grid_bin=settings.grid_bin, max_frames=settings.max_frames)
     del bundle  # the raw frames are in the problem now
     out = Path(out_dir) if out_dir is not None else default_out_dir(bundle_path, settings.method)
     out.mkdir(parents=True, exist_ok=True)
