@@ -262,3 +262,44 @@ def test_a_bundle_with_nothing_usable_is_refused_in_one_line(clean, tmp_path):
                   edits.edit_frames("gs", lambda x: x * 0 + 4095))
     with pytest.raises(RngcamError, match="no measurement carries anything"):
         reconstruct(gone, tmp_path / "o", ReconSettings(method="tv3d", max_iters=2, progress=False))
+
+
+# ----------------------------------------------------------------------------- capture: hardware safe
+
+
+@pytest.mark.parametrize("failure,said", [(MemoryError, "ran out of memory after firing shot 1/1"),
+                                          (KeyboardInterrupt, "interrupted (Ctrl-C) after firing shot 1/1"),
+                                          (ZeroDivisionError, "failed: ZeroDivisionError: injected after firing")])
+def test_capture_failure_after_arming_leaves_the_hardware_safe_in_one_line(tmp_path, monkeypatch, failure, said):
+    """The mock rig with the fake generator on a pty; a failure injected after "fired"."""
+    from rngcam.acquire.fake_generator import FakeGenerator
+    from rngcam.acquire.mock_camera import MockCamera
+    from rngcam.paths import shared_data
+
+    if not (shared_data() / "psf" / "diffusercam_tutorial_psf_sample.tif").is_file():
+        pytest.skip("the mock rig's PSF is not in the shared data folder (set RNGCAM_DATA)")
+    seen = {"outputs": None, "closed": []}
+    stop, close = FakeGenerator.stop, MockCamera.close
+
+    def spy_stop(self):
+        seen["outputs"] = {n: ch.output for n, ch in self.channels.items()}
+        stop(self)
+
+    def spy_close(self):
+        seen["closed"].append(self.armed)
+        close(self)
+
+    def broken_fetch(self, *args, **kwargs):
+        raise failure("injected") if failure is not KeyboardInterrupt else failure()
+
+    monkeypatch.setattr(FakeGenerator, "stop", spy_stop)
+    monkeypatch.setattr(MockCamera, "close", spy_close)
+    monkeypatch.setattr(MockCamera, "fetch", broken_fetch)
+    out = tmp_path / "shot.h5"
+    res = CliRunner().invoke(main, ["capture", "--rig", str(Path(__file__).parents[1] / "rigs" / "mock.yaml"),
+                                    "-o", str(out)])
+    line = one_error_line(res)
+    assert line.startswith("error: capture ") and said in line
+    assert "hardware safe: cameras disarmed, generator outputs off" in line
+    assert "fired" in res.output and not out.exists() and list(tmp_path.iterdir()) == []
+    assert seen["outputs"] == {1: False, 2: False} and seen["closed"] == [False, False]
