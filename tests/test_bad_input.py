@@ -303,3 +303,45 @@ def test_capture_failure_after_arming_leaves_the_hardware_safe_in_one_line(tmp_p
     assert "hardware safe: cameras disarmed, generator outputs off" in line
     assert "fired" in res.output and not out.exists() and list(tmp_path.iterdir()) == []
     assert seen["outputs"] == {1: False, 2: False} and seen["closed"] == [False, False]
+
+
+# ----------------------------------------------------------------------------- frame statistics
+
+
+def test_frame_statistics_and_which_frames_are_beyond_use():
+    from rngcam import pixels
+
+    rng = np.random.default_rng(0)
+    lit = rng.integers(100, 4000, size=(16, 16, 3))
+    dark_noisy = np.clip(rng.normal(64, 2, size=(16, 16, 3)).round(), 0, None)  # a dark scene: kept
+    s = pixels.frame_stats(lit, 12, 64)
+    assert s.saturated == 0 and s.valid == 1 and pixels.unusable_reason(s, True) is None
+    assert pixels.unusable_reason(pixels.frame_stats(dark_noisy, 12, 64), True) is None
+    at_black = np.full((16, 16, 3), 64)  # every pixel at the black level
+    assert pixels.unusable_reason(pixels.frame_stats(at_black, 12, 64), others_see_light=False) is None
+    assert pixels.unusable_reason(pixels.frame_stats(at_black, 12, 64), others_see_light=True).startswith("dark")
+    assert pixels.unusable_reason(pixels.frame_stats(np.full((16, 16, 3), 1000), 12, 64), True).startswith("flat")
+    half = lit.copy()
+    half[:8] = 4095
+    s = pixels.frame_stats(half, 12, 64)
+    assert s.saturated == pytest.approx(0.5) and pixels.unusable_reason(s, True) is None  # masked, not dropped
+    assert pixels.value_problems("RS", [pixels.frame_stats(lit * 16, 12, 64)], 12)[0].startswith(
+        "RS pixel values reach")
+    bad = pixels.invalid_pixels(np.array([0, 64, 4094, 4095]), 12, 64)
+    assert bad.tolist() == [True, False, False, True]
+
+
+@pytest.mark.parametrize("name,methods", [("GS frame 2 saturated", ("tv3d-haar", "interp")),
+                                          ("RS all 0 DN (below black)", ("tv3d-haar", "blend")),
+                                          ("RS line time 0.1 ns", ("tv3d-haar", "blend")),
+                                          ("GS frame before the RS window", ("tv3d-haar", "blend")),
+                                          ("every GS frame saturated (GS-only)", ("blend",)),
+                                          ("GS frame 2 bottom quarter 0 DN", ("tv3d-haar",))])
+def test_bench_stress_bad_input_cases_pass(tmp_path, name, methods):
+    from rngcam.bench.stress import StressSettings, run_case
+    from rngcam.bench.stress_cases import stress_cases
+
+    [case] = [c for c in stress_cases() if c.name == name]
+    rows = run_case(case, list(methods), StressSettings(tv3d_iters=6, time_cap_s=10.0), tmp_path, None)
+    assert len(rows) == 1 + len(methods)
+    assert all(r["outcome"] != "FAILED" for r in rows), rows
