@@ -345,6 +345,8 @@ def check_bundle(bundle: Bundle, skip: frozenset[str] = frozenset()) -> list[str
         problems += _check_truth(bundle.truth)
     if not isinstance(bundle.meta, dict):
         problems.append(f"meta must be a dict, got {type(bundle.meta).__name__}")
+    elif isinstance(bundle.meta.get("warnings"), list):  # what the capture warned about
+        problems += [f"{WARNING_PREFIX}capture: {w}" for w in bundle.meta["warnings"]]
     if not isinstance(bundle.rig_yaml, str):
         problems.append(f"rig_yaml must be a string, got {type(bundle.rig_yaml).__name__}")
     return problems

@@ -345,3 +345,17 @@ def test_bench_stress_bad_input_cases_pass(tmp_path, name, methods):
     rows = run_case(case, list(methods), StressSettings(tv3d_iters=6, time_cap_s=10.0), tmp_path, None)
     assert len(rows) == 1 + len(methods)
     assert all(r["outcome"] != "FAILED" for r in rows), rows
+
+
+def test_what_the_capture_warned_about_travels_to_inspect_recon_and_metrics(clean, tmp_path):
+    def warn(path):
+        with h5py.File(path, "r+") as f:
+            meta = json.loads(f.attrs["meta"])
+            meta["warnings"] = ["RS camera line time is 200 us but the rig says 208 us"]
+            f.attrs["meta"] = np.bytes_(json.dumps(meta).encode())
+
+    path = edited(clean, tmp_path, "warned", warn)
+    expected = "warning: capture: RS camera line time is 200 us but the rig says 208 us"
+    assert expected in cli("inspect", str(path)).output
+    metrics, text = recon(path, tmp_path / "r", "blend")
+    assert text.splitlines()[0] == expected and metrics["warnings"] == [expected]
