@@ -11,7 +11,7 @@ from rngcam.errors import ConfigError, RngcamError
 from rngcam.sizing import (DEFAULT_MAX_FRAMES, BYTES_PER_ELEMENT, check_size, default_max_memory_bytes,
                            method_bytes, plan_grid)
 
-SIZED_METHODS = ("tv3d", "stfm", "interp")
+SIZED_METHODS = ("stfm", "tv3d", "interp")  # the default method first
 
 
 def recon_size(bundle_path: str) -> tuple[dict, list[str]]:
@@ -22,19 +22,19 @@ def recon_size(bundle_path: str) -> tuple[dict, list[str]]:
             plan = plan_grid(bundle)
         except RngcamError as exc:
             return {}, [f"{WARNING_PREFIX}recon cannot use this bundle as it is: {exc}"]
-        truth = bundle.truth is not None
     limit = default_max_memory_bytes()
     info = {"bin": plan.rs.rows_per_bin, "frames": plan.grid.n_frames, "height": plan.height,
             "width": plan.width, "channels": plan.channels, "fps": 1 / plan.grid.dt_s,
-            "memory_bytes": {m: method_bytes(plan, m, truth) for m in SIZED_METHODS if m in BYTES_PER_ELEMENT},
+            "memory_bytes": {m: method_bytes(plan, m) for m in SIZED_METHODS if m in BYTES_PER_ELEMENT},
             "max_memory_bytes": limit, "max_frames": DEFAULT_MAX_FRAMES,
             "gs_left_out": [{"frame": i + 1, "reason": why} for i, why in plan.gs_left_out]}
-    warnings = []
-    try:
-        check_size(plan, "tv3d", truth)
-    except ConfigError as exc:
-        warnings.append(f"{WARNING_PREFIX}recon would refuse this bundle at bin {info['bin']}: {exc}")
-    return info, warnings
+    for method in SIZED_METHODS:  # the first refusal names the figure and how to change it
+        try:
+            check_size(plan, method)
+        except ConfigError as exc:
+            return info, [f"{WARNING_PREFIX}recon --method {method} would refuse this bundle at bin "
+                          f"{info['bin']}: {exc}"]
+    return info, []
 
 
 @click.command("inspect")

@@ -22,10 +22,13 @@ from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, Vid
 
 DEFAULT_MAX_FRAMES = 100_000
 MEMORY_FRACTION = 0.8  # of the machine's memory: the default --max-memory
-# Bytes per video element (C x K x H x W) at the peak of a whole `rngcam recon` run: the
-# method's own copies (float32), the truth and the metrics' float64 copies when there is truth.
-BYTES_PER_ELEMENT = {"tv3d": 56, "stfm": 48, "pnp": 48, "blend": 24, "interp": 32, "rife": 40}
-TRUTH_BYTES_PER_ELEMENT = 24
+# Peak memory of a whole `rngcam recon` run per video element (C x K x H x W), measured with
+# /usr/bin/time on a 32x32x3 simulated bundle stretched to 6,531 frames (truth and metrics
+# included; 257 MB of interpreter and libraries subtracted), plus about 10 %: tv3d 137, blend and
+# interp 140, STFM fast (ensemble) 453 bytes. RIFE and pnp were not measured: RIFE as interp plus
+# its model's activations, pnp as STFM.
+BYTES_PER_ELEMENT = {"tv3d": 150, "stfm": 500, "pnp": 500, "blend": 155, "interp": 155, "rife": 170}
+BASE_BYTES = 300 * 2**20  # the interpreter, torch and OpenCV
 
 
 @dataclass(frozen=True)
@@ -102,10 +105,10 @@ def plan_grid(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = 
                     height=rows, width=cols, gs_kept=kept, gs_left_out=left_out)
 
 
-def method_bytes(plan: GridPlan, method: str, truth: bool = False) -> int:
-    """Estimated peak memory of reconstructing the plan's video with `method`."""
+def method_bytes(plan: GridPlan, method: str) -> int:
+    """Estimated peak memory of reconstructing the plan's video with `method` (see BYTES_PER_ELEMENT)."""
     per = BYTES_PER_ELEMENT.get(method, max(BYTES_PER_ELEMENT.values()))
-    return plan.elements * (per + (TRUTH_BYTES_PER_ELEMENT if truth else 0))
+    return BASE_BYTES + plan.elements * per
 
 
 def default_max_memory_bytes() -> int:
@@ -127,12 +130,12 @@ def check_frames(plan: GridPlan, max_frames: int | None = None) -> None:
                           "check the bundle's timing, or raise --max-frames")
 
 
-def check_size(plan: GridPlan, method: str, truth: bool = False, max_frames: int | None = None,
+def check_size(plan: GridPlan, method: str, max_frames: int | None = None,
                max_memory_bytes: int | None = None) -> int:
     """Estimated bytes; ConfigError (one line naming the figure and how to change it) past a limit."""
     check_frames(plan, max_frames)
     max_memory_bytes = default_max_memory_bytes() if max_memory_bytes is None else max_memory_bytes
-    need = method_bytes(plan, method, truth)
+    need = method_bytes(plan, method)
     if need > max_memory_bytes:
         raise ConfigError(f"{method} would need about {gib(need)} for {plan.describe()}, above "
                           f"--max-memory {gib(max_memory_bytes)}: use a coarser --bin, or raise "

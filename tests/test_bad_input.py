@@ -119,7 +119,7 @@ def test_an_absurd_line_time_stops_before_allocating_with_one_line(clean, tmp_pa
     fast = edited(clean, tmp_path, "1ns", edits.set_attr("rs", "line_time_s", 1e-9))
     res = cli("inspect", str(fast))
     assert res.exit_code == 0, res.output
-    assert "recon would refuse this bundle" in res.output and "--max-frames" in res.output
+    assert "recon --method stfm would refuse this bundle" in res.output and "--max-frames" in res.output
     out = tmp_path / "out"
     for method in ("tv3d", "interp"):
         line = one_error_line(cli("recon", str(fast), "--method", method, "-o", str(out)))

@@ -144,7 +144,7 @@ def _run_gs_only(problem: Problem, method: str, opts: dict) -> tuple[np.ndarray,
 def _residuals(problem: Problem, video: torch.Tensor) -> dict[str, float]:
     out = {}
     if problem.b_rs is not None:
-        out["rs"] = relative_residual(problem.rs_op().A(video), problem.b_rs)
+        out["rs"] = relative_residual(problem.rs_op().A(video, frame_chunk=16), problem.b_rs)
     if problem.b_gs is not None and problem.b_gs.shape[1]:
         out["gs"] = relative_residual(problem.gs_op().A(video), problem.b_gs)
     return out
@@ -180,8 +180,8 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
     for warning in warnings:
         echo(warning)
     plan = plan_grid(bundle, settings.grid_bin)
-    need = check_size(plan, settings.method, truth=bundle.truth is not None,
-                      max_frames=settings.max_frames, max_memory_bytes=settings.max_memory_bytes)
+    need = check_size(plan, settings.method, max_frames=settings.max_frames,
+                      max_memory_bytes=settings.max_memory_bytes)
     device = resolve_device(settings.device)
     problem = build_problem(bundle, grid_bin=settings.grid_bin, max_frames=settings.max_frames)
     del bundle  # the raw frames are in the problem now
