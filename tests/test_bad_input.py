@@ -359,3 +359,20 @@ def test_what_the_capture_warned_about_travels_to_inspect_recon_and_metrics(clea
     assert expected in cli("inspect", str(path)).output
     metrics, text = recon(path, tmp_path / "r", "blend")
     assert text.splitlines()[0] == expected and metrics["warnings"] == [expected]
+
+
+def test_a_lab_sized_mock_scene_is_refused_before_arming(tmp_path):
+    from rngcam.config import parse_rig
+    from rngcam.paths import shared_data
+
+    if not (shared_data() / "psf" / "diffusercam_tutorial_psf_sample.tif").is_file():
+        pytest.skip("the mock rig's PSF is not in the shared data folder (set RNGCAM_DATA)")
+    rig_path = Path(__file__).parents[1] / "rigs" / "mock.yaml"
+    text = rig_path.read_text().replace("roi: {width: 64, height: 64}", "roi: {width: 4096, height: 4096}")
+    text = text.replace("line_time_s: 208.0e-6", "line_time_s: 4.0e-6")
+    (tmp_path / "big.yaml").write_text(text)
+    (tmp_path / "out").mkdir()
+    res = cli("capture", "--rig", str(tmp_path / "big.yaml"), "-o", str(tmp_path / "out" / "x.h5"))
+    line = one_error_line(res)
+    assert "the mock scene would need about" in line and "smaller cameras.rs.roi" in line
+    assert "armed" not in res.output and list((tmp_path / "out").iterdir()) == []

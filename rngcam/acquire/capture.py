@@ -205,8 +205,15 @@ def _make_camera(cfg: CameraConfig, role: str, world) -> Camera:
 def _mock_world(rig: Rig, psf: np.ndarray, gs_timing: GlobalShutterTiming, grid: VideoGrid):
     from rngcam.acquire.mock_camera import MockDevice, MockWorld
     from rngcam.physics.sensor import SensorModel
+    from rngcam.sizing import default_max_memory_bytes
 
     c = rig.config
+    size = c.cameras.rs.roi.height
+    need = 3 * grid.n_frames * size * size * 4 * 3  # the float32 truth video, the frames rendered from it
+    if need > default_max_memory_bytes():
+        raise ConfigError(f"{rig.path}: the mock scene would need about {need / 2**30:,.1f} GiB "
+                          f"({grid.n_frames} frames of {size}x{size}x3), more than this machine can "
+                          "spare: use a smaller cameras.rs.roi for the mock rig")
     world = MockWorld(c.mock.scene, c.cameras.rs.roi.height, grid, psf, seed=c.mock.seed,
                       key_times_s=list(gs_timing.centres_s()), options=c.mock.options)
     for role in ("rs", "gs"):
