@@ -352,53 +352,6 @@ def check_bundle(bundle: Bundle, skip: frozenset[str] = frozenset()) -> list[str
     return problems
 
 
-def _readable_frames(rec: CameraRecord | None) -> bool:
-    if rec is None or not hasattr(rec.frames, "dtype"):
-        return False
-    shape = tuple(np.shape(rec.frames))
-    return (len(shape) in (3, 4) and shape[0] >= 1 and np.dtype(rec.frames.dtype).kind in "uif"
-            and isinstance(rec.bit_depth, (int, np.integer)) and 1 <= rec.bit_depth <= 32
-            and _finite(rec.black_level_dn))
-
-
-def pixel_stats(bundle: Bundle) -> dict[str, list[pixels.FrameStats]]:
-    """Per camera ("rs", "gs"), each frame's value statistics (frames are read one at a time)."""
-    return {name: pixels.camera_stats(rec.frames, int(rec.bit_depth), float(rec.black_level_dn))
-            for name in ("rs", "gs") if _readable_frames(rec := getattr(bundle, name))}
-
-
-def unusable_frames(stats: dict[str, list[pixels.FrameStats]]) -> dict[tuple[str, int], str]:
-    """(camera, frame index) -> why that frame carries nothing the reconstruction can use."""
-    every = [(name, i, st) for name, frames in stats.items() for i, st in enumerate(frames)]
-    out = {}
-    for name, i, st in every:
-        lit = any(not o.all_dark for n2, j, o in every if (n2, j) != (name, i))
-        why = pixels.unusable_reason(st, lit)
-        if why is not None:
-            out[(name, i)] = why
-    return out
-
-
-def frame_label(name: str, index: int, count: int) -> str:
-    """'the RS image' or 'GS frame 2' (1-based)."""
-    if name == "rs":
-        return "the RS image" if count == 1 else f"RS frame {index + 1}"
-    return f"GS frame {index + 1}"
-
-
-def pixel_problems(bundle: Bundle, stats: dict[str, list[pixels.FrameStats]]) -> list[str]:
-    """Values above full scale (errors) and frames beyond use (warnings: they are left out)."""
-    problems: list[str] = []
-    for name, frames in stats.items():
-        rec = getattr(bundle, name)
-        problems += pixels.value_problems(name.upper(), frames, int(rec.bit_depth))
-    if not problems:  # above full scale, the fractions below mean nothing
-        for (name, i), why in unusable_frames(stats).items():
-            problems.append(f"{WARNING_PREFIX}{frame_label(name, i, len(stats[name]))} is left out of "
-                            f"the reconstruction ({why})")
-    return problems
-
-
 # ----------------------------------------------------------------------------- writing
 
 
@@ -784,8 +737,8 @@ class _Reader:
                         truth=self.truth(), rig_yaml=rig_yaml, meta=meta, created_utc=created,
                         rngcam_version=writer)
         self.problems += check_bundle(bundle, skip=frozenset(("rs", "gs")))
-        self.stats = pixel_stats(bundle)
-        self.problems += pixel_problems(bundle, self.stats)
+        self.stats = pixels.pixel_stats(bundle)
+        self.problems += pixels.pixel_problems(bundle, self.stats, WARNING_PREFIX)
         return bundle
 
 

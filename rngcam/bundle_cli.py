@@ -8,8 +8,14 @@ import click
 
 from rngcam.bundle import WARNING_PREFIX, inspect_bundle, open_bundle, render_summary
 from rngcam.errors import ConfigError, RngcamError
-from rngcam.sizing import (DEFAULT_MAX_FRAMES, BYTES_PER_ELEMENT, check_size, default_max_memory_bytes,
-                           method_bytes, plan_grid)
+from rngcam.sizing import (
+    BYTES_PER_ELEMENT,
+    DEFAULT_MAX_FRAMES,
+    check_size,
+    default_max_memory_bytes,
+    method_bytes,
+    plan_grid,
+)
 
 SIZED_METHODS = ("stfm", "tv3d", "interp")  # the default method first
 

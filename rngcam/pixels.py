@@ -120,3 +120,54 @@ def camera_lines(label: str, stats: list[FrameStats]) -> list[str]:
         out.append(f"{name}: {100 * s.saturated:.2f} % saturated, {100 * s.dark:.2f} % at or below "
                    f"black, max {s.max_dn:,.0f} DN")
     return out
+
+
+# --- a whole capture (a rngcam.bundle.Bundle: .rs and .gs camera records)
+
+
+def _readable_frames(rec) -> bool:
+    if rec is None or not hasattr(rec.frames, "dtype"):
+        return False
+    shape = tuple(np.shape(rec.frames))
+    return (len(shape) in (3, 4) and shape[0] >= 1 and np.dtype(rec.frames.dtype).kind in "uif"
+            and isinstance(rec.bit_depth, (int, np.integer)) and 1 <= rec.bit_depth <= 32
+            and np.ndim(rec.black_level_dn) == 0 and bool(np.isfinite(rec.black_level_dn)))
+
+
+def pixel_stats(bundle) -> dict[str, list[FrameStats]]:
+    """Per camera ("rs", "gs"), each frame's value statistics (frames are read one at a time)."""
+    return {name: camera_stats(rec.frames, int(rec.bit_depth), float(rec.black_level_dn))
+            for name in ("rs", "gs") if _readable_frames(rec := getattr(bundle, name))}
+
+
+def unusable_frames(stats: dict[str, list[FrameStats]]) -> dict[tuple[str, int], str]:
+    """(camera, frame index) -> why that frame carries nothing the reconstruction can use."""
+    every = [(name, i, st) for name, frames in stats.items() for i, st in enumerate(frames)]
+    out = {}
+    for name, i, st in every:
+        lit = any(not o.all_dark for n2, j, o in every if (n2, j) != (name, i))
+        why = unusable_reason(st, lit)
+        if why is not None:
+            out[(name, i)] = why
+    return out
+
+
+def frame_label(name: str, index: int, count: int) -> str:
+    """'the RS image' or 'GS frame 2' (1-based)."""
+    if name == "rs":
+        return "the RS image" if count == 1 else f"RS frame {index + 1}"
+    return f"GS frame {index + 1}"
+
+
+def pixel_problems(bundle, stats: dict[str, list[FrameStats]],
+                   warning_prefix: str = "warning: ") -> list[str]:
+    """Values above full scale (errors) and frames beyond use (warnings: they are left out)."""
+    problems: list[str] = []
+    for name, frames in stats.items():
+        rec = getattr(bundle, name)
+        problems += value_problems(name.upper(), frames, int(rec.bit_depth))
+    if not problems:  # above full scale, the fractions below mean nothing
+        for (name, i), why in unusable_frames(stats).items():
+            problems.append(f"{warning_prefix}{frame_label(name, i, len(stats[name]))} is left out of "
+                            f"the reconstruction ({why})")
+    return problems

@@ -362,7 +362,6 @@ def test_what_the_capture_warned_about_travels_to_inspect_recon_and_metrics(clea
 
 
 def test_a_lab_sized_mock_scene_is_refused_before_arming(tmp_path):
-    from rngcam.config import parse_rig
     from rngcam.paths import shared_data
 
     if not (shared_data() / "psf" / "diffusercam_tutorial_psf_sample.tif").is_file():

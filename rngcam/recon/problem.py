@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from rngcam import pixels
-from rngcam.bundle import Bundle, CameraRecord, pixel_stats, unusable_frames
+from rngcam.bundle import Bundle, CameraRecord
 from rngcam.errors import BundleError, ConfigError
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter, Stacked
@@ -324,8 +324,8 @@ def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | Non
     left_out: list[tuple[str, str]] = []
     cam = bundle.rs
     mosaic = 2 if cam.pixel_format in BAYER_FORMATS else 1
-    stats = pixel_stats(bundle)
-    unusable = unusable_frames(stats) if stats else {}
+    stats = pixels.pixel_stats(bundle)
+    unusable = pixels.unusable_frames(stats) if stats else {}
     if any(pixels.value_problems(n.upper(), st, int(getattr(bundle, n).bit_depth)) for n, st in stats.items()):
         raise BundleError("pixel values above the declared bit depth's full scale (see `rngcam inspect`)")
 

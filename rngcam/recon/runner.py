@@ -24,8 +24,7 @@ from rngcam.errors import ConfigError, RngcamError
 from rngcam.memory import peak_rss_bytes
 from rngcam.recon import outputs
 from rngcam.recon.loop import LoopSettings, RunResult, run
-from rngcam.recon.metrics import (error_visibility, error_visibility_caveats, relative_residual,
-                                  video_metrics)
+from rngcam.recon.metrics import error_visibility, error_visibility_caveats, relative_residual, video_metrics
 from rngcam.recon.problem import Problem, build_problem
 from rngcam.sizing import check_size, gib, plan_grid
 
