@@ -125,7 +125,7 @@ def check_frames(plan: GridPlan, max_frames: int | None = None) -> None:
     max_frames = DEFAULT_MAX_FRAMES if max_frames is None else max_frames
     k = plan.grid.n_frames
     if k > max_frames:
-        raise ConfigError(f"the video would have {k:,} frames ({plan.describe()}; RS line time "
+        raise ConfigError(f"the video would have {plan.describe()} (RS line time "
                           f"{plan.rs.line_time_s * 1e6:.4g} us), above --max-frames {max_frames:,}: "
                           "check the bundle's timing, or raise --max-frames")
 
