@@ -37,7 +37,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from rngcam import __version__
+from rngcam import __version__, pixels
 from rngcam.errors import BundleError
 
 SCHEMA_VERSION = 1
@@ -186,9 +186,9 @@ def _check_camera(name: str, rec: CameraRecord) -> list[str]:
         problems.append(f"{label} trigger_times_s has shape {trig.shape}, expected ({n},) for {n} frames")
     if not np.all(np.isfinite(trig)):
         problems.append(f"{label} trigger_times_s has non-finite values")
-    elif np.any(trig < 0):
-        problems.append(f"{label} trigger_times_s has negative times (min {trig.min():.6g} s); "
-                        "T0 is the RS trigger")
+    elif name == "rs" and trig.size and trig[0] != 0:
+        problems.append(f"RS trigger_times_s is {trig[0]:.6g} s; times are relative to T0, the RS "
+                        "trigger, so it must be 0 (subtract it from every trigger time)")
     for opt in ("timestamps_s", "frame_ids"):
         arr = getattr(rec, opt)
         if arr is not None and np.shape(arr) != (n,):
@@ -203,22 +203,29 @@ def _check_camera(name: str, rec: CameraRecord) -> list[str]:
 
 
 def _check_gs_window(rs: CameraRecord, gs: CameraRecord) -> list[str]:
-    """Warn about GS triggers outside [RS trigger, RS trigger + (rows-1)*line_time + exposure]."""
+    """Warn about GS exposures not inside the RS exposure window [0, (rows-1)*line_time + exposure].
+
+    A GS exposure before the window and one after it get the same treatment: a warning here,
+    and the reconstruction leaves out a frame that does not overlap the window at all.
+    """
     rs_trig = np.asarray(rs.trigger_times_s, dtype=np.float64)
     gs_trig = np.asarray(gs.trigger_times_s, dtype=np.float64)
     rs_shape = np.shape(rs.frames)
     if (rs_trig.size < 1 or len(rs_shape) < 3 or not _finite(rs.line_time_s)
-            or not _finite(rs.exposure_s) or not np.all(np.isfinite(rs_trig))
+            or not _finite(rs.exposure_s) or not _finite(gs.exposure_s) or not np.all(np.isfinite(rs_trig))
             or gs_trig.ndim != 1 or not np.all(np.isfinite(gs_trig))):
         return []
     start = float(rs_trig[0])
     end = start + (rs_shape[1] - 1) * float(rs.line_time_s) + float(rs.exposure_s)
-    outside = gs_trig[(gs_trig < start) | (gs_trig > end)]
+    gs_end = gs_trig + float(gs.exposure_s)
+    tol = 1e-9 * max(abs(end), 1e-12)
+    outside = np.flatnonzero((gs_trig < start - tol) | (gs_end > end + tol))
     if outside.size == 0:
         return []
-    times = ", ".join(f"{t * 1e3:.3f}" for t in outside[:5])
-    message = (f"{WARNING_PREFIX}{outside.size} GS trigger time(s) outside the RS exposure window "
-               f"[{start * 1e3:.3f}, {end * 1e3:.3f}] ms: {times} ms")
+    frames = ", ".join(f"{i + 1} [{gs_trig[i] * 1e3:.3f}, {gs_end[i] * 1e3:.3f}]" for i in outside[:5])
+    message = (f"{WARNING_PREFIX}{outside.size} GS exposure(s) outside the RS exposure window "
+               f"[{start * 1e3:.3f}, {end * 1e3:.3f}] ms after T0 (frame, ms): {frames}; "
+               "a frame that misses the window entirely is left out of the reconstruction")
     return [message]
 
 
@@ -338,6 +345,8 @@ def check_bundle(bundle: Bundle, skip: frozenset[str] = frozenset()) -> list[str
         problems += _check_truth(bundle.truth)
     if not isinstance(bundle.meta, dict):
         problems.append(f"meta must be a dict, got {type(bundle.meta).__name__}")
+    elif isinstance(bundle.meta.get("warnings"), list):  # what the capture warned about
+        problems += [f"{WARNING_PREFIX}capture: {w}" for w in bundle.meta["warnings"]]
     if not isinstance(bundle.rig_yaml, str):
         problems.append(f"rig_yaml must be a string, got {type(bundle.rig_yaml).__name__}")
     return problems
@@ -591,6 +600,7 @@ class _Reader:
         self.f = f
         self.lazy = lazy
         self.problems: list[str] = []
+        self.stats: dict[str, list[pixels.FrameStats]] = {}
 
     def attr(self, g: h5py.Group, name: str, kind: type, default: Any, required: bool = True):
         where = f"'{g.name}'" if g.name != "/" else "root"
@@ -727,11 +737,14 @@ class _Reader:
                         truth=self.truth(), rig_yaml=rig_yaml, meta=meta, created_utc=created,
                         rngcam_version=writer)
         self.problems += check_bundle(bundle, skip=frozenset(("rs", "gs")))
+        self.stats = pixels.pixel_stats(bundle)
+        self.problems += pixels.pixel_problems(bundle, self.stats, WARNING_PREFIX)
         return bundle
 
 
-def _read(f: h5py.File, path: Path, lazy: bool) -> tuple[Bundle, list[str]]:
-    """Bundle and its problems; BundleError when the file cannot be read as a bundle at all."""
+def _read(f: h5py.File, path: Path, lazy: bool) -> tuple[Bundle, list[str], dict]:
+    """Bundle, its problems and its pixel statistics; BundleError when the file cannot be read
+    as a bundle at all."""
     reader = _Reader(f, lazy)
     try:
         bundle = reader.read()
@@ -743,7 +756,7 @@ def _read(f: h5py.File, path: Path, lazy: bool) -> tuple[Bundle, list[str]]:
     except (ValueError, TypeError) as exc:  # content of a shape/type nobody expects
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise BundleError(f"{path} has unreadable content ({reason})") from None
-    return bundle, reader.problems
+    return bundle, reader.problems, reader.stats
 
 
 def _raise_on_errors(path: Path, problems: list[str]) -> None:
@@ -762,7 +775,7 @@ def open_bundle(path: str | os.PathLike) -> Iterator[Bundle]:
     """
     path = Path(path)
     with _open_h5(path) as f:
-        bundle, problems = _read(f, path, lazy=True)
+        bundle, problems, _ = _read(f, path, lazy=True)
         _raise_on_errors(path, problems)
         yield bundle
 
@@ -774,9 +787,18 @@ def read_bundle(path: str | os.PathLike) -> Bundle:
     """
     path = Path(path)
     with _open_h5(path) as f:
-        bundle, problems = _read(f, path, lazy=False)
+        bundle, problems, _ = _read(f, path, lazy=False)
     _raise_on_errors(path, problems)
     return bundle
+
+
+def read_bundle_with_warnings(path: str | os.PathLike) -> tuple[Bundle, list[str]]:
+    """`read_bundle`, plus the warnings `validate_bundle` (and `rngcam inspect`) gives for it."""
+    path = Path(path)
+    with _open_h5(path) as f:
+        bundle, problems, _ = _read(f, path, lazy=False)
+    _raise_on_errors(path, problems)
+    return bundle, [p for p in problems if is_warning(p)]
 
 
 def validate_bundle(path: str | os.PathLike) -> list[str]:
@@ -787,7 +809,7 @@ def validate_bundle(path: str | os.PathLike) -> list[str]:
     path = Path(path)
     try:
         with _open_h5(path) as f:
-            _, problems = _read(f, path, lazy=True)
+            _, problems, _ = _read(f, path, lazy=True)
     except BundleError as exc:
         return [str(exc)]
     except OSError as exc:
@@ -833,8 +855,10 @@ def _camera_summary(rec: CameraRecord) -> dict:
 
 
 def summary_dict(bundle: Bundle, path: str | os.PathLike | None = None,
-                 problems: list[str] | None = None) -> dict:
-    """The facts `summarise` prints, as a JSON-able dict (times in ms/us for reading)."""
+                 problems: list[str] | None = None,
+                 stats: dict[str, list[pixels.FrameStats]] | None = None) -> dict:
+    """The facts `summarise` prints, as a JSON-able dict (times in ms/us for reading); with
+    `stats` (pixel_stats), each frame's saturated and dark fractions under 'pixels'."""
     from rngcam.physics.psf import spectral_support  # lazy: pulls in OpenCV
 
     out: dict[str, Any] = {}
@@ -873,6 +897,9 @@ def summary_dict(bundle: Bundle, path: str | os.PathLike | None = None,
     else:
         out["truth"] = None
     out["meta"] = bundle.meta
+    if stats is not None:
+        out["pixels"] = {name: [{"saturated_fraction": st.saturated, "dark_fraction": st.dark,
+                                 "max_dn": st.max_dn} for st in frames] for name, frames in stats.items()}
     out["problems"] = list(problems) if problems is not None else check_bundle(bundle)
     return out
 
@@ -940,6 +967,16 @@ def render_summary(s: dict) -> str:
         row("truth", "none")
     if s["meta"]:
         row("meta", ", ".join(f"{k}={v}" for k, v in s["meta"].items()))
+    for name, frames in s.get("pixels", {}).items():
+        for i, st in enumerate(frames):
+            label = name.upper() if len(frames) == 1 else f"{name.upper()} frame {i + 1}"
+            row("pixels" if i == 0 else "", f"{label}: {100 * st['saturated_fraction']:.2f} % saturated, "
+                f"{100 * st['dark_fraction']:.2f} % at or below black, max {st['max_dn']:,.0f} DN")
+    if "recon" in s:
+        r = s["recon"]
+        need = ", ".join(f"{m} ~{b / 2**30:,.2f} GiB" for m, b in r["memory_bytes"].items())
+        row("recon", f"bin {r['bin']}: {r['frames']:,} frames of {r['height']}x{r['width']}x{r['channels']} "
+            f"at {r['fps']:,.0f} fps; {need} (limit {r['max_memory_bytes'] / 2**30:,.1f} GiB)")
     for p in s["problems"]:
         row("problem", p)
     if "sha256" in s:
@@ -960,9 +997,9 @@ def inspect_bundle(path: str | os.PathLike, checksum: bool = False) -> dict:
     """
     path = Path(path)
     with _open_h5(path) as f:
-        bundle, problems = _read(f, path, lazy=True)
+        bundle, problems, stats = _read(f, path, lazy=True)
         _raise_on_errors(path, problems)
-        summary = summary_dict(bundle, path, problems)
+        summary = summary_dict(bundle, path, problems, stats)
     if checksum:
         summary["sha256"] = bundle_checksum(path)
     return summary

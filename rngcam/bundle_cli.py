@@ -6,7 +6,41 @@ import json
 
 import click
 
-from rngcam.bundle import inspect_bundle, render_summary
+from rngcam.bundle import WARNING_PREFIX, inspect_bundle, open_bundle, render_summary
+from rngcam.errors import ConfigError, RngcamError
+from rngcam.sizing import (
+    BYTES_PER_ELEMENT,
+    DEFAULT_MAX_FRAMES,
+    check_size,
+    default_max_memory_bytes,
+    method_bytes,
+    plan_grid,
+)
+
+SIZED_METHODS = ("stfm", "tv3d", "interp")  # the default method first
+
+
+def recon_size(bundle_path: str) -> tuple[dict, list[str]]:
+    """The video a `recon` at the bundle's bin would make, from the timing alone, and a warning
+    when it is past the default limits (recon would refuse it)."""
+    with open_bundle(bundle_path) as bundle:
+        try:
+            plan = plan_grid(bundle)
+        except RngcamError as exc:
+            return {}, [f"{WARNING_PREFIX}recon cannot use this bundle as it is: {exc}"]
+    limit = default_max_memory_bytes()
+    info = {"bin": plan.rs.rows_per_bin, "frames": plan.grid.n_frames, "height": plan.height,
+            "width": plan.width, "channels": plan.channels, "fps": 1 / plan.grid.dt_s,
+            "memory_bytes": {m: method_bytes(plan, m) for m in SIZED_METHODS if m in BYTES_PER_ELEMENT},
+            "max_memory_bytes": limit, "max_frames": DEFAULT_MAX_FRAMES,
+            "gs_left_out": [{"frame": i + 1, "reason": why} for i, why in plan.gs_left_out]}
+    for method in SIZED_METHODS:  # the first refusal names the figure and how to change it
+        try:
+            check_size(plan, method)
+        except ConfigError as exc:
+            return info, [f"{WARNING_PREFIX}recon --method {method} would refuse this bundle at bin "
+                          f"{info['bin']}: {exc}"]
+    return info, []
 
 
 @click.command("inspect")
@@ -20,6 +54,10 @@ def inspect_cmd(bundle_path: str, as_json: bool, checksum: bool) -> None:
     """
     # A missing/bad file raises BundleError; the cli group prints it as one line.
     summary = inspect_bundle(bundle_path, checksum=checksum)
+    recon, warnings = recon_size(bundle_path)
+    if recon:
+        summary["recon"] = recon
+    summary["problems"] += warnings
     click.echo(json.dumps(summary, indent=2) if as_json else render_summary(summary))
     if not as_json:
         from rngcam.calibrate.psf import bundle_psf_figure  # the PSF against this RS image's noise floor

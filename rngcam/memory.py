@@ -8,6 +8,7 @@ process reports at least the parent's size.
 
 from __future__ import annotations
 
+import os
 import resource
 from pathlib import Path
 
@@ -31,3 +32,17 @@ def peak_rss_bytes() -> int:
 def current_rss_bytes() -> int:
     """This process's resident set size now (VmRSS; 0 where /proc is missing)."""
     return (_status_kib("VmRSS") or 0) * 1024
+
+
+def total_memory_bytes() -> int:
+    """This machine's physical memory (MemTotal; sysconf where /proc is missing; 8 GiB if neither)."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 8 * 2**30

@@ -7,6 +7,14 @@ from pathlib import Path
 import click
 
 from rngcam.recon.runner import METHODS, ReconSettings, default_out_dir, reconstruct
+from rngcam.sizing import DEFAULT_MAX_FRAMES
+
+
+def _positive(ctx, param, value):
+    """Refuse 0, negative, NaN or infinite figures where they are parsed (one usage line)."""
+    if value is not None and not (value > 0 and value != float("inf")):
+        raise click.BadParameter(f"must be a positive number, got {value}")
+    return value
 
 
 def _method_options(method: str, given: dict) -> dict:
@@ -30,13 +38,17 @@ def _method_options(method: str, given: dict) -> dict:
 @click.option("--method", type=click.Choice(METHODS), default="stfm", show_default=True)
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder [default: <bundle>-recon-<method>/ beside the bundle].")
-@click.option("--time-budget", type=float, default=None,
+@click.option("--time-budget", type=float, default=None, callback=_positive,
               help="Wall-clock seconds [stfm: 600 (the fast preset stops itself once the data are fitted); "
                    "otherwise 60].")
-@click.option("--iters", type=int, default=None, help="Stop after this many iterations.")
+@click.option("--iters", type=click.IntRange(min=1), default=None, help="Stop after this many iterations.")
+@click.option("--max-frames", type=click.IntRange(min=1), default=None,
+              help=f"Refuse a video of more frames, before allocating it [{DEFAULT_MAX_FRAMES:,}].")
+@click.option("--max-memory", type=float, default=None, callback=_positive,
+              help="Refuse a reconstruction estimated to need more memory, in GiB [80 % of this machine's].")
 @click.option("--resume", is_flag=True, help="Continue from the checkpoint in the output folder.")
 @click.option("--device", default="auto", show_default=True, help="auto, cpu or cuda[:N].")
-@click.option("--bin", "grid_bin", type=int, default=None, help="Sensor pixels per grid pixel.")
+@click.option("--bin", "grid_bin", type=click.IntRange(min=1), default=None, help="Sensor pixels per grid pixel.")
 @click.option("--preset", type=click.Choice(["fast", "paper"]), default=None, help="STFM preset [fast].")
 @click.option("--beta", type=float, default=None, help="Temporal weight of the TV term.")
 @click.option("--tau", type=float, default=None, help="TV weight.")
@@ -60,7 +72,8 @@ def _method_options(method: str, given: dict) -> dict:
 @click.option("--holdout", type=float, default=None,
               help="Hold this fraction of RS row bins out of the fit and report the residual on them.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def recon_cmd(bundle, method, out_dir, time_budget, iters, resume, device, grid_bin, holdout, quiet, **opts):
+def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memory, resume, device, grid_bin,
+              holdout, quiet, **opts):
     """Reconstruct the high-speed video in BUNDLE and report error against run time."""
     if not bundle.exists():
         raise click.BadParameter(f"{bundle} does not exist", param_hint="BUNDLE")
@@ -72,6 +85,8 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, resume, device, grid_
     budget = "auto" if time_budget is None else time_budget
     settings = ReconSettings(method=method, time_budget_s=budget, max_iters=iters, device=device,
                              grid_bin=grid_bin, resume=resume, progress=not quiet, holdout=holdout,
+                             max_frames=max_frames,
+                             max_memory_bytes=None if max_memory is None else int(max_memory * 2**30),
                              options=_method_options(method, opts))
     out = out_dir or default_out_dir(bundle, method)
     m = reconstruct(bundle, out, settings, echo=click.echo)
@@ -81,10 +96,12 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, resume, device, grid_
         if "psnr_intermediate_db" in m:
             line += f" (intermediate {m['psnr_intermediate_db']:.2f} dB)"
         line += f", SSIM {m['ssim']:.3f}"
-    seen = m.get("error_visibility", {})
+    seen = {k: v for k, v in m.get("error_visibility", {}).items() if v == v}  # nan: cannot vouch
     if seen:
         line += ", error seen at " + " / ".join(f"{v:.2f}x the {k.upper()} noise" for k, v in seen.items())
     if "heldout" in m:
         line += f", held-out residual {m['heldout']:.4g}"
     click.echo(line)
+    for caveat in m.get("error_visibility_caveats", []):
+        click.echo(f"caveat: {caveat}")
     click.echo(f"outputs: {out}")

@@ -53,6 +53,11 @@ SUBSET = {
     "non-square 5x16": ("tv3d-haar", "interp"),
     "1 frame": ("tv3d-haar", "blend", "stfm-fast"),
     "1203 frames (4x4)": ("tv3d-haar", "blend"),
+    "12-bit declared, values x16": ("blend",),
+    "GS frame 2 saturated": ("tv3d-haar", "blend"),
+    "RS all 0 DN (below black)": ("tv3d-haar",),
+    "RS line time 0.1 ns": ("tv3d-haar",),
+    "GS frame 2 bottom quarter 0 DN": ("tv3d-haar",),
 }
 AVAILABLE = set(stress.available_methods())
 

@@ -277,7 +277,7 @@ def test_validate_lists_every_problem_at_once(good):
 
     problems = validate_bundle(tamper(good, wreck))
     expected = ["RS exposure_s must be finite", "RS camera has no line_time_s",
-                "GS trigger_times_s has shape (2,), expected (3,)", "GS trigger_times_s has negative",
+                "GS trigger_times_s has shape (2,), expected (3,)",
                 "white_balance has shape (2,)", "field_stop has shape (5, 5)", "gs_to_rs must be 3x3",
                 "psf has no positive signal", "truth frame_times_s has shape (5,), expected (8,)"]
     for phrase in expected:
@@ -308,8 +308,11 @@ def test_gs_outside_rs_window_is_a_warning_not_an_error(tmp_path):
     assert len(problems) == 1 and is_warning(problems[0])
     assert "outside the RS exposure window" in problems[0]
     assert read_bundle(path).gs.trigger_times_s[2] == pytest.approx(window_end_s + 1e-4)
-    inside = replace(gs, trigger_times_s=np.array([0.0, 0.3e-3, window_end_s]))
+    inside = replace(gs, trigger_times_s=np.array([0.0, 0.3e-3, window_end_s - gs.exposure_s]))
     assert check_bundle(make_bundle(gs=inside)) == []
+    early = replace(gs, trigger_times_s=np.array([-1e-4, 0.3e-3, 0.6e-3]))  # before T0: the same warning
+    [warning] = check_bundle(make_bundle(gs=early))
+    assert is_warning(warning) and "outside the RS exposure window" in warning
 
 
 def test_truth_must_be_cthw_with_matching_times():

@@ -59,7 +59,7 @@ def test_inspect_lists_warnings_but_succeeds(tmp_path):
     path = write_bundle(make_bundle(gs=gs), tmp_path / "late.h5")
     result = run(str(path))
     assert result.exit_code == 0
-    assert "warning: 1 GS trigger time(s) outside the RS exposure window" in result.stdout
+    assert "warning: 1 GS exposure(s) outside the RS exposure window" in result.stdout
 
 
 def _schema_2(path: Path) -> Path:

@@ -130,6 +130,6 @@ def test_invalid_rs_timing_is_rejected(kwargs):
 
 def test_invalid_gs_timing_is_rejected():
     with pytest.raises(ValueError):
-        GlobalShutterTiming(trigger_s=(-1e-3,), exposure_s=1e-3)
+        GlobalShutterTiming(trigger_s=(float("nan"),), exposure_s=1e-3)
     with pytest.raises(ValueError):
         GlobalShutterTiming(trigger_s=(0.0,), exposure_s=0.0)

@@ -23,7 +23,7 @@ import numpy as np
 from rngcam.acquire.camera import Camera, CameraSettings, Frame
 from rngcam.acquire.generator import FunctionGenerator, PulseTrain
 from rngcam.config import CameraConfig, MockSensor, Rig
-from rngcam.errors import ConfigError
+from rngcam.errors import ConfigError, HardwareError, RngcamError
 from rngcam.physics.psf import load_psf, prepare_psf, spectral_support, subtract_bias
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 
@@ -191,8 +191,15 @@ def _make_camera(cfg: CameraConfig, role: str, world) -> Camera:
 def _mock_world(rig: Rig, psf: np.ndarray, gs_timing: GlobalShutterTiming, grid: VideoGrid):
     from rngcam.acquire.mock_camera import MockDevice, MockWorld
     from rngcam.physics.sensor import SensorModel
+    from rngcam.sizing import default_max_memory_bytes
 
     c = rig.config
+    size = c.cameras.rs.roi.height
+    need = 3 * grid.n_frames * size * size * 4 * 3  # the float32 truth video, the frames rendered from it
+    if need > default_max_memory_bytes():
+        raise ConfigError(f"{rig.path}: the mock scene would need about {need / 2**30:,.1f} GiB "
+                          f"({grid.n_frames} frames of {size}x{size}x3), more than this machine can "
+                          "spare: use a smaller cameras.rs.roi for the mock rig")
     world = MockWorld(c.mock.scene, c.cameras.rs.roi.height, grid, psf, seed=c.mock.seed,
                       key_times_s=list(gs_timing.centres_s()), options=c.mock.options)
     for role in ("rs", "gs"):
@@ -246,6 +253,19 @@ def _connect_generator(rig: Rig, stack: contextlib.ExitStack, progress: Progress
 
 
 # --------------------------------------------------------------------------- the capture
+
+
+def _failure(stage: str, exc: BaseException) -> HardwareError:
+    """One line for an unexpected failure; the ExitStack has already disarmed the cameras and
+    switched the generator's outputs off (Camera.__exit__, FunctionGenerator.close)."""
+    if isinstance(exc, KeyboardInterrupt):
+        what = "interrupted (Ctrl-C)"
+    elif isinstance(exc, MemoryError) or "can't allocate memory" in str(exc):
+        what = "ran out of memory"
+    else:
+        what = f"failed: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}".rstrip(": ")
+    return HardwareError(f"capture {what} {stage}; hardware safe: cameras disarmed, generator outputs "
+                         "off; no bundle written")
 
 
 def _stack(frames: list[Frame]) -> np.ndarray:
@@ -302,69 +322,77 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
     warnings: list[str] = []
     results: list[CaptureResult] = []
     shots = []
-    with contextlib.ExitStack() as stack:
-        world = _mock_world(rig, psf, gs_timing, grid) if c.cameras.rs.backend == "mock" else None
-        gen, fake = _connect_generator(rig, stack, progress)
-        cams: dict[str, Camera] = {}
-        for role in ("rs", "gs"):
-            cfg = getattr(c.cameras, role)
-            cam = stack.enter_context(_make_camera(cfg, role.upper(), world))
-            cams[role] = cam
-            progress(f"{role} camera: {cam.info.model} serial {cam.info.serial} ({cfg.backend})")
-            if fake is not None:
-                fake.connect(cfg.trigger.channel, cam.hardware_input)
-        for role, cam in cams.items():
-            cfg = getattr(c.cameras, role)
-            configured = cam.configure(CameraSettings.from_config(cfg))
-            warnings += configured.warnings
-            progress(f"{role} camera configured: {cfg.pixel_format}, {cfg.roi.width}x{cfg.roi.height}, "
-                     f"exposure {configured.exposure_s * 1e6:g} us, trigger {cfg.trigger.source} "
-                     f"{cfg.trigger.activation} <- generator channel {cfg.trigger.channel}")
-        summary, timing_warnings = verify_timing(rig, cams["rs"].configured.exposure_s,
-                                                 cams["gs"].configured.exposure_s,
-                                                 cams["rs"].line_time_s())
-        warnings += timing_warnings
-        for line in summary:
-            progress(f"timing: {line}")
-        gen.configure(pulse_trains(rig), c.generator.high_v, c.generator.low_v)
-        progress(f"generator configured: {c.generator.high_v:g}-{c.generator.low_v:g} V TTL pulses, "
-                 f"high-Z load; *OPC? ok, error queue empty")
-        gen.arm()
-        progress("generator armed: outputs on")
-        for w in warnings:
-            progress(f"warning: {w}")
-        for shot in range(count):
-            t_shot = time.perf_counter()
-            if world is not None:
-                world.t0_s = None
-            for cam in cams.values():
-                cam.arm()
-            for cam in cams.values():
-                cam.wait_ready(1.0)
-            progress(f"shot {shot + 1}/{count}: cameras armed and ready")
-            gen.fire()
-            progress(f"shot {shot + 1}/{count}: fired")
-            n_gs = len(c.timing.gs_trigger_s)
-            rs_frames = [cams["rs"].fetch(c.cameras.rs.fetch_timeout_s, "RS frame 1 of 1")]
-            gs_frames = [cams["gs"].fetch(c.cameras.gs.fetch_timeout_s, f"GS frame {i + 1} of {n_gs}")
-                         for i in range(n_gs)]
-            for cam in cams.values():
-                cam.disarm()
-            shot_warnings = _check_gs_timestamps(gs_frames, c.timing.gs_period_s)
-            for w in shot_warnings:
+    stage = ["while setting up"]  # what was under way when something failed
+    try:
+        with contextlib.ExitStack() as stack:
+            world = _mock_world(rig, psf, gs_timing, grid) if c.cameras.rs.backend == "mock" else None
+            gen, fake = _connect_generator(rig, stack, progress)
+            cams: dict[str, Camera] = {}
+            for role in ("rs", "gs"):
+                cfg = getattr(c.cameras, role)
+                cam = stack.enter_context(_make_camera(cfg, role.upper(), world))
+                cams[role] = cam
+                progress(f"{role} camera: {cam.info.model} serial {cam.info.serial} ({cfg.backend})")
+                if fake is not None:
+                    fake.connect(cfg.trigger.channel, cam.hardware_input)
+            for role, cam in cams.items():
+                cfg = getattr(c.cameras, role)
+                configured = cam.configure(CameraSettings.from_config(cfg))
+                warnings += configured.warnings
+                progress(f"{role} camera configured: {cfg.pixel_format}, {cfg.roi.width}x{cfg.roi.height}, "
+                         f"exposure {configured.exposure_s * 1e6:g} us, trigger {cfg.trigger.source} "
+                         f"{cfg.trigger.activation} <- generator channel {cfg.trigger.channel}")
+            summary, timing_warnings = verify_timing(rig, cams["rs"].configured.exposure_s,
+                                                     cams["gs"].configured.exposure_s,
+                                                     cams["rs"].line_time_s())
+            warnings += timing_warnings
+            for line in summary:
+                progress(f"timing: {line}")
+            gen.configure(pulse_trains(rig), c.generator.high_v, c.generator.low_v)
+            progress(f"generator configured: {c.generator.high_v:g}-{c.generator.low_v:g} V TTL pulses, "
+                     f"high-Z load; *OPC? ok, error queue empty")
+            stage[0] = "after arming the generator"
+            gen.arm()
+            progress("generator armed: outputs on")
+            for w in warnings:
                 progress(f"warning: {w}")
-            progress(f"shot {shot + 1}/{count}: fetched 1 RS + {n_gs} GS frames "
-                     f"({time.perf_counter() - t_shot:.2f} s)")
-            truth = None
-            if world is not None:
-                truth = Truth(video=world.video(), frame_times_s=grid.edges_s()[:-1], dt_s=grid.dt_s)
-            shots.append((rs_frames, gs_frames, truth, shot_warnings))
-        gen.outputs_off()
-        progress("hardware safe: cameras disarmed, generator outputs off")
-        trigger = TriggerRecord(generator=gen.identity,
-                                settings=gen.settings | {"transport": c.generator.transport,
-                                                         "fired_channels": gen.channels},
-                                errors=list(gen.errors))
+            for shot in range(count):
+                t_shot = time.perf_counter()
+                if world is not None:
+                    world.t0_s = None
+                for cam in cams.values():
+                    cam.arm()
+                for cam in cams.values():
+                    cam.wait_ready(1.0)
+                progress(f"shot {shot + 1}/{count}: cameras armed and ready")
+                gen.fire()
+                stage[0] = f"after firing shot {shot + 1}/{count}"
+                progress(f"shot {shot + 1}/{count}: fired")
+                n_gs = len(c.timing.gs_trigger_s)
+                rs_frames = [cams["rs"].fetch(c.cameras.rs.fetch_timeout_s, "RS frame 1 of 1")]
+                gs_frames = [cams["gs"].fetch(c.cameras.gs.fetch_timeout_s, f"GS frame {i + 1} of {n_gs}")
+                             for i in range(n_gs)]
+                for cam in cams.values():
+                    cam.disarm()
+                shot_warnings = _check_gs_timestamps(gs_frames, c.timing.gs_period_s)
+                for w in shot_warnings:
+                    progress(f"warning: {w}")
+                progress(f"shot {shot + 1}/{count}: fetched 1 RS + {n_gs} GS frames "
+                         f"({time.perf_counter() - t_shot:.2f} s)")
+                truth = None
+                if world is not None:
+                    truth = Truth(video=world.video(), frame_times_s=grid.edges_s()[:-1], dt_s=grid.dt_s)
+                shots.append((rs_frames, gs_frames, truth, shot_warnings))
+            gen.outputs_off()
+            progress("hardware safe: cameras disarmed, generator outputs off")
+            trigger = TriggerRecord(generator=gen.identity,
+                                    settings=gen.settings | {"transport": c.generator.transport,
+                                                             "fired_channels": gen.channels},
+                                    errors=list(gen.errors))
+    except RngcamError:
+        raise  # already one line, raised after the stack disarmed the cameras and switched outputs off
+    except BaseException as exc:  # noqa: BLE001 - MemoryError, KeyboardInterrupt, any bug: one line
+        raise _failure(stage[0], exc) from None
     t0 = c.timing.rs_trigger_s
     for path, (rs_frames, gs_frames, truth, shot_warnings) in zip(paths, shots):
         calibration = Calibration(
@@ -386,7 +414,12 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
                   "scene": c.mock.model_dump() if c.mock else None,
                   "warnings": warnings + shot_warnings})
         t_write = time.perf_counter()
-        write_bundle(bundle, path)
+        try:
+            write_bundle(bundle, path)
+        except RngcamError:
+            raise
+        except BaseException as exc:  # noqa: BLE001 - the hardware is already safe; say so in one line
+            raise _failure(f"writing {path}", exc) from None
         write_s = time.perf_counter() - t_write
         progress(f"wrote {path} ({write_s:.2f} s)")
         results.append(CaptureResult(path, warnings + shot_warnings,

@@ -113,8 +113,8 @@ class GlobalShutterTiming:
         _positive("exposure_s", self.exposure_s)
         object.__setattr__(self, "trigger_s", tuple(float(t) for t in self.trigger_s))
         for t in self.trigger_s:
-            if not math.isfinite(t) or t < 0:
-                raise ValueError(f"GS trigger times must be >= 0 (after T0), got {t!r}")
+            if not math.isfinite(t):
+                raise ValueError(f"GS trigger times must be finite, got {t!r}")
 
     @property
     def n_frames(self) -> int:
@@ -123,6 +123,23 @@ class GlobalShutterTiming:
     @property
     def end_s(self) -> float:
         return max(self.trigger_s, default=0.0) + self.exposure_s
+
+    @property
+    def start_s(self) -> float:
+        return min(self.trigger_s, default=0.0)
+
+    def overlaps(self, start_s: float, end_s: float) -> np.ndarray:
+        """(n_gs_frames,) bool: which exposures overlap the window [start_s, end_s)."""
+        t = np.asarray(self.trigger_s, dtype=np.float64)
+        return (t < end_s) & (t + self.exposure_s > start_s)
+
+    def subset(self, keep) -> GlobalShutterTiming:
+        """The timing of the frames `keep` (indices or a bool mask)."""
+        t = np.asarray(self.trigger_s, dtype=np.float64)[np.asarray(keep)]
+        return GlobalShutterTiming(tuple(t), self.exposure_s)
+
+    def shifted(self, by_s: float) -> GlobalShutterTiming:
+        return GlobalShutterTiming(tuple(t + by_s for t in self.trigger_s), self.exposure_s)
 
     def weights(self, grid: VideoGrid) -> np.ndarray:
         """(n_gs_frames, n_frames) weights: overlap of each GS exposure with each frame, / dt."""
@@ -158,6 +175,13 @@ class VideoGrid:
         if not ends:
             raise ValueError("a video grid needs at least one camera's timing")
         return cls(dt_s=float(dt_s), n_frames=frames_needed(max(ends), dt_s))
+
+    @staticmethod
+    def frames_before(gs: GlobalShutterTiming | None, dt_s: float) -> int:
+        """Whole frames a grid needs before T0 to cover the GS exposures that start before it."""
+        if gs is None or gs.n_frames == 0 or gs.start_s >= 0:
+            return 0
+        return int(math.ceil(-gs.start_s / dt_s - _EDGE_TOL))
 
     def edges_s(self) -> np.ndarray:
         return np.arange(self.n_frames + 1, dtype=np.float64) * self.dt_s

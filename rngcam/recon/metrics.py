@@ -97,25 +97,81 @@ def psnr_np(estimate: np.ndarray, truth: np.ndarray) -> float:
     return psnr(torch.from_numpy(np.asarray(estimate)), torch.from_numpy(np.asarray(truth)))
 
 
+# The truth's prediction may differ from a measurement by up to this many times the noise
+# estimated from the measurement itself before the data are called inconsistent with the truth.
+_CONSISTENT_NOISE_RATIO = 3.0
+
+
+def _visibility_sensors(problem, frame_chunk: int) -> dict:
+    """name -> (measurement, forward operator, 0/1 valid mask or None) for the sensors in use."""
+    sensors = {"rs": (problem.b_rs, lambda x: problem.rs_op().A(x, frame_chunk=frame_chunk),
+                      problem.rs_valid_mask()),
+               "gs": (problem.b_gs, lambda x: problem.gs_op().A(x), problem.gs_valid_mask())}
+    return {name: s for name, s in sensors.items() if s[0] is not None and s[0].numel()}
+
+
+def _masked(y: Tensor, mask: Tensor | None) -> Tensor:
+    return y if mask is None else y * mask.to(y.device, y.dtype)
+
+
+def _noise_estimate_norm(name: str, meas: Tensor, mask: Tensor | None) -> float:
+    """||noise|| expected on the measurement, from the measurement alone (rngcam.recon.noise)."""
+    from rngcam.recon.noise import image_noise_std, row_noise_std
+
+    if name == "rs":
+        std = row_noise_std(meas)
+    else:
+        std = float(np.mean([image_noise_std(meas[:, g]) for g in range(meas.shape[1])]))
+    count = float(meas.numel() if mask is None else mask.expand_as(meas).sum())
+    return std * math.sqrt(count)
+
+
 def error_visibility(problem, estimate: Tensor, frame_chunk: int = 16) -> dict[str, float]:
     """What each measurement sees of an estimate's error, in units of its noise: per sensor
-    ("rs", "gs"), ||A (estimate - truth)|| / ||A truth - b|| (needs the truth; gains taken as 1).
+    ("rs", "gs"), ||M A (estimate - truth)|| / ||M (A truth - b)|| (needs the truth; gains taken
+    as 1), M the pixels that carry linear information (Problem.rs_valid / gs_valid).
 
     Below 1 the error hides under the measurement's noise: no closer fit to the data can find it,
-    only a better prior. inf when a measurement has no noise but sees the error; nan without truth.
-    The RS operator takes `frame_chunk` frames at a time, so memory does not grow with K beyond
-    the error video itself.
+    only a better prior. inf when a measurement has no noise but sees the error; nan without truth,
+    and nan when the data cannot vouch for anything: the truth's prediction differs from the
+    measurement by more than a few times the noise estimated from the measurement alone
+    (mis-scaled or broken data; `error_visibility_caveats` says which). The RS operator takes
+    `frame_chunk` frames at a time, so memory does not grow with K beyond the error video itself.
     """
-    sensors = {"rs": (problem.b_rs, lambda x: problem.rs_op().A(x, frame_chunk=frame_chunk)),
-               "gs": (problem.b_gs, lambda x: problem.gs_op().A(x))}
-    sensors = {name: pair for name, pair in sensors.items() if pair[0] is not None}
+    sensors = _visibility_sensors(problem, frame_chunk)
     if problem.truth is None:
         return {name: math.nan for name in sensors}
     truth = problem.truth
     error = estimate.to(truth.device, truth.dtype) - truth
     out = {}
-    for name, (meas, forward) in sensors.items():
-        signal = float(torch.linalg.vector_norm(forward(error).double()))
-        noise = float(torch.linalg.vector_norm((forward(truth) - meas).double()))
-        out[name] = signal / noise if noise > 0 else (0.0 if signal == 0 else math.inf)
+    for name, (meas, forward, mask) in sensors.items():
+        signal = float(torch.linalg.vector_norm(_masked(forward(error), mask).double()))
+        noise = float(torch.linalg.vector_norm(_masked(forward(truth) - meas, mask).double()))
+        expected = _noise_estimate_norm(name, meas, mask)
+        if noise > _CONSISTENT_NOISE_RATIO * expected and noise > 0:
+            out[name] = math.nan
+        else:
+            out[name] = signal / noise if noise > 0 else (0.0 if signal == 0 else math.inf)
+    return out
+
+
+def error_visibility_caveats(problem, frame_chunk: int = 16) -> list[str]:
+    """Why `error_visibility` cannot vouch for a result: data inconsistent with the truth (by how
+    many times their noise), pixels or measurements left out. [] when there is nothing to say."""
+    if problem.truth is None:
+        return []
+    out = []
+    for name, (meas, forward, mask) in _visibility_sensors(problem, frame_chunk).items():
+        noise = float(torch.linalg.vector_norm(_masked(forward(problem.truth) - meas, mask).double()))
+        expected = _noise_estimate_norm(name, meas, mask)
+        if noise > _CONSISTENT_NOISE_RATIO * expected and noise > 0:
+            ratio = f"{noise / expected:.3g}x" if expected > 0 else "infinitely many times"
+            out.append(f"the {name.upper()} data differ from the truth's prediction by {ratio} their "
+                       "noise (mis-scaled or broken data): its visibility is not reported")
+        if mask is not None:
+            frac = 1 - float(mask.mean())
+            out.append(f"{100 * frac:.2f} % of the {name.upper()} pixels are left out (saturated "
+                       "or clipped): the visibility covers the rest only")
+    for what, why in getattr(problem, "left_out", []):
+        out.append(f"{what} left out ({why}): the visibility does not cover it")
     return out

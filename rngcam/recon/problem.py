@@ -28,12 +28,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from rngcam import pixels
 from rngcam.bundle import Bundle, CameraRecord
 from rngcam.errors import BundleError, ConfigError
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter, Stacked
 from rngcam.physics.sensor import BAYER_FORMATS, frame_to_measurement
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+from rngcam.sizing import check_frames, plan_grid
 
 
 @dataclass
@@ -57,6 +59,8 @@ class Problem:
     # residuals by these (rs_valid_mask() / gs_valid_mask()); None means every pixel is valid.
     rs_valid: Tensor | None = None  # (C or 1, H, W) bool
     gs_valid: Tensor | None = None  # (C or 1, G, H, W) bool
+    time_origin_s: float = 0.0  # the grid's first edge relative to T0 (< 0 when GS exposes before T0)
+    left_out: list[tuple[str, str]] = field(default_factory=list)  # (measurement, reason) not fitted
 
     @property
     def channels(self) -> int:
@@ -71,7 +75,8 @@ class Problem:
 
     @property
     def frame_times_s(self) -> np.ndarray:
-        return self.grid.centres_s()
+        """Centre of each frame relative to T0 (the RS trigger), like gs_times_s."""
+        return self.grid.centres_s() + self.time_origin_s
 
     def rs_op(self) -> RollingShutter:
         c, _, _, w = self.shape
@@ -108,7 +113,8 @@ class Problem:
                        cast(self.psf), self.grid, self.gs_times_s, cast(self.truth), cast(self.mask),
                        cast(self.white_balance), list(self.notes),
                        rs_train_rows=cast(self.rs_train_rows), gs_train_mask=cast(self.gs_train_mask),
-                       rs_valid=cast(self.rs_valid), gs_valid=cast(self.gs_valid))
+                       rs_valid=cast(self.rs_valid), gs_valid=cast(self.gs_valid),
+                       time_origin_s=self.time_origin_s, left_out=list(self.left_out))
 
     def rs_valid_mask(self) -> Tensor | None:
         """(C or 1, H, W) 0/1 float mask of the RS pixels that carry information; None: all do."""
@@ -241,14 +247,23 @@ def _train_rows(n: int, fraction: float, block: int, rng: np.random.Generator, f
     return flags
 
 
-def _camera_frames(cam: CameraRecord, dt_s: float) -> list[np.ndarray]:
-    """Each raw frame -> (C, h, w) float32 operator units (Bayer binned 2x2)."""
+def _camera_frames(cam: CameraRecord, dt_s: float, keep=None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each raw frame (of `keep`, default all) -> ((C, h, w) float32 operator units, (C, h, w)
+    bool invalid pixels: saturated or clipped at 0 DN), Bayer binned 2x2 (invalid if any site is)."""
+    which = "RS" if cam.line_time_s is not None else "GS"
+    indices = range(int(cam.frames.shape[0])) if keep is None else [int(i) for i in keep]
+    out = []
     try:
-        return [frame_to_measurement(f, cam.pixel_format, cam.black_level_dn, cam.bit_depth,
-                                     cam.exposure_s, dt_s) for f in cam.frames]
+        for i in indices:
+            f = np.asarray(cam.frames[i])
+            meas = frame_to_measurement(f, cam.pixel_format, cam.black_level_dn, cam.bit_depth,
+                                        cam.exposure_s, dt_s)
+            bad = pixels.invalid_pixels(f, cam.bit_depth, cam.black_level_dn).astype(np.float32)
+            bad = frame_to_measurement(bad, cam.pixel_format, 0.0, 1, 1.0, 1.0) > 0
+            out.append((meas, bad))
     except ValueError as exc:  # NaN/Inf or misshapen frames: a bad bundle, not a crash
-        which = "RS" if cam.line_time_s is not None else "GS"
         raise BundleError(f"the {which} frames are unusable: {exc}") from None
+    return out
 
 
 def _bin(img: np.ndarray, factor: int) -> np.ndarray:
@@ -281,50 +296,82 @@ def _warp_to(img: np.ndarray, homography: np.ndarray | None, shape: tuple[int, i
     return np.stack(out)
 
 
+def _valid_or_none(invalid: np.ndarray) -> Tensor | None:
+    return None if not invalid.any() else torch.from_numpy(np.ascontiguousarray(~invalid))
+
+
+def _masked_note(name: str, invalid: np.ndarray) -> str | None:
+    if not invalid.any():
+        return None
+    return (f"{100 * invalid.mean():.2f} % of the {name} pixels left out of the data term "
+            "(saturated or clipped at 0 DN: no linear information)")
+
+
 def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = None,
-                  use_rs: bool = True, use_gs: bool = True) -> Problem:
-    """Turn a bundle into a Problem on the reconstruction grid (see module docstring)."""
-    rs, gs = bundle.rs if use_rs else None, bundle.gs if use_gs else None
-    if bundle.rs is None:
-        raise BundleError("the bundle has no rolling-shutter camera; the video grid is defined by it")
-    if grid_bin is None:
-        grid_bin = int(bundle.meta.get("grid_bin", 1))
+                  use_rs: bool = True, use_gs: bool = True, max_frames: int | None = None) -> Problem:
+    """Turn a bundle into a Problem on the reconstruction grid (see module docstring).
+
+    Saturated and clipped pixels become rs_valid / gs_valid; a frame beyond use (almost no valid
+    pixel, flat, or dark while the others see light) and a GS frame whose exposure misses the
+    RS window are left out, each with its reason in `left_out`. BundleError when nothing is left;
+    ConfigError when the grid would have more than `max_frames` (default: sizing's) frames.
+    """
+    plan = plan_grid(bundle, grid_bin, dt_s)
+    check_frames(plan, max_frames)  # before allocating anything frame-sized
+    grid_bin = plan.rs.rows_per_bin
+    grid = plan.grid
     notes: list[str] = []
+    left_out: list[tuple[str, str]] = []
     cam = bundle.rs
     mosaic = 2 if cam.pixel_format in BAYER_FORMATS else 1
-    if grid_bin % mosaic:
-        raise BundleError(f"grid_bin {grid_bin} must be a multiple of 2 for a Bayer RS frame")
-    sensor_rows = cam.frames.shape[1]
-    rows = sensor_rows // grid_bin
-    rs_timing = RollingShutterTiming(line_time_s=float(cam.line_time_s), exposure_s=float(cam.exposure_s),
-                                     rows=rows, rows_per_bin=grid_bin,
-                                     trigger_s=float(np.asarray(cam.trigger_times_s)[0]))
-    gs_timing = None
-    if bundle.gs is not None:
-        gs_timing = GlobalShutterTiming(trigger_s=tuple(np.asarray(bundle.gs.trigger_times_s, float)),
-                                        exposure_s=float(bundle.gs.exposure_s))
-    grid = VideoGrid.covering(rs_timing, gs_timing, dt_s=dt_s)
+    stats = pixels.pixel_stats(bundle)
+    unusable = pixels.unusable_frames(stats) if stats else {}
+    if any(pixels.value_problems(n.upper(), st, int(getattr(bundle, n).bit_depth)) for n, st in stats.items()):
+        raise BundleError("pixel values above the declared bit depth's full scale (see `rngcam inspect`)")
 
-    rs_img = _camera_frames(cam, grid.dt_s)[0]  # one RS frame per capture
+    rs_img, rs_bad = _camera_frames(cam, grid.dt_s, keep=[0])[0]  # one RS frame per capture
     sensor_shape = rs_img.shape[-2:]
     b_rs = _bin(rs_img, grid_bin // mosaic)
-    b_gs = None
-    gs_w = np.zeros((0, grid.n_frames))
-    gs_times = np.zeros(0)
-    if bundle.gs is not None:
+    rs_invalid = _bin(rs_bad.astype(np.float32), grid_bin // mosaic) > 0
+    if use_rs and ("rs", 0) in unusable:
+        left_out.append(("RS image", unusable[("rs", 0)]))
+        use_rs = False
+    b_gs, gs_invalid = None, None
+    gs_timing = plan.gs
+    kept = list(plan.gs_kept)
+    if bundle.gs is not None and use_gs:
+        for i, why in plan.gs_left_out:
+            left_out.append((f"GS frame {i + 1}", why))
+        usable = []
+        for j, i in enumerate(kept):
+            if ("gs", i) in unusable:
+                left_out.append((f"GS frame {i + 1}", unusable[("gs", i)]))
+            else:
+                usable.append(j)
+        kept = [kept[j] for j in usable]
+        gs_timing = plan.gs.subset(usable) if plan.gs is not None and usable else None
+    if bundle.gs is not None and use_gs and kept:
         calib = bundle.calibration
         h = None
         if calib.gs_to_rs is not None:  # raw GS pixels -> raw RS pixels; re-express after Bayer binning
             gs_mosaic = 2 if bundle.gs.pixel_format in BAYER_FORMATS else 1
             h = np.asarray(calib.gs_to_rs, np.float64)
             h = _binned_pixels(mosaic) @ h @ np.linalg.inv(_binned_pixels(gs_mosaic))
-        frames = [_bin(_warp_to(f, h, sensor_shape), grid_bin // mosaic)
-                  for f in _camera_frames(bundle.gs, grid.dt_s)]
+        frames, bad = [], []
+        for meas, invalid in _camera_frames(bundle.gs, grid.dt_s, keep=kept):
+            frames.append(_bin(_warp_to(meas, h, sensor_shape), grid_bin // mosaic))
+            bad.append(_bin(_warp_to(invalid.astype(np.float32), h, sensor_shape), grid_bin // mosaic) > 0)
         b_gs = np.stack(frames, axis=1)
-        gs_w = gs_timing.weights(grid)
-        gs_times = gs_timing.centres_s()
+        gs_invalid = np.stack(bad, axis=1)
+    else:
+        gs_timing = None
     if b_gs is not None and b_gs.shape[0] != b_rs.shape[0]:
         raise BundleError(f"RS has {b_rs.shape[0]} channels but GS has {b_gs.shape[0]}")
+    if not use_rs and b_gs is None:
+        why = "; ".join(f"{m}: {r}" for m, r in left_out) or "no measurement in use"
+        raise BundleError(f"no measurement carries anything to reconstruct from ({why})")
+    gs_w = gs_timing.weights(grid) if gs_timing is not None else np.zeros((0, grid.n_frames))
+    gs_times = gs_timing.centres_s() + plan.origin_s if gs_timing is not None else np.zeros(0)
 
     psf = _grid_psf(bundle, grid_bin, b_rs.shape[0])
     truth = _grid_truth(bundle, grid, b_rs.shape, notes)
@@ -336,10 +383,14 @@ def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | Non
     for name, arr in (("RS", b_rs), ("GS", b_gs)):
         if arr is not None and not np.all(np.isfinite(arr)):
             raise BundleError(f"the {name} frames contain NaN or Inf")
+    for name, inv, used in (("RS", rs_invalid, use_rs), ("GS", gs_invalid, b_gs is not None)):
+        note = _masked_note(name, inv) if used else None
+        if note:
+            notes.append(note)
     return Problem(
-        b_rs=torch.from_numpy(np.ascontiguousarray(b_rs, np.float64)) if rs is not None else None,
-        b_gs=torch.from_numpy(np.ascontiguousarray(b_gs, np.float64)) if gs is not None and b_gs is not None else None,
-        rs_weights=torch.from_numpy(rs_timing.weights(grid)),
+        b_rs=torch.from_numpy(np.ascontiguousarray(b_rs, np.float64)) if use_rs else None,
+        b_gs=torch.from_numpy(np.ascontiguousarray(b_gs, np.float64)) if b_gs is not None else None,
+        rs_weights=torch.from_numpy(plan.rs.weights(grid)),
         gs_weights=torch.from_numpy(gs_w),
         psf=torch.from_numpy(psf),
         grid=grid,
@@ -348,6 +399,10 @@ def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | Non
         mask=mask,
         white_balance=None if wb is None else torch.as_tensor(np.asarray(wb, np.float64)),
         notes=notes,
+        rs_valid=_valid_or_none(rs_invalid) if use_rs else None,
+        gs_valid=_valid_or_none(gs_invalid) if b_gs is not None else None,
+        time_origin_s=plan.origin_s,
+        left_out=left_out,
     )
 
 

@@ -19,13 +19,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from rngcam.bundle import bundle_checksum, read_bundle
+from rngcam.bundle import bundle_checksum, read_bundle_with_warnings
 from rngcam.errors import ConfigError, RngcamError
 from rngcam.memory import peak_rss_bytes
 from rngcam.recon import outputs
 from rngcam.recon.loop import LoopSettings, RunResult, run
-from rngcam.recon.metrics import error_visibility, relative_residual, video_metrics
+from rngcam.recon.metrics import error_visibility, error_visibility_caveats, relative_residual, video_metrics
 from rngcam.recon.problem import Problem, build_problem
+from rngcam.sizing import check_size, gib, plan_grid
 
 ITERATIVE = ("stfm", "tv3d")
 GS_ONLY = ("blend", "interp", "rife")
@@ -51,18 +52,34 @@ class ReconSettings:
     holdout: float | None = None  # fraction of RS row bins held out of the fit (None: fit everything)
     holdout_gs: float = 0.0  # fraction of GS pixels also held out (with holdout set)
     holdout_seed: int = 0
+    max_frames: int | None = None  # refuse a longer video before allocating it (None: sizing's default)
+    max_memory_bytes: int | None = None  # refuse a larger estimate (None: a fraction of the machine's)
 
     def __post_init__(self):
         if self.method not in METHODS:
             raise ConfigError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
         if self.time_budget_s == "auto":
             self.time_budget_s = DEFAULT_TIME_BUDGET_S.get(self.method, FALLBACK_TIME_BUDGET_S)
+        check_settings_figures(self.time_budget_s, self.max_iters, self.max_frames, self.max_memory_bytes)
         if self.holdout is not None:
             if not 0 < self.holdout < 1:
                 raise ConfigError(f"holdout must be a fraction in (0, 1), got {self.holdout}")
             if self.method not in ITERATIVE:
                 raise ConfigError(f"--holdout applies to fitted methods ({', '.join(ITERATIVE)}), "
                                   f"not {self.method}")
+
+
+def check_settings_figures(time_budget_s, max_iters, max_frames=None, max_memory_bytes=None) -> None:
+    """ConfigError (one line) for a budget, iteration count or limit that cannot be meant."""
+    import math
+
+    if time_budget_s is not None and not (isinstance(time_budget_s, (int, float))
+                                          and math.isfinite(time_budget_s) and time_budget_s > 0):
+        raise ConfigError(f"--time-budget must be a positive number of seconds, got {time_budget_s!r}")
+    for name, value in (("--iters", max_iters), ("--max-frames", max_frames),
+                        ("--max-memory", max_memory_bytes)):
+        if value is not None and not (isinstance(value, (int, float)) and value >= 1):
+            raise ConfigError(f"{name} must be at least 1, got {value!r}")
 
 
 def resolve_device(name: str) -> str:
@@ -102,7 +119,9 @@ def make_method(problem: Problem, settings: ReconSettings, device: str):
 
 def _run_gs_only(problem: Problem, method: str, opts: dict) -> tuple[np.ndarray, RunResult]:
     if problem.b_gs is None or problem.b_gs.shape[1] == 0:
-        raise RngcamError(f"--method {method} needs GS frames; the bundle has none")
+        gone = [m for m, _ in problem.left_out if m.startswith("GS")]
+        why = f"every GS frame was left out ({', '.join(gone)})" if gone else "the bundle has none"
+        raise RngcamError(f"--method {method} needs GS frames; {why}")
     key = gs_key_frames(problem)
     t0 = time.perf_counter()
     if method == "blend":
@@ -124,22 +143,49 @@ def _run_gs_only(problem: Problem, method: str, opts: dict) -> tuple[np.ndarray,
 def _residuals(problem: Problem, video: torch.Tensor) -> dict[str, float]:
     out = {}
     if problem.b_rs is not None:
-        out["rs"] = relative_residual(problem.rs_op().A(video), problem.b_rs)
+        out["rs"] = relative_residual(problem.rs_op().A(video, frame_chunk=16), problem.b_rs)
     if problem.b_gs is not None and problem.b_gs.shape[1]:
         out["gs"] = relative_residual(problem.gs_op().A(video), problem.b_gs)
     return out
 
 
+def _out_of_memory(exc: BaseException) -> bool:
+    text = str(exc).lower()
+    return isinstance(exc, MemoryError) or (isinstance(exc, RuntimeError) and (
+        "can't allocate memory" in text or "out of memory" in text or "not enough memory" in text))
+
+
 def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
                 settings: ReconSettings | None = None, echo=print) -> dict:
-    """Reconstruct `bundle_path` into `out_dir`; returns the metrics written to metrics.json."""
+    """Reconstruct `bundle_path` into `out_dir`; returns the metrics written to metrics.json.
+
+    The bundle's warnings are echoed first and stored in metrics.json; the video's frame count
+    and memory are checked against the limits before anything frame-sized is allocated; running
+    out of memory anyway is one RngcamError line.
+    """
     settings = settings or ReconSettings()
     bundle_path = Path(bundle_path)
-    bundle = read_bundle(bundle_path)
+    try:
+        return _reconstruct(bundle_path, out_dir, settings, echo)
+    except (MemoryError, RuntimeError) as exc:
+        if not _out_of_memory(exc):
+            raise
+        raise RngcamError(f"{settings.method} ran out of memory on {bundle_path.name} "
+                          f"({type(exc).__name__}); use a coarser --bin or free memory") from None
+
+
+def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> dict:
+    bundle, warnings = read_bundle_with_warnings(bundle_path)
+    for warning in warnings:
+        echo(warning)
+    plan = plan_grid(bundle, settings.grid_bin)
+    need = check_size(plan, settings.method, max_frames=settings.max_frames,
+                      max_memory_bytes=settings.max_memory_bytes)
+    device = resolve_device(settings.device)
+    problem = build_problem(bundle, grid_bin=settings.grid_bin, max_frames=settings.max_frames)
+    del bundle  # the raw frames are in the problem now
     out = Path(out_dir) if out_dir is not None else default_out_dir(bundle_path, settings.method)
     out.mkdir(parents=True, exist_ok=True)
-    device = resolve_device(settings.device)
-    problem = build_problem(bundle, grid_bin=settings.grid_bin)
     scorer = None
     if settings.holdout is not None:
         from rngcam.scale.holdout import HoldoutScorer
@@ -148,8 +194,11 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
         scorer = HoldoutScorer(problem)
     for note in problem.notes:
         echo(f"note: {note}")
+    for what, why in problem.left_out:
+        echo(f"left out: {what} ({why})")
     c, k, h, w = problem.shape
-    echo(f"{settings.method}: {k} frames of {h}x{w}x{c} at {1 / problem.grid.dt_s:,.0f} fps on {device}")
+    echo(f"{settings.method}: {k} frames of {h}x{w}x{c} at {1 / problem.grid.dt_s:,.0f} fps on {device} "
+         f"(about {gib(need)} estimated)")
     intermediate = problem.intermediate_frames()
 
     def truth_metrics(video: torch.Tensor) -> dict:
@@ -169,7 +218,7 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
         t0 = time.perf_counter()
         method = make_method(problem, settings, device)
         setup_s = time.perf_counter() - t0
-        left_out = list(getattr(method, "left_out", []))
+        left_out = list(getattr(method, "left_out", []))  # the method's components
         for comp, why in left_out:
             echo(f"left out: {comp} ({why})")
         loop = LoopSettings(time_budget_s=settings.time_budget_s, max_iters=settings.max_iters,
@@ -199,8 +248,11 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
         "peak_rss_bytes": peak_rss_bytes(),  # this process only (VmHWM)
         "frames": k, "height": h, "width": w, "channels": c, "fps": 1 / problem.grid.dt_s,
         "device": device, "status": status,
-        "left_out": [{"component": a, "reason": b} for a, b in left_out],
+        "left_out": [{"component": a, "reason": b} for a, b in problem.left_out + left_out],
         "events": result.events,
+        "warnings": list(warnings),
+        "masked_fraction": {name: float(1 - m.mean()) for name, m in
+                            (("rs", problem.rs_valid_mask()), ("gs", problem.gs_valid_mask())) if m is not None},
     }
     for key in ("psnr_db", "ssim", "psnr_intermediate_db", "ssim_intermediate", "residual_rs", "residual_gs",
                 "heldout", "heldout_rs", "heldout_gs"):
@@ -208,13 +260,16 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
             metrics[key] = final[key]
     if problem.truth is not None:  # is the remaining error visible above each measurement's noise?
         metrics["error_visibility"] = error_visibility(problem, torch.from_numpy(np.asarray(video)))
+        caveats = error_visibility_caveats(problem)
+        if caveats:
+            metrics["error_visibility_caveats"] = caveats
     if method_settings is not None:
         metrics["method_settings"] = method_settings  # the preset's values filled in
     resolved = {**asdict(settings), "device": device, "grid_bin": settings.grid_bin}
     if method_settings is not None:
         resolved["method_settings"] = method_settings
     outputs.write_recon_h5(out / "recon.h5", video, problem.frame_times_s, resolved,
-                           bundle_checksum(bundle_path), components, left_out)
+                           bundle_checksum(bundle_path), components, problem.left_out + left_out)
     outputs.write_tiff(out / "video.tif", video)
     outputs.write_mp4(out / "preview.mp4", video)
     outputs.write_errors(out / "errors.csv", out / "errors.png", result.log, settings.method)

@@ -88,6 +88,11 @@ class _Masked(LinearOperator):
         return self.op.A_adjoint(self.mask * y)
 
 
+def _product(a: Tensor | None, b: Tensor | None) -> Tensor | None:
+    """The product of two optional 0/1 masks (None: all ones)."""
+    return b if a is None else a if b is None else a * b
+
+
 class TV3D:
     """FISTA for the 3-D TV objective above; a `Method` for rngcam.recon.loop."""
 
@@ -109,12 +114,17 @@ class TV3D:
         # The operators and measurements that are fitted: all, or the training split.
         self.rs_fit, self.b_rs_fit = self.rs, problem.b_rs
         self.gs_fit, self.b_gs_fit = self.gs, problem.b_gs
-        if use_rs and problem.rs_train_rows is not None:
-            m = problem.rs_fit_mask().to(dtype=dt, device=dev)
+        # ... and only the pixels that carry linear information (saturated ones do not).
+        rs_m = _product(problem.rs_fit_mask(), problem.rs_valid_mask())
+        gs_m = _product(problem.gs_fit_mask(), problem.gs_valid_mask())
+        if use_rs and rs_m is not None:
+            m = rs_m.to(dtype=dt, device=dev)
             self.rs_fit, self.b_rs_fit = _Masked(self.rs, m), m * problem.b_rs
-        if use_gs and problem.gs_train_mask is not None:
-            m = problem.gs_fit_mask().to(dtype=dt, device=dev)
+        self._anchor_mask = None
+        if use_gs and gs_m is not None:
+            m = gs_m.to(dtype=dt, device=dev)
             self.gs_fit, self.b_gs_fit = _Masked(self.gs, m), m * problem.b_gs
+            self._anchor_mask = m.amin(0).expand(problem.b_gs.shape[1:])  # (G, H, W): every channel fitted
         blocks, meas, norms_sq = [], [], []
         if use_rs and self.s.psi > 0 or (use_rs and not use_gs):
             # Power iteration underestimates; a 2 % margin keeps the step safe.
@@ -136,8 +146,8 @@ class TV3D:
         if self.hard:
             w = self.gs.weights.to(dtype=dt, device=dev)
             self._gram_inv_w = torch.linalg.pinv(w @ w.T) @ w  # (G, K): projection onto A_G v = b_G
-            if problem.gs_train_mask is not None:
-                self._anchor_patterns = self._masked_projections(w, problem.gs_fit_mask()[0].to(device=dev))
+            if self._anchor_mask is not None:
+                self._anchor_patterns = self._masked_projections(w, self._anchor_mask)
         x0 = self._initial(dt, dev)
         ax0 = self.op.A(x0)
         self.state = {"x": x0, "Ax": ax0, "y": x0, "Ay": ax0, "t": 1.0, "L": self.L,
@@ -168,7 +178,7 @@ class TV3D:
         if not self.hard:
             return x
         r = self.b_gs_fit - self.gs_fit.A(x)  # (C, G, H, W), zero where held out
-        if self.p.gs_train_mask is None:
+        if self._anchor_mask is None:
             x = x + torch.einsum("cghw,gk->ckhw", r, self._gram_inv_w)
         else:  # the projection onto the fitted rows of W differs with the pattern of fitted frames
             x = x.clone()

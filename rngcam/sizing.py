@@ -1,0 +1,143 @@
+"""The reconstruction's video grid and memory, computed from a bundle's timing alone.
+
+`plan_grid` is the one place that turns a bundle's timing into the video grid: which GS frames
+take part (a GS exposure that misses the RS exposure window, before it or after it, is left
+out), how many frames the grid has (T0 = 0 is the RS trigger; the grid starts earlier by whole
+frames when a kept GS exposure starts before T0), and the video's size. It allocates nothing
+frame-sized, so `inspect` and `recon` can refuse a video that would not fit before any
+method allocates it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rngcam.bundle import Bundle, camera_channels
+from rngcam.errors import BundleError, ConfigError
+from rngcam.memory import total_memory_bytes
+from rngcam.physics.sensor import BAYER_FORMATS
+from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+
+DEFAULT_MAX_FRAMES = 100_000
+MEMORY_FRACTION = 0.8  # of the machine's memory: the default --max-memory
+# Peak memory of a whole `rngcam recon` run per video element (C x K x H x W), measured with
+# /usr/bin/time on a 32x32x3 simulated bundle stretched to 6,531 frames (truth and metrics
+# included; 257 MB of interpreter and libraries subtracted), plus about 10 %: tv3d 137, blend and
+# interp 140, STFM fast (ensemble) 453 bytes. RIFE and pnp were not measured: RIFE as interp plus
+# its model's activations, pnp as STFM.
+BYTES_PER_ELEMENT = {"tv3d": 150, "stfm": 500, "pnp": 500, "blend": 155, "interp": 155, "rife": 170}
+BASE_BYTES = 300 * 2**20  # the interpreter, torch and OpenCV
+
+
+@dataclass(frozen=True)
+class GridPlan:
+    """The video grid of a bundle: timings shifted so the grid starts at 0, and what was left out.
+
+    origin_s: time of the grid's first edge relative to T0 (<= 0).
+    gs_kept: indices of the bundle's GS frames that take part; gs_left_out: (index, reason).
+    """
+
+    rs: RollingShutterTiming
+    gs: GlobalShutterTiming | None
+    grid: VideoGrid
+    origin_s: float
+    channels: int
+    height: int
+    width: int
+    gs_kept: np.ndarray
+    gs_left_out: list[tuple[int, str]] = field(default_factory=list)
+
+    @property
+    def elements(self) -> int:
+        return self.channels * self.grid.n_frames * self.height * self.width
+
+    def describe(self) -> str:
+        return (f"{self.grid.n_frames:,} frames of {self.height}x{self.width}x{self.channels} "
+                f"at {1 / self.grid.dt_s:,.0f} fps")
+
+
+def plan_grid(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = None) -> GridPlan:
+    """The grid a reconstruction of `bundle` at `grid_bin` uses; BundleError for impossible timing."""
+    cam = bundle.rs
+    if cam is None:
+        raise BundleError("the bundle has no rolling-shutter camera; the video grid is defined by it")
+    mosaic = 2 if cam.pixel_format in BAYER_FORMATS else 1
+    if grid_bin is None:
+        grid_bin = int(bundle.meta.get("grid_bin", mosaic))
+    if int(grid_bin) != grid_bin or grid_bin < 1:
+        raise ConfigError(f"--bin must be a positive integer, got {grid_bin!r}")
+    if grid_bin % mosaic:
+        raise BundleError(f"grid_bin {grid_bin} must be a multiple of 2 for a Bayer RS frame")
+    shape = tuple(np.shape(cam.frames))
+    sensor_rows, sensor_cols = shape[1], shape[2]
+    rows, cols = sensor_rows // grid_bin, sensor_cols // grid_bin
+    if rows < 1 or cols < 1:
+        raise BundleError(f"cannot bin a {sensor_rows}x{sensor_cols} RS frame by {grid_bin}")
+    try:
+        rs = RollingShutterTiming(line_time_s=float(cam.line_time_s), exposure_s=float(cam.exposure_s),
+                                  rows=rows, rows_per_bin=grid_bin,
+                                  trigger_s=float(np.asarray(cam.trigger_times_s)[0]))
+        dt = float(dt_s) if dt_s is not None else rs.grid_dt_s
+        gs, kept, left_out = None, np.zeros(0, dtype=int), []
+        if bundle.gs is not None:
+            all_gs = GlobalShutterTiming(tuple(np.asarray(bundle.gs.trigger_times_s, float)),
+                                         float(bundle.gs.exposure_s))
+            inside = all_gs.overlaps(rs.trigger_s, rs.end_s)
+            kept = np.flatnonzero(inside)
+            for i in np.flatnonzero(~inside):
+                t = all_gs.trigger_s[i]
+                left_out.append((int(i), f"its exposure [{t * 1e3:.3f}, {(t + all_gs.exposure_s) * 1e3:.3f}] ms "
+                                         f"misses the RS exposure window [{rs.trigger_s * 1e3:.3f}, "
+                                         f"{rs.end_s * 1e3:.3f}] ms"))
+            gs = all_gs.subset(kept) if kept.size else None
+        before = VideoGrid.frames_before(gs, dt)
+        shift = before * dt
+        if shift:
+            rs = RollingShutterTiming(rs.line_time_s, rs.exposure_s, rs.rows, rs.rows_per_bin,
+                                      rs.trigger_s + shift)
+            gs = gs.shifted(shift)
+        grid = VideoGrid.covering(rs, gs, dt_s=dt)
+    except (ValueError, OverflowError) as exc:
+        raise BundleError(f"the bundle's timing is unusable: {exc}") from None
+    return GridPlan(rs=rs, gs=gs, grid=grid, origin_s=-shift, channels=camera_channels(cam),
+                    height=rows, width=cols, gs_kept=kept, gs_left_out=left_out)
+
+
+def method_bytes(plan: GridPlan, method: str) -> int:
+    """Estimated peak memory of reconstructing the plan's video with `method` (see BYTES_PER_ELEMENT)."""
+    per = BYTES_PER_ELEMENT.get(method, max(BYTES_PER_ELEMENT.values()))
+    return BASE_BYTES + plan.elements * per
+
+
+def default_max_memory_bytes() -> int:
+    """The default memory limit: a fraction of this machine's memory."""
+    return int(MEMORY_FRACTION * total_memory_bytes())
+
+
+def gib(n: float) -> str:
+    return f"{n / 2**30:,.1f} GiB"
+
+
+def check_frames(plan: GridPlan, max_frames: int | None = None) -> None:
+    """ConfigError (one line) when the grid has more than `max_frames` frames."""
+    max_frames = DEFAULT_MAX_FRAMES if max_frames is None else max_frames
+    k = plan.grid.n_frames
+    if k > max_frames:
+        raise ConfigError(f"the video would have {plan.describe()} (RS line time "
+                          f"{plan.rs.line_time_s * 1e6:.4g} us), above --max-frames {max_frames:,}: "
+                          "check the bundle's timing, or raise --max-frames")
+
+
+def check_size(plan: GridPlan, method: str, max_frames: int | None = None,
+               max_memory_bytes: int | None = None) -> int:
+    """Estimated bytes; ConfigError (one line naming the figure and how to change it) past a limit."""
+    check_frames(plan, max_frames)
+    max_memory_bytes = default_max_memory_bytes() if max_memory_bytes is None else max_memory_bytes
+    need = method_bytes(plan, method)
+    if need > max_memory_bytes:
+        raise ConfigError(f"{method} would need about {gib(need)} for {plan.describe()}, above "
+                          f"--max-memory {gib(max_memory_bytes)}: use a coarser --bin, or raise "
+                          "--max-memory (GiB)")
+    return need
