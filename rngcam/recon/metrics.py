@@ -141,7 +141,7 @@ def dynamic_region(truth: Tensor, threshold: float = DYNAMIC_THRESHOLD,
                    dilation_px: int = DYNAMIC_DILATION_PX) -> Tensor:
     """(K, H, W) boolean: where the truth (C, K, H, W) differs from its own temporal median by more
     than `threshold` in any channel, grown by `dilation_px` pixels: the moving region, per frame."""
-    t = truth.double()
+    t = truth.double().contiguous()  # median over a stride-0 (expanded) axis comes out wrong
     background = t.median(dim=1).values  # (C, H, W)
     moving = (t - background[:, None]).abs().amax(0) > threshold
     return _dilate(moving, dilation_px)
@@ -191,7 +191,7 @@ def object_metrics(estimate: Tensor, truth: Tensor, frames: np.ndarray | None = 
     over channels, less OBJECT_FRACTION of the truth's peak object signal in that frame (so the
     estimate's faint noise over the whole image does not count as object).
     """
-    t = truth.double()
+    t = truth.double().contiguous()
     e = estimate.double().to(t.device)
     background = t.median(dim=1).values
     s_true, s_est = object_signal(t, background), object_signal(e, background)
