@@ -6,7 +6,8 @@ import numpy as np
 import torch
 from tiny_scenes import tiny_sineball_problem
 
-from rngcam.recon.metrics import dynamic_region, error_visibility, motion_metrics, object_metrics, psnr_dynamic
+from rngcam.recon.metrics import (dynamic_region, error_visibility, motion_metrics, object_metrics, one_object_scene,
+                                  psnr_dynamic)
 
 
 def _noisy(problem, level: float, seed: int = 0):
@@ -100,3 +101,10 @@ def test_dynamic_psnr_sees_only_the_moving_region():
     out = motion_metrics(ball_error, truth, np.arange(1, 6), one_object=True)
     assert set(out) == {"psnr_dynamic_db", "centroid_error_median_px", "centroid_error_p90_px", "ghost_median",
                         "ghost_max"}
+
+
+def test_one_object_scene_reads_the_simulated_rig():
+    assert one_object_scene("name: sim\nmock:\n  scene: sineball\n  seed: 0\n")
+    assert not one_object_scene("mock:\n  scene: smoke\n")
+    assert not one_object_scene("")
+    assert not one_object_scene("mock: [unbalanced")

@@ -127,6 +127,19 @@ DYNAMIC_THRESHOLD = 0.02  # |truth - its temporal median| above this (data range
 DYNAMIC_DILATION_PX = 2  # the moving region grows by this much (the object's soft edge, small shifts)
 GHOST_DILATION_PX = 2
 OBJECT_FRACTION = 0.1  # an object pixel carries at least this share of the frame's peak object signal
+ONE_OBJECT_SCENES = ("sineball",)  # simulated scenes with one moving object over a static background
+
+
+def one_object_scene(rig_yaml: str) -> bool:
+    """True for a bundle simulated from a one-object scene (its rig's mock scene, ONE_OBJECT_SCENES)."""
+    import yaml
+
+    try:
+        rig = yaml.safe_load(rig_yaml or "") or {}
+    except yaml.YAMLError:
+        return False
+    mock = rig.get("mock") if isinstance(rig, dict) else None
+    return isinstance(mock, dict) and mock.get("scene") in ONE_OBJECT_SCENES
 
 
 def _dilate(mask: Tensor, px: int) -> Tensor:

@@ -24,7 +24,7 @@ from rngcam.errors import ConfigError, RngcamError
 from rngcam.memory import peak_rss_bytes
 from rngcam.recon import outputs
 from rngcam.recon.loop import LoopSettings, RunResult, run
-from rngcam.recon.metrics import error_visibility, relative_residual, video_metrics
+from rngcam.recon.metrics import error_visibility, motion_metrics, one_object_scene, relative_residual, video_metrics
 from rngcam.recon.problem import Problem, build_problem
 
 ITERATIVE = ("stfm", "tv3d")
@@ -208,6 +208,8 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
             metrics[key] = final[key]
     if problem.truth is not None:  # is the remaining error visible above each measurement's noise?
         metrics["error_visibility"] = error_visibility(problem, torch.from_numpy(np.asarray(video)))
+        metrics.update(motion_metrics(torch.from_numpy(np.asarray(video)), problem.truth, intermediate,
+                                      one_object=one_object_scene(bundle.rig_yaml)))
     if method_settings is not None:
         metrics["method_settings"] = method_settings  # the preset's values filled in
     resolved = {**asdict(settings), "device": device, "grid_bin": settings.grid_bin}
