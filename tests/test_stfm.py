@@ -8,13 +8,13 @@ import pytest
 import torch
 
 from rngcam.errors import ConfigError
-from rngcam.physics.operators import GlobalShutter, PSFConvolution, RollingShutter
+from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 from rngcam.recon.components import choose_components
 from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.metrics import psnr
 from rngcam.recon.problem import Problem
-from rngcam.recon.stfm import STFMSettings, make_stfm, rs_rows_forward
+from rngcam.recon.stfm import STFMSettings, make_stfm
 from rngcam.sim.scenes import render_scene
 
 DT_S, EXPOSURE_S = 208e-6, 650e-6  # the reference rig scaled to the grid (see rngcam.sim)
@@ -83,26 +83,6 @@ def small_settings(**kw) -> STFMSettings:
     base = {"components": "all", "seed": 0, "dynamic_base": "video"}
     base.update(kw)
     return STFMSettings(**base)
-
-
-# ----------------------------------------------------------------------------- RS restricted
-
-
-def test_rs_rows_forward_matches_rolling_shutter():
-    torch.manual_seed(0)
-    c, k, h, w = 3, 9, 7, 6
-    psf = torch.rand(c, 5, 4, dtype=torch.float64)
-    weights = torch.rand(h, k, dtype=torch.float64) * (torch.rand(h, k) > 0.4)
-    v = torch.rand(c, k, h, w, dtype=torch.float64)
-    full = RollingShutter(psf, weights, w, c).A(v)
-    conv = PSFConvolution(psf, (h, w), batch_shape=(1,), channels=c)
-    rows = torch.arange(h)
-    assert torch.allclose(rs_rows_forward(conv, weights, v, rows), full, rtol=0, atol=1e-13)
-    # any partition of the frames sums to the same rows; any row subset picks those rows
-    parts = [torch.tensor([0, 3, 4]), torch.tensor([1, 2]), torch.tensor([5, 6, 7, 8])]
-    some = torch.tensor([5, 0, 2])
-    total = sum(rs_rows_forward(conv, weights[some][:, f], v[:, f], some) for f in parts)
-    assert torch.allclose(total, full[:, some], rtol=0, atol=1e-13)
 
 
 # ----------------------------------------------------------------------------- model basics
@@ -252,6 +232,30 @@ def test_held_out_measurements_are_never_fitted(sineball16):
             a.step()
             b.step()
         assert torch.allclose(a.estimate(), b.estimate(), atol=1e-6)
+
+
+def test_saturated_pixels_are_not_fitted(sineball16):
+    """Pixels the valid masks mark as saturated take no part in the data terms or the stop test."""
+    import dataclasses
+
+    gen = torch.Generator().manual_seed(3)
+    rs_valid = torch.rand(sineball16.b_rs.shape, generator=gen) > 0.2
+    gs_valid = torch.rand(sineball16.b_gs.shape, generator=gen) > 0.2
+    masked = dataclasses.replace(sineball16, rs_valid=rs_valid, gs_valid=gs_valid)
+    spoiled = dataclasses.replace(masked, b_rs=torch.where(rs_valid, masked.b_rs, torch.full_like(masked.b_rs, 50.0)),
+                                  b_gs=torch.where(gs_valid, masked.b_gs, torch.full_like(masked.b_gs, 50.0)))
+    for anchor in ("soft", "hard"):
+        # No GS initialisation or GS-made base: those read the GS frames (saturated or not).
+        settings = small_settings(gs_anchor=anchor, init="random", dynamic_base="none")
+        a, b = make_stfm(masked, settings), make_stfm(spoiled, settings)
+        assert a.full_objective() == pytest.approx(b.full_objective(), rel=1e-6)
+        for _ in range(2):
+            a.step()
+            b.step()
+        assert torch.allclose(a.estimate(), b.estimate(), atol=1e-6)
+        assert a.residuals() == pytest.approx(b.residuals(), rel=1e-6)
+    unmasked = make_stfm(dataclasses.replace(spoiled, rs_valid=None, gs_valid=None), settings)
+    assert unmasked.full_objective()["rs"] > 10 * a.full_objective()["rs"]  # the garbage counts without masks
 
 
 # ----------------------------------------------------------------------------- hard anchoring, gains
