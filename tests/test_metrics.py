@@ -6,8 +6,14 @@ import numpy as np
 import torch
 from tiny_scenes import tiny_sineball_problem
 
-from rngcam.recon.metrics import (dynamic_region, error_visibility, motion_metrics, object_metrics, one_object_scene,
-                                  psnr_dynamic)
+from rngcam.recon.metrics import (
+    dynamic_region,
+    error_visibility,
+    motion_metrics,
+    object_metrics,
+    one_object_scene,
+    psnr_dynamic,
+)
 
 
 def _noisy(problem, level: float, seed: int = 0):
