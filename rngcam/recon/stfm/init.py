@@ -42,9 +42,27 @@ class GSInit:
             alpha = (1 - change / thr).clamp(0, 1)
         if self.resolved.dynamic_time:
             self._fit_dynamic_to_blend(v, times, alpha, steps)
+        elif self.resolved.motion_init == "search":
+            self._init_by_search(v[:, middle], background, steps)
         else:
             _fit_image(self.fields["dynamic"], self.xs, self.ys, v[:, middle], steps, alpha)
             self._fit_motion(self._key_flows(v, middle), times, steps)
+
+    def _init_by_search(self, layer: Tensor, background: Tensor, steps: int) -> None:
+        """The canonical dynamic image is the middle key frame; alpha is where that frame (not every
+        key frame: the image moves) differs from the background; the motion is the per-frame
+        translation of that image found by rngcam.recon.stfm.motion_search."""
+        from rngcam.recon.stfm.motion_search import translation_track
+
+        change = (layer - background).abs().mean(0)
+        obj = (change / (0.1 * float(background.mean()) + 1e-6)).clamp(0, 1)  # 1 on the moving object
+        alpha = 1 - obj if self.parts.static else None
+        _fit_image(self.fields["dynamic"], self.xs, self.ys, layer, steps, alpha)
+        track = translation_track(self, background, layer, obj).to(self.device)  # (K, 2) px
+        self.motion_track_px = track
+        # The dynamic field is sampled at x + u: a layer moved by d has u = -d (coordinate units).
+        target = (-track / self.px_per_unit)[:, None, None, :].expand(self.K, self.H, self.W, 2)
+        self._fit_motion_to(target, 3 * steps, frames_per_step=8)  # a track that turns round: more steps
 
     def _blend_weights(self, times: Tensor) -> Tensor:
         """(K, G) cross-fade weights of the key frames (centres `times`, in frames) per frame."""
@@ -111,12 +129,15 @@ class GSInit:
         """Fit the motion field to the key-frame flows, linearly interpolated in time."""
         if float(flows.abs().max()) == 0:
             return
-        target = torch.einsum("kg,ghwc->khwc", self._blend_weights(times), flows)
+        self._fit_motion_to(torch.einsum("kg,ghwc->khwc", self._blend_weights(times), flows), steps)
+
+    def _fit_motion_to(self, target: Tensor, steps: int, frames_per_step: int = 4) -> None:
+        """Fit the motion field to a displacement (K, H, W, 2) in coordinate units."""
         params = list(self.fields["motion"].parameters())
         opt = torch.optim.Adam(params, lr=2e-2)
         gen = torch.Generator(device="cpu").manual_seed(self.settings.seed + 1)
         for _ in range(steps):
-            idx = torch.randperm(self.K, generator=gen)[:4].to(self.device)
+            idx = torch.randperm(self.K, generator=gen)[:frames_per_step].to(self.device)
             opt.zero_grad()
             loss = (self._motion(idx) - target[idx]).square().mean()
             loss.backward()

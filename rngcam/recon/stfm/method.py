@@ -64,6 +64,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop):
             stop_at_noise=preset["stop_at_noise"] if settings.stop_at_noise is None else settings.stop_at_noise,
             stall_drop=preset["stall_drop"] if settings.stall_drop is None else settings.stall_drop,
             ema_decay=preset["ema_decay"] if settings.ema_decay is None else settings.ema_decay,
+            motion_init=settings.motion_init or preset["motion_init"],
             fields={k: preset[k] for k in ("static", "motion", "dynamic")})
         if "," in self.resolved.dynamic_base or self.resolved.dynamic_base == "ensemble":
             raise ConfigError(f"dynamic_base {self.resolved.dynamic_base!r} is an ensemble: build it with make_stfm")
@@ -248,7 +249,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop):
         out.update({k: getattr(self.resolved, k) for k in
                     ("beta", "tau", "lr", "lr_half_life_steps", "rows_per_step", "init", "dynamic_time",
                      "dynamic_base", "time_smoothness", "gs_windows_per_step", "stop_at_noise", "stall_drop",
-                     "ema_decay")})
+                     "ema_decay", "motion_init")})
         out["base_video"] = self.base_source
         out["rs_noise_level"] = self.rs_noise_level
         out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}
