@@ -686,3 +686,49 @@ def test_base_lists_are_validated():
         STFMSettings(dynamic_base="video,video")
     with pytest.raises(ConfigError, match="dynamic_base"):
         STFMSettings(dynamic_base="video,warp")
+
+
+# ----------------------------------------------------------------------------- the prior preset
+
+
+def test_viterbi_finds_the_cheapest_path_with_its_l1_penalty():
+    from itertools import product
+
+    from rngcam.recon.stfm.motion_search import _viterbi
+
+    rng = np.random.default_rng(0)
+    cost = rng.random((4, 3, 3))
+    penalty = 0.3
+    best = _viterbi(cost, penalty)
+
+    def total(path):
+        pts = [divmod(int(i), 3) for i in path]
+        moves = sum(abs(a[0] - b[0]) + abs(a[1] - b[1]) for a, b in zip(pts, pts[1:]))
+        return sum(cost[t].flat[i] for t, i in enumerate(path)) + penalty * moves
+
+    brute = min(product(range(9), repeat=4), key=total)
+    assert total(best) == pytest.approx(total(brute))
+
+
+def test_prior_preset_keeps_one_canonical_image_and_finds_the_turning_object():
+    """A bright square that turns round between the key frames (the key frames see it at the left,
+    the centre and the right): the translation search finds where it went in between."""
+    size = 20
+    _, _gs, grid = timing(size)
+    k = grid.n_frames
+    bg = 0.3 * (0.7 + 0.3 * np.random.default_rng(0).random((3, size, size)))
+    video = np.repeat(bg[:, None], k, axis=1).astype(np.float64)
+    xs = np.round(2 + 12 * np.sin(1.5 * np.pi * np.arange(k) / (k - 1)) ** 2).astype(int)
+    for t, x in enumerate(xs):
+        video[:, t, 8:12, x:x + 4] = 0.95
+    p = video_problem(video, noise=0.001)
+    m = make_stfm(p, STFMSettings(preset="prior", components="all"))
+    assert not m.resolved.dynamic_time and m.resolved.motion_init == "search"
+    assert m.fields["dynamic"].in_dims == 2  # one canonical image: the dynamics live in the motion
+    middle = int(round(m._gs_centre_frames()[1]))
+    found = xs[middle] + m.motion_track_px[:, 0].numpy()
+    assert np.median(np.abs(found - xs)) <= 1.0
+    assert np.median(np.abs(m.motion_track_px[:, 1].numpy())) <= 1.0
+    keys = np.round(m._gs_centre_frames()).astype(int)
+    between = np.interp(np.arange(k), keys, xs[keys])  # what the key frames alone suggest
+    assert np.median(np.abs(between - xs)) >= 3.0
