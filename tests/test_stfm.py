@@ -732,3 +732,27 @@ def test_prior_preset_keeps_one_canonical_image_and_finds_the_turning_object():
     keys = np.round(m._gs_centre_frames()).astype(int)
     between = np.interp(np.arange(k), keys, xs[keys])  # what the key frames alone suggest
     assert np.median(np.abs(between - xs)) >= 3.0
+
+
+def test_without_rife_weights_stfm_says_what_it_uses_instead(sineball16, monkeypatch):
+    import rngcam.recon.rife as rife_mod
+
+    def unavailable(*args, **kwargs):
+        raise rife_mod.RifeUnavailableError("no RIFE weights installed\nsecond line")
+
+    monkeypatch.setattr(rife_mod, "rife", unavailable)
+    monkeypatch.setattr(rife_mod, "rife_warps", unavailable)
+    m = make_stfm(sineball16, STFMSettings(components="all"))
+    said = dict(m.left_out)
+    assert said["RIFE base video"] == "optical-flow interpolation used instead (no RIFE weights installed)"
+    assert said["RIFE flows"].startswith("DIS optical flow used instead")
+    assert [f.base_source for f in fits(m)] == ["interp", "keys_interp"]  # "keys" fell back onto keys_interp
+
+
+def test_a_fit_can_start_from_a_given_video(sineball16):
+    start = sineball16.truth.float() * 0.9
+    m = make_stfm(sineball16, STFMSettings(components="all"), initial_video=start)
+    assert m.base_source == "given" and m.resolved.dynamic_base == "video"
+    assert torch.equal(m.base_video, start)
+    with pytest.raises(ConfigError, match="initial_video"):
+        make_stfm(sineball16, STFMSettings(), initial_video=start[:, :3])

@@ -17,6 +17,7 @@ class BaseVideos:
         """Key frames (without gains) and cross-fade weights for a dynamic field on a base."""
         self.base_keys = self.base_weights = self.base_video = None
         self.base_source = None
+        self.substitutes: list[tuple[str, str]] = []  # (what was preferred, what is used instead and why)
         kind = self.resolved.dynamic_base
         if not (kind != "none" and self.resolved.dynamic_time and self.parts.gs and self.parts.motion):
             return
@@ -33,8 +34,10 @@ class BaseVideos:
                 return
             kind = "interp"  # too few key frames or too small for flow
         if kind in BASE_VIDEOS:
-            self.base_video, self.base_source = _base_video(keys, p.gs_times_s, p.frame_times_s, kind)
+            self.base_video, self.base_source, why = _base_video(keys, p.gs_times_s, p.frame_times_s, kind)
             self.base_video = self.base_video.to(self.device, torch.float32)
+            if why:
+                self.substitutes.append(("RIFE base video", f"optical-flow interpolation used instead ({why})"))
             return
         self.base_source = "blend"
         self.base_keys = keys.reshape(1, -1, self.H, self.W).to(self.device, torch.float32)
@@ -55,9 +58,10 @@ class BaseVideos:
             try:
                 with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
                     warps, source = rife_warps(*args), "keys_rife"
-            except (RifeUnavailableError, BaselineInputError):
+            except (RifeUnavailableError, BaselineInputError) as exc:
                 if kind == "keys_rife":
                     raise
+                self.substitutes.append(("RIFE flows", f"DIS optical flow used instead ({_first_line(exc)})"))
         try:
             if warps is None:
                 warps, source = interp_warps(*args), "keys_interp"
@@ -75,8 +79,13 @@ class BaseVideos:
 
 
 
-def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str) -> tuple[Tensor, str]:
-    """The GS-only video (C, K, H, W) a dynamic field corrects, and which baseline made it."""
+def _first_line(exc: Exception) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+
+
+def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str) -> tuple[Tensor, str, str]:
+    """The GS-only video (C, K, H, W) a dynamic field corrects, which baseline made it, and why
+    RIFE was not used where it was preferred ("" otherwise)."""
     from rngcam.recon.baselines import interp
 
     frames = keys.detach().float().cpu().numpy()
@@ -85,10 +94,13 @@ def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str) -> tuple[Ten
 
         try:
             with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
-                return torch.from_numpy(rife(frames, gs_times_s, frame_times_s)), "rife"
-        except RifeUnavailableError:
+                return torch.from_numpy(rife(frames, gs_times_s, frame_times_s)), "rife", ""
+        except RifeUnavailableError as exc:
             if kind == "rife":
                 raise
-    return torch.from_numpy(np.asarray(interp(frames, gs_times_s, frame_times_s), np.float32)), "interp"
+            why = _first_line(exc)
+    else:
+        why = ""
+    return torch.from_numpy(np.asarray(interp(frames, gs_times_s, frame_times_s), np.float32)), "interp", why
 
 

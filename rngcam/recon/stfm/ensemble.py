@@ -8,6 +8,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from rngcam.errors import ConfigError
 from rngcam.recon.stfm.method import STFM
 from rngcam.recon.stfm.model import _chunks
 from rngcam.recon.stfm.settings import REFINE_LR_RATIO, STFMSettings, _base_list, _setting_or_preset
@@ -61,7 +62,7 @@ class STFMEnsemble:
 
     @property
     def left_out(self) -> list[tuple[str, str]]:
-        return self.members[0].left_out
+        return list(dict.fromkeys(item for m in self.members for item in m.left_out))
 
     @property
     def rs_noise_level(self) -> float | None:
@@ -174,10 +175,21 @@ class STFMEnsemble:
         return out
 
 
-def make_stfm(problem, settings: STFMSettings | None = None, device="cpu") -> STFM | STFMEnsemble:
+def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
+              initial_video: Tensor | None = None) -> STFM | STFMEnsemble:
     """The STFM method for `problem` (see STFM and STFMSettings): an STFMEnsemble when the
-    dynamic base (the setting, else the preset's) lists several bases and the problem uses them."""
+    dynamic base (the setting, else the preset's) lists several bases and the problem uses them.
+
+    `initial_video` (C, K, H, W), on the RS scale without GS gains (e.g. a coarser level's
+    estimate, upsampled): one fit whose dynamic base is that video (dynamic_base "video"), so the
+    fit starts from it instead of from a GS-only interpolation."""
     settings = settings or STFMSettings()
+    if initial_video is not None:
+        if tuple(initial_video.shape) != tuple(problem.shape):
+            raise ConfigError(f"initial_video has shape {tuple(initial_video.shape)}, the problem's video "
+                              f"is {tuple(problem.shape)}")
+        return STFM(problem, replace(settings, dynamic_base="video", dynamic_time=True), device,
+                    base_video=initial_video)
     names = _base_list(_setting_or_preset(settings, "dynamic_base"))
     if len(names) == 1:
         return STFM(problem, replace(settings, dynamic_base=names[0]), device)

@@ -89,7 +89,8 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop):
 
     @property
     def left_out(self) -> list[tuple[str, str]]:
-        return list(self.parts.left_out)
+        """Components left out and substitutes used (e.g. no RIFE weights), each with why."""
+        return list(self.parts.left_out) + list(self.substitutes)
 
 
     def _build_optimiser(self, preset: dict) -> None:
