@@ -73,9 +73,15 @@ frames: memory O(G) instead of O(K), but it starts lower), "none" (F_D alone, fi
 cross-fade first; with `dynamic_time=False` the canonical image from the middle key frame and
 the motion from DIS optical flow between key frames, interpolated in time).
 
+Preset "prior": the paper's model (2-D canonical dynamic image, dynamics only in the motion) on
+the fast preset's plane fields and schedule, without the stall test; its canonical image and alpha
+come from the middle key frame, its motion from a global translation search (motion_search). A fit
+can also start from a given video: make_stfm(..., initial_video=v) (e.g. a coarser level's result).
+
 Package layout: settings (STFMSettings, presets), model (fields -> frames), bases (dynamic
 bases), loss (data terms through rngcam.physics.operators, TV), init (from the GS frames),
-stopping (noise and stall tests), method (STFM: one fit), ensemble (STFMEnsemble, make_stfm).
+stopping (noise and stall tests), motion_search (the prior preset's motion start), method (STFM: one
+fit), ensemble (STFMEnsemble, make_stfm).
 """
 
 from rngcam.recon.stfm.ensemble import STFMEnsemble, make_stfm
