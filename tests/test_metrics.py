@@ -2,10 +2,18 @@
 
 import math
 
+import numpy as np
 import torch
 from tiny_scenes import tiny_sineball_problem
 
-from rngcam.recon.metrics import error_visibility
+from rngcam.recon.metrics import (
+    dynamic_region,
+    error_visibility,
+    motion_metrics,
+    object_metrics,
+    one_object_scene,
+    psnr_dynamic,
+)
 
 
 def _noisy(problem, level: float, seed: int = 0):
@@ -46,3 +54,63 @@ def test_visibility_without_noise_or_truth():
     assert error_visibility(p, p.truth + 0.1) == {"rs": math.inf, "gs": math.inf}
     p.truth = None
     assert all(math.isnan(v) for v in error_visibility(p, torch.zeros(3, 14, 12, 12)).values())
+
+
+def _disc_video(centres, size=40, radius=3.0, background=0.2, value=0.9):
+    """(3, K, size, size) a bright disc at each (x, y) centre over a constant background."""
+    ys, xs = torch.meshgrid(torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64),
+                            indexing="ij")
+    frames = []
+    for cx, cy in centres:
+        disc = ((xs - cx) ** 2 + (ys - cy) ** 2 <= radius ** 2).double()
+        frames.append(background + (value - background) * disc)
+    return torch.stack(frames)[None].expand(3, -1, -1, -1).clone()
+
+
+CENTRES = [(11.0 + 3 * k, 20.0) for k in range(7)]  # a pixel is covered in < half the frames
+
+
+def test_centroid_error_is_the_shift_of_the_object_and_ghost_is_zero_for_one_object():
+    truth = _disc_video(CENTRES)
+    shifted = _disc_video([(x + 2, y) for x, y in CENTRES])
+    m = object_metrics(shifted, truth)
+    assert abs(m["centroid_error_median_px"] - 2.0) < 1e-9 and abs(m["centroid_error_p90_px"] - 2.0) < 1e-9
+    assert m["ghost_median"] == 0.0  # 2 px off: inside the true disc grown by 2 px: no signal outside it
+    same = object_metrics(truth, truth)
+    assert same["centroid_error_median_px"] == 0.0 and same["ghost_max"] == 0.0
+
+
+def test_a_split_object_has_a_large_ghost_share_even_with_its_centroid_right():
+    truth = _disc_video(CENTRES)
+    # Half the disc's contrast on either side, 9 px away: the mean position is right, the picture is not.
+    left = _disc_video([(x - 9, y) for x, y in CENTRES]) - 0.2
+    right = _disc_video([(x + 9, y) for x, y in CENTRES]) - 0.2
+    split = 0.2 + 0.5 * (left + right)
+    m = object_metrics(split, truth, frames=np.arange(1, 6))
+    assert m["centroid_error_median_px"] < 0.5
+    assert m["ghost_median"] > 0.9
+
+
+def test_dynamic_psnr_sees_only_the_moving_region():
+    truth = _disc_video(CENTRES)
+    region = dynamic_region(truth)
+    assert region.shape == (7, 40, 40) and not bool(region[:, 0, 0].any())
+    for k, (cx, cy) in enumerate(CENTRES):  # the disc (radius 3) grown by 2 px, in its own frame
+        assert bool(region[k, int(cy), int(cx) - 5:int(cx) + 6].all()) and not bool(region[k, int(cy) - 7].any())
+    corner_error = truth.clone()
+    corner_error[:, :, 0:2, 0:2] += 0.3  # far from the disc's path: the whole-frame PSNR drops, the dynamic one not
+    assert psnr_dynamic(corner_error, truth) == math.inf
+    ball_error = truth + 0.1 * region[None].double()
+    assert abs(psnr_dynamic(ball_error, truth) - 20.0) < 1e-9
+    still = truth[:, :1].expand(-1, 7, -1, -1)
+    assert math.isnan(psnr_dynamic(still, still))
+    out = motion_metrics(ball_error, truth, np.arange(1, 6), one_object=True)
+    assert set(out) == {"psnr_dynamic_db", "centroid_error_median_px", "centroid_error_p90_px", "ghost_median",
+                        "ghost_max"}
+
+
+def test_one_object_scene_reads_the_simulated_rig():
+    assert one_object_scene("name: sim\nmock:\n  scene: sineball\n  seed: 0\n")
+    assert not one_object_scene("mock:\n  scene: smoke\n")
+    assert not one_object_scene("")
+    assert not one_object_scene("mock: [unbalanced")

@@ -167,3 +167,44 @@ def test_invalid_psf_and_psi_rejected():
     rs, gs = _rs_gs()
     with pytest.raises(ValueError):
         Stacked(rs, gs, psi=-1.0)
+
+
+# ----------------------------------------------------------------------------- restricted operators
+
+ROWS, FRAMES = torch.tensor([1, 2, 6]), torch.tensor([0, 3, 4, 7])
+
+
+@pytest.mark.parametrize("name", ["rolling-shutter", "rolling-shutter-colour-psf"])
+def test_rolling_shutter_rows_adjointness_and_partition_sum(name):
+    op = OPS[name]
+    c, k, h, w = op.domain_shape
+    rows, frames = ROWS, FRAMES[FRAMES < k]
+    x = _rand((c, len(frames), h, w), 21)
+    y = _rand((c, len(rows), w), 22)
+    lhs, rhs = float(inner(op.A_rows(x, rows, frames), y)), float(inner(x, op.A_rows_adjoint(y, rows, frames)))
+    assert abs(lhs - rhs) <= 1e-12 * max(1.0, abs(lhs))
+    # Frame subsets that partition the video sum to the full operator's rows.
+    v = _rand((c, k, h, w), 23)
+    parts = torch.arange(k).split(3)
+    total = sum(op.A_rows(v[:, p], rows, p) for p in parts)
+    torch.testing.assert_close(total, op.A(v)[:, rows], rtol=1e-12, atol=1e-12)
+    # All rows and all frames: the adjoint is the full adjoint.
+    b = _rand((c, h, w), 24)
+    torch.testing.assert_close(op.A_rows_adjoint(b, torch.arange(h), torch.arange(k)), op.A_adjoint(b),
+                               rtol=1e-12, atol=1e-12)
+
+
+def test_global_shutter_frames_adjointness_and_restriction():
+    op = OPS["global-shutter"]
+    c, k, h, w = op.domain_shape
+    g = op.weights.shape[0]
+    windows, frames = torch.tensor([0, 2]), FRAMES[FRAMES < k]
+    x = _rand((c, len(frames), h, w), 31)
+    y = _rand((c, len(windows), h, w), 32)
+    lhs = float(inner(op.A_frames(x, windows, frames), y))
+    rhs = float(inner(x, op.A_frames_adjoint(y, windows, frames)))
+    assert abs(lhs - rhs) <= 1e-12 * max(1.0, abs(lhs))
+    v = _rand((c, k, h, w), 33)
+    touched = torch.nonzero(op.weights[windows].sum(0) > 0).flatten()
+    torch.testing.assert_close(op.A_frames(v[:, touched], windows, touched), op.A(v)[:, windows])
+    torch.testing.assert_close(op.A_frames(v, torch.arange(g), torch.arange(k)), op.A(v))

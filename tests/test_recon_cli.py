@@ -36,7 +36,8 @@ def test_recon_writes_every_output(mock_bundle, tmp_path, method, extra):
     assert res.exit_code == 0, res.output
     assert _sha(mock_bundle) == before  # the bundle is never modified
     metrics = json.loads((out / "metrics.json").read_text())
-    for key in ("psnr_db", "ssim", "psnr_intermediate_db", "seconds", "iterations", "peak_rss_bytes", "method"):
+    for key in ("psnr_db", "ssim", "psnr_intermediate_db", "psnr_dynamic_db", "seconds", "iterations", "peak_rss_bytes",
+                "method"):
         assert key in metrics, key
     assert metrics["method"] == method and np.isfinite(metrics["psnr_db"]) and metrics["psnr_db"] > 15
     seen = metrics["error_visibility"]  # the mock bundle is noisy, so both ratios are finite

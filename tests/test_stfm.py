@@ -8,13 +8,13 @@ import pytest
 import torch
 
 from rngcam.errors import ConfigError
-from rngcam.physics.operators import GlobalShutter, PSFConvolution, RollingShutter
+from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 from rngcam.recon.components import choose_components
 from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.metrics import psnr
 from rngcam.recon.problem import Problem
-from rngcam.recon.stfm import STFMSettings, make_stfm, rs_rows_forward
+from rngcam.recon.stfm import STFMSettings, make_stfm
 from rngcam.sim.scenes import render_scene
 
 DT_S, EXPOSURE_S = 208e-6, 650e-6  # the reference rig scaled to the grid (see rngcam.sim)
@@ -83,26 +83,6 @@ def small_settings(**kw) -> STFMSettings:
     base = {"components": "all", "seed": 0, "dynamic_base": "video"}
     base.update(kw)
     return STFMSettings(**base)
-
-
-# ----------------------------------------------------------------------------- RS restricted
-
-
-def test_rs_rows_forward_matches_rolling_shutter():
-    torch.manual_seed(0)
-    c, k, h, w = 3, 9, 7, 6
-    psf = torch.rand(c, 5, 4, dtype=torch.float64)
-    weights = torch.rand(h, k, dtype=torch.float64) * (torch.rand(h, k) > 0.4)
-    v = torch.rand(c, k, h, w, dtype=torch.float64)
-    full = RollingShutter(psf, weights, w, c).A(v)
-    conv = PSFConvolution(psf, (h, w), batch_shape=(1,), channels=c)
-    rows = torch.arange(h)
-    assert torch.allclose(rs_rows_forward(conv, weights, v, rows), full, rtol=0, atol=1e-13)
-    # any partition of the frames sums to the same rows; any row subset picks those rows
-    parts = [torch.tensor([0, 3, 4]), torch.tensor([1, 2]), torch.tensor([5, 6, 7, 8])]
-    some = torch.tensor([5, 0, 2])
-    total = sum(rs_rows_forward(conv, weights[some][:, f], v[:, f], some) for f in parts)
-    assert torch.allclose(total, full[:, some], rtol=0, atol=1e-13)
 
 
 # ----------------------------------------------------------------------------- model basics
@@ -252,6 +232,30 @@ def test_held_out_measurements_are_never_fitted(sineball16):
             a.step()
             b.step()
         assert torch.allclose(a.estimate(), b.estimate(), atol=1e-6)
+
+
+def test_saturated_pixels_are_not_fitted(sineball16):
+    """Pixels the valid masks mark as saturated take no part in the data terms or the stop test."""
+    import dataclasses
+
+    gen = torch.Generator().manual_seed(3)
+    rs_valid = torch.rand(sineball16.b_rs.shape, generator=gen) > 0.2
+    gs_valid = torch.rand(sineball16.b_gs.shape, generator=gen) > 0.2
+    masked = dataclasses.replace(sineball16, rs_valid=rs_valid, gs_valid=gs_valid)
+    spoiled = dataclasses.replace(masked, b_rs=torch.where(rs_valid, masked.b_rs, torch.full_like(masked.b_rs, 50.0)),
+                                  b_gs=torch.where(gs_valid, masked.b_gs, torch.full_like(masked.b_gs, 50.0)))
+    for anchor in ("soft", "hard"):
+        # No GS initialisation or GS-made base: those read the GS frames (saturated or not).
+        settings = small_settings(gs_anchor=anchor, init="random", dynamic_base="none")
+        a, b = make_stfm(masked, settings), make_stfm(spoiled, settings)
+        assert a.full_objective() == pytest.approx(b.full_objective(), rel=1e-6)
+        for _ in range(2):
+            a.step()
+            b.step()
+        assert torch.allclose(a.estimate(), b.estimate(), atol=1e-6)
+        assert a.residuals() == pytest.approx(b.residuals(), rel=1e-6)
+    unmasked = make_stfm(dataclasses.replace(spoiled, rs_valid=None, gs_valid=None), settings)
+    assert unmasked.full_objective()["rs"] > 10 * a.full_objective()["rs"]  # the garbage counts without masks
 
 
 # ----------------------------------------------------------------------------- hard anchoring, gains
@@ -682,3 +686,73 @@ def test_base_lists_are_validated():
         STFMSettings(dynamic_base="video,video")
     with pytest.raises(ConfigError, match="dynamic_base"):
         STFMSettings(dynamic_base="video,warp")
+
+
+# ----------------------------------------------------------------------------- the prior preset
+
+
+def test_viterbi_finds_the_cheapest_path_with_its_l1_penalty():
+    from itertools import product
+
+    from rngcam.recon.stfm.motion_search import _viterbi
+
+    rng = np.random.default_rng(0)
+    cost = rng.random((4, 3, 3))
+    penalty = 0.3
+    best = _viterbi(cost, penalty)
+
+    def total(path):
+        pts = [divmod(int(i), 3) for i in path]
+        moves = sum(abs(a[0] - b[0]) + abs(a[1] - b[1]) for a, b in zip(pts, pts[1:]))
+        return sum(cost[t].flat[i] for t, i in enumerate(path)) + penalty * moves
+
+    brute = min(product(range(9), repeat=4), key=total)
+    assert total(best) == pytest.approx(total(brute))
+
+
+def test_prior_preset_keeps_one_canonical_image_and_finds_the_turning_object():
+    """A bright square that turns round between the key frames (the key frames see it at the left,
+    the centre and the right): the translation search finds where it went in between."""
+    size = 20
+    _, _gs, grid = timing(size)
+    k = grid.n_frames
+    bg = 0.3 * (0.7 + 0.3 * np.random.default_rng(0).random((3, size, size)))
+    video = np.repeat(bg[:, None], k, axis=1).astype(np.float64)
+    xs = np.round(2 + 12 * np.sin(1.5 * np.pi * np.arange(k) / (k - 1)) ** 2).astype(int)
+    for t, x in enumerate(xs):
+        video[:, t, 8:12, x:x + 4] = 0.95
+    p = video_problem(video, noise=0.001)
+    m = make_stfm(p, STFMSettings(preset="prior", components="all"))
+    assert not m.resolved.dynamic_time and m.resolved.motion_init == "search"
+    assert m.fields["dynamic"].in_dims == 2  # one canonical image: the dynamics live in the motion
+    middle = int(round(m._gs_centre_frames()[1]))
+    found = xs[middle] + m.motion_track_px[:, 0].numpy()
+    assert np.median(np.abs(found - xs)) <= 1.0
+    assert np.median(np.abs(m.motion_track_px[:, 1].numpy())) <= 1.0
+    keys = np.round(m._gs_centre_frames()).astype(int)
+    between = np.interp(np.arange(k), keys, xs[keys])  # what the key frames alone suggest
+    assert np.median(np.abs(between - xs)) >= 3.0
+
+
+def test_without_rife_weights_stfm_says_what_it_uses_instead(sineball16, monkeypatch):
+    import rngcam.recon.rife as rife_mod
+
+    def unavailable(*args, **kwargs):
+        raise rife_mod.RifeUnavailableError("no RIFE weights installed\nsecond line")
+
+    monkeypatch.setattr(rife_mod, "rife", unavailable)
+    monkeypatch.setattr(rife_mod, "rife_warps", unavailable)
+    m = make_stfm(sineball16, STFMSettings(components="all"))
+    said = dict(m.left_out)
+    assert said["RIFE base video"] == "optical-flow interpolation used instead (no RIFE weights installed)"
+    assert said["RIFE flows"].startswith("DIS optical flow used instead")
+    assert [f.base_source for f in fits(m)] == ["interp", "keys_interp"]  # "keys" fell back onto keys_interp
+
+
+def test_a_fit_can_start_from_a_given_video(sineball16):
+    start = sineball16.truth.float() * 0.9
+    m = make_stfm(sineball16, STFMSettings(components="all"), initial_video=start)
+    assert m.base_source == "given" and m.resolved.dynamic_base == "video"
+    assert torch.equal(m.base_video, start)
+    with pytest.raises(ConfigError, match="initial_video"):
+        make_stfm(sineball16, STFMSettings(), initial_video=start[:, :3])

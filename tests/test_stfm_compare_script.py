@@ -22,7 +22,7 @@ def test_stfm_compare_runs_every_method_and_reports_targets(tmp_path):
     report = out.read_text()
     row = next(line for line in report.splitlines() if line.startswith("| smoke | 16 |"))
     cells = [c.strip() for c in row.strip("|").split("|")][2:]
-    assert len(cells) == 7 and all(re.fullmatch(r"-?\d+\.\d\d / -?\d+\.\d\d", c) for c in cells), row
+    assert len(cells) == 7 and all(re.fullmatch(r"-?\d+\.\d\d / -?\d+\.\d\d \[-?\d+\.\d\d(; .* px, ghost \d\.\d\d)?\]", c) for c in cells), row
     assert re.search(r"smoke 16: STFM fast - best GS-only = [+-]\d+\.\d\d dB \(target \+3\.0: (met|NOT met)\)",
                      report)
     # the GS-only mean is not a "best GS-only" baseline of the targets, but its margin is reported

@@ -179,6 +179,30 @@ class RollingShutter(LinearOperator):
     def A_adjoint(self, b: Tensor) -> Tensor:  # noqa: N802
         return self.conv.A_adjoint(b[:, None] * self._w_kh1(b))
 
+    def A_rows(self, v_frames: Tensor, rows: Tensor, frames: Tensor) -> Tensor:  # noqa: N802
+        """Sensor rows `rows` (R,) as seen from frames `frames` (F,) only: v_frames (C, F, H, W)
+        -> (C, R, W). Summed over frame subsets that partition the video it gives A(v)[:, rows];
+        only those rows go through the inverse FFT along x (a fit's step samples a few rows)."""
+        conv = self.conv
+        h, w = conv.image_shape
+        oy, ox = conv.offset
+        fw = conv.fft_shape[1]
+        tf = conv._broadcast(conv.transfer(v_frames.dtype, v_frames.device), v_frames.ndim)
+        rows = rows.to(v_frames.device)
+        spec = torch.fft.ifft(torch.fft.rfft2(v_frames, s=conv.fft_shape) * tf, dim=-2).index_select(-2, rows + oy)
+        weights = self._w(v_frames)[rows][:, frames.to(v_frames.device)].T  # (F, R)
+        summed = (spec * weights[:, :, None].to(spec.dtype)).sum(dim=1)  # (C, R, fw // 2 + 1)
+        return torch.fft.irfft(summed, n=fw, dim=-1)[..., ox:ox + w]
+
+    def A_rows_adjoint(self, b_rows: Tensor, rows: Tensor, frames: Tensor) -> Tensor:  # noqa: N802
+        """Adjoint of A_rows: (C, R, W) -> (C, F, H, W)."""
+        c, _, w = b_rows.shape
+        h = self.conv.image_shape[0]
+        weights = self._w(b_rows)[rows.to(b_rows.device)][:, frames.to(b_rows.device)].T  # (F, R)
+        full = torch.zeros(c, len(frames), h, w, dtype=b_rows.dtype, device=b_rows.device)
+        full[:, :, rows.to(b_rows.device)] = b_rows[:, None] * weights[None, :, :, None]
+        return self.conv.A_adjoint(full)
+
 
 class GlobalShutter(LinearOperator):
     """GS measurement: frame g is the weighted sum of video frames, sum_k W[g, k] v_k.
@@ -198,6 +222,17 @@ class GlobalShutter(LinearOperator):
 
     def A_adjoint(self, b: Tensor) -> Tensor:  # noqa: N802
         return torch.einsum("cghw,gk->ckhw", b, self._w(b))
+
+    def A_frames(self, v_frames: Tensor, windows: Tensor, frames: Tensor) -> Tensor:  # noqa: N802
+        """GS frames `windows` (n,) as seen from video frames `frames` (F,) only:
+        v_frames (C, F, H, W) -> (C, n, H, W) (exact when `frames` hold all those exposures touch)."""
+        w = self._w(v_frames)[windows.to(v_frames.device)][:, frames.to(v_frames.device)]
+        return torch.einsum("cfhw,gf->cghw", v_frames, w)
+
+    def A_frames_adjoint(self, b: Tensor, windows: Tensor, frames: Tensor) -> Tensor:  # noqa: N802
+        """Adjoint of A_frames: (C, n, H, W) -> (C, F, H, W)."""
+        w = self._w(b)[windows.to(b.device)][:, frames.to(b.device)]
+        return torch.einsum("cghw,gf->cfhw", b, w)
 
     def norm(self, *args, **kwargs) -> float:
         """Exact: A^T A acts on each pixel as W^T W, so ||A|| = sqrt(largest eigenvalue of W W^T)."""

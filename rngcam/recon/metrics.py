@@ -175,3 +175,120 @@ def error_visibility_caveats(problem, frame_chunk: int = 16) -> list[str]:
     for what, why in getattr(problem, "left_out", []):
         out.append(f"{what} left out ({why}): the visibility does not cover it")
     return out
+
+
+# ----------------------------------------------------------------------------- motion yardstick
+
+DYNAMIC_THRESHOLD = 0.02  # |truth - its temporal median| above this (data range 1) counts as moving
+DYNAMIC_DILATION_PX = 2  # the moving region grows by this much (the object's soft edge, small shifts)
+GHOST_DILATION_PX = 2
+OBJECT_FRACTION = 0.1  # an object pixel carries at least this share of the frame's peak object signal
+ONE_OBJECT_SCENES = ("sineball",)  # simulated scenes with one moving object over a static background
+
+
+def one_object_scene(rig_yaml: str) -> bool:
+    """True for a bundle simulated from a one-object scene (its rig's mock scene, ONE_OBJECT_SCENES)."""
+    import yaml
+
+    try:
+        rig = yaml.safe_load(rig_yaml or "") or {}
+    except yaml.YAMLError:
+        return False
+    mock = rig.get("mock") if isinstance(rig, dict) else None
+    return isinstance(mock, dict) and mock.get("scene") in ONE_OBJECT_SCENES
+
+
+def _dilate(mask: Tensor, px: int) -> Tensor:
+    """(K, H, W) boolean mask grown by px pixels (square structuring element)."""
+    if px <= 0:
+        return mask
+    m = mask.float()[:, None]
+    return (torch.nn.functional.max_pool2d(m, 2 * px + 1, stride=1, padding=px)[:, 0] > 0)
+
+
+def dynamic_region(truth: Tensor, threshold: float = DYNAMIC_THRESHOLD,
+                   dilation_px: int = DYNAMIC_DILATION_PX) -> Tensor:
+    """(K, H, W) boolean: where the truth (C, K, H, W) differs from its own temporal median by more
+    than `threshold` in any channel, grown by `dilation_px` pixels: the moving region, per frame."""
+    t = truth.double().contiguous()  # median over a stride-0 (expanded) axis comes out wrong
+    background = t.median(dim=1).values  # (C, H, W)
+    moving = (t - background[:, None]).abs().amax(0) > threshold
+    return _dilate(moving, dilation_px)
+
+
+def psnr_dynamic(estimate: Tensor, truth: Tensor, frames: np.ndarray | None = None) -> float:
+    """PSNR in dB over the moving region (`dynamic_region`) of `frames` (default all); nan when
+    nothing moves there."""
+    region = dynamic_region(truth)
+    e, t = estimate.double().to(truth.device), truth.double()
+    if frames is not None:
+        idx = torch.as_tensor(np.asarray(frames), dtype=torch.long, device=truth.device)
+        region, e, t = region.index_select(0, idx), e.index_select(1, idx), t.index_select(1, idx)
+    if not bool(region.any()):
+        return math.nan
+    mse = float(((e - t) ** 2)[region[None].expand_as(e)].mean())
+    return math.inf if mse == 0 else 10 * math.log10(1.0 / mse)
+
+
+def object_signal(video: Tensor, background: Tensor) -> Tensor:
+    """(K, H, W): how far each pixel of a video (C, K, H, W) is from a static background (C, H, W),
+    summed over channels (the moving object's footprint, whatever its colour)."""
+    return (video.double() - background.double()[:, None]).abs().sum(0)
+
+
+def _centroids(weights: Tensor) -> Tensor:
+    """(K, 2) weighted centroid (x, y) in pixels of (K, H, W) non-negative weights (nan if empty)."""
+    k, h, w = weights.shape
+    total = weights.sum((1, 2))
+    ys = torch.arange(h, dtype=weights.dtype, device=weights.device)
+    xs = torch.arange(w, dtype=weights.dtype, device=weights.device)
+    cx = (weights.sum(1) * xs).sum(1) / total
+    cy = (weights.sum(2) * ys).sum(1) / total
+    out = torch.stack([cx, cy], dim=1)
+    out[total <= 0] = math.nan
+    return out
+
+
+def object_metrics(estimate: Tensor, truth: Tensor, frames: np.ndarray | None = None) -> dict[str, float]:
+    """For a scene with one moving object over a static background: per frame, the distance in
+    pixels between the object's centroid in the estimate and in the truth (median and 90th
+    percentile over `frames`), and the ghost figure: the share of the estimate's object signal
+    outside the true object region grown by GHOST_DILATION_PX pixels (median and maximum over
+    `frames`; a split or smeared object puts signal there).
+
+    The background is the truth's temporal median. Object signal is |video - background| summed
+    over channels, less OBJECT_FRACTION of the truth's peak object signal in that frame (so the
+    estimate's faint noise over the whole image does not count as object).
+    """
+    t = truth.double().contiguous()
+    e = estimate.double().to(t.device)
+    background = t.median(dim=1).values
+    s_true, s_est = object_signal(t, background), object_signal(e, background)
+    floor = OBJECT_FRACTION * s_true.amax((1, 2), keepdim=True)
+    w_true, w_est = (s_true - floor).clamp_min(0), (s_est - floor).clamp_min(0)
+    if frames is not None:
+        idx = torch.as_tensor(np.asarray(frames), dtype=torch.long, device=t.device)
+        w_true, w_est = w_true.index_select(0, idx), w_est.index_select(0, idx)
+    region = _dilate(w_true > 0, GHOST_DILATION_PX)
+    err = (_centroids(w_est) - _centroids(w_true)).norm(dim=1).cpu().numpy()
+    total = w_est.sum((1, 2))
+    ghost = torch.where(total > 0, (w_est * ~region).sum((1, 2)) / total.clamp_min(1e-30),
+                        torch.ones_like(total)).cpu().numpy()
+    finite = err[np.isfinite(err)]
+    if finite.size < err.size:  # an estimate without any object in a frame: the worst case
+        finite = np.concatenate([finite, np.full(err.size - finite.size, math.inf)])
+    return {"centroid_error_median_px": float(np.median(finite)) if finite.size else math.nan,
+            "centroid_error_p90_px": float(np.percentile(finite, 90)) if finite.size else math.nan,
+            "ghost_median": float(np.median(ghost)) if ghost.size else math.nan,
+            "ghost_max": float(np.max(ghost)) if ghost.size else math.nan}
+
+
+def motion_metrics(estimate: Tensor, truth: Tensor, intermediate: np.ndarray,
+                   one_object: bool = False) -> dict[str, float]:
+    """The motion yardstick over the intermediate frames: `psnr_dynamic_db`, and with
+    `one_object` the centroid and ghost figures of `object_metrics`."""
+    frames = np.asarray(intermediate) if len(intermediate) else None
+    out = {"psnr_dynamic_db": psnr_dynamic(estimate, truth, frames)}
+    if one_object:
+        out.update(object_metrics(estimate, truth, frames))
+    return out

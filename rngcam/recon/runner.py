@@ -24,7 +24,8 @@ from rngcam.errors import ConfigError, RngcamError
 from rngcam.memory import peak_rss_bytes
 from rngcam.recon import outputs
 from rngcam.recon.loop import LoopSettings, RunResult, run
-from rngcam.recon.metrics import error_visibility, error_visibility_caveats, relative_residual, video_metrics
+from rngcam.recon.metrics import (error_visibility, error_visibility_caveats, motion_metrics, one_object_scene,
+                                  relative_residual, video_metrics)
 from rngcam.recon.problem import Problem, build_problem
 from rngcam.sizing import check_size, gib, plan_grid
 
@@ -263,6 +264,8 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
         caveats = error_visibility_caveats(problem)
         if caveats:
             metrics["error_visibility_caveats"] = caveats
+        metrics.update(motion_metrics(torch.from_numpy(np.asarray(video)), problem.truth, intermediate,
+                                      one_object=one_object_scene(bundle.rig_yaml)))
     if method_settings is not None:
         metrics["method_settings"] = method_settings  # the preset's values filled in
     resolved = {**asdict(settings), "device": device, "grid_bin": settings.grid_bin}

@@ -1,0 +1,187 @@
+"""The STFM `paper` preset run towards its plateau (long, unattended; not part of the tests).
+
+    nice -n 19 .venv/bin/python bench/paper_convergence.py run --scenes sineball,smoke --size 32 \
+        --until 2026-11-23T17:15 --work /tmp/rngcam-paper
+    .venv/bin/python bench/paper_convergence.py report --work /tmp/rngcam-paper --out bench/paper_convergence.md
+
+`run` fits the paper preset (SIREN fields as published, Adam 5e-6, fixed iterations: no stop
+test) on each scene in turn, one torch thread. Fit time is the process's CPU time in the steps
+(`cpu_s`; a niced run on a busy machine waits for the CPU, and wall time would count the wait), and
+the plateau is judged over steps. Every `--log-every` seconds of fit time it logs
+PSNR (all and intermediate frames) and the dynamic-region PSNR (rngcam.recon.metrics.psnr_dynamic)
+to `<work>/<scene>/log.jsonl`; every `--save-every` seconds it checkpoints the method's state
+and saves the estimate (float16 .npy), so the curve can be recomputed with other metrics and a
+later run resumes where this one stopped. The scenes share the time up to `--until` equally
+(a scene already further along gets what it has left). `report` turns the logs into a table and
+says whether each curve has plateaued (dynamic PSNR up by less than 0.1 dB over its last third).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from stfm_compare import simulated_problem  # noqa: E402
+
+from rngcam.recon.metrics import motion_metrics, video_metrics  # noqa: E402
+from rngcam.recon.stfm import STFMSettings, make_stfm  # noqa: E402
+
+PLATEAU_DB = 0.1  # dynamic PSNR gained over the last third of the run below this: plateaued
+ONE_OBJECT = {"sineball"}
+
+
+def evaluate(method, problem) -> dict:
+    video = method.estimate().detach().double().cpu()
+    truth = problem.truth.double()
+    inter = problem.intermediate_frames()
+    out = video_metrics(video.float(), truth.float(), inter)
+    out.update(motion_metrics(video, truth, inter, one_object=problem_scene(problem) in ONE_OBJECT))
+    return out
+
+
+def problem_scene(problem) -> str:
+    return getattr(problem, "_bench_scene", "")
+
+
+def run_scene(scene: str, size: int, work: Path, deadline: float, log_every: float, save_every: float) -> None:
+    folder = work / scene
+    folder.mkdir(parents=True, exist_ok=True)
+    problem, source = simulated_problem(scene, size)
+    problem._bench_scene = scene
+    method = make_stfm(problem, STFMSettings(preset="paper"))
+    ckpt, log_path = folder / "checkpoint.pt", folder / "log.jsonl"
+    fit_s, cpu_s = 0.0, 0.0
+    if ckpt.is_file():
+        saved = torch.load(ckpt, weights_only=False)
+        method.load_state_dict(saved["method"])
+        fit_s, cpu_s = saved["fit_s"], saved.get("cpu_s", math.nan)
+        torch.set_rng_state(saved["rng"])
+        print(f"{scene}: resumed at step {method.steps}, {fit_s:.0f} s of fit", flush=True)
+    else:
+        meta = {"scene": scene, "size": size, "source": source, "settings": method.resolved_settings()}
+        (folder / "meta.json").write_text(json.dumps(meta, indent=1, default=str))
+        with log_path.open("a") as f:
+            f.write(json.dumps({"step": 0, "fit_s": 0.0, "cpu_s": 0.0, **evaluate(method, problem)}) + "\n")
+    clock = 0.0  # CPU seconds since this process started fitting (the log and checkpoint cadence)
+    next_log, next_save = log_every, save_every
+    while time.time() < deadline:
+        t0, c0 = time.perf_counter(), time.process_time()
+        method.step()
+        fit_s += time.perf_counter() - t0
+        used = time.process_time() - c0
+        cpu_s += used
+        clock += used
+        if clock >= next_log or time.time() >= deadline:
+            row = {"step": method.steps, "fit_s": fit_s, "cpu_s": cpu_s,
+                   "wall_utc": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+                   **evaluate(method, problem)}
+            with log_path.open("a") as f:
+                f.write(json.dumps(row) + "\n")
+            print(f"{scene} step {row['step']} cpu {cpu_s:.0f} s: PSNR {row['psnr_db']:.2f} dB, "
+                  f"dynamic {row['psnr_dynamic_db']:.2f} dB", flush=True)
+            next_log = clock + log_every
+        if clock >= next_save or time.time() >= deadline:
+            torch.save({"method": method.state_dict(), "fit_s": fit_s, "cpu_s": cpu_s, "rng": torch.get_rng_state()},
+                       ckpt)
+            np.save(folder / f"estimate_{method.steps:08d}.npy",
+                    method.estimate().detach().cpu().numpy().astype(np.float16))
+            next_save = clock + save_every
+
+
+def read_log(folder: Path) -> list[dict]:
+    path = folder / "log.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+
+
+def plateau(rows: list[dict]) -> tuple[str, float]:
+    """("plateaued" / "still rising", dynamic dB gained over the last third of the steps)."""
+    if len(rows) < 3:
+        return "too short", math.nan
+    end = rows[-1]["step"]
+    before = [r for r in rows if r["step"] <= 2 * end / 3][-1]
+    gain = rows[-1]["psnr_dynamic_db"] - before["psnr_dynamic_db"]
+    return ("plateaued" if gain < PLATEAU_DB else "still rising"), gain
+
+
+def report(work: Path, out: Path | None) -> str:
+    lines = ["# STFM paper preset towards its plateau (bench/paper_convergence.py)", ""]
+    for folder in sorted(p for p in work.iterdir() if p.is_dir()):
+        rows = read_log(folder)
+        if not rows:
+            continue
+        meta = json.loads((folder / "meta.json").read_text()) if (folder / "meta.json").is_file() else {}
+        state, gain = plateau(rows)
+        best = max(rows, key=lambda r: r["psnr_dynamic_db"])
+        lines += [f"## {folder.name}, {meta.get('size', '?')} px ({meta.get('source', '?')})", "",
+                  f"{rows[-1]['step']} steps in {rows[-1]['fit_s']:.0f} s of wall-clock fit: {state} "
+                  f"(dynamic PSNR {gain:+.2f} dB over the last third of the steps); best dynamic PSNR "
+                  f"{best['psnr_dynamic_db']:.2f} dB at step {best['step']}.", "",
+                  "| wall s | CPU s | step | PSNR all | PSNR interm. | PSNR dynamic | centroid med / p90 px | ghost med |",
+                  "|---|---|---|---|---|---|---|---|"]
+        picks = _spread(rows, 16)
+        for r in picks:
+            cen = (f"{r['centroid_error_median_px']:.2f} / {r['centroid_error_p90_px']:.2f}"
+                   if "centroid_error_median_px" in r else "-")
+            ghost = f"{r['ghost_median']:.2f}" if "ghost_median" in r else "-"
+            lines.append(f"| {r['fit_s']:.0f} | {r.get('cpu_s', math.nan):.0f} | {r['step']} | {r['psnr_db']:.2f} | "
+                         f"{r.get('psnr_intermediate_db', math.nan):.2f} | {r['psnr_dynamic_db']:.2f} | {cen} | {ghost} |")
+        lines.append("")
+    text = "\n".join(lines)
+    if out is not None:
+        out.write_text(text)
+    return text
+
+
+def _spread(rows: list[dict], n: int) -> list[dict]:
+    """About n rows spread over the steps, denser early (the first and last included)."""
+    if len(rows) <= n:
+        return rows
+    end, picks, seen = rows[-1]["step"], [], set()
+    for i in range(n):
+        target = end * (i / (n - 1)) ** 2  # denser early, where the curve moves
+        j = min(range(len(rows)), key=lambda k: abs(rows[k]["step"] - target))
+        if j not in seen:
+            seen.add(j)
+            picks.append(rows[j])
+    return picks
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run")
+    r.add_argument("--scenes", default="sineball,smoke")
+    r.add_argument("--size", type=int, default=32)
+    r.add_argument("--until", required=True, help="UTC deadline, ISO format (e.g. 2026-11-23T17:15)")
+    r.add_argument("--work", type=Path, required=True)
+    r.add_argument("--log-every", type=float, default=60.0, help="seconds of fit between log rows")
+    r.add_argument("--save-every", type=float, default=600.0, help="seconds of fit between checkpoints")
+    s = sub.add_parser("report")
+    s.add_argument("--work", type=Path, required=True)
+    s.add_argument("--out", type=Path)
+    args = ap.parse_args()
+    if args.cmd == "report":
+        print(report(args.work, args.out))
+        return
+    torch.set_num_threads(1)
+    deadline = dt.datetime.fromisoformat(args.until).replace(tzinfo=dt.timezone.utc).timestamp()
+    scenes = args.scenes.split(",")
+    for i, scene in enumerate(scenes):
+        share = (deadline - time.time()) / (len(scenes) - i)
+        run_scene(scene, args.size, args.work, min(deadline, time.time() + share), args.log_every, args.save_every)
+
+
+if __name__ == "__main__":
+    main()

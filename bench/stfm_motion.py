@@ -1,0 +1,112 @@
+"""STFM configurations side by side with the motion yardstick (run by hand, under the bench lock).
+
+    flock /tmp/rngcam-bench.lock .venv/bin/python bench/stfm_motion.py --scenes sineball,smoke --size 64 \
+        --budget 300 --config 'fast={}' --config 'prior={"dynamic_time": false, "dynamic_base": "none"}'
+
+Each `--config name=JSON` is a set of STFMSettings overrides; every configuration runs on every
+scene for `--budget` seconds (or to its own stop, or `--max-iters`), one after the other in this
+process, one torch thread. Printed per run: PSNR all / intermediate, dynamic-region PSNR, on
+sineball the ball's centroid error (median / p90 px) and ghost share, the solve time and steps,
+and the GS-only baselines (blend, interp, rife, their mean) on the same problem. `--save DIR`
+keeps each estimate (float16 .npy) for strips and later metrics; `--json` writes the rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from stfm_compare import gs_only_video, simulated_problem  # noqa: E402
+
+from rngcam.recon.loop import LoopSettings, run  # noqa: E402
+from rngcam.recon.metrics import ONE_OBJECT_SCENES, motion_metrics, video_metrics  # noqa: E402
+from rngcam.recon.stfm import STFMSettings, make_stfm  # noqa: E402
+
+
+def scores(video: torch.Tensor, problem, scene: str) -> dict:
+    truth = problem.truth.double()
+    inter = problem.intermediate_frames()
+    out = video_metrics(video.float(), truth.float(), inter)
+    out.update(motion_metrics(video.double(), truth, inter, one_object=scene in ONE_OBJECT_SCENES))
+    return out
+
+
+def line(name: str, r: dict) -> str:
+    text = f"  {name:14s} {r['psnr_db']:6.2f} / {r.get('psnr_intermediate_db', float('nan')):6.2f} dB, " \
+           f"moving {r['psnr_dynamic_db']:6.2f} dB"
+    if "centroid_error_median_px" in r:
+        text += (f", centroid {r['centroid_error_median_px']:5.2f} / {r['centroid_error_p90_px']:5.2f} px, "
+                 f"ghost {r['ghost_median']:.2f}")
+    if "solve_s" in r:
+        text += f"  [{r['solve_s']:.0f} s, {r['iterations']} steps; {r.get('stop', '')}]"
+    return text
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scenes", default="sineball,smoke")
+    ap.add_argument("--size", type=int, default=64)
+    ap.add_argument("--budget", type=float, default=300.0)
+    ap.add_argument("--max-iters", type=int)
+    ap.add_argument("--config", action="append", default=[], help="name=JSON of STFMSettings overrides")
+    ap.add_argument("--no-baselines", action="store_true")
+    ap.add_argument("--save", type=Path)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    configs = {}
+    for item in args.config or ["fast={}"]:
+        name, _, text = item.partition("=")
+        configs[name] = json.loads(text or "{}")
+    rows = []
+    print(f"load average at start: {os.getloadavg()[0]:.2f}", flush=True)
+    for scene in args.scenes.split(","):
+        problem, source = simulated_problem(scene, args.size)
+        print(f"{scene} {args.size} px ({source}), {problem.shape[1]} frames", flush=True)
+        if not args.no_baselines:
+            videos = {}
+            for name in ("blend", "interp", "rife"):
+                try:
+                    videos[name] = gs_only_video(name, problem)
+                except Exception as exc:  # noqa: BLE001 (a missing optional model is reported, not fatal)
+                    print(f"  {name}: not available ({exc})")
+            videos["gs_mean"] = np.mean(list(videos.values()), axis=0)
+            for name, video in videos.items():
+                r = {"scene": scene, "method": name, **scores(torch.from_numpy(np.asarray(video)), problem, scene)}
+                rows.append(r)
+                print(line(name, r), flush=True)
+        for name, overrides in configs.items():
+            t0 = time.perf_counter()
+            method = make_stfm(problem, STFMSettings(**overrides))
+            setup_s = time.perf_counter() - t0
+            result = run(method, LoopSettings(time_budget_s=args.budget, max_iters=args.max_iters, progress=False,
+                                              log_every_s=args.budget), setup_s=setup_s)
+            video = method.estimate().detach().double().cpu()
+            stop = next((e for e in result.events if e.startswith("stopped")), "budget")
+            r = {"scene": scene, "method": name, "settings": overrides, "solve_s": result.solve_s,
+                 "iterations": result.iterations, "stop": stop[:120], "load": os.getloadavg()[0],
+                 "notes": [f"{a}: {b}" for a, b in getattr(method, "left_out", [])],
+                 **scores(video, problem, scene)}
+            rows.append(r)
+            print(line(name, r), flush=True)
+            if args.save is not None:
+                args.save.mkdir(parents=True, exist_ok=True)
+                np.save(args.save / f"{scene}{args.size}_{name}.npy", video.numpy().astype(np.float16))
+    print(f"load average at end: {os.getloadavg()[0]:.2f}", flush=True)
+    if args.json is not None:
+        args.json.write_text(json.dumps(rows, indent=1, default=str))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,106 @@
+"""STFM's dynamic bases: the GS-only video or warped key frames that the dynamic field corrects."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from rngcam.errors import ConfigError
+from rngcam.recon.stfm.settings import BASE_VIDEOS, KEY_WARPS, MIN_FLOW_SIZE_PX
+
+
+class BaseVideos:
+    """Part of STFM: builds the dynamic base of a fit (see the package docstring)."""
+
+    def _build_base(self) -> None:
+        """Key frames (without gains) and cross-fade weights for a dynamic field on a base."""
+        self.base_keys = self.base_weights = self.base_video = None
+        self.base_source = None
+        self.substitutes: list[tuple[str, str]] = []  # (what was preferred, what is used instead and why)
+        kind = self.resolved.dynamic_base
+        if not (kind != "none" and self.resolved.dynamic_time and self.parts.gs and self.parts.motion):
+            return
+        p = self.problem
+        if self._given_base is not None:
+            if kind not in BASE_VIDEOS:
+                raise ConfigError(f"a given base video needs a video dynamic base ({', '.join(BASE_VIDEOS)}), "
+                                  f"not {kind!r}")
+            self.base_video, self.base_source = self._given_base.to(self.device, torch.float32), "given"
+            return
+        keys = p.gs_images()  # without gains: the current Lambda multiplies the base
+        if kind in KEY_WARPS:
+            if self._build_key_warps(keys, kind):
+                return
+            kind = "interp"  # too few key frames or too small for flow
+        if kind in BASE_VIDEOS:
+            self.base_video, self.base_source, why = _base_video(keys, p.gs_times_s, p.frame_times_s, kind)
+            self.base_video = self.base_video.to(self.device, torch.float32)
+            if why:
+                self.substitutes.append(("RIFE base video", f"optical-flow interpolation used instead ({why})"))
+            return
+        self.base_source = "blend"
+        self.base_keys = keys.reshape(1, -1, self.H, self.W).to(self.device, torch.float32)
+        times = torch.as_tensor(self._gs_centre_frames(), device=self.device).float()
+        self.base_weights = self._blend_weights(times)
+
+    def _build_key_warps(self, keys: Tensor, kind: str) -> bool:
+        """Per frame, the flows to its two key frames and their blend weights, from RIFE's midpoint
+        flows ("keys_rife"; "keys" when RIFE is installed) or DIS optical-flow interpolation
+        ("keys_interp"), that the motion and dynamic fields correct. False where no flow can be
+        computed (fewer than two key frames, images under MIN_FLOW_SIZE_PX)."""
+        from rngcam.recon.baselines import BaselineInputError, interp_warps
+        from rngcam.recon.rife import RifeUnavailableError, rife_warps
+
+        args = (keys.detach().float().cpu().numpy(), self.problem.gs_times_s, self.problem.frame_times_s)
+        warps = None
+        if kind != "keys_interp" and keys.shape[0] in (1, 3):
+            try:
+                with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
+                    warps, source = rife_warps(*args), "keys_rife"
+            except (RifeUnavailableError, BaselineInputError) as exc:
+                if kind == "keys_rife":
+                    raise
+                self.substitutes.append(("RIFE flows", f"DIS optical flow used instead ({_first_line(exc)})"))
+        try:
+            if warps is None:
+                warps, source = interp_warps(*args), "keys_interp"
+        except BaselineInputError:
+            return False
+        dev, px = self.device, self.px_per_unit.repeat(2)
+        self.key_images = torch.from_numpy(warps.keys).permute(1, 0, 2, 3).contiguous().to(dev)  # (G, C, H, W)
+        self.key_left = torch.from_numpy(warps.left).to(dev)
+        flows = torch.from_numpy(np.concatenate([warps.flow0, warps.flow1], axis=-1)).to(dev)
+        self.key_flow = flows / px  # (K, H, W, 4), coordinate units
+        w0 = torch.from_numpy(warps.weight0).to(dev).clamp(1e-6, 1 - 1e-6)
+        self.key_logit = torch.log(w0) - torch.log1p(-w0)
+        self.base_source = source
+        return True
+
+
+
+def _first_line(exc: Exception) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+
+
+def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str) -> tuple[Tensor, str, str]:
+    """The GS-only video (C, K, H, W) a dynamic field corrects, which baseline made it, and why
+    RIFE was not used where it was preferred ("" otherwise)."""
+    from rngcam.recon.baselines import interp
+
+    frames = keys.detach().float().cpu().numpy()
+    if kind in ("video", "rife") and frames.shape[0] in (1, 3) and min(frames.shape[-2:]) >= MIN_FLOW_SIZE_PX:
+        from rngcam.recon.rife import RifeUnavailableError, rife
+
+        try:
+            with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
+                return torch.from_numpy(rife(frames, gs_times_s, frame_times_s)), "rife", ""
+        except RifeUnavailableError as exc:
+            if kind == "rife":
+                raise
+            why = _first_line(exc)
+    else:
+        why = ""
+    return torch.from_numpy(np.asarray(interp(frames, gs_times_s, frame_times_s), np.float32)), "interp", why
+
+

@@ -1,0 +1,200 @@
+"""Several STFM fits on different dynamic bases, averaged and refined (the fast preset's default)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from rngcam.errors import ConfigError
+from rngcam.recon.stfm.method import STFM
+from rngcam.recon.stfm.model import _chunks
+from rngcam.recon.stfm.settings import REFINE_LR_RATIO, STFMSettings, _base_list, _setting_or_preset
+
+
+class STFMEnsemble:
+    """Several STFM fits, one per dynamic base, stepped in turn; the output is their average,
+    refined by one more fit.
+
+    Each fit starts from a different GS-only guess (the RIFE video, or the key frames warped by
+    RIFE's or DIS's flows) and the RS image corrects what it sees; what it cannot see (its null
+    space) keeps each start's error, and those errors differ, so averaging shrinks them. The
+    average stays consistent with the data: the operators are linear, so its residual is at most
+    the members' mean residual. Steps go to the member with the fewest so far (members that have
+    reached the noise level are done).
+
+    Refinement (`refine`, fast preset): once every member has stopped, one more fit takes their
+    average as its base video, with REFINE_LR_RATIO of the learning rate, until its own stop test
+    fires; it is then the output. Like every fit it starts from the GS frames' static composition
+    (alpha * static + (1 - alpha) * base, alpha where every key frame agrees with their median),
+    which the members' fits had eroded; the RS image keeps that composition where it fits the data
+    and undoes it where something moved between the key frames (bench/stfm_compare.md).
+    Memory: one set of fields and one base per fit, and the output evaluated chunk by chunk into
+    one buffer."""
+
+    name = "stfm"
+    supports_holdout = True
+
+    def __init__(self, problem, settings: STFMSettings, bases: list[str], device="cpu", first: STFM | None = None):
+        self.settings = settings
+        self.problem = problem
+        self.members: list[STFM] = []
+        sources = set()
+        for i, base in enumerate(bases):
+            if i == 0 and first is not None:
+                member = first
+            else:
+                member = STFM(problem, replace(settings, dynamic_base=base, seed=settings.seed + i), device,
+                              static_from=self.members[0] if self.members else None)
+            if member.base_source in sources:  # e.g. "keys" falls back to DIS flows without RIFE
+                continue
+            sources.add(member.base_source)
+            self.members.append(member)
+        self.device = self.members[0].device
+        self.steps = 0
+        self._done: list[str | None] = [None] * len(self.members)
+        self.use_refine = _setting_or_preset(settings, "refine")
+        self.refined: STFM | None = None
+        self._refine_done: str | None = None
+        self._cache: tuple[int, Tensor] | None = None
+
+    @property
+    def left_out(self) -> list[tuple[str, str]]:
+        return list(dict.fromkeys(item for m in self.members for item in m.left_out))
+
+    @property
+    def rs_noise_level(self) -> float | None:
+        return self.members[0].rs_noise_level
+
+    def _members_done(self) -> bool:
+        return all(done is not None for done in self._done)
+
+    def step(self) -> float:
+        if self._members_done() and self.use_refine:
+            if self.refined is None:
+                self._start_refinement()
+            value = self.refined.step()
+            self._refine_done = self.refined.converged()
+        else:
+            i = min((j for j, done in enumerate(self._done) if done is None),
+                    key=lambda j: self.members[j].steps, default=0)
+            member = self.members[i]
+            value = member.step()
+            self._done[i] = member.converged()
+            member._cache = None  # the stop test's video: do not keep one per member
+        self.steps += 1
+        return value
+
+    def _start_refinement(self) -> None:
+        first = self.members[0]
+        lr = REFINE_LR_RATIO * first.resolved.lr
+        base = self.estimate() / torch.as_tensor(self._mean_gains(), device=self.device)[:, None, None, None]
+        settings = replace(self.settings, dynamic_base="video", seed=self.settings.seed + len(self.members), lr=lr)
+        self.refined = STFM(self.problem, settings, self.device, static_from=first, base_video=base)
+
+    def converged(self) -> str | None:
+        if not self._members_done():
+            return None
+        done = f"all {len(self.members)} ensemble members stopped; first: {self._done[0]}"
+        if not self.use_refine:
+            return done
+        if self._refine_done is None:
+            return None
+        return f"{done}; refinement: {self._refine_done}"
+
+    @torch.no_grad()
+    def average(self) -> Tensor:
+        """The members' average video (C, K, H, W)."""
+        m0 = self.members[0]
+        video = torch.zeros(m0.C, m0.K, m0.H, m0.W, device=self.device)
+        for member in self.members:
+            with member._averaged():
+                for idx in _chunks(torch.arange(m0.K, device=self.device), self.settings.frame_chunk):
+                    video[:, idx] += member._video_frames(idx)
+        return video / len(self.members)
+
+    @torch.no_grad()
+    def estimate(self) -> Tensor:
+        if self.refined is not None:
+            return self.refined.estimate()
+        if self._cache is None or self._cache[0] != self.steps:
+            self._cache = (self.steps, self.average())
+        return self._cache[1]
+
+    def _mean_gains(self) -> np.ndarray:
+        return np.mean([m.gains() for m in self.members], axis=0)
+
+    def gains(self) -> np.ndarray:
+        return self.refined.gains() if self.refined is not None else self._mean_gains()
+
+    @torch.no_grad()
+    def residuals(self) -> dict[str, float]:
+        return self.members[0].residuals_of(self.estimate(), self.gains())
+
+    @torch.no_grad()
+    def components(self) -> dict[str, np.ndarray]:
+        """static and alpha of the refinement, else averaged over the members; motion of the
+        first member (the refinement's motion moves the average, not the scene)."""
+        out = self.members[0].components()
+        if self.refined is not None:
+            refined = self.refined.components()
+            return {**out, "static": refined["static"], "alpha": refined["alpha"]}
+        parts = [out, *(m.components() for m in self.members[1:])]
+        return {**out, **{key: np.mean([p[key] for p in parts], axis=0) for key in ("static", "alpha")}}
+
+    def state_dict(self) -> dict:
+        return {"members": [m.state_dict() for m in self.members], "steps": self.steps, "done": list(self._done),
+                "refined": None if self.refined is None else self.refined.state_dict(),
+                "refine_done": self._refine_done}
+
+    def load_state_dict(self, state: dict) -> None:
+        for m, saved in zip(self.members, state["members"], strict=True):
+            m.load_state_dict(saved)
+        self.steps = int(state["steps"])
+        self._done = list(state["done"])
+        self.refined = None
+        if state.get("refined") is not None:  # rebuilt from the restored members, then restored
+            self._start_refinement()
+            self.refined.load_state_dict(state["refined"])
+        self._refine_done = state.get("refine_done")
+        self._cache = None
+
+    def reduce_step(self, factor: float) -> None:
+        for m in [*self.members, *([self.refined] if self.refined is not None else [])]:
+            m.reduce_step(factor)
+
+    def resolved_settings(self) -> dict:
+        out = self.members[0].resolved_settings()
+        out["dynamic_base"] = ",".join(m.resolved.dynamic_base for m in self.members)
+        out["base_video"] = [m.base_source for m in self.members]
+        out["member_steps"] = [m.steps for m in self.members]
+        out["refine"] = self.use_refine
+        out["refine_steps"] = None if self.refined is None else self.refined.steps
+        return out
+
+
+def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
+              initial_video: Tensor | None = None) -> STFM | STFMEnsemble:
+    """The STFM method for `problem` (see STFM and STFMSettings): an STFMEnsemble when the
+    dynamic base (the setting, else the preset's) lists several bases and the problem uses them.
+
+    `initial_video` (C, K, H, W), on the RS scale without GS gains (e.g. a coarser level's
+    estimate, upsampled): one fit whose dynamic base is that video (dynamic_base "video"), so the
+    fit starts from it instead of from a GS-only interpolation."""
+    settings = settings or STFMSettings()
+    if initial_video is not None:
+        if tuple(initial_video.shape) != tuple(problem.shape):
+            raise ConfigError(f"initial_video has shape {tuple(initial_video.shape)}, the problem's video "
+                              f"is {tuple(problem.shape)}")
+        return STFM(problem, replace(settings, dynamic_base="video", dynamic_time=True), device,
+                    base_video=initial_video)
+    names = _base_list(_setting_or_preset(settings, "dynamic_base"))
+    if len(names) == 1:
+        return STFM(problem, replace(settings, dynamic_base=names[0]), device)
+    first = STFM(problem, replace(settings, dynamic_base=names[0]), device)
+    if first.base_source is None:  # no dynamic base applies (no GS frames, no motion, ...): one fit
+        return first
+    # first.problem is float32 on the device: the other fits share its tensors instead of casting again
+    return STFMEnsemble(first.problem, settings, names, device, first=first)

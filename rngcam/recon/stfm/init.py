@@ -1,0 +1,170 @@
+"""STFM's initialisation from the GS frames (static background, alpha, dynamic colour, motion)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from rngcam.recon.fields import field_on_grid
+from rngcam.recon.stfm.settings import INIT_STEPS, MIN_FLOW_SIZE_PX
+
+
+class GSInit:
+    """Part of STFM: fits the fields to what the GS frames say before the main fit."""
+
+    # ------------------------------------------------------------------ initialisation from GS
+
+    def _init_from_gs(self, steps: int = INIT_STEPS) -> None:
+        """Fit the fields to what the GS frames say before the main fit (see module docstring).
+
+        Static field: the per-pixel median of the key frames (the background). Alpha: one where
+        every key frame agrees with that background. With a time-dependent dynamic field, its
+        colour is fitted to the cross-fade of the key frames (the fit starts at the blend
+        baseline); otherwise to the key frame nearest the middle, and the motion field to DIS
+        optical flow between that frame and the others, linearly interpolated in time."""
+        v = self.problem.gs_images(gains=True).float()  # (C, G, H, W): Lambda b_G / exposure
+        background = v.median(dim=1).values
+        times = torch.as_tensor(self._gs_centre_frames(), device=self.device).float()
+        middle = int(torch.argmin((times - (self.K - 1) / 2).abs()))
+        if self.parts.static and self._static_from is not None and "static" in self._static_from.fields:
+            self.fields["static"].load_state_dict(self._static_from.fields["static"].state_dict())
+        elif self.parts.static:
+            _fit_image(self.fields["static"], self.xs, self.ys, background, steps)
+        if not self.parts.motion:
+            return
+        alpha = None
+        if self.parts.static:
+            change = (v - background[:, None]).abs().mean(0).amax(0)  # (H, W)
+            thr = 0.1 * float(background.mean()) + 1e-6
+            alpha = (1 - change / thr).clamp(0, 1)
+        if self.resolved.dynamic_time:
+            self._fit_dynamic_to_blend(v, times, alpha, steps)
+        elif self.resolved.motion_init == "search":
+            self._init_by_search(v[:, middle], background, steps)
+        else:
+            _fit_image(self.fields["dynamic"], self.xs, self.ys, v[:, middle], steps, alpha)
+            self._fit_motion(self._key_flows(v, middle), times, steps)
+
+    def _init_by_search(self, layer: Tensor, background: Tensor, steps: int) -> None:
+        """The canonical dynamic image is the middle key frame; alpha is where that frame (not every
+        key frame: the image moves) differs from the background; the motion is the per-frame
+        translation of that image found by rngcam.recon.stfm.motion_search."""
+        from rngcam.recon.stfm.motion_search import translation_track
+
+        change = (layer - background).abs().mean(0)
+        obj = (change / (0.1 * float(background.mean()) + 1e-6)).clamp(0, 1)  # 1 on the moving object
+        alpha = 1 - obj if self.parts.static else None
+        _fit_image(self.fields["dynamic"], self.xs, self.ys, layer, steps, alpha)
+        track = translation_track(self, background, layer, obj).to(self.device)  # (K, 2) px
+        self.motion_track_px = track
+        # The dynamic field is sampled at x + u: a layer moved by d has u = -d (coordinate units).
+        target = (-track / self.px_per_unit)[:, None, None, :].expand(self.K, self.H, self.W, 2)
+        self._fit_motion_to(target, 3 * steps, frames_per_step=8)  # a track that turns round: more steps
+
+    def _blend_weights(self, times: Tensor) -> Tensor:
+        """(K, G) cross-fade weights of the key frames (centres `times`, in frames) per frame."""
+        order = torch.argsort(times)
+        t = times[order]
+        k = torch.arange(self.K, device=self.device, dtype=torch.float32)
+        weights = torch.zeros(self.K, len(t), device=self.device)
+        if len(t) == 1:
+            weights[:, 0] = 1
+        else:
+            right = torch.searchsorted(t, k).clamp(1, len(t) - 1)
+            left = right - 1
+            a = ((k - t[left]) / (t[right] - t[left]).clamp_min(1e-6)).clamp(0, 1)
+            rows = torch.arange(self.K, device=self.device)
+            weights[rows, order[left]] = 1 - a
+            weights[rows, order[right]] += a
+        return weights
+
+    def _fit_dynamic_to_blend(self, v: Tensor, times: Tensor, alpha: Tensor | None, steps: int) -> None:
+        weights = self._blend_weights(times)  # (K, G)
+        field = self.fields["dynamic"]
+        opt = torch.optim.Adam(field.parameters(), lr=2e-2)
+        gen = torch.Generator(device="cpu").manual_seed(self.settings.seed + 2)
+        for _ in range(steps):
+            idx = torch.randperm(self.K, generator=gen)[:4].to(self.device)
+            opt.zero_grad()
+            raw = field_on_grid(field, [self.xs, self.ys, self.ts[idx]]).permute(3, 0, 1, 2)
+            if self.base_source is not None:  # the colour is already the base video: keep it
+                loss = raw[self._correction_channels()].square().mean()
+            else:
+                target = torch.einsum("kg,cghw->ckhw", weights[idx], v)
+                loss = (F.softplus(raw[:self.C]) - target).square().mean()
+            if alpha is not None:
+                loss = loss + 0.1 * (torch.sigmoid(raw[self.C]) - alpha).square().mean()
+            loss.backward()
+            opt.step()
+
+    def _gs_centre_frames(self) -> np.ndarray:
+        """Fractional frame index of each GS exposure's centre of mass."""
+        w = self.w_gs.double().cpu()
+        k = torch.arange(self.K, dtype=torch.float64) + 0.5
+        return ((w * k).sum(1) / w.sum(1).clamp_min(1e-12) - 0.5).numpy()
+
+    def _key_flows(self, v: Tensor, middle: int) -> Tensor:
+        """(G, H, W, 2) displacement (coordinate units) with frame_g(x) ~ frame_middle(x + u)."""
+        g = v.shape[1]
+        flows = torch.zeros(g, self.H, self.W, 2, device=self.device)
+        if min(self.H, self.W) < MIN_FLOW_SIZE_PX:
+            return flows
+        frames = v.detach().cpu().numpy()
+        scale = max(float(frames.max()), 1e-12)
+        grey = [_grey_u8(frames[:, i], scale) for i in range(g)]
+        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        for i in range(g):
+            if i != middle:
+                try:
+                    f = dis.calc(grey[i], grey[middle], None)
+                except cv2.error:  # DIS refuses some tiny images: start without motion
+                    return flows.zero_()
+                flows[i] = torch.from_numpy(f).to(self.device) / self.px_per_unit
+        return flows
+
+    def _fit_motion(self, flows: Tensor, times: Tensor, steps: int) -> None:
+        """Fit the motion field to the key-frame flows, linearly interpolated in time."""
+        if float(flows.abs().max()) == 0:
+            return
+        self._fit_motion_to(torch.einsum("kg,ghwc->khwc", self._blend_weights(times), flows), steps)
+
+    def _fit_motion_to(self, target: Tensor, steps: int, frames_per_step: int = 4) -> None:
+        """Fit the motion field to a displacement (K, H, W, 2) in coordinate units."""
+        params = list(self.fields["motion"].parameters())
+        opt = torch.optim.Adam(params, lr=2e-2)
+        gen = torch.Generator(device="cpu").manual_seed(self.settings.seed + 1)
+        for _ in range(steps):
+            idx = torch.randperm(self.K, generator=gen)[:frames_per_step].to(self.device)
+            opt.zero_grad()
+            loss = (self._motion(idx) - target[idx]).square().mean()
+            loss.backward()
+            opt.step()
+
+
+
+def _grey_u8(frame: np.ndarray, scale: float) -> np.ndarray:
+    from rngcam.recon.baselines import linear_to_srgb
+
+    grey = frame.mean(0) if frame.shape[0] != 3 else 0.2126 * frame[0] + 0.7152 * frame[1] + 0.0722 * frame[2]
+    return np.round(linear_to_srgb(grey / scale) * 255).astype(np.uint8)
+
+
+def _fit_image(module: nn.Module, xs: Tensor, ys: Tensor, image: Tensor, steps: int,
+               alpha: Tensor | None = None) -> None:
+    """Fit a 2-D field so softplus(colour) = image (C, H, W) (and sigmoid(last) = alpha)."""
+    params = list(module.parameters())
+    opt = torch.optim.Adam(params, lr=2e-2)
+    c = image.shape[0]
+    for _ in range(steps):
+        opt.zero_grad()
+        raw = field_on_grid(module, [xs, ys]).permute(2, 0, 1)
+        loss = (F.softplus(raw[:c]) - image).square().mean()
+        if alpha is not None:
+            loss = loss + 0.1 * (torch.sigmoid(raw[c]) - alpha).square().mean()
+        loss.backward()
+        opt.step()
+
+

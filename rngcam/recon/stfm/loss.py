@@ -1,0 +1,186 @@
+"""STFM's loss: data terms through the physics operators (restricted to a step's rows and
+frames), the motion TV, and the plane fields' temporal roughness."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from rngcam.recon.stfm.model import _chunks
+
+
+class DataLoss:
+    """Part of STFM: normalisation of the data terms and the loss of a step."""
+
+    def _build_scales(self) -> None:
+        """Constants c_G, c_R that normalise the data terms (see module docstring)."""
+        pixels = self.C * self.H * self.W
+        self.c_gs = self.c_rs = 0.0
+        if self.parts.gs:
+            norm_sq = self.gs_op.norm() ** 2
+            self.c_gs = 1.0 / (max(norm_sq, 1e-12) * pixels)
+        if self.parts.rs:
+            self.rs_norm = self._rs_norm()
+            self.c_rs = self.settings.psi / (max(self.rs_norm ** 2, 1e-12) * pixels)
+
+    def _rs_norm(self, iters: int = 6, tol: float = 1e-3) -> float:
+        """||A_R|| by power iteration on A_R^T A_R, applied frame chunk by frame chunk. It starts
+        near a constant video (close to the top singular vector: the PSF is a low-pass filter)."""
+        gen = torch.Generator(device="cpu").manual_seed(0)
+        x = 1 + 0.1 * torch.randn((self.C, self.K, self.H, self.W), generator=gen).to(self.device)
+        x /= x.norm()
+        lam = 0.0
+        all_rows = torch.arange(self.H, device=self.device)
+        for _ in range(iters):
+            y = self.rs_op.A(x, frame_chunk=self.settings.frame_chunk)
+            z = torch.empty_like(x)
+            for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):
+                z[:, idx] = self.rs_op.A_rows_adjoint(y, all_rows, idx)
+            new = float((x * z).sum())
+            x = z / z.norm().clamp_min(1e-30)
+            if abs(new - lam) <= tol * abs(new):
+                lam = new
+                break
+            lam = new
+        return math.sqrt(max(lam, 0.0))
+
+    def _rs_apply(self, frames_fn, rows: Tensor, frames: Tensor | None = None) -> Tensor:
+        """RS rows `rows` of the video frames_fn(idx) -> (C, n, H, W), frame chunk by frame chunk."""
+        if frames is None:
+            frames = torch.nonzero(self.w_rs[rows].sum(0) > 0).flatten()
+        out = torch.zeros(self.C, len(rows), self.W, device=self.device)
+        for idx in _chunks(frames, self.settings.frame_chunk):
+            out += self.rs_op.A_rows(frames_fn(idx), rows, idx)
+        return out
+
+    def rs_miss(self, pred: Tensor, rows: Tensor) -> Tensor:
+        """RS residual of rows `rows` (C, R, W), zero at saturated pixels."""
+        miss = pred - self.problem.b_rs.index_select(1, rows)
+        return miss if self.rs_valid is None else miss * self.rs_valid.index_select(1, rows)
+
+
+    # ------------------------------------------------------------------ loss terms
+
+    def gs_term(self, v_win: Tensor, windows: Tensor, win_frames: Tensor) -> Tensor:
+        """Normalised GS data term of GS frames `windows` from the frames their exposures touch,
+        `win_frames` (values v_win (C, S, H, W)); an unbiased estimate for a uniform sample."""
+        pred = self.gs_op.A_frames(v_win, windows, win_frames)
+        miss = pred - self._gain()[:, None, None, None] * self.problem.b_gs.index_select(1, windows)
+        if self.mask is not None:
+            miss = miss * self.mask
+        if self.gs_fit is not None:  # held-out GS pixels are not fitted
+            miss = miss * (self.gs_fit if self.gs_fit.shape[1] == 1 else self.gs_fit.index_select(1, windows))
+        if self.gs_valid is not None:  # saturated GS pixels are not fitted
+            miss = miss * self.gs_valid.index_select(1, windows)
+        return self.c_gs * self.w_gs.shape[0] / len(windows) * miss.square().sum()
+
+    def rs_scale(self, n_rows: int) -> float:
+        return self.c_rs * len(self.rs_rows_fit) / n_rows
+
+    def tv_term(self, idx: Tensor) -> Tensor:
+        """Unbiased estimate of tau TV_S(U) from frames idx (uniform sample without replacement)."""
+        nxt = (idx + 1).clamp(max=self.K - 1)
+        u = self._motion(torch.cat([idx, nxt])) * self._motion_px()  # pixels
+        u0, u1 = u[:len(idx)], u[len(idx):]
+        spatial = (u0[:, 1:] - u0[:, :-1]).abs().sum() + (u0[:, :, 1:] - u0[:, :, :-1]).abs().sum()
+        temporal = (u1 - u0).abs().sum()  # zero for the last frame (nxt == idx)
+        per_frame = (spatial + self.resolved.beta * temporal) / (self.H * self.W)
+        return self.resolved.tau * per_frame / len(idx)
+
+    def sample_rows(self) -> Tensor:
+        """A cyclic block of the fitted rows with a uniform random start (every row equally likely)."""
+        n = len(self.rs_rows_fit)
+        start = int(torch.randint(n, (1,), generator=self.generator))
+        return self.rs_rows_fit[(start + torch.arange(min(self.resolved.rows_per_step, n))) % n]
+
+    def sample_tv_frames(self) -> Tensor:
+        n = min(self.settings.tv_frames_per_step, self.K)
+        return torch.randperm(self.K, generator=self.generator)[:n].sort().values
+
+    def loss_terms(self, rows: Tensor | None, tv_frames: Tensor | None, backward: bool = False,
+                   gs_windows: Tensor | None = None) -> dict:
+        """The step's terms {"gs", "rs", "tv", "smooth"} as floats for given samples of RS rows, TV
+        frames and GS frames (`gs_windows`, None: all; full terms: all rows, all frames). With
+        `backward` the gradient of their sum is accumulated, chunk by chunk."""
+        dev = self.device
+        if not self.parts.gs:
+            windows = win_frames = torch.zeros(0, dtype=torch.long, device=dev)
+        elif gs_windows is None or self.settings.gs_anchor == "hard":
+            windows, win_frames = torch.arange(self.w_gs.shape[0], device=dev), self.gs_frames
+        else:
+            windows = gs_windows.to(dev)
+            win_frames = torch.nonzero(self.w_gs[windows].sum(0) > 0).flatten()
+        terms = {"gs": 0.0, "rs": 0.0, "tv": 0.0, "smooth": 0.0}
+        static = self._static() if self.parts.static else None
+        graph_loss = torch.zeros((), device=dev)
+        if self.resolved.time_smoothness > 0:
+            rough = [f.time_roughness() for f in self.fields.values() if hasattr(f, "time_roughness")]
+            if rough:
+                smooth = self.resolved.time_smoothness * sum(rough)
+                terms["smooth"] = float(smooth.detach())
+                graph_loss = graph_loss + smooth
+        # Frames the sampled RS rows touch, split into those inside GS windows and the rest.
+        rest = torch.zeros(0, dtype=torch.long, device=dev)
+        if self.parts.rs and rows is not None:
+            rows = rows.to(dev)
+            w = self.w_rs[rows]
+            touched = torch.nonzero(w.sum(0) > 0).flatten()
+            rest = touched[~torch.isin(touched, win_frames)]
+        chunks = _chunks(rest, self.settings.frame_chunk)
+        single = len(chunks) <= 1
+        # One evaluation for the GS windows and (when it fits in one chunk) the RS frames.
+        n_gs = len(win_frames)
+        first = torch.cat([win_frames] + ([chunks[0]] if single and chunks else []))
+        v_first = self.frames(first, static) if len(first) else None
+        v_gs = None
+        if n_gs:
+            v_gs = v_first[:, :n_gs]
+            if self.settings.gs_anchor == "hard":
+                v_gs = self._anchored(v_gs)
+            else:
+                gs = self.gs_term(v_gs, windows, win_frames)
+                terms["gs"] = float(gs.detach())
+                graph_loss = graph_loss + gs
+        if self.parts.motion and self.parts.motion_reg and tv_frames is not None:
+            tv = self.tv_term(tv_frames.to(dev))
+            terms["tv"] = float(tv.detach())
+            graph_loss = graph_loss + tv
+        chunk_jobs = []
+        if self.parts.rs and rows is not None:
+            scale = self.rs_scale(len(rows))
+            shared = touched[torch.isin(touched, win_frames)]
+            pred = torch.zeros(self.C, len(rows), self.W, device=dev)
+            if len(shared):
+                pos = torch.searchsorted(win_frames, shared)
+                pred = pred + self.rs_op.A_rows(v_gs[:, pos], rows, shared)
+            if single:
+                if chunks:
+                    pred = pred + self.rs_op.A_rows(v_first[:, n_gs:], rows, chunks[0])
+                rs = scale * self.rs_miss(pred, rows).square().sum()
+                terms["rs"] = float(rs.detach())
+                graph_loss = graph_loss + rs
+            else:  # two passes: residual without a graph, then chunk-wise back-propagation
+                with torch.no_grad():
+                    pred_rest = sum(self.rs_op.A_rows(self.frames(c, static), rows, c) for c in chunks)
+                residual = self.rs_miss(pred.detach() + pred_rest, rows)  # 0/1 mask: also d(loss)/d(pred) / 2
+                terms["rs"] = scale * float(residual.square().sum())
+                grad = 2 * scale * residual
+                graph_loss = graph_loss + (pred * grad).sum()
+                chunk_jobs = [(c, grad) for c in chunks]
+        if backward:
+            last = len(chunk_jobs) - 1
+            if graph_loss.requires_grad:
+                graph_loss.backward(retain_graph=bool(chunk_jobs) and static is not None)
+            for i, (c, grad) in enumerate(chunk_jobs):
+                surrogate = (self.rs_op.A_rows(self.frames(c, static), rows, c) * grad).sum()
+                surrogate.backward(retain_graph=i < last and static is not None)
+        return terms
+
+    def full_objective(self) -> dict:
+        """The exact objective terms (all rows, all frames), without gradients."""
+        with torch.no_grad():
+            return self.loss_terms(self.rs_rows_fit if self.parts.rs else None,
+                                   torch.arange(self.K) if self.parts.motion_reg else None)
+

@@ -1,0 +1,259 @@
+"""The STFM method: one fit (settings resolved, optimiser, steps, outputs, checkpoints)."""
+
+from __future__ import annotations
+
+import math
+from contextlib import contextmanager
+from dataclasses import asdict
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from rngcam.errors import ConfigError
+from rngcam.recon.components import Components, choose_components
+from rngcam.recon.metrics import relative_residual
+from rngcam.recon.noise import relative_noise_level
+from rngcam.recon.stfm.bases import BaseVideos
+from rngcam.recon.stfm.init import GSInit
+from rngcam.recon.stfm.loss import DataLoss
+from rngcam.recon.stfm.model import FieldModel, _chunks
+from rngcam.recon.stfm.settings import STFMSettings, _preset, _Resolved
+from rngcam.recon.stfm.stopping import NoiseStop
+
+
+class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop):
+    """STFM as a `rngcam.recon.loop.Method`. Build it with `make_stfm`. Its parts live in the
+    package's modules (fields and frames, bases, loss, initialisation, stop test)."""
+
+    name = "stfm"
+    supports_holdout = True  # fits only the training measurements when the problem has a split
+
+    def __init__(self, problem, settings: STFMSettings, device="cpu", static_from: STFM | None = None,
+                 base_video: Tensor | None = None):
+        """`static_from`: an STFM of the same problem and preset whose initialised static field
+        this one copies instead of fitting it again (ensemble members share that start).
+        `base_video` (C, K, H, W), without GS gains: the base of a "video" dynamic base, instead
+        of RIFE's or the flow interpolation's (the ensemble's refinement fit)."""
+        self.settings = settings
+        self._static_from = static_from
+        self._given_base = base_video
+        self.device = torch.device(device)
+        self.problem = problem.to(torch.float32, self.device)
+        p = self.problem
+        p.check_finite("stfm")
+        self.C, self.K, self.H, self.W = p.shape
+        preset = _preset(settings.preset, self.H, self.W, self.K)
+        tau = preset["tau"] if settings.tau is None else settings.tau
+        self.parts: Components = choose_components(
+            problem, auto=settings.components == "auto", no_static=settings.no_static,
+            no_motion_reg=settings.no_motion_reg, no_rs=settings.no_rs, no_gs=settings.no_gs, tau=tau)
+        self.resolved = _Resolved(
+            settings=settings, beta=preset["beta"] if settings.beta is None else settings.beta, tau=tau,
+            lr=preset["lr"] if settings.lr is None else settings.lr,
+            lr_half_life_steps=(preset["lr_half_life_steps"] if settings.lr_half_life_steps is None
+                                else settings.lr_half_life_steps),
+            rows_per_step=min(self.H, settings.rows_per_step or preset["rows_per_step"]),
+            init=settings.init or preset["init"],
+            gs_windows_per_step=(preset["gs_windows_per_step"] if settings.gs_windows_per_step is None
+                                 else settings.gs_windows_per_step),
+            dynamic_time=preset["dynamic_time"] if settings.dynamic_time is None else settings.dynamic_time,
+            dynamic_base=settings.dynamic_base or preset["dynamic_base"],
+            time_smoothness=(preset["time_smoothness"] if settings.time_smoothness is None
+                             else settings.time_smoothness),
+            stop_at_noise=preset["stop_at_noise"] if settings.stop_at_noise is None else settings.stop_at_noise,
+            stall_drop=preset["stall_drop"] if settings.stall_drop is None else settings.stall_drop,
+            ema_decay=preset["ema_decay"] if settings.ema_decay is None else settings.ema_decay,
+            motion_init=settings.motion_init or preset["motion_init"],
+            fields={k: preset[k] for k in ("static", "motion", "dynamic")})
+        if "," in self.resolved.dynamic_base or self.resolved.dynamic_base == "ensemble":
+            raise ConfigError(f"dynamic_base {self.resolved.dynamic_base!r} is an ensemble: build it with make_stfm")
+        torch.manual_seed(settings.seed)
+        self.generator = torch.Generator(device="cpu").manual_seed(settings.seed)
+        self._build_geometry()
+        self._build_base()
+        self._build_fields(preset)
+        self._build_scales()
+        if self.resolved.init == "gs" and self.parts.gs:
+            self._init_from_gs()
+        self._build_optimiser(preset)
+        self._params = [*self.fields.parameters(), self.log_gain]
+        self._ema = [q.detach().clone() for q in self._params] if self.resolved.ema_decay > 0 else None
+        self.steps = 0
+        self._cache: tuple[int, Tensor] | None = None
+        self._rs_history: dict[int, float] = {}  # step -> relative RS residual at the stop checks
+        self.rs_noise_level = (relative_noise_level(self.problem.b_rs.index_select(1, self.rs_rows_fit.to(self.device)))
+                               if self.parts.rs else None)
+
+    # ------------------------------------------------------------------ setup
+
+    @property
+    def left_out(self) -> list[tuple[str, str]]:
+        """Components left out and substitutes used (e.g. no RIFE weights), each with why."""
+        return list(self.parts.left_out) + list(self.substitutes)
+
+
+    def _build_optimiser(self, preset: dict) -> None:
+        lr = self.resolved.lr
+        planes, decoders = [], []
+        for module in self.fields.values():
+            for pname, param in module.named_parameters():
+                (planes if pname.startswith("planes") else decoders).append(param)
+        groups = [{"params": planes, "lr_ratio": 1.0}] if planes else []
+        if decoders:
+            ratio = preset["decoder_lr_ratio"] if planes else 1.0
+            groups.append({"params": decoders, "lr_ratio": ratio})
+        self.learn_gain = self.parts.rs and self.parts.gs
+        if self.learn_gain:
+            groups.append({"params": [self.log_gain], "lr_ratio": preset["gain_lr_ratio"]})
+        for g in groups:
+            g["lr"] = lr * g["lr_ratio"]
+        self.optimiser = torch.optim.Adam(groups, lr=lr)
+        self.base_lr = lr
+
+
+    # ------------------------------------------------------------------ Method protocol
+
+    def _lr_now(self) -> float:
+        half = self.resolved.lr_half_life_steps
+        decay = 1.0 if not math.isfinite(half) else max(0.5 ** (self.steps / half), 0.05)
+        return self.base_lr * decay
+
+    def step(self) -> float:
+        lr = self._lr_now()
+        for g in self.optimiser.param_groups:
+            g["lr"] = lr * g["lr_ratio"]
+        self.optimiser.zero_grad(set_to_none=True)
+        rows = self.sample_rows() if self.parts.rs else None
+        tv_frames = self.sample_tv_frames() if (self.parts.motion and self.parts.motion_reg) else None
+        windows = None
+        n_win = self.resolved.gs_windows_per_step
+        if self.parts.gs and n_win and n_win < self.w_gs.shape[0]:
+            windows = torch.randperm(self.w_gs.shape[0], generator=self.generator)[:n_win].sort().values
+        terms = self.loss_terms(rows, tv_frames, backward=True, gs_windows=windows)
+        self.optimiser.step()
+        self.steps += 1
+        if self._ema is not None:  # warm-up as in TF's ExponentialMovingAverage(num_updates)
+            decay = min(self.resolved.ema_decay, (1 + self.steps) / (10 + self.steps))
+            with torch.no_grad():
+                for a, q in zip(self._ema, self._params, strict=True):
+                    a.lerp_(q, 1 - decay)
+        self._cache = None
+        return sum(terms.values())
+
+    @contextmanager
+    def _averaged(self):
+        """Inside: the weights are their moving average (outputs, residuals, the stop test)."""
+        if self._ema is None:
+            yield
+            return
+        with torch.no_grad():
+            current = [q.detach().clone() for q in self._params]
+            for q, a in zip(self._params, self._ema, strict=True):
+                q.copy_(a)
+        try:
+            yield
+        finally:
+            with torch.no_grad():
+                for q, c in zip(self._params, current, strict=True):
+                    q.copy_(c)
+
+
+    @torch.no_grad()
+    def estimate(self) -> Tensor:
+        if self._cache is not None and self._cache[0] == self.steps:
+            return self._cache[1]
+        video = torch.empty(self.C, self.K, self.H, self.W, device=self.device)
+        with self._averaged():
+            for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):
+                video[:, idx] = self._video_frames(idx)
+        self._cache = (self.steps, video)
+        return video
+
+    @torch.no_grad()
+    def residuals(self) -> dict[str, float]:
+        return self.residuals_of(self.estimate(), self.gains())  # both from the averaged weights
+
+    @torch.no_grad()
+    def residuals_of(self, video: Tensor, gains: np.ndarray) -> dict[str, float]:
+        """Relative RS and GS residuals of a video (C, K, H, W) with GS/RS gains (C,)."""
+        out = {}
+        if self.problem.b_rs is not None:
+            pred = self.rs_op.A(video, frame_chunk=self.settings.frame_chunk)
+            target = self.problem.b_rs
+            if self.rs_valid is not None:
+                pred, target = pred * self.rs_valid, target * self.rs_valid
+            out["rs"] = relative_residual(pred, target)
+        if self.problem.b_gs is not None and self.problem.b_gs.shape[1] > 0:
+            pred = self.gs_op.A(video)
+            target = torch.from_numpy(gains).to(self.device)[:, None, None, None] * self.problem.b_gs
+            if self.mask is not None:
+                pred, target = pred * self.mask, target * self.mask
+            if self.gs_valid is not None:
+                pred, target = pred * self.gs_valid, target * self.gs_valid
+            out["gs"] = relative_residual(pred, target)
+        return out
+
+    @torch.no_grad()
+    def components(self) -> dict[str, np.ndarray]:
+        """static (C, H, W), alpha (1, K, H, W) and motion (2, K, H, W, in pixels) as numpy."""
+        with self._averaged():
+            return self._components()
+
+    def _components(self) -> dict[str, np.ndarray]:
+        static = self._static() if self.parts.static else torch.zeros(self.C, self.H, self.W, device=self.device)
+        alpha = torch.ones(1, self.K, self.H, self.W, device=self.device) if self.parts.static else \
+            torch.zeros(1, self.K, self.H, self.W, device=self.device)
+        motion = torch.zeros(2, self.K, self.H, self.W, device=self.device)
+        if self.parts.motion:
+            for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):
+                u = self._motion(idx)
+                total = u[..., :2] + (self.key_flow[idx][..., :2] if self._key_warps else 0)
+                motion[:, idx] = (total * self.px_per_unit).permute(3, 0, 1, 2)
+                if self.parts.static:
+                    alpha[:, idx] = self._dynamic_at(u, idx)[1]
+        return {"static": static.cpu().numpy(), "alpha": alpha.cpu().numpy(), "motion": motion.cpu().numpy()}
+
+    def gains(self) -> np.ndarray:
+        with self._averaged():
+            return self._gain().detach().cpu().numpy()
+
+    def state_dict(self) -> dict:
+        return {"fields": self.fields.state_dict(), "log_gain": self.log_gain.detach().clone(),
+                "optimiser": self.optimiser.state_dict(), "steps": self.steps, "base_lr": self.base_lr,
+                "generator": self.generator.get_state(), "rs_history": dict(self._rs_history),
+                "ema": None if self._ema is None else [a.clone() for a in self._ema]}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.fields.load_state_dict(state["fields"])
+        with torch.no_grad():
+            self.log_gain.copy_(state["log_gain"])
+        self.optimiser.load_state_dict(state["optimiser"])
+        self.steps = int(state["steps"])
+        self.base_lr = float(state["base_lr"])
+        self.generator.set_state(state["generator"])
+        self._rs_history = dict(state.get("rs_history", {}))
+        if self._ema is not None and state.get("ema") is not None:
+            with torch.no_grad():
+                for a, saved in zip(self._ema, state["ema"], strict=True):
+                    a.copy_(saved)
+        self._cache = None
+
+    def reduce_step(self, factor: float) -> None:
+        self.base_lr *= factor
+        for g in self.optimiser.param_groups:
+            g["lr"] = self._lr_now() * g["lr_ratio"]
+
+    def resolved_settings(self) -> dict:
+        """The settings as used (preset values filled in), for the outputs."""
+        out = asdict(self.resolved.settings)
+        out.update({k: getattr(self.resolved, k) for k in
+                    ("beta", "tau", "lr", "lr_half_life_steps", "rows_per_step", "init", "dynamic_time",
+                     "dynamic_base", "time_smoothness", "gs_windows_per_step", "stop_at_noise", "stall_drop",
+                     "ema_decay", "motion_init")})
+        out["base_video"] = self.base_source
+        out["rs_noise_level"] = self.rs_noise_level
+        out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}
+        out["left_out"] = [list(x) for x in self.left_out]
+        return out
+

@@ -1,0 +1,207 @@
+"""STFM's fields and the video they make: static image, motion, dynamic colour and alpha."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from rngcam.errors import ConfigError
+from rngcam.physics.operators import GlobalShutter, RollingShutter
+from rngcam.recon.fields import field_on_grid, make_field
+
+
+def _chunks(idx: Tensor, size: int) -> list[Tensor]:
+    return [idx[i:i + size] for i in range(0, len(idx), size)] if len(idx) else []
+
+
+def _inverse_softplus(y: Tensor) -> Tensor:
+    """x with softplus(x) = y (y clamped to >= 1e-4): y + log(1 - exp(-y)), stable."""
+    y = y.clamp_min(1e-4)
+    return y + torch.log(-torch.expm1(-y))
+
+
+class FieldModel:
+    """Part of STFM (rngcam.recon.stfm.method): geometry, the fields, and frames of the video."""
+
+    def _build_geometry(self) -> None:
+        p, dev = self.problem, self.device
+
+        def axis(n):
+            return torch.linspace(-1.0, 1.0, n, device=dev) if n > 1 else torch.zeros(1, device=dev)
+
+        self.xs, self.ys, self.ts = axis(self.W), axis(self.H), axis(self.K)
+        self.mask = None if p.mask is None else p.mask.to(dev, torch.float32)
+        self.px_per_unit = torch.tensor([(self.W - 1) / 2, (self.H - 1) / 2], device=dev).clamp_min(0.5)
+        self.w_rs = p.rs_weights.to(dev, torch.float32)
+        # Held-out split (rngcam.recon.problem): fit only the training rows and GS pixels.
+        self.rs_rows_fit = (torch.arange(self.H) if p.rs_train_rows is None
+                            else torch.nonzero(p.rs_train_rows.cpu()).flatten())
+        fit = p.gs_fit_mask() if p.b_gs is not None else None
+        self.gs_fit = None if fit is None else fit.to(dev, torch.float32)
+        self.w_gs = p.gs_weights.to(dev, torch.float32)
+        self.gs_frames = torch.nonzero(self.w_gs.sum(0) > 0).flatten() if self.parts.gs else \
+            torch.zeros(0, dtype=torch.long, device=dev)
+        # The forward model is rngcam.physics.operators' (a step uses its row/frame restrictions).
+        self.rs_op = RollingShutter(p.psf, self.w_rs, self.W, self.C)
+        self.gs_op = GlobalShutter(self.w_gs, self.C, (self.H, self.W))
+        # Saturated pixels carry no linear information: every data residual is multiplied by these.
+        rs_valid, gs_valid = p.rs_valid_mask(), p.gs_valid_mask()
+        self.rs_valid = None if rs_valid is None else rs_valid.to(dev, torch.float32)
+        self.gs_valid = None if gs_valid is None else gs_valid.to(dev, torch.float32)
+        if self.parts.gs and self.settings.gs_anchor == "hard":
+            w = self.w_gs[:, self.gs_frames].double()  # (G, S)
+            self.anchor_p = (torch.linalg.pinv(w @ w.t()) @ w).t().float()  # (S, G) = W^T (W W^T)^-1
+
+
+    def _build_fields(self, preset: dict) -> None:
+        kind_s, cfg_s = preset["static"]
+        kind_m, cfg_m = preset["motion"]
+        kind_d, cfg_d = preset["dynamic"]
+        self.fields = nn.ModuleDict()
+        if self.parts.static:
+            self.fields["static"] = make_field(kind_s, 2, self.C, **cfg_s)
+        if self.parts.motion:
+            keys = self._key_warps
+            self.fields["motion"] = make_field(kind_m, 3, 4 if keys else 2, **cfg_m)
+            dims = 3 if self.resolved.dynamic_time else 2
+            if dims == 2:
+                cfg_d = {k: v for k, v in cfg_d.items() if k != "time_resolutions"}
+            self.fields["dynamic"] = make_field(kind_d, dims, self.C + (2 if keys else 1), **cfg_d)
+            if self.base_source is not None and kind_d == "planes":  # start exactly at the base
+                head = self.fields["dynamic"].decoder[-1]
+                with torch.no_grad():
+                    for ch in self._correction_channels():
+                        head.weight[ch] = 0
+                        head.bias[ch] = 0
+            if kind_m == "planes":  # start without motion; gradients still reach every plane
+                head = self.fields["motion"].decoder[-1]
+                nn.init.zeros_(head.weight)
+                nn.init.zeros_(head.bias)
+        self.fields.to(self.device)
+        wb = self.problem.white_balance
+        start = torch.ones(self.C, device=self.device) if wb is None else wb.to(self.device).float()
+        if not torch.all(start > 0):
+            raise ConfigError(f"white balance gains must be > 0, got {start.tolist()}")
+        self.log_gain = nn.Parameter(start.log())
+
+
+    # ------------------------------------------------------------------ the model
+
+    def _static(self) -> Tensor:
+        """(C, H, W) static image."""
+        raw = field_on_grid(self.fields["static"], [self.xs, self.ys])  # (H, W, C)
+        return F.softplus(raw).permute(2, 0, 1)
+
+    def _motion(self, idx: Tensor) -> Tensor:
+        """(n, H, W, 2) displacement in coordinate units at frames idx."""
+        return field_on_grid(self.fields["motion"], [self.xs, self.ys, self.ts[idx]])
+
+    @property
+    def _key_warps(self) -> bool:
+        return self.base_source in ("keys_rife", "keys_interp")
+
+    def _correction_channels(self) -> list[int]:
+        """Dynamic-field outputs that correct a base (zero at the start): colour, and with
+        base "keys" the blend logit."""
+        return list(range(self.C)) + ([self.C + 1] if self._key_warps else [])
+
+    def _motion_px(self) -> Tensor:
+        """Pixels per coordinate unit for each motion component."""
+        return self.px_per_unit.repeat(2) if self._key_warps else self.px_per_unit
+
+    def _keys_at(self, u: Tensor, blend_logit: Tensor, idx: Tensor) -> Tensor:
+        """Base "keys": the two key frames around each frame idx warped by the interpolation's
+        flows plus u (n, H, W, 4) and blended with its weights plus blend_logit (n, H, W)."""
+        flow = self.key_flow.index_select(0, idx) + u
+        left = self.key_left.index_select(0, idx)
+        gx, gy = self.xs.view(1, 1, -1), self.ys.view(1, -1, 1)
+
+        def warped(keys, f):
+            grid = torch.stack([gx + f[..., 0], gy + f[..., 1]], dim=-1)
+            return F.grid_sample(keys, grid, mode="bilinear", padding_mode="border", align_corners=True)
+
+        w0 = warped(self.key_images.index_select(0, left), flow[..., :2])
+        w1 = warped(self.key_images.index_select(0, left + 1), flow[..., 2:])
+        m = torch.sigmoid(self.key_logit.index_select(0, idx) + blend_logit)[:, None]
+        return (m * w0 + (1 - m) * w1).permute(1, 0, 2, 3)
+
+    def _dynamic_at(self, u: Tensor, idx: Tensor) -> tuple[Tensor, Tensor]:
+        """Dynamic colour (C, n, H, W) and alpha (1, n, H, W) at the points warped by u (n, H, W, 2)
+        (frames idx: the time coordinate when the dynamic field has one)."""
+        n = u.shape[0]
+        if self._key_warps:  # the motion moves the key frames; the field sits at (x, y, t)
+            raw = field_on_grid(self.fields["dynamic"], [self.xs, self.ys, self.ts[idx]]).permute(3, 0, 1, 2)
+            base = self._keys_at(u, raw[self.C + 1], idx) * self._gain()[:, None, None, None]
+            return F.softplus(raw[:self.C] + _inverse_softplus(base)), torch.sigmoid(raw[self.C:self.C + 1])
+        x = self.xs.view(1, 1, -1) + u[..., 0]
+        y = self.ys.view(1, -1, 1) + u[..., 1]
+        coords = [x, y]
+        if self.resolved.dynamic_time:
+            coords.append(self.ts[idx].view(-1, 1, 1).expand_as(x))
+        raw = self.fields["dynamic"](torch.stack(coords, dim=-1).reshape(-1, len(coords)))
+        raw = raw.reshape(n, self.H, self.W, self.C + 1).permute(3, 0, 1, 2)
+        colour = raw[:self.C]
+        if self.base_source is not None:  # the field is a correction to the warped base video
+            colour = colour + _inverse_softplus(self._base_at(x, y, idx) * self._gain()[:, None, None, None])
+        return F.softplus(colour), torch.sigmoid(raw[self.C:])
+
+    def _base_at(self, x: Tensor, y: Tensor, idx: Tensor) -> Tensor:
+        """The base video (C, n, H, W) of frames idx sampled at the points (x, y) (n, H, W)."""
+        n = len(idx)
+        if self.base_video is not None:
+            grid = torch.stack([x, y], dim=-1)  # (n, H, W, 2)
+            frames = self.base_video.index_select(1, idx).permute(1, 0, 2, 3)  # (n, C, H, W)
+            out = F.grid_sample(frames, grid, mode="bilinear", padding_mode="border", align_corners=True)
+            return out.permute(1, 0, 2, 3)
+        grid = torch.stack([x, y], dim=-1).reshape(1, n * self.H, self.W, 2)
+        keys = F.grid_sample(self.base_keys, grid, mode="bilinear", padding_mode="border",
+                             align_corners=True).view(self.C, -1, n, self.H, self.W)
+        return torch.einsum("cgnhw,ng->cnhw", keys, self.base_weights[idx])
+
+    def _gain(self) -> Tensor:
+        return self.log_gain.exp()
+
+    def frames(self, idx: Tensor, static: Tensor | None = None) -> Tensor:
+        """Video frames idx (C, n, H, W), before any hard GS anchoring (zero outside the mask).
+
+        `static` may pass in the static image already evaluated for this step."""
+        n = len(idx)
+        if self.parts.static and static is None:
+            static = self._static()
+        if not self.parts.motion:
+            v = static[:, None].expand(self.C, n, self.H, self.W)
+        else:
+            colour, alpha = self._dynamic_at(self._motion(idx), idx)
+            v = colour if not self.parts.static else alpha * static[:, None] + (1 - alpha) * colour
+        return v if self.mask is None else v * self.mask
+
+    def _anchored(self, v_gs: Tensor) -> Tensor:
+        """Hard anchoring of the GS-window frames (C, S, H, W) onto Lambda b_G."""
+        target = self._gain()[:, None, None, None] * self.problem.b_gs
+        windows = torch.arange(self.w_gs.shape[0], device=self.device)
+        miss = target - self.gs_op.A_frames(v_gs, windows, self.gs_frames)
+        if self.mask is not None:
+            miss = miss * self.mask
+        if self.gs_fit is not None:  # exact while GS exposures do not overlap in time
+            miss = miss * self.gs_fit
+        if self.gs_valid is not None:  # saturated GS pixels say nothing: left as the fields make them
+            miss = miss * self.gs_valid
+        return v_gs + torch.einsum("sg,cghw->cshw", self.anchor_p, miss)
+
+    def _gs_window(self) -> Tensor:
+        v = self.frames(self.gs_frames)
+        return self._anchored(v) if self.settings.gs_anchor == "hard" else v
+
+    def _video_frames(self, idx: Tensor) -> Tensor:
+        """Frames idx of the video as output (with hard anchoring where it applies)."""
+        if self.settings.gs_anchor != "hard" or not self.parts.gs:
+            return self.frames(idx)
+        inside = torch.isin(idx, self.gs_frames)
+        if not bool(inside.any()):
+            return self.frames(idx)
+        window = self._gs_window()
+        out = self.frames(idx)
+        out[:, inside] = window[:, torch.searchsorted(self.gs_frames, idx[inside])]
+        return out
+

@@ -1,0 +1,171 @@
+"""STFM settings, presets and the settings as resolved against a preset."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from rngcam.errors import ConfigError
+
+PRESETS = ("paper", "fast", "prior")
+INIT_STEPS = 100
+NOISE_CHECK_STEPS = 20  # steps between discrepancy-principle checks (one full RS forward each)
+STALL_PASSES = 15  # the stall test compares the RS residual with its value this many passes over the rows ago
+MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow is skipped
+
+
+@dataclass
+class STFMSettings:
+    """User settings; None means "the preset's value"."""
+
+    preset: str = "fast"
+    beta: float | None = None  # temporal weight inside the motion TV
+    tau: float | None = None  # weight of the motion TV
+    psi: float = 1.0  # RS weight relative to GS (after operator-norm scaling)
+    components: str = "auto"  # "auto": leave out what the problem does not need; "all": keep all
+    no_static: bool = False
+    no_motion_reg: bool = False
+    no_rs: bool = False
+    no_gs: bool = False
+    gs_anchor: str = "soft"  # "soft" (loss term) or "hard" (projection onto the GS frames)
+    rows_per_step: int | None = None
+    tv_frames_per_step: int = 2
+    frame_chunk: int = 16  # frames evaluated with one autograd graph
+    seed: int = 0
+    lr: float | None = None
+    lr_half_life_steps: float | None = None  # exponential LR decay (None: preset's; inf: none)
+    init: str | None = None  # "gs" (fit fields to the GS frames first) or "random"
+    gs_windows_per_step: int | None = None  # GS frames per step (soft anchoring; 0: all)
+    dynamic_time: bool | None = None  # F_D(x + u_x, y + u_y, t) instead of F_D(x + u_x, y + u_y)
+    dynamic_base: str | None = None  # "blend": F_D's colour corrects the warped cross-fade; "none"
+    time_smoothness: float | None = None  # weight of the time planes' roughness (plane fields)
+    stop_at_noise: bool | None = None  # stop once the RS residual reaches the estimated noise level, or stalls
+    stall_drop: float | None = None  # ... or once it fell less than this fraction over STALL_PASSES (0: off)
+    ema_decay: float | None = None  # outputs use an exponential moving average of the weights (0: off)
+    refine: bool | None = None  # ensemble: one more fit on the members' average once they have stopped
+    motion_init: str | None = None  # 2-D dynamic field: "flow" (key-frame optical flow) or "search" (motion_search)
+
+    def __post_init__(self):
+        if self.preset not in PRESETS:
+            raise ConfigError(f"unknown STFM preset {self.preset!r} (choose from {', '.join(PRESETS)})")
+        if self.components not in ("auto", "all"):
+            raise ConfigError(f"components must be 'auto' or 'all', got {self.components!r}")
+        if self.gs_anchor not in ("soft", "hard"):
+            raise ConfigError(f"gs_anchor must be 'soft' or 'hard', got {self.gs_anchor!r}")
+        if self.motion_init not in (None, "flow", "search"):
+            raise ConfigError(f"motion_init must be 'flow' or 'search', got {self.motion_init!r}")
+        if self.init not in (None, "gs", "random"):
+            raise ConfigError(f"init must be 'gs' or 'random', got {self.init!r}")
+        if self.dynamic_base is not None:
+            bases = _base_list(self.dynamic_base)
+            bad = [b for b in bases if b not in ALL_BASES]
+            if bad or len(set(bases)) != len(bases):
+                raise ConfigError(f"dynamic_base must be one of {', '.join(ALL_BASES)}, a comma-separated list "
+                                  f"of distinct ones, or 'ensemble' ({ENSEMBLE_BASES}); got {self.dynamic_base!r}")
+        if self.stall_drop is not None and not 0 <= self.stall_drop < 1:
+            raise ConfigError(f"stall_drop must be in [0, 1), got {self.stall_drop!r}")
+        if self.ema_decay is not None and not 0 <= self.ema_decay < 1:
+            raise ConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay!r}")
+        for name in ("beta", "tau", "psi", "lr"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"{name} must be a finite number >= 0, got {value!r}")
+        if self.rows_per_step is not None and self.rows_per_step < 1:
+            raise ConfigError(f"rows_per_step must be >= 1, got {self.rows_per_step}")
+        if self.gs_windows_per_step is not None and self.gs_windows_per_step < 0:
+            raise ConfigError(f"gs_windows_per_step must be >= 0, got {self.gs_windows_per_step}")
+        if self.tv_frames_per_step < 1 or self.frame_chunk < 1:
+            raise ConfigError("tv_frames_per_step and frame_chunk must be >= 1")
+
+
+BASE_VIDEOS = ("video", "rife", "interp")  # "video": rife when its weights are installed, else interp
+KEY_WARPS = ("keys", "keys_rife", "keys_interp")  # "keys": RIFE's flows when installed, else DIS flows
+ALL_BASES = (*BASE_VIDEOS, *KEY_WARPS, "blend", "none")
+# dynamic_base="ensemble": one fit on each of these bases, averaged (STFMEnsemble). Their errors
+# in what the RS image cannot see differ, so the average is closer to the truth than any one of them.
+ENSEMBLE_BASES = "video,keys,keys_interp"
+REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
+DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
+
+
+def _preset(name: str, h: int, w: int, k: int) -> dict:
+    """Field configurations and schedule of a preset for an H x W x K video."""
+    side = max(h, w)
+    if name == "paper":
+        siren = {"w0": 30.0, "n_freqs": 6}
+        return {
+            "static": ("siren", dict(hidden=32, layers=2, **siren)),
+            "motion": ("siren", dict(hidden=32, layers=2, **siren)),
+            "dynamic": ("siren", dict(hidden=128, layers=3, **siren)),
+            "lr": 5e-6, "decoder_lr_ratio": 1.0, "gain_lr_ratio": 1.0, "lr_half_life_steps": math.inf,
+            "beta": 10.0, "tau": 1e-3, "rows_per_step": max(1, h // 4), "init": "random",
+            "dynamic_time": False, "dynamic_base": "none", "gs_windows_per_step": 0, "time_smoothness": 0.0,
+            "stop_at_noise": False, "stall_drop": 0.0, "ema_decay": 0.0, "refine": False, "motion_init": "flow"}
+
+    def scales(fractions, n):
+        return tuple(sorted({max(2, round(n * f)) for f in fractions}))
+
+    appearance = scales((0.25, 0.5, 1.0), side)
+    motion_space = scales((1 / 16, 1 / 8, 1 / 4), side)
+
+    def motion_time_for(space):
+        t = tuple(max(2, round(k * f)) for f in (0.25, 0.5, 1.0))[:len(space)]
+        return t + (t[-1],) * (len(space) - len(t))
+
+    motion_time = motion_time_for(motion_space)
+    fast = {
+        "static": ("planes", {"resolutions": appearance, "features": 8, "hidden": 32}),
+        "motion": ("planes", {"resolutions": motion_space, "time_resolutions": motion_time,
+                               "features": 8, "hidden": 32}),
+        "dynamic": ("planes", {"resolutions": appearance, "time_resolutions": motion_time_for(appearance),
+                                "features": DYNAMIC_FEATURES, "hidden": 32}),
+        "lr": 1e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
+        "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 8)), "init": "gs",
+        "dynamic_time": True, "dynamic_base": "ensemble", "gs_windows_per_step": 1, "time_smoothness": 0.3,
+        "stop_at_noise": True, "stall_drop": 0.02, "ema_decay": 0.95, "refine": True, "motion_init": "flow"}
+    if name == "prior":  # the paper's prior on the fast fields: one canonical dynamic image that the motion moves
+        fast.update({"dynamic": ("planes", {"resolutions": appearance, "features": DYNAMIC_FEATURES, "hidden": 32}),
+                     "dynamic_time": False, "dynamic_base": "none", "refine": False, "motion_init": "search",
+                     "stall_drop": 0.0})  # still gaining where a 2 % stall test stops (bench/stfm_motion.md)
+    return fast
+
+
+
+# ----------------------------------------------------------------------------- the method
+
+
+@dataclass
+class _Resolved:
+    """Settings after the preset has filled the blanks (stored in outputs)."""
+
+    settings: STFMSettings
+    beta: float
+    tau: float
+    lr: float
+    lr_half_life_steps: float
+    rows_per_step: int
+    init: str
+    dynamic_time: bool
+    dynamic_base: str
+    time_smoothness: float
+    gs_windows_per_step: int
+    stop_at_noise: bool
+    stall_drop: float
+    ema_decay: float
+    motion_init: str = "flow"
+    fields: dict = field(default_factory=dict)
+
+
+
+def _setting_or_preset(settings: STFMSettings, name: str):
+    """A setting's value, or its preset's where the setting is None (for values that do not
+    depend on the problem's size)."""
+    value = getattr(settings, name)
+    return _preset(settings.preset, 2, 2, 2)[name] if value is None else value
+
+
+def _base_list(bases: str) -> list[str]:
+    """The dynamic bases of a `dynamic_base` setting ("ensemble" is ENSEMBLE_BASES)."""
+    return (ENSEMBLE_BASES if bases == "ensemble" else bases).split(",")
+
+

@@ -1,0 +1,51 @@
+"""STFM's stop test: the discrepancy principle and the stall test on the RS residual."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from rngcam.recon.metrics import relative_residual
+from rngcam.recon.stfm.settings import NOISE_CHECK_STEPS, STALL_PASSES
+
+
+class NoiseStop:
+    """Part of STFM: when to stop a fit (fast preset, `stop_at_noise`)."""
+
+    @torch.no_grad()
+    def converged(self) -> str | None:
+        """Every NOISE_CHECK_STEPS steps (fast preset; `stop_at_noise`), the relative RS residual on
+        the fitted rows is tested twice. The discrepancy principle: at or below the noise level
+        estimated from the RS image (rngcam.recon.noise) the fit would start fitting noise. The
+        stall test: once the residual fell by less than `stall_drop` over the last STALL_PASSES
+        passes over the rows, further steps buy little residual with structure the data do not
+        demand (on the benchmark clips the truth-PSNR peaked there, then fell)."""
+        if not (self.resolved.stop_at_noise and self.parts.rs and self.steps % NOISE_CHECK_STEPS == 0):
+            return None
+        rows = self.rs_rows_fit.to(self.device)
+        video = self.estimate()  # cached per step: a log at this step reuses it
+        pred = self._rs_apply(lambda idx: video[:, idx], rows)
+        target = self.problem.b_rs.index_select(1, rows)
+        if self.rs_valid is not None:  # saturated pixels say nothing
+            valid = self.rs_valid.index_select(1, rows)
+            pred, target = pred * valid, target * valid
+        residual = relative_residual(pred, target)
+        window = self._stall_window()
+        self._rs_history = {s: r for s, r in self._rs_history.items() if s >= self.steps - window}
+        self._rs_history[self.steps] = residual  # only the last window is kept (and checkpointed)
+        if residual <= self.rs_noise_level:
+            return (f"RS residual {residual:.4f} reached the noise level estimated from the RS image "
+                    f"({self.rs_noise_level:.4f}): more steps would fit noise")
+        then = self.steps - window
+        drop = self.resolved.stall_drop
+        if drop > 0 and then in self._rs_history and residual > (1 - drop) * self._rs_history[then]:
+            return (f"RS residual {residual:.4f} fell less than {100 * drop:g}% in {STALL_PASSES} passes over the "
+                    f"rows (from {self._rs_history[then]:.4f}; noise level {self.rs_noise_level:.4f})")
+        return None
+
+    def _stall_window(self) -> int:
+        """STALL_PASSES passes over the fitted rows, in steps (a multiple of NOISE_CHECK_STEPS)."""
+        steps = STALL_PASSES * len(self.rs_rows_fit) / self.resolved.rows_per_step
+        return NOISE_CHECK_STEPS * max(1, math.ceil(steps / NOISE_CHECK_STEPS))
+
