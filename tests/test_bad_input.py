@@ -274,10 +274,6 @@ def test_capture_failure_after_arming_leaves_the_hardware_safe_in_one_line(tmp_p
     """The mock rig with the fake generator on a pty; a failure injected after "fired"."""
     from rngcam.acquire.fake_generator import FakeGenerator
     from rngcam.acquire.mock_camera import MockCamera
-    from rngcam.paths import shared_data
-
-    if not (shared_data() / "psf" / "diffusercam_tutorial_psf_sample.tif").is_file():
-        pytest.skip("the mock rig's PSF is not in the shared data folder (set RNGCAM_DATA)")
     seen = {"outputs": None, "closed": []}
     stop, close = FakeGenerator.stop, MockCamera.close
 
@@ -362,10 +358,6 @@ def test_what_the_capture_warned_about_travels_to_inspect_recon_and_metrics(clea
 
 
 def test_a_lab_sized_mock_scene_is_refused_before_arming(tmp_path):
-    from rngcam.paths import shared_data
-
-    if not (shared_data() / "psf" / "diffusercam_tutorial_psf_sample.tif").is_file():
-        pytest.skip("the mock rig's PSF is not in the shared data folder (set RNGCAM_DATA)")
     rig_path = Path(__file__).parents[1] / "rigs" / "mock.yaml"
     text = rig_path.read_text().replace("roi: {width: 64, height: 64}", "roi: {width: 4096, height: 4096}")
     text = text.replace("line_time_s: 208.0e-6", "line_time_s: 4.0e-6")

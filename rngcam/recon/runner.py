@@ -184,6 +184,7 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
                       max_memory_bytes=settings.max_memory_bytes)
     device = resolve_device(settings.device)
     problem = build_problem(bundle, grid_bin=settings.grid_bin, max_frames=settings.max_frames)
+    one_object = one_object_scene(bundle.rig_yaml)  # for the motion yardstick
     del bundle  # the raw frames are in the problem now
     out = Path(out_dir) if out_dir is not None else default_out_dir(bundle_path, settings.method)
     out.mkdir(parents=True, exist_ok=True)
@@ -265,7 +266,7 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
         if caveats:
             metrics["error_visibility_caveats"] = caveats
         metrics.update(motion_metrics(torch.from_numpy(np.asarray(video)), problem.truth, intermediate,
-                                      one_object=one_object_scene(bundle.rig_yaml)))
+                                      one_object=one_object))
     if method_settings is not None:
         metrics["method_settings"] = method_settings  # the preset's values filled in
     resolved = {**asdict(settings), "device": device, "grid_bin": settings.grid_bin}
