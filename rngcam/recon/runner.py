@@ -27,7 +27,7 @@ from rngcam.recon.loop import LoopSettings, RunResult, run
 from rngcam.recon.metrics import error_visibility, relative_residual, video_metrics
 from rngcam.recon.problem import Problem, build_problem
 
-ITERATIVE = ("stfm", "tv3d")
+ITERATIVE = ("stfm", "tv3d", "pnp")
 GS_ONLY = ("blend", "interp", "rife")
 METHODS = ITERATIVE + GS_ONLY
 # The budget of time_budget_s="auto": STFM's fast preset stops by itself (after 1-3 min at 64 px on
@@ -90,6 +90,10 @@ def make_method(problem: Problem, settings: ReconSettings, device: str):
         from rngcam.recon.tv3d import TV3D, TV3DSettings
 
         method = TV3D(problem.to(torch.float32, device), TV3DSettings(**opts))
+    elif settings.method == "pnp":
+        from rngcam.recon.pnp import PnP, PnPSettings
+
+        method = PnP(problem.to(torch.float32, device), PnPSettings(**opts), device=device)
     else:
         from rngcam.recon.stfm import STFMSettings, make_stfm
 
@@ -100,7 +104,7 @@ def make_method(problem: Problem, settings: ReconSettings, device: str):
 
 
 
-def _run_gs_only(problem: Problem, method: str, opts: dict) -> tuple[np.ndarray, RunResult]:
+def _run_gs_only(problem: Problem, method: str, opts: dict, notes: list[str]) -> tuple[np.ndarray, RunResult]:
     if problem.b_gs is None or problem.b_gs.shape[1] == 0:
         raise RngcamError(f"--method {method} needs GS frames; the bundle has none")
     key = gs_key_frames(problem)
@@ -114,9 +118,11 @@ def _run_gs_only(problem: Problem, method: str, opts: dict) -> tuple[np.ndarray,
 
         video = interp(key, problem.gs_times_s, problem.frame_times_s, **opts)
     else:
-        from rngcam.recon.rife import rife
+        from rngcam.recon.rife import resolve_model, rife
 
-        video = rife(key, problem.gs_times_s, problem.frame_times_s, **opts)
+        model, note = resolve_model(opts.get("model"))
+        notes.extend([note] if note else [])
+        video = rife(key, problem.gs_times_s, problem.frame_times_s, **{**opts, "model": model})
     secs = time.perf_counter() - t0
     return np.asarray(video, np.float32), RunResult(log=[], iterations=1, solve_s=secs, wall_s=secs)
 
@@ -158,8 +164,11 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
         return video_metrics(video.detach().double().cpu(), problem.truth, intermediate, problem.mask)
 
     components, left_out, status, message, method_settings = {}, [], "ok", "", None
+    notes: list[str] = []  # substitutions a method made (e.g. missing learned weights) and their cost
     if settings.method in GS_ONLY:
-        video, result = _run_gs_only(problem, settings.method, settings.options)
+        video, result = _run_gs_only(problem, settings.method, settings.options, notes)
+        for note in notes:
+            echo(f"note: {note}")
         vt = torch.from_numpy(video).double()
         row = {"iteration": 1, "wall_s": result.solve_s, "solve_s": result.solve_s, "objective": float("nan")}
         row.update({f"residual_{k2}": v for k2, v in _residuals(problem, vt).items()})
@@ -170,6 +179,9 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
         method = make_method(problem, settings, device)
         setup_s = time.perf_counter() - t0
         left_out = list(getattr(method, "left_out", []))
+        notes = list(getattr(method, "notes", []))
+        for note in notes:
+            echo(f"note: {note}")
         for comp, why in left_out:
             echo(f"left out: {comp} ({why})")
         loop = LoopSettings(time_budget_s=settings.time_budget_s, max_iters=settings.max_iters,
@@ -201,6 +213,7 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
         "device": device, "status": status,
         "left_out": [{"component": a, "reason": b} for a, b in left_out],
         "events": result.events,
+        "notes": notes,
     }
     for key in ("psnr_db", "ssim", "psnr_intermediate_db", "ssim_intermediate", "residual_rs", "residual_gs",
                 "heldout", "heldout_rs", "heldout_gs"):
