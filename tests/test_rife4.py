@@ -52,9 +52,9 @@ def test_matches_the_reference_implementation_on_real_frame_pairs():
     ref.eval()
     ours = rife4.load_ifnet4()
     img0, img1 = _pairs()
-    for t in (0.25, 0.5, 0.8):
-        _, _, merged = ref(torch.cat((img0, img1), 1), t, [16, 8, 4, 2, 1])
-        mine = ours(img0, img1, t)
+    for t, scale in ((0.25, 1.0), (0.5, 1.0), (0.8, 1.0), (0.5, 2.0)):
+        _, _, merged = ref(torch.cat((img0, img1), 1), t, [16 / scale, 8 / scale, 4 / scale, 2 / scale, 1 / scale])
+        mine = ours(img0, img1, t, scale)
         assert float((mine - merged[-1]).abs().max()) < 1e-5
         # and the output is a real interpolation, not a copy of an end frame
         assert float((mine - img0).abs().mean()) > 1e-3 and float((mine - img1).abs().mean()) > 1e-3
@@ -88,3 +88,10 @@ def test_rife4_recovers_a_shifted_real_frame_better_than_a_cross_fade():
     fade = 0.5 * (lin[:, 0] + lin[:, 2])
     err = lambda a: float(np.mean((a - lin[:, 1]) ** 2))  # noqa: E731
     assert err(mid) < 0.5 * err(fade)
+
+
+def test_small_images_run_at_a_finer_scale():
+    assert rife4.working_scale(64, 64) == 4.0
+    assert rife4.working_scale(128, 96) == 2.0
+    assert rife4.working_scale(256, 300) == 1.0 and rife4.working_scale(1080, 1920) == 1.0
+    assert rife4.working_scale(16, 16) == 4.0

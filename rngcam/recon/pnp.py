@@ -46,12 +46,12 @@ SLICE_KINDS = ("xy", "xt", "yt")
 class PnPSettings:
     psi: float = 1.0  # RS data weight relative to GS
     mu: float = 0.5  # proximity weight at the first iteration (relative to the scaled data terms)
-    sigma_start: float = 0.06  # denoiser noise level, [0, 1] scale of the encoded frames
+    sigma_start: float = 0.05  # denoiser noise level, [0, 1] scale of the encoded frames
     sigma_end: float = 0.01
-    schedule_iters: int = 30
+    schedule_iters: int = 20
     cg_iters: int = 5
     gs_anchor: str = "hard"  # "soft" or "hard"
-    slices: str = "xy"  # comma-separated cycle of "xy" (frames), "xt", "yt"
+    slices: str = "xt,yt"  # comma-separated cycle of "xy" (frames), "xt", "yt"
     init: str = "video"  # "video" (RIFE, else interp), "rife", "interp" or "blend"
     frame_chunk: int = 16  # images per denoiser pass
     stop_at_noise: bool = True

@@ -333,10 +333,11 @@ def _targets_by_pair(f, times_s, targets):
 @torch.inference_mode()
 def _rife4(f: np.ndarray, times_s, targets, weights, device: str) -> np.ndarray:
     """RIFE 4.x: each target frame in one pass at its own fraction t, batched per key-frame pair."""
-    from rngcam.recon.rife4 import PAD_MULTIPLE, load_ifnet4
+    from rngcam.recon.rife4 import PAD_MULTIPLE, load_ifnet4, working_scale
 
     net = load_ifnet4(weights, device)
     c, g, h, w = f.shape
+    net_scale = working_scale(h, w)
     if g == 1:
         return np.repeat(f, len(targets), axis=1)
     idx, frac, exact = _targets_by_pair(f, times_s, targets)
@@ -350,7 +351,7 @@ def _rife4(f: np.ndarray, times_s, targets, weights, device: str) -> np.ndarray:
             chunk = sel[start:start + _BATCH]
             n = len(chunk)
             t = torch.as_tensor(frac[chunk], dtype=ends.dtype, device=ends.device)
-            mid = net(ends[:1].expand(n, -1, -1, -1), ends[1:].expand(n, -1, -1, -1), t)
+            mid = net(ends[:1].expand(n, -1, -1, -1), ends[1:].expand(n, -1, -1, -1), t, net_scale)
             out[:, chunk] = _from_network(mid, c, h, w, scale)
     return out
 
@@ -360,10 +361,11 @@ def _rife4_warps(f: np.ndarray, times_s, targets, weights, device: str):
     """RIFE 4.x's flows from each target time to its two key frames and the blend weight, as
     `baselines.KeyWarps` (exact: the network is asked at each target's own time)."""
     from rngcam.recon.baselines import KeyWarps
-    from rngcam.recon.rife4 import PAD_MULTIPLE, load_ifnet4
+    from rngcam.recon.rife4 import PAD_MULTIPLE, load_ifnet4, working_scale
 
     net = load_ifnet4(weights, device)
     c, g, h, w = f.shape
+    net_scale = working_scale(h, w)
     idx, frac, exact = _targets_by_pair(f, times_s, targets)
     k = len(targets)
     flow0, flow1 = np.zeros((k, h, w, 2), np.float32), np.zeros((k, h, w, 2), np.float32)
@@ -376,7 +378,7 @@ def _rife4_warps(f: np.ndarray, times_s, targets, weights, device: str):
             chunk = sel[start:start + _BATCH]
             n = len(chunk)
             t = torch.as_tensor(frac[chunk], dtype=ends.dtype, device=ends.device)
-            flow, mask = net.flows(ends[:1].expand(n, -1, -1, -1), ends[1:].expand(n, -1, -1, -1), t)
+            flow, mask = net.flows(ends[:1].expand(n, -1, -1, -1), ends[1:].expand(n, -1, -1, -1), t, net_scale)
             flow = flow[:, :, :h, :w].permute(0, 2, 3, 1).cpu().numpy()
             flow0[chunk], flow1[chunk] = flow[..., :2], flow[..., 2:]
             weight0[chunk] = torch.sigmoid(mask[:, 0, :h, :w]).cpu().numpy()

