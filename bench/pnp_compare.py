@@ -120,14 +120,14 @@ def main() -> None:
             rows = gs_only(p)
             if scene == "smoke":
                 for beta in a.tv3d_betas.split(","):
-                    rows[f"tv3d beta {beta}"] = iterative(p, lambda b=float(beta): TV3D(p, TV3DSettings(beta=b)), a.budget)
-            rows["pnp"] = iterative(p, lambda: PnP(p), a.budget)
+                    rows[f"tv3d beta {beta}"] = iterative(p, lambda b=float(beta), p=p: TV3D(p, TV3DSettings(beta=b)), a.budget)
+            rows["pnp"] = iterative(p, lambda p=p: PnP(p), a.budget)
             if scene == "smoke":
-                rows["pnp, frames only (slices=xy)"] = iterative(p, lambda: PnP(p, PnPSettings(slices="xy")), a.budget)
+                rows["pnp, frames only (slices=xy)"] = iterative(p, lambda p=p: PnP(p, PnPSettings(slices="xy")), a.budget)
                 real = ffdnet.load_ffdnet
                 ffdnet.load_ffdnet = lambda *_, **__: (_ for _ in ()).throw(ffdnet.DenoiserUnavailableError("hidden"))
                 try:
-                    rows["pnp, 2-D TV instead of FFDNet"] = iterative(p, lambda: PnP(p), a.budget)
+                    rows["pnp, 2-D TV instead of FFDNet"] = iterative(p, lambda p=p: PnP(p), a.budget)
                 finally:
                     ffdnet.load_ffdnet = real
             best_gs = max((r["inter"], n) for n, r in rows.items() if n in ("blend", "interp", "rife 4.x", "rife hdv3"))

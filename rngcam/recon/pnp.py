@@ -13,10 +13,11 @@ and each iteration alternates (Zhang et al., DPIR, TPAMI 2021)
 with a noise level sigma_k falling geometrically from `sigma_start` to `sigma_end` over
 `schedule_iters` iterations and mu_k = mu (sigma_start / sigma_k)^2 rising with it. D is FFDNet
 (rngcam.recon.ffdnet) on the sRGB-encoded frames (scaled so the brightest key-frame value is 1),
-so sigma is on the [0, 1] scale of an 8-bit image (0.02 ~ 5/255). With `slices="xy,xt,yt"`
-every second and third iteration denoises the x-t and y-t slices instead of the frames, which
-puts the 2-D prior along time too. Without FFDNet's weights a 2-D TV denoiser stands in (said
-in `notes`).
+so sigma is on the [0, 1] scale of an 8-bit image (0.02 ~ 5/255). `slices` is the cycle of 2-D
+images the denoiser sees, one kind per iteration: the frames (xy), the x-t slices (one per row)
+or the y-t slices (one per column); the default "xt,yt" puts the learned prior along time, which
+measured best on smoke (bench/pnp_compare.md). Without FFDNet's weights a 2-D TV denoiser stands
+in (said in `notes`).
 
 It starts from the best GS-only video (RIFE, else DIS interpolation); with `gs_anchor="hard"`
 every iterate is projected onto {A_G v = b_G} as in tv3d. It stops by the discrepancy principle
