@@ -222,3 +222,15 @@ def test_recon_cli_pnp_writes_its_notes_and_settings(tmp_path, monkeypatch):
     assert metrics["method"] == "pnp" and metrics["iterations"] == 2
     assert any("2-D TV instead" in n for n in metrics["notes"])
     assert metrics["method_settings"]["denoiser"] == "tv2d" and metrics["method_settings"]["slices"] == "xy,xt"
+
+
+@needs_weights
+@pytest.mark.parametrize("kind", ["xy", "xt", "yt"])
+def test_denoising_in_chunks_equals_denoising_at_once(kind):
+    from rngcam.recon.pnp import Denoiser
+
+    video = torch.rand((3, 10, 12, 14), generator=torch.Generator().manual_seed(0))
+    small, large = Denoiser("cpu", chunk=1)(video, 0.05, kind, 1.0), Denoiser("cpu", chunk=100)(video, 0.05, kind, 1.0)
+    assert small.shape == video.shape
+    assert torch.allclose(small, large, atol=1e-5)
+    assert float((small - video).abs().mean()) > 1e-3  # it did denoise

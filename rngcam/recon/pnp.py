@@ -104,7 +104,9 @@ def _linear(y: Tensor) -> Tensor:
 
 
 class Denoiser:
-    """D(video, sigma) applied to 2-D slices of a (C, K, H, W) video, a chunk of slices at a time.
+    """D(video, sigma) applied to 2-D slices of a (C, K, H, W) video, a chunk of slices at a time
+    (memory: `chunk` frames' worth of activations; one x-t slice alone exceeds that only when K >
+    chunk x H).
 
     FFDNet when its weights are installed, else 2-D TV (tv.prox_tv_nonneg without a time term)."""
 
@@ -126,9 +128,12 @@ class Denoiser:
         perm = {"xy": (1, 0, 2, 3), "xt": (2, 0, 1, 3), "yt": (3, 0, 1, 2)}[kind]
         images = video.permute(*perm)
         out = torch.empty_like(images)
-        for start in range(0, images.shape[0], self.chunk):
-            part = images[start:start + self.chunk]
-            out[start:start + self.chunk] = self._denoise(part, sigma, scale, c)
+        # As many slices per pass as hold the pixels of `chunk` frames: the denoiser's working
+        # memory stays that of `chunk` frames whatever the slice shape (a x-t slice has K x W pixels).
+        frame_px = video.shape[-1] * video.shape[-2]
+        n = max(1, self.chunk * frame_px // (images.shape[-1] * images.shape[-2]))
+        for start in range(0, images.shape[0], n):
+            out[start:start + n] = self._denoise(images[start:start + n], sigma, scale, c)
         inverse = [perm.index(i) for i in range(4)]
         return out.permute(*inverse).contiguous()
 
