@@ -222,6 +222,9 @@ def test_recon_cli_pnp_writes_its_notes_and_settings(tmp_path, monkeypatch):
     assert metrics["method"] == "pnp" and metrics["iterations"] == 2
     assert any("2-D TV instead" in n for n in metrics["notes"])
     assert metrics["method_settings"]["denoiser"] == "tv2d" and metrics["method_settings"]["slices"] == "xy,xt"
+    res = CliRunner().invoke(main, ["recon", str(bundle), "--method", "rife", "--bin", "2", "-o", str(tmp_path / "r")])
+    assert res.exit_code == 0, res.output
+    assert json.loads((tmp_path / "r" / "metrics.json").read_text())["method_settings"] == {"model": "4"}
 
 
 @needs_weights

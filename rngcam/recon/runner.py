@@ -104,7 +104,8 @@ def make_method(problem: Problem, settings: ReconSettings, device: str):
 
 
 
-def _run_gs_only(problem: Problem, method: str, opts: dict, notes: list[str]) -> tuple[np.ndarray, RunResult]:
+def _run_gs_only(problem: Problem, method: str, opts: dict, notes: list[str],
+                 used: dict) -> tuple[np.ndarray, RunResult]:
     if problem.b_gs is None or problem.b_gs.shape[1] == 0:
         raise RngcamError(f"--method {method} needs GS frames; the bundle has none")
     key = gs_key_frames(problem)
@@ -122,6 +123,7 @@ def _run_gs_only(problem: Problem, method: str, opts: dict, notes: list[str]) ->
 
         model, note = resolve_model(opts.get("model"))
         notes.extend([note] if note else [])
+        used["model"] = model  # which RIFE ran (4.x, or HDv3 on request or as the fallback)
         video = rife(key, problem.gs_times_s, problem.frame_times_s, **{**opts, "model": model})
     secs = time.perf_counter() - t0
     return np.asarray(video, np.float32), RunResult(log=[], iterations=1, solve_s=secs, wall_s=secs)
@@ -166,7 +168,9 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
     components, left_out, status, message, method_settings = {}, [], "ok", "", None
     notes: list[str] = []  # substitutions a method made (e.g. missing learned weights) and their cost
     if settings.method in GS_ONLY:
-        video, result = _run_gs_only(problem, settings.method, settings.options, notes)
+        used: dict = {}
+        video, result = _run_gs_only(problem, settings.method, settings.options, notes, used)
+        method_settings = used or None
         for note in notes:
             echo(f"note: {note}")
         vt = torch.from_numpy(video).double()
