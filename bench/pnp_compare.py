@@ -67,11 +67,12 @@ def gs_only(p) -> dict[str, dict]:
     return out
 
 
-def iterative(p, method, budget: float) -> dict:
+def iterative(p, method, budget: float | None, iters: int | None = None) -> dict:
     t0 = time.perf_counter()
     m = method()
     setup = time.perf_counter() - t0
-    result = run(m, LoopSettings(time_budget_s=budget, progress=False, log_every_s=1e9), setup_s=setup)
+    result = run(m, LoopSettings(time_budget_s=budget, max_iters=iters, progress=False, log_every_s=1e9),
+                 setup_s=setup)
     note = "; ".join(e for e in result.events if "stopped" in e or "budget" in e)
     return {**scores(p, m.estimate().detach()), "seconds": result.solve_s, "iterations": result.iterations,
             "note": note.split(":")[0] if note else f"{result.iterations} iterations"}
@@ -108,11 +109,14 @@ def main() -> None:
     ap.add_argument("--tv3d-betas", default="1")
     ap.add_argument("--scenes", default="smoke,car,walk,vtest")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--iters", type=int, default=None,
+                    help="Iteration cap instead of a time budget (for a run outside the bench lock; no timings).")
     a = ap.parse_args()
     torch.set_num_threads(1)
+    budget = None if a.iters else a.budget
     load = lambda: " ".join(f"{x:.2f}" for x in os.getloadavg())  # noqa: E731
     lines = [f"# pnp and RIFE 4.x against tv3d and the GS-only baselines ({a.size} px)", "",
-             f"`bench/pnp_compare.py --budget {a.budget:g}`: one process, one torch thread, CPU; "
+             f"`bench/pnp_compare.py --budget {a.budget:g}{f' --iters {a.iters}' if a.iters else ''}`: one process, one torch thread, CPU; "
              f"load average at the start {load()}.", ""]
     with tempfile.TemporaryDirectory() as tmp:
         for scene in a.scenes.split(","):
@@ -120,14 +124,14 @@ def main() -> None:
             rows = gs_only(p)
             if scene == "smoke":
                 for beta in a.tv3d_betas.split(","):
-                    rows[f"tv3d beta {beta}"] = iterative(p, lambda b=float(beta), p=p: TV3D(p, TV3DSettings(beta=b)), a.budget)
-            rows["pnp"] = iterative(p, lambda p=p: PnP(p), a.budget)
+                    rows[f"tv3d beta {beta}"] = iterative(p, lambda b=float(beta), p=p: TV3D(p, TV3DSettings(beta=b)), budget, a.iters)
+            rows["pnp"] = iterative(p, lambda p=p: PnP(p), budget, a.iters)
             if scene == "smoke":
-                rows["pnp, frames only (slices=xy)"] = iterative(p, lambda p=p: PnP(p, PnPSettings(slices="xy")), a.budget)
+                rows["pnp, frames only (slices=xy)"] = iterative(p, lambda p=p: PnP(p, PnPSettings(slices="xy")), budget, a.iters)
                 real = ffdnet.load_ffdnet
                 ffdnet.load_ffdnet = lambda *_, **__: (_ for _ in ()).throw(ffdnet.DenoiserUnavailableError("hidden"))
                 try:
-                    rows["pnp, 2-D TV instead of FFDNet"] = iterative(p, lambda p=p: PnP(p), a.budget)
+                    rows["pnp, 2-D TV instead of FFDNet"] = iterative(p, lambda p=p: PnP(p), budget, a.iters)
                 finally:
                     ffdnet.load_ffdnet = real
             best_gs = max((r["inter"], n) for n, r in rows.items() if n in ("blend", "interp", "rife 4.x", "rife hdv3"))
@@ -135,10 +139,11 @@ def main() -> None:
             lines += [f"## {scene} ({k} frames; load {load()})", "", *table(rows), "",
                       f"pnp - best GS-only ({best_gs[1]}), intermediate frames: {rows['pnp']['inter'] - best_gs[0]:+.2f} dB", ""]
             print("\n".join(lines[-len(rows) - 6:]), flush=True)
-    lines += ["## RIFE seconds per interpolated frame", "", "| size | RIFE 4.x | RIFE HDv3 |", "|---|---|---|"]
-    for size in (64, 256):
-        s = rife_speed(size)
-        lines.append(f"| {size} px | {s['4']:.3f} | {s['hdv3']:.3f} |")
+    if not a.iters:
+        lines += ["## RIFE seconds per interpolated frame", "", "| size | RIFE 4.x | RIFE HDv3 |", "|---|---|---|"]
+        for size in (64, 256):
+            s = rife_speed(size)
+            lines.append(f"| {size} px | {s['4']:.3f} | {s['hdv3']:.3f} |")
     lines += ["", f"load average at the end {load()}", ""]
     text = "\n".join(lines)
     print(text)
