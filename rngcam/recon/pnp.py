@@ -19,10 +19,13 @@ or the y-t slices (one per column); the default "xt,yt" puts the learned prior a
 measured best on smoke (bench/pnp_compare.md). Without FFDNet's weights a 2-D TV denoiser stands
 in (said in `notes`).
 
-It starts from the best GS-only video (RIFE, else DIS interpolation); with `gs_anchor="hard"`
-every iterate is projected onto {A_G v = b_G} as in tv3d. It stops by the discrepancy principle
-once the schedule has ended: when the RS residual reaches the noise level estimated from the RS
-image (rngcam.recon.noise), or falls by less than `stall_drop` over `stall_iters` iterations.
+It starts from the best GS-only video: RIFE 4.x, or the mean of RIFE 4.x and HDv3 where that fits
+the RS image better (else one RIFE model, else DIS interpolation); with `gs_anchor="hard"`
+every iterate is projected onto {A_G v = b_G} as in tv3d. It stops by the discrepancy principle:
+when the RS residual reaches the noise level estimated from the RS image (rngcam.recon.noise;
+within `noise_margin`), already at the start (then the start is kept: the data ask for no change),
+or at any iteration; and once the schedule has ended, when the residual falls by less than
+`stall_drop` over `stall_iters` iterations.
 """
 
 from __future__ import annotations
@@ -53,14 +56,19 @@ class PnPSettings:
     cg_iters: int = 5
     gs_anchor: str = "hard"  # "soft" or "hard"
     slices: str = "xt,yt"  # comma-separated cycle of "xy" (frames), "xt", "yt"
-    init: str = "video"  # "video" (RIFE, else interp), "rife", "interp" or "blend"
+    # "video": RIFE 4.x or the mean of RIFE 4.x and HDv3, whichever fits the RS image better (else
+    # one RIFE, else interp); "rife", "interp" or "blend"
+    init: str = "video"
     frame_chunk: int = 16  # images per denoiser pass
     stop_at_noise: bool = True
+    # The discrepancy test's tolerance: the RS noise estimate is within ~7 % of the truth
+    # (rngcam.recon.noise), so a residual within 10 % of it is treated as at the noise.
+    noise_margin: float = 1.1
     stall_iters: int = 10
     stall_drop: float = 0.01
 
     def __post_init__(self):
-        for name in ("psi", "mu", "sigma_start", "sigma_end", "stall_drop"):
+        for name in ("psi", "mu", "sigma_start", "sigma_end", "stall_drop", "noise_margin"):
             val = getattr(self, name)
             if not (math.isfinite(val) and val >= 0):
                 raise ConfigError(f"pnp: {name} must be finite and >= 0, got {val}")
@@ -77,6 +85,16 @@ class PnPSettings:
         for name in ("schedule_iters", "cg_iters", "frame_chunk", "stall_iters"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"pnp: {name} must be >= 1, got {getattr(self, name)}")
+
+
+def _hdv3_installed() -> bool:
+    from rngcam.recon.rife import RifeUnavailableError, find_weights
+
+    try:
+        find_weights()
+        return True
+    except RifeUnavailableError:
+        return False
 
 
 class _Masked(LinearOperator):
@@ -196,6 +214,10 @@ class PnP:
         self.scale = float(x0.max()) if float(x0.max()) > 0 else 1.0
         self.kinds = self.s.slices.split(",")
         self.state = {"x": x0, "z": x0, "k": 0, "mu_scale": 1.0, "history": []}
+        # Where the start already explains the RS image to within its noise, the data ask for no
+        # change and the prior could only move the video where the RS image cannot check it.
+        self.start_residual = relative_residual(self.rs_fit.A(x0), self.b_rs_fit)
+        self.start_settled = self.s.stop_at_noise and self._at_noise(self.start_residual)
 
     # ------------------------------------------------------------------ set-up
 
@@ -216,9 +238,15 @@ class PnP:
                 model, note = resolve_model()
                 with torch.random.fork_rng(devices=[]):
                     video = rife(*args, model=model)
+                    self.init_source = f"rife {model}"
+                    if kind == "video" and model == "4" and _hdv3_installed():
+                        # The two networks err differently and their mean is often the better
+                        # start; the RS image decides (bench/pnp_compare.md).
+                        mean = 0.5 * (video + rife(*args, model="hdv3"))
+                        if self._rs_fit_of(mean) < self._rs_fit_of(video):
+                            video, self.init_source = mean, "mean of rife 4 and hdv3"
                 if note:
                     self.notes.append(note)
-                self.init_source = f"rife {model}"
                 return torch.from_numpy(video)
             except (RifeUnavailableError, BaselineInputError) as why:
                 if kind == "rife":
@@ -233,6 +261,11 @@ class PnP:
         except Exception:  # images too small for flow: the cross-fade
             self.init_source = "blend"
             return torch.from_numpy(blend(*args))
+
+    def _rs_fit_of(self, video: np.ndarray) -> float:
+        """Relative RS residual of a candidate start (after the GS anchoring)."""
+        v = self._project(torch.from_numpy(np.asarray(video)).to(self.b_rs_fit))
+        return relative_residual(self.rs_fit.A(v), self.b_rs_fit)
 
     def _project(self, x: Tensor) -> Tensor:
         if not self.hard:
@@ -266,8 +299,13 @@ class PnP:
             d, rr = r + (rr_new / rr) * d, rr_new
         return v
 
+    def _at_noise(self, residual: float) -> bool:
+        return residual <= self.s.noise_margin * self.rs_noise_level
+
     @torch.no_grad()
     def step(self) -> float:
+        if self.start_settled:
+            return self._objective(self.state["z"])
         st = self.state
         k = st["k"]
         sigma = self._sigma(k)
@@ -286,12 +324,17 @@ class PnP:
     def converged(self) -> str | None:
         """After the noise-level schedule: the discrepancy principle, or a stalled RS residual."""
         st, s = self.state, self.s
-        if not s.stop_at_noise or st["k"] < s.schedule_iters or not st["history"]:
+        if self.start_settled:
+            return (f"the start's RS residual {self.start_residual:.4f} is already at the noise level estimated "
+                    f"from the RS image ({self.rs_noise_level:.4f}, x{s.noise_margin:g}): kept the start")
+        if not s.stop_at_noise or not st["history"]:
             return None
         res = st["history"][-1]
-        if res <= self.rs_noise_level:
+        if self._at_noise(res):
             return (f"RS residual {res:.4f} reached the noise level estimated from the RS image "
-                    f"({self.rs_noise_level:.4f}): more steps would fit noise")
+                    f"({self.rs_noise_level:.4f}, x{s.noise_margin:g}): more steps would fit noise")
+        if st["k"] < s.schedule_iters:
+            return None
         if len(st["history"]) > s.stall_iters and res > (1 - s.stall_drop) * st["history"][0]:
             return (f"RS residual {res:.4f} fell less than {100 * s.stall_drop:g}% in {s.stall_iters} iterations "
                     f"(noise level {self.rs_noise_level:.4f})")
