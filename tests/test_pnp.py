@@ -237,3 +237,17 @@ def test_denoising_in_chunks_equals_denoising_at_once(kind):
     assert small.shape == video.shape
     assert torch.allclose(small, large, atol=1e-5)
     assert float((small - video).abs().mean()) > 1e-3  # it did denoise
+
+
+@needs_weights
+def test_pnp_keeps_a_start_that_already_fits_the_rs_image_to_its_noise(monkeypatch):
+    p = _problem(size=16, noise=0.05)
+    monkeypatch.setattr(PnP, "_initial", lambda self: p.truth.clone())  # a perfect start
+    method = PnP(p, PnPSettings(schedule_iters=3))
+    assert method.start_settled
+    result = run(method, LoopSettings(time_budget_s=None, max_iters=10, progress=False))
+    assert result.iterations == 1 and any("kept the start" in e for e in result.events)
+    assert torch.equal(method.estimate(), method._project(p.truth.clone()))
+    # a poor start (the cross-fade) is not kept
+    monkeypatch.undo()
+    assert not PnP(p, PnPSettings(schedule_iters=3, init="blend")).start_settled
