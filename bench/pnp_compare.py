@@ -118,6 +118,7 @@ def main() -> None:
     ap.add_argument("--tv3d-betas", default="1")
     ap.add_argument("--scenes", default="smoke,car,walk,vtest")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--no-ablations", action="store_true", help="Skip pnp's slices=xy and 2-D TV rows on smoke.")
     ap.add_argument("--iters", type=int, default=None,
                     help="Iteration cap instead of a time budget (for a run outside the bench lock; no timings).")
     a = ap.parse_args()
@@ -136,7 +137,7 @@ def main() -> None:
                     rows[f"tv3d beta {beta}"] = iterative(p, lambda b=float(beta), p=p: TV3D(p, TV3DSettings(beta=b)), budget, a.iters)
             rows["pnp"] = iterative(p, lambda p=p: PnP(p), budget, a.iters)
             rows["pnp"]["note"] += f" (start: {LAST_START[0]})"
-            if scene == "smoke":
+            if scene == "smoke" and not a.no_ablations:
                 rows["pnp, frames only (slices=xy)"] = iterative(p, lambda p=p: PnP(p, PnPSettings(slices="xy")), budget, a.iters)
                 real = ffdnet.load_ffdnet
                 ffdnet.load_ffdnet = lambda *_, **__: (_ for _ in ()).throw(ffdnet.DenoiserUnavailableError("hidden"))
