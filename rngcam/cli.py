@@ -24,6 +24,7 @@ COMMANDS = {
     "sweep": "rngcam.scale_cli:sweep_cmd",
     "recon-batch": "rngcam.scale_cli:recon_batch_cmd",
     "bench": "rngcam.bench_cli:bench_cmd",
+    "doctor": "rngcam.doctor_cli:doctor_cmd",
 }
 
 

