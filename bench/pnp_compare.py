@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from rngcam.bundle import read_bundle
-from rngcam.paths import shared_data
+from rngcam.paths import DATA_HINT, SHORT_CLIP, external_data, package_data
 from rngcam.recon import ffdnet
 from rngcam.recon.baselines import blend, interp
 from rngcam.recon.loop import LoopSettings, run
@@ -44,8 +44,15 @@ GS_ROWS = ("blend", "interp", "rife 4.x", "rife hdv3", "rife mean (4.x + HDv3)")
 CLIPS = {"car": "videos/bikes_car_256.npz", "walk": "videos/bikes_walk_256.npz", "vtest": "videos/vtest_256.npz"}
 
 
+def clip_path(scene: str) -> Path:
+    """The clip scene's npz under $RNGCAM_DATA (the larger clips do not ship with rngcam)."""
+    if external_data() is None:
+        raise SystemExit(f"scene {scene}: {DATA_HINT}")
+    return external_data() / CLIPS[scene]
+
+
 def problem(scene: str, size: int, tmp: Path):
-    opts = {"clip": str(shared_data() / CLIPS[scene]), "span": 8} if scene in CLIPS else {}
+    opts = {"clip": str(clip_path(scene)), "span": 8} if scene in CLIPS else {}
     path = tmp / f"{scene}.h5"
     simulate("clip" if scene in CLIPS else scene, path, size=size, seed=0, overwrite=True, **opts)
     return build_problem(read_bundle(path)).to(torch.float32)
@@ -97,7 +104,7 @@ def table(rows: dict[str, dict]) -> list[str]:
 def rife_speed(size: int) -> dict[str, float]:
     import cv2
 
-    frames = np.load(shared_data() / CLIPS["car"])["frames"][[20, 28]].astype(np.float32) / 255
+    frames = np.load(package_data(SHORT_CLIP))["frames"][[0, 8]].astype(np.float32) / 255
     frames = np.stack([cv2.resize(f, (size, size), interpolation=cv2.INTER_AREA) for f in frames])
     keys = (frames ** 2.2).transpose(3, 0, 1, 2)
     targets = np.linspace(0, 1, 34)[1:-1]
