@@ -81,3 +81,23 @@ def test_simulate_non_square_bundle_matches_the_grid(tmp_path):
     # the bundle's RS image is the forward model of its truth (noise off, 12-bit quantisation)
     pred = problem.rs_op().A(problem.truth)
     assert float((pred - problem.b_rs).abs().max()) < 2e-3 * float(pred.abs().max())
+
+
+def test_outputs_carry_the_time_axis(tmp_path):
+    import json
+
+    import av
+    import tifffile
+
+    from rngcam.recon import outputs
+
+    video = np.random.default_rng(0).random((3, 5, 16, 24)).astype(np.float32)
+    outputs.write_tiff(tmp_path / "v.tif", video, frame_interval_s=208e-6)
+    with tifffile.TiffFile(tmp_path / "v.tif") as tif:
+        assert tif.series[0].axes == "TCYX" and tif.imagej_metadata["finterval"] == pytest.approx(208e-6)
+        np.testing.assert_array_equal(tif.asarray(), np.moveaxis(video, 0, 1))
+    outputs.write_mp4(tmp_path / "p.mp4", video, capture_fps=1 / 208e-6)
+    side = json.loads((tmp_path / "p.json").read_text())
+    assert side["capture_fps"] == pytest.approx(4807.69, rel=1e-4) and side["slowdown"] == pytest.approx(160.26, rel=1e-3)
+    with av.open(str(tmp_path / "p.mp4")) as f:
+        assert "4,807.7 fps" in f.metadata.get("comment", "")

@@ -215,8 +215,8 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
         resolved["method_settings"] = method_settings
     outputs.write_recon_h5(out / "recon.h5", video, problem.frame_times_s, resolved,
                            bundle_checksum(bundle_path), components, left_out)
-    outputs.write_tiff(out / "video.tif", video)
-    outputs.write_mp4(out / "preview.mp4", video)
+    outputs.write_tiff(out / "video.tif", video, frame_interval_s=problem.grid.dt_s)
+    outputs.write_mp4(out / "preview.mp4", video, capture_fps=1 / problem.grid.dt_s)
     outputs.write_errors(out / "errors.csv", out / "errors.png", result.log, settings.method)
     outputs.write_metrics(out / "metrics.json", metrics)
     if status != "ok":
