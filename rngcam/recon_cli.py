@@ -30,9 +30,10 @@ def _method_options(method: str, given: dict) -> dict:
 @click.option("--method", type=click.Choice(METHODS), default="stfm", show_default=True)
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder [default: <bundle>-recon-<method>/ beside the bundle].")
-@click.option("--time-budget", type=float, default=None,
-              help="Wall-clock seconds [stfm: 600 (the fast preset stops itself once the data are fitted); "
-                   "otherwise 60].")
+@click.option("--time-budget", default=None,
+              help="Wall-clock seconds for set-up and solve together, or auto [auto: stfm 600 (the fast preset "
+                   "stops itself once the data are fitted), otherwise 60, both at 64 px, scaled with the square "
+                   "root of the problem's size up to 1800].")
 @click.option("--iters", type=int, default=None, help="Stop after this many iterations.")
 @click.option("--resume", is_flag=True, help="Continue from the checkpoint in the output folder.")
 @click.option("--device", default="auto", show_default=True, help="auto, cpu or cuda[:N].")
@@ -69,7 +70,13 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, resume, device, grid_
     if method == "tv3d":
         opts["use_rs"] = False if opts.pop("no_rs") else None
         opts["use_gs"] = False if opts.pop("no_gs") else None
-    budget = "auto" if time_budget is None else time_budget
+    budget = "auto" if time_budget in (None, "auto") else time_budget
+    if budget != "auto":
+        try:
+            budget = float(budget)
+        except ValueError:
+            raise click.BadParameter(f"{budget!r} is not a number of seconds or auto",
+                                     param_hint="--time-budget") from None
     settings = ReconSettings(method=method, time_budget_s=budget, max_iters=iters, device=device,
                              grid_bin=grid_bin, resume=resume, progress=not quiet, holdout=holdout,
                              options=_method_options(method, opts))

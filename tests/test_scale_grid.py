@@ -101,3 +101,80 @@ def test_outputs_carry_the_time_axis(tmp_path):
     assert side["capture_fps"] == pytest.approx(4807.69, rel=1e-4) and side["slowdown"] == pytest.approx(160.26, rel=1e-3)
     with av.open(str(tmp_path / "p.mp4")) as f:
         assert "4,807.7 fps" in f.metadata.get("comment", "")
+
+
+def _toy_problem(h=32, w=48):
+    from rngcam.recon.problem import problem_from_video
+    from rngcam.sim.simulate import prepare_simulation_psf
+
+    timing = simulation_timing((h, w))
+    video = torch.from_numpy(render_scene("sineball", timing.grid, (h, w), 0)).double()
+    psf = prepare_simulation_psf(None, (h, w), (h, w), 0.25).grid
+    return problem_from_video(video, torch.from_numpy(psf), timing.rs, timing.gs)
+
+
+def test_coarse_problem_is_the_binned_fine_problem_for_a_video_constant_in_blocks():
+    from rngcam.recon.multiscale import block_matrix, coarsen
+
+    p = _toy_problem()
+    coarse = coarsen(p, 2)
+    c, k2, h2, w2 = coarse.shape
+    assert (h2, w2, k2) == (16, 24, -(-p.shape[1] // 2)) and coarse.grid.dt_s == 2 * p.grid.dt_s
+    # A video constant over 2-frame blocks: the coarse GS model is exactly the GS model of the fine
+    # video, binned; the RS model agrees up to the PSF's resampling.
+    v2 = torch.rand(coarse.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    up = torch.einsum("jk,cjhw->ckhw", block_matrix(k2, p.shape[1], 2, torch.float64), v2)
+    up = up.repeat_interleave(2, -2).repeat_interleave(2, -1)
+    gs_fine = p.gs_op().A(up)
+    gs_binned = gs_fine.reshape(*gs_fine.shape[:2], h2, 2, w2, 2).mean((3, 5))
+    torch.testing.assert_close(coarse.gs_op().A(v2), gs_binned, rtol=1e-10, atol=1e-12)
+    rs_fine = p.rs_op().A(up).reshape(c, h2, 2, w2, 2).mean((2, 4))
+    rs_coarse = coarse.rs_op().A(v2)
+    assert float((rs_coarse - rs_fine).norm() / rs_fine.norm()) < 0.05
+    # the coarse truth is the binned truth and fits the coarse measurements about as well
+    assert coarse.truth.shape == coarse.shape
+
+
+def test_upsample_keeps_constants_and_linear_ramps_in_time():
+    from rngcam.recon.multiscale import upsample
+
+    const = torch.full((3, 5, 6, 8), 0.25, dtype=torch.float64)
+    torch.testing.assert_close(upsample(const, (3, 10, 12, 16), 2), torch.full((3, 10, 12, 16), 0.25,
+                                                                               dtype=torch.float64))
+    ramp = torch.arange(5, dtype=torch.float64)[None, :, None, None].expand(1, 5, 2, 2)
+    fine = upsample(ramp, (1, 10, 2, 2), 2)[0, :, 0, 0]
+    # fine frame k's centre is at coarse coordinate (k + 0.5) / 2 - 0.5 (clamped at the ends)
+    expect = ((torch.arange(10, dtype=torch.float64) + 0.5) / 2 - 0.5).clamp(0, 4)
+    torch.testing.assert_close(fine, expect)
+
+
+def test_tv3d_coarse_to_fine_reaches_the_full_grid_and_improves_on_its_start():
+    from rngcam.recon.loop import LoopSettings, run
+    from rngcam.recon.metrics import video_metrics
+    from rngcam.recon.multiscale import CoarseToFine
+    from rngcam.recon.tv3d import TV3D, TV3DSettings
+
+    p = _toy_problem().to(torch.float32)
+    stages = []
+    m = CoarseToFine(p, lambda q, x0: TV3D(q, TV3DSettings(), x0=x0), (2, 1), stage=stages.append,
+                     max_level_steps=15)
+    start = video_metrics(m.estimate().double(), p.truth.double(), np.arange(p.shape[1]))["psnr_db"]
+    assert m.estimate().shape == p.shape and not m.final
+    result = run(m, LoopSettings(time_budget_s=None, max_iters=40, progress=False))
+    assert m.final and m.estimate().shape == p.shape and result.status == "ok"
+    assert any("level 2 of 2" in s for s in stages)
+    end = video_metrics(m.estimate().double(), p.truth.double(), np.arange(p.shape[1]))["psnr_db"]
+    assert np.isfinite(end) and end > start
+
+
+def test_a_budget_that_ends_a_coarse_level_says_what_was_cut():
+    from rngcam.recon.loop import LoopSettings, run
+    from rngcam.recon.multiscale import CoarseToFine
+    from rngcam.recon.tv3d import TV3D, TV3DSettings
+
+    p = _toy_problem().to(torch.float32)
+    m = CoarseToFine(p, lambda q, x0: TV3D(q, TV3DSettings(), x0=x0), (2, 1), max_level_steps=10 ** 6,
+                     level_rtol=0.0)
+    result = run(m, LoopSettings(time_budget_s=0.3, progress=False))
+    assert any("level 1 of 2" in e and "not reached" in e for e in result.events)
+    assert m.estimate().shape == p.shape

@@ -12,6 +12,7 @@ rngcam.scale.holdout) next to the training residuals.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -23,7 +24,7 @@ from rngcam.bundle import bundle_checksum, read_bundle
 from rngcam.errors import ConfigError, RngcamError
 from rngcam.memory import peak_rss_bytes
 from rngcam.recon import outputs
-from rngcam.recon.loop import LoopSettings, RunResult, run
+from rngcam.recon.loop import LoopSettings, RunResult, run, stage_printer
 from rngcam.recon.metrics import error_visibility, relative_residual, video_metrics
 from rngcam.recon.problem import Problem, build_problem
 
@@ -34,6 +35,19 @@ METHODS = ITERATIVE + GS_ONLY
 # one CPU thread), so its cap only guards against a fit that never settles.
 DEFAULT_TIME_BUDGET_S = {"stfm": 600.0}
 FALLBACK_TIME_BUDGET_S = 60.0
+# "auto" scales those budgets (set at 64x64 px, 67 frames, 3 channels) with the square root of the
+# problem's size, capped at half an hour: 64 px keeps its figure, 228x342x232 gets 8.1x it.
+AUTO_REFERENCE_VOXELS = 3 * 67 * 64 * 64
+AUTO_MAX_S = 1800.0
+
+
+def auto_time_budget(method: str, shape: tuple[int, int, int, int]) -> tuple[float, str]:
+    """The `auto` budget for `method` on a video of `shape` (C, K, H, W), and a line saying why."""
+    base = DEFAULT_TIME_BUDGET_S.get(method, FALLBACK_TIME_BUDGET_S)
+    scale = max(1.0, math.sqrt(math.prod(shape) / AUTO_REFERENCE_VOXELS))
+    budget = min(AUTO_MAX_S, base * scale)
+    return budget, (f"time budget auto: {budget:.0f} s ({method}'s {base:g} s at 64 px x "
+                    f"{scale:.1f} for {math.prod(shape) / 1e6:.1f} M voxels, at most {AUTO_MAX_S:g} s)")
 
 
 @dataclass
@@ -55,6 +69,7 @@ class ReconSettings:
     def __post_init__(self):
         if self.method not in METHODS:
             raise ConfigError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
+        self.budget_auto = self.time_budget_s == "auto"  # rescaled to the problem in reconstruct()
         if self.time_budget_s == "auto":
             self.time_budget_s = DEFAULT_TIME_BUDGET_S.get(self.method, FALLBACK_TIME_BUDGET_S)
         if self.holdout is not None:
@@ -83,13 +98,15 @@ def gs_key_frames(problem: Problem) -> np.ndarray:
     return problem.gs_images().cpu().float().numpy()
 
 
-def make_method(problem: Problem, settings: ReconSettings, device: str):
-    """The iterative method of `settings` on `problem` (float32 on `device`)."""
+def make_method(problem: Problem, settings: ReconSettings, device: str, stage=None):
+    """The iterative method of `settings` on `problem` (float32 on `device`); `stage(message)`
+    reports set-up stages."""
     opts = dict(settings.options)
     if settings.method == "tv3d":
-        from rngcam.recon.tv3d import TV3D, TV3DSettings
+        from rngcam.recon.tv3d import TV3DSettings, make_tv3d
 
-        method = TV3D(problem.to(torch.float32, device), TV3DSettings(**opts))
+        method = make_tv3d(problem.to(torch.float32, device), TV3DSettings(**opts),
+                           budget_s=settings.time_budget_s, stage=stage)
     else:
         from rngcam.recon.stfm import STFMSettings, make_stfm
 
@@ -150,6 +167,9 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
         echo(f"note: {note}")
     c, k, h, w = problem.shape
     echo(f"{settings.method}: {k} frames of {h}x{w}x{c} at {1 / problem.grid.dt_s:,.0f} fps on {device}")
+    if getattr(settings, "budget_auto", False) and settings.method in ITERATIVE:
+        settings.time_budget_s, why = auto_time_budget(settings.method, problem.shape)
+        echo(why)
     intermediate = problem.intermediate_frames()
 
     def truth_metrics(video: torch.Tensor) -> dict:
@@ -167,8 +187,10 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
         result.log = [row]
     else:
         t0 = time.perf_counter()
-        method = make_method(problem, settings, device)
+        stage = stage_printer(echo, settings.progress)
+        method = make_method(problem, settings, device, stage=stage)
         setup_s = time.perf_counter() - t0
+        stage(f"{settings.method} ready")
         left_out = list(getattr(method, "left_out", []))
         for comp, why in left_out:
             echo(f"left out: {comp} ({why})")

@@ -50,6 +50,7 @@ class TV3DSettings:
     use_rs: bool = True
     use_gs: bool = True
     init: str = "blend"  # "blend" (cross-fade of the GS frames) or "zeros"
+    coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.multiscale)
 
     def __post_init__(self):
         for name in ("tau", "beta", "psi"):
@@ -94,8 +95,9 @@ class TV3D:
     name = "tv3d"
     supports_holdout = True  # fits only the training measurements when the problem has a split
 
-    def __init__(self, problem: Problem, settings: TV3DSettings | None = None):
-        self.p, self.s = problem, settings or TV3DSettings()
+    def __init__(self, problem: Problem, settings: TV3DSettings | None = None, x0: Tensor | None = None):
+        """`x0`: a starting video (C, K, H, W) instead of `settings.init` (a coarser level's estimate)."""
+        self.p, self.s, self._x0 = problem, settings or TV3DSettings(), x0
         use_rs = self.s.use_rs and problem.b_rs is not None
         use_gs = self.s.use_gs and problem.b_gs is not None and problem.b_gs.shape[1] > 0
         if not (use_rs or use_gs):
@@ -145,7 +147,10 @@ class TV3D:
 
     def _initial(self, dtype, device) -> Tensor:
         p = self.p
-        if self.s.init == "blend" and p.b_gs is not None and p.b_gs.shape[1] > 0:
+        if self._x0 is not None:
+            x = self._x0.to(dtype=dtype, device=device).clamp_min(0)
+            self._x0 = None  # not kept: the state holds it
+        elif self.s.init == "blend" and p.b_gs is not None and p.b_gs.shape[1] > 0:
             frames = p.gs_images()  # held-out GS pixels are filled from fitted ones: no leak
             x = torch.from_numpy(blend(frames.cpu().float().numpy(), p.gs_times_s, p.frame_times_s))
             x = x.to(dtype=dtype, device=device).clamp_min(0)
@@ -246,3 +251,18 @@ class TV3D:
     def reduce_step(self, factor: float) -> None:
         self.state["L"] /= factor
         self.state["t"], self.state["y"], self.state["Ay"] = 1.0, self.state["x"], self.state["Ax"]
+
+
+def make_tv3d(problem: Problem, settings: TV3DSettings | None = None, budget_s: float | None = None,
+              stage=None):
+    """TV3D on `problem`, coarse-to-fine (rngcam.recon.multiscale) when the grid is large enough,
+    the setting is on and no held-out split is fitted; `stage(message)` reports set-up stages."""
+    from rngcam.recon.multiscale import CoarseToFine, default_factors
+
+    settings = settings or TV3DSettings()
+    factors = default_factors(problem.shape)
+    if not settings.coarse_to_fine or len(factors) == 1 or problem.has_holdout:
+        if stage:
+            stage(f"tv3d on {problem.shape[-2]}x{problem.shape[-1]}x{problem.shape[1]}: operator norms")
+        return TV3D(problem, settings)
+    return CoarseToFine(problem, lambda p, x0: TV3D(p, settings, x0=x0), factors, budget_s=budget_s, stage=stage)
