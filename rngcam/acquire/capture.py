@@ -207,8 +207,9 @@ def _mock_world(rig: Rig, psf: np.ndarray, gs_timing: GlobalShutterTiming, grid:
     from rngcam.physics.sensor import SensorModel
 
     c = rig.config
-    world = MockWorld(c.mock.scene, c.cameras.rs.roi.height, grid, psf, seed=c.mock.seed,
-                      key_times_s=list(gs_timing.centres_s()), options=c.mock.options)
+    world = MockWorld(c.mock.scene, (c.cameras.rs.roi.height, c.cameras.rs.roi.width), grid, psf,
+                      seed=c.mock.seed, key_times_s=list(gs_timing.centres_s()), options=c.mock.options,
+                      bin=c.recon.grid_bin)
     for role in ("rs", "gs"):
         cam = getattr(c.cameras, role)
         m = cam.mock or MockSensor()
