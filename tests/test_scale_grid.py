@@ -178,3 +178,15 @@ def test_a_budget_that_ends_a_coarse_level_says_what_was_cut():
     result = run(m, LoopSettings(time_budget_s=0.3, progress=False))
     assert any("level 1 of 2" in e and "not reached" in e for e in result.events)
     assert m.estimate().shape == p.shape
+
+
+def test_power_norm_from_a_coarse_vector_matches_the_cold_norm():
+    from rngcam.recon.multiscale import coarsen, power_norm, upsample
+
+    p = _toy_problem()
+    coarse = coarsen(p, 2)
+    _, vec = power_norm(coarse.rs_op(), torch.randn(coarse.shape, dtype=torch.float64,
+                                                     generator=torch.Generator().manual_seed(0)))
+    warm, _ = power_norm(p.rs_op(), upsample(vec, p.shape, p.shape[1] / coarse.shape[1]), iters=5)
+    cold = p.rs_op().norm(iters=200, tol=1e-10)
+    assert warm == pytest.approx(cold, rel=0.02) and warm <= cold * (1 + 1e-9)

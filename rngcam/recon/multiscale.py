@@ -112,6 +112,24 @@ def upsample(video: Tensor, shape: tuple[int, int, int, int], time_factor: float
     return out @ linear_matrix(w, w2, w / w2).to(video).T
 
 
+def power_norm(op, x0: Tensor, iters: int = 20, tol: float = 1e-3) -> tuple[float, Tensor]:
+    """(||op||, the last iterate) by power iteration on A^T A from `x0`: from a coarser level's
+    vector, upsampled, it settles in a few iterations instead of twenty."""
+    x = x0 / x0.norm()
+    lam = 0.0
+    for _ in range(iters):
+        z = op.A_normal(x)
+        new, nz = float((x * z).sum()), float(z.norm())
+        if nz == 0.0:
+            return 0.0, x
+        x = z / nz
+        if abs(new - lam) <= tol * max(abs(new), 1e-30):
+            lam = new
+            break
+        lam = new
+    return math.sqrt(max(lam, 0.0)), x
+
+
 def default_factors(shape: tuple[int, int, int, int], min_side: int = 48) -> tuple[int, ...]:
     """Spatial factors from coarse to fine, halving while the coarse grid keeps >= min_side px on
     its short side: (4, 2, 1) at 228x342, (2, 1) at 128, (1,) at 64."""
