@@ -180,7 +180,7 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
     def truth_metrics(video: torch.Tensor) -> dict:
         if problem.truth is None:
             return {}
-        return video_metrics(video.detach().double().cpu(), problem.truth, intermediate, problem.mask)
+        return video_metrics(video.detach().cpu(), problem.truth, intermediate, problem.mask)  # float64 per chunk
 
     components, left_out, status, message, method_settings = {}, [], "ok", "", None
     if settings.method in GS_ONLY:
