@@ -144,9 +144,13 @@ class CoarseToFine:
     """A `Method` (rngcam.recon.loop) that runs `make(level_problem, x0)` at each level in turn.
 
     A coarse level ends when its objective has fallen by less than `level_rtol` over its last
-    `window` steps, after `max_level_steps` steps, or when its share of `budget_s` is spent;
-    the final level runs for as long as the loop lets it. `estimate()` is always on the full grid.
-    `stage(message)` reports each level's set-up.
+    `window` steps, after `max_level_steps` steps, or when its steps have used their share of
+    `budget_s` (`level_share`; only time inside step() counts, not the loop's evaluations); the
+    final level runs for as long as the loop lets it. A finer level is not started when what is
+    left of `budget_s` (counted from construction) looks too short for its set-up and a few steps
+    (8x the current level's, per halving): the run then ends on the current level, upsampled, and
+    `budget_cut()` says so. `estimate()` is always on the full grid. `stage(message)` reports each
+    level's set-up.
     """
 
     def __init__(self, problem: Problem, make: Callable[[Problem, Tensor | None], object],
@@ -161,7 +165,8 @@ class CoarseToFine:
         self.make, self.budget_s, self.level_share = make, budget_s, level_share
         self.level_rtol, self.window, self.max_level_steps = level_rtol, window, max_level_steps
         self.stage = stage or (lambda message: None)
-        self.level, self._x0 = 0, None
+        self.t0 = time.perf_counter()
+        self.level, self._x0, self.held_back = 0, None, False
         self._start_level(0, None)
         self.name = getattr(self.method, "name", "method")
         if hasattr(self.method, "converged"):
@@ -174,21 +179,31 @@ class CoarseToFine:
 
     def _start_level(self, i: int, x0: Tensor | None) -> None:
         self.stage(f"{self._describe(i)}: building")
+        t0 = time.perf_counter()
         self.level, self._x0 = i, x0
         self.method = self.make(self.problems[i], x0)
-        self.level_steps, self.level_t0, self._history = 0, time.perf_counter(), []
+        self.level_steps, self.level_step_s, self._history = 0, 0.0, []
+        self.level_setup_s = time.perf_counter() - t0
         self.stage(f"{self._describe(i)}: ready")
 
     def _level_done(self, objective: float) -> bool:
         self._history.append(objective)
         if self.level_steps >= self.max_level_steps:
             return True
-        if self.budget_s is not None and time.perf_counter() - self.level_t0 >= self.level_share * self.budget_s:
+        if self.budget_s is not None and self.level_step_s >= self.level_share * self.budget_s:
             return True
         if len(self._history) > self.window:
             old, new = self._history[-1 - self.window], self._history[-1]
             return math.isfinite(old) and abs(old - new) <= self.level_rtol * abs(old)
         return False
+
+    def _next_level_fits(self) -> bool:
+        if self.budget_s is None:
+            return True
+        growth = (self.factors[self.level] / self.factors[self.level + 1]) ** 3
+        per_step = self.level_step_s / max(self.level_steps, 1)
+        needed = growth * (self.level_setup_s + 5 * per_step)
+        return time.perf_counter() - self.t0 + needed <= self.budget_s
 
     def _next_level(self) -> None:
         i = self.level + 1
@@ -202,10 +217,18 @@ class CoarseToFine:
 
     # --- Method protocol ---
     def step(self) -> float:
+        t0 = time.perf_counter()
         objective = float(self.method.step())
         self.level_steps += 1
-        if not self.final and math.isfinite(objective) and self._level_done(objective):
-            self._next_level()
+        self.level_step_s += time.perf_counter() - t0
+        if (not self.final and not self.held_back and math.isfinite(objective)
+                and self._level_done(objective)):
+            if self._next_level_fits():
+                self._next_level()
+            else:
+                self.held_back = True
+                self.stage(f"{self._describe(self.level)}: too little of the time budget left for the next "
+                           f"level; staying here")
         return objective
 
     def estimate(self) -> Tensor:
@@ -223,7 +246,8 @@ class CoarseToFine:
     def budget_cut(self) -> str:
         if self.final:
             return ""
-        return (f"stopped at {self._describe(self.level)}; levels {self.level + 2}-{len(self.problems)} "
+        why = " (too little budget left to start the next)" if self.held_back else ""
+        return (f"stopped at {self._describe(self.level)}{why}; levels {self.level + 2}-{len(self.problems)} "
                 f"(the full grid last) not reached: the video is the coarse estimate upsampled")
 
     def state_dict(self) -> dict:
