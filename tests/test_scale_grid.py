@@ -190,3 +190,17 @@ def test_power_norm_from_a_coarse_vector_matches_the_cold_norm():
     warm, _ = power_norm(p.rs_op(), upsample(vec, p.shape, p.shape[1] / coarse.shape[1]), iters=5)
     cold = p.rs_op().norm(iters=200, tol=1e-10)
     assert warm == pytest.approx(cold, rel=0.02) and warm <= cold * (1 + 1e-9)
+
+
+def test_a_finer_level_that_cannot_fit_the_budget_is_not_started():
+    from rngcam.recon.multiscale import CoarseToFine
+    from rngcam.recon.tv3d import TV3D, TV3DSettings
+
+    p = _toy_problem().to(torch.float32)
+    stages = []
+    m = CoarseToFine(p, lambda q, x0: TV3D(q, TV3DSettings(), x0=x0), (2, 1), budget_s=1e-6,
+                     stage=stages.append)
+    for _ in range(3):
+        m.step()
+    assert not m.final and m.held_back and "too little budget left" in m.budget_cut()
+    assert any("staying here" in s for s in stages) and m.estimate().shape == p.shape
