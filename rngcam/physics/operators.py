@@ -149,7 +149,9 @@ class RollingShutter(LinearOperator):
     cost is one batched rfft2 (forward) or irfft2 (adjoint) without allocation churn.
     """
 
-    CHUNK_BYTES = 64 * 2**20  # complex spectrum per chunk of frames
+    # Complex spectrum per chunk of frames: small enough that the FFT library's own scratch stays
+    # under glibc's mmap threshold (32 MiB at most), so it is reused instead of mapped and faulted in.
+    CHUNK_BYTES = 16 * 2**20
 
     def __init__(self, psf: Tensor, weights: Tensor, width: int, channels: int | None = None):
         self.weights = torch.as_tensor(weights)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -102,6 +102,7 @@ def make_method(problem: Problem, settings: ReconSettings, device: str, stage=No
     """The iterative method of `settings` on `problem` (float32 on `device`); `stage(message)`
     reports set-up stages."""
     opts = dict(settings.options)
+    problem = replace(problem, truth=None)  # methods never see the truth; a float32 copy is 4 bytes a voxel
     if settings.method == "tv3d":
         from rngcam.recon.tv3d import TV3DSettings, make_tv3d
 
