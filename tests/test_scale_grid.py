@@ -204,3 +204,12 @@ def test_a_finer_level_that_cannot_fit_the_budget_is_not_started():
         m.step()
     assert not m.final and m.held_back and "too little budget left" in m.budget_cut()
     assert any("staying here" in s for s in stages) and m.estimate().shape == p.shape
+
+
+def test_auto_budget_scales_with_the_problem_and_says_what_it_chose():
+    from rngcam.recon.runner import auto_time_budget
+
+    assert auto_time_budget("tv3d", (3, 67, 64, 64))[0] == pytest.approx(60.0)
+    budget, why = auto_time_budget("tv3d", (3, 231, 228, 342))
+    assert budget == pytest.approx(60 * (231 * 228 * 342 / (67 * 64 * 64)) ** 0.5) and f"{budget:.0f} s" in why
+    assert auto_time_budget("stfm", (3, 231, 228, 342))[0] == 1800.0  # capped
