@@ -204,7 +204,8 @@ class ReconConfig(_Model):
 
 
 class MockSceneConfig(_Model):
-    """The scene mock cameras look at (rngcam.sim.scenes), rendered at the RS sensor size."""
+    """The scene mock cameras look at (rngcam.sim.scenes), rendered on the reconstruction grid
+    (the RS sensor size / recon.grid_bin) and repeated to sensor-size frames."""
 
     scene: str = "sineball"
     seed: int = 0
@@ -237,9 +238,12 @@ class RigConfig(_Model):
                 raise ValueError("mock cameras need a 'mock' section naming the scene")
             if self.generator.transport != "fake":
                 raise ValueError("mock cameras only receive triggers from generator transport 'fake'")
-            if rs.roi != gs.roi or rs.roi.width != rs.roi.height:
-                raise ValueError("mock cameras need equal, square ROIs (the scene is rendered "
-                                 "once at that size and seen by both)")
+            if rs.roi != gs.roi:
+                raise ValueError("mock cameras need equal ROIs (the scene is rendered once and seen by both)")
+            b = self.recon.grid_bin
+            if rs.roi.width % b or rs.roi.height % b:
+                raise ValueError(f"mock cameras: the ROI {rs.roi.width}x{rs.roi.height} must divide by "
+                                 f"recon.grid_bin {b} (the mock renders on the grid and repeats each pixel)")
         elif self.generator.transport == "fake":
             raise ValueError("generator transport 'fake' can only trigger mock cameras")
         return self

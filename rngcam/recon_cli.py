@@ -17,6 +17,17 @@ def _positive(ctx, param, value):
     return value
 
 
+def _budget(ctx, param, value):
+    """--time-budget: 'auto' (or not given) or a positive number of seconds."""
+    if value is None or value == "auto":
+        return value
+    try:
+        seconds = float(value)
+    except ValueError:
+        raise click.BadParameter(f"{value!r} is not a number of seconds or auto") from None
+    return _positive(ctx, param, seconds)
+
+
 def _method_options(method: str, given: dict) -> dict:
     """Keep the options the chosen method understands; an explicit unsupported one is an error."""
     common = {"tau", "beta", "psi", "gs_anchor"}
@@ -40,9 +51,10 @@ def _method_options(method: str, given: dict) -> dict:
 @click.option("--method", type=click.Choice(METHODS), default="stfm", show_default=True)
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder [default: <bundle>-recon-<method>/ beside the bundle].")
-@click.option("--time-budget", type=float, default=None, callback=_positive,
-              help="Wall-clock seconds [stfm: 600 (the fast preset stops itself once the data are fitted); "
-                   "otherwise 60].")
+@click.option("--time-budget", default=None, callback=_budget,
+              help="Wall-clock seconds for set-up and solve together, or auto [auto: stfm 600 (the fast preset "
+                   "stops itself once the data are fitted), pnp 300, otherwise 60, all at 64 px, scaled with the "
+                   "square root of the problem's size up to 1800].")
 @click.option("--iters", type=click.IntRange(min=1), default=None, help="Stop after this many iterations.")
 @click.option("--max-frames", type=click.IntRange(min=1), default=None,
               help=f"Refuse a video of more frames, before allocating it [{DEFAULT_MAX_FRAMES:,}].")
@@ -92,7 +104,7 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memor
     if method == "tv3d":
         opts["use_rs"] = False if opts.pop("no_rs") else None
         opts["use_gs"] = False if opts.pop("no_gs") else None
-    budget = "auto" if time_budget is None else time_budget
+    budget = "auto" if time_budget in (None, "auto") else time_budget
     settings = ReconSettings(method=method, time_budget_s=budget, max_iters=iters, device=device,
                              grid_bin=grid_bin, resume=resume, progress=not quiet, holdout=holdout,
                              max_frames=max_frames,

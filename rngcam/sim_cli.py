@@ -14,8 +14,8 @@ from rngcam.sim.simulate import DEFAULT_PSF_CROP
 @click.argument("scene", type=click.Choice(SCENES))
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Bundle to write (HDF5).")
-@click.option("--size", default=64, show_default=True, type=click.IntRange(min=8),
-              help="Grid size N: the video is N x N pixels, the RS sensor has N rows.")
+@click.option("--size", default="64", show_default=True,
+              help="Grid size N (N x N) or HxW (e.g. 228x342, the lab rig's grid): the RS sensor has H rows.")
 @click.option("--seed", default=0, show_default=True, type=int, help="Scene and noise seed.")
 @click.option("--psf", "psf", default=None, metavar="PATH|lenslets",
               help="PSF image (default: the measured DiffuserCam caustic shipped in rngcam/data), or "
@@ -33,8 +33,12 @@ from rngcam.sim.simulate import DEFAULT_PSF_CROP
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start, bayer, overwrite):
     """Simulate SCENE (sineball, smoke or clip) through the RS+GS physics into a bundle."""
-    from rngcam.sim.simulate import simulate, summary
+    from rngcam.sim.simulate import SimulationError, grid_shape, simulate, summary
 
+    try:
+        size = grid_shape(size)
+    except SimulationError as exc:
+        raise click.BadParameter(str(exc), param_hint="--size") from None
     bundle = simulate(scene, out, size=size, seed=seed, psf=psf, psf_crop=psf_crop, noise=noise,
                       clip=clip, span=span, start=start, bayer=bayer, overwrite=overwrite)
     for line in summary(bundle, out):

@@ -199,11 +199,11 @@ def test_rife_falls_back_to_hdv3_with_a_note_and_fails_in_one_line_without_eithe
 @needs_weights
 def test_recon_cli_pnp_writes_its_notes_and_settings(tmp_path, monkeypatch):
     import json
+    from pathlib import Path
 
     from click.testing import CliRunner
 
     from rngcam.cli import main
-    from pathlib import Path
 
     rig = Path(__file__).resolve().parents[1] / "rigs" / "mock.yaml"
     bundle = tmp_path / "m.h5"

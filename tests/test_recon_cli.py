@@ -49,8 +49,11 @@ def test_recon_writes_every_output(mock_bundle, tmp_path, method, extra):
         assert f.attrs["bundle_sha256"] == before
         assert json.loads(f.attrs["settings"])["method"] == method
         assert len(f["frame_times_s"]) == 67
-    assert tifffile.imread(out / "video.tif").shape == (67, 64, 64, 3)
+    with tifffile.TiffFile(out / "video.tif") as tif:  # an ImageJ hyperstack with the frame interval
+        assert tif.series[0].axes == "TCYX" and tif.series[0].shape == (67, 3, 64, 64)
+        assert tif.imagej_metadata["finterval"] == pytest.approx(208e-6)
     assert (out / "preview.mp4").stat().st_size > 1000
+    assert json.loads((out / "preview.json").read_text())["capture_fps"] == pytest.approx(1 / 208e-6)
     assert (out / "errors.png").read_bytes()[:4] == b"\x89PNG"
     rows = (out / "errors.csv").read_text().splitlines()
     assert rows[0].startswith("iteration,wall_s,solve_s,objective") and len(rows) >= 2

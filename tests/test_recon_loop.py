@@ -177,7 +177,23 @@ def test_a_converged_method_ends_the_run_early_with_its_reason():
 def test_a_budget_that_ends_a_run_before_the_methods_own_stop_says_so():
     cut = run(_StopsAt(_sineball_problem(), stop_after=10 ** 9), LoopSettings(time_budget_s=0.3, progress=False))
     assert any(e.startswith("time budget of 0.3 s reached at iteration") and "own stop" in e for e in cut.events)
-    # an iteration cap is the user's explicit choice, and a method without its own stop has nothing to miss
+    # an iteration cap is the user's explicit choice: no budget event
     capped = run(_StopsAt(_sineball_problem(), stop_after=10 ** 9), _settings(max_iters=3))
+    assert not any("time budget" in e for e in capped.events)
+    # a method without a stop of its own (tv3d) is also cut by the budget, and says so
     plain = run(TV3D(_sineball_problem(), TV3DSettings()), LoopSettings(time_budget_s=0.3, progress=False))
-    assert not any("time budget" in e for e in capped.events + plain.events)
+    assert any("time budget of 0.3 s" in e and "no stop of its own" in e for e in plain.events)
+
+
+def test_set_up_longer_than_the_budget_runs_no_step_and_says_so():
+    result = run(TV3D(_sineball_problem(), TV3DSettings()), LoopSettings(time_budget_s=0.3, progress=False),
+                 setup_s=0.5)
+    assert result.iterations == 0 and len(result.log) == 1
+    assert any("set-up alone took 0.5 s" in e for e in result.events)
+
+
+def test_without_a_terminal_progress_goes_to_stderr_as_lines(capsys):
+    run(TV3D(_sineball_problem(), TV3DSettings()),
+        LoopSettings(time_budget_s=None, max_iters=6, log_every_iters=2, progress_every_s=0.0))
+    err = capsys.readouterr().err
+    assert err.count("tv3d: ") >= 3 and "it 6" in err

@@ -194,14 +194,16 @@ def _mock_world(rig: Rig, psf: np.ndarray, gs_timing: GlobalShutterTiming, grid:
     from rngcam.sizing import default_max_memory_bytes
 
     c = rig.config
-    size = c.cameras.rs.roi.height
-    need = 3 * grid.n_frames * size * size * 4 * 3  # the float32 truth video, the frames rendered from it
+    rs_roi, grid_bin = c.cameras.rs.roi, c.recon.grid_bin
+    h, w = rs_roi.height // grid_bin, rs_roi.width // grid_bin  # the mock renders on the grid
+    need = 3 * grid.n_frames * h * w * 4 * 3  # the float32 truth video, the frames rendered from it
     if need > default_max_memory_bytes():
         raise ConfigError(f"{rig.path}: the mock scene would need about {need / 2**30:,.1f} GiB "
-                          f"({grid.n_frames} frames of {size}x{size}x3), more than this machine can "
-                          "spare: use a smaller cameras.rs.roi for the mock rig")
-    world = MockWorld(c.mock.scene, c.cameras.rs.roi.height, grid, psf, seed=c.mock.seed,
-                      key_times_s=list(gs_timing.centres_s()), options=c.mock.options)
+                          f"({grid.n_frames} frames of {h}x{w}x3), more than this machine can "
+                          "spare: use a smaller cameras.rs.roi or a larger recon.grid_bin for the mock rig")
+    world = MockWorld(c.mock.scene, (c.cameras.rs.roi.height, c.cameras.rs.roi.width), grid, psf,
+                      seed=c.mock.seed, key_times_s=list(gs_timing.centres_s()), options=c.mock.options,
+                      bin=c.recon.grid_bin)
     for role in ("rs", "gs"):
         cam = getattr(c.cameras, role)
         m = cam.mock or MockSensor()

@@ -16,7 +16,13 @@ For calibration (rngcam.calibrate) the world can show a static `target` instead 
 "point" (a point source), "chart" (a textured card on a dark surround) or "dark"; frames are
 then the static forward model, whatever the trigger time. A GS device may carry a true GS-to-RS
 transform (it sees the scene point H p at its pixel p) and every device per-channel gains
-(SensorModel.channel_gain). The RS device has a small feature map (Height, SensorReadoutTime =
+(SensorModel.channel_gain).
+
+With `bin` > 1 (the rig's recon.grid_bin) the world renders the scene and both measurements on
+the reconstruction grid (sensor size / bin, the RS rows binned exactly as the reconstruction
+models them) and makes sensor-size frames by repeating each grid pixel bin x bin, noise added
+per sensor pixel a strip of rows at a time: a lab-size frame (3648x5472) then costs tens of MB of
+scratch, not the tens of GB a sensor-resolution scene would, and the truth is on the grid. The RS device has a small feature map (Height, SensorReadoutTime =
 overhead + Height x line time) so its line time is measured as on a real camera.
 """
 
@@ -62,9 +68,15 @@ class MockDevice:
 class MockWorld:
     """The scene both mock cameras see, its video grid, the RS PSF, and the plugged devices."""
 
-    def __init__(self, scene: str, size: int, grid: VideoGrid, psf: np.ndarray | None,
-                 seed: int = 0, key_times_s=None, options: dict | None = None):
-        self.scene, self.size, self.grid, self.seed = scene, int(size), grid, seed
+    def __init__(self, scene: str, size, grid: VideoGrid, psf: np.ndarray | None,
+                 seed: int = 0, key_times_s=None, options: dict | None = None, bin: int = 1):
+        """`size`: the sensor, N (square) or (rows, cols); `psf` on the sensor grid."""
+        self.rows, self.cols = (int(size), int(size)) if np.isscalar(size) else (int(size[0]), int(size[1]))
+        self.bin = int(bin)
+        if self.bin < 1 or self.rows % self.bin or self.cols % self.bin:
+            raise HardwareError(f"mock sensor {self.cols}x{self.rows} does not bin by {bin}")
+        self.size, self.grid, self.seed = self.rows, grid, seed  # size: sensor rows
+        self.scene = scene
         self.key_times_s = None if key_times_s is None else [float(t) for t in key_times_s]
         self.options = dict(options or {})
         self.psf = None if psf is None else np.asarray(psf, dtype=np.float64)
@@ -72,13 +84,31 @@ class MockWorld:
         self.t0_s: float | None = None  # generator-clock time of the RS trigger
         self.target: str | None = None  # a static calibration target shown instead of the scene
         self._video: np.ndarray | None = None
+        self._grid_psf: np.ndarray | None = None
         self._lock = threading.Lock()
+
+    @property
+    def grid_shape(self) -> tuple[int, int]:
+        return self.rows // self.bin, self.cols // self.bin
+
+    def grid_psf(self) -> np.ndarray:
+        """The PSF on the grid, area-binned from the sensor PSF as the reconstruction does."""
+        if self._grid_psf is None:
+            from rngcam.physics.psf import prepare_psf
+
+            if self.bin == 1:
+                self._grid_psf = self.psf
+            else:
+                hp, wp = self.psf.shape[-2:]
+                shape = (max(1, round(hp / self.bin)), max(1, round(wp / self.bin)))
+                self._grid_psf = prepare_psf(self.psf, shape, bias=None)[0]
+        return self._grid_psf
 
     def plug(self, device: MockDevice) -> None:
         self.devices[device.serial] = device
 
     def video(self) -> np.ndarray:
-        """The truth video (3, K, N, N) float32 on `grid`, rendered once."""
+        """The truth video (3, K, H, W) float32 on `grid` (H, W = sensor size / bin), rendered once."""
         with self._lock:
             if self._video is None:
                 from rngcam.sim.scenes import render_scene
@@ -86,7 +116,7 @@ class MockWorld:
                 opts = dict(self.options)
                 if self.key_times_s is not None:
                     opts.setdefault("key_times_s", self.key_times_s)
-                self._video = render_scene(self.scene, self.grid, self.size, self.seed, **opts)
+                self._video = render_scene(self.scene, self.grid, self.grid_shape, self.seed, **opts)
             return self._video
 
     def static_image(self, device: MockDevice) -> np.ndarray:
@@ -97,6 +127,8 @@ class MockWorld:
         if self.target not in STATIC_TARGETS:
             raise HardwareError(f"unknown mock target {self.target!r} (choose from {', '.join(STATIC_TARGETS)})")
         n = self.size
+        if (self.rows, self.cols) != (n, n) or self.bin != 1:
+            raise HardwareError("mock calibration targets need a square mock sensor with grid_bin 1")
         h = None if device.gs_to_rs is None else np.asarray(device.gs_to_rs, np.float64)
         if self.target == "dark":
             return np.zeros((3, n, n))
@@ -199,10 +231,10 @@ class MockCamera(Camera):
         if settings.pixel_format not in (None, want):
             raise HardwareError(f"{self.label}: pixel format {settings.pixel_format!r} not supported "
                                 f"(this mock sensor gives {want!r})")
-        n = self.world.size
-        if settings.roi is not None and tuple(settings.roi) != (n, n, 0, 0):
+        n, n_cols = self.world.rows, self.world.cols
+        if settings.roi is not None and tuple(settings.roi) != (n_cols, n, 0, 0):
             raise HardwareError(f"{self.label}: ROI {settings.roi} not supported; the mock sensor is "
-                                f"{n}x{n} (offsets 0)")
+                                f"{n_cols}x{n} (offsets 0)")
         if settings.trigger_source not in (None, "Software", *TRIGGER_LINES):
             raise HardwareError(f"{self.label}: TriggerSource {settings.trigger_source!r} unknown")
         if settings.trigger_activation not in ("RisingEdge", "FallingEdge"):
@@ -212,7 +244,7 @@ class MockCamera(Camera):
         self.settings = settings
         gain_db = settings.gain_db or 0.0
         out.features = {
-            "PixelFormat": want, "Width": n, "Height": n, "OffsetX": 0, "OffsetY": 0,
+            "PixelFormat": want, "Width": n_cols, "Height": n, "OffsetX": 0, "OffsetY": 0,
             "ExposureTime": self.exposure_s * 1e6, "exposure_s": self.exposure_s,
             "Gain": gain_db, "gain_db": gain_db,
             "TriggerSelector": "FrameStart",
@@ -310,6 +342,8 @@ class MockCamera(Camera):
         n = world.size
         if world.target is not None:
             y = self._render_static(dev)
+        elif world.bin > 1:
+            return self._render_binned(dev, t_s, index)
         elif dev.kind == "rs":
             rel = world.relative(t_s, self.label)
             video = torch.from_numpy(world.video()).double()
@@ -317,24 +351,59 @@ class MockCamera(Camera):
                 raise HardwareError(f"{self.label}: the mock RS camera needs a PSF")
             timing = RollingShutterTiming(dev.line_time_s, self.exposure_s, rows=n, trigger_s=rel)
             world.check_inside(rel, timing.end_s, self.label)
-            op = RollingShutter(torch.from_numpy(world.psf), torch.from_numpy(timing.weights(world.grid)), n)
+            op = RollingShutter(torch.from_numpy(world.psf), torch.from_numpy(timing.weights(world.grid)), world.cols)
             y = op.A(video).numpy()
         else:
             rel = world.relative(t_s, self.label)
             video = torch.from_numpy(world.video()).double()
             timing = GlobalShutterTiming((rel,), self.exposure_s)
             world.check_inside(rel, timing.end_s, self.label)
-            y = GlobalShutter(torch.from_numpy(timing.weights(world.grid)), 3, (n, n)).A(video)[:, 0].numpy()
+            y = GlobalShutter(torch.from_numpy(timing.weights(world.grid)), 3, (n, world.cols)).A(video)[:, 0].numpy()
             if dev.gs_to_rs is not None:
                 y = warp_seen(y, np.asarray(dev.gs_to_rs, np.float64))
-        rng = np.random.default_rng([dev.seed, index])
-        sensor = dev.sensor
+        return self._sensor().capture(y, self.exposure_s, world.grid.dt_s,
+                                      rng=np.random.default_rng([dev.seed, index]), noise=dev.noise)
+
+    def _sensor(self) -> SensorModel:
+        sensor = self._dev().sensor
         if self.settings and self.settings.gain_db:
             g = 10 ** (self.settings.gain_db / 20)
             base = sensor.channel_gain or (1.0, 1.0, 1.0)
             sensor = SensorModel(sensor.bit_depth, sensor.black_level_dn, sensor.full_well_e,
                                  sensor.read_noise_e, tuple(g * b for b in base), sensor.bayer)
-        return sensor.capture(y, self.exposure_s, world.grid.dt_s, rng=rng, noise=dev.noise)
+        return sensor
+
+    def _render_binned(self, dev: MockDevice, t_s: float, index: int, strip_rows: int = 256) -> np.ndarray:
+        """The frame rendered on the grid (world.bin > 1), repeated bin x bin to the sensor size,
+        noise drawn per sensor pixel a strip of rows at a time."""
+        world, b = self.world, self.world.bin
+        h, w = world.grid_shape
+        rel = world.relative(t_s, self.label)
+        video = torch.from_numpy(world.video()).double()
+        if dev.kind == "rs":
+            if world.psf is None:
+                raise HardwareError(f"{self.label}: the mock RS camera needs a PSF")
+            timing = RollingShutterTiming(dev.line_time_s, self.exposure_s, rows=h, rows_per_bin=b, trigger_s=rel)
+            world.check_inside(rel, timing.end_s, self.label)
+            op = RollingShutter(torch.from_numpy(world.grid_psf()), torch.from_numpy(timing.weights(world.grid)), w)
+            y = op.A(video).numpy()
+        else:
+            timing = GlobalShutterTiming((rel,), self.exposure_s)
+            world.check_inside(rel, timing.end_s, self.label)
+            y = GlobalShutter(torch.from_numpy(timing.weights(world.grid)), 3, (h, w)).A(video)[:, 0].numpy()
+            if dev.gs_to_rs is not None:  # the sensor-pixel map, conjugated to grid pixels
+                scale = np.array([[b, 0, (b - 1) / 2], [0, b, (b - 1) / 2], [0, 0, 1.0]])
+                y = warp_seen(y, np.linalg.inv(scale) @ np.asarray(dev.gs_to_rs, np.float64) @ scale)
+        sensor, rng = self._sensor(), np.random.default_rng([dev.seed, index])
+        step = b * max(1, strip_rows // b)
+        out = None
+        for r0 in range(0, world.rows, step):
+            part = y[:, r0 // b:(r0 + step) // b].repeat(b, axis=1).repeat(b, axis=2)
+            raw = sensor.capture(part, self.exposure_s, world.grid.dt_s, rng=rng, noise=dev.noise)
+            if out is None:
+                out = np.empty((world.rows, *raw.shape[1:]), raw.dtype)
+            out[r0:r0 + raw.shape[0]] = raw
+        return out
 
     def _render_static(self, dev: MockDevice) -> np.ndarray:
         """Operator units (3, N, N) of the static target: a static scene s gives
@@ -346,7 +415,7 @@ class MockCamera(Camera):
             return scale * img
         if world.psf is None:
             raise HardwareError(f"{self.label}: the mock RS camera needs a PSF")
-        conv = PSFConvolution(torch.from_numpy(world.psf), (world.size, world.size), channels=3)
+        conv = PSFConvolution(torch.from_numpy(world.psf), (world.rows, world.cols), channels=3)
         return scale * conv.A(torch.from_numpy(img)).numpy()
 
     def disarm(self) -> None:

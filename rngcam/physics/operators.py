@@ -140,13 +140,26 @@ class RollingShutter(LinearOperator):
     """RS measurement: convolve each frame with the PSF, weight row i of frame k by W[i, k], sum over k.
 
     v (C, K, H, W) -> b (C, H, W). W is (H, K) from RollingShutterTiming.weights.
+
+    Frame k only reaches the few rows whose exposure overlaps it (W is banded), so neither
+    direction inverts a whole padded spectrum along y per frame: the forward evaluates only
+    those rows of the inverse DFT along y (a small matrix product), and the adjoint builds each
+    frame's spectrum from those rows of the x-transformed measurement. Frames go through the
+    FFTs a chunk at a time into buffers that are reused across calls (outside autograd), so the
+    cost is one batched rfft2 (forward) or irfft2 (adjoint) without allocation churn.
     """
+
+    # Complex spectrum per chunk of frames: small enough that the FFT library's own scratch stays
+    # under glibc's mmap threshold (32 MiB at most), so it is reused instead of mapped and faulted in.
+    CHUNK_BYTES = 16 * 2**20
 
     def __init__(self, psf: Tensor, weights: Tensor, width: int, channels: int | None = None):
         self.weights = torch.as_tensor(weights)
         rows, k = self.weights.shape
         self.conv = PSFConvolution(psf, (rows, width), batch_shape=(k,), channels=channels)
         self.domain_shape = self.conv.domain_shape
+        self._band_cache: dict = {}
+        self._buffers: dict = {}
 
     def _w(self, like: Tensor) -> Tensor:
         return self.weights.to(dtype=like.dtype, device=like.device)
@@ -155,29 +168,108 @@ class RollingShutter(LinearOperator):
         """Weights as (K, H, 1) for broadcasting against (C, K, H, W)."""
         return self._w(like).T[:, :, None]
 
+    def _band(self, dtype, device) -> tuple[Tensor, Tensor, Tensor]:
+        """Per frame k the rows it reaches: row indices (K, n) and the DFT matrices of those rows,
+        forward (K, n, fh) = W e^{+2 pi i f (r + oy) / fh} / fh and adjoint (K, fh, n) = W e^{-...}."""
+        key = (dtype, str(device))
+        if key not in self._band_cache:
+            w = self.weights.detach().to(torch.float64).cpu()
+            h, k = w.shape
+            nz = w != 0
+            any_row = nz.any(dim=0)
+            first = torch.where(any_row, nz.float().argmax(dim=0), torch.zeros(k, dtype=torch.long))
+            last = torch.where(any_row, h - 1 - nz.flip(0).float().argmax(dim=0), torch.full((k,), -1))
+            n = max(int((last - first + 1).clamp_min(0).max()), 1)
+            rows = first[:, None] + torch.arange(n)[None]  # (K, n)
+            inside = rows <= last[:, None]
+            rows = rows.clamp_max(h - 1)
+            wk = torch.where(inside, w.T.gather(1, rows), torch.zeros(()))  # (K, n)
+            fh = self.conv.fft_shape[0]
+            phase = 2 * math.pi * torch.arange(fh, dtype=torch.float64)[None, None] * (
+                rows + self.conv.offset[0])[..., None] / fh  # (K, n, fh)
+            fwd = wk[..., None] * torch.polar(torch.ones_like(phase), phase) / fh
+            adj = (wk[..., None] * torch.polar(torch.ones_like(phase), -phase)).transpose(1, 2)
+            cdt = (torch.ones((), dtype=dtype) * 1j).dtype
+            self._band_cache[key] = (rows.to(device), fwd.to(device=device, dtype=cdt).contiguous(),
+                                     adj.to(device=device, dtype=cdt).contiguous())
+        return self._band_cache[key]
+
+    def _chunk(self, channels: int, frame_chunk: int | None) -> int:
+        if frame_chunk is not None:
+            return max(1, int(frame_chunk))
+        fh, fw = self.conv.fft_shape
+        return max(1, self.CHUNK_BYTES // (channels * fh * (fw // 2 + 1) * 8))
+
+    def _buffer(self, name: str, shape, dtype, device, reuse: bool, zero: bool = False) -> Tensor | None:
+        """A scratch tensor kept across calls (None under autograd: out= is not differentiable)."""
+        if not reuse:
+            return None
+        key = (name, tuple(shape), dtype, str(device))
+        buf = self._buffers.get(key)
+        if buf is None:
+            self._buffers = {k: b for k, b in self._buffers.items() if k[0] != name}  # one per name
+            make = torch.zeros if zero else torch.empty
+            buf = self._buffers[key] = make(shape, dtype=dtype, device=device)
+        return buf
+
     def A(self, v: Tensor, frame_chunk: int | None = None) -> Tensor:  # noqa: N802
-        """With `frame_chunk`, frames go through the FFTs that many at a time: the same result
-        with temporaries bounded by the chunk instead of growing with K."""
-        # The row weights and the sum over frames commute with the inverse FFT along x, so
-        # invert along y per frame, keep the sensor rows, sum over frames, and only then
-        # invert along x once per channel (irfft2 dominated the cost of convolving every frame).
+        """With `frame_chunk`, that many frames go through the FFTs at a time (default: as many
+        as fit CHUNK_BYTES); the result does not depend on it."""
         conv = self.conv
         h, w = conv.image_shape
-        oy, ox = conv.offset
+        ox = conv.offset[1]
         fh, fw = conv.fft_shape
-        tf = conv._broadcast(conv.transfer(v.dtype, v.device), v.ndim)
-        w_kh1 = self._w_kh1(v)
-        k = v.shape[1]
-        step = k if frame_chunk is None else max(1, int(frame_chunk))
-        rows = 0
+        c, k = v.shape[0], v.shape[1]
+        tf = conv.transfer(v.dtype, v.device)[:, None]  # (C|1, 1, fh, fw')
+        rows_k, fwd, _ = self._band(v.dtype, v.device)
+        n = rows_k.shape[1]
+        reuse = not (torch.is_grad_enabled() and v.requires_grad)
+        step = self._chunk(c, frame_chunk)
+        rows = torch.zeros((c, h, fw // 2 + 1), dtype=fwd.dtype, device=v.device)
         for start in range(0, k, step):
-            frames = slice(start, start + step)
-            spec = torch.fft.ifft(torch.fft.rfft2(v[:, frames], s=conv.fft_shape) * tf, dim=-2)[..., oy:oy + h, :]
-            rows = rows + (spec * w_kh1[frames].to(spec.dtype)).sum(dim=1)  # (C, H, fw // 2 + 1)
+            m = min(step, k - start)
+            if reuse:  # zero-padded frames in a kept buffer: only the top-left block is ever written
+                padded = self._buffer("padded", (c, step, fh, fw), v.dtype, v.device, reuse, zero=True)[:, :m]
+                padded[..., :h, :w] = v[:, start:start + m]
+                buf = self._buffer("spec", (c, step, fh, fw // 2 + 1), fwd.dtype, v.device, reuse)[:, :m]
+                spec = torch.fft.rfft2(padded, out=buf).mul_(tf)
+            else:
+                spec = torch.fft.rfft2(v[:, start:start + m], s=conv.fft_shape) * tf
+            # Only the rows each frame reaches, of the inverse DFT along y, weighted: (C, m, n, fw').
+            part = torch.matmul(fwd[start:start + m], spec)
+            idx = rows_k[start:start + m].reshape(-1)
+            part = part.reshape(c, m * n, -1)
+            rows = rows.index_add_(1, idx, part) if reuse else rows.index_add(1, idx, part)
         return torch.fft.irfft(rows, n=fw, dim=-1)[..., ox:ox + w]
 
-    def A_adjoint(self, b: Tensor) -> Tensor:  # noqa: N802
-        return self.conv.A_adjoint(b[:, None] * self._w_kh1(b))
+    def A_adjoint(self, b: Tensor, frame_chunk: int | None = None) -> Tensor:  # noqa: N802
+        conv = self.conv
+        h, w = conv.image_shape
+        ox = conv.offset[1]
+        fh, fw = conv.fft_shape
+        c, k = b.shape[0], self.weights.shape[1]
+        tfc = conv.transfer(b.dtype, b.device).conj()[:, None]
+        rows_k, _, adj = self._band(b.dtype, b.device)
+        reuse = not (torch.is_grad_enabled() and b.requires_grad)
+        # The row weights commute with the transform along x: transform the measurement once.
+        bx = torch.fft.rfft(torch.nn.functional.pad(b, (ox, fw - w - ox)), dim=-1)  # (C, H, fw')
+        out = torch.empty((c, k, h, w), dtype=b.dtype, device=b.device) if reuse else []
+        step = self._chunk(c, frame_chunk)
+        for start in range(0, k, step):
+            m = min(step, k - start)
+            sel = bx[:, rows_k[start:start + m]]  # (C, m, n, fw')
+            if reuse:
+                buf = self._buffer("spec", (c, step, fh, fw // 2 + 1), adj.dtype, b.device, reuse)[:, :m]
+                spec = torch.matmul(adj[start:start + m], sel, out=buf).mul_(tfc)
+                col = self._buffer("spec2", (c, step, fh, fw // 2 + 1), adj.dtype, b.device, reuse)[:, :m]
+                col = torch.fft.ifft(spec, dim=-2, out=col)[..., :h, :]
+                img = self._buffer("image", (c, step, h, fw), b.dtype, b.device, reuse)[:, :m]
+                out[:, start:start + m] = torch.fft.irfft(col, n=fw, dim=-1, out=img)[..., :w]
+            else:
+                spec = torch.matmul(adj[start:start + m], sel) * tfc
+                col = torch.fft.ifft(spec, dim=-2)[..., :h, :]
+                out.append(torch.fft.irfft(col, n=fw, dim=-1)[..., :w])
+        return out if reuse else torch.cat(out, dim=1)
 
     def A_rows(self, v_frames: Tensor, rows: Tensor, frames: Tensor) -> Tensor:  # noqa: N802
         """Sensor rows `rows` (R,) as seen from frames `frames` (F,) only: v_frames (C, F, H, W)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -63,6 +64,7 @@ class LoopSettings:
     resume: bool = False
     max_failures: int = 5
     progress: bool = True
+    progress_every_s: float = 10.0  # without a terminal: one progress line this often (stderr)
 
     def __post_init__(self):
         if self.time_budget_s is None and self.max_iters is None:
@@ -198,23 +200,60 @@ def run(method: Method, settings: LoopSettings,
                 last_ckpt_t = time.perf_counter()
         if stop_reason:
             events.append(f"stopped at iteration {iteration}: {stop_reason}")
-        elif converged is not None and settings.time_budget_s is not None and wall() >= settings.time_budget_s:
-            events.append(f"time budget of {settings.time_budget_s:g} s reached at iteration {iteration}, before "
-                          f"{method.name}'s own stop: a larger --time-budget with --resume may improve it")
+        elif settings.time_budget_s is not None and wall() >= settings.time_budget_s and (
+                settings.max_iters is None or iteration < settings.max_iters):
+            events.append(budget_event(method, settings.time_budget_s, iteration, setup_s))
         if not log or log[-1]["iteration"] != iteration:
             bar.show(record(objective), iteration, wall())
         checkpoint()
     return RunResult(log, iteration, solve_s, wall(), events)
 
 
+def budget_event(method, budget_s: float, iteration: int, setup_s: float) -> str:
+    """The event that says the time budget, not the method, ended a run, and what was cut."""
+    name = method.name
+    what = getattr(method, "budget_cut", lambda: "")()  # e.g. "levels 2-3 of 3 not reached"
+    head = f"time budget of {budget_s:g} s reached at iteration {iteration}"
+    if setup_s >= budget_s:
+        head += f" (set-up alone took {setup_s:.1f} s)"
+    elif setup_s > 0:
+        head += f" (set-up {setup_s:.1f} s)"
+    why = (f"before {name}'s own stop" if getattr(method, "converged", None) is not None
+           else f"{name} has no stop of its own, so the budget decides how far it gets")
+    cut = f"; cut: {what}" if what else ""
+    return (f"{head}, {why}{cut}; the state at the budget is written (a larger --time-budget with "
+            f"--resume may improve it)")
+
+
+def is_terminal(stream=None) -> bool:
+    stream = stream or sys.stderr
+    return bool(getattr(stream, "isatty", lambda: False)())
+
+
+def stage_printer(echo=None, enabled: bool = True):
+    """A callable `stage(message)` that prints 'set-up: message (t s)' with the time since it was made,
+    so every set-up stage shows progress in a terminal and in a log alike."""
+    t0 = time.perf_counter()
+    echo = echo or (lambda line: print(line, file=sys.stderr, flush=True))
+
+    def stage(message: str) -> None:
+        if enabled:
+            echo(f"set-up: {message} ({time.perf_counter() - t0:.1f} s)")
+    return stage
+
+
 class _progress:
-    """A rich progress bar showing the latest figures (silent when progress=False)."""
+    """A rich progress bar showing the latest figures in a terminal; without one, a plain line
+    every `progress_every_s` seconds on stderr (so a log file shows the run as it goes); silent
+    when progress=False."""
 
     def __init__(self, settings: LoopSettings, name: str):
         self.settings, self.name, self._bar, self._task = settings, name, None, None
+        self._lines = settings.progress and not is_terminal()
+        self._last_line = -math.inf
 
     def __enter__(self):
-        if self.settings.progress:
+        if self.settings.progress and not self._lines:
             from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
             self._bar = Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
@@ -225,11 +264,17 @@ class _progress:
         return self
 
     def show(self, row: dict, iteration: int, wall_s: float) -> None:
-        if self._bar is None:
-            return
         figs = f"it {iteration}  obj {row['objective']:.4g}"
         if "psnr_db" in row:
             figs += f"  PSNR {row['psnr_db']:.2f} dB"
+        if self._lines:
+            if wall_s - self._last_line >= self.settings.progress_every_s:
+                self._last_line = wall_s
+                budget = f" of {self.settings.time_budget_s:g} s" if self.settings.time_budget_s else ""
+                print(f"{self.name}: {wall_s:.0f} s{budget}  {figs}", file=sys.stderr, flush=True)
+            return
+        if self._bar is None:
+            return
         done = wall_s if self.settings.time_budget_s else iteration
         self._bar.update(self._task, completed=done, figures=figs)
 

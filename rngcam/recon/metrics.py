@@ -15,15 +15,23 @@ from torch import Tensor
 
 def psnr(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range: float = 1.0) -> float:
     """PSNR in dB over all elements (or the (H, W) `mask` region) of (C, T, H, W) videos."""
-    diff = (estimate.double() - truth.double()) ** 2
-    if mask is not None:
-        m = mask.to(diff.device).expand_as(diff)
-        mse = float(diff[m].mean()) if bool(m.any()) else float("nan")
-    else:
-        mse = float(diff.mean())
+    total, count = 0.0, 0
+    for e, t in zip(_frame_chunks(estimate), _frame_chunks(truth)):  # bounded temporaries at any size
+        diff = (e.double() - t.double().to(e.device)) ** 2
+        if mask is not None:
+            m = mask.to(diff.device).expand_as(diff)
+            total, count = total + float(diff[m].sum()), count + int(m.sum())
+        else:
+            total, count = total + float(diff.sum()), count + diff.numel()
+    mse = total / count if count else float("nan")
     if mse == 0:
         return float("inf")
     return 10 * math.log10(data_range ** 2 / mse)
+
+
+def _frame_chunks(video: Tensor, chunk: int = 16):
+    """(C, T, H, W) -> views of `chunk` frames at a time."""
+    return (video[:, i:i + chunk] for i in range(0, video.shape[1], chunk))
 
 
 def _gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float64, device="cpu") -> Tensor:
@@ -45,6 +53,15 @@ def ssim(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range
 
     Each frame of each channel is one 2-D image; windows shrink for images under 11 px.
     """
+    total, count = 0.0, 0
+    for e, t in zip(_frame_chunks(estimate), _frame_chunks(truth)):  # bounded temporaries at any size
+        s_sum, n = _ssim_sums(e, t, mask, data_range)
+        total, count = total + s_sum, count + n
+    return total / count if count else float("nan")
+
+
+def _ssim_sums(estimate: Tensor, truth: Tensor, mask: Tensor | None, data_range: float) -> tuple[float, int]:
+    """(sum of the SSIM map, its number of values) for a chunk of frames."""
     # float32 filtering: float64 conv2d is ~20x slower on CPU and SSIM needs no more precision.
     x = estimate.float().reshape(-1, 1, *estimate.shape[-2:])
     y = truth.float().to(x.device).reshape(-1, 1, *truth.shape[-2:])
@@ -68,8 +85,8 @@ def ssim(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range
     s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
     if mask is not None:
         m = mask.to(s.device).expand_as(s)
-        return float(s[m].mean())
-    return float(s.mean())
+        return float(s[m].sum()), int(m.sum())
+    return float(s.sum()), s.numel()
 
 
 def video_metrics(estimate: Tensor, truth: Tensor, intermediate: np.ndarray,

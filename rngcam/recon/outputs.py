@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 from datetime import datetime, timezone
 from pathlib import Path
@@ -55,8 +56,22 @@ def to_display(video: np.ndarray, gamma: float = 2.2) -> np.ndarray:
     return (v * 255 + 0.5).astype(np.uint8)
 
 
-def write_mp4(path: Path, video: np.ndarray, fps: float = 30.0) -> None:
-    """H.264 preview via PyAV; sides are padded to even sizes and small videos upscaled."""
+def playback(capture_fps: float | None, fps: float = 30.0) -> dict:
+    """What a preview's time axis means: capture and playback rates and the slow-down."""
+    out = {"playback_fps": float(fps)}
+    if capture_fps is not None and math.isfinite(capture_fps) and capture_fps > 0:
+        out.update(capture_fps=float(capture_fps), frame_interval_s=1.0 / capture_fps,
+                   slowdown=float(capture_fps) / fps)
+    return out
+
+
+def write_mp4(path: Path, video: np.ndarray, fps: float = 30.0, capture_fps: float | None = None) -> None:
+    """H.264 preview via PyAV; sides are padded to even sizes and small videos upscaled.
+
+    With `capture_fps`, the container's metadata (title, comment) state the capture frame rate
+    and the slow-down, and a sidecar `<name>.json` beside it repeats them for tools that do not
+    read MP4 metadata.
+    """
     import av
 
     frames = to_display(video)
@@ -66,7 +81,13 @@ def write_mp4(path: Path, video: np.ndarray, fps: float = 30.0) -> None:
     h2, w2 = frames.shape[1] + frames.shape[1] % 2, frames.shape[2] + frames.shape[2] % 2
     frames = np.pad(frames, ((0, 0), (0, h2 - frames.shape[1]), (0, w2 - frames.shape[2]), (0, 0)))
     tmp = path.with_name(f".{path.name}.partial-{os.getpid()}.mp4")
+    timing = playback(capture_fps, fps)
     with av.open(str(tmp), "w") as out:
+        if "capture_fps" in timing:
+            note = (f"captured at {timing['capture_fps']:,.1f} fps, played at {fps:g} fps: "
+                    f"{timing['slowdown']:,.1f}x slow motion")
+            out.metadata["title"] = f"rngcam reconstruction ({note})"
+            out.metadata["comment"] = note
         stream = out.add_stream("libx264", rate=round(fps))
         stream.width, stream.height, stream.pix_fmt = w2, h2, "yuv420p"
         for frame in frames:
@@ -75,14 +96,21 @@ def write_mp4(path: Path, video: np.ndarray, fps: float = 30.0) -> None:
         for packet in stream.encode():
             out.mux(packet)
     os.replace(tmp, path)
+    if "capture_fps" in timing:
+        sidecar = path.with_suffix(".json")
+        sidecar.write_text(json.dumps({"file": path.name, "frames": int(video.shape[1]), **timing}, indent=2))
 
 
-def write_tiff(path: Path, video: np.ndarray) -> None:
-    """Linear float32 TIFF stack, one page per frame, (K, H, W, C)."""
+def write_tiff(path: Path, video: np.ndarray, frame_interval_s: float | None = None) -> None:
+    """Linear float32 ImageJ hyperstack (T, C, Y, X): frames as time, colour as channels, and
+    with `frame_interval_s` the frame interval in seconds, so Fiji/napari show the capture's time."""
     import tifffile
 
-    tifffile.imwrite(path, np.moveaxis(video.astype(np.float32), 0, -1), photometric="rgb"
-                     if video.shape[0] == 3 else "minisblack")
+    meta = {"axes": "TCYX", "mode": "composite" if video.shape[0] > 1 else "grayscale", "unit": "pixel"}
+    if frame_interval_s is not None and math.isfinite(frame_interval_s) and frame_interval_s > 0:
+        meta.update(finterval=float(frame_interval_s), tunit="s")
+    tifffile.imwrite(path, np.ascontiguousarray(np.moveaxis(video.astype(np.float32, copy=False), 0, 1)),
+                     imagej=True, metadata=meta)
 
 
 def write_errors(csv_path: Path, png_path: Path, log: list[dict], title: str = "") -> None:

@@ -12,8 +12,9 @@ rngcam.scale.holdout) next to the training residuals.
 
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,9 +24,15 @@ from rngcam.bundle import bundle_checksum, read_bundle_with_warnings
 from rngcam.errors import ConfigError, RngcamError
 from rngcam.memory import peak_rss_bytes
 from rngcam.recon import outputs
-from rngcam.recon.loop import LoopSettings, RunResult, run
-from rngcam.recon.metrics import (error_visibility, error_visibility_caveats, motion_metrics, one_object_scene,
-                                  relative_residual, video_metrics)
+from rngcam.recon.loop import LoopSettings, RunResult, run, stage_printer
+from rngcam.recon.metrics import (
+    error_visibility,
+    error_visibility_caveats,
+    motion_metrics,
+    one_object_scene,
+    relative_residual,
+    video_metrics,
+)
 from rngcam.recon.problem import Problem, build_problem
 from rngcam.sizing import check_size, gib, plan_grid
 
@@ -36,6 +43,19 @@ METHODS = ITERATIVE + GS_ONLY
 # one CPU thread), so its cap only guards against a fit that never settles.
 DEFAULT_TIME_BUDGET_S = {"stfm": 600.0, "pnp": 300.0}
 FALLBACK_TIME_BUDGET_S = 60.0
+# "auto" scales those budgets (set at 64x64 px, 67 frames, 3 channels) with the square root of the
+# problem's size, capped at half an hour: 64 px keeps its figure, 228x342x232 gets 8.1x it.
+AUTO_REFERENCE_VOXELS = 3 * 67 * 64 * 64
+AUTO_MAX_S = 1800.0
+
+
+def auto_time_budget(method: str, shape: tuple[int, int, int, int]) -> tuple[float, str]:
+    """The `auto` budget for `method` on a video of `shape` (C, K, H, W), and a line saying why."""
+    base = DEFAULT_TIME_BUDGET_S.get(method, FALLBACK_TIME_BUDGET_S)
+    scale = max(1.0, math.sqrt(math.prod(shape) / AUTO_REFERENCE_VOXELS))
+    budget = min(AUTO_MAX_S, base * scale)
+    return budget, (f"time budget auto: {budget:.0f} s ({method}'s {base:g} s at 64 px x "
+                    f"{scale:.1f} for {math.prod(shape) / 1e6:.1f} M voxels, at most {AUTO_MAX_S:g} s)")
 
 
 @dataclass
@@ -59,6 +79,7 @@ class ReconSettings:
     def __post_init__(self):
         if self.method not in METHODS:
             raise ConfigError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
+        self.budget_auto = self.time_budget_s == "auto"  # rescaled to the problem in reconstruct()
         if self.time_budget_s == "auto":
             self.time_budget_s = DEFAULT_TIME_BUDGET_S.get(self.method, FALLBACK_TIME_BUDGET_S)
         check_settings_figures(self.time_budget_s, self.max_iters, self.max_frames, self.max_memory_bytes)
@@ -101,13 +122,16 @@ def gs_key_frames(problem: Problem) -> np.ndarray:
     return problem.gs_images().cpu().float().numpy()
 
 
-def make_method(problem: Problem, settings: ReconSettings, device: str):
-    """The iterative method of `settings` on `problem` (float32 on `device`)."""
+def make_method(problem: Problem, settings: ReconSettings, device: str, stage=None):
+    """The iterative method of `settings` on `problem` (float32 on `device`); `stage(message)`
+    reports set-up stages."""
     opts = dict(settings.options)
+    problem = replace(problem, truth=None)  # methods never see the truth; a float32 copy is 4 bytes a voxel
     if settings.method == "tv3d":
-        from rngcam.recon.tv3d import TV3D, TV3DSettings
+        from rngcam.recon.tv3d import TV3DSettings, make_tv3d
 
-        method = TV3D(problem.to(torch.float32, device), TV3DSettings(**opts))
+        method = make_tv3d(problem.to(torch.float32, device), TV3DSettings(**opts),
+                           budget_s=settings.time_budget_s, stage=stage)
     elif settings.method == "pnp":
         from rngcam.recon.pnp import PnP, PnPSettings
 
@@ -184,16 +208,20 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
 
 
 def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> dict:
+    t_start = time.perf_counter()  # the budget bounds reading, set-up and solve together
+    stage = stage_printer(echo, settings.progress)
     bundle, warnings = read_bundle_with_warnings(bundle_path)
     for warning in warnings:
         echo(warning)
+    stage(f"read {bundle_path.name}")
     plan = plan_grid(bundle, settings.grid_bin)
     need = check_size(plan, settings.method, max_frames=settings.max_frames,
                       max_memory_bytes=settings.max_memory_bytes)
     device = resolve_device(settings.device)
     problem = build_problem(bundle, grid_bin=settings.grid_bin, max_frames=settings.max_frames)
     one_object = one_object_scene(bundle.rig_yaml)  # for the motion yardstick
-    del bundle  # the raw frames are in the problem now
+    del bundle  # the problem holds what the reconstruction needs; the raw frames can go
+    stage("measurements binned onto the grid")
     out = Path(out_dir) if out_dir is not None else default_out_dir(bundle_path, settings.method)
     out.mkdir(parents=True, exist_ok=True)
     scorer = None
@@ -209,12 +237,15 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
     c, k, h, w = problem.shape
     echo(f"{settings.method}: {k} frames of {h}x{w}x{c} at {1 / problem.grid.dt_s:,.0f} fps on {device} "
          f"(about {gib(need)} estimated)")
+    if getattr(settings, "budget_auto", False) and settings.method in ITERATIVE:
+        settings.time_budget_s, why = auto_time_budget(settings.method, problem.shape)
+        echo(why)
     intermediate = problem.intermediate_frames()
 
     def truth_metrics(video: torch.Tensor) -> dict:
         if problem.truth is None:
             return {}
-        return video_metrics(video.detach().double().cpu(), problem.truth, intermediate, problem.mask)
+        return video_metrics(video.detach().cpu(), problem.truth, intermediate, problem.mask)  # float64 per chunk
 
     components, left_out, status, message, method_settings = {}, [], "ok", "", None
     notes: list[str] = []  # substitutions a method made (e.g. missing learned weights) and their cost
@@ -230,9 +261,9 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
         row.update(truth_metrics(vt))
         result.log = [row]
     else:
-        t0 = time.perf_counter()
-        method = make_method(problem, settings, device)
-        setup_s = time.perf_counter() - t0
+        method = make_method(problem, settings, device, stage=stage)
+        setup_s = time.perf_counter() - t_start
+        stage(f"{settings.method} ready")
         left_out = list(getattr(method, "left_out", []))
         notes = list(getattr(method, "notes", []))
         for note in notes:
@@ -291,8 +322,8 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
         resolved["method_settings"] = method_settings
     outputs.write_recon_h5(out / "recon.h5", video, problem.frame_times_s, resolved,
                            bundle_checksum(bundle_path), components, problem.left_out + left_out)
-    outputs.write_tiff(out / "video.tif", video)
-    outputs.write_mp4(out / "preview.mp4", video)
+    outputs.write_tiff(out / "video.tif", video, frame_interval_s=problem.grid.dt_s)
+    outputs.write_mp4(out / "preview.mp4", video, capture_fps=1 / problem.grid.dt_s)
     outputs.write_errors(out / "errors.csv", out / "errors.png", result.log, settings.method)
     outputs.write_metrics(out / "metrics.json", metrics)
     if status != "ok":

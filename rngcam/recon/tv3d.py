@@ -50,6 +50,7 @@ class TV3DSettings:
     use_rs: bool = True
     use_gs: bool = True
     init: str = "blend"  # "blend" (cross-fade of the GS frames) or "zeros"
+    coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.multiscale)
 
     def __post_init__(self):
         for name in ("tau", "beta", "psi"):
@@ -99,8 +100,13 @@ class TV3D:
     name = "tv3d"
     supports_holdout = True  # fits only the training measurements when the problem has a split
 
-    def __init__(self, problem: Problem, settings: TV3DSettings | None = None):
-        self.p, self.s = problem, settings or TV3DSettings()
+    def __init__(self, problem: Problem, settings: TV3DSettings | None = None, x0: Tensor | None = None,
+                 rs_norm_start: Tensor | None = None):
+        """`x0`: a starting video (C, K, H, W) instead of `settings.init` (a coarser level's estimate);
+        `rs_norm_start`: a start for the RS operator's power iteration (a coarser level's
+        `rs_norm_vector`, upsampled)."""
+        self.p, self.s, self._x0 = problem, settings or TV3DSettings(), x0
+        self.rs_norm_vector = None
         use_rs = self.s.use_rs and problem.b_rs is not None
         use_gs = self.s.use_gs and problem.b_gs is not None and problem.b_gs.shape[1] > 0
         if not (use_rs or use_gs):
@@ -128,7 +134,13 @@ class TV3D:
         blocks, meas, norms_sq = [], [], []
         if use_rs and self.s.psi > 0 or (use_rs and not use_gs):
             # Power iteration underestimates; a 2 % margin keeps the step safe.
-            n_r = 1.02 * self.rs.norm(iters=20, tol=1e-3, dtype=dt, device=dev) ** 2
+            if rs_norm_start is None:
+                n_r = 1.02 * self.rs.norm(iters=20, tol=1e-3, dtype=dt, device=dev) ** 2
+            else:
+                from rngcam.recon.multiscale import power_norm
+
+                norm, self.rs_norm_vector = power_norm(self.rs, rs_norm_start.to(dtype=dt, device=dev))
+                n_r = 1.02 * norm ** 2
             c = math.sqrt((self.s.psi if use_gs else 1.0) / max(n_r, 1e-30))
             blocks.append((self.rs_fit, c))
             meas.append(c * self.b_rs_fit)
@@ -155,7 +167,10 @@ class TV3D:
 
     def _initial(self, dtype, device) -> Tensor:
         p = self.p
-        if self.s.init == "blend" and p.b_gs is not None and p.b_gs.shape[1] > 0:
+        if self._x0 is not None:
+            x = self._x0.to(dtype=dtype, device=device).clamp_min(0)
+            self._x0 = None  # not kept: the state holds it
+        elif self.s.init == "blend" and p.b_gs is not None and p.b_gs.shape[1] > 0:
             frames = p.gs_images()  # held-out GS pixels are filled from fitted ones: no leak
             x = torch.from_numpy(blend(frames.cpu().float().numpy(), p.gs_times_s, p.frame_times_s))
             x = x.to(dtype=dtype, device=device).clamp_min(0)
@@ -256,3 +271,33 @@ class TV3D:
     def reduce_step(self, factor: float) -> None:
         self.state["L"] /= factor
         self.state["t"], self.state["y"], self.state["Ay"] = 1.0, self.state["x"], self.state["Ax"]
+
+
+def make_tv3d(problem: Problem, settings: TV3DSettings | None = None, budget_s: float | None = None,
+              stage=None):
+    """TV3D on `problem`, coarse-to-fine (rngcam.recon.multiscale) when the grid is large enough,
+    the setting is on and no held-out split is fitted; `stage(message)` reports set-up stages."""
+    from rngcam.recon.multiscale import CoarseToFine, default_factors
+
+    settings = settings or TV3DSettings()
+    factors = default_factors(problem.shape)
+    if not settings.coarse_to_fine or len(factors) == 1 or problem.has_holdout:
+        if stage:
+            stage(f"tv3d on {problem.shape[-2]}x{problem.shape[-1]}x{problem.shape[1]}: operator norms")
+        return TV3D(problem, settings)
+    from rngcam.recon.multiscale import upsample
+
+    previous: list[TV3D] = []
+
+    def make(level: Problem, x0):
+        start = None
+        if previous and previous[-1].rs_norm_vector is not None:
+            coarse = previous[-1].rs_norm_vector
+            start = upsample(coarse, level.shape, level.shape[1] / coarse.shape[1])
+        elif level.b_rs is not None:  # the coarsest level: a seeded random start, kept for the next
+            gen = torch.Generator().manual_seed(0)
+            start = torch.randn(level.shape, generator=gen, dtype=torch.float64)
+        previous[:] = [TV3D(level, settings, x0=x0, rs_norm_start=start)]
+        return previous[0]
+
+    return CoarseToFine(problem, make, factors, budget_s=budget_s, stage=stage)

@@ -1,6 +1,7 @@
 """Ground-truth scenes rendered on a video time grid.
 
-Every scene returns a video (3, K, N, N) float32 of linear intensity in [0, 1], one frame per
+Every scene returns a video (3, K, H, W) float32 of linear intensity in [0, 1] (`size` is N for
+N x N, or (H, W)), one frame per
 grid frame, sampled at the frame's centre time (rngcam.physics.timing.VideoGrid.centres_s).
 Scenes are deterministic for a seed. `key_times_s` are the mid-exposure times of the GS key
 frames (GlobalShutterTiming.centres_s); scenes that are built to defeat key-frame
@@ -55,10 +56,15 @@ def _key_times(grid: VideoGrid, key_times_s: Sequence[float] | None) -> np.ndarr
     return keys
 
 
-def _check_size(size: int) -> int:
-    if int(size) != size or size < 8:
-        raise SceneError(f"scene size must be an integer >= 8, got {size!r}")
-    return int(size)
+Size = int | tuple[int, int]
+
+
+def _check_size(size: Size) -> tuple[int, int]:
+    """N (square) or (H, W) -> (H, W), each an integer >= 8."""
+    hw = (size, size) if not isinstance(size, (tuple, list)) else tuple(size)
+    if len(hw) != 2 or any(int(n) != n or n < 8 for n in hw):
+        raise SceneError(f"scene size must be an integer >= 8 or (H, W) of such, got {size!r}")
+    return int(hw[0]), int(hw[1])
 
 
 def _value_noise(rng: np.random.Generator, shape: tuple[int, int], cell_px: float,
@@ -89,19 +95,28 @@ def srgb_to_linear(frames_u8: np.ndarray) -> np.ndarray:
     return ((np.asarray(frames_u8, np.float32) / 255.0) ** GAMMA).astype(np.float32)
 
 
-def _resize_area(image_hwc: np.ndarray, size: int) -> np.ndarray:
-    if image_hwc.shape[:2] == (size, size):
+def _resize_area(image_hwc: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Centre-crop to the aspect ratio of `size` (H, W), then area-resize to it."""
+    h, w = size
+    ih, iw = image_hwc.shape[:2]
+    if ih * w > iw * h:  # too tall
+        ch = max(1, round(iw * h / w))
+        image_hwc = image_hwc[(ih - ch) // 2:(ih - ch) // 2 + ch]
+    elif ih * w < iw * h:
+        cw = max(1, round(ih * w / h))
+        image_hwc = image_hwc[:, (iw - cw) // 2:(iw - cw) // 2 + cw]
+    if image_hwc.shape[:2] == (h, w):
         return image_hwc
-    return cv2.resize(image_hwc, (size, size), interpolation=cv2.INTER_AREA)
+    return cv2.resize(image_hwc, (w, h), interpolation=cv2.INTER_AREA)
 
 
 # --------------------------------------------------------------------------- sineball
 
 
-def sineball_path(grid: VideoGrid, size: int, seed: int = 0,
+def sineball_path(grid: VideoGrid, size: Size, seed: int = 0,
                   key_times_s: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """Ball centre (x, y) in pixels at each grid frame centre, and its radius."""
-    size = _check_size(size)
+    h, w = _check_size(size)
     keys = _key_times(grid, key_times_s)
     rng = np.random.default_rng([seed, 1])
     t = grid.centres_s()
@@ -109,31 +124,31 @@ def sineball_path(grid: VideoGrid, size: int, seed: int = 0,
     # the ball turns round at least three times between consecutive key frames.
     period_s = np.diff(keys).min() / 1.6
     phase = rng.uniform(0, 2 * np.pi)
-    amplitude = 0.28 * size
-    x = size / 2 + amplitude * np.sin(2 * np.pi * t / period_s + phase)
-    drift = 0.2 * size * rng.choice([-1.0, 1.0])
+    amplitude = 0.28 * w
+    x = w / 2 + amplitude * np.sin(2 * np.pi * t / period_s + phase)
+    drift = 0.2 * h * rng.choice([-1.0, 1.0])
     span_s = max(t[-1] - t[0], grid.dt_s)
-    y = size / 2 + drift * ((t - t[0]) / span_s - 0.5)
-    return x, y, 0.11 * size
+    y = h / 2 + drift * ((t - t[0]) / span_s - 0.5)
+    return x, y, 0.11 * min(h, w)
 
 
-def render_sineball(grid: VideoGrid, size: int, seed: int = 0,
+def render_sineball(grid: VideoGrid, size: Size, seed: int = 0,
                     key_times_s: Sequence[float] | None = None) -> np.ndarray:
     """The paper's toy: a bright ball oscillating faster than the key frames can follow."""
-    size = _check_size(size)
+    h, w = _check_size(size)
     rng = np.random.default_rng([seed, 2])
-    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64) + 0.5
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64) + 0.5
     # Background: diagonal gradient between two muted colours, plus a gentle texture.
     c0 = np.array([0.10, 0.16, 0.30]) + rng.uniform(-0.04, 0.04, 3)
     c1 = np.array([0.35, 0.40, 0.30]) + rng.uniform(-0.04, 0.04, 3)
-    ramp = ((xx + yy) / (2 * size))[None]
-    texture = _value_noise(rng, (size, size), cell_px=size / 6, octaves=3)[None]
+    ramp = ((xx / w + yy / h) / 2)[None]
+    texture = _value_noise(rng, (h, w), cell_px=min(h, w) / 6, octaves=3)[None]
     background = c0[:, None, None] * (1 - ramp) + c1[:, None, None] * ramp
     background = background * (0.85 + 0.3 * texture)
     colour = np.array([0.95, 0.62, 0.12]) + rng.uniform(-0.05, 0.03, 3)
 
-    xs, ys, radius = sineball_path(grid, size, seed, key_times_s)
-    video = np.empty((3, grid.n_frames, size, size), np.float32)
+    xs, ys, radius = sineball_path(grid, (h, w), seed, key_times_s)
+    video = np.empty((3, grid.n_frames, h, w), np.float32)
     for k, (cx, cy) in enumerate(zip(xs, ys)):
         d = np.hypot(xx - cx, yy - cy)
         alpha = _smoothstep((radius + 0.75 - d) / 1.5)[None]  # 1.5 px soft edge
@@ -146,39 +161,41 @@ def render_sineball(grid: VideoGrid, size: int, seed: int = 0,
 # --------------------------------------------------------------------------- smoke
 
 
-def _texture_background(size: int, rng: np.random.Generator) -> np.ndarray:
-    """A dense brick texture (scikit-image's bundled image; procedural if unavailable), (3, N, N)."""
+def _texture_background(size: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
+    """A dense brick texture (scikit-image's bundled image; procedural if unavailable), (3, H, W)."""
+    h, w = size
     try:
         from skimage import data as skdata
 
         gray = np.asarray(skdata.brick(), np.float32) / 255.0
         crop = 3 * min(gray.shape) // 4
         y0, x0 = rng.integers(0, gray.shape[0] - crop + 1), rng.integers(0, gray.shape[1] - crop + 1)
-        gray = cv2.resize(gray[y0:y0 + crop, x0:x0 + crop], (size, size), interpolation=cv2.INTER_AREA)
+        gray = _resize_area(gray[y0:y0 + crop, x0:x0 + crop], (h, w))
     except (ImportError, OSError, ValueError):  # pragma: no cover - scikit-image data missing
-        gray = 0.5 * _value_noise(rng, (size, size), cell_px=2.0, octaves=2) + 0.25
+        gray = 0.5 * _value_noise(rng, (h, w), cell_px=2.0, octaves=2) + 0.25
     gray = np.clip(gray, 0, 1) ** GAMMA
     tint = np.array([0.95, 0.70, 0.55])
     return (0.05 + 0.75 * gray[None] * tint[:, None, None]).astype(np.float64)
 
 
-def render_smoke(grid: VideoGrid, size: int, seed: int = 0,
+def render_smoke(grid: VideoGrid, size: Size, seed: int = 0,
                  key_times_s: Sequence[float] | None = None, onset_s: float | None = None) -> np.ndarray:
     """A turbulent plume that appears after the first key frame and rises out of a nozzle.
 
     Frames whose centre time is <= onset_s (default: a quarter of the way from the first to
     the second key frame) are exactly the static background.
     """
-    size = _check_size(size)
+    hgt, wid = _check_size(size)
+    size = min(hgt, wid)  # the plume's scale; positions follow each side
     keys = _key_times(grid, key_times_s)
     if onset_s is None:
         onset_s = keys[0] + 0.25 * (keys[1] - keys[0])
     rng = np.random.default_rng([seed, 3])
-    background = _texture_background(size, rng)
-    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64) + 0.5
+    background = _texture_background((hgt, wid), rng)
+    yy, xx = np.mgrid[0:hgt, 0:wid].astype(np.float64) + 0.5
 
-    nozzle_x = size * (0.5 + rng.uniform(-0.08, 0.08))
-    nozzle_y = size * 0.92
+    nozzle_x = wid * (0.5 + rng.uniform(-0.08, 0.08))
+    nozzle_y = hgt * 0.92
     nozzle = (np.abs(xx - nozzle_x) < 0.05 * size) & (yy > nozzle_y)
     background[:, nozzle] = 0.08
 
@@ -189,13 +206,13 @@ def render_smoke(grid: VideoGrid, size: int, seed: int = 0,
     travel = front_speed * max(t[-1] - onset_s, 0.0)
     margin = 8
     # Two noise canvases tall enough to be advected through the whole capture.
-    tall = (int(np.ceil(size + travel)) + 2 * margin, size + 2 * margin)
+    tall = (int(np.ceil(hgt + travel)) + 2 * margin, wid + 2 * margin)
     noise_a = _value_noise(rng, tall, cell_px=max(size / 5, 2.0), octaves=4).astype(np.float32)
     noise_b = _value_noise(rng, tall, cell_px=max(size / 9, 2.0), octaves=3).astype(np.float32)
     sway_phase = rng.uniform(0, 2 * np.pi)
     smoke_colour = np.array([0.90, 0.90, 0.93])
 
-    video = np.empty((3, grid.n_frames, size, size), np.float32)
+    video = np.empty((3, grid.n_frames, hgt, wid), np.float32)
     height = nozzle_y - yy  # height above the nozzle, px
     for k, tk in enumerate(t):
         age = tk - onset_s
@@ -323,7 +340,7 @@ def clip_source_times(grid: VideoGrid, span: int, start: int) -> np.ndarray:
     return np.where(np.abs(s - nearest) < 1e-9, nearest, s)
 
 
-def render_clip(grid: VideoGrid, size: int, seed: int = 0, key_times_s=None,
+def render_clip(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None,
                 path: str | Path | None = None, span: int = 8, start: int | None = None,
                 frames: np.ndarray | None = None) -> np.ndarray:
     """A real clip spread over the capture: `span` source frames from `start` (default: the
@@ -338,7 +355,7 @@ def render_clip(grid: VideoGrid, size: int, seed: int = 0, key_times_s=None,
     _check_span(frames, span, start)
     interp = FlowInterpolator(frames[start:start + span])
     source_times = clip_source_times(grid, span, 0)
-    video = np.empty((3, grid.n_frames, size, size), np.float32)
+    video = np.empty((3, grid.n_frames, *size), np.float32)
     for k, s in enumerate(source_times):
         video[:, k] = np.moveaxis(_resize_area(interp(float(s)), size), -1, 0)
     return np.clip(video, 0.0, 1.0)
@@ -349,8 +366,8 @@ def render_clip(grid: VideoGrid, size: int, seed: int = 0, key_times_s=None,
 _RENDERERS = {"sineball": render_sineball, "smoke": render_smoke, "clip": render_clip}
 
 
-def render_scene(name: str, grid: VideoGrid, size: int, seed: int = 0, **opts) -> np.ndarray:
-    """Render scene `name` on `grid` at size x size: (3, K, size, size) float32 in [0, 1]."""
+def render_scene(name: str, grid: VideoGrid, size: Size, seed: int = 0, **opts) -> np.ndarray:
+    """Render scene `name` on `grid` at `size` (N or (H, W)): (3, K, H, W) float32 in [0, 1]."""
     if name not in _RENDERERS:
         raise SceneError(f"unknown scene {name!r} (choose from {', '.join(SCENES)})")
     renderer = _RENDERERS[name]

@@ -1,8 +1,8 @@
 """Simulate a capture: scene -> truth video -> RS/GS physics -> sensors -> bundle with truth.
 
 Timing is the reference prototype's scaled to the grid: there one grid row is 16 sensor rows
-of 13 us (208 us) and both cameras expose 650 us. Here the RS sensor has `size` rows with a
-208 us line time (one sensor row = one grid row, grid_bin 1), so dt = 208 us and the exposure
+of 13 us (208 us) and both cameras expose 650 us. Here the RS sensor has H rows (`size` is N for
+N x N or (H, W); the lab's 228x342 grid is (228, 342)) with a 208 us line time (one sensor row = one grid row, grid_bin 1), so dt = 208 us and the exposure
 covers 3.125 frames. With `bayer`, both cameras deliver a BayerRG12 mosaic at 2x size: the RS
 line time is then 104 us and the reconstruction bins 2x2 (grid_bin 2) back to the same grid.
 Three GS key frames are triggered at the start, middle and end of the RS window, each
@@ -60,9 +60,25 @@ class SimTiming:
     grid_bin: int
 
 
-def simulation_timing(size: int, bayer: bool = False, dt_s: float = GRID_DT_S,
+def grid_shape(size) -> tuple[int, int]:
+    """N, (H, W) or "HxW" -> (H, W), each an integer >= 8."""
+    if isinstance(size, str):
+        parts = size.lower().split("x")
+        try:
+            size = tuple(int(p) for p in parts) if len(parts) == 2 else int(parts[0])
+        except ValueError:
+            raise SimulationError(f"--size must be N or HxW (e.g. 228x342), got {size!r}") from None
+    hw = tuple(size) if isinstance(size, (tuple, list)) else (size, size)
+    if len(hw) != 2 or any(isinstance(n, bool) or int(n) != n or n < 8 for n in hw):
+        raise SimulationError(f"--size must be an integer >= 8 or HxW of such, got {size!r}")
+    return int(hw[0]), int(hw[1])
+
+
+def simulation_timing(size, bayer: bool = False, dt_s: float = GRID_DT_S,
                       exposure_s: float = EXPOSURE_S) -> SimTiming:
-    """RS over `size` grid rows, GS key frames at the start, middle and end of the RS window."""
+    """RS over the grid's rows (`size`: N or (H, W)), GS key frames at the start, middle and end
+    of the RS window."""
+    size = grid_shape(size)[0]
     grid_bin = 2 if bayer else 1
     line_time_s = dt_s / grid_bin
     rs = RollingShutterTiming(line_time_s=line_time_s, exposure_s=exposure_s, rows=size,
@@ -92,17 +108,18 @@ class PreparedPSF:
     model: bool  # rendered by a model (lenslets), not read from a file
 
 
-def prepare_simulation_psf(psf: str | Path | None, sensor_size: int, grid_size: int, crop: float,
+def prepare_simulation_psf(psf: str | Path | None, sensor_size, grid_size, crop: float,
                            seed: int = 0) -> PreparedPSF:
     """Load the PSF (default: the measured caustic shipped in rngcam/data; 'lenslets': the lenslet
     model) at the RS sensor size; derive the grid PSF exactly as the reconstruction does from the
     stored float32 copy (rngcam.recon.problem)."""
+    sensor_hw, grid_hw = grid_shape(sensor_size), grid_shape(grid_size)
     if not (isinstance(crop, (int, float)) and 0 < crop <= 1):
         raise SimulationError(f"--psf-crop must be in (0, 1], got {crop!r}")
     model = str(psf) == LENSLETS
     if model:
         try:
-            sensor = np.repeat(psf_mod.lenslet_psf((sensor_size, sensor_size), LENSLET_BINNING, LENSLET_COUNT,
+            sensor = np.repeat(psf_mod.lenslet_psf(sensor_hw, LENSLET_BINNING, LENSLET_COUNT,
                                                    LENSLET_SPOT_FWHM_PX, seed=seed), 3, axis=0)
         except ValueError as exc:
             raise SimulationError(f"--psf {LENSLETS}: {exc} (use a larger --size)") from None
@@ -114,13 +131,13 @@ def prepare_simulation_psf(psf: str | Path | None, sensor_size: int, grid_size: 
             raise SimulationError(f"PSF file not found: {path} (or --psf {LENSLETS})")
         try:
             raw = psf_mod.load_psf(path)
-            sensor, bias = psf_mod.prepare_psf(raw, (sensor_size, sensor_size), crop=crop, bias="auto",
+            sensor, bias = psf_mod.prepare_psf(raw, sensor_hw, crop=crop, bias="auto",
                                                channels=3)
         except ValueError as exc:
             raise SimulationError(f"PSF {path}: {exc}") from None
         source = PACKAGE_PREFIX + MEASURED_PSF if psf is None else str(path.resolve())
     sensor = sensor.astype(np.float32)
-    grid, _ = psf_mod.prepare_psf(sensor.astype(np.float64), (grid_size, grid_size), bias=None)
+    grid, _ = psf_mod.prepare_psf(sensor.astype(np.float64), grid_hw, bias=None)
     return PreparedPSF(sensor, grid, source, float(bias), model)
 
 
@@ -159,16 +176,16 @@ def forward_rs(video: np.ndarray, psf_grid: np.ndarray, timing: SimTiming) -> np
 # --------------------------------------------------------------------------- bundle
 
 
-def rig_yaml(scene: str, seed: int, size: int, timing: SimTiming, sensor: SensorModel,
+def rig_yaml(scene: str, seed: int, size, timing: SimTiming, sensor: SensorModel,
              psf: PreparedPSF, psf_crop: float, noise: bool, scene_options: dict) -> str:
     """A rig file (rngcam.config schema, mock backend) describing the simulated rig."""
-    px = size * timing.grid_bin
+    rows, cols = (n * timing.grid_bin for n in grid_shape(size))
 
     def camera(serial: str, model: str, channel: int, line_time_s=None) -> dict:
         cam = {
             "backend": "mock", "serial": serial, "model": model,
             "pixel_format": sensor.pixel_format, "exposure_s": EXPOSURE_S, "gain_db": 0.0,
-            "roi": {"width": px, "height": px},
+            "roi": {"width": cols, "height": rows},
         }
         if line_time_s is not None:
             cam["line_time_s"] = line_time_s
@@ -182,11 +199,11 @@ def rig_yaml(scene: str, seed: int, size: int, timing: SimTiming, sensor: Sensor
     rig = {
         "name": f"sim-{scene}",
         "description": (f"rngcam simulate {scene} (seed {seed}): reference timing scaled to "
-                        f"{size} grid rows, dt {GRID_DT_S * 1e6:.0f} us"),
+                        f"{grid_shape(size)[0]} grid rows, dt {GRID_DT_S * 1e6:.0f} us"),
         "cameras": {
-            "rs": camera("SIM-RS", f"simulated RS ({px}x{px}, "
+            "rs": camera("SIM-RS", f"simulated RS ({cols}x{rows}, "
                          f"{timing.rs.line_time_s * 1e6:.0f} us line time)", 1, timing.rs.line_time_s),
-            "gs": camera("SIM-GS", f"simulated GS ({px}x{px})", 2),
+            "gs": camera("SIM-GS", f"simulated GS ({cols}x{rows})", 2),
         },
         "timing": {"rs_trigger_s": 0.0, "gs_trigger_s": list(timing.gs.trigger_s),
                    "pulse_width_s": 100e-6},
@@ -201,11 +218,11 @@ def rig_yaml(scene: str, seed: int, size: int, timing: SimTiming, sensor: Sensor
     return header + yaml.safe_dump(rig, sort_keys=False)
 
 
-def simulate(scene: str, out: str | Path, size: int = 64, seed: int = 0,
+def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
              psf: str | Path | None = None, psf_crop: float = DEFAULT_PSF_CROP, noise: bool = True,
              clip: str | Path | None = None, span: int = 8, start: int | None = None,
              bayer: bool = False, overwrite: bool = False) -> Bundle:
-    """Simulate `scene` at size x size and write the bundle to `out`; returns the bundle.
+    """Simulate `scene` on a grid of `size` (N, (H, W) or "HxW") and write the bundle to `out`.
 
     psf: PSF file (default: the measured DiffuserCam caustic in rngcam/data), or 'lenslets' for
     the lenslet diffuser model. clip/span/start: the clip scene's source file, source frames covered, first frame
@@ -213,15 +230,14 @@ def simulate(scene: str, out: str | Path, size: int = 64, seed: int = 0,
     """
     if scene not in SCENES:
         raise SimulationError(f"unknown scene {scene!r} (choose from {', '.join(SCENES)})")
-    if int(size) != size or size < 8:
-        raise SimulationError(f"--size must be an integer >= 8, got {size!r}")
+    size = grid_shape(size)
     out = Path(out)
     if out.exists() and not overwrite:
         raise SimulationError(f"{out} already exists (use --overwrite to replace it)")
     if scene != "clip" and (clip is not None or start is not None):
         raise SimulationError("--clip and the clip start only apply to the clip scene")
 
-    timing = simulation_timing(int(size), bayer)
+    timing = simulation_timing(size, bayer)
     sensor = default_sensor(bayer)
     scene_options: dict = {}
     meta_clip: dict = {}
@@ -238,7 +254,7 @@ def simulate(scene: str, out: str | Path, size: int = 64, seed: int = 0,
         scene_options = {"key_times_s": [float(t) for t in timing.gs.centres_s()]}
         video = render_scene(scene, timing.grid, size, seed, **scene_options)
 
-    prepared = prepare_simulation_psf(psf, size * timing.grid_bin, size, psf_crop, seed)
+    prepared = prepare_simulation_psf(psf, tuple(n * timing.grid_bin for n in size), size, psf_crop, seed)
     rs_y, gs_y = measure(video, prepared.grid, timing)
     dt = timing.grid.dt_s
     rng = np.random.default_rng([seed, 101])
@@ -262,7 +278,7 @@ def simulate(scene: str, out: str | Path, size: int = 64, seed: int = 0,
     resolvable = psf_mod.resolvable_fraction(prepared.grid, snr_px * timing.grid_bin, FIGURE_CONTRAST)
     meta = {
         "source": f"rngcam simulate {__version__}",
-        "scene": scene, "seed": int(seed), "size": int(size),
+        "scene": scene, "seed": int(seed), "size": size[0] if size[0] == size[1] else list(size),
         "span": int(span) if scene == "clip" else None, **meta_clip,
         "psf_crop": float(psf_crop), "psf_spectral_support": support,
         "psf_source": prepared.source, "psf_model": prepared.model,

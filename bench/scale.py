@@ -1,0 +1,153 @@
+"""Paper scale (issue 21): operators and reconstructions at 64, 128 and 228x342 (the lab's grid).
+
+Usage (one at a time on the machine: run it under the bench lock):
+    flock /tmp/rngcam-bench.lock python bench/scale.py ops --size 228x342
+    flock /tmp/rngcam-bench.lock python bench/scale.py recon BUNDLE... --method tv3d --budget 240
+
+`ops`: the RS operator's forward and adjoint against the bare batched rfft2 + irfft2 pair it needs,
+side by side, wall and system time (system time is where allocation churn shows), one thread.
+`recon`: `rngcam recon` in a child process per bundle (its own peak RSS), then from its outputs:
+set-up time, time per iteration, the time at which PSNR first comes within 0.5 dB of the run's
+final PSNR, peak RSS, events. Every figure line carries the load average when it was taken.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+
+def load() -> str:
+    return "load " + " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def _timed(fn, repeats: int) -> tuple[float, float]:
+    """Best (wall, system) seconds of `repeats` calls after one warm-up."""
+    fn()
+    best = (float("inf"), 0.0)
+    for _ in range(repeats):
+        t0, c0 = time.perf_counter(), os.times()
+        fn()
+        wall, sys_s = time.perf_counter() - t0, os.times().system - c0.system
+        best = min(best, (wall, sys_s))
+    return best
+
+
+def ops(size: str, repeats: int) -> dict:
+    from rngcam.physics.operators import RollingShutter
+    from rngcam.sim.simulate import grid_shape, simulation_timing
+
+    h, w = grid_shape(size)
+    timing = simulation_timing((h, w))
+    k = timing.grid.n_frames
+    gen = torch.Generator().manual_seed(0)
+    psf = torch.rand(3, h, w, generator=gen)
+    psf /= psf.sum((-2, -1), keepdim=True)
+    rs = RollingShutter(psf, torch.from_numpy(timing.rs.weights(timing.grid)), width=w, channels=3)
+    v = torch.rand(3, k, h, w, generator=gen)
+    b = rs.A(v)
+    fh, fw = rs.conv.fft_shape
+    tf = rs.conv.transfer(torch.float32, "cpu")[:, None]
+
+    def bare():
+        torch.fft.irfft2(torch.fft.rfft2(v, s=(fh, fw)) * tf, s=(fh, fw))
+
+    step = rs._chunk(3, None)
+    pad = torch.zeros(3, step, fh, fw)
+    spec = torch.empty(3, step, fh, fw // 2 + 1, dtype=torch.complex64)
+    img = torch.empty(3, step, fh, fw)
+
+    def bare_chunked():  # the floor: the same FFTs in chunks through kept buffers
+        for s0 in range(0, k, step):
+            m = min(step, k - s0)
+            pad[:, :m, :h, :w] = v[:, s0:s0 + m]
+            torch.fft.rfft2(pad[:, :m], out=spec[:, :m]).mul_(tf)
+            torch.fft.irfft2(spec[:, :m], s=(fh, fw), out=img[:, :m])
+
+    out = {"size": f"{h}x{w}", "frames": k, "fft": f"{fh}x{fw}", "chunk_frames": step}
+    for name, fn in (("rs_A", lambda: rs.A(v)), ("rs_At", lambda: rs.A_adjoint(b)),
+                     ("bare_pair", bare), ("bare_pair_chunked", bare_chunked)):
+        out[name], out[name + "_sys"] = _timed(fn, repeats)
+        out[name + "_load"] = load()
+    out["ratio_to_bare"] = (out["rs_A"] + out["rs_At"]) / out["bare_pair"]
+    out["ratio_to_bare_chunked"] = (out["rs_A"] + out["rs_At"]) / out["bare_pair_chunked"]
+    return out
+
+
+def summarise_run(out_dir: Path, tol_db: float = 0.5) -> dict:
+    m = json.loads((out_dir / "metrics.json").read_text())
+    rows = list(csv.DictReader(open(out_dir / "errors.csv")))
+    setup = float(rows[0]["solve_s"]) if rows else float("nan")
+    res = {"method": m["method"], "shape": f"{m['height']}x{m['width']}x{m['frames']}",
+           "setup_s": setup, "seconds": m["seconds"], "iterations": m["iterations"],
+           "per_iter_s": (m["seconds"] - setup) / max(m["iterations"], 1),
+           "peak_rss_gib": m["peak_rss_bytes"] / 2**30, "events": m.get("events", []),
+           "psnr_db": m.get("psnr_db"), "start_psnr_db": float(rows[0]["psnr_db"]) if rows and rows[0].get("psnr_db") else None}
+    if m.get("psnr_db") is not None:
+        final = float(rows[-1]["psnr_db"])
+        # the first time from which PSNR stays within tol_db of the final PSNR (it may fall, as tv3d's does)
+        hit = None
+        for r in rows:
+            if r.get("psnr_db") and abs(float(r["psnr_db"]) - final) <= tol_db:
+                hit = float(r["solve_s"]) if hit is None else hit
+            else:
+                hit = None
+        res["time_to_final_minus_0p5_db_s"] = hit
+    return res
+
+
+def recon(bundles: list[str], method: str, budget: float, extra: list[str], work: Path) -> list[dict]:
+    results = []
+    for bundle in bundles:
+        out = work / f"{Path(bundle).stem}-{method}"
+        cmd = [sys.executable, "-c", "from rngcam.cli import main; main()", "recon", bundle, "--method", method,
+               "--time-budget", str(budget), "-o", str(out), *extra]
+        before = load()
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        (work / f"{out.name}.log").write_text(proc.stdout + proc.stderr)
+        if proc.returncode != 0 or not (out / "metrics.json").is_file():
+            results.append({"bundle": bundle, "method": method, "error": (proc.stdout + proc.stderr)[-400:]})
+            continue
+        res = summarise_run(out)
+        res.update(bundle=bundle, wall_s=wall, load_before=before, load_after=load(), args=" ".join(extra))
+        results.append(res)
+        print(json.dumps(res), flush=True)
+    return results
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="part", required=True)
+    o = sub.add_parser("ops")
+    o.add_argument("--size", default="228x342")
+    o.add_argument("--repeats", type=int, default=3)
+    r = sub.add_parser("recon")
+    r.add_argument("bundles", nargs="+")
+    r.add_argument("--method", default="tv3d")
+    r.add_argument("--budget", type=float, default=240)
+    r.add_argument("--extra", default="", help="more recon arguments, e.g. '--base video --iters 5'")
+    r.add_argument("--work", type=Path, default=Path("scale-runs"))
+    r.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    if args.part == "ops":
+        print(json.dumps(ops(args.size, args.repeats)), flush=True)
+    else:
+        args.work.mkdir(parents=True, exist_ok=True)
+        res = recon(args.bundles, args.method, args.budget, args.extra.split(), args.work)
+        if args.json:
+            args.json.write_text(json.dumps(res, indent=2))
+
+
+if __name__ == "__main__":
+    main()

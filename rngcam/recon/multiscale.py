@@ -1,0 +1,271 @@
+"""Coarse-to-fine reconstruction: a coarser Problem in space and time, and a Method wrapper that
+runs any iterative method from the coarsest level to the full grid, each level starting from the
+previous level's estimate upsampled.
+
+A coarse level bins `factor` x `factor` grid pixels and `factor` frames (area weights, so sizes
+need not divide): with R (H', H) and X (W', W) the row/column averaging matrices and S (K', K)
+the 0/1 frame blocks, the coarse RS weights are R W_rs S^T, the GS weights W_gs S^T, the
+measurements R b X^T, and the PSF is area-resampled by the same spatial factor. If v' is a coarse
+video and U its nearest-neighbour upsampling, A'(v') = bin(A(U v')) up to the PSF's resampling,
+so a coarse fit is a cheap, consistent start for the next level. Set-up work that does not scale
+(operator norms, GS-only starts) runs per level, inside the level's first step.
+
+A method plugs in through `make(problem, x0)`: build the method on `problem`, starting from the
+video `x0` (C, K, H, W) when it is not None (the coarsest level gets None: the method's own start).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from rngcam.physics import psf as psf_mod
+from rngcam.physics.timing import VideoGrid
+from rngcam.recon.problem import Problem
+
+
+def area_matrix(n_out: int, n_in: int, dtype=torch.float64) -> Tensor:
+    """(n_out, n_in) rows of overlap weights, each summing to 1: output cell i averages input
+    cells over [i n_in / n_out, (i + 1) n_in / n_out)."""
+    edges = np.arange(n_out + 1) * n_in / n_out
+    m = np.zeros((n_out, n_in))
+    for i in range(n_out):
+        lo, hi = edges[i], edges[i + 1]
+        for j in range(int(math.floor(lo)), min(int(math.ceil(hi)), n_in)):
+            m[i, j] = min(hi, j + 1) - max(lo, j)
+    return torch.from_numpy(m / m.sum(axis=1, keepdims=True)).to(dtype)
+
+
+def block_matrix(n_out: int, n_in: int, block: int, dtype=torch.float64) -> Tensor:
+    """(n_out, n_in) 0/1: output frame i sums input frames [i block, (i + 1) block)."""
+    m = torch.zeros(n_out, n_in, dtype=dtype)
+    for i in range(n_out):
+        m[i, i * block:(i + 1) * block] = 1
+    return m
+
+
+def linear_matrix(n_out: int, n_in: int, step: float, dtype=torch.float64) -> Tensor:
+    """(n_out, n_in) linear interpolation: output cell j's centre lies at input coordinate
+    (j + 0.5) / step - 0.5 (step = output cells per input cell), clamped at the ends."""
+    src = ((torch.arange(n_out, dtype=torch.float64) + 0.5) / step - 0.5).clamp(0, n_in - 1)
+    lo = src.floor().long().clamp(max=n_in - 1)
+    hi = (lo + 1).clamp(max=n_in - 1)
+    frac = src - lo
+    m = torch.zeros(n_out, n_in, dtype=torch.float64)
+    m[torch.arange(n_out), lo] += 1 - frac
+    m[torch.arange(n_out), hi] += frac
+    return m.to(dtype)
+
+
+def _bin2(img: Tensor, r: Tensor, x: Tensor) -> Tensor:
+    """(..., H, W) -> (..., H', W') with row matrix r (H', H) and column matrix x (W', W)."""
+    return r.to(img) @ img @ x.to(img).T
+
+
+def coarsen(problem: Problem, factor: int, time_factor: int | None = None) -> Problem:
+    """The problem on a grid `factor` times coarser in space and `time_factor` (default: the same)
+    in time. Held-out splits are not carried over (a coarse fit would see the held-out data)."""
+    if problem.has_holdout:
+        raise ValueError("coarse-to-fine does not support a held-out split")
+    s, t = int(factor), int(time_factor or factor)
+    c, k, h, w = problem.shape
+    h2, w2, k2 = max(1, round(h / s)), max(1, round(w / s)), math.ceil(k / t)
+    r, x = area_matrix(h2, h), area_matrix(w2, w)
+    frames = block_matrix(k2, k, t)
+    dt = problem.rs_weights.dtype
+    rs_w = r.to(dt) @ problem.rs_weights @ frames.to(dt).T
+    gs_w = problem.gs_weights @ frames.to(problem.gs_weights.dtype).T
+    hp, wp = problem.psf.shape[-2:]
+    psf_shape = (max(1, round(hp * h2 / h)), max(1, round(wp * w2 / w)))
+    psf = torch.from_numpy(psf_mod.prepare_psf(problem.psf.double().cpu().numpy(), psf_shape, bias=None)[0])
+    truth = None
+    if problem.truth is not None:
+        mean = frames / frames.sum(1, keepdim=True)
+        truth = _bin2(torch.einsum("jk,ckhw->cjhw", mean.to(problem.truth), problem.truth), r, x)
+
+    def bin_valid(valid):
+        return None if valid is None else _bin2(valid.double(), r, x) > 1 - 1e-9
+
+    return Problem(
+        b_rs=None if problem.b_rs is None else _bin2(problem.b_rs, r, x),
+        b_gs=None if problem.b_gs is None else _bin2(problem.b_gs, r, x),
+        rs_weights=rs_w, gs_weights=gs_w, psf=psf.to(problem.psf), grid=VideoGrid(problem.grid.dt_s * t, k2),
+        gs_times_s=problem.gs_times_s, truth=truth,
+        mask=None if problem.mask is None else _bin2(problem.mask.double(), r, x) > 0.5,
+        white_balance=problem.white_balance, notes=[],
+        rs_valid=bin_valid(problem.rs_valid), gs_valid=bin_valid(problem.gs_valid))
+
+
+def upsample(video: Tensor, shape: tuple[int, int, int, int], time_factor: float) -> Tensor:
+    """(C, K', H', W') -> (C, K, H, W) by separable linear interpolation; frame centres map by
+    `time_factor` (fine frames per coarse frame), pixels by the size ratio (area-consistent)."""
+    _, k, h, w = shape
+    _, k2, h2, w2 = video.shape
+    mt = linear_matrix(k, k2, time_factor).to(video)
+    out = torch.einsum("kj,cjhw->ckhw", mt, video)
+    out = linear_matrix(h, h2, h / h2).to(video) @ out
+    return out @ linear_matrix(w, w2, w / w2).to(video).T
+
+
+def power_norm(op, x0: Tensor, iters: int = 20, tol: float = 1e-3) -> tuple[float, Tensor]:
+    """(||op||, the last iterate) by power iteration on A^T A from `x0`: from a coarser level's
+    vector, upsampled, it settles in a few iterations instead of twenty."""
+    x = x0 / x0.norm()
+    lam = 0.0
+    for _ in range(iters):
+        z = op.A_normal(x)
+        new, nz = float((x * z).sum()), float(z.norm())
+        if nz == 0.0:
+            return 0.0, x
+        x = z / nz
+        if abs(new - lam) <= tol * max(abs(new), 1e-30):
+            lam = new
+            break
+        lam = new
+    return math.sqrt(max(lam, 0.0)), x
+
+
+def default_factors(shape: tuple[int, int, int, int], min_side: int = 48) -> tuple[int, ...]:
+    """Spatial factors from coarse to fine, halving while the coarse grid keeps >= min_side px on
+    its short side: (4, 2, 1) at 228x342, (2, 1) at 128, (1,) at 64."""
+    side = min(shape[-2:])
+    factors = [1]
+    while side / (factors[-1] * 2) >= min_side and len(factors) < 4:
+        factors.append(factors[-1] * 2)
+    return tuple(reversed(factors))
+
+
+class CoarseToFine:
+    """A `Method` (rngcam.recon.loop) that runs `make(level_problem, x0)` at each level in turn.
+
+    A coarse level ends when its objective has fallen by less than `level_rtol` over its last
+    `window` steps, after `max_level_steps` steps, or when its steps have used their share of
+    `budget_s` (`level_share`; only time inside step() counts, not the loop's evaluations); the
+    final level runs for as long as the loop lets it. A finer level is not started when what is
+    left of `budget_s` (counted from construction) looks too short for its set-up and a few steps
+    (8x the current level's, per halving): the run then ends on the current level, upsampled, and
+    `budget_cut()` says so. `estimate()` is always on the full grid. `stage(message)` reports each
+    level's set-up.
+    """
+
+    def __init__(self, problem: Problem, make: Callable[[Problem, Tensor | None], object],
+                 factors: tuple[int, ...] | None = None, budget_s: float | None = None,
+                 level_share: float = 0.15, level_rtol: float = 2e-3, window: int = 10,
+                 max_level_steps: int = 300, stage: Callable[[str], None] | None = None):
+        self.full_shape = problem.shape
+        self.factors = tuple(factors or default_factors(problem.shape))
+        if self.factors[-1] != 1:
+            self.factors = (*self.factors, 1)
+        self.problems = [coarsen(problem, f) if f > 1 else problem for f in self.factors]
+        self.make, self.budget_s, self.level_share = make, budget_s, level_share
+        self.level_rtol, self.window, self.max_level_steps = level_rtol, window, max_level_steps
+        self.stage = stage or (lambda message: None)
+        self.t0 = time.perf_counter()
+        self.level, self._x0, self.held_back = 0, None, False
+        self._start_level(0, None)
+        self.name = getattr(self.method, "name", "method")
+        if hasattr(self.method, "converged"):
+            self.converged = self._converged
+
+    # --- levels ---
+    def _describe(self, i: int) -> str:
+        c, k, h, w = self.problems[i].shape
+        return f"level {i + 1} of {len(self.problems)} ({h}x{w}x{k})"
+
+    def _start_level(self, i: int, x0: Tensor | None) -> None:
+        self.stage(f"{self._describe(i)}: building")
+        t0 = time.perf_counter()
+        self.level, self._x0 = i, x0
+        self.method = self.make(self.problems[i], x0)
+        self.level_steps, self.level_step_s, self._history = 0, 0.0, []
+        self.level_setup_s = time.perf_counter() - t0
+        self.stage(f"{self._describe(i)}: ready")
+
+    def _level_done(self, objective: float) -> bool:
+        self._history.append(objective)
+        if self.level_steps >= self.max_level_steps:
+            return True
+        if self.budget_s is not None and self.level_step_s >= self.level_share * self.budget_s:
+            return True
+        if len(self._history) > self.window:
+            old, new = self._history[-1 - self.window], self._history[-1]
+            return math.isfinite(old) and abs(old - new) <= self.level_rtol * abs(old)
+        return False
+
+    def _next_level_fits(self) -> bool:
+        if self.budget_s is None:
+            return True
+        growth = (self.factors[self.level] / self.factors[self.level + 1]) ** 3
+        per_step = self.level_step_s / max(self.level_steps, 1)
+        needed = growth * (self.level_setup_s + 5 * per_step)
+        return time.perf_counter() - self.t0 + needed <= self.budget_s
+
+    def _next_level(self) -> None:
+        i = self.level + 1
+        fine = self.problems[i].shape
+        x0 = upsample(self.method.estimate().detach(), fine, self.factors[i - 1] / self.factors[i])
+        self._start_level(i, x0)
+
+    @property
+    def final(self) -> bool:
+        return self.level == len(self.problems) - 1
+
+    # --- Method protocol ---
+    def step(self) -> float:
+        t0 = time.perf_counter()
+        objective = float(self.method.step())
+        self.level_steps += 1
+        self.level_step_s += time.perf_counter() - t0
+        if (not self.final and not self.held_back and math.isfinite(objective)
+                and self._level_done(objective)):
+            if self._next_level_fits():
+                self._next_level()
+            else:
+                self.held_back = True
+                self.stage(f"{self._describe(self.level)}: too little of the time budget left for the next "
+                           f"level; staying here")
+        return objective
+
+    def estimate(self) -> Tensor:
+        x = self.method.estimate()
+        if self.final:
+            return x
+        return upsample(x.detach(), self.full_shape, self.factors[self.level])
+
+    def residuals(self) -> dict[str, float]:
+        return self.method.residuals()  # of the current level's problem
+
+    def _converged(self) -> str | None:
+        return self.method.converged() if self.final else None
+
+    def budget_cut(self) -> str:
+        if self.final:
+            return ""
+        why = " (too little budget left to start the next)" if self.held_back else ""
+        return (f"stopped at {self._describe(self.level)}{why}; levels {self.level + 2}-{len(self.problems)} "
+                f"(the full grid last) not reached: the video is the coarse estimate upsampled")
+
+    def state_dict(self) -> dict:
+        return {"level": self.level, "level_steps": self.level_steps, "x0": self._x0,
+                "method": self.method.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        if state["level"] != self.level:
+            self._start_level(state["level"], state["x0"])
+        self.level_steps = state["level_steps"]
+        self.method.load_state_dict(state["method"])
+
+    def reduce_step(self, factor: float) -> None:
+        self.method.reduce_step(factor)
+
+    def components(self) -> dict:
+        return self.method.components() if hasattr(self.method, "components") else {}
+
+    @property
+    def left_out(self):
+        return getattr(self.method, "left_out", [])
