@@ -22,8 +22,9 @@ With `bin` > 1 (the rig's recon.grid_bin) the world renders the scene and both m
 the reconstruction grid (sensor size / bin, the RS rows binned exactly as the reconstruction
 models them) and makes sensor-size frames by repeating each grid pixel bin x bin, noise added
 per sensor pixel a strip of rows at a time: a lab-size frame (3648x5472) then costs tens of MB of
-scratch, not the tens of GB a sensor-resolution scene would, and the truth is on the grid. The RS device has a small feature map (Height, SensorReadoutTime =
-overhead + Height x line time) so its line time is measured as on a real camera.
+scratch, not the tens of GB a sensor-resolution scene would, and the truth is on the grid. The
+RS device has a small feature map (Height, SensorReadoutTime = overhead + Height x line time) so
+its line time is measured as on a real camera.
 """
 
 from __future__ import annotations

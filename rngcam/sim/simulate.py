@@ -2,9 +2,10 @@
 
 Timing is the reference prototype's scaled to the grid: there one grid row is 16 sensor rows
 of 13 us (208 us) and both cameras expose 650 us. Here the RS sensor has H rows (`size` is N for
-N x N or (H, W); the lab's 228x342 grid is (228, 342)) with a 208 us line time (one sensor row = one grid row, grid_bin 1), so dt = 208 us and the exposure
-covers 3.125 frames. With `bayer`, both cameras deliver a BayerRG12 mosaic at 2x size: the RS
-line time is then 104 us and the reconstruction bins 2x2 (grid_bin 2) back to the same grid.
+N x N or (H, W); the lab's 228x342 grid is (228, 342)) with a 208 us line time (one sensor row =
+one grid row, grid_bin 1), so dt = 208 us and the exposure covers 3.125 frames. With `bayer`,
+both cameras deliver a BayerRG12 mosaic at 2x size: the RS line time is then 104 us and the
+reconstruction bins 2x2 (grid_bin 2) back to the same grid.
 Three GS key frames are triggered at the start, middle and end of the RS window, each
 exposure lying inside it. The forward model runs in float64 with rngcam.physics.operators.
 """
