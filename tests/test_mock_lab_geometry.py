@@ -10,13 +10,10 @@ from rngcam.acquire.capture import capture
 from rngcam.bundle import read_bundle
 from rngcam.config import parse_rig
 from rngcam.errors import ConfigError
-from rngcam.paths import shared_data
 from rngcam.recon.problem import build_problem
 
 REPO = Path(__file__).resolve().parents[1]
 LAB = REPO / "rigs" / "mock_lab.yaml"
-PSF = shared_data() / "psf" / "diffusercam_tutorial_psf_sample.tif"
-pytestmark = pytest.mark.skipif(not PSF.is_file(), reason=f"shared PSF not found at {PSF} (set RNGCAM_DATA)")
 
 
 def _small_lab(noise: bool = False):
