@@ -213,7 +213,10 @@ def test_recon_cli_pnp_writes_its_notes_and_settings(tmp_path, monkeypatch):
     res = CliRunner().invoke(main, ["recon", str(bundle), "--method", "pnp", "--iters", "2", "--quiet",
                                     "--slices", "xy,xt", "--bin", "2", "-o", str(tmp_path / "out")])
     assert res.exit_code == 0, res.output
-    assert any("note: FFDNet weights not installed" in line for line in res.output.splitlines()[:3])  # up front
+    lines = res.output.splitlines()
+    said = [i for i, line in enumerate(lines) if "note: FFDNet weights not installed" in line]
+    solved = [i for i, line in enumerate(lines) if line.startswith("pnp: ") and "iterations" in line]
+    assert said and solved and said[0] < solved[0]  # said up front, before the solve's summary
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["method"] == "pnp" and metrics["iterations"] == 2
     assert any("2-D TV instead" in n for n in metrics["notes"])
