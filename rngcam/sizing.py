@@ -25,9 +25,13 @@ MEMORY_FRACTION = 0.8  # of the machine's memory: the default --max-memory
 # Peak memory of a whole `rngcam recon` run per video element (C x K x H x W), measured with
 # /usr/bin/time on a 32x32x3 simulated bundle stretched to 6,531 frames (truth and metrics
 # included; 257 MB of interpreter and libraries subtracted), plus about 10 %: tv3d 137, blend and
-# interp 140, STFM fast (ensemble) 453 bytes. RIFE and pnp were not measured: RIFE as interp plus
-# its model's activations, pnp as STFM.
-BYTES_PER_ELEMENT = {"tv3d": 150, "stfm": 500, "pnp": 500, "blend": 155, "interp": 155, "rife": 170}
+# interp 140 bytes. STFM fast (the ensemble) also costs per frame whatever the frame's size, so its
+# figure is fitted to two runs: 412 bytes an element at 32x32x3x6,531 and 5.8 GB peak at
+# 228x342x3x231 (300 s budget) give 98 bytes an element plus 0.92 MB a frame; with about 10 %:
+# 110 bytes and 1.0 MB. RIFE and pnp were not measured: RIFE as interp plus its model's
+# activations, pnp as STFM.
+BYTES_PER_ELEMENT = {"tv3d": 150, "stfm": 110, "pnp": 110, "blend": 155, "interp": 155, "rife": 170}
+BYTES_PER_FRAME = {"stfm": 1_000_000, "pnp": 1_000_000}
 BASE_BYTES = 300 * 2**20  # the interpreter, torch and OpenCV
 
 
@@ -108,7 +112,7 @@ def plan_grid(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = 
 def method_bytes(plan: GridPlan, method: str) -> int:
     """Estimated peak memory of reconstructing the plan's video with `method` (see BYTES_PER_ELEMENT)."""
     per = BYTES_PER_ELEMENT.get(method, max(BYTES_PER_ELEMENT.values()))
-    return BASE_BYTES + plan.elements * per
+    return BASE_BYTES + plan.elements * per + plan.grid.n_frames * BYTES_PER_FRAME.get(method, 0)
 
 
 def default_max_memory_bytes() -> int:
