@@ -326,7 +326,7 @@ def _targets_by_pair(f, times_s, targets):
 @torch.inference_mode()
 def _rife4(f: np.ndarray, times_s, targets, weights, device: str) -> np.ndarray:
     """RIFE 4.x: each target frame in one pass at its own fraction t, batched per key-frame pair."""
-    from rngcam.recon.rife4 import PAD_MULTIPLE, load_ifnet4, working_scale
+    from rngcam.recon.rife4 import load_ifnet4, working_scale
 
     net = load_ifnet4(weights, device)
     c, g, h, w = f.shape
@@ -337,6 +337,16 @@ def _rife4(f: np.ndarray, times_s, targets, weights, device: str) -> np.ndarray:
     out = np.empty((c, len(targets), h, w), np.float32)
     out[:, exact] = f[:, idx[exact] + (frac[exact] == 1.0)]
     scale = encoding_scale(f)
+    for chunk, first, second, t in _pair_batches(f, idx, frac, exact, scale, device):
+        out[:, chunk] = _from_network(net(first, second, t, net_scale), c, h, w, scale)
+    return out
+
+
+def _pair_batches(f: np.ndarray, idx, frac, exact, scale: float, device: str):
+    """For RIFE 4.x: (target indices, first key frames, second key frames, fractions t) in batches
+    of at most _BATCH targets between the same two key frames, encoded for the network."""
+    from rngcam.recon.rife4 import PAD_MULTIPLE
+
     for i in np.unique(idx[~exact]):
         sel = np.flatnonzero((idx == i) & ~exact)
         ends = _to_network(f[:, [i, i + 1]], scale, device, PAD_MULTIPLE)
@@ -344,9 +354,7 @@ def _rife4(f: np.ndarray, times_s, targets, weights, device: str) -> np.ndarray:
             chunk = sel[start:start + _BATCH]
             n = len(chunk)
             t = torch.as_tensor(frac[chunk], dtype=ends.dtype, device=ends.device)
-            mid = net(ends[:1].expand(n, -1, -1, -1), ends[1:].expand(n, -1, -1, -1), t, net_scale)
-            out[:, chunk] = _from_network(mid, c, h, w, scale)
-    return out
+            yield chunk, ends[:1].expand(n, -1, -1, -1), ends[1:].expand(n, -1, -1, -1), t
 
 
 @torch.inference_mode()
@@ -354,7 +362,7 @@ def _rife4_warps(f: np.ndarray, times_s, targets, weights, device: str):
     """RIFE 4.x's flows from each target time to its two key frames and the blend weight, as
     `baselines.KeyWarps` (exact: the network is asked at each target's own time)."""
     from rngcam.recon.baselines import KeyWarps
-    from rngcam.recon.rife4 import PAD_MULTIPLE, load_ifnet4, working_scale
+    from rngcam.recon.rife4 import load_ifnet4, working_scale
 
     net = load_ifnet4(weights, device)
     c, g, h, w = f.shape
@@ -364,17 +372,11 @@ def _rife4_warps(f: np.ndarray, times_s, targets, weights, device: str):
     flow0, flow1 = np.zeros((k, h, w, 2), np.float32), np.zeros((k, h, w, 2), np.float32)
     weight0 = np.where(frac <= 0.5, 1.0, 0.0)[:, None, None].repeat(h, 1).repeat(w, 2).astype(np.float32)
     scale = encoding_scale(f)
-    for i in np.unique(idx[~exact]):
-        sel = np.flatnonzero((idx == i) & ~exact)
-        ends = _to_network(f[:, [i, i + 1]], scale, device, PAD_MULTIPLE)
-        for start in range(0, len(sel), _BATCH):
-            chunk = sel[start:start + _BATCH]
-            n = len(chunk)
-            t = torch.as_tensor(frac[chunk], dtype=ends.dtype, device=ends.device)
-            flow, mask = net.flows(ends[:1].expand(n, -1, -1, -1), ends[1:].expand(n, -1, -1, -1), t, net_scale)
-            flow = flow[:, :, :h, :w].permute(0, 2, 3, 1).cpu().numpy()
-            flow0[chunk], flow1[chunk] = flow[..., :2], flow[..., 2:]
-            weight0[chunk] = torch.sigmoid(mask[:, 0, :h, :w]).cpu().numpy()
+    for chunk, first, second, t in _pair_batches(f, idx, frac, exact, scale, device):
+        flow, mask = net.flows(first, second, t, net_scale)
+        flow = flow[:, :, :h, :w].permute(0, 2, 3, 1).cpu().numpy()
+        flow0[chunk], flow1[chunk] = flow[..., :2], flow[..., 2:]
+        weight0[chunk] = torch.sigmoid(mask[:, 0, :h, :w]).cpu().numpy()
     return KeyWarps(f, idx.astype(np.int64), flow0, flow1, weight0)
 
 
