@@ -39,7 +39,7 @@ def bench_cmd(quick, stress, out_dir, time_budget, size, clips, scene_names, met
                                 ("--threads", threads)) if v]
         if given:
             raise click.UsageError(f"{', '.join(given)} does not apply to --stress")
-        _stress(out_dir or Path("bench/out/stress"), data_dir)
+        _stress(out_dir or Path("bench/out/stress"))
     else:
         _bench(out_dir or Path("bench/out"), quick, time_budget, size, clips, scene_names, methods, threads,
                data_dir)
@@ -69,13 +69,13 @@ def _bench(out, quick, time_budget, size, clips, scene_names, methods, threads, 
     click.echo(f"results: {out / 'results.md'} ({len(rows)} runs, {len(bad)} not ok)")
 
 
-def _stress(out: Path, data_dir: Path | None) -> None:
+def _stress(out: Path) -> None:
     import torch
 
     from rngcam.bench.stress import run_stress, summary_counts
 
     torch.set_num_threads(1)  # tiny tensors: extra threads only add overhead
-    rows = run_stress(out, data_dir=data_dir, echo=click.echo)
+    rows = run_stress(out, echo=click.echo)
     counts = summary_counts(rows)
     click.echo(f"stress: {counts['finite']} finite, {counts['rejected']} rejected, "
                f"{counts['FAILED']} FAILED -> {out / 'results.md'}")

@@ -338,7 +338,7 @@ def test_bench_stress_bad_input_cases_pass(tmp_path, name, methods):
     from rngcam.bench.stress_cases import stress_cases
 
     [case] = [c for c in stress_cases() if c.name == name]
-    rows = run_case(case, list(methods), StressSettings(tv3d_iters=6, time_cap_s=10.0), tmp_path, None)
+    rows = run_case(case, list(methods), StressSettings(tv3d_iters=6, time_cap_s=10.0), tmp_path)
     assert len(rows) == 1 + len(methods)
     assert all(r["outcome"] != "FAILED" for r in rows), rows
 

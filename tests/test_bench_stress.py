@@ -72,7 +72,7 @@ def subset_rows(tmp_path_factory):
     by_name = {c.name: c for c in stress_cases()}
     rows = []
     for name, methods in SUBSET.items():
-        rows += run_case(by_name[name], [m for m in methods if m in AVAILABLE], SHORT, out, None)
+        rows += run_case(by_name[name], [m for m in methods if m in AVAILABLE], SHORT, out)
     return rows
 
 
@@ -224,5 +224,5 @@ def test_cli_refuses_bench_options_with_stress():
 
 def test_real_psf_case_runs_on_the_packaged_psf(tmp_path):
     case = next(c for c in stress_cases() if c.name == "psf=real")
-    rows = run_case(case, ["tv3d-haar"], SHORT, tmp_path, None)
+    rows = run_case(case, ["tv3d-haar"], SHORT, tmp_path)
     assert [r["outcome"] for r in rows] == ["finite", "finite"]

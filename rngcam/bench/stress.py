@@ -275,8 +275,7 @@ def _psnr(problem: Problem | None, video) -> float | None:
     return psnr(video.double(), problem.truth)
 
 
-def run_case(case: StressCase, methods: list[str], settings: StressSettings, out: Path,
-             data_dir: Path | None) -> list[dict]:
+def run_case(case: StressCase, methods: list[str], settings: StressSettings, out: Path) -> list[dict]:
     """All rows of one case: operators first, then each method the case concerns."""
     base = {"case": case.name, "group": case.group, "expect": case.expect}
     rows: list[dict] = []
@@ -285,14 +284,14 @@ def run_case(case: StressCase, methods: list[str], settings: StressSettings, out
     if case.bundle:
         try:
             (out / "bundles").mkdir(parents=True, exist_ok=True)
-            bundle_path = case.write_bundle(out / "bundles" / f"{_slug(case.name)}.h5", data_dir)
+            bundle_path = case.write_bundle(out / "bundles" / f"{_slug(case.name)}.h5")
         except Exception as exc:  # noqa: BLE001 - the harness's own failure, reported not raised
             return [{**base, "method": "bundle", "outcome": "FAILED",
                      "message": f"could not write the case's bundle: {type(exc).__name__}: {exc}"}]
 
     def operators():
         nonlocal problem
-        problem = build_problem(read_bundle(bundle_path)) if case.bundle else case.problem(data_dir)
+        problem = build_problem(read_bundle(bundle_path)) if case.bundle else case.problem()
         return operator_row(problem)
 
     rows.append({**base, "method": "operators", "expect": case.expect_operators,
@@ -310,7 +309,7 @@ def run_case(case: StressCase, methods: list[str], settings: StressSettings, out
         else:
             def go(m=method):
                 if problem is None:  # the case itself could not be built: same error again
-                    case.problem(data_dir)
+                    case.problem()
                 got = run_on_problem(problem, m, case.options, settings)
                 return {**got, "psnr_db": _psnr(problem, got["video"])}
         rows.append({**base, "method": method, **classify(case.expect, method, go, clear)})
@@ -322,7 +321,7 @@ def _slug(name: str) -> str:
 
 
 def run_stress(out: Path, settings: StressSettings | None = None, cases: list[StressCase] | None = None,
-               methods: list[str] | None = None, data_dir: Path | None = None, echo=print) -> list[dict]:
+               methods: list[str] | None = None, echo=print) -> list[dict]:
     """Run the matrix (all cases and installed methods unless given); write results.csv/.md."""
     settings = settings or StressSettings()
     out = Path(out)
@@ -330,19 +329,15 @@ def run_stress(out: Path, settings: StressSettings | None = None, cases: list[St
     cases = stress_cases() if cases is None else cases
     methods = available_methods() if methods is None else methods
     rows: list[dict] = []
-    skipped: list[str] = []
     t0 = time.perf_counter()
     for case in cases:
-        if case.needs_data and (data_dir is None or not data_dir.is_dir()):
-            skipped.append(f"{case.name}: the shared data folder is not available")
-            continue
-        case_rows = run_case(case, methods, settings, out, data_dir)
+        case_rows = run_case(case, methods, settings, out)
         rows += case_rows
         bad = [r["method"] for r in case_rows if r["outcome"] == "FAILED"]
         echo(f"{case.name:28s} " + " ".join(f"{r['method']}:{r['outcome']}" for r in case_rows)
              + (f"   <-- FAILED: {', '.join(bad)}" if bad else ""))
     elapsed = time.perf_counter() - t0
-    write_report(out, rows, methods, settings, skipped, elapsed)
+    write_report(out, rows, methods, settings, elapsed)
     return rows
 
 
@@ -358,7 +353,7 @@ def summary_counts(rows: list[dict]) -> dict[str, int]:
 
 
 def write_report(out: Path, rows: list[dict], methods: list[str], settings: StressSettings,
-                 skipped: list[str], elapsed_s: float) -> None:
+                 elapsed_s: float) -> None:
     """results.csv (every column) and results.md (summary, failures first, then every row)."""
     report.write_csv(out / "results.csv", rows, STRESS_COLUMNS)
     counts = summary_counts(rows)
@@ -374,8 +369,6 @@ def write_report(out: Path, rows: list[dict], methods: list[str], settings: Stre
            f"objective (tolerance {MONOTONE_TOL:g} relative). tv3d with the exact prox runs on videos "
            f"up to {EXACT_PROX_MAX_ELEMENTS:,} values. GS-only baselines run only on cases that "
            "change their input (data, timing, size)."), ""]
-    if skipped:
-        md += ["Not run: " + "; ".join(skipped), ""]
     if failed:
         md += ["## FAILED", "", report.markdown_table(failed, ["case", "method", "message"]), ""]
     md += ["## All rows", "",

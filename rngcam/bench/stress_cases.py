@@ -39,18 +39,17 @@ class StressCase:
     noise: bool = True  # sensor noise in the bundle
     tamper: Callable | None = None  # (rs_frames, gs_frames) -> (rs_frames, gs_frames), before writing
     after_write: Callable[[Path], None] | None = None  # alter the written file (e.g. NaN in the PSF)
-    needs_data: bool = False  # needs the shared data folder (real PSF)
     operators_expect: str | None = None  # None: as `expect` (bad options leave the operators valid)
 
     @property
     def expect_operators(self) -> str:
         return self.expect if self.operators_expect is None else self.operators_expect
 
-    def problem(self, data_dir: Path | None):
-        return make_problem(self.spec, data_dir)
+    def problem(self):
+        return make_problem(self.spec)
 
-    def write_bundle(self, path: Path, data_dir: Path | None) -> Path:
-        make_bundle(self.spec, path, noise=self.noise, tamper=self.tamper, data_dir=data_dir)
+    def write_bundle(self, path: Path) -> Path:
+        make_bundle(self.spec, path, noise=self.noise, tamper=self.tamper)
         if self.after_write is not None:
             self.after_write(path)
         return path
@@ -225,8 +224,8 @@ class ProblemTamperCase(StressCase):
 
     alter: Callable | None = None
 
-    def problem(self, data_dir: Path | None):
-        return self.alter(make_problem(self.spec, data_dir))
+    def problem(self):
+        return self.alter(make_problem(self.spec))
 
 
 def stress_cases() -> list[StressCase]:

@@ -76,11 +76,10 @@ def moving_square(channels: int, frames: int, height: int, width: int, brightnes
     return np.clip(video, 0, 1) * brightness
 
 
-def make_psf(kind: str, height: int, width: int, seed: int = 0, data_dir: Path | None = None) -> np.ndarray:
+def make_psf(kind: str, height: int, width: int, seed: int = 0) -> np.ndarray:
     """(1, Hp, Wp) PSF summing to 1: a delta (identity), flat (a box: rank-deficient, every
     image with the same sum looks alike), caustic (sparse random bright points, slightly
-    blurred) or real (the measured DiffuserCam tutorial PSF in rngcam/data, resampled;
-    `data_dir` is not used)."""
+    blurred) or real (the measured DiffuserCam tutorial PSF in rngcam/data, resampled)."""
     if kind == "delta":
         return np.ones((1, 1, 1))
     if kind == "flat":
@@ -101,11 +100,11 @@ def make_psf(kind: str, height: int, width: int, seed: int = 0, data_dir: Path |
     raise ValueError(f"unknown PSF kind {kind!r}; choose one of {PSF_KINDS}")
 
 
-def make_problem(spec: CaptureSpec, data_dir: Path | None = None) -> Problem:
+def make_problem(spec: CaptureSpec) -> Problem:
     """A noiseless Problem (float64, with truth) for `spec`."""
     rs, gs, grid = timings(spec)
     video = moving_square(spec.channels, grid.n_frames, spec.height, spec.width, spec.brightness, spec.seed)
-    psf = make_psf(spec.psf, spec.height, spec.width, spec.seed, data_dir)
+    psf = make_psf(spec.psf, spec.height, spec.width, spec.seed)
     dt = None if spec.frame_lines is None else grid.dt_s
     return problem_from_video(torch.from_numpy(video), torch.from_numpy(psf), rs, gs, dt_s=dt)
 
@@ -113,8 +112,7 @@ def make_problem(spec: CaptureSpec, data_dir: Path | None = None) -> Problem:
 FrameHook = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
-def make_bundle(spec: CaptureSpec, path: Path, noise: bool = True, tamper: FrameHook | None = None,
-                data_dir: Path | None = None) -> Path:
+def make_bundle(spec: CaptureSpec, path: Path, noise: bool = True, tamper: FrameHook | None = None) -> Path:
     """Write a capture bundle (RGB12 frames through the sensor model, PSF, truth) for `spec`.
 
     `tamper(rs_frames, gs_frames) -> (rs_frames, gs_frames)` may alter the raw frames before
@@ -123,7 +121,7 @@ def make_bundle(spec: CaptureSpec, path: Path, noise: bool = True, tamper: Frame
         raise ValueError("bundles use one grid frame per line time (frame_lines=None)")
     rs, gs, grid = timings(spec)
     video = moving_square(spec.channels, grid.n_frames, spec.height, spec.width, spec.brightness, spec.seed)
-    psf = make_psf(spec.psf, spec.height, spec.width, spec.seed, data_dir)
+    psf = make_psf(spec.psf, spec.height, spec.width, spec.seed)
     return write_capture(video, psf, rs, gs, grid, path, noise=noise, seed=spec.seed, tamper=tamper,
                          source="rngcam bench --stress")
 
