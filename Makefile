@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python -m rngcam.demo
+	$(BIN)/python -m rngcam.cli.demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

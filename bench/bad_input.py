@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from rngcam.bench import stress_cases as edits
+from rngcam.evaluate import stress_cases as edits
 
 ROWS = {
     "clean": [],

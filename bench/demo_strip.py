@@ -5,7 +5,7 @@
 
 Rows: the truth, then each `label=config` whose `sineball<size>_<config>.npy` is in `--runs`;
 columns: the frames the demo shows (0, K/6, K/3, K/2, 2K/3, 5K/6), or `--frames`. Uses
-rngcam.demo's strip function, so the picture reads like the demo's.
+rngcam.cli.demo's strip function, so the picture reads like the demo's.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from stfm_compare import simulated_problem  # noqa: E402
 
-from rngcam.demo import _strip  # noqa: E402
+from rngcam.cli.demo import _strip  # noqa: E402
 
 
 def main() -> None:

@@ -17,10 +17,10 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from rngcam.bench import stress_cases as edits
 from rngcam.bundle import read_bundle
 from rngcam.cli import main
 from rngcam.errors import ConfigError, RngcamError
+from rngcam.evaluate import stress_cases as edits
 from rngcam.recon.metrics import error_visibility, error_visibility_caveats
 from rngcam.recon.problem import build_problem
 from rngcam.recon.runner import ReconSettings, reconstruct
@@ -334,8 +334,8 @@ def test_frame_statistics_and_which_frames_are_beyond_use():
                                           ("every GS frame saturated (GS-only)", ("blend",)),
                                           ("GS frame 2 bottom quarter 0 DN", ("tv3d-haar",))])
 def test_bench_stress_bad_input_cases_pass(tmp_path, name, methods):
-    from rngcam.bench.stress import StressSettings, run_case
-    from rngcam.bench.stress_cases import stress_cases
+    from rngcam.evaluate.stress import StressSettings, run_case
+    from rngcam.evaluate.stress_cases import stress_cases
 
     [case] = [c for c in stress_cases() if c.name == name]
     rows = run_case(case, list(methods), StressSettings(tv3d_iters=6, time_cap_s=10.0), tmp_path)

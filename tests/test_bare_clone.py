@@ -8,8 +8,7 @@ import json
 import pytest
 from click.testing import CliRunner
 
-from rngcam import demo
-from rngcam.cli import main
+from rngcam.cli import demo, main
 from rngcam.paths import DATA_DIR
 
 

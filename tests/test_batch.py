@@ -8,8 +8,8 @@ import shutil
 import pytest
 from click.testing import CliRunner
 
-from rngcam.bench.synthetic import CaptureSpec, make_bundle
 from rngcam.cli import main
+from rngcam.evaluate.synthetic import CaptureSpec, make_bundle
 from rngcam.recon.runner import ReconSettings
 from rngcam.scale.backend import SequentialBackend, ray_available
 from rngcam.scale.batch import DONE_NAME, recon_batch

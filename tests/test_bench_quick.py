@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rngcam.bench.runner import BenchSettings, add_level_times, run_bench, time_to_level
-from rngcam.bench.scenes import bench_scenes
 from rngcam.cli import main
 from rngcam.errors import RngcamError
+from rngcam.evaluate.compare import BenchSettings, add_level_times, run_bench, time_to_level
+from rngcam.evaluate.scenes import bench_scenes
 from rngcam.sim.scenes import default_clip_path
 
 

@@ -11,8 +11,10 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from rngcam.bench import stress
-from rngcam.bench.stress import (
+from rngcam.cli import main
+from rngcam.errors import ConfigError, RngcamError
+from rngcam.evaluate import stress
+from rngcam.evaluate.stress import (
     StressSettings,
     check_operators,
     classify,
@@ -20,10 +22,8 @@ from rngcam.bench.stress import (
     run_case,
     run_stress,
 )
-from rngcam.bench.stress_cases import BASE, StressCase, stress_cases
-from rngcam.bench.synthetic import CaptureSpec, make_problem
-from rngcam.cli import main
-from rngcam.errors import ConfigError, RngcamError
+from rngcam.evaluate.stress_cases import BASE, StressCase, stress_cases
+from rngcam.evaluate.synthetic import CaptureSpec, make_problem
 
 SHORT = StressSettings(tv3d_iters=6, tv3d_exact_iters=2, stfm_iters=2, time_cap_s=10.0)
 

@@ -116,7 +116,7 @@ def test_reconstruct_logs_the_held_out_score_next_to_the_training_residual(tmp_p
     import csv
     import json
 
-    from rngcam.bench.synthetic import CaptureSpec, make_bundle
+    from rngcam.evaluate.synthetic import CaptureSpec, make_bundle
     from rngcam.recon.runner import ReconSettings, reconstruct
 
     bundle = make_bundle(CaptureSpec(height=12, width=12), tmp_path / "b.h5")

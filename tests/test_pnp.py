@@ -152,7 +152,7 @@ def test_pnp_settings_are_checked(bad):
 def test_doctor_lists_learned_weights_and_installs_missing_ones_without_deps(monkeypatch):
     from click.testing import CliRunner
 
-    from rngcam import doctor_cli
+    from rngcam.cli import doctor as doctor_cli
     from rngcam.cli import main
     from rngcam.recon import weights as weights_mod
 

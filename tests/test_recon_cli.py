@@ -107,7 +107,7 @@ def test_stfm_base_list_runs_an_ensemble_and_a_bad_base_is_a_clear_error(mock_bu
 
 @pytest.mark.parametrize("method,args,budget", [("stfm", [], 600.0), ("tv3d", [], 60.0), ("stfm", ["--time-budget", "7"], 7.0)])
 def test_recon_time_budget_defaults_by_method(mock_bundle, tmp_path, monkeypatch, method, args, budget):
-    from rngcam import recon_cli
+    from rngcam.cli import recon as recon_cli
 
     seen = {}
 

@@ -12,9 +12,9 @@ import pytest
 from click.testing import CliRunner
 from scipy.stats import spearmanr
 
-from rngcam.bench.synthetic import CaptureSpec, make_psf, moving_square, timings, write_capture
 from rngcam.cli import main
 from rngcam.errors import ConfigError
+from rngcam.evaluate.synthetic import CaptureSpec, make_psf, moving_square, timings, write_capture
 from rngcam.scale.backend import SequentialBackend, ray_available
 from rngcam.scale.sweep import SweepSettings, default_rungs, rung_budgets, setting_grid, sweep
 from rngcam.scale.trial import run_trial

@@ -21,9 +21,9 @@ from rngcam.calibrate.align import (
     similarity_of,
     working_pair,
 )
-from rngcam.calibrate.bench import Bench
 from rngcam.calibrate.linetime import LineTimeFit, default_heights, fit_line_time, readout_samples
 from rngcam.calibrate.psf import PsfEstimate, estimate_psf
+from rngcam.calibrate.shots import Bench
 from rngcam.calibrate.whitebalance import WhiteBalance, estimate_white_balance
 from rngcam.config import Rig
 from rngcam.errors import HardwareError, RngcamError

@@ -15,16 +15,16 @@ from rngcam.errors import RngcamError
 
 # name -> "module:attribute" of a click command
 COMMANDS = {
-    "simulate": "rngcam.sim_cli:simulate_cmd",
-    "capture": "rngcam.acquire_cli:capture_cmd",
-    "devices": "rngcam.acquire_cli:devices_cmd",
-    "calibrate": "rngcam.calibrate_cli:calibrate_group",
-    "inspect": "rngcam.bundle_cli:inspect_cmd",
-    "recon": "rngcam.recon_cli:recon_cmd",
-    "sweep": "rngcam.scale_cli:sweep_cmd",
-    "recon-batch": "rngcam.scale_cli:recon_batch_cmd",
-    "bench": "rngcam.bench_cli:bench_cmd",
-    "doctor": "rngcam.doctor_cli:doctor_cmd",
+    "simulate": "rngcam.cli.simulate:simulate_cmd",
+    "capture": "rngcam.cli.capture:capture_cmd",
+    "devices": "rngcam.cli.capture:devices_cmd",
+    "calibrate": "rngcam.cli.calibrate:calibrate_group",
+    "inspect": "rngcam.cli.inspect:inspect_cmd",
+    "recon": "rngcam.cli.recon:recon_cmd",
+    "sweep": "rngcam.cli.scale:sweep_cmd",
+    "recon-batch": "rngcam.cli.scale:recon_batch_cmd",
+    "bench": "rngcam.cli.bench:bench_cmd",
+    "doctor": "rngcam.cli.doctor:doctor_cmd",
 }
 
 

@@ -28,10 +28,10 @@ import h5py
 import numpy as np
 import torch
 
-from rngcam.bench import report
-from rngcam.bench.stress_cases import StressCase, stress_cases
 from rngcam.bundle import read_bundle
 from rngcam.errors import RngcamError
+from rngcam.evaluate import report
+from rngcam.evaluate.stress_cases import StressCase, stress_cases
 from rngcam.physics.operators import inner
 from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.problem import Problem, build_problem
@@ -54,7 +54,7 @@ class StressSettings:
 
 def available_methods() -> list[str]:
     """Methods installed here: RIFE needs its weights, STFM its module."""
-    from rngcam.bench.stress_cases import ALL_METHODS
+    from rngcam.evaluate.stress_cases import ALL_METHODS
 
     out = []
     for m in ALL_METHODS:

@@ -16,7 +16,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from rngcam.bench.synthetic import CaptureSpec, make_bundle, make_problem
+from rngcam.evaluate.synthetic import CaptureSpec, make_bundle, make_problem
 
 BASE = CaptureSpec()
 ITERATIVE = ("tv3d-haar", "tv3d-exact", "stfm-fast")

@@ -1,6 +1,6 @@
 """`rngcam bench`: every method on every benchmark scene under the same time budget.
 
-Each (scene, method) runs in its own process (`rngcam.bench.worker`, through `reconstruct`),
+Each (scene, method) runs in its own process (`rngcam.evaluate.worker`, through `reconstruct`),
 one after another, so each gets the whole machine and its peak memory is its own. Iterative
 methods run for the time budget; GS-only baselines run once. From each run's error-vs-time
 log the table reports PSNR/SSIM over all and intermediate frames, the solve time at which
@@ -21,8 +21,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from rngcam.bench import report
-from rngcam.bench.scenes import BenchScene, make_scene_bundle
+from rngcam.evaluate import report
+from rngcam.evaluate.scenes import BenchScene, make_scene_bundle
 
 METHODS = ("stfm-fast", "stfm-paper", "tv3d", "pnp", "blend", "interp", "rife")
 GS_ONLY = ("blend", "interp", "rife")
@@ -105,7 +105,7 @@ def run_one(bundle: Path, out: Path, method: str, settings: BenchSettings) -> di
     timeout = settings.time_budget_s + KILL_GRACE_S
     t0 = time.perf_counter()
     env = {**os.environ, "OMP_NUM_THREADS": str(settings.threads), "MKL_NUM_THREADS": str(settings.threads)}
-    proc = subprocess.Popen([sys.executable, "-m", "rngcam.bench.worker", str(job_path)], env=env,
+    proc = subprocess.Popen([sys.executable, "-m", "rngcam.evaluate.worker", str(job_path)], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         output, _ = proc.communicate(timeout=timeout)

@@ -47,8 +47,8 @@ def bench_cmd(quick, stress, out_dir, time_budget, size, clips, scene_names, met
 
 
 def _bench(out, quick, time_budget, size, clips, scene_names, methods, threads, data_dir) -> None:
-    from rngcam.bench.runner import BenchSettings, run_bench
-    from rngcam.bench.scenes import bench_scenes
+    from rngcam.evaluate.compare import BenchSettings, run_bench
+    from rngcam.evaluate.scenes import bench_scenes
 
     overrides = {k: v for k, v in (("time_budget_s", time_budget), ("size", size), ("threads", threads))
                  if v is not None}
@@ -72,7 +72,7 @@ def _bench(out, quick, time_budget, size, clips, scene_names, methods, threads, 
 def _stress(out: Path) -> None:
     import torch
 
-    from rngcam.bench.stress import run_stress, summary_counts
+    from rngcam.evaluate.stress import run_stress, summary_counts
 
     torch.set_num_threads(1)  # tiny tensors: extra threads only add overhead
     rows = run_stress(out, echo=click.echo)

@@ -1,4 +1,4 @@
-"""One benchmark run in a fresh process: `python -m rngcam.bench.worker JOB.json`.
+"""One benchmark run in a fresh process: `python -m rngcam.evaluate.worker JOB.json`.
 
 The job names the bundle, the output folder, the runner method, its options, the time budget
 and the log spacing. It calls `rngcam.recon.runner.reconstruct` (which writes every output)
