@@ -21,10 +21,10 @@ from click.testing import CliRunner
 from rngcam.acquire.capture import capture
 from rngcam.acquire.fake_generator import FakeGenerator
 from rngcam.acquire.mock_camera import MockCamera
-from rngcam.bundle import read_bundle
 from rngcam.cli import main
 from rngcam.config import load_rig, parse_rig
 from rngcam.errors import ConfigError, HardwareError
+from rngcam.formats.bundle import read_bundle
 from rngcam.paths import DATA_DIR, MEASURED_PSF
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.sensor import SensorModel

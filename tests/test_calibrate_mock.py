@@ -12,9 +12,6 @@ import pytest
 from click.testing import CliRunner
 
 from rngcam.acquire.capture import capture, rs_psf
-from rngcam.bundle import read_bundle
-from rngcam.calibrate import store
-from rngcam.calibrate.align import similarity_matrix, similarity_of, transform_error_px
 from rngcam.calibrate.psf import correlation
 from rngcam.calibrate.run import (
     calibrate_align,
@@ -25,7 +22,10 @@ from rngcam.calibrate.run import (
 from rngcam.cli import main
 from rngcam.config import parse_rig
 from rngcam.errors import ConfigError
+from rngcam.formats import calibration as store
+from rngcam.formats.bundle import read_bundle
 from rngcam.paths import DATA_DIR, MEASURED_PSF
+from rngcam.physics.geometry import similarity_matrix, similarity_of, transform_error_px
 
 REPO = Path(__file__).resolve().parents[1]
 MOCK = REPO / "rigs" / "mock.yaml"

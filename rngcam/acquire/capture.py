@@ -224,7 +224,7 @@ def _mock_gs_to_rs(m: MockSensor, cam: CameraConfig):
     """The mock GS camera's true GS->RS transform (rows of a 3x3) from its misalignment, or None."""
     if m.misalignment is None:
         return None
-    from rngcam.calibrate.align import similarity_matrix
+    from rngcam.physics.geometry import similarity_matrix
 
     a = m.misalignment
     centre = ((cam.roi.width - 1) / 2, (cam.roi.height - 1) / 2)
@@ -275,7 +275,7 @@ def _stack(frames: list[Frame]) -> np.ndarray:
 
 
 def _record(cfg: CameraConfig, cam: Camera, frames: list[Frame], trigger_times_s, line_time_s):
-    from rngcam.bundle import CameraRecord
+    from rngcam.formats.bundle import CameraRecord
 
     features = dict(cam.configured.features) if cam.configured else {}
     black = (cfg.mock or MockSensor()).black_level_dn if cfg.backend == "mock" else cfg.black_level_dn
@@ -309,14 +309,14 @@ def _check_gs_timestamps(frames: list[Frame], period_s: float | None) -> list[st
 def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
             progress: Progress = print) -> list[CaptureResult]:
     """Run `count` shots on the rig; each shot's bundle is written atomically. See module doc."""
-    from rngcam.bundle import Bundle, Calibration, TriggerRecord, Truth, write_bundle
+    from rngcam.formats.bundle import Bundle, Calibration, TriggerRecord, Truth, write_bundle
 
     c = rig.config
     paths = output_paths(Path(out) if out is not None else None, count)
     t_start = time.perf_counter()
     psf, psf_source, psf_bias = rs_psf(rig, progress)
     _, gs_timing, grid = nominal_timing(rig)
-    from rngcam.calibrate.store import apply_to_bundle, rig_calibration
+    from rngcam.formats.calibration import apply_to_bundle, rig_calibration
 
     stored, stored_path = rig_calibration(rig)  # rngcam calibrate's file, when the rig names one
     if stored is not None:

@@ -1,6 +1,6 @@
 """The four calibration procedures on a rig: capture on the bench, estimate, store.
 
-Each returns what it measured and the calibration file it updated (rngcam.calibrate.store);
+Each returns what it measured and the calibration file it updated (rngcam.formats.calibration);
 `progress` receives one line per step. The mock rig's true values are reported next to the
 estimates (`mock_truth`) so a run on it shows how well calibration recovers them.
 """
@@ -13,20 +13,15 @@ from pathlib import Path
 
 import numpy as np
 
-from rngcam.calibrate import store
-from rngcam.calibrate.align import (
-    Alignment,
-    align_pair,
-    similarity_matrix,
-    similarity_of,
-    working_pair,
-)
+from rngcam.calibrate.align import Alignment, align_pair, working_pair
 from rngcam.calibrate.linetime import LineTimeFit, default_heights, fit_line_time, readout_samples
 from rngcam.calibrate.psf import PsfEstimate, estimate_psf
 from rngcam.calibrate.shots import Bench
 from rngcam.calibrate.whitebalance import WhiteBalance, estimate_white_balance
 from rngcam.config import Rig
 from rngcam.errors import HardwareError, RngcamError
+from rngcam.formats import calibration as store
+from rngcam.physics.geometry import similarity_matrix, similarity_of, transform_error_px
 from rngcam.physics.psf import normalise, resample, spectral_support
 from rngcam.physics.sensor import BAYER_FORMATS
 
@@ -257,8 +252,6 @@ def calibrate_align(rig: Rig, out=None, frames: int = 8, model: str = "similarit
              "white balance (GS -> RS scale, recon Lambda): " + ", ".join(f"{g:.4f}" for g in result.white_balance)]
     truth = _mock_truth(rig)
     if truth is not None:
-        from rngcam.calibrate.align import transform_error_px
-
         h_true, wb_true = truth
         lines.append(f"mock truth: {_describe(h_true, gs_shape)}; white balance "
                      + ", ".join(f"{g:.4f}" for g in wb_true))

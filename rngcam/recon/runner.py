@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from rngcam.bundle import bundle_checksum, read_bundle_with_warnings
 from rngcam.errors import ConfigError, RngcamError
+from rngcam.formats.bundle import bundle_checksum, read_bundle_with_warnings
 from rngcam.memory import peak_rss_bytes
 from rngcam.recon import outputs
 from rngcam.recon.loop import LoopSettings, RunResult, run, stage_printer
@@ -226,7 +226,7 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
     out.mkdir(parents=True, exist_ok=True)
     scorer = None
     if settings.holdout is not None:
-        from rngcam.scale.holdout import HoldoutScorer
+        from rngcam.recon.holdout import HoldoutScorer
 
         problem = problem.with_holdout(settings.holdout, settings.holdout_gs, settings.holdout_seed)
         scorer = HoldoutScorer(problem)

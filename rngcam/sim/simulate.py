@@ -21,8 +21,8 @@ import torch
 import yaml
 
 from rngcam import __version__
-from rngcam.bundle import Bundle, Calibration, CameraRecord, Truth, write_bundle
 from rngcam.errors import RngcamError
+from rngcam.formats.bundle import Bundle, Calibration, CameraRecord, Truth, write_bundle
 from rngcam.paths import MEASURED_PSF, PACKAGE_PREFIX, package_data
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter

@@ -194,7 +194,7 @@ def rig_calibration(rig, missing_ok: bool = False) -> tuple[StoredCalibration | 
 
 
 def apply_to_bundle(stored: StoredCalibration, path: Path, calibration, rs_shape: tuple[int, int]):
-    """A copy of a bundle's rngcam.bundle.Calibration with the stored parts in place of the
+    """A copy of a bundle's rngcam.formats.bundle.Calibration with the stored parts in place of the
     rig's values: the PSF resampled to the RS sensor grid `rs_shape` (H, W), its source and
     provenance recorded in `extra`."""
     from dataclasses import replace
