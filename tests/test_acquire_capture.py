@@ -252,7 +252,7 @@ def test_installed_command_then_inspect(tmp_path):
 
 
 def test_psf_paths_are_package_resources_or_relative_to_the_rig(tmp_path, monkeypatch):
-    from rngcam.acquire.capture import resolve_psf_path
+    from rngcam.acquire.resolve import resolve_psf_path
 
     monkeypatch.delenv("RNGCAM_DATA", raising=False)
     copy = tmp_path / "mock.yaml"

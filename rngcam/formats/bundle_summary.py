@@ -66,6 +66,7 @@ def summary_dict(bundle: Bundle, path: str | os.PathLike | None = None,
                           if cal.white_balance is not None else None),
         "field_stop_open_fraction": (float(np.mean(cal.field_stop))
                                      if cal.field_stop is not None else None),
+        "sources": dict(cal.extra.get("sources") or {}),  # which of rig / calibration / mock gave each value
     }
     out["trigger"] = ({"generator": bundle.trigger.generator, "settings": bundle.trigger.settings,
                        "errors": list(bundle.trigger.errors)} if bundle.trigger else None)
@@ -82,6 +83,10 @@ def summary_dict(bundle: Bundle, path: str | os.PathLike | None = None,
                                  "max_dn": st.max_dn} for st in frames] for name, frames in stats.items()}
     out["problems"] = list(problems) if problems is not None else check_bundle(bundle)
     return out
+
+
+SOURCE_LABELS = {"line_time_s": "line time", "psf": "PSF", "gs_to_rs": "alignment",
+                 "white_balance": "white bal.", "rs_black_level_dn": "RS black", "gs_black_level_dn": "GS black"}
 
 
 def _fmt_ms(values: list[float], limit: int = 8) -> str:
@@ -131,6 +136,8 @@ def render_summary(s: dict) -> str:
     row("white bal.", " ".join(f"{v:.4g}" for v in wb) if wb is not None else "none")
     fs = cal["field_stop_open_fraction"]
     row("field stop", f"{100 * fs:.1f} % of pixels open" if fs is not None else "none")
+    if cal.get("sources"):
+        row("from", ", ".join(f"{SOURCE_LABELS.get(k, k)} {v}" for k, v in cal["sources"].items()))
     trig = s["trigger"]
     if trig:
         real = trigger_faults(trig["errors"])
