@@ -105,3 +105,23 @@ def test_line_time_mismatch_and_long_exposure_warn():
     long_rig = parse_rig(MOCK_TEXT.replace("exposure_s: 650.0e-6", "exposure_s: 20.0e-3", 1), RIGS / "mock.yaml")
     _, warnings = verify_timing(resolve_rig(long_rig, psf=False), 20e-3, 650e-6, None)
     assert any("longer than its readout" in w for w in warnings)
+
+
+def test_every_field_problem_is_named_on_one_line():
+    text = MOCK_TEXT.replace("exposure_s: 650.0e-6", "exposure_s: -1.0", 1)  # the RS camera
+    text = text.replace("exposure_s: 650.0e-6\n    gain_db", "exposure_sec: 650.0e-6\n    gain_db", 1)  # the GS one
+    message = _bad(text)
+    assert "cameras.gs.exposure_sec: unknown field (did you mean 'exposure_s'?)" in message
+    assert "cameras.rs.exposure_s: Input should be greater than 0" in message
+    assert "more problem" not in message and "cameras.gs.exposure_s: Field required" not in message
+
+
+def test_every_consistency_problem_is_named_on_one_line():
+    text = MOCK_TEXT.replace("activation: RisingEdge, channel: 2", "activation: RisingEdge, channel: 1")
+    text = text.replace("roi: {width: 64, height: 64}\n    trigger: {source: Line1, activation: RisingEdge, channel: 1}\n"
+                        "    fetch_timeout_s: 2.0\n    mock: {noise: true, seed: 12",
+                        "roi: {width: 32, height: 64}\n    trigger: {source: Line1, activation: RisingEdge, channel: 1}\n"
+                        "    fetch_timeout_s: 2.0\n    mock: {noise: true, seed: 12")
+    message = _bad(text)
+    assert "must differ" in message and "mock cameras need equal ROIs" in message
+    assert message.count("; ") >= 1

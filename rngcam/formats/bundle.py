@@ -7,6 +7,7 @@ opener every command shares in `bundle_read`, and what `rngcam inspect` shows in
 
 from rngcam.formats.bundle_read import (
     bundle_checksum,
+    check_bundle_path,
     open_bundle,
     open_checked,
     read_bundle,
@@ -33,7 +34,7 @@ from rngcam.formats.bundle_write import write_bundle
 
 __all__ = [
     "COMPRESSIONS", "FORMAT_NAME", "SCHEMA_VERSION", "WARNING_PREFIX", "Bundle", "Calibration",
-    "CameraRecord", "TriggerRecord", "Truth", "bundle_checksum", "camera_channels", "check_bundle",
+    "CameraRecord", "TriggerRecord", "Truth", "bundle_checksum", "camera_channels", "check_bundle_path", "check_bundle",
     "inspect_bundle", "is_warning", "open_bundle", "open_checked", "read_bundle",
     "read_bundle_with_warnings", "render_summary", "summarise", "summary_dict", "trigger_faults",
     "validate_bundle", "write_bundle",

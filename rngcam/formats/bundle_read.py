@@ -34,13 +34,25 @@ class _Fatal(Exception):
     """Stops reading: the file is not a readable bundle at all."""
 
 
-def _open_h5(path: Path) -> h5py.File:
+def check_bundle_path(path: str | os.PathLike) -> Path:
+    """`path` as a Path when it names a non-empty file; else the one line every command gives
+    for a bundle it cannot open (BundleError)."""
+    path = Path(path)
     if not path.exists():
         raise BundleError(f"bundle not found: {path}")
     if not path.is_file():
         raise BundleError(f"not a file: {path}")
-    if path.stat().st_size == 0:
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise BundleError(f"cannot read {path}: {exc.strerror or exc}") from None
+    if size == 0:
         raise BundleError(f"{path} is empty, not an HDF5 bundle")
+    return path
+
+
+def _open_h5(path: Path) -> h5py.File:
+    check_bundle_path(path)
     try:
         return h5py.File(path, "r")
     except OSError as exc:
@@ -299,8 +311,8 @@ def validate_bundle(path: str | os.PathLike) -> list[str]:
 
 
 def bundle_checksum(path: str | os.PathLike) -> str:
-    """sha256 of the file's bytes, hex."""
-    path = Path(path)
+    """sha256 of the file's bytes, hex; BundleError (the opener's line) when it cannot be read."""
+    path = check_bundle_path(path)
     digest = hashlib.sha256()
     try:
         with open(path, "rb") as fh:
