@@ -167,13 +167,6 @@ def measure(video: np.ndarray, psf_grid: np.ndarray, timing: SimTiming) -> tuple
     return rs_np, gs_np
 
 
-def forward_rs(video: np.ndarray, psf_grid: np.ndarray, timing: SimTiming) -> np.ndarray:
-    """The reconstruction's RS model on the grid, (3, H, W): binned rows (Bayer: trapezoid)."""
-    v = torch.from_numpy(np.asarray(video, np.float64))
-    w = torch.from_numpy(timing.rs.weights(timing.grid))
-    return RollingShutter(torch.from_numpy(psf_grid), w, v.shape[-1], channels=v.shape[0]).A(v).numpy()
-
-
 # --------------------------------------------------------------------------- bundle
 
 
