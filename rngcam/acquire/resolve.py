@@ -189,6 +189,7 @@ def resolve_rig(rig: Rig, progress: Progress = print, psf: bool = True,
         channels = 3 if mock is not None else None  # mock cameras always deliver RGB
         out.rig_psf, path, bias = load_rig_psf(rig, channels)
         out.psf, out.psf_source, out.psf_bias = out.rig_psf, path, bias
+        shown = Path(path).name
         sources["psf"] = "rig"
         if stored is not None and stored.psf is not None:
             p = stored.psf
@@ -198,7 +199,8 @@ def resolve_rig(rig: Rig, progress: Progress = print, psf: bool = True,
             out.psf_source = f"{stored_path} (rngcam calibrate psf)"
             out.psf_bias = float(stored.provenance.get("psf", {}).get("dark_level_dn", 0.0))
             sources["psf"] = "calibration"
-        progress(f"psf: {Path(out.psf_source.split(' (')[0]).name} ({sources['psf']}) -> "
+            shown = stored_path.name
+        progress(f"psf: {shown} ({sources['psf']}) -> "
                  f"{out.psf.shape[0]}x{out.psf.shape[1]}x{out.psf.shape[2]} on the RS grid "
                  f"(crop {c.calibration.psf.crop:g}, bias {out.psf_bias:g}); spectral support "
                  f"{spectral_support(out.psf):.2%} of frequencies above 10% of DC")

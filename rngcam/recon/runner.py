@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from rngcam.bundle import bundle_checksum, read_bundle_with_warnings
 from rngcam.errors import ConfigError, RngcamError
-from rngcam.formats.bundle import bundle_checksum, read_bundle_with_warnings
 from rngcam.memory import peak_rss_bytes
 from rngcam.recon import outputs
 from rngcam.recon.loop import LoopSettings, RunResult, run, stage_printer
