@@ -28,7 +28,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from rngcam.bundle import read_bundle
+from rngcam.formats.bundle import read_bundle
 from rngcam.paths import DATA_HINT, SHORT_CLIP, external_data, package_data
 from rngcam.recon import ffdnet
 from rngcam.recon.baselines import blend, interp

@@ -77,7 +77,7 @@ def simulated_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1) 
     clip_opts = {"clip": clip_path(scene), "span": 8} if scene in CLIPS else {}
     if dt_factor == 1:
         try:
-            from rngcam.bundle import read_bundle
+            from rngcam.formats.bundle import read_bundle
             from rngcam.recon.problem import build_problem
             from rngcam.sim.simulate import simulate
         except ImportError:

@@ -137,13 +137,14 @@ class TimingConfig(_Model):
 
     @model_validator(mode="after")
     def _pulse_fits(self) -> TimingConfig:
+        problems = []
         period = self.gs_period_s
         if period is not None and self.pulse_width_s >= period:
-            raise ValueError(f"pulse_width_s ({self.pulse_width_s}) must be shorter than the GS "
-                             f"trigger period ({period})")
+            problems.append(f"pulse_width_s ({self.pulse_width_s}) must be shorter than the GS "
+                            f"trigger period ({period})")
         if self.rs_trigger_s > self.gs_trigger_s[0] + 1e-12:
-            raise ValueError("the RS trigger (T0) must not come after the first GS trigger")
-        return self
+            problems.append("the RS trigger (T0) must not come after the first GS trigger")
+        return _raise_all(problems, self)
 
 
 class GeneratorConfig(_Model):
@@ -161,17 +162,18 @@ class GeneratorConfig(_Model):
 
     @model_validator(mode="after")
     def _transport_fields(self) -> GeneratorConfig:
+        problems = []
         if self.transport == "serial" and not self.port:
-            raise ValueError("transport 'serial' needs 'port' (e.g. /dev/ttyUSB0 or COM3)")
+            problems.append("transport 'serial' needs 'port' (e.g. /dev/ttyUSB0 or COM3)")
         if self.transport == "visa" and not self.visa_resource:
-            raise ValueError("transport 'visa' needs 'visa_resource' (e.g. USB0::...::INSTR)")
+            problems.append("transport 'visa' needs 'visa_resource' (e.g. USB0::...::INSTR)")
         if self.transport == "fake" and self.port:
-            raise ValueError("transport 'fake' opens its own pseudo-terminal; remove 'port'")
+            problems.append("transport 'fake' opens its own pseudo-terminal; remove 'port'")
         if self.fake_fault != "none" and self.transport != "fake":
-            raise ValueError("fake_fault only applies to transport 'fake'")
+            problems.append("fake_fault only applies to transport 'fake'")
         if not self.high_v > self.low_v:
-            raise ValueError(f"high_v ({self.high_v}) must exceed low_v ({self.low_v})")
-        return self
+            problems.append(f"high_v ({self.high_v}) must exceed low_v ({self.low_v})")
+        return _raise_all(problems, self)
 
 
 class PsfConfig(_Model):
@@ -225,28 +227,29 @@ class RigConfig(_Model):
     @model_validator(mode="after")
     def _consistent(self) -> RigConfig:
         rs, gs = self.cameras.rs, self.cameras.gs
+        problems = []
         if rs.line_time_s is None:
-            raise ValueError("cameras.rs.line_time_s is required (the RS row-to-row delay)")
+            problems.append("cameras.rs.line_time_s is required (the RS row-to-row delay)")
         if rs.trigger.channel == gs.trigger.channel:
-            raise ValueError("cameras.rs.trigger.channel and cameras.gs.trigger.channel must "
-                             "differ (one pulse for the RS camera, a burst for the GS camera)")
+            problems.append("cameras.rs.trigger.channel and cameras.gs.trigger.channel must "
+                            "differ (one pulse for the RS camera, a burst for the GS camera)")
         mocks = [c.backend == "mock" for c in (rs, gs)]
         if any(mocks):
             if not all(mocks):
-                raise ValueError("mock cameras cannot be mixed with real ones in one rig")
+                problems.append("mock cameras cannot be mixed with real ones in one rig")
             if self.mock is None:
-                raise ValueError("mock cameras need a 'mock' section naming the scene")
+                problems.append("mock cameras need a 'mock' section naming the scene")
             if self.generator.transport != "fake":
-                raise ValueError("mock cameras only receive triggers from generator transport 'fake'")
+                problems.append("mock cameras only receive triggers from generator transport 'fake'")
             if rs.roi != gs.roi:
-                raise ValueError("mock cameras need equal ROIs (the scene is rendered once and seen by both)")
+                problems.append("mock cameras need equal ROIs (the scene is rendered once and seen by both)")
             b = self.recon.grid_bin
             if rs.roi.width % b or rs.roi.height % b:
-                raise ValueError(f"mock cameras: the ROI {rs.roi.width}x{rs.roi.height} must divide by "
-                                 f"recon.grid_bin {b} (the mock renders on the grid and repeats each pixel)")
+                problems.append(f"mock cameras: the ROI {rs.roi.width}x{rs.roi.height} must divide by "
+                                f"recon.grid_bin {b} (the mock renders on the grid and repeats each pixel)")
         elif self.generator.transport == "fake":
-            raise ValueError("generator transport 'fake' can only trigger mock cameras")
-        return self
+            problems.append("generator transport 'fake' can only trigger mock cameras")
+        return _raise_all(problems, self)
 
 
 @dataclass(frozen=True)
@@ -263,29 +266,40 @@ class Rig:
         return p if p.is_absolute() else (self.path.parent / p).resolve()
 
 
+def _raise_all(problems: list[str], model):
+    """A model validator's end: every problem it found in one ValueError, or the model."""
+    if problems:
+        raise ValueError("; ".join(problems))
+    return model
+
+
 def _location(loc: tuple) -> str:
     return ".".join(str(part) for part in loc) or "(top level)"
 
 
 def format_validation_error(path: Path, exc: ValidationError) -> str:
-    """One line: 'FILE: field.path: problem' for the first error, plus how many more.
+    """One line naming every problem: 'FILE: field.path: problem; other.field: problem ...'.
 
-    Unknown fields come first (a misspelt name is also reported as a missing one), with the
-    missing name they most resemble as a suggestion.
+    Unknown fields come first, with the missing name they most resemble as a suggestion; a
+    missing field that is the suggestion for a misspelt one is not listed again.
     """
     errors = sorted(exc.errors(), key=lambda e: e["type"] != "extra_forbidden")
-    first = errors[0]
-    msg = first["msg"].removeprefix("Value error, ")
-    loc = _location(first["loc"])
-    if first["type"] == "extra_forbidden":
-        missing = [str(e["loc"][-1]) for e in errors
-                   if e["type"] == "missing" and e["loc"][:-1] == first["loc"][:-1]]
-        close = difflib.get_close_matches(str(first["loc"][-1]), missing, n=1)
-        msg = "unknown field" + (f" (did you mean {close[0]!r}?)" if close else " (check the spelling)")
-    line = f"{path}: {loc}: {msg}"
-    if len(errors) > 1:
-        line += f" (and {len(errors) - 1} more problem{'s' if len(errors) > 2 else ''})"
-    return line
+    suggested: set[tuple] = set()
+    parts = []
+    for e in errors:
+        loc = tuple(e["loc"])
+        if e["type"] == "missing" and loc in suggested:
+            continue
+        msg = e["msg"].removeprefix("Value error, ")
+        if e["type"] == "extra_forbidden":
+            missing = [str(m["loc"][-1]) for m in errors
+                       if m["type"] == "missing" and m["loc"][:-1] == e["loc"][:-1]]
+            close = difflib.get_close_matches(str(loc[-1]), missing, n=1)
+            if close:
+                suggested.add((*loc[:-1], close[0]))
+            msg = "unknown field" + (f" (did you mean {close[0]!r}?)" if close else " (check the spelling)")
+        parts.append(f"{_location(loc)}: {msg}")
+    return f"{path}: " + "; ".join(parts)
 
 
 def parse_rig(text: str, path: str | Path = "<rig>") -> Rig:

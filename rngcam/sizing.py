@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rngcam.bundle import Bundle, camera_channels
 from rngcam.errors import BundleError, ConfigError
+from rngcam.formats.bundle import Bundle, camera_channels
 from rngcam.memory import total_memory_bytes
 from rngcam.physics.sensor import BAYER_FORMATS
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid

@@ -21,10 +21,10 @@ from click.testing import CliRunner
 from rngcam.acquire.capture import capture
 from rngcam.acquire.fake_generator import FakeGenerator
 from rngcam.acquire.mock_camera import MockCamera
-from rngcam.bundle import read_bundle
 from rngcam.cli import main
 from rngcam.config import load_rig, parse_rig
 from rngcam.errors import ConfigError, HardwareError
+from rngcam.formats.bundle import read_bundle
 from rngcam.paths import DATA_DIR, MEASURED_PSF
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.sensor import SensorModel
@@ -252,7 +252,7 @@ def test_installed_command_then_inspect(tmp_path):
 
 
 def test_psf_paths_are_package_resources_or_relative_to_the_rig(tmp_path, monkeypatch):
-    from rngcam.acquire.capture import resolve_psf_path
+    from rngcam.acquire.resolve import resolve_psf_path
 
     monkeypatch.delenv("RNGCAM_DATA", raising=False)
     copy = tmp_path / "mock.yaml"

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from rngcam.acquire.capture import nominal_timing, resolve_psf_path, verify_timing
+from rngcam.acquire.capture import verify_timing
+from rngcam.acquire.resolve import resolve_psf_path, resolve_rig
 from rngcam.config import load_rig, parse_rig
 from rngcam.errors import ConfigError
 
@@ -31,11 +32,12 @@ def test_lab_rig_is_the_reference_prototype():
     assert c.cameras.rs.exposure_s == c.cameras.gs.exposure_s == 650e-6
     assert c.cameras.rs.line_time_s == 13e-6 and c.recon.grid_bin == 16
     assert len(c.timing.gs_trigger_s) == 3 and c.generator.transport == "serial"
-    rs, gs, grid = nominal_timing(rig)
+    resolved = resolve_rig(rig, psf=False)
+    rs, gs, grid = resolved.timing()
     assert grid.dt_s == pytest.approx(208e-6)
     # 228 grid rows of 16 sensor rows; the last row's exposure ends 48.061 ms after T0
     assert grid.n_frames == 232 and (grid.n_frames - 1) * 208e-6 < 3647 * 13e-6 + 650e-6
-    lines, warnings = verify_timing(rig, rs.exposure_s, gs.exposure_s, None)
+    lines, warnings = verify_timing(resolved, rs.exposure_s, gs.exposure_s, None)
     assert warnings == [] and "inside the RS window" in lines[1]
     assert rig.text == (RIGS / "lab.yaml").read_text()
 
@@ -45,7 +47,7 @@ def test_mock_rig_keeps_the_reference_timing_at_64_rows():
     c = rig.config
     assert c.cameras.rs.backend == c.cameras.gs.backend == "mock"
     assert c.generator.transport == "fake" and c.mock.scene == "sineball"
-    _, _, grid = nominal_timing(rig)
+    _, _, grid = resolve_rig(rig, psf=False).timing()
     assert grid.dt_s == pytest.approx(208e-6) and c.cameras.rs.roi.height == 64
     assert resolve_psf_path(rig).name == "diffusercam_tutorial_psf.png"  # shipped in rngcam/data
 
@@ -92,13 +94,34 @@ def test_cameras_need_separate_channels():
 def test_gs_exposure_outside_the_rs_window_fails_before_any_hardware():
     rig = parse_rig(MOCK_TEXT.replace("[0.0, 6.5e-3, 13.0e-3]", "[0.0, 7.0e-3, 14.0e-3]"), RIGS / "mock.yaml")
     with pytest.raises(ConfigError, match=r"GS exposure 3 .* not inside the RS exposure window"):
-        verify_timing(rig, 650e-6, 650e-6, None)
+        verify_timing(resolve_rig(rig, psf=False), 650e-6, 650e-6, None)
 
 
 def test_line_time_mismatch_and_long_exposure_warn():
     rig = load_rig(RIGS / "mock.yaml")
-    _, warnings = verify_timing(rig, 650e-6, 650e-6, 200e-6)
-    assert any("line time is 200 us but the rig says 208 us" in w for w in warnings)
+    _, warnings = verify_timing(resolve_rig(rig, psf=False), 650e-6, 650e-6, 200e-6)
+    assert any("line time is 200 us but the rig file says 208 us (the bundle records the rig file's value)" in w
+               for w in warnings)
     long_rig = parse_rig(MOCK_TEXT.replace("exposure_s: 650.0e-6", "exposure_s: 20.0e-3", 1), RIGS / "mock.yaml")
-    _, warnings = verify_timing(long_rig, 20e-3, 650e-6, None)
+    _, warnings = verify_timing(resolve_rig(long_rig, psf=False), 20e-3, 650e-6, None)
     assert any("longer than its readout" in w for w in warnings)
+
+
+def test_every_field_problem_is_named_on_one_line():
+    text = MOCK_TEXT.replace("exposure_s: 650.0e-6", "exposure_s: -1.0", 1)  # the RS camera
+    text = text.replace("exposure_s: 650.0e-6\n    gain_db", "exposure_sec: 650.0e-6\n    gain_db", 1)  # the GS one
+    message = _bad(text)
+    assert "cameras.gs.exposure_sec: unknown field (did you mean 'exposure_s'?)" in message
+    assert "cameras.rs.exposure_s: Input should be greater than 0" in message
+    assert "more problem" not in message and "cameras.gs.exposure_s: Field required" not in message
+
+
+def test_every_consistency_problem_is_named_on_one_line():
+    text = MOCK_TEXT.replace("activation: RisingEdge, channel: 2", "activation: RisingEdge, channel: 1")
+    text = text.replace("roi: {width: 64, height: 64}\n    trigger: {source: Line1, activation: RisingEdge, channel: 1}\n"
+                        "    fetch_timeout_s: 2.0\n    mock: {noise: true, seed: 12",
+                        "roi: {width: 32, height: 64}\n    trigger: {source: Line1, activation: RisingEdge, channel: 1}\n"
+                        "    fetch_timeout_s: 2.0\n    mock: {noise: true, seed: 12")
+    message = _bad(text)
+    assert "must differ" in message and "mock cameras need equal ROIs" in message
+    assert message.count("; ") >= 1

@@ -17,10 +17,10 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from rngcam.bundle import read_bundle
 from rngcam.cli import main
 from rngcam.errors import ConfigError, RngcamError
 from rngcam.evaluate import stress_cases as edits
+from rngcam.formats.bundle import read_bundle
 from rngcam.recon.metrics import error_visibility, error_visibility_caveats
 from rngcam.recon.problem import build_problem
 from rngcam.recon.runner import ReconSettings, reconstruct

@@ -16,9 +16,10 @@ import h5py
 import numpy as np
 import pytest
 
-import rngcam.bundle as bundle_mod
+import rngcam.formats.bundle_write as bundle_write
 from rngcam import __version__
-from rngcam.bundle import (
+from rngcam.errors import BundleError
+from rngcam.formats.bundle import (
     FORMAT_NAME,
     SCHEMA_VERSION,
     Bundle,
@@ -35,7 +36,6 @@ from rngcam.bundle import (
     validate_bundle,
     write_bundle,
 )
-from rngcam.errors import BundleError
 
 REPO = Path(__file__).resolve().parents[1]
 RS_ROWS, RS_COLS = 48, 64
@@ -359,7 +359,7 @@ def test_missing_directory_is_a_clear_error(tmp_path):
 
 @pytest.mark.parametrize("failure", [OSError("disk full"), KeyboardInterrupt()])
 def test_failure_mid_write_removes_the_temporary_file(tmp_path, monkeypatch, failure):
-    real_write_camera = bundle_mod._write_camera
+    real_write_camera = bundle_write._write_camera
 
     def write_then_fail(f, name, *args):
         real_write_camera(f, name, *args)
@@ -367,7 +367,7 @@ def test_failure_mid_write_removes_the_temporary_file(tmp_path, monkeypatch, fai
             assert any(p.name.startswith(".b.h5.partial-") for p in tmp_path.iterdir())
             raise failure
 
-    monkeypatch.setattr(bundle_mod, "_write_camera", write_then_fail)
+    monkeypatch.setattr(bundle_write, "_write_camera", write_then_fail)
     expected = BundleError if isinstance(failure, OSError) else KeyboardInterrupt
     with pytest.raises(expected):
         write_bundle(make_bundle(), tmp_path / "b.h5")
@@ -380,7 +380,7 @@ _SLOW_WRITER = textwrap.dedent("""
     import numpy as np
     sys.path[:0] = [{tests!r}, {repo!r}]
     from test_bundle import make_bundle
-    from rngcam.bundle import write_bundle
+    from rngcam.formats.bundle import write_bundle
     b = make_bundle()
     frames = np.random.default_rng(0).integers(0, 4096, (64, 1024, 1024), dtype=np.uint16)
     b = replace(b, rs=replace(b.rs, frames=frames, trigger_times_s=np.zeros(64),

@@ -14,27 +14,25 @@ import numpy as np
 import pytest
 import torch
 
-from rngcam.calibrate import store
 from rngcam.calibrate.align import (
     AlignmentError,
     align_images,
     align_pair,
     bin_matrix,
-    similarity_matrix,
-    similarity_of,
-    transform_error_px,
     working_pair,
 )
 from rngcam.calibrate.deconv import deconvolve, wiener
 from rngcam.calibrate.linetime import default_heights, fit_line_time, readout_samples
 from rngcam.calibrate.psf import PsfCalibrationError, correlation, estimate_psf
-from rngcam.calibrate.targets import chart_image
 from rngcam.calibrate.whitebalance import estimate_white_balance
 from rngcam.errors import HardwareError, RngcamError
+from rngcam.formats import calibration as store
 from rngcam.paths import HAND_BIAS_DN, HAND_MEASUREMENT, MEASURED_PSF, MEASURED_PSF_BIAS_DN, package_data
+from rngcam.physics.geometry import similarity_matrix, similarity_of, transform_error_px
 from rngcam.physics.operators import PSFConvolution
 from rngcam.physics.psf import load_psf, prepare_psf
 from rngcam.physics.sensor import SensorModel, frame_to_measurement
+from rngcam.sim.targets import chart_image
 
 N = 64
 CENTRE = ((N - 1) / 2, (N - 1) / 2)

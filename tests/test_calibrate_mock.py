@@ -11,10 +11,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rngcam.acquire.capture import capture, rs_psf
-from rngcam.bundle import read_bundle
-from rngcam.calibrate import store
-from rngcam.calibrate.align import similarity_matrix, similarity_of, transform_error_px
+from rngcam.acquire.capture import capture
+from rngcam.acquire.resolve import load_rig_psf
 from rngcam.calibrate.psf import correlation
 from rngcam.calibrate.run import (
     calibrate_align,
@@ -25,7 +23,10 @@ from rngcam.calibrate.run import (
 from rngcam.cli import main
 from rngcam.config import parse_rig
 from rngcam.errors import ConfigError
+from rngcam.formats import calibration as store
+from rngcam.formats.bundle import read_bundle
 from rngcam.paths import DATA_DIR, MEASURED_PSF
+from rngcam.physics.geometry import similarity_matrix, similarity_of, transform_error_px
 
 REPO = Path(__file__).resolve().parents[1]
 MOCK = REPO / "rigs" / "mock.yaml"
@@ -37,9 +38,12 @@ GS_GAIN = np.array([1.15, 0.95, 0.85])
 TRUE_LINE_TIME_S = 204e-6  # the rig says 208 us: 1.9 % off, which is warned about
 
 
-def _rig_text(calib_file: Path | None) -> str:
+def _rig_text(calib_file: Path | None, triggers: str = "[0.0, 6.4e-3, 12.8e-3]") -> str:
+    """The misaligned mock rig; its GS triggers fit inside the RS window at the true (shorter)
+    line time, which a capture with the calibration file checks against."""
     text = MOCK.read_text()
     replacements = [
+        ("[0.0, 6.5e-3, 13.0e-3]", triggers),
         ("read_noise_e: 3.0}\n  gs", "read_noise_e: 3.0, line_time_s: 204.0e-6}\n  gs"),
         ("           readout_s: 1.0e-3}",
          ("           readout_s: 1.0e-3, channel_gain: [1.15, 0.95, 0.85],\n"
@@ -53,9 +57,9 @@ def _rig_text(calib_file: Path | None) -> str:
     return text
 
 
-def _rig(tmp: Path, named: bool = True):
+def _rig(tmp: Path, named: bool = True, **options):
     path = tmp / "calib-mock.yaml"
-    path.write_text(_rig_text(tmp / "mock.calib.h5" if named else None))
+    path.write_text(_rig_text(tmp / "mock.calib.h5" if named else None, **options))
     return parse_rig(path.read_text(), MOCK)  # relative paths (the PSF) resolve as for rigs/mock.yaml
 
 
@@ -76,7 +80,7 @@ def calibrated(tmp_path_factory):
 def test_psf_matches_the_mock_optics(calibrated):
     rig, outcomes, _, _ = calibrated
     est = outcomes["psf"].value
-    true_psf, _, _ = rs_psf(rig, lambda s: None)
+    true_psf, _, _ = load_rig_psf(rig, channels=3)
     assert correlation(est.psf, true_psf) > 0.99
     assert est.peak_snr > 50 and est.saturated_pixels == 0 and est.dark.startswith("dark frame")
     assert any("mock truth: correlation" in line for line in outcomes["psf"].lines)
@@ -133,6 +137,19 @@ def test_capture_copies_the_calibration_into_the_bundle(calibrated):
     assert "rngcam calibrate psf" in b.calibration.psf_source
     assert b.rs.line_time_s == pytest.approx(cal.line_time_s)
     assert b.calibration.extra["calibration_parts"] == cal.parts()
+    assert b.calibration.extra["sources"] == {
+        "line_time_s": "calibration", "gs_to_rs": "calibration", "psf": "calibration",
+        "white_balance": "calibration", "rs_black_level_dn": "mock", "gs_black_level_dn": "mock"}
+    assert not any("line time" in w for w in r.warnings)  # the camera matches the calibrated value
+
+
+def test_gs_triggers_are_checked_against_the_calibrated_line_time(calibrated):
+    tmp = calibrated[3]
+    rig = _rig(tmp, triggers="[0.0, 6.5e-3, 13.0e-3]")  # inside the window at the rig's 208 us, not at 204
+    with pytest.raises(ConfigError, match=r"GS exposure 3 .* not inside .* \(line time 20[34][.0-9]* us from the "
+                                          r"calibration file\)"):
+        capture(rig, tmp / "late.h5", progress=lambda s: None)
+    assert not (tmp / "late.h5").exists()
 
 
 def test_a_rig_naming_a_missing_calibration_file_cannot_capture(tmp_path):

@@ -5,9 +5,9 @@ import torch
 from tiny_scenes import tiny_sineball_problem
 
 from rngcam.errors import ConfigError
+from rngcam.recon.holdout import HoldoutScorer, holdout_residuals
 from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.tv3d import TV3D, TV3DSettings, _Masked
-from rngcam.scale.holdout import HoldoutScorer, holdout_residuals
 
 DT = 1e-4
 

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rngcam.bundle import bundle_checksum, write_bundle
 from rngcam.cli import main
+from rngcam.formats.bundle import bundle_checksum, write_bundle
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_bundle import LINE_TIME_S, RS_EXPOSURE_S, RS_ROWS, make_bundle

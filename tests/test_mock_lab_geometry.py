@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from rngcam.acquire.capture import capture
-from rngcam.bundle import read_bundle
 from rngcam.config import parse_rig
 from rngcam.errors import ConfigError
+from rngcam.formats.bundle import read_bundle
 from rngcam.recon.problem import build_problem
 
 REPO = Path(__file__).resolve().parents[1]

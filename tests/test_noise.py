@@ -45,7 +45,7 @@ def test_degenerate_inputs_give_zero_not_nan():
 
 def test_rs_image_of_a_simulated_capture(tmp_path):
     """On a simulated bundle the estimate is close to the noise the simulator actually added."""
-    from rngcam.bundle import read_bundle
+    from rngcam.formats.bundle import read_bundle
     from rngcam.recon.problem import build_problem
     from rngcam.sim.simulate import simulate
 

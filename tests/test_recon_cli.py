@@ -71,7 +71,7 @@ def test_resume_continues_from_checkpoint(mock_bundle, tmp_path):
 
 def test_clear_errors(tmp_path, mock_bundle):
     missing = CliRunner().invoke(main, ["recon", str(tmp_path / "nope.h5")])
-    assert missing.exit_code != 0 and "does not exist" in missing.output
+    assert missing.exit_code != 0 and "bundle not found" in missing.output
     junk = tmp_path / "junk.h5"
     junk.write_bytes(b"not hdf5 at all")
     res = CliRunner().invoke(main, ["recon", str(junk), "--method", "blend"])

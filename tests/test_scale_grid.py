@@ -71,7 +71,7 @@ def test_scenes_render_non_square(scene):
 
 
 def test_simulate_non_square_bundle_matches_the_grid(tmp_path):
-    from rngcam.bundle import read_bundle
+    from rngcam.formats.bundle import read_bundle
     from rngcam.recon.problem import build_problem
 
     b = simulate("sineball", tmp_path / "s.h5", size=(16, 24), noise=False)

@@ -5,9 +5,9 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from rngcam.bundle import read_bundle
 from rngcam.cli import main
 from rngcam.errors import RngcamError
+from rngcam.formats.bundle import read_bundle
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.sensor import BAYER_FORMATS, demosaic_bin, frame_to_measurement

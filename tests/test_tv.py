@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from scipy.optimize import lsq_linear, minimize
 
 from rngcam.errors import ConfigError, RngcamError
-from rngcam.recon.tv import (
+from rngcam.physics.tv_prox import (
     div3,
     grad3,
     nonneg,

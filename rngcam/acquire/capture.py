@@ -1,9 +1,11 @@
 """Capture orchestration: rig -> cameras + trigger generator -> one bundle per shot.
 
-Steps (each reported through `progress`): prepare the PSF, connect the generator and the
-cameras (by serial), configure them and read every feature back, verify the timing, configure
-the generator (checking *OPC? and SYST:ERR?), arm the cameras, fire, fetch one RS frame and
-every GS frame, disarm, switch the generator's outputs off, and write the bundle atomically.
+Steps (each reported through `progress`): resolve the rig's values once (rig file, calibration
+file, mock sections: rngcam.acquire.resolve), open the devices through the factory
+(rngcam.acquire.factory), connect the generator and the cameras (by serial), configure them and
+read every feature back, verify the timing, configure the generator (checking *OPC? and
+SYST:ERR?), arm the cameras, fire, fetch one RS frame and every GS frame, disarm, switch the
+generator's outputs off, and write the bundle atomically.
 Any failure raises one-line HardwareError/ConfigError after the cameras are disarmed and the
 outputs are off; no bundle is written then.
 """
@@ -21,14 +23,15 @@ from pathlib import Path
 import numpy as np
 
 from rngcam.acquire.camera import Camera, CameraSettings, Frame
+from rngcam.acquire.factory import open_devices
 from rngcam.acquire.generator import FunctionGenerator, PulseTrain
-from rngcam.config import CameraConfig, MockSensor, Rig
+from rngcam.acquire.resolve import ResolvedRig, resolve_rig
+from rngcam.config import CameraConfig, Rig
 from rngcam.errors import ConfigError, HardwareError, RngcamError
-from rngcam.physics.psf import load_psf, prepare_psf, spectral_support, subtract_bias
-from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+from rngcam.formats.bundle import Bundle, CameraRecord, TriggerRecord, write_bundle
 
 Progress = Callable[[str], None]
-LINE_TIME_RTOL = 0.01  # warn when the camera's line time differs from the rig's by more
+LINE_TIME_RTOL = 0.01  # warn when the camera's line time differs from the resolved one by more
 TIMESTAMP_TOL_S = 20e-6  # GS timestamp spacing may differ from the burst period by this much
 
 
@@ -39,7 +42,7 @@ class CaptureResult:
     seconds: dict = field(default_factory=dict)
 
 
-# --------------------------------------------------------------------------- paths and PSF
+# --------------------------------------------------------------------------- paths
 
 
 def default_output(directory: Path | str = ".", now: datetime | None = None) -> Path:
@@ -73,71 +76,21 @@ def output_paths(out: Path | None, count: int) -> list[Path]:
     return paths
 
 
-def resolve_psf_path(rig: Rig) -> Path:
-    """The rig's PSF file: `package:NAME` is a file shipped in rngcam/data, a relative path is
-    relative to the rig file."""
-    from rngcam.paths import resolve_data_ref
-
-    cfg = rig.config.calibration.psf
-    if cfg is None:
-        raise ConfigError(f"{rig.path}: calibration.psf: a PSF file is required for capture")
-    path = resolve_data_ref(cfg.path, rig.path.parent)
-    if path.is_file():
-        return path
-    raise ConfigError(f"{rig.path}: calibration.psf.path: PSF file not found: {path} "
-                      "(relative paths are relative to the rig file; package:NAME names a file in rngcam/data)")
-
-
-def rs_psf(rig: Rig, progress: Progress) -> tuple[np.ndarray, str, float]:
-    """(PSF (C, H, W) float64 summing to 1 per channel on the RS sensor grid, source, bias)."""
-    cfg = rig.config.calibration.psf
-    path = resolve_psf_path(rig)
-    roi = rig.config.cameras.rs.roi
-    shape = (roi.height, roi.width)
-    try:
-        raw = load_psf(path)
-        if raw.shape[-2:] == shape and cfg.crop == 1.0:
-            psf, bias = subtract_bias(raw, cfg.bias)  # already measured on this sensor grid
-            psf = psf / psf.sum(axis=(-2, -1), keepdims=True)
-        else:
-            psf, bias = prepare_psf(raw, shape, crop=cfg.crop, bias=cfg.bias)
-    except (OSError, ValueError) as exc:
-        raise ConfigError(f"{rig.path}: calibration.psf: {path}: {exc}") from None
-    if not np.all(np.isfinite(psf)):
-        raise ConfigError(f"{rig.path}: calibration.psf: {path} has no usable signal")
-    if rig.config.cameras.rs.backend == "mock" and psf.shape[0] == 1:
-        psf = np.repeat(psf, 3, axis=0)
-    support = spectral_support(psf)
-    progress(f"psf: {path.name} -> {psf.shape[0]}x{psf.shape[1]}x{psf.shape[2]} on the RS grid "
-             f"(crop {cfg.crop:g}, bias {bias:g}); spectral support {support:.2%} of frequencies "
-             f"above 10% of DC")
-    return psf, str(path), bias
-
-
 # --------------------------------------------------------------------------- timing
 
 
-def nominal_timing(rig: Rig) -> tuple[RollingShutterTiming, GlobalShutterTiming, VideoGrid]:
-    """RS/GS timing relative to T0 from the rig, and the reconstruction's video grid."""
-    c = rig.config
-    rs = RollingShutterTiming(line_time_s=c.cameras.rs.line_time_s, exposure_s=c.cameras.rs.exposure_s,
-                              rows=c.cameras.rs.roi.height)
-    t0 = c.timing.rs_trigger_s
-    gs = GlobalShutterTiming(tuple(t - t0 for t in c.timing.gs_trigger_s), c.cameras.gs.exposure_s)
-    grid = VideoGrid.covering(rs, gs, dt_s=rs.line_time_s * c.recon.grid_bin)
-    return rs, gs, grid
-
-
-def verify_timing(rig: Rig, rs_exposure_s: float, gs_exposure_s: float,
+def verify_timing(resolved: ResolvedRig, rs_exposure_s: float, gs_exposure_s: float,
                   reported_line_time_s: float | None) -> tuple[list[str], list[str]]:
     """(summary lines, warnings). Raises ConfigError when a GS exposure leaves the RS window."""
+    rig = resolved.rig
     c = rig.config
     rows = c.cameras.rs.roi.height
-    line = c.cameras.rs.line_time_s
+    line = resolved.line_time_s
+    source = resolved.described("line_time_s")
     readout = (rows - 1) * line
     window_end = readout + rs_exposure_s
     t0 = c.timing.rs_trigger_s
-    lines = [(f"RS: {rows} rows x {line * 1e6:g} us line time = {readout * 1e3:.3f} ms readout, "
+    lines = [(f"RS: {rows} rows x {line * 1e6:g} us line time ({source}) = {readout * 1e3:.3f} ms readout, "
               f"exposure {rs_exposure_s * 1e6:g} us, window [0, {window_end * 1e3:.3f}] ms after T0")]
     warnings: list[str] = []
     for i, t in enumerate(c.timing.gs_trigger_s):
@@ -145,19 +98,20 @@ def verify_timing(rig: Rig, rs_exposure_s: float, gs_exposure_s: float,
         if start < 0 or end > window_end * (1 + 1e-9):
             raise ConfigError(f"{rig.path}: timing.gs_trigger_s: GS exposure {i + 1} "
                               f"[{start * 1e3:.3f}, {end * 1e3:.3f}] ms is not inside the RS exposure "
-                              f"window [0, {window_end * 1e3:.3f}] ms")
+                              f"window [0, {window_end * 1e3:.3f}] ms (line time {line * 1e6:.4g} us "
+                              f"from {source})")
     lines.append("GS: exposures at " + ", ".join(f"{(t - t0) * 1e3:.3f}" for t in c.timing.gs_trigger_s)
                  + f" ms ({gs_exposure_s * 1e6:g} us each), all inside the RS window")
     if rs_exposure_s > readout:
         warnings.append(f"RS exposure ({rs_exposure_s * 1e3:.3f} ms) is longer than its readout "
                         f"({readout * 1e3:.3f} ms): rows overlap in time and the RS image codes little motion")
     if reported_line_time_s is None:
-        lines.append(f"line time: camera does not report it; using the rig's {line * 1e6:g} us")
+        lines.append(f"line time: camera does not report it; using {source}'s {line * 1e6:g} us")
     elif not math.isclose(reported_line_time_s, line, rel_tol=LINE_TIME_RTOL):
-        warnings.append(f"RS camera line time is {reported_line_time_s * 1e6:.4g} us but the rig says "
-                        f"{line * 1e6:.4g} us (the bundle records the rig's value)")
+        warnings.append(f"RS camera line time is {reported_line_time_s * 1e6:.4g} us but {source} says "
+                        f"{line * 1e6:.4g} us (the bundle records {source}'s value)")
     else:
-        lines.append(f"line time: camera {reported_line_time_s * 1e6:.4g} us matches the rig")
+        lines.append(f"line time: camera {reported_line_time_s * 1e6:.4g} us matches {source}")
     return lines, warnings
 
 
@@ -172,63 +126,6 @@ def pulse_trains(rig: Rig) -> list[PulseTrain]:
 
 
 # --------------------------------------------------------------------------- hardware set-up
-
-
-def _make_camera(cfg: CameraConfig, role: str, world) -> Camera:
-    if cfg.backend == "mock":
-        from rngcam.acquire.mock_camera import MockCamera
-
-        return MockCamera(cfg.serial, role, world)
-    if cfg.backend == "pylon":
-        from rngcam.acquire.pylon_camera import PylonCamera
-
-        return PylonCamera(cfg.serial, role, transport=cfg.pylon_transport)
-    from rngcam.acquire.genicam_camera import GenicamCamera
-
-    return GenicamCamera(cfg.serial, role, cti=cfg.cti)
-
-
-def _mock_world(rig: Rig, psf: np.ndarray, gs_timing: GlobalShutterTiming, grid: VideoGrid):
-    from rngcam.acquire.mock_camera import MockDevice, MockWorld
-    from rngcam.physics.sensor import SensorModel
-    from rngcam.sizing import default_max_memory_bytes
-
-    c = rig.config
-    rs_roi, grid_bin = c.cameras.rs.roi, c.recon.grid_bin
-    h, w = rs_roi.height // grid_bin, rs_roi.width // grid_bin  # the mock renders on the grid
-    need = 3 * grid.n_frames * h * w * 4 * 3  # the float32 truth video, the frames rendered from it
-    if need > default_max_memory_bytes():
-        raise ConfigError(f"{rig.path}: the mock scene would need about {need / 2**30:,.1f} GiB "
-                          f"({grid.n_frames} frames of {h}x{w}x3), more than this machine can "
-                          "spare: use a smaller cameras.rs.roi or a larger recon.grid_bin for the mock rig")
-    world = MockWorld(c.mock.scene, (c.cameras.rs.roi.height, c.cameras.rs.roi.width), grid, psf,
-                      seed=c.mock.seed, key_times_s=list(gs_timing.centres_s()), options=c.mock.options,
-                      bin=c.recon.grid_bin)
-    for role in ("rs", "gs"):
-        cam = getattr(c.cameras, role)
-        m = cam.mock or MockSensor()
-        sensor = SensorModel(bit_depth=cam.bit_depth, black_level_dn=m.black_level_dn,
-                             full_well_e=m.full_well_e, read_noise_e=m.read_noise_e,
-                             channel_gain=None if m.channel_gain is None else tuple(m.channel_gain))
-        if sensor.pixel_format != cam.pixel_format:
-            raise ConfigError(f"{rig.path}: cameras.{role}.pixel_format: mock cameras deliver "
-                              f"{sensor.pixel_format}, not {cam.pixel_format}")
-        world.plug(MockDevice(cam.serial, cam.model or f"mock {role.upper()}", role, sensor,
-                              noise=m.noise, seed=m.seed,
-                              line_time_s=(m.line_time_s or cam.line_time_s) if role == "rs" else None,
-                              readout_s=m.readout_s, gs_to_rs=_mock_gs_to_rs(m, cam) if role == "gs" else None))
-    return world
-
-
-def _mock_gs_to_rs(m: MockSensor, cam: CameraConfig):
-    """The mock GS camera's true GS->RS transform (rows of a 3x3) from its misalignment, or None."""
-    if m.misalignment is None:
-        return None
-    from rngcam.calibrate.align import similarity_matrix
-
-    a = m.misalignment
-    centre = ((cam.roi.width - 1) / 2, (cam.roi.height - 1) / 2)
-    return tuple(map(tuple, similarity_matrix(a.shift_px, a.rotation_deg, a.scale, centre)))
 
 
 def _connect_generator(rig: Rig, stack: contextlib.ExitStack, progress: Progress):
@@ -274,17 +171,15 @@ def _stack(frames: list[Frame]) -> np.ndarray:
     return np.stack([f.data for f in frames])
 
 
-def _record(cfg: CameraConfig, cam: Camera, frames: list[Frame], trigger_times_s, line_time_s):
-    from rngcam.bundle import CameraRecord
-
+def _record(cfg: CameraConfig, cam: Camera, frames: list[Frame], trigger_times_s, black_level_dn: float,
+            line_time_s: float | None):
     features = dict(cam.configured.features) if cam.configured else {}
-    black = (cfg.mock or MockSensor()).black_level_dn if cfg.backend == "mock" else cfg.black_level_dn
     stamps = [f.timestamp_s for f in frames]
     ids = [f.frame_id for f in frames]
     info = cam.info
     return CameraRecord(
         frames=_stack(frames), pixel_format=frames[0].pixel_format or cfg.pixel_format,
-        bit_depth=cfg.bit_depth, black_level_dn=float(black),
+        bit_depth=cfg.bit_depth, black_level_dn=float(black_level_dn),
         exposure_s=float(features.get("exposure_s") or cfg.exposure_s),
         trigger_times_s=np.asarray(trigger_times_s, dtype=np.float64), line_time_s=line_time_s,
         gain_db=float(features.get("gain_db", cfg.gain_db)),
@@ -309,30 +204,23 @@ def _check_gs_timestamps(frames: list[Frame], period_s: float | None) -> list[st
 def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
             progress: Progress = print) -> list[CaptureResult]:
     """Run `count` shots on the rig; each shot's bundle is written atomically. See module doc."""
-    from rngcam.bundle import Bundle, Calibration, TriggerRecord, Truth, write_bundle
-
     c = rig.config
     paths = output_paths(Path(out) if out is not None else None, count)
     t_start = time.perf_counter()
-    psf, psf_source, psf_bias = rs_psf(rig, progress)
-    _, gs_timing, grid = nominal_timing(rig)
-    from rngcam.calibrate.store import apply_to_bundle, rig_calibration
-
-    stored, stored_path = rig_calibration(rig)  # rngcam calibrate's file, when the rig names one
-    if stored is not None:
-        progress(f"calibration: {', '.join(stored.parts()) or 'nothing'} from {stored_path}")
+    resolved = resolve_rig(rig, progress)  # rig file + calibration file + mock sections, once
+    _, _, grid = resolved.timing()
     warnings: list[str] = []
     results: list[CaptureResult] = []
     shots = []
     stage = ["while setting up"]  # what was under way when something failed
     try:
         with contextlib.ExitStack() as stack:
-            world = _mock_world(rig, psf, gs_timing, grid) if c.cameras.rs.backend == "mock" else None
+            devices = open_devices(resolved)
             gen, fake = _connect_generator(rig, stack, progress)
             cams: dict[str, Camera] = {}
             for role in ("rs", "gs"):
                 cfg = getattr(c.cameras, role)
-                cam = stack.enter_context(_make_camera(cfg, role.upper(), world))
+                cam = stack.enter_context(devices.camera(role))
                 cams[role] = cam
                 progress(f"{role} camera: {cam.info.model} serial {cam.info.serial} ({cfg.backend})")
                 if fake is not None:
@@ -344,7 +232,7 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
                 progress(f"{role} camera configured: {cfg.pixel_format}, {cfg.roi.width}x{cfg.roi.height}, "
                          f"exposure {configured.exposure_s * 1e6:g} us, trigger {cfg.trigger.source} "
                          f"{cfg.trigger.activation} <- generator channel {cfg.trigger.channel}")
-            summary, timing_warnings = verify_timing(rig, cams["rs"].configured.exposure_s,
+            summary, timing_warnings = verify_timing(resolved, cams["rs"].configured.exposure_s,
                                                      cams["gs"].configured.exposure_s,
                                                      cams["rs"].line_time_s())
             warnings += timing_warnings
@@ -360,8 +248,7 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
                 progress(f"warning: {w}")
             for shot in range(count):
                 t_shot = time.perf_counter()
-                if world is not None:
-                    world.t0_s = None
+                devices.begin_shot()
                 for cam in cams.values():
                     cam.arm()
                 for cam in cams.values():
@@ -381,10 +268,7 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
                     progress(f"warning: {w}")
                 progress(f"shot {shot + 1}/{count}: fetched 1 RS + {n_gs} GS frames "
                          f"({time.perf_counter() - t_shot:.2f} s)")
-                truth = None
-                if world is not None:
-                    truth = Truth(video=world.video(), frame_times_s=grid.edges_s()[:-1], dt_s=grid.dt_s)
-                shots.append((rs_frames, gs_frames, truth, shot_warnings))
+                shots.append((rs_frames, gs_frames, devices.truth(), shot_warnings))
             gen.outputs_off()
             progress("hardware safe: cameras disarmed, generator outputs off")
             trigger = TriggerRecord(generator=gen.identity,
@@ -397,22 +281,14 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
         raise _failure(stage[0], exc) from None
     t0 = c.timing.rs_trigger_s
     for path, (rs_frames, gs_frames, truth, shot_warnings) in zip(paths, shots):
-        calibration = Calibration(
-            psf=psf.astype(np.float32), psf_source=psf_source, psf_bias=psf_bias,
-            gs_to_rs=np.asarray(c.calibration.gs_to_rs if c.calibration.gs_to_rs else np.eye(3), np.float64),
-            white_balance=np.asarray(c.calibration.white_balance if c.calibration.white_balance
-                                     else np.ones(psf.shape[0]), np.float64),
-            extra={"psf_crop": c.calibration.psf.crop, "psf_spectral_support": spectral_support(psf)})
-        if stored is not None:
-            calibration = apply_to_bundle(stored, stored_path, calibration, psf.shape[-2:])
+        black = resolved.black_level_dn
         bundle = Bundle(
-            rs=_record(c.cameras.rs, cams["rs"], rs_frames, [0.0],
-                       (stored and stored.line_time_s) or c.cameras.rs.line_time_s),
-            gs=_record(c.cameras.gs, cams["gs"], gs_frames, [t - t0 for t in c.timing.gs_trigger_s], None),
-            calibration=calibration, trigger=trigger, truth=truth, rig_yaml=rig.text,
+            rs=_record(c.cameras.rs, cams["rs"], rs_frames, [0.0], black["rs"], resolved.line_time_s),
+            gs=_record(c.cameras.gs, cams["gs"], gs_frames, [t - t0 for t in c.timing.gs_trigger_s],
+                       black["gs"], None),
+            calibration=resolved.bundle_calibration(), trigger=trigger, truth=truth, rig_yaml=rig.text,
             meta={"source": "capture", "rig_name": c.name, "rig_path": str(rig.path),
-                  "backend": c.cameras.rs.backend, "grid_bin": c.recon.grid_bin,
-                  "grid_dt_s": grid.dt_s, "grid_frames": grid.n_frames,
+                  "backend": c.cameras.rs.backend, "grid_bin": c.recon.grid_bin, "grid_frames": grid.n_frames,
                   "scene": c.mock.model_dump() if c.mock else None,
                   "warnings": warnings + shot_warnings})
         t_write = time.perf_counter()

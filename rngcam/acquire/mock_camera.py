@@ -123,7 +123,7 @@ class MockWorld:
     def static_image(self, device: MockDevice) -> np.ndarray:
         """(3, N, N) intensity of the static `target` as `device` sees it (scene coordinates
         are RS pixels; a GS device with gs_to_rs sees the scene point H p at pixel p)."""
-        from rngcam.calibrate.targets import chart_image, point_source
+        from rngcam.sim.targets import chart_image, point_source
 
         if self.target not in STATIC_TARGETS:
             raise HardwareError(f"unknown mock target {self.target!r} (choose from {', '.join(STATIC_TARGETS)})")

@@ -3,7 +3,8 @@
 Modules: `psf` (point-source frames -> PSF), `linetime` (SensorReadoutTime at several ROI
 heights -> line time), `deconv` (2-D Wiener + FISTA-TV deconvolution of a diffuser image),
 `align` (static pair -> GS-to-RS transform and white balance), `whitebalance` (gains for a
-known transform), `targets` (what the mock cameras show), `store` (the calibration HDF5 that
-capture copies into bundles), `bench` (the rig's cameras opened for calibration shots).
-The algorithms take arrays; only `bench` touches cameras.
+known transform), `shots` (the rig's cameras, from acquire's device factory, opened for
+calibration shots), `run` (the four procedures). Results go to the calibration file
+(rngcam.formats.calibration); the targets the mock cameras show are in rngcam.sim.targets.
+The algorithms take arrays; only `shots` touches cameras.
 """

@@ -5,7 +5,7 @@ x >= 0 the scene on the RS grid (C, H, W). The TV solve minimises
 
     F(x) = 1/2 ||A x - b||^2 + tau * TV(x),   x >= 0,
 
-TV the anisotropic 2-D total variation of rngcam.recon.tv applied to x as a (C, T=1, H, W)
+TV the anisotropic 2-D total variation of rngcam.physics.tv_prox applied to x as a (C, T=1, H, W)
 video, by monotone FISTA (Beck & Teboulle 2009, MFISTA): the accepted iterate is the better of
 the new prox point and the previous iterate, so F never increases even with the fast Haar
 approximation of the TV prox. The step is 1/L with L = max |H(f)|^2 on the padded FFT grid,
@@ -23,7 +23,7 @@ import torch
 
 from rngcam.errors import RngcamError
 from rngcam.physics.operators import PSFConvolution
-from rngcam.recon.tv import prox_tv_nonneg, tv3
+from rngcam.physics.tv_prox import prox_tv_nonneg, tv3
 
 SMALL_PIXELS = 512 * 512  # below this per channel, torch's intra-op threads only cost time
 

@@ -155,7 +155,7 @@ def psf_figure(psf: np.ndarray, snr_px: float, shape: tuple[int, int] | None = N
 
 def bundle_psf_figure(path) -> str:
     """The PSF figure of a capture bundle, at the noise floor of its own RS image."""
-    from rngcam.bundle import read_bundle
+    from rngcam.formats.bundle import read_bundle
 
     b = read_bundle(path)
     if b.calibration is None or b.calibration.psf is None or b.rs is None:

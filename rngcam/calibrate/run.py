@@ -1,6 +1,6 @@
 """The four calibration procedures on a rig: capture on the bench, estimate, store.
 
-Each returns what it measured and the calibration file it updated (rngcam.calibrate.store);
+Each returns what it measured and the calibration file it updated (rngcam.formats.calibration);
 `progress` receives one line per step. The mock rig's true values are reported next to the
 estimates (`mock_truth`) so a run on it shows how well calibration recovers them.
 """
@@ -13,20 +13,16 @@ from pathlib import Path
 
 import numpy as np
 
-from rngcam.calibrate import store
-from rngcam.calibrate.align import (
-    Alignment,
-    align_pair,
-    similarity_matrix,
-    similarity_of,
-    working_pair,
-)
+from rngcam.acquire.resolve import ResolvedRig, resolve_rig
+from rngcam.calibrate.align import Alignment, align_pair, working_pair
 from rngcam.calibrate.linetime import LineTimeFit, default_heights, fit_line_time, readout_samples
 from rngcam.calibrate.psf import PsfEstimate, estimate_psf
 from rngcam.calibrate.shots import Bench
 from rngcam.calibrate.whitebalance import WhiteBalance, estimate_white_balance
 from rngcam.config import Rig
 from rngcam.errors import HardwareError, RngcamError
+from rngcam.formats import calibration as store
+from rngcam.physics.geometry import similarity_of, transform_error_px
 from rngcam.physics.psf import normalise, resample, spectral_support
 from rngcam.physics.sensor import BAYER_FORMATS
 
@@ -81,7 +77,8 @@ def calibrate_psf(rig: Rig, out=None, frames: int = 16, dark_frames: int = 0, ma
     (0: the black level), check saturation and SNR, store the PSF."""
     if frames < 1 or dark_frames < 0:
         raise RngcamError("--frames must be >= 1 and --dark-frames >= 0")
-    with Bench(rig, roles=("rs",), progress=progress, ask=ask) as bench:
+    resolved = resolve_rig(rig, progress, calibration_missing_ok=True)
+    with Bench(resolved, roles=("rs",), progress=progress, ask=ask) as bench:
         bench.show("point", POINT_INSTRUCTION)
         shots = bench.grab("rs", frames)
         progress(f"psf: {frames} point-source frame(s) captured")
@@ -103,10 +100,10 @@ def calibrate_psf(rig: Rig, out=None, frames: int = 16, dark_frames: int = 0, ma
               f"{est.dark}; peak SNR {est.peak_snr:.0f}, peak at {est.peak_fraction:.0%} of full scale, "
               f"{est.saturated_pixels} saturated pixel(s); spectral support {spectral_support(est.psf):.2%}")]
     lines.append(_psf_figure_line(est.psf, cfg))
-    if bench.world is not None and bench.world.psf is not None:
+    if resolved.mock is not None:
         from rngcam.calibrate.psf import correlation
 
-        truth = bench.world.psf
+        truth = resolved.rig_psf  # the mock's optics
         est_grid = est.psf if est.psf.shape == truth.shape else normalise(resample(est.psf, truth.shape[-2:]))
         lines.append(f"mock truth: correlation of the PSF with the mock's PSF {correlation(est_grid, truth):.4f}")
     lines.append(f"stored psf in {path}")
@@ -118,7 +115,8 @@ def calibrate_psf(rig: Rig, out=None, frames: int = 16, dark_frames: int = 0, ma
 
 def calibrate_linetime(rig: Rig, out=None, heights=None, progress: Progress = print) -> Outcome:
     """Line time = slope of SensorReadoutTime against ROI height (several heights)."""
-    with Bench(rig, roles=("rs",), progress=progress, frames=False) as bench:
+    resolved = resolve_rig(rig, progress, psf=False, calibration_missing_ok=True)
+    with Bench(resolved, roles=("rs",), progress=progress) as bench:
         cam = bench.camera("rs")
         features = getattr(cam, "features", None)
         if features is None:
@@ -138,9 +136,8 @@ def calibrate_linetime(rig: Rig, out=None, heights=None, progress: Progress = pr
     lines = [(f"line time: {fit.line_time_s * 1e6:.4f} us (overhead {fit.overhead_s * 1e6:.2f} us, "
               f"fit residual {fit.residual_s * 1e6:.3f} us over {len(fit.heights)} heights); "
               f"the rig says {rig_value * 1e6:.4g} us ({(fit.line_time_s / rig_value - 1):+.2%})")]
-    mock = rig.config.cameras.rs.mock
-    if rig.config.cameras.rs.backend == "mock":
-        true = (mock.line_time_s if mock and mock.line_time_s else rig_value)
+    if resolved.mock is not None:
+        true = resolved.mock.line_time_s
         lines.append(f"mock truth: line time {true * 1e6:.4f} us (error {(fit.line_time_s / true - 1):+.3%})")
     lines.append(f"stored line_time_s in {path}")
     warnings = []
@@ -161,35 +158,19 @@ def _psf_figure_line(psf: np.ndarray, camera) -> str:
     return f"{psf_figure(psf, snr)[1]}; {how}"
 
 
-def _sensor_psf(rig: Rig, progress: Progress) -> tuple[np.ndarray, str, bool]:
-    """PSF on the raw RS sensor grid: the calibration file's when it holds one, else the rig's
-    (then the last item is True)."""
-    from rngcam.acquire.capture import rs_psf
-
-    roi = rig.config.cameras.rs.roi
-    stored, path = store.rig_calibration(rig, missing_ok=True)
-    if stored is not None and stored.psf is not None:
-        psf = stored.psf
-        if psf.shape[-2:] != (roi.height, roi.width):
-            psf = resample(psf, (roi.height, roi.width))
-        return normalise(np.clip(psf, 0, None)), str(path), False
-    psf, source, _ = rs_psf(rig, progress)
-    return psf, source, True
-
-
-def _initial_transform(rig: Rig) -> tuple[np.ndarray | None, str]:
-    stored, path = store.rig_calibration(rig, missing_ok=True)
-    if stored is not None and stored.gs_to_rs is not None:
-        return stored.gs_to_rs, f"calibration file {path}"
-    h = rig.config.calibration.gs_to_rs
-    if h is not None:
-        return np.asarray(h, np.float64), "rig calibration.gs_to_rs"
+def _initial_transform(resolved: ResolvedRig) -> tuple[np.ndarray | None, str]:
+    """The transform to start from and where it came from (none when neither file has one)."""
+    source = resolved.sources["gs_to_rs"]
+    if source == "calibration":
+        return resolved.gs_to_rs, f"calibration file {resolved.calibration_file}"
+    if source == "rig":
+        return resolved.gs_to_rs, "rig calibration.gs_to_rs"
     return None, "none"
 
 
-def _static_pair(rig: Rig, frames: int, progress: Progress, ask: Ask, rig_psf: np.ndarray | None):
+def _static_pair(resolved: ResolvedRig, frames: int, progress: Progress, ask: Ask):
     """(RS, GS) mean measurements (C, H, W), normalised signal units, of the chart, and provenance."""
-    with Bench(rig, roles=("rs", "gs"), progress=progress, ask=ask, mock_psf=rig_psf) as bench:
+    with Bench(resolved, roles=("rs", "gs"), progress=progress, ask=ask) as bench:
         bench.show("chart", CHART_INSTRUCTION)
         raw = {role: bench.grab(role, frames) for role in ("rs", "gs")}
         for role, shots in raw.items():
@@ -204,22 +185,6 @@ def _static_pair(rig: Rig, frames: int, progress: Progress, ask: Ask, rig_psf: n
         gs = bench.measurement("gs", raw["gs"])
         prov = {"frames": frames, "rs": _camera_provenance(bench, "rs"), "gs": _camera_provenance(bench, "gs")}
     return rs, gs, prov
-
-
-def _mock_truth(rig: Rig) -> tuple[np.ndarray, np.ndarray] | None:
-    """(true GS->RS transform, true white balance) of a mock rig."""
-    c = rig.config.cameras
-    if c.rs.backend != "mock":
-        return None
-    gs_m, rs_m = c.gs.mock, c.rs.mock
-    h = np.eye(3)
-    if gs_m is not None and gs_m.misalignment is not None:
-        a = gs_m.misalignment
-        centre = ((c.gs.roi.width - 1) / 2, (c.gs.roi.height - 1) / 2)
-        h = similarity_matrix(a.shift_px, a.rotation_deg, a.scale, centre)
-    g_gs = np.asarray(gs_m.channel_gain if gs_m and gs_m.channel_gain else [1.0] * 3, np.float64)
-    g_rs = np.asarray(rs_m.channel_gain if rs_m and rs_m.channel_gain else [1.0] * 3, np.float64)
-    return h, g_rs / g_gs
 
 
 def _describe(h: np.ndarray, gs_shape: tuple[int, int]) -> str:
@@ -237,9 +202,10 @@ def calibrate_align(rig: Rig, out=None, frames: int = 8, model: str = "similarit
     """GS-to-RS transform and white balance from a static target seen by both cameras."""
     if frames < 1:
         raise RngcamError("--frames must be >= 1")
-    psf, psf_source, from_rig = _sensor_psf(rig, progress)
-    init, init_source = _initial_transform(rig)
-    rs, gs, prov = _static_pair(rig, frames, progress, ask, psf if from_rig else None)
+    resolved = resolve_rig(rig, progress, calibration_missing_ok=True)
+    psf, psf_source = resolved.psf, resolved.psf_source
+    init, init_source = _initial_transform(resolved)
+    rs, gs, prov = _static_pair(resolved, frames, progress, ask)
     c = rig.config.cameras
     pair = working_pair(rs, gs, psf, 2 if c.rs.pixel_format in BAYER_FORMATS else 1,
                         2 if c.gs.pixel_format in BAYER_FORMATS else 1, max_side)
@@ -255,11 +221,9 @@ def calibrate_align(rig: Rig, out=None, frames: int = 8, model: str = "similarit
               f"(deconvolved RS vs warped GS); 1-sigma uncertainty {result.uncertainty_px:.3f} px; "
               f"ECC {result.ecc:.4f}; forward-model misfit {result.misfit:.2%}"),
              "white balance (GS -> RS scale, recon Lambda): " + ", ".join(f"{g:.4f}" for g in result.white_balance)]
-    truth = _mock_truth(rig)
+    truth = resolved.mock
     if truth is not None:
-        from rngcam.calibrate.align import transform_error_px
-
-        h_true, wb_true = truth
+        h_true, wb_true = truth.gs_to_rs, truth.white_balance
         lines.append(f"mock truth: {_describe(h_true, gs_shape)}; white balance "
                      + ", ".join(f"{g:.4f}" for g in wb_true))
         lines.append(f"mock error: transform {transform_error_px(h, h_true, gs_shape):.3f} px (max over the "
@@ -281,21 +245,22 @@ def calibrate_align(rig: Rig, out=None, frames: int = 8, model: str = "similarit
 def calibrate_whitebalance(rig: Rig, out=None, frames: int = 8, max_side: int = 256,
                            progress: Progress = print, ask: Ask = None) -> Outcome:
     """White balance alone, for the transform in the calibration file (else the rig's)."""
-    psf, psf_source, from_rig = _sensor_psf(rig, progress)
-    h, h_source = _initial_transform(rig)
+    resolved = resolve_rig(rig, progress, calibration_missing_ok=True)
+    psf, psf_source = resolved.psf, resolved.psf_source
+    h, h_source = _initial_transform(resolved)
     if h is None:
         raise RngcamError("no GS-to-RS transform: run `rngcam calibrate align` first")
-    rs, gs, prov = _static_pair(rig, frames, progress, ask, psf if from_rig else None)
+    rs, gs, prov = _static_pair(resolved, frames, progress, ask)
     c = rig.config.cameras
     pair = working_pair(rs, gs, psf, 2 if c.rs.pixel_format in BAYER_FORMATS else 1,
                         2 if c.gs.pixel_format in BAYER_FORMATS else 1, max_side)
     wb: WhiteBalance = estimate_white_balance(pair, h, 1.0)
     lines = ["white balance (GS -> RS scale, recon Lambda): " + ", ".join(f"{g:.4f}" for g in wb.gains)
              + f" with the transform from {h_source}; forward-model misfit {wb.misfit:.2%}"]
-    truth = _mock_truth(rig)
+    truth = resolved.mock
     if truth is not None:
-        lines.append("mock truth: " + ", ".join(f"{g:.4f}" for g in truth[1])
-                     + f" (error {np.max(np.abs(wb.gains / truth[1] - 1)):.2%})")
+        lines.append("mock truth: " + ", ".join(f"{g:.4f}" for g in truth.white_balance)
+                     + f" (error {np.max(np.abs(wb.gains / truth.white_balance - 1)):.2%})")
     provenance = {"method": "least squares of RS against PSF * warped GS, per channel",
                   "transform_source": h_source, "misfit": wb.misfit, "psf_source": psf_source, **prov}
     path = _store(rig, out, white_balance=(wb.gains, provenance))

@@ -1,10 +1,11 @@
 """The rig's cameras opened for calibration shots: software-triggered frames of a static target.
 
 No trigger generator is needed: the target does not move, so each camera is triggered by
-software, one frame at a time, waiting until it is ready. `show(target, instruction)` sets the
-target up: on the mock rig it tells the mock world to show a point source, the chart or
-darkness; on real hardware it asks the operator through `ask` (the command line waits for
-Enter; with no `ask`, it assumes the target is already in place and says so).
+software, one frame at a time, waiting until it is ready. The cameras come from acquire's
+device factory, so the mock rig is just another backend. `show(target, instruction)` sets the
+target up: a backend that can (the mock) shows a point source, the chart or darkness itself;
+otherwise the operator is asked through `ask` (the command line waits for Enter; with no
+`ask`, it assumes the target is already in place and says so).
 """
 
 from __future__ import annotations
@@ -16,7 +17,9 @@ from collections.abc import Callable
 import numpy as np
 
 from rngcam.acquire.camera import Camera, CameraSettings, Configured
-from rngcam.config import CameraConfig, MockSensor, Rig
+from rngcam.acquire.factory import Devices, open_devices
+from rngcam.acquire.resolve import ResolvedRig
+from rngcam.config import CameraConfig
 from rngcam.errors import HardwareError
 from rngcam.physics.sensor import frame_to_measurement
 
@@ -28,39 +31,26 @@ class Bench:
     """Context manager: opens the rig's cameras (`roles`), configures them for software
     triggers, and closes them (disarmed) on exit whatever happened."""
 
-    def __init__(self, rig: Rig, roles=("rs", "gs"), progress: Progress = print,
-                 ask: Callable[[str], None] | None = None, mock_psf: np.ndarray | None = None,
-                 frames: bool = True):
-        """`mock_psf`: the rig's PSF on the RS sensor grid when the caller has it already (the
-        mock world's optics; loaded from the rig otherwise). frames=False: features only, so
-        the mock world needs no optics."""
-        self.rig, self.roles, self.progress, self.ask = rig, tuple(roles), progress, ask
-        self.mock_psf, self.frames = mock_psf, frames
-        self.world = None
+    def __init__(self, resolved: ResolvedRig, roles=("rs", "gs"), progress: Progress = print,
+                 ask: Callable[[str], None] | None = None):
+        """`resolved`: the rig's values (rngcam.acquire.resolve); its `rig_psf` is the mock
+        world's optics, so resolve without the PSF when only features are needed."""
+        self.resolved, self.rig = resolved, resolved.rig
+        self.roles, self.progress, self.ask = tuple(roles), progress, ask
+        self.devices: Devices | None = None
         self.cams: dict[str, Camera] = {}
         self.configured: dict[str, Configured] = {}
         self._stack = contextlib.ExitStack()
-
-    @property
-    def is_mock(self) -> bool:
-        return self.rig.config.cameras.rs.backend == "mock"
 
     def config(self, role: str) -> CameraConfig:
         return getattr(self.rig.config.cameras, role)
 
     def __enter__(self):
-        from rngcam.acquire.capture import _make_camera, _mock_world, nominal_timing, rs_psf
-
         try:
-            if self.is_mock:
-                psf = self.mock_psf
-                if psf is None and self.frames:
-                    psf = rs_psf(self.rig, self.progress)[0]
-                _, gs_timing, grid = nominal_timing(self.rig)
-                self.world = _mock_world(self.rig, psf, gs_timing, grid)
+            self.devices = open_devices(self.resolved)
             for role in self.roles:
                 cfg = self.config(role)
-                cam = self._stack.enter_context(_make_camera(cfg, role.upper(), self.world))
+                cam = self._stack.enter_context(self.devices.camera(role))
                 self.cams[role] = cam
                 settings = dataclasses.replace(CameraSettings.from_config(cfg), trigger_source="Software",
                                                chunk_timestamps=False)
@@ -86,14 +76,12 @@ class Bench:
         return float(self.configured[role].exposure_s or self.config(role).exposure_s)
 
     def black_level_dn(self, role: str) -> float:
-        cfg = self.config(role)
-        return float((cfg.mock or MockSensor()).black_level_dn if cfg.backend == "mock" else cfg.black_level_dn)
+        return self.resolved.black_level_dn[role]
 
     def show(self, target: str, instruction: str) -> None:
         """Put `target` ("point", "chart" or "dark") in front of the cameras."""
-        if self.world is not None:
-            self.world.target = target
-            self.progress(f"mock: showing the {target} target")
+        if self.devices.show(target):
+            self.progress(f"{self.devices.kind}: showing the {target} target")
         elif self.ask is not None:
             self.ask(instruction)
         else:

@@ -85,7 +85,7 @@ def main(out: Path = OUT, plan: list | None = None) -> int:
     import h5py
     import torch
 
-    from rngcam.bundle import read_bundle
+    from rngcam.formats.bundle import read_bundle
     from rngcam.recon.outputs import plot_errors
     from rngcam.recon.runner import ReconSettings, reconstruct
 

@@ -6,8 +6,8 @@ import json
 
 import click
 
-from rngcam.bundle import WARNING_PREFIX, inspect_bundle, open_bundle, render_summary
 from rngcam.errors import ConfigError, RngcamError
+from rngcam.formats.bundle import WARNING_PREFIX, inspect_bundle, open_bundle, render_summary
 from rngcam.sizing import (
     BYTES_PER_ELEMENT,
     DEFAULT_MAX_FRAMES,

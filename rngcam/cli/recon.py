@@ -97,8 +97,6 @@ def _method_options(method: str, given: dict) -> dict:
 def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memory, resume, device, grid_bin,
               holdout, quiet, **opts):
     """Reconstruct the high-speed video in BUNDLE and report error against run time."""
-    if not bundle.exists():
-        raise click.BadParameter(f"{bundle} does not exist", param_hint="BUNDLE")
     for flag in ("no_static", "no_motion_reg", "no_rs", "no_gs"):
         opts[flag] = True if opts[flag] else None  # unset flags are not passed on
     if method == "tv3d":

@@ -76,8 +76,6 @@ def sweep_cmd(bundle, beta, tau, psi, method, preset, time_budget, iters, holdou
     """Fit a grid of beta/tau/psi settings on BUNDLE, choose by held-out residual, refit the best."""
     from rngcam.scale.sweep import SweepSettings, sweep
 
-    if not bundle.exists():
-        raise click.BadParameter(f"{bundle} does not exist", param_hint="BUNDLE")
     grid = {k: v for k, v in (("beta", beta), ("tau", tau), ("psi", psi)) if v is not None}
     if not grid:
         raise click.UsageError("give at least one of --beta, --tau, --psi (comma-separated values)")

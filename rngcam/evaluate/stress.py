@@ -28,10 +28,10 @@ import h5py
 import numpy as np
 import torch
 
-from rngcam.bundle import read_bundle
 from rngcam.errors import RngcamError
 from rngcam.evaluate import report
 from rngcam.evaluate.stress_cases import StressCase, stress_cases
+from rngcam.formats.bundle import read_bundle
 from rngcam.physics.operators import inner
 from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.problem import Problem, build_problem

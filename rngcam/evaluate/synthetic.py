@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import torch
 
-from rngcam.bundle import Bundle, Calibration, CameraRecord, Truth, write_bundle
+from rngcam.formats.bundle import Bundle, Calibration, CameraRecord, Truth, write_bundle
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.sensor import SensorModel
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid

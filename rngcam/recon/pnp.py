@@ -157,7 +157,7 @@ class Denoiser:
 
     def _denoise(self, images: Tensor, sigma: float, scale: float, c: int) -> Tensor:
         if self.net is None:
-            from rngcam.recon import tv
+            from rngcam.physics import tv_prox as tv
 
             # TV weight ~ noise std: a rough match of strength in linear units
             return tv.prox_tv_nonneg(images.transpose(0, 1), sigma * scale, 0.0).transpose(0, 1)

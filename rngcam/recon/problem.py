@@ -29,8 +29,8 @@ import torch
 from torch import Tensor
 
 from rngcam import pixels
-from rngcam.bundle import Bundle, CameraRecord
 from rngcam.errors import BundleError, ConfigError
+from rngcam.formats.bundle import Bundle, CameraRecord
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter, Stacked
 from rngcam.physics.sensor import BAYER_FORMATS, frame_to_measurement

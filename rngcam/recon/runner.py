@@ -226,7 +226,7 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
     out.mkdir(parents=True, exist_ok=True)
     scorer = None
     if settings.holdout is not None:
-        from rngcam.scale.holdout import HoldoutScorer
+        from rngcam.recon.holdout import HoldoutScorer
 
         problem = problem.with_holdout(settings.holdout, settings.holdout_gs, settings.holdout_seed)
         scorer = HoldoutScorer(problem)

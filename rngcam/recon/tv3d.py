@@ -5,7 +5,7 @@ weight (the RS operator's norm is often ~40x below the GS one):
 
     F(v) = 1/2 ||A_G v - b_G||^2 / n_G + psi/2 ||A_R v - b_R||^2 / n_R + tau TV3_beta(v),  v >= 0
 
-TV3_beta is anisotropic 3-D TV with temporal weight beta (rngcam.recon.tv). Step 1/L with L the
+TV3_beta is anisotropic 3-D TV with temporal weight beta (rngcam.physics.tv_prox). Step 1/L with L the
 squared norm of the scaled stacked operator (power iteration). With `gs_anchor="hard"` the GS
 term leaves the objective and every iterate is projected onto {A_G v = b_G} after the prox, then
 clipped at zero (a heuristic splitting, documented as such; the projection is exact per pixel).
@@ -29,8 +29,8 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.physics import tv_prox as tv
 from rngcam.physics.operators import LinearOperator
-from rngcam.recon import tv
 from rngcam.recon.baselines import blend
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.problem import Problem

@@ -12,13 +12,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 from rngcam.errors import RngcamError
-
-TaskFn = Callable[[object, object], dict]
-OnResult = Callable[[int, dict], None]
-
-
-def failed(message: str) -> dict:
-    return {"status": "failed", "message": message}
+from rngcam.scale.tasks import OnResult, TaskFn, failed
 
 
 class Backend(Protocol):

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import torch
 
-from rngcam.bundle import bundle_checksum
 from rngcam.errors import RngcamError
+from rngcam.formats.bundle import bundle_checksum
 from rngcam.recon.runner import ReconSettings, reconstruct
 from rngcam.scale import tables
 from rngcam.scale.backend import Backend, make_backend

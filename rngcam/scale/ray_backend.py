@@ -13,7 +13,7 @@ import logging
 import os
 
 from rngcam.errors import RngcamError
-from rngcam.scale.backend import OnResult, TaskFn, failed
+from rngcam.scale.tasks import OnResult, TaskFn, failed
 
 
 class RayBackend:

@@ -28,8 +28,8 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from rngcam.bundle import bundle_checksum, read_bundle
 from rngcam.errors import ConfigError, RngcamError
+from rngcam.formats.bundle import bundle_checksum, read_bundle
 from rngcam.recon.problem import build_problem
 from rngcam.recon.runner import ITERATIVE, ReconSettings, reconstruct
 from rngcam.scale import tables

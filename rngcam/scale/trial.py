@@ -18,11 +18,11 @@ from pathlib import Path
 
 import torch
 
+from rngcam.recon.holdout import HoldoutScorer
 from rngcam.recon.loop import CHECKPOINT_NAME, LoopSettings, run
 from rngcam.recon.metrics import video_metrics
 from rngcam.recon.problem import Problem
 from rngcam.recon.runner import ReconSettings, make_method, resolve_device
-from rngcam.scale.holdout import HoldoutScorer
 
 TRUTH_KEYS = ("psnr_db", "ssim", "psnr_intermediate_db", "ssim_intermediate")
 

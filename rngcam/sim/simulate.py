@@ -21,8 +21,8 @@ import torch
 import yaml
 
 from rngcam import __version__
-from rngcam.bundle import Bundle, Calibration, CameraRecord, Truth, write_bundle
 from rngcam.errors import RngcamError
+from rngcam.formats.bundle import Bundle, Calibration, CameraRecord, Truth, write_bundle
 from rngcam.paths import MEASURED_PSF, PACKAGE_PREFIX, package_data
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter
@@ -165,13 +165,6 @@ def measure(video: np.ndarray, psf_grid: np.ndarray, timing: SimTiming) -> tuple
         rs_np = np.repeat(rs_np, b, axis=-1)
         gs_np = np.repeat(np.repeat(gs_np, b, axis=-2), b, axis=-1)
     return rs_np, gs_np
-
-
-def forward_rs(video: np.ndarray, psf_grid: np.ndarray, timing: SimTiming) -> np.ndarray:
-    """The reconstruction's RS model on the grid, (3, H, W): binned rows (Bayer: trapezoid)."""
-    v = torch.from_numpy(np.asarray(video, np.float64))
-    w = torch.from_numpy(timing.rs.weights(timing.grid))
-    return RollingShutter(torch.from_numpy(psf_grid), w, v.shape[-1], channels=v.shape[0]).A(v).numpy()
 
 
 # --------------------------------------------------------------------------- bundle

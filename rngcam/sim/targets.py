@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import numpy as np
 
-TARGETS = ("scene", "point", "chart", "dark")
 CHART_FRACTION = 0.6  # side of the card / side of the field
 _BLOBS = 60
 

@@ -1,4 +1,5 @@
-"""Proximal operators of anisotropic 3-D total variation, for the FISTA-3DTV baseline.
+"""Proximal operators of anisotropic 3-D total variation: the FISTA-3DTV baseline (recon.tv3d),
+plug-and-play's 2-D fallback (recon.pnp) and the RS deconvolution of calibration (calibrate.deconv).
 
 Convention (every function in this module uses it)
 --------------------------------------------------

@@ -2,8 +2,9 @@
 
 Where: the rig names it (`calibration.file`, relative to the rig file); without that,
 `rngcam calibrate` writes `<rig name>.calib.h5` in the current folder (or `-o FILE`) and says
-how to point the rig at it. `rngcam capture` copies what the file holds into each bundle's
-`calibration` group, in place of the rig's inline values.
+how to point the rig at it. Before a capture, rngcam.acquire.resolve merges what the file holds
+with the rig (the file's values replace the rig's inline ones) and the bundle records which
+came from where.
 
 Layout (every part optional; each subcommand replaces only its own part, the others stay):
 
@@ -191,30 +192,3 @@ def rig_calibration(rig, missing_ok: bool = False) -> tuple[StoredCalibration | 
         raise ConfigError(f"{rig.path}: calibration.file: {path} not found (run `rngcam calibrate "
                           f"... --rig {rig.path}` first, or remove the entry)")
     return read_calibration(path), path
-
-
-def apply_to_bundle(stored: StoredCalibration, path: Path, calibration, rs_shape: tuple[int, int]):
-    """A copy of a bundle's rngcam.bundle.Calibration with the stored parts in place of the
-    rig's values: the PSF resampled to the RS sensor grid `rs_shape` (H, W), its source and
-    provenance recorded in `extra`."""
-    from dataclasses import replace
-
-    from rngcam.physics.psf import normalise, resample
-
-    changes: dict = {}
-    extra = dict(calibration.extra)
-    if stored.psf is not None:
-        psf = stored.psf
-        if psf.shape[-2:] != tuple(rs_shape):
-            psf = resample(psf, tuple(rs_shape))
-        changes.update(psf=normalise(np.clip(psf, 0.0, None)).astype(np.float32),
-                       psf_source=f"{path} (rngcam calibrate psf)",
-                       psf_bias=float(stored.provenance.get("psf", {}).get("dark_level_dn", 0.0)))
-    if stored.gs_to_rs is not None:
-        changes["gs_to_rs"] = stored.gs_to_rs.copy()
-    if stored.white_balance is not None:
-        changes["white_balance"] = stored.white_balance.copy()
-    extra["calibration_file"] = str(path)
-    extra["calibration_parts"] = stored.parts()
-    extra["calibration_provenance"] = {k: v for k, v in stored.provenance.items() if k in stored.parts()}
-    return replace(calibration, extra=extra, **changes)

@@ -1,0 +1,65 @@
+"""The mock rig behind the device factory (rngcam.acquire.factory; it implements `Devices`):
+one `MockWorld` (the rig's mock scene on the video grid, seen through the rig's PSF) with both
+mock cameras plugged in, each with the sensor physics of its rig section
+(rngcam.acquire.resolve.MockTruth)."""
+
+from __future__ import annotations
+
+from rngcam.acquire.camera import Camera
+from rngcam.acquire.mock_camera import MockCamera, MockDevice, MockWorld
+from rngcam.acquire.resolve import ROLES, ResolvedRig
+from rngcam.errors import ConfigError
+from rngcam.formats.bundle import Truth
+from rngcam.physics.sensor import SensorModel
+from rngcam.sizing import default_max_memory_bytes
+
+
+class MockDevices:
+    """Mock cameras in one simulated world; they render frames from the scene."""
+
+    kind = "mock"
+
+    def __init__(self, resolved: ResolvedRig):
+        self.resolved = resolved
+        rig, c = resolved.rig, resolved.rig.config
+        _, gs_timing, self.grid = resolved.timing()
+        rs_roi, grid_bin = c.cameras.rs.roi, c.recon.grid_bin
+        h, w = rs_roi.height // grid_bin, rs_roi.width // grid_bin  # the mock renders on the grid
+        need = 3 * self.grid.n_frames * h * w * 4 * 3  # the float32 truth video, the frames rendered from it
+        if need > default_max_memory_bytes():
+            raise ConfigError(f"{rig.path}: the mock scene would need about {need / 2**30:,.1f} GiB "
+                              f"({self.grid.n_frames} frames of {h}x{w}x3), more than this machine can "
+                              "spare: use a smaller cameras.rs.roi or a larger recon.grid_bin for the mock rig")
+        self.world = MockWorld(c.mock.scene, (rs_roi.height, rs_roi.width), self.grid, resolved.rig_psf,
+                               seed=c.mock.seed, key_times_s=list(gs_timing.centres_s()), options=c.mock.options,
+                               bin=grid_bin)
+        truth = resolved.mock
+        for role in ROLES:
+            cam = getattr(c.cameras, role)
+            m = truth.sensors[role]
+            sensor = SensorModel(bit_depth=cam.bit_depth, black_level_dn=m.black_level_dn,
+                                 full_well_e=m.full_well_e, read_noise_e=m.read_noise_e,
+                                 channel_gain=None if m.channel_gain is None else tuple(m.channel_gain))
+            if sensor.pixel_format != cam.pixel_format:
+                raise ConfigError(f"{rig.path}: cameras.{role}.pixel_format: mock cameras deliver "
+                                  f"{sensor.pixel_format}, not {cam.pixel_format}")
+            misaligned = role == "gs" and m.misalignment is not None
+            self.world.plug(MockDevice(cam.serial, cam.model or f"mock {role.upper()}", role, sensor,
+                                       noise=m.noise, seed=m.seed,
+                                       line_time_s=truth.line_time_s if role == "rs" else None,
+                                       readout_s=m.readout_s,
+                                       gs_to_rs=tuple(map(tuple, truth.gs_to_rs)) if misaligned else None))
+
+    def camera(self, role: str) -> Camera:
+        cfg = getattr(self.resolved.rig.config.cameras, role)
+        return MockCamera(cfg.serial, role.upper(), self.world)
+
+    def show(self, target: str) -> bool:
+        self.world.target = target
+        return True
+
+    def begin_shot(self) -> None:
+        self.world.t0_s = None
+
+    def truth(self) -> Truth:
+        return Truth(video=self.world.video(), frame_times_s=self.grid.edges_s()[:-1], dt_s=self.grid.dt_s)
