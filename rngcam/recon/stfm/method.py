@@ -17,16 +17,18 @@ from rngcam.recon.noise import relative_noise_level
 from rngcam.recon.stfm.bases import BaseVideos
 from rngcam.recon.stfm.init import GSInit
 from rngcam.recon.stfm.loss import DataLoss
+from rngcam.recon.loop import MethodBase
 from rngcam.recon.stfm.model import FieldModel, _chunks
 from rngcam.recon.stfm.settings import STFMSettings, _preset, _Resolved
 from rngcam.recon.stfm.stopping import NoiseStop
 
 
-class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop):
+class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
     """STFM as a `rngcam.recon.loop.Method`. Build it with `make_stfm`. Its parts live in the
     package's modules (fields and frames, bases, loss, initialisation, stop test)."""
 
     name = "stfm"
+    stops_itself = True  # NoiseStop.converged
     supports_holdout = True  # fits only the training measurements when the problem has a split
 
     def __init__(self, problem, settings: STFMSettings, device="cpu", static_from: STFM | None = None,

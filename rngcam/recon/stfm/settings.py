@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass, field
 
 from rngcam.errors import ConfigError
+from rngcam.recon.options import setting
 
 PRESETS = ("paper", "fast", "prior")
 INIT_STEPS = 100
@@ -19,15 +20,20 @@ class STFMSettings:
     """User settings; None means "the preset's value"."""
 
     preset: str = "fast"
-    beta: float | None = None  # temporal weight inside the motion TV
-    tau: float | None = None  # weight of the motion TV
-    psi: float = 1.0  # RS weight relative to GS (after operator-norm scaling)
-    components: str = "auto"  # "auto": leave out what the problem does not need; "all": keep all
-    no_static: bool = False
-    no_motion_reg: bool = False
-    no_rs: bool = False
-    no_gs: bool = False
-    gs_anchor: str = "soft"  # "soft" (loss term) or "hard" (projection onto the GS frames)
+    beta: float | None = setting(None, "weight of the motion field's change along time relative to along "
+                                       "x and y, inside the motion TV", unit="relative", sweep=True)
+    tau: float | None = setting(None, "weight of the motion field's TV against the data terms",
+                                unit="relative", sweep=True)
+    psi: float = setting(1.0, "RS data weight relative to GS (each term scaled by its operator's norm)",
+                         unit="relative", sweep=True)
+    components: str = setting("auto", "leave out the fields the scene does not need (auto) or keep all",
+                              choices=("auto", "all"))
+    no_static: bool = setting(False, "no static background field (and no alpha matte)")
+    no_motion_reg: bool = setting(False, "no TV on the motion field")
+    no_rs: bool = setting(False, "leave the RS measurement out of the fit")
+    no_gs: bool = setting(False, "leave the GS frames out of the fit")
+    gs_anchor: str = setting("soft", "GS frames as a loss term (soft) or a projection onto them (hard)",
+                             choices=("soft", "hard"))
     rows_per_step: int | None = None
     tv_frames_per_step: int = 2
     frame_chunk: int = 16  # frames evaluated with one autograd graph
@@ -37,9 +43,14 @@ class STFMSettings:
     init: str | None = None  # "gs" (fit fields to the GS frames first) or "random"
     gs_windows_per_step: int | None = None  # GS frames per step (soft anchoring; 0: all)
     dynamic_time: bool | None = None  # F_D(x + u_x, y + u_y, t) instead of F_D(x + u_x, y + u_y)
-    dynamic_base: str | None = None  # "blend": F_D's colour corrects the warped cross-fade; "none"
+    dynamic_base: str | None = setting(
+        None, "the GS-only start the dynamic field corrects: video (rife, else interp), rife, interp, keys "
+              "(key frames warped by RIFE's flows, else DIS's), keys_rife, keys_interp, blend or none; a "
+              "comma-separated list averages one fit per base; ensemble = video,keys,keys_interp", cli="base")
     time_smoothness: float | None = None  # weight of the time planes' roughness (plane fields)
-    stop_at_noise: bool | None = None  # stop once the RS residual reaches the estimated noise level, or stalls
+    stop_at_noise: bool | None = setting(None, "stop once the RS residual reaches the noise level estimated "
+                                               "from the RS image, or falls by less than stall_drop over 15 passes "
+                                               "over the RS rows")
     stall_drop: float | None = None  # ... or once it fell less than this fraction over STALL_PASSES (0: off)
     ema_decay: float | None = None  # outputs use an exponential moving average of the weights (0: off)
     refine: bool | None = None  # ensemble: one more fit on the members' average once they have stopped
