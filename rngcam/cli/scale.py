@@ -70,7 +70,7 @@ def sweep_cmd(bundle, method, time_budget, iters, holdout, holdout_gs, holdout_s
                                f"--method {method}")
     grid = given
     if not grid:
-        raise click.UsageError(f"give at least one of {', '.join('--' + n.replace('_', '-') for n in sweepable)} "
+        raise click.UsageError(f"give at least one of {', '.join('--' + n.replace('_', '-') for n in sorted(sweepable))} "
                                f"(comma-separated values)")
     settings = SweepSettings(method=method, grid=grid, preset=preset, time_budget_s=time_budget, max_iters=iters,
                              holdout=holdout, holdout_gs=holdout_gs, holdout_seed=holdout_seed, folds=folds,

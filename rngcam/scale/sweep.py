@@ -275,11 +275,17 @@ def _save_cached(path: Path, res: dict) -> None:
     os.replace(tmp, path)
 
 
+def _swept(rows: list[dict]) -> list[str]:
+    """The swept settings: a row's keys other than the table's fixed columns."""
+    fixed = {"trial", "rungs", "iterations", "seconds", "status", "key", "note", *SCORE_KEYS, *TRUTH_KEYS}
+    return [k for k in rows[0] if k not in fixed] if rows else []
+
+
 def _rows(trials: list[dict], last: dict, reached: dict, rungs: int, best_i: int) -> list[dict]:
     rows = []
     for i, t in enumerate(trials):
         res = last.get(i, {})
-        row = {"trial": t["trial"], **{p: t["values"].get(p) for p in PARAMS}, "rungs": reached.get(i, 0),
+        row = {"trial": t["trial"], **t["values"], "rungs": reached.get(i, 0),
                "iterations": res.get("iterations"), "seconds": res.get("seconds"),
                **{k: res.get(k) for k in SCORE_KEYS + TRUTH_KEYS}, "status": res.get("status", "not run"),
                "key": t["key"]}
@@ -297,7 +303,7 @@ def _rows(trials: list[dict], last: dict, reached: dict, rungs: int, best_i: int
 
 
 def _columns(rows: list[dict], has_truth: bool) -> list[str]:
-    swept = [p for p in PARAMS if any(r[p] is not None for r in rows)]
+    swept = _swept(rows)
     scores = [k for k in SCORE_KEYS if any(r.get(k) is not None for r in rows)]
     truth = [k for k in TRUTH_KEYS if has_truth and any(r.get(k) is not None for r in rows)]
     return ["trial", *swept, "rungs", "iterations", "seconds", *scores, *truth, "status", "note"]
@@ -328,7 +334,7 @@ def plot_sweep(png_path: Path, rows: list[dict], has_truth: bool, title: str = "
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    swept = [p for p in PARAMS if any(r[p] is not None for r in rows)]
+    swept = _swept(rows)
     labels = [" ".join(f"{p[0]}{r[p]:g}" for p in swept) for r in rows]
     x = list(range(len(rows)))
     full = max((r["rungs"] for r in rows), default=0)
