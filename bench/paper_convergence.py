@@ -35,8 +35,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from stfm_compare import simulated_problem  # noqa: E402
 
-from rngcam.recon.metrics import motion_metrics, video_metrics  # noqa: E402
 from rngcam.recon import registry  # noqa: E402
+from rngcam.recon.metrics import motion_metrics, video_metrics  # noqa: E402
 
 PLATEAU_DB = 0.1  # dynamic PSNR gained over the last third of the run below this: plateaued
 ONE_OBJECT = {"sineball"}

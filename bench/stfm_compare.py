@@ -52,10 +52,10 @@ from rngcam.paths import DATA_HINT, MEASURED_PSF, external_data, package_data
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+from rngcam.recon import registry
 from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.metrics import ONE_OBJECT_SCENES, error_visibility, motion_metrics, video_metrics
 from rngcam.recon.problem import Problem
-from rngcam.recon import registry
 from rngcam.sim.scenes import render_scene
 
 DT_S, EXPOSURE_S = 208e-6, 650e-6  # the reference rig scaled to the grid (see the sim module)

@@ -29,9 +29,9 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from stfm_compare import gs_only_video, simulated_problem  # noqa: E402
 
+from rngcam.recon import registry  # noqa: E402
 from rngcam.recon.loop import LoopSettings, run  # noqa: E402
 from rngcam.recon.metrics import ONE_OBJECT_SCENES, motion_metrics, video_metrics  # noqa: E402
-from rngcam.recon import registry  # noqa: E402
 
 
 def scores(video: torch.Tensor, problem, scene: str) -> dict:

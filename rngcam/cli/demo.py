@@ -86,8 +86,8 @@ def main(out: Path = OUT, plan: list | None = None) -> int:
     import torch
 
     from rngcam.bundle import read_bundle
-    from rngcam.recon.outputs import plot_errors
     from rngcam.recon import registry
+    from rngcam.recon.outputs import plot_errors
     from rngcam.recon.runner import ReconSettings, reconstruct
 
     out.mkdir(exist_ok=True)

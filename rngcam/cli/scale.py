@@ -70,8 +70,8 @@ def sweep_cmd(bundle, method, time_budget, iters, holdout, holdout_gs, holdout_s
                                f"--method {method}")
     grid = given
     if not grid:
-        raise click.UsageError(f"give at least one of {', '.join('--' + n.replace('_', '-') for n in sorted(sweepable))} "
-                               f"(comma-separated values)")
+        names = ", ".join("--" + n.replace("_", "-") for n in sorted(sweepable))
+        raise click.UsageError(f"give at least one of {names} (comma-separated values)")
     settings = SweepSettings(method=method, grid=grid, preset=preset, time_budget_s=time_budget, max_iters=iters,
                              holdout=holdout, holdout_gs=holdout_gs, holdout_seed=holdout_seed, folds=folds,
                              eta=eta, rungs=rungs, device=device, grid_bin=grid_bin, refit=not no_refit)

@@ -1,7 +1,8 @@
 """One benchmark run in a fresh process: `python -m rngcam.evaluate.worker JOB.json`.
 
 The job names the bundle, the output folder, the method's registry label (e.g. stfm-fast), any
-settings it overrides by name (`overrides`), the time budget and the log spacing. It calls `rngcam.recon.runner.reconstruct` (which writes every output)
+settings it overrides by name (`overrides`), the time budget and the log spacing. It calls
+`rngcam.recon.runner.reconstruct` (which writes every output)
 and adds `bench_worker.json` with this process's peak resident set size and its base (the
 resident size once the interpreter, torch and the output writers are loaded, before the run):
 peak - base is what the method itself added.

@@ -32,7 +32,7 @@ from rngcam import pixels
 from rngcam.bundle import Bundle, CameraRecord
 from rngcam.errors import BundleError, ConfigError
 from rngcam.physics import psf as psf_mod
-from rngcam.physics.operators import GlobalShutter, RollingShutter, Stacked
+from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.sensor import BAYER_FORMATS, frame_to_measurement
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 from rngcam.sizing import check_frames, plan_grid
@@ -85,9 +85,6 @@ class Problem:
     def gs_op(self) -> GlobalShutter:
         c, _, h, w = self.shape
         return GlobalShutter(self.gs_weights, c, (h, w))
-
-    def stacked_op(self, psi: float) -> Stacked:
-        return Stacked(self.rs_op(), self.gs_op(), psi)
 
     def key_frames(self) -> np.ndarray:
         """Indices of the frames any GS exposure touches."""

@@ -38,8 +38,9 @@ from rngcam.recon.metrics import (
 from rngcam.recon.problem import Problem, build_problem
 from rngcam.sizing import check_size, gib, plan_grid
 
-# "auto" scales the registry's budgets (MethodEntry.auto_budget_s) (set at 64x64 px, 67 frames, 3 channels) with the square root of the
-# problem's size, capped at half an hour: 64 px keeps its figure, 228x342x232 gets 8.1x it.
+# "auto" scales the registry's budgets (MethodEntry.auto_budget_s, set at 64x64 px, 67 frames, 3
+# channels) with the square root of the problem's size, capped at half an hour: 64 px keeps its
+# figure, 228x342x232 gets 8.1x it.
 AUTO_REFERENCE_VOXELS = 3 * 67 * 64 * 64
 AUTO_MAX_S = 1800.0
 
@@ -87,8 +88,8 @@ class ReconSettings:
             if not 0 < self.holdout < 1:
                 raise ConfigError(f"holdout must be a fraction in (0, 1), got {self.holdout}")
             if not entry.iterative:
-                raise ConfigError(f"--holdout applies to fitted methods ({', '.join(registry.names(registry.ITERATIVE))}), "
-                                  f"not {self.method}")
+                fitted = ", ".join(registry.names(registry.ITERATIVE))
+                raise ConfigError(f"--holdout applies to fitted methods ({fitted}), not {self.method}")
 
 
 def check_settings_figures(time_budget_s, max_iters, max_frames=None, max_memory_bytes=None) -> None:

@@ -30,8 +30,8 @@ from pathlib import Path
 
 from rngcam.bundle import bundle_checksum, read_bundle
 from rngcam.errors import ConfigError, RngcamError
-from rngcam.recon.problem import build_problem
 from rngcam.recon import registry
+from rngcam.recon.problem import build_problem
 from rngcam.recon.runner import ReconSettings, reconstruct
 from rngcam.scale import tables
 from rngcam.scale.backend import Backend, make_backend
@@ -197,8 +197,9 @@ def sweep(bundle_path: str | Path, out_dir: str | Path | None = None, settings: 
             if todo:
                 p = problem()
                 b = backend()
+                entry = registry.get(settings.method)
                 specs = [TrialSpec(key=trials[i]["key"], method=settings.method,
-                                   settings=registry.get(settings.method).settings(settings.preset, **trials[i]["values"]),
+                                   settings=entry.settings(settings.preset, **trials[i]["values"]),
                                    max_iters=iters, time_budget_s=secs, trial_dir=str(trials[i]["dir"]),
                                    holdout_rs=settings.holdout, holdout_gs=settings.holdout_gs,
                                    seed=settings.holdout_seed, folds=settings.folds, device=settings.device,

@@ -12,12 +12,12 @@ from torch import Tensor
 
 from rngcam.errors import ConfigError
 from rngcam.recon.components import Components, choose_components
+from rngcam.recon.loop import MethodBase
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
 from rngcam.recon.stfm.bases import BaseVideos
 from rngcam.recon.stfm.init import GSInit
 from rngcam.recon.stfm.loss import DataLoss
-from rngcam.recon.loop import MethodBase
 from rngcam.recon.stfm.model import FieldModel, _chunks
 from rngcam.recon.stfm.settings import STFMSettings, _preset, _Resolved
 from rngcam.recon.stfm.stopping import NoiseStop
