@@ -16,7 +16,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 OUT = Path("demo-out")
 
 # The plan, one row per part: (method label (rngcam.recon.registry) and output folder, settings it
