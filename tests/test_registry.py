@@ -4,6 +4,7 @@ command is documented; one option name sets one field per method."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 
@@ -22,6 +23,7 @@ from rngcam.recon.loop import MethodBase
 from rngcam.recon.options import setting
 from rngcam.recon.runner import ReconSettings, reconstruct
 from rngcam.recon.stfm import STFMSettings
+from rngcam.recon.stfm.settings import PRESETS, preset_settings, resolve
 from rngcam.recon.tv3d import TV3DSettings
 
 
@@ -156,8 +158,8 @@ def test_recon_help_gives_each_method_its_meaning_unit_and_default():
 def test_one_option_sets_one_field_per_method():
     tv3d, stfm = method_settings("tv3d", {"no_rs": True}), method_settings("stfm", {"no_rs": True})
     assert isinstance(tv3d, TV3DSettings) and tv3d.no_rs and isinstance(stfm, STFMSettings) and stfm.no_rs
-    assert method_settings("stfm", {"preset": "prior", "base": "interp"}) == STFMSettings(preset="prior",
-                                                                                         dynamic_base="interp")
+    prior = method_settings("stfm", {"preset": "prior", "base": "interp"})
+    assert prior == dataclasses.replace(preset_settings("prior"), dynamic_base="interp") and prior.preset == "prior"
     assert method_settings("tv3d", {"preset": "exact"}).prox == "exact"
     with pytest.raises(click.UsageError, match="--preset does not apply to --method pnp"):
         method_settings("pnp", {"preset": "fast"})
@@ -167,8 +169,8 @@ def test_labels_name_a_method_and_preset_in_one_spelling():
     assert registry.labels() == ("stfm-fast", "stfm-paper", "stfm-prior", "tv3d-haar", "tv3d-exact", "pnp",
                                  "blend", "interp", "rife")
     name, settings = registry.settings_for("stfm-prior", beta=3.0)
-    assert name == "stfm" and settings == STFMSettings(preset="prior", beta=3.0)
-    assert registry.settings_for("stfm") == ("stfm", STFMSettings(preset="fast"))
+    assert name == "stfm" and settings == dataclasses.replace(preset_settings("prior"), beta=3.0)
+    assert registry.settings_for("stfm") == ("stfm", preset_settings("fast"))
     for bad, why in (("stfm_fast", "unknown method 'stfm_fast'"), ("stfm-slow", "unknown method 'stfm-slow'")):
         with pytest.raises(ConfigError, match=why):
             registry.parse_label(bad)
@@ -176,3 +178,14 @@ def test_labels_name_a_method_and_preset_in_one_spelling():
         registry.settings_for("tv3d", mu=1.0)
     with pytest.raises(ConfigError, match="takes TV3DSettings, not STFMSettings"):
         ReconSettings(method="tv3d", method_settings=STFMSettings())
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+@pytest.mark.parametrize("shape", [(16, 16, 9), (64, 48, 67)])
+def test_a_registry_preset_resolves_like_the_bare_preset_name(preset, shape):
+    """The registry's STFM presets carry the preset's values; a fit from them is the fit of
+    STFMSettings(preset=...), whose Nones the preset fills per problem."""
+    filled, _ = resolve(preset_settings(preset), *shape)
+    bare, _ = resolve(STFMSettings(preset=preset), *shape)
+    assert preset_settings(preset).beta is not None and preset_settings(preset).rows_per_step is None
+    assert {**dataclasses.asdict(filled), "settings": None} == {**dataclasses.asdict(bare), "settings": None}

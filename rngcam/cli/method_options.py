@@ -36,7 +36,7 @@ def _shown(value) -> str:
 def _default_text(entry: registry.MethodEntry, f: dataclasses.Field) -> str:
     if f.metadata.get("shown_default"):
         return f.metadata["shown_default"]
-    values = {p: entry.value_under(s, f.name) for p, s in entry.presets.items()}
+    values = {p: getattr(s, f.name) for p, s in entry.presets.items()}
     if len(set(map(repr, values.values()))) == 1 or not entry.named_presets:
         return _shown(next(iter(values.values())))
     return ", ".join(f"{p} {_shown(v)}" for p, v in values.items())

@@ -23,7 +23,7 @@ from rngcam.recon.baselines import BlendSettings, InterpSettings, RifeSettings
 from rngcam.recon.options import documented_fields
 from rngcam.recon.pnp import PnPSettings
 from rngcam.recon.stfm.settings import PRESETS as STFM_PRESETS
-from rngcam.recon.stfm.settings import STFMSettings, _preset
+from rngcam.recon.stfm.settings import STFMSettings, preset_settings
 from rngcam.recon.tv3d import TV3DSettings
 
 ITERATIVE = "iterative"  # fitted by rngcam.recon.loop to the RS (and GS) measurements
@@ -49,8 +49,7 @@ class MethodEntry:
     - GS-only: `factory(key_frames, gs_times_s, frame_times_s, settings)` -> GSOnlyVideo.
 
     `presets` maps preset names to settings instances, the default first (none: one unnamed
-    preset, the dataclass's defaults). `preset_value(settings, field)` is what a None field takes
-    under a preset (for help text). `auto_budget_s` is the `--time-budget auto` figure at 64 px.
+    preset, the dataclass's defaults). `auto_budget_s` is the `--time-budget auto` figure at 64 px.
     `benchmarked`: the presets `rngcam bench` compares (empty: the default one)."""
 
     name: str
@@ -59,7 +58,6 @@ class MethodEntry:
     factory: Callable[..., Any]
     presets: dict[str, Any] = dataclasses.field(default_factory=dict)
     auto_budget_s: float = 60.0
-    preset_value: Callable[[Any, str], Any] | None = None
     benchmarked: tuple[str, ...] = ()
     unavailable: Callable[[], str] | None = None  # why it cannot run here ('' when it can)
 
@@ -99,13 +97,6 @@ class MethodEntry:
     def labels(self) -> list[str]:
         """The label of every preset, the default's first."""
         return [self.label(p) for p in self.presets]
-
-    def value_under(self, settings, name: str):
-        """The value field `name` takes in `settings` once the preset has filled it in."""
-        value = getattr(settings, name)
-        if value is None and self.preset_value is not None:
-            return self.preset_value(settings, name)
-        return value
 
     def sweepable(self) -> list[str]:
         """The numeric settings `rngcam sweep` may grid."""
@@ -182,11 +173,6 @@ def _make_stfm(problem, settings, device="cpu", budget_s=None, stage=None):
     return make_stfm(problem, settings, device=device)
 
 
-def _stfm_preset_value(settings: STFMSettings, name: str):
-    values = _preset(settings.preset, 2, 2, 2)  # the values that do not depend on the problem's size
-    return values.get(name)
-
-
 def _make_tv3d(problem, settings, device="cpu", budget_s=None, stage=None):
     from rngcam.recon.tv3d import make_tv3d
 
@@ -231,8 +217,8 @@ def _rife_unavailable() -> str:
 # The default method first. STFM's fast preset stops by itself (after 1-3 min at 64 px on one CPU
 # thread), so its auto budget only guards against a fit that never settles.
 register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=600.0,
-                     presets={p: STFMSettings(preset=p) for p in ("fast", *(p for p in STFM_PRESETS if p != "fast"))},
-                     preset_value=_stfm_preset_value, benchmarked=("fast", "paper")))
+                     presets={p: preset_settings(p) for p in ("fast", *(p for p in STFM_PRESETS if p != "fast"))},
+                     benchmarked=("fast", "paper")))
 register(MethodEntry("tv3d", ITERATIVE, TV3DSettings, _make_tv3d,
                      presets={"haar": TV3DSettings(prox="haar"), "exact": TV3DSettings(prox="exact")}))
 register(MethodEntry("pnp", ITERATIVE, PnPSettings, _make_pnp, auto_budget_s=300.0))

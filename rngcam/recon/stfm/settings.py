@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 
 from rngcam.errors import ConfigError
 from rngcam.recon.options import setting
@@ -166,6 +166,29 @@ class _Resolved:
     motion_init: str = "flow"
     fields: dict = field(default_factory=dict)
 
+
+
+# _Resolved's values that a None setting takes from the preset (rows_per_step also: capped by H).
+_FROM_PRESET = ("beta", "tau", "lr", "lr_half_life_steps", "init", "dynamic_time", "dynamic_base", "time_smoothness",
+                "gs_windows_per_step", "stop_at_noise", "stall_drop", "ema_decay", "motion_init")
+
+
+def resolve(settings: STFMSettings, h: int, w: int, k: int) -> tuple[_Resolved, dict]:
+    """The settings for an H x W x K video with every None filled from the preset, and the preset
+    (its field configurations and learning-rate ratios)."""
+    preset = _preset(settings.preset, h, w, k)
+    values = {name: preset[name] if getattr(settings, name) is None else getattr(settings, name)
+              for name in _FROM_PRESET}
+    return _Resolved(settings=settings, rows_per_step=min(h, settings.rows_per_step or preset["rows_per_step"]),
+                     fields={key: preset[key] for key in ("static", "motion", "dynamic")}, **values), preset
+
+
+def preset_settings(name: str) -> STFMSettings:
+    """Preset `name` as settings: every value that does not depend on the problem's size filled in
+    (what the registry offers and `--help` shows); the others stay None (resolved per problem)."""
+    values = _preset(name, 2, 2, 2)
+    return replace(STFMSettings(preset=name), **{f.name: values[f.name] for f in fields(STFMSettings)
+                                                  if f.name in values and f.name != "rows_per_step"})
 
 
 def _setting_or_preset(settings: STFMSettings, name: str):
