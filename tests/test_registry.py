@@ -189,3 +189,20 @@ def test_a_registry_preset_resolves_like_the_bare_preset_name(preset, shape):
     bare, _ = resolve(STFMSettings(preset=preset), *shape)
     assert preset_settings(preset).beta is not None and preset_settings(preset).rows_per_step is None
     assert {**dataclasses.asdict(filled), "settings": None} == {**dataclasses.asdict(bare), "settings": None}
+
+
+@pytest.mark.parametrize("name", registry.names(registry.ITERATIVE))
+def test_every_iterative_method_implements_the_whole_protocol(name):
+    from tiny_scenes import tiny_sineball_problem
+
+    entry = registry.get(name)
+    problem = tiny_sineball_problem(16).to(torch.float32)
+    method = entry.factory(problem, entry.settings(), device="cpu", budget_s=None, stage=None)
+    assert isinstance(method, MethodBase) and method.name == name
+    assert np.isfinite(method.step()) and tuple(method.estimate().shape) == tuple(problem.shape)
+    assert isinstance(method.supports_holdout, bool) and isinstance(method.stops_itself, bool)
+    assert all(len(item) == 2 for item in method.left_out) and all(isinstance(n, str) for n in method.notes)
+    assert method.converged() is None or isinstance(method.converged(), str)
+    assert isinstance(method.budget_cut(), str) and isinstance(method.components(), dict)
+    resolved = method.resolved_settings()
+    assert resolved is None or isinstance(resolved, dict)
