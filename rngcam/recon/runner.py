@@ -211,10 +211,10 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
     del bundle  # the problem holds what the reconstruction needs; the raw frames can go
     stage("measurements binned onto the grid")
     out.mkdir(parents=True, exist_ok=True)
+    from rngcam.scale.holdout import HELDOUT_KEYS, HoldoutScorer
+
     scorer = None
     if settings.holdout is not None:
-        from rngcam.scale.holdout import HoldoutScorer
-
         problem = problem.with_holdout(settings.holdout, settings.holdout_gs, settings.holdout_seed)
         scorer = HoldoutScorer(problem)
     for note in problem.notes:
@@ -288,8 +288,6 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
                             (("rs", problem.rs_valid_mask()), ("gs", problem.gs_valid_mask())) if m is not None},
         "notes": notes,
     }
-    from rngcam.scale.holdout import HELDOUT_KEYS
-
     for key in ("psnr_db", "ssim", "psnr_intermediate_db", "ssim_intermediate", "residual_rs", "residual_gs",
                 *HELDOUT_KEYS):
         if key in final:
