@@ -1,7 +1,7 @@
 """Before/after strip of the demo's sineball scene from estimates saved by bench/stfm_motion.py.
 
     .venv/bin/python bench/demo_strip.py --runs /tmp/stfm_runs/new --size 64 \
-        --show stfm_fast=fast,stfm_prior=prior --out bench/demo_strip_sineball.png
+        --show stfm-fast=fast,stfm-prior=prior --out bench/demo_strip_sineball.png
 
 Rows: the truth, then each `label=config` whose `sineball<size>_<config>.npy` is in `--runs`;
 columns: the frames the demo shows (0, K/6, K/3, K/2, 2K/3, 5K/6), or `--frames`. Uses

@@ -35,8 +35,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from stfm_compare import simulated_problem  # noqa: E402
 
+from rngcam.recon import registry  # noqa: E402
 from rngcam.recon.metrics import motion_metrics, video_metrics  # noqa: E402
-from rngcam.recon.stfm import STFMSettings, make_stfm  # noqa: E402
 
 PLATEAU_DB = 0.1  # dynamic PSNR gained over the last third of the run below this: plateaued
 ONE_OBJECT = {"sineball"}
@@ -60,7 +60,8 @@ def run_scene(scene: str, size: int, work: Path, deadline: float, log_every: flo
     folder.mkdir(parents=True, exist_ok=True)
     problem, source = simulated_problem(scene, size)
     problem._bench_scene = scene
-    method = make_stfm(problem, STFMSettings(preset="paper"))
+    stfm = registry.get("stfm")
+    method = stfm.factory(problem, stfm.settings("paper"))
     ckpt, log_path = folder / "checkpoint.pt", folder / "log.jsonl"
     fit_s, cpu_s = 0.0, 0.0
     if ckpt.is_file():

@@ -30,14 +30,11 @@ sys.path.insert(0, str(ROOT))
 
 from rngcam.formats.bundle import read_bundle
 from rngcam.paths import DATA_HINT, SHORT_CLIP, external_data, package_data
-from rngcam.recon import ffdnet
-from rngcam.recon.baselines import blend, interp
+from rngcam.recon import ffdnet, registry
 from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.metrics import video_metrics
-from rngcam.recon.pnp import PnP, PnPSettings
 from rngcam.recon.problem import build_problem
 from rngcam.recon.rife import rife
-from rngcam.recon.tv3d import TV3D, TV3DSettings
 from rngcam.sim.simulate import simulate
 
 GS_ROWS = ("blend", "interp", "rife 4.x", "rife hdv3", "rife mean (4.x + HDv3)")
@@ -63,15 +60,21 @@ def scores(p, video) -> dict:
     return {"psnr": m["psnr_db"], "inter": m["psnr_intermediate_db"]}
 
 
+def make(label: str, p, **overrides):
+    """The registry's method of `label` on `p` with settings `overrides`."""
+    entry, preset = registry.parse_label(label)
+    return entry.factory(p, entry.settings(preset, **overrides))
+
+
 def gs_only(p) -> dict[str, dict]:
     keys = p.gs_images().float().numpy()
-    args = (keys, p.gs_times_s, p.frame_times_s)
     out = {}
     videos = {}
-    for name, fn in (("blend", lambda: blend(*args)), ("interp", lambda: interp(*args)),
-                     ("rife 4.x", lambda: rife(*args, model="4")), ("rife hdv3", lambda: rife(*args, model="hdv3"))):
+    for name, label, overrides in (("blend", "blend", {}), ("interp", "interp", {}), ("rife 4.x", "rife", {"model": "4"}),
+                                   ("rife hdv3", "rife", {"model": "hdv3"})):
         t0 = time.perf_counter()
-        videos[name] = np.asarray(fn())
+        entry = registry.get(label)
+        videos[name] = entry.factory(keys, p.gs_times_s, p.frame_times_s, entry.settings(**overrides)).video
         out[name] = {**scores(p, videos[name]), "seconds": time.perf_counter() - t0, "note": ""}
     # pnp's other candidate start: a GS-only video too, so it competes as a baseline
     out["rife mean (4.x + HDv3)"] = {**scores(p, 0.5 * (videos["rife 4.x"] + videos["rife hdv3"])),
@@ -85,7 +88,7 @@ LAST_START = [""]
 def iterative(p, method, budget: float | None, iters: int | None = None) -> dict:
     t0 = time.perf_counter()
     m = method()
-    LAST_START[0] = getattr(m, "init_source", "")
+    LAST_START[0] = (m.resolved_settings() or {}).get("init_source", "")
     setup = time.perf_counter() - t0
     result = run(m, LoopSettings(time_budget_s=budget, max_iters=iters, progress=False, log_every_s=1e9),
                  setup_s=setup)
@@ -141,15 +144,15 @@ def main() -> None:
             rows = gs_only(p)
             if scene == "smoke":
                 for beta in a.tv3d_betas.split(","):
-                    rows[f"tv3d beta {beta}"] = iterative(p, lambda b=float(beta), p=p: TV3D(p, TV3DSettings(beta=b)), budget, a.iters)
-            rows["pnp"] = iterative(p, lambda p=p: PnP(p), budget, a.iters)
+                    rows[f"tv3d beta {beta}"] = iterative(p, lambda b=float(beta), p=p: make("tv3d", p, beta=b), budget, a.iters)
+            rows["pnp"] = iterative(p, lambda p=p: make("pnp", p), budget, a.iters)
             rows["pnp"]["note"] += f" (start: {LAST_START[0]})"
             if scene == "smoke" and not a.no_ablations:
-                rows["pnp, frames only (slices=xy)"] = iterative(p, lambda p=p: PnP(p, PnPSettings(slices="xy")), budget, a.iters)
+                rows["pnp, frames only (slices=xy)"] = iterative(p, lambda p=p: make("pnp", p, slices="xy"), budget, a.iters)
                 real = ffdnet.load_ffdnet
                 ffdnet.load_ffdnet = lambda *_, **__: (_ for _ in ()).throw(ffdnet.DenoiserUnavailableError("hidden"))
                 try:
-                    rows["pnp, 2-D TV instead of FFDNet"] = iterative(p, lambda p=p: PnP(p), budget, a.iters)
+                    rows["pnp, 2-D TV instead of FFDNet"] = iterative(p, lambda p=p: make("pnp", p), budget, a.iters)
                 finally:
                     ffdnet.load_ffdnet = real
             best_gs = max((r["inter"], n) for n, r in rows.items() if n in GS_ROWS)

@@ -109,7 +109,7 @@ def recon(bundles: list[str], method: str, budget: float, extra: list[str], work
     for bundle in bundles:
         out = work / f"{Path(bundle).stem}-{method}"
         cmd = [sys.executable, "-c", "from rngcam.cli import main; main()", "recon", bundle, "--method", method,
-               "--time-budget", str(budget), "-o", str(out), *extra]
+               "--time-budget", str(budget), "-o", str(out), "--overwrite", *extra]
         before = load()
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)

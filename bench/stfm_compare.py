@@ -52,10 +52,10 @@ from rngcam.paths import DATA_HINT, MEASURED_PSF, external_data, package_data
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+from rngcam.recon import registry
 from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.metrics import ONE_OBJECT_SCENES, error_visibility, motion_metrics, video_metrics
 from rngcam.recon.problem import Problem
-from rngcam.recon.stfm import STFMSettings, make_stfm
 from rngcam.sim.scenes import render_scene
 
 DT_S, EXPOSURE_S = 208e-6, 650e-6  # the reference rig scaled to the grid (see the sim module)
@@ -123,13 +123,12 @@ def key_frames(p: Problem) -> np.ndarray:
     return p.gs_images().float().numpy()
 
 
-GS_ONLY = ("blend", "interp", "rife")
+GS_ONLY = registry.labels(registry.GS_ONLY)
 
 
 def gs_only_video(name: str, p: Problem) -> np.ndarray:
     """A GS-only baseline's video; "gs_mean" is the plain average of the three baselines' videos
     (of blend and interp when RIFE's weights are not installed)."""
-    from rngcam.recon import baselines
     from rngcam.recon.rife import RifeUnavailableError
 
     if name == "gs_mean":
@@ -140,11 +139,8 @@ def gs_only_video(name: str, p: Problem) -> np.ndarray:
             except RifeUnavailableError:
                 pass
         return np.mean(videos, axis=0)
-    if name == "rife":
-        from rngcam.recon.rife import rife
-
-        return np.asarray(rife(key_frames(p), p.gs_times_s, p.frame_times_s))
-    return np.asarray(getattr(baselines, name)(key_frames(p), p.gs_times_s, p.frame_times_s))
+    entry, preset = registry.parse_label(name)
+    return np.asarray(entry.factory(key_frames(p), p.gs_times_s, p.frame_times_s, entry.settings(preset)).video)
 
 
 def run_gs_only(name: str, p: Problem) -> dict:
@@ -161,11 +157,10 @@ def run_gs_only(name: str, p: Problem) -> dict:
 
 
 def make_iterative(name: str, p: Problem, opts: dict):
-    if name == "tv3d":
-        from rngcam.recon.tv3d import TV3D, TV3DSettings
-
-        return TV3D(p.to(torch.float32), TV3DSettings(**opts))
-    return make_stfm(p, STFMSettings(**opts))
+    """The method of a registry label or of one of this script's VARIANTS, with `opts` on top."""
+    label, base = VARIANTS.get(name, (name, {}))
+    entry, preset = registry.parse_label(label)
+    return entry.factory(p.to(torch.float32), entry.settings(preset, **base, **opts))
 
 
 def run_iterative(name: str, p: Problem, budget_s: float, opts: dict | None = None,
@@ -190,8 +185,7 @@ def run_iterative(name: str, p: Problem, budget_s: float, opts: dict | None = No
                stopped=any(e.startswith("stopped at") for e in result.events),
                visibility=error_visibility(p, method.estimate().detach().cpu()),
                **motion_of(method.estimate().detach().cpu(), p))
-    if hasattr(method, "left_out"):
-        out["left_out"] = [c for c, _ in method.left_out]
+    out["left_out"] = [c for c, _ in method.left_out]
     return out
 
 
@@ -213,7 +207,7 @@ def memory_child(problem_path: str, steps: int) -> None:
     p = torch.load(problem_path, weights_only=False)
     torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # import the optimiser machinery first
     before = peak_rss_mib()
-    m = make_stfm(p, STFMSettings())
+    m = make_iterative("stfm-fast", p, {})
     done = 0
     while (done < steps) if steps else not m.converged():
         m.step()
@@ -261,9 +255,9 @@ def fmt(r: dict) -> str:
     return text
 
 
-METHODS = ("stfm_fast", "stfm_prior", "stfm_single", "stfm_paper", "tv3d", "blend", "interp", "rife", "gs_mean")
-STFM_VARIANTS = {"stfm_fast": {"preset": "fast"}, "stfm_prior": {"preset": "prior"},
-                 "stfm_single": {"preset": "fast", "dynamic_base": "video"}, "stfm_paper": {"preset": "paper"}}
+# Registry labels, this script's variants of them, and gs_mean (the average of the GS-only videos).
+VARIANTS = {"stfm-single": ("stfm-fast", {"dynamic_base": "video"})}
+METHODS = ("stfm-fast", "stfm-prior", "stfm-single", "stfm-paper", "tv3d", "blend", "interp", "rife", "gs_mean")
 
 # The issue's targets on intermediate frames: STFM fast minus the best GS-only baseline / tv3d.
 GS_TARGETS = {"smoke": 3.0, "car": 1.5, "walk": -0.3, "vtest": -0.3}
@@ -296,12 +290,9 @@ def smoke_run(args, results: dict, p: Problem, size: int, name: str, part: str) 
     if name in (*GS_ONLY, "gs_mean"):
         def run_fn():
             return run_gs_only(name, p)
-    elif name == "tv3d":
-        def run_fn():
-            return run_iterative("tv3d", p, args.budget, max_iters=args.max_iters)
     else:
         def run_fn():
-            return run_iterative("stfm", p, args.budget, STFM_VARIANTS[name], args.max_iters)
+            return run_iterative(name, p, args.budget, max_iters=args.max_iters)
     return reuse_or_run(results, ("smoke", size, name), f"[{part}] {name}", run_fn)
 
 
@@ -323,9 +314,9 @@ def seed_spread(args, results: dict) -> list[str]:
              "|---|---|---|---|---|---|"]
     values = []
     for seed in range(args.seeds):
-        key = ("smoke", size, "stfm_fast") if seed == 0 else ("smoke", size, f"stfm_fast seed {seed}")
-        r = reuse_or_run(results, key, f"[seeds] stfm_fast seed {seed}",
-                         lambda seed=seed: run_iterative("stfm", p, args.budget, {"preset": "fast", "seed": seed},
+        key = ("smoke", size, "stfm-fast") if seed == 0 else ("smoke", size, f"stfm-fast seed {seed}")
+        r = reuse_or_run(results, key, f"[seeds] stfm-fast seed {seed}",
+                         lambda seed=seed: run_iterative("stfm-fast", p, args.budget, {"seed": seed},
                                                          args.max_iters))
         if "error" in r:
             continue
@@ -366,7 +357,7 @@ def tv3d_beta(args, results: dict) -> list[str]:
             continue
         scores[beta] = r["psnr_intermediate_db"]
         lines.append(f"| {beta:g} | {fmt(r)} | {r['iterations']} |")
-    fast = smoke_run(args, results, p, size, "stfm_fast", "tv3d beta")
+    fast = smoke_run(args, results, p, size, "stfm-fast", "tv3d beta")
     if scores and "error" not in fast:
         best = max(scores, key=scores.get)
         gain = fast["psnr_intermediate_db"] - scores[best]
@@ -385,7 +376,7 @@ def visibility(args, results: dict) -> list[str]:
     noise, so only a better prior, not a closer fit, can remove it."""
     size = int(args.sizes.split(",")[0])
     p, _ = simulated_problem("smoke", size)
-    for name in ("stfm_fast", "tv3d", *GS_ONLY):
+    for name in ("stfm-fast", "tv3d", *GS_ONLY):
         smoke_run(args, results, p, size, name, "visibility")
     lines = ["", "## What the measurements see of the remaining error", "",
              ("||A (estimate - truth)|| over the noise norm ||A truth - b||, per sensor. Below 1 the error hides "
@@ -446,18 +437,16 @@ def main() -> None:
                 p, source = simulated_problem(scene, size)
                 sources.add(source)
                 for name in methods:
-                    if size > 64 and name in ("stfm_paper", "tv3d"):
+                    if size > 64 and name in ("stfm-paper", "tv3d"):
                         continue
-                    if name == "stfm_paper" and scene not in args.paper_scenes.split(","):
+                    if name == "stfm-paper" and scene not in args.paper_scenes.split(","):
                         continue
                     print(f"[{scene} {size}] {name}", flush=True)
-                    if name.startswith("stfm"):
-                        budget = args.paper_budget if name == "stfm_paper" and args.paper_budget else args.budget
-                        r = run_iterative("stfm", p, budget, STFM_VARIANTS[name], args.max_iters)
-                    elif name == "tv3d":
-                        r = run_iterative("tv3d", p, args.budget, max_iters=args.max_iters)
-                    else:
+                    if name in (*GS_ONLY, "gs_mean"):
                         r = run_gs_only(name, p)
+                    else:
+                        budget = args.paper_budget if name == "stfm-paper" and args.paper_budget else args.budget
+                        r = run_iterative(name, p, budget, max_iters=args.max_iters)
                     results[(scene, size, name)] = r
                     print("   ", fmt(r), r.get("error", ""), flush=True)
         lines += ["## PSNR (dB): all frames / intermediate frames", "",
@@ -475,14 +464,14 @@ def main() -> None:
         for (scene, size, name), r in results.items():
             if "error" in r:
                 lines.append(f"| {scene} | {size} | {name} | {r['error']} | | | | |")
-            elif name in (*STFM_VARIANTS, "tv3d"):
+            elif name not in (*GS_ONLY, "gs_mean"):
                 lines.append(f"| {scene} | {size} | {name} | {r['setup_s']:.1f} | {r['solve_s']:.1f} | "
                              f"{r['iterations']} | {'yes' if r.get('stopped') else '-'} | "
                              f"{', '.join(r.get('left_out', [])) or '-'} |")
         lines += ["", "## Targets (intermediate-frame PSNR)", ""]
         for size in sizes:
             for scene in scenes:
-                fast = results.get((scene, size, "stfm_fast"))
+                fast = results.get((scene, size, "stfm-fast"))
                 gs_best = max((results[(scene, size, n)].get("psnr_intermediate_db", -math.inf)
                                for n in GS_ONLY if (scene, size, n) in results
                                and "error" not in results[(scene, size, n)]), default=None)
@@ -496,14 +485,14 @@ def main() -> None:
                     mean = results.get((scene, size, "gs_mean"))
                     if mean and "error" not in mean:
                         msg += f"; STFM fast - GS-only mean = {fast['psnr_intermediate_db'] - mean['psnr_intermediate_db']:+.2f} dB"
-                    single = results.get((scene, size, "stfm_single"))
+                    single = results.get((scene, size, "stfm-single"))
                     if single and "error" not in single:
                         msg += f" (STFM single - best GS-only = {single['psnr_intermediate_db'] - gs_best:+.2f} dB)"
                     lines.append(msg)
-        if any(name == "stfm_paper" for _, _, name in results):
+        if any(name == "stfm-paper" for _, _, name in results):
             lines += ["", "## Fast preset: time to reach the paper preset's final PSNR", ""]
         for scene in scenes:
-            fast, paper = results.get((scene, sizes[0], "stfm_fast")), results.get((scene, sizes[0], "stfm_paper"))
+            fast, paper = results.get((scene, sizes[0], "stfm-fast")), results.get((scene, sizes[0], "stfm-paper"))
             if not fast or not paper or "error" in fast or "error" in paper:
                 continue
             t = time_to_reach(fast["log"], paper["psnr_db"])
@@ -522,7 +511,7 @@ def main() -> None:
         for flag in ("full", "no_static", "no_motion_reg", "no_rs", "no_gs"):
             opts = {"components": "all"} | ({flag: True} if flag != "full" else {})
             print(f"[ablation] {flag}", flush=True)
-            r = run_iterative("stfm", p, args.budget, opts)
+            r = run_iterative("stfm-fast", p, args.budget, opts)
             print("   ", fmt(r), flush=True)
             lines.append(f"| {flag} | {fmt(r)} | {r.get('iterations', '-')} |")
     if "seeds" not in skip:

@@ -29,9 +29,9 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from stfm_compare import gs_only_video, simulated_problem  # noqa: E402
 
+from rngcam.recon import registry  # noqa: E402
 from rngcam.recon.loop import LoopSettings, run  # noqa: E402
 from rngcam.recon.metrics import ONE_OBJECT_SCENES, motion_metrics, video_metrics  # noqa: E402
-from rngcam.recon.stfm import STFMSettings, make_stfm  # noqa: E402
 
 
 def scores(video: torch.Tensor, problem, scene: str) -> dict:
@@ -88,7 +88,8 @@ def main() -> None:
                 print(line(name, r), flush=True)
         for name, overrides in configs.items():
             t0 = time.perf_counter()
-            method = make_stfm(problem, STFMSettings(**overrides))
+            stfm = registry.get("stfm")
+            method = stfm.factory(problem, stfm.settings(**overrides))
             setup_s = time.perf_counter() - t0
             result = run(method, LoopSettings(time_budget_s=args.budget, max_iters=args.max_iters, progress=False,
                                               log_every_s=args.budget), setup_s=setup_s)
@@ -96,7 +97,7 @@ def main() -> None:
             stop = next((e for e in result.events if e.startswith("stopped")), "budget")
             r = {"scene": scene, "method": name, "settings": overrides, "solve_s": result.solve_s,
                  "iterations": result.iterations, "stop": stop[:120], "load": os.getloadavg()[0],
-                 "notes": [f"{a}: {b}" for a, b in getattr(method, "left_out", [])],
+                 "notes": [f"{a}: {b}" for a, b in method.left_out],
                  **scores(video, problem, scene)}
             rows.append(r)
             print(line(name, r), flush=True)

@@ -122,7 +122,7 @@ def camera_lines(label: str, stats: list[FrameStats]) -> list[str]:
     return out
 
 
-# --- a whole capture (a rngcam.bundle.Bundle: .rs and .gs camera records)
+# --- a whole capture (a rngcam.formats.bundle.Bundle: .rs and .gs camera records)
 
 
 def _readable_frames(rec) -> bool:

@@ -16,7 +16,7 @@ from rngcam.paths import DATA_DIR
 def test_demo_runs_on_package_data_only(tmp_path, monkeypatch, capsys):
     monkeypatch.delenv("RNGCAM_DATA", raising=False)
     monkeypatch.chdir(tmp_path)
-    plan = [("blend", "blend", {}, None), ("tv3d", "tv3d", {}, 2.0)]
+    plan = [("blend", {}, None), ("tv3d", {}, 2.0)]
     assert demo.main(tmp_path / "out", plan=plan) == 0
     out = capsys.readouterr().out
     assert "== blend done in" in out and "== tv3d done in" in out and "total" in out

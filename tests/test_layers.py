@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1] / "rngcam"
 LAYERS = (
     ("rngcam", "errors", "paths", "memory", "pixels"),
     ("physics", "config"),
-    ("formats", "bundle", "sizing"),  # bundle: the temporary re-export of formats.bundle
+    ("formats", "sizing"),
     ("sim",),
     ("acquire",),
     ("calibrate",),

@@ -128,3 +128,17 @@ def test_recon_settings_budget_auto_is_the_methods_default():
     assert ReconSettings().time_budget_s == 600.0  # stfm, the default method
     assert ReconSettings(method="tv3d").time_budget_s == 60.0
     assert ReconSettings(method="tv3d", time_budget_s=None, max_iters=3).time_budget_s is None
+
+
+def test_recon_refuses_a_non_empty_output_folder_unless_told_to_overwrite(mock_bundle, tmp_path):
+    out = tmp_path / "o"
+    args = ["recon", str(mock_bundle), "--method", "blend", "-o", str(out), "--quiet"]
+    assert CliRunner().invoke(main, args).exit_code == 0
+    first = (out / "metrics.json").stat().st_mtime_ns
+    again = CliRunner().invoke(main, args)
+    assert again.exit_code != 0 and "Traceback" not in again.output
+    errors = [ln for ln in again.output.splitlines() if ln.startswith("error:")]
+    assert len(errors) == 1 and "is not empty; pass --overwrite" in errors[0]
+    assert (out / "metrics.json").stat().st_mtime_ns == first  # nothing was touched
+    assert CliRunner().invoke(main, [*args, "--overwrite"]).exit_code == 0
+    assert (out / "metrics.json").stat().st_mtime_ns != first

@@ -153,6 +153,8 @@ def test_loop_needs_a_stopping_rule():
 class _StopsAt(TV3D):
     """TV3D that declares itself converged after a given number of steps."""
 
+    stops_itself = True
+
     def __init__(self, problem, stop_after):
         super().__init__(problem, TV3DSettings())
         self.stop_after, self.steps = stop_after, 0

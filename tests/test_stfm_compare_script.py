@@ -15,7 +15,7 @@ SCRIPT = Path(__file__).resolve().parents[1] / "bench" / "stfm_compare.py"
 def test_stfm_compare_runs_every_method_and_reports_targets(tmp_path):
     out = tmp_path / "report.md"
     args = ["--budget", "0.5", "--paper-budget", "0.3", "--sizes", "16", "--scenes", "smoke",
-            "--paper-scenes", "smoke", "--methods", "stfm_fast,stfm_single,stfm_paper,tv3d,blend,interp,gs_mean",
+            "--paper-scenes", "smoke", "--methods", "stfm-fast,stfm-single,stfm-paper,tv3d,blend,interp,gs_mean",
             "--seeds", "2", "--tv3d-betas", "1,10", "--skip", "ablation,memory", "--out", str(out)]
     res = subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-2000:]
@@ -46,8 +46,8 @@ def test_stfm_compare_runs_every_method_and_reports_targets(tmp_path):
     # what the measurements see of each run's error: a row per run, the main table's figures
     seen_rows = {r.split("|")[3].strip(): [c.strip() for c in r.strip("|").split("|")]
                  for r in seen.splitlines() if r.startswith("| smoke | 16 |")}
-    assert {"stfm_fast", "stfm_single", "stfm_paper", "tv3d", "blend", "interp", "stfm_fast seed 1",
+    assert {"stfm-fast", "stfm-single", "stfm-paper", "tv3d", "blend", "interp", "stfm-fast seed 1",
             "tv3d beta 10"} <= set(seen_rows)
-    assert seen_rows["stfm_fast"][3] == cells[0] and seen_rows["tv3d"][3] == cells[3]
+    assert seen_rows["stfm-fast"][3] == cells[0] and seen_rows["tv3d"][3] == cells[3]
     for cols in seen_rows.values():
         assert all(re.fullmatch(r"\d+\.\d\d", c) for c in cols[4:6]), cols

@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from rngcam.errors import RngcamError
+from rngcam.recon import registry
 
 
 @click.command("bench")
@@ -22,8 +23,9 @@ from rngcam.errors import RngcamError
               help="An extra real clip (.npz with 'frames' (T, H, W, 3) uint8); repeatable.")
 @click.option("--scene", "scene_names", multiple=True, help="Only this scene (repeatable).")
 @click.option("--method", "methods", multiple=True,
-              type=click.Choice(["stfm-fast", "stfm-paper", "tv3d", "blend", "interp", "rife"]),
-              help="Only this method (repeatable).")
+              type=click.Choice(list(dict.fromkeys((*registry.labels(), *registry.names())))),
+              help="Only this method and preset, a registry label (a bare name: its default preset); "
+                   f"repeatable [{', '.join(registry.bench_labels())}].")
 @click.option("--threads", type=int, default=None, help="CPU threads per run [1].")
 def bench_cmd(quick, stress, out_dir, time_budget, size, clips, scene_names, methods, threads):
     """Benchmark every method on every scene under one time budget (results.md/.csv, plots)."""

@@ -19,22 +19,22 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 OUT = Path("demo-out")
 
-# The plan, one row per part: (label and output folder, method, options, time budget in seconds;
-# None: the method's own). Change a row to trade time for quality. The budgets cap each iterative
-# fit's compute time; on top, no part may run past DEADLINE_S after the start less FINISH_S (a
-# part's outputs, the strip and the plots), so the demo ends within 180 s on 2 CPU cores even
-# when the machine is busy (a fit cut short says so in the summary).
+# The plan, one row per part: (method label (rngcam.recon.registry) and output folder, settings it
+# overrides, time budget in seconds; None: the method's own). Change a row to trade time for quality.
+# The budgets cap each iterative fit's compute time; on top, no part may run past DEADLINE_S after
+# the start less FINISH_S (a part's outputs, the strip and the plots), so the demo ends within 180 s
+# on 2 CPU cores even when the machine is busy (a fit cut short says so in the summary).
 # STFM runs last with the `prior` preset (the paper's prior: one canonical image that a motion field
 # moves), which follows the ball where it turns between key frames; it takes whatever time is left.
 # `rngcam recon`'s default `fast` preset smears a moving object (bench/stfm_motion.md); to show it
-# too, add ("stfm-fast", "stfm", {"preset": "fast", "dynamic_base": "video"}, 60.0) before it.
+# too, add ("stfm-fast", {"dynamic_base": "video"}, 60.0) before it.
 PLAN = [
-    ("blend", "blend", {}, None),
-    ("interp", "interp", {}, None),
-    ("rife", "rife", {}, None),
-    ("tv3d", "tv3d", {}, 20.0),
-    ("pnp", "pnp", {}, 40.0),
-    ("stfm-prior", "stfm", {"preset": "prior"}, 120.0),
+    ("blend", {}, None),
+    ("interp", {}, None),
+    ("rife", {}, None),
+    ("tv3d", {}, 20.0),
+    ("pnp", {}, 40.0),
+    ("stfm-prior", {}, 120.0),
 ]
 DEADLINE_S = 172.0
 FINISH_S = 14.0
@@ -86,6 +86,7 @@ def main(out: Path = OUT, plan: list | None = None) -> int:
     import torch
 
     from rngcam.formats.bundle import read_bundle
+    from rngcam.recon import registry
     from rngcam.recon.outputs import plot_errors
     from rngcam.recon.runner import ReconSettings, reconstruct
 
@@ -96,13 +97,14 @@ def main(out: Path = OUT, plan: list | None = None) -> int:
     truth = read_bundle(bundle).truth.video
     click.echo(f"== capture done at {time.perf_counter() - t0:.1f} s")
     rows, videos, logs = [], {}, {}
-    for label, method, opts, budget in PLAN if plan is None else plan:
+    for label, overrides, budget in PLAN if plan is None else plan:
         if budget:
             budget = max(5.0, min(budget, DEADLINE_S - FINISH_S - (time.perf_counter() - t0)))
         click.echo(f"== {label}" + (f" (time budget {budget:.0f} s)" if budget else ""))
         t_part = time.perf_counter()
-        settings = ReconSettings(method=method, time_budget_s=budget or "auto", options=opts,
-                                 progress=sys.stdout.isatty())
+        method, method_settings = registry.settings_for(label, **overrides)
+        settings = ReconSettings(method=method, method_settings=method_settings, time_budget_s=budget or "auto",
+                                 progress=sys.stdout.isatty(), overwrite=True)  # a fresh capture each run
         try:
             m = reconstruct(bundle, out / label, settings, echo=click.echo)
         except ImportError as exc:  # an optional method that is not installed

@@ -2,27 +2,15 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import click
 
+from rngcam.cli.method_options import method_command, method_settings, pop_method_values
 from rngcam.errors import RngcamError
-from rngcam.recon.runner import ITERATIVE, METHODS, ReconSettings
+from rngcam.recon import registry
+from rngcam.recon.runner import ReconSettings
 from rngcam.scale.backend import make_backend
-
-
-def _values(ctx, param, text: str | None) -> list[float] | None:
-    """'10,100,1e3' -> [10.0, 100.0, 1000.0]."""
-    if text is None:
-        return None
-    try:
-        values = [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise click.BadParameter(f"expected comma-separated numbers, got {text!r}") from None
-    if not values or not all(math.isfinite(v) and v >= 0 for v in values):
-        raise click.BadParameter(f"expected finite numbers >= 0, got {text!r}")
-    return values
 
 
 def _backend_factory(address: str | None, no_ray: bool, device: str):
@@ -46,13 +34,8 @@ def _with(options):
     return deco
 
 
-@click.command("sweep")
+@method_command("sweep", kinds=(registry.ITERATIVE,), sweep=True)
 @click.argument("bundle", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--beta", callback=_values, help="Temporal TV weights, comma-separated (e.g. 10,100,1000).")
-@click.option("--tau", callback=_values, help="TV weights, comma-separated.")
-@click.option("--psi", callback=_values, help="RS data weights relative to GS, comma-separated.")
-@click.option("--method", type=click.Choice(ITERATIVE), default="stfm", show_default=True)
-@click.option("--preset", type=click.Choice(["fast", "paper"]), default=None, help="STFM preset [fast].")
 @click.option("--time-budget", type=float, default=None,
               help="Wall-clock seconds per trial at the full budget [30 unless --iters is given].")
 @click.option("--iters", type=int, default=None, help="Iterations per trial at the full budget (reproducible).")
@@ -60,7 +43,7 @@ def _with(options):
               help="Fraction of RS row bins held out to score the trials.")
 @click.option("--holdout-gs", type=float, default=0.0, show_default=True,
               help="Fraction of GS pixels also held out (scored with the RS rows).")
-@click.option("--holdout-seed", type=int, default=0, show_default=True)
+@click.option("--holdout-seed", type=int, default=0, show_default=True, help="Seed of the held-out splits.")
 @click.option("--folds", type=int, default=3, show_default=True,
               help="Held-out splits per trial (one fit each); the score is their mean (steadier than one).")
 @click.option("--eta", type=int, default=3, show_default=True, help="Successive halving: keep the best 1/eta per rung.")
@@ -71,14 +54,22 @@ def _with(options):
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder [default: <bundle>-sweep-<method>/ beside the bundle].")
 @_with(_ray_options)
-def sweep_cmd(bundle, beta, tau, psi, method, preset, time_budget, iters, holdout, holdout_gs, holdout_seed, folds,
-              eta, rungs, device, grid_bin, no_refit, out_dir, address, no_ray):
-    """Fit a grid of beta/tau/psi settings on BUNDLE, choose by held-out residual, refit the best."""
+def sweep_cmd(bundle, method, time_budget, iters, holdout, holdout_gs, holdout_seed, folds,
+              eta, rungs, device, grid_bin, no_refit, out_dir, address, no_ray, **lists):
+    """Fit a grid of settings (e.g. beta/tau/psi) on BUNDLE, choose by held-out residual, refit the best."""
     from rngcam.scale.sweep import SweepSettings, sweep
 
-    grid = {k: v for k, v in (("beta", beta), ("tau", tau), ("psi", psi)) if v is not None}
+    given = pop_method_values(lists)
+    preset = given.pop("preset", None)
+    sweepable = registry.get(method).sweepable()
+    bad = sorted(set(given) - set(sweepable))
+    if bad:
+        raise click.UsageError(f"{', '.join('--' + b.replace('_', '-') for b in bad)} does not apply to "
+                               f"--method {method}")
+    grid = given
     if not grid:
-        raise click.UsageError("give at least one of --beta, --tau, --psi (comma-separated values)")
+        names = ", ".join("--" + n.replace("_", "-") for n in sorted(sweepable))
+        raise click.UsageError(f"give at least one of {names} (comma-separated values)")
     settings = SweepSettings(method=method, grid=grid, preset=preset, time_budget_s=time_budget, max_iters=iters,
                              holdout=holdout, holdout_gs=holdout_gs, holdout_seed=holdout_seed, folds=folds,
                              eta=eta, rungs=rungs, device=device, grid_bin=grid_bin, refit=not no_refit)
@@ -94,9 +85,8 @@ def sweep_cmd(bundle, beta, tau, psi, method, preset, time_budget, iters, holdou
     click.echo(f"outputs: {result.out_dir}")
 
 
-@click.command("recon-batch")
+@method_command("recon-batch")
 @click.argument("bundles", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--method", type=click.Choice(METHODS), default="stfm", show_default=True)
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("recon-batch"),
               show_default=True, help="Output folder: one sub-folder per bundle, batch.csv and batch.md.")
 @click.option("--time-budget", type=float, default=None,
@@ -104,23 +94,14 @@ def sweep_cmd(bundle, beta, tau, psi, method, preset, time_budget, iters, holdou
 @click.option("--iters", type=int, default=None, help="Stop each fit after this many iterations.")
 @click.option("--device", default="cpu", show_default=True, help="cpu or cuda (one GPU per bundle).")
 @click.option("--bin", "grid_bin", type=int, default=None, help="Sensor pixels per grid pixel.")
-@click.option("--preset", type=click.Choice(["fast", "paper"]), default=None, help="STFM preset [fast].")
-@click.option("--beta", type=float, default=None, help="Temporal weight of the TV term.")
-@click.option("--tau", type=float, default=None, help="TV weight.")
-@click.option("--psi", type=float, default=None, help="RS data weight relative to GS.")
 @_with(_ray_options)
-def recon_batch_cmd(bundles, method, out_dir, time_budget, iters, device, grid_bin, preset, beta, tau, psi,
-                    address, no_ray):
+def recon_batch_cmd(bundles, method, out_dir, time_budget, iters, device, grid_bin, address, no_ray, **opts):
     """Reconstruct every bundle in BUNDLES (one task each); finished ones are skipped on a re-run."""
     from rngcam.scale.batch import recon_batch
 
-    opts = {k: v for k, v in (("preset", preset), ("beta", beta), ("tau", tau), ("psi", psi)) if v is not None}
-    if opts and method not in ITERATIVE:
-        raise click.UsageError(f"{', '.join('--' + k for k in opts)} does not apply to --method {method}")
-    if "preset" in opts and method != "stfm":
-        raise click.UsageError("--preset applies to --method stfm only")
     settings = ReconSettings(method=method, time_budget_s="auto" if time_budget is None else time_budget,
-                             max_iters=iters, device=device, grid_bin=grid_bin, progress=False, options=opts)
+                             max_iters=iters, device=device, grid_bin=grid_bin, progress=False,
+                             method_settings=method_settings(method, pop_method_values(opts)))
     result = recon_batch(bundles, out_dir, settings, backend_factory=_backend_factory(address, no_ray, device),
                          echo=click.echo)
     click.echo((result.out_dir / "batch.md").read_text().split("\n\n", 1)[-1].rstrip())

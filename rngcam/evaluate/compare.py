@@ -23,9 +23,8 @@ from pathlib import Path
 
 from rngcam.evaluate import report
 from rngcam.evaluate.scenes import BenchScene, make_scene_bundle
+from rngcam.recon import registry
 
-METHODS = ("stfm-fast", "stfm-paper", "tv3d", "pnp", "blend", "interp", "rife")
-GS_ONLY = ("blend", "interp", "rife")
 LEVEL_OFFSETS_DB = (0.0, 1.0, 3.0)  # above the best GS-only PSNR of the scene
 KILL_GRACE_S = 300.0  # extra time a run may take beyond its budget before it is stopped
 
@@ -38,7 +37,7 @@ class BenchSettings:
 
     size: int = 64
     time_budget_s: float = 60.0
-    methods: tuple[str, ...] = METHODS
+    methods: tuple[str, ...] = registry.bench_labels()  # registry labels, e.g. stfm-fast, tv3d, blend
     seed: int = 0
     threads: int = 1
 
@@ -48,28 +47,13 @@ class BenchSettings:
         return cls(**{"size": 32, "time_budget_s": 10.0, **overrides})
 
 
-def runner_method(method: str) -> tuple[str, dict]:
-    """Bench method name -> (`reconstruct` method, options)."""
-    if method.startswith("stfm-"):
-        return "stfm", {"preset": method.split("-", 1)[1]}
-    return method, {}
-
-
 def unavailable(method: str) -> str:
-    """Why `method` cannot run here ('' when it can)."""
-    if method == "rife":
-        try:
-            from rngcam.recon.rife import resolve_model
+    """Why the method of label `method` cannot run here ('' when it can)."""
+    return registry.unavailable(method)
 
-            resolve_model()  # RIFE 4.x, else HDv3
-        except Exception as exc:  # noqa: BLE001 - any failure means "not installed"
-            return str(exc)
-    if method.startswith("stfm"):
-        try:
-            import rngcam.recon.stfm  # noqa: F401
-        except Exception as exc:  # noqa: BLE001
-            return f"STFM does not import: {exc}"
-    return ""
+
+def _gs_only(method: str) -> bool:
+    return not registry.parse_label(method)[0].iterative
 
 
 # ----------------------------------------------------------------------------- one run
@@ -95,9 +79,8 @@ def read_log(path: Path) -> list[dict]:
 
 def run_one(bundle: Path, out: Path, method: str, settings: BenchSettings) -> dict:
     """Run `method` on `bundle` in a fresh process; returns its result row and log."""
-    name, options = runner_method(method)
     out.mkdir(parents=True, exist_ok=True)
-    job = {"bundle": str(bundle), "out": str(out), "method": name, "options": options,
+    job = {"bundle": str(bundle), "out": str(out), "method": method,
            "time_budget_s": settings.time_budget_s, "log_every_s": max(settings.time_budget_s / 40, 0.2),
            "threads": settings.threads}
     job_path = out / "bench_job.json"
@@ -162,7 +145,7 @@ def level_columns(best_gs_db: float) -> dict[str, float]:
 
 def add_level_times(rows: list[dict]) -> dict[str, float]:
     """Fill each row of one scene with its time to each level; returns the levels."""
-    gs = [r["psnr_db"] for r in rows if r["method"] in GS_ONLY and isinstance(r.get("psnr_db"), float)
+    gs = [r["psnr_db"] for r in rows if _gs_only(r["method"]) and isinstance(r.get("psnr_db"), float)
           and math.isfinite(r["psnr_db"])]
     if not gs:
         return {}
@@ -183,7 +166,7 @@ def plot_scene(png: Path, rows: list[dict], budget_s: float) -> None:
         log = [x for x in r.get("log", []) if isinstance(x.get("solve_s"), float)]
         if not log:
             continue
-        if r["method"] in GS_ONLY and len(log) == 1:
+        if _gs_only(r["method"]) and len(log) == 1:
             log = [log[0], {**log[0], "solve_s": max(budget_s, log[0]["solve_s"])}]
         runs[r["method"]] = log
     if runs:

@@ -33,6 +33,7 @@ from rngcam.evaluate import report
 from rngcam.evaluate.stress_cases import StressCase, stress_cases
 from rngcam.formats.bundle import read_bundle
 from rngcam.physics.operators import inner
+from rngcam.recon import registry
 from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.problem import Problem, build_problem
 
@@ -53,25 +54,10 @@ class StressSettings:
 
 
 def available_methods() -> list[str]:
-    """Methods installed here: RIFE needs its weights, STFM its module."""
+    """Methods installed here (RIFE needs its weights)."""
     from rngcam.evaluate.stress_cases import ALL_METHODS
 
-    out = []
-    for m in ALL_METHODS:
-        if m == "rife":
-            try:
-                from rngcam.recon.rife import find_weights
-
-                find_weights()
-            except Exception:  # noqa: BLE001, S112 - any failure means "not installed"
-                continue
-        if m.startswith("stfm"):
-            try:
-                from rngcam.recon.stfm import make_stfm  # noqa: F401
-            except Exception:  # noqa: BLE001, S112
-                continue
-        out.append(m)
-    return out
+    return [m for m in ALL_METHODS if not registry.unavailable(m)]
 
 
 # ----------------------------------------------------------------------------- operators
@@ -125,25 +111,9 @@ def operator_row(problem: Problem) -> dict:
 # ----------------------------------------------------------------------------- methods on a Problem
 
 
-def _split(method: str) -> tuple[str, dict]:
-    """Bench method name -> (runner method, options)."""
-    if method.startswith("tv3d-"):
-        return "tv3d", {"prox": method.split("-", 1)[1]}
-    if method.startswith("stfm-"):
-        return "stfm", {"preset": method.split("-", 1)[1]}
-    return method, {}
-
-
 def _iterative(problem: Problem, method: str, options: dict):
-    name, base = _split(method)
-    opts = {**base, **options}
-    if name == "tv3d":
-        from rngcam.recon.tv3d import TV3D, TV3DSettings
-
-        return TV3D(problem.to(torch.float32), TV3DSettings(**opts))
-    from rngcam.recon.stfm import STFMSettings, make_stfm
-
-    return make_stfm(problem.to(torch.float32), STFMSettings(**opts), device="cpu")
+    entry, preset = registry.parse_label(method)
+    return entry.factory(problem.to(torch.float32), entry.settings(preset, **options), device="cpu")
 
 
 def _gs_only(problem: Problem, method: str) -> np.ndarray:
@@ -151,18 +121,9 @@ def _gs_only(problem: Problem, method: str) -> np.ndarray:
 
     if problem.b_gs is None or problem.b_gs.shape[1] == 0:
         raise RngcamError(f"{method} needs GS frames")
-    key = gs_key_frames(problem)
-    if method == "blend":
-        from rngcam.recon.baselines import blend
-
-        return blend(key, problem.gs_times_s, problem.frame_times_s)
-    if method == "interp":
-        from rngcam.recon.baselines import interp
-
-        return interp(key, problem.gs_times_s, problem.frame_times_s)
-    from rngcam.recon.rife import rife
-
-    return rife(key, problem.gs_times_s, problem.frame_times_s)
+    entry, preset = registry.parse_label(method)
+    return entry.factory(gs_key_frames(problem), problem.gs_times_s, problem.frame_times_s,
+                         entry.settings(preset)).video
 
 
 def monotone(objectives: list[float]) -> tuple[bool, float]:
@@ -184,7 +145,7 @@ def _iterations(method: str, settings: StressSettings) -> int | None:
 
 def run_on_problem(problem: Problem, method: str, options: dict, settings: StressSettings) -> dict:
     """Short run of `method` on `problem`: {video, iterations, objectives, status, message}."""
-    if method.split("-")[0] in ("tv3d", "stfm"):
+    if registry.parse_label(method)[0].iterative:
         t0 = time.perf_counter()
         m = _iterative(problem, method, options)
         iters = _iterations(method, settings)
@@ -205,10 +166,11 @@ def run_on_bundle(bundle: Path, method: str, options: dict, settings: StressSett
     """`reconstruct` the bundle (the user's path); read back the written video and log."""
     from rngcam.recon.runner import ReconSettings, reconstruct
 
-    name, base = _split(method)
     iters = _iterations(method, settings)
-    recon = ReconSettings(method=name, time_budget_s=settings.time_cap_s, max_iters=iters, progress=False,
-                          log_every_s=0.0, checkpoint_every_s=1e9, options={**base, **options})
+    entry, preset = registry.parse_label(method)
+    recon = ReconSettings(method=entry.name, method_settings=entry.settings(preset, **options),
+                          time_budget_s=settings.time_cap_s, max_iters=iters, progress=False, overwrite=True,
+                          log_every_s=0.0, checkpoint_every_s=1e9)
     metrics = reconstruct(bundle, out, recon, echo=lambda _msg: None)
     with h5py.File(out / "recon.h5", "r") as f:
         video = torch.from_numpy(f["video"][()])

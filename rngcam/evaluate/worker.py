@@ -1,7 +1,8 @@
 """One benchmark run in a fresh process: `python -m rngcam.evaluate.worker JOB.json`.
 
-The job names the bundle, the output folder, the runner method, its options, the time budget
-and the log spacing. It calls `rngcam.recon.runner.reconstruct` (which writes every output)
+The job names the bundle, the output folder, the method's registry label (e.g. stfm-fast), any
+settings it overrides by name (`overrides`), the time budget and the log spacing. It calls
+`rngcam.recon.runner.reconstruct` (which writes every output)
 and adds `bench_worker.json` with this process's peak resident set size and its base (the
 resident size once the interpreter, torch and the output writers are loaded, before the run):
 peak - base is what the method itself added.
@@ -37,6 +38,7 @@ def main(job_path: str) -> int:
         import cv2
         import torch
 
+        from rngcam.recon import registry
         from rngcam.recon.runner import ReconSettings, reconstruct
 
         torch.set_num_threads(int(job.get("threads", 1)))
@@ -44,9 +46,10 @@ def main(job_path: str) -> int:
         _import_output_writers()
         report["base_rss_bytes"] = current_rss_bytes()
 
-        settings = ReconSettings(method=job["method"], time_budget_s=job["time_budget_s"], progress=False,
-                                 log_every_s=job["log_every_s"], checkpoint_every_s=1e9,
-                                 options=job.get("options", {}))
+        name, method_settings = registry.settings_for(job["method"], **job.get("overrides", {}))
+        settings = ReconSettings(method=name, method_settings=method_settings, time_budget_s=job["time_budget_s"],
+                                 progress=False, log_every_s=job["log_every_s"], checkpoint_every_s=1e9,
+                                 overwrite=True)  # the folder already holds this job's own files
         reconstruct(job["bundle"], out, settings, echo=lambda _msg: None)
     except Exception as exc:  # noqa: BLE001 - reported in the results table, not raised
         report["error"] = f"{type(exc).__name__}: {exc}"

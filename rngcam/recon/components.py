@@ -27,8 +27,6 @@ STATIC_NOISE_FACTOR = 5.0  # a change beyond this many noise sigmas is real
 STATIC_RELATIVE_TOL = 0.002  # ... plus this fraction of the signal (model/calibration slack)
 STATIC_OUTLIER_FRACTION = 1e-3  # pixels allowed to change beyond noise in a static scene
 
-ALL_COMPONENTS = ("static", "motion", "dynamic", "motion_reg", "rs", "gs")
-
 
 @dataclass(frozen=True)
 class Components:

@@ -29,9 +29,14 @@ CHECKPOINT_NAME = "checkpoint.pt"
 
 
 class Method(Protocol):
-    """What the loop needs from an iterative method."""
+    """What the loop and the runner need from an iterative method (MethodBase gives the defaults
+    of everything below `reduce_step`)."""
 
     name: str
+    supports_holdout: bool  # fits only the training split of Problem.with_holdout
+    stops_itself: bool  # has a stop of its own (`converged`), so a budget may cut it short
+    left_out: list[tuple[str, str]]  # (component or measurement, why) the method dropped
+    notes: list[str]  # substitutions it made (e.g. missing learned weights) and their cost
 
     def step(self) -> float:
         """One iteration; returns the objective value (may be a stochastic estimate)."""
@@ -49,8 +54,40 @@ class Method(Protocol):
     def reduce_step(self, factor: float) -> None:
         """Shrink the step size / learning rate after a NaN or Inf."""
 
-    # Optional: `converged() -> str | None`, asked after every step; a reason ends the run early
-    # (e.g. STFM's discrepancy-principle stop) and is kept in the events.
+    def converged(self) -> str | None:
+        """Asked after every step; a reason ends the run early (e.g. STFM's discrepancy-principle
+        stop) and is kept in the events."""
+
+    def budget_cut(self) -> str:
+        """What a time budget cut short (e.g. "levels 2-3 of 3 not reached"), or ''."""
+
+    def components(self) -> dict:
+        """Named parts of the result (e.g. STFM's static image and alpha) for recon.h5."""
+
+    def resolved_settings(self) -> dict | None:
+        """The settings with every preset value filled in, for metrics.json (None: nothing to add)."""
+
+
+class MethodBase:
+    """The defaults of Method's optional parts: no held-out fitting, no stop of its own, nothing
+    left out, no notes, no components, no resolved settings."""
+
+    supports_holdout = False
+    stops_itself = False
+    left_out: list[tuple[str, str]] = []  # noqa: RUF012 - read-only default; methods assign their own
+    notes: list[str] = []  # noqa: RUF012
+
+    def converged(self) -> str | None:
+        return None
+
+    def budget_cut(self) -> str:
+        return ""
+
+    def components(self) -> dict:
+        return {}
+
+    def resolved_settings(self) -> dict | None:
+        return None
 
 
 @dataclass
@@ -154,7 +191,6 @@ def run(method: Method, settings: LoopSettings,
                                 "solve_s": solve_s, "wall_s": wall(), "log": log,
                                 "events": events, "rng": torch.get_rng_state()})
 
-    converged = getattr(method, "converged", None)
     stop_reason = None
     with _progress(settings, method.name) as bar:
         if not log:
@@ -171,8 +207,8 @@ def run(method: Method, settings: LoopSettings,
             # A non-finite state shows in the next objective; the whole state is checked only
             # where it is kept (log snapshot, checkpoint, the end), not after every step.
             bad, state = not math.isfinite(objective), None
-            if not bad and converged is not None:
-                stop_reason = converged()
+            if not bad and method.stops_itself:
+                stop_reason = method.converged()
             if not bad and (due or ckpt_due or done() or stop_reason):
                 state = method.state_dict()
                 bad = not _finite_state(state)
@@ -212,13 +248,13 @@ def run(method: Method, settings: LoopSettings,
 def budget_event(method, budget_s: float, iteration: int, setup_s: float) -> str:
     """The event that says the time budget, not the method, ended a run, and what was cut."""
     name = method.name
-    what = getattr(method, "budget_cut", lambda: "")()  # e.g. "levels 2-3 of 3 not reached"
+    what = method.budget_cut()
     head = f"time budget of {budget_s:g} s reached at iteration {iteration}"
     if setup_s >= budget_s:
         head += f" (set-up alone took {setup_s:.1f} s)"
     elif setup_s > 0:
         head += f" (set-up {setup_s:.1f} s)"
-    why = (f"before {name}'s own stop" if getattr(method, "converged", None) is not None
+    why = (f"before {name}'s own stop" if method.stops_itself
            else f"{name} has no stop of its own, so the budget decides how far it gets")
     cut = f"; cut: {what}" if what else ""
     return (f"{head}, {why}{cut}; the state at the budget is written (a larger --time-budget with "

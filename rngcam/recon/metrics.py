@@ -110,10 +110,6 @@ def relative_residual(pred: Tensor, meas: Tensor) -> float:
     return num / den
 
 
-def psnr_np(estimate: np.ndarray, truth: np.ndarray) -> float:
-    return psnr(torch.from_numpy(np.asarray(estimate)), torch.from_numpy(np.asarray(truth)))
-
-
 # The truth's prediction may differ from a measurement by up to this many times the noise
 # estimated from the measurement itself before the data are called inconsistent with the truth.
 _CONSISTENT_NOISE_RATIO = 3.0

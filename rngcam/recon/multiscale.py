@@ -26,6 +26,7 @@ from torch import Tensor
 
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.timing import VideoGrid
+from rngcam.recon.loop import MethodBase
 from rngcam.recon.problem import Problem
 
 
@@ -140,7 +141,7 @@ def default_factors(shape: tuple[int, int, int, int], min_side: int = 48) -> tup
     return tuple(reversed(factors))
 
 
-class CoarseToFine:
+class CoarseToFine(MethodBase):
     """A `Method` (rngcam.recon.loop) that runs `make(level_problem, x0)` at each level in turn.
 
     A coarse level ends when its objective has fallen by less than `level_rtol` over its last
@@ -168,9 +169,7 @@ class CoarseToFine:
         self.t0 = time.perf_counter()
         self.level, self._x0, self.held_back = 0, None, False
         self._start_level(0, None)
-        self.name = getattr(self.method, "name", "method")
-        if hasattr(self.method, "converged"):
-            self.converged = self._converged
+        self.name, self.stops_itself = self.method.name, self.method.stops_itself
 
     # --- levels ---
     def _describe(self, i: int) -> str:
@@ -240,7 +239,7 @@ class CoarseToFine:
     def residuals(self) -> dict[str, float]:
         return self.method.residuals()  # of the current level's problem
 
-    def _converged(self) -> str | None:
+    def converged(self) -> str | None:
         return self.method.converged() if self.final else None
 
     def budget_cut(self) -> str:
@@ -264,8 +263,15 @@ class CoarseToFine:
         self.method.reduce_step(factor)
 
     def components(self) -> dict:
-        return self.method.components() if hasattr(self.method, "components") else {}
+        return self.method.components()
+
+    def resolved_settings(self) -> dict | None:
+        return self.method.resolved_settings()
 
     @property
     def left_out(self):
-        return getattr(self.method, "left_out", [])
+        return self.method.left_out
+
+    @property
+    def notes(self):
+        return self.method.notes

@@ -39,8 +39,10 @@ from torch import Tensor
 
 from rngcam.errors import ConfigError
 from rngcam.physics.operators import LinearOperator
+from rngcam.recon.loop import MethodBase
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
+from rngcam.recon.options import setting
 from rngcam.recon.problem import Problem
 
 SLICE_KINDS = ("xy", "xt", "yt")
@@ -48,19 +50,23 @@ SLICE_KINDS = ("xy", "xt", "yt")
 
 @dataclass
 class PnPSettings:
-    psi: float = 1.0  # RS data weight relative to GS
-    mu: float = 0.5  # proximity weight at the first iteration (relative to the scaled data terms)
-    sigma_start: float = 0.05  # denoiser noise level, [0, 1] scale of the encoded frames
-    sigma_end: float = 0.01
+    psi: float = setting(1.0, "RS data weight relative to GS (each term scaled by its operator's norm)",
+                         unit="relative", sweep=True)
+    mu: float = setting(0.5, "proximity weight at the first iteration, relative to the scaled data terms",
+                        unit="relative", sweep=True)
+    sigma_start: float = setting(0.05, "first denoiser noise level", unit="0-1 scale of the encoded frames")
+    sigma_end: float = setting(0.01, "last denoiser noise level", unit="0-1 scale of the encoded frames")
     schedule_iters: int = 20
     cg_iters: int = 5
-    gs_anchor: str = "hard"  # "soft" or "hard"
-    slices: str = "xt,yt"  # comma-separated cycle of "xy" (frames), "xt", "yt"
+    gs_anchor: str = setting("hard", "GS frames as a loss term (soft) or a projection onto them (hard)",
+                             choices=("soft", "hard"))
+    slices: str = setting("xt,yt", "what the 2-D denoiser sees in turn: xy (frames), xt, yt, comma-separated")
     # "video": RIFE 4.x or the mean of RIFE 4.x and HDv3, whichever fits the RS image better (else
     # one RIFE, else interp); "rife", "interp" or "blend"
     init: str = "video"
     frame_chunk: int = 16  # images per denoiser pass
-    stop_at_noise: bool = True
+    stop_at_noise: bool = setting(True, "stop once the RS residual reaches the noise level estimated from "
+                                        "the RS image, or stalls after the schedule")
     # The discrepancy test's tolerance: the RS noise estimate is within ~7 % of the truth
     # (rngcam.recon.noise), so a residual within 10 % of it is treated as at the noise.
     noise_margin: float = 1.1
@@ -174,10 +180,11 @@ class Denoiser:
 TV_FALLBACK_COST = "a weaker prior: 1.4 dB lower on smoke's intermediate frames at 64 px"
 
 
-class PnP:
+class PnP(MethodBase):
     """HQS plug-and-play (module docstring); a `Method` for rngcam.recon.loop."""
 
     name = "pnp"
+    stops_itself = True  # the discrepancy principle and the stall test (converged)
 
     def __init__(self, problem: Problem, settings: PnPSettings | None = None, device: str = "cpu"):
         self.p, self.s = problem, settings or PnPSettings()

@@ -7,7 +7,7 @@ the RS timing uses that bin exactly (a trapezoid). With a Bayer mosaic, R and B 
 the bin's rows: the timing of those channels is off by at most half a line time, which we accept.
 GS frames are warped onto the RS sensor with the calibration's GS-to-RS homography, then binned.
 
-Held-out split (for choosing settings without truth, rngcam.scale.holdout): `with_holdout` sets
+Held-out split (for choosing settings without truth, rngcam.recon.holdout): `with_holdout` sets
 `rs_train_rows` (H,) and `gs_train_mask` (G, H, W) (or (H, W) for every key frame), both bool
 with True = fitted, False = held out. None (the default) means every measurement is fitted. A
 method that honours the split fits only the training measurements: multiply its residuals by
@@ -32,7 +32,7 @@ from rngcam import pixels
 from rngcam.errors import BundleError, ConfigError
 from rngcam.formats.bundle import Bundle, CameraRecord
 from rngcam.physics import psf as psf_mod
-from rngcam.physics.operators import GlobalShutter, RollingShutter, Stacked
+from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.sensor import BAYER_FORMATS, frame_to_measurement
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 from rngcam.sizing import check_frames, plan_grid
@@ -85,9 +85,6 @@ class Problem:
     def gs_op(self) -> GlobalShutter:
         c, _, h, w = self.shape
         return GlobalShutter(self.gs_weights, c, (h, w))
-
-    def stacked_op(self, psi: float) -> Stacked:
-        return Stacked(self.rs_op(), self.gs_op(), psi)
 
     def key_frames(self) -> np.ndarray:
         """Indices of the frames any GS exposure touches."""
@@ -144,7 +141,7 @@ class Problem:
 
         GS pixels are not held out by default: isolated missing key-frame pixels test spatial
         inpainting, and their residual ranked tv3d settings against the true PSNR (see
-        rngcam.scale.holdout), while held-out RS rows test the video between the key frames."""
+        rngcam.recon.holdout), while held-out RS rows test the video between the key frames."""
         for name, f in (("fraction_rs", fraction_rs), ("fraction_gs", fraction_gs)):
             if not (0.0 <= f < 1.0):
                 raise ConfigError(f"held-out {name} must be in [0, 1), got {f}")

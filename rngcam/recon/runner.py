@@ -1,29 +1,31 @@
 """Run one reconstruction of a bundle with any method and write every output.
 
-Iterative methods (tv3d, stfm) go through the shared loop; GS-only baselines (blend, interp,
-rife) are one shot and give a single point of error against time. The bundle is only read.
+Methods come from rngcam.recon.registry. Iterative ones (stfm, tv3d, pnp) go through the shared
+loop; GS-only baselines (blend, interp, rife) are one shot and give a single point of error
+against time. The bundle is only read.
 
 With `holdout` set (a fraction of RS row bins; `holdout_gs`, a fraction of GS pixels, is 0 by
 default), iterative methods fit only a seeded training split of the measurements
 (Problem.with_holdout) and every log row, errors.csv and metrics.json carry the
 relative residual on the held-out part (`heldout_rs`, `heldout_gs`, `heldout`; see
-rngcam.scale.holdout) next to the training residuals.
+rngcam.recon.holdout) next to the training residuals.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
-from rngcam.bundle import bundle_checksum, read_bundle_with_warnings
 from rngcam.errors import ConfigError, RngcamError
+from rngcam.formats.bundle import bundle_checksum, read_bundle_with_warnings
 from rngcam.memory import peak_rss_bytes
-from rngcam.recon import outputs
+from rngcam.recon import outputs, registry
 from rngcam.recon.loop import LoopSettings, RunResult, run, stage_printer
 from rngcam.recon.metrics import (
     error_visibility,
@@ -36,22 +38,16 @@ from rngcam.recon.metrics import (
 from rngcam.recon.problem import Problem, build_problem
 from rngcam.sizing import check_size, gib, plan_grid
 
-ITERATIVE = ("stfm", "tv3d", "pnp")
-GS_ONLY = ("blend", "interp", "rife")
-METHODS = ITERATIVE + GS_ONLY
-# The budget of time_budget_s="auto": STFM's fast preset stops by itself (after 1-3 min at 64 px on
-# one CPU thread), so its cap only guards against a fit that never settles.
-DEFAULT_TIME_BUDGET_S = {"stfm": 600.0, "pnp": 300.0}
-FALLBACK_TIME_BUDGET_S = 60.0
-# "auto" scales those budgets (set at 64x64 px, 67 frames, 3 channels) with the square root of the
-# problem's size, capped at half an hour: 64 px keeps its figure, 228x342x232 gets 8.1x it.
+# "auto" scales the registry's budgets (MethodEntry.auto_budget_s, set at 64x64 px, 67 frames, 3
+# channels) with the square root of the problem's size, capped at half an hour: 64 px keeps its
+# figure, 228x342x232 gets 8.1x it.
 AUTO_REFERENCE_VOXELS = 3 * 67 * 64 * 64
 AUTO_MAX_S = 1800.0
 
 
 def auto_time_budget(method: str, shape: tuple[int, int, int, int]) -> tuple[float, str]:
     """The `auto` budget for `method` on a video of `shape` (C, K, H, W), and a line saying why."""
-    base = DEFAULT_TIME_BUDGET_S.get(method, FALLBACK_TIME_BUDGET_S)
+    base = registry.get(method).auto_budget_s
     scale = max(1.0, math.sqrt(math.prod(shape) / AUTO_REFERENCE_VOXELS))
     budget = min(AUTO_MAX_S, base * scale)
     return budget, (f"time budget auto: {budget:.0f} s ({method}'s {base:g} s at 64 px x "
@@ -60,16 +56,17 @@ def auto_time_budget(method: str, shape: tuple[int, int, int, int]) -> tuple[flo
 
 @dataclass
 class ReconSettings:
-    method: str = "stfm"
-    time_budget_s: float | str | None = "auto"  # "auto": the method's (DEFAULT_TIME_BUDGET_S, else 60 s)
+    method: str = "stfm"  # a registry name
+    method_settings: Any = None  # an instance of the method's settings dataclass (None: its default preset)
+    time_budget_s: float | str | None = "auto"  # "auto": the method's MethodEntry.auto_budget_s, scaled
     max_iters: int | None = None
     device: str = "auto"
     grid_bin: int | None = None
     log_every_s: float = 2.0
     checkpoint_every_s: float = 60.0
     resume: bool = False
+    overwrite: bool = False  # write into a non-empty output folder (else refused, unless resuming)
     progress: bool = True
-    options: dict = field(default_factory=dict)  # method settings (tau, beta, psi, preset, ...)
     holdout: float | None = None  # fraction of RS row bins held out of the fit (None: fit everything)
     holdout_gs: float = 0.0  # fraction of GS pixels also held out (with holdout set)
     holdout_seed: int = 0
@@ -77,18 +74,22 @@ class ReconSettings:
     max_memory_bytes: int | None = None  # refuse a larger estimate (None: a fraction of the machine's)
 
     def __post_init__(self):
-        if self.method not in METHODS:
-            raise ConfigError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
+        entry = registry.get(self.method)
+        if self.method_settings is None:
+            self.method_settings = entry.settings()
+        elif not isinstance(self.method_settings, entry.settings_type):
+            raise ConfigError(f"{self.method} takes {entry.settings_type.__name__}, "
+                              f"not {type(self.method_settings).__name__}")
         self.budget_auto = self.time_budget_s == "auto"  # rescaled to the problem in reconstruct()
         if self.time_budget_s == "auto":
-            self.time_budget_s = DEFAULT_TIME_BUDGET_S.get(self.method, FALLBACK_TIME_BUDGET_S)
+            self.time_budget_s = entry.auto_budget_s
         check_settings_figures(self.time_budget_s, self.max_iters, self.max_frames, self.max_memory_bytes)
         if self.holdout is not None:
             if not 0 < self.holdout < 1:
                 raise ConfigError(f"holdout must be a fraction in (0, 1), got {self.holdout}")
-            if self.method not in ITERATIVE:
-                raise ConfigError(f"--holdout applies to fitted methods ({', '.join(ITERATIVE)}), "
-                                  f"not {self.method}")
+            if not entry.iterative:
+                fitted = ", ".join(registry.names(registry.ITERATIVE))
+                raise ConfigError(f"--holdout applies to fitted methods ({fitted}), not {self.method}")
 
 
 def check_settings_figures(time_budget_s, max_iters, max_frames=None, max_memory_bytes=None) -> None:
@@ -125,52 +126,28 @@ def gs_key_frames(problem: Problem) -> np.ndarray:
 def make_method(problem: Problem, settings: ReconSettings, device: str, stage=None):
     """The iterative method of `settings` on `problem` (float32 on `device`); `stage(message)`
     reports set-up stages."""
-    opts = dict(settings.options)
+    entry = registry.get(settings.method)
     problem = replace(problem, truth=None)  # methods never see the truth; a float32 copy is 4 bytes a voxel
-    if settings.method == "tv3d":
-        from rngcam.recon.tv3d import TV3DSettings, make_tv3d
-
-        method = make_tv3d(problem.to(torch.float32, device), TV3DSettings(**opts),
+    method = entry.factory(problem.to(torch.float32, device), settings.method_settings, device=device,
                            budget_s=settings.time_budget_s, stage=stage)
-    elif settings.method == "pnp":
-        from rngcam.recon.pnp import PnP, PnPSettings
-
-        method = PnP(problem.to(torch.float32, device), PnPSettings(**opts), device=device)
-    else:
-        from rngcam.recon.stfm import STFMSettings, make_stfm
-
-        method = make_stfm(problem.to(torch.float32, device), STFMSettings(**opts), device=device)
-    if problem.has_holdout and not getattr(method, "supports_holdout", False):
+    if problem.has_holdout and not method.supports_holdout:
         raise ConfigError(f"{settings.method} does not fit a held-out split yet (--holdout)")
     return method
 
 
-
-def _run_gs_only(problem: Problem, method: str, opts: dict, notes: list[str],
-                 used: dict) -> tuple[np.ndarray, RunResult]:
+def run_gs_only(problem: Problem, settings: ReconSettings) -> tuple[registry.GSOnlyVideo, RunResult]:
+    """The GS-only method of `settings` on `problem`'s key frames, and its one-point run."""
     if problem.b_gs is None or problem.b_gs.shape[1] == 0:
         gone = [m for m, _ in problem.left_out if m.startswith("GS")]
         why = f"every GS frame was left out ({', '.join(gone)})" if gone else "the bundle has none"
-        raise RngcamError(f"--method {method} needs GS frames; {why}")
+        raise RngcamError(f"--method {settings.method} needs GS frames; {why}")
     key = gs_key_frames(problem)
     t0 = time.perf_counter()
-    if method == "blend":
-        from rngcam.recon.baselines import blend
-
-        video = blend(key, problem.gs_times_s, problem.frame_times_s)
-    elif method == "interp":
-        from rngcam.recon.baselines import interp
-
-        video = interp(key, problem.gs_times_s, problem.frame_times_s, **opts)
-    else:
-        from rngcam.recon.rife import resolve_model, rife
-
-        model, note = resolve_model(opts.get("model"))
-        notes.extend([note] if note else [])
-        used["model"] = model  # which RIFE ran (4.x, or HDv3 on request or as the fallback)
-        video = rife(key, problem.gs_times_s, problem.frame_times_s, **{**opts, "model": model})
+    out = registry.get(settings.method).factory(key, problem.gs_times_s, problem.frame_times_s,
+                                                settings.method_settings)
     secs = time.perf_counter() - t0
-    return np.asarray(video, np.float32), RunResult(log=[], iterations=1, solve_s=secs, wall_s=secs)
+    out.video = np.asarray(out.video, np.float32)
+    return out, RunResult(log=[], iterations=1, solve_s=secs, wall_s=secs)
 
 
 def _residuals(problem: Problem, video: torch.Tensor) -> dict[str, float]:
@@ -207,8 +184,19 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
                           f"({type(exc).__name__}); use a coarser --bin or free memory") from None
 
 
+def check_out_dir(out: Path, settings: ReconSettings) -> None:
+    """Refuse (one line) to write into a non-empty folder unless told to overwrite or resume."""
+    if out.exists() and not out.is_dir():
+        raise RngcamError(f"output folder {out} is a file")
+    if out.is_dir() and any(out.iterdir()) and not (settings.overwrite or settings.resume):
+        raise RngcamError(f"output folder {out} is not empty; pass --overwrite to replace what is in it "
+                          f"(or --resume to continue from its checkpoint)")
+
+
 def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> dict:
     t_start = time.perf_counter()  # the budget bounds reading, set-up and solve together
+    out = Path(out_dir) if out_dir is not None else default_out_dir(bundle_path, settings.method)
+    check_out_dir(out, settings)
     stage = stage_printer(echo, settings.progress)
     bundle, warnings = read_bundle_with_warnings(bundle_path)
     for warning in warnings:
@@ -222,12 +210,11 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
     one_object = one_object_scene(bundle.rig_yaml)  # for the motion yardstick
     del bundle  # the problem holds what the reconstruction needs; the raw frames can go
     stage("measurements binned onto the grid")
-    out = Path(out_dir) if out_dir is not None else default_out_dir(bundle_path, settings.method)
     out.mkdir(parents=True, exist_ok=True)
+    from rngcam.recon.holdout import HELDOUT_KEYS, HoldoutScorer
+
     scorer = None
     if settings.holdout is not None:
-        from rngcam.recon.holdout import HoldoutScorer
-
         problem = problem.with_holdout(settings.holdout, settings.holdout_gs, settings.holdout_seed)
         scorer = HoldoutScorer(problem)
     for note in problem.notes:
@@ -237,7 +224,8 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
     c, k, h, w = problem.shape
     echo(f"{settings.method}: {k} frames of {h}x{w}x{c} at {1 / problem.grid.dt_s:,.0f} fps on {device} "
          f"(about {gib(need)} estimated)")
-    if getattr(settings, "budget_auto", False) and settings.method in ITERATIVE:
+    entry = registry.get(settings.method)
+    if settings.budget_auto and entry.iterative:
         settings.time_budget_s, why = auto_time_budget(settings.method, problem.shape)
         echo(why)
     intermediate = problem.intermediate_frames()
@@ -249,10 +237,9 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
 
     components, left_out, status, message, method_settings = {}, [], "ok", "", None
     notes: list[str] = []  # substitutions a method made (e.g. missing learned weights) and their cost
-    if settings.method in GS_ONLY:
-        used: dict = {}
-        video, result = _run_gs_only(problem, settings.method, settings.options, notes, used)
-        method_settings = used or None
+    if not entry.iterative:
+        made, result = run_gs_only(problem, settings)
+        video, notes, method_settings = made.video, list(made.notes), made.resolved
         for note in notes:
             echo(f"note: {note}")
         vt = torch.from_numpy(video).double()
@@ -264,8 +251,7 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
         method = make_method(problem, settings, device, stage=stage)
         setup_s = time.perf_counter() - t_start
         stage(f"{settings.method} ready")
-        left_out = list(getattr(method, "left_out", []))
-        notes = list(getattr(method, "notes", []))
+        left_out, notes = list(method.left_out), list(method.notes)
         for note in notes:
             echo(f"note: {note}")
         for comp, why in left_out:
@@ -280,10 +266,8 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
 
         result = run(method, loop, evaluate, setup_s=setup_s)
         video = method.estimate().detach().float().cpu().numpy()
-        if hasattr(method, "components"):
-            components = method.components()
-        if hasattr(method, "resolved_settings"):
-            method_settings = method.resolved_settings()
+        components = method.components()
+        method_settings = method.resolved_settings()
         status, message = result.status, result.message
         for event in result.events:
             echo(f"event: {event}")
@@ -305,7 +289,7 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
         "notes": notes,
     }
     for key in ("psnr_db", "ssim", "psnr_intermediate_db", "ssim_intermediate", "residual_rs", "residual_gs",
-                "heldout", "heldout_rs", "heldout_gs"):
+                *HELDOUT_KEYS):
         if key in final:
             metrics[key] = final[key]
     if problem.truth is not None:  # is the remaining error visible above each measurement's noise?
@@ -315,6 +299,7 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
             metrics["error_visibility_caveats"] = caveats
         metrics.update(motion_metrics(torch.from_numpy(np.asarray(video)), problem.truth, intermediate,
                                       one_object=one_object))
+    method_settings = method_settings or asdict(settings.method_settings) or None
     if method_settings is not None:
         metrics["method_settings"] = method_settings  # the preset's values filled in
     resolved = {**asdict(settings), "device": device, "grid_bin": settings.grid_bin}

@@ -32,7 +32,9 @@ from rngcam.errors import ConfigError
 from rngcam.physics import tv_prox as tv
 from rngcam.physics.operators import LinearOperator
 from rngcam.recon.baselines import blend
+from rngcam.recon.loop import MethodBase
 from rngcam.recon.metrics import relative_residual
+from rngcam.recon.options import setting
 from rngcam.recon.problem import Problem
 
 _MAX_BACKTRACKS = 60  # 2^60: enough to recover from any step length a float can hold
@@ -41,14 +43,18 @@ _BACKTRACK_RTOL = 1e-9  # an approximate prox may raise F by rounding; don't bac
 
 @dataclass
 class TV3DSettings:
-    tau: float = 2e-3
-    beta: float = 1.0  # temporal TV weight relative to the spatial ones
-    psi: float = 1.0
-    prox: str = "haar"  # "haar" (fast, Antipa et al.) or "exact"
-    gs_anchor: str = "soft"  # "soft" or "hard"
+    tau: float = setting(2e-3, "weight of the video's 3-D TV against the data terms", unit="relative",
+                         sweep=True)
+    beta: float = setting(1.0, "weight of the TV along time relative to along x and y", unit="relative",
+                          sweep=True)
+    psi: float = setting(1.0, "RS data weight relative to GS (each term scaled by its operator's norm)",
+                         unit="relative", sweep=True)
+    prox: str = setting("haar", "the TV prox: haar (fast, Antipa et al.) or exact", choices=("haar", "exact"))
+    gs_anchor: str = setting("soft", "GS frames as a loss term (soft) or a projection onto them (hard)",
+                             choices=("soft", "hard"))
     restart: bool = True
-    use_rs: bool = True
-    use_gs: bool = True
+    no_rs: bool = setting(False, "leave the RS measurement out of the fit")
+    no_gs: bool = setting(False, "leave the GS frames out of the fit")
     init: str = "blend"  # "blend" (cross-fade of the GS frames) or "zeros"
     coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.multiscale)
 
@@ -94,7 +100,7 @@ def _product(a: Tensor | None, b: Tensor | None) -> Tensor | None:
     return b if a is None else a if b is None else a * b
 
 
-class TV3D:
+class TV3D(MethodBase):
     """FISTA for the 3-D TV objective above; a `Method` for rngcam.recon.loop."""
 
     name = "tv3d"
@@ -107,8 +113,8 @@ class TV3D:
         `rs_norm_vector`, upsampled)."""
         self.p, self.s, self._x0 = problem, settings or TV3DSettings(), x0
         self.rs_norm_vector = None
-        use_rs = self.s.use_rs and problem.b_rs is not None
-        use_gs = self.s.use_gs and problem.b_gs is not None and problem.b_gs.shape[1] > 0
+        use_rs = not self.s.no_rs and problem.b_rs is not None
+        use_gs = not self.s.no_gs and problem.b_gs is not None and problem.b_gs.shape[1] > 0
         if not (use_rs or use_gs):
             raise ConfigError("tv3d needs RS or GS measurements; the problem has neither in use")
         problem.check_finite("tv3d")

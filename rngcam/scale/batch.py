@@ -41,7 +41,7 @@ class BatchResult:
 
 def _stamp(checksum: str, settings: ReconSettings) -> dict:
     s = asdict(settings)
-    for volatile in ("progress", "resume", "log_every_s", "checkpoint_every_s"):
+    for volatile in ("progress", "resume", "overwrite", "log_every_s", "checkpoint_every_s"):
         s.pop(volatile, None)
     return {"bundle_sha256": checksum, "settings": s}
 
@@ -66,7 +66,7 @@ def batch_task(item: dict, shared: object = None) -> dict:
     lines: list[str] = []
     t0 = time.perf_counter()
     try:
-        settings = ReconSettings(**item["settings"])
+        settings = item["settings"]
         metrics = reconstruct(item["bundle"], item["out"], settings, echo=lines.append)
         (Path(item["out"]) / DONE_NAME).write_text(json.dumps(item["stamp"]))
         res = {"status": "ok", "message": "", **{k: metrics.get(k) for k in METRIC_KEYS}}
@@ -85,7 +85,8 @@ def recon_batch(bundles: list[str | Path], out_dir: str | Path, settings: ReconS
                 backend_factory: Callable[[], Backend] | None = None, task_fn=batch_task,
                 echo: Callable[[str], None] = print) -> BatchResult:
     """Reconstruct every bundle with `settings` (see the module docstring)."""
-    settings = replace(settings or ReconSettings(), progress=False, resume=False)
+    # A bundle not done with these settings is redone from scratch, over whatever an earlier run left.
+    settings = replace(settings or ReconSettings(), progress=False, resume=False, overwrite=True)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = [Path(b) for b in bundles]
@@ -106,7 +107,7 @@ def recon_batch(bundles: list[str | Path], out_dir: str | Path, settings: ReconS
             row.update(status="ok", note=SKIPPED_NOTE, **{k: metrics.get(k) for k in METRIC_KEYS})
             continue
         todo.append((len(rows) - 1, {"bundle": str(path), "out": str(dest), "stamp": stamp,
-                                     "settings": asdict(settings)}))
+                                     "settings": settings}))
     backend_name = "none (nothing to do)"
     if todo:
         backend = (backend_factory or (lambda: make_backend(echo=echo)))()

@@ -2,7 +2,7 @@
 
 Every setting of the grid is a trial: fit on the training split of the bundle's measurements
 (Problem.with_holdout), scored by the relative residual on the held-out split
-(rngcam.scale.holdout); with `folds` > 1, on that many splits, scored by the mean. Poor
+(rngcam.recon.holdout); with `folds` > 1, on that many splits, scored by the mean. Poor
 trials stop early by synchronous successive halving: rung r gives
 every live trial budget B / eta^(R-1-r) (iterations and/or seconds; the last rung gets the full
 budget B) and keeps the best 1/eta by held-out score; trials resume from their checkpoints, so
@@ -30,13 +30,13 @@ from pathlib import Path
 
 from rngcam.errors import ConfigError, RngcamError
 from rngcam.formats.bundle import bundle_checksum, read_bundle
+from rngcam.recon import registry
 from rngcam.recon.problem import build_problem
-from rngcam.recon.runner import ITERATIVE, ReconSettings, reconstruct
+from rngcam.recon.runner import ReconSettings, reconstruct
 from rngcam.scale import tables
 from rngcam.scale.backend import Backend, make_backend
 from rngcam.scale.trial import TRUTH_KEYS, TrialSpec, run_trial
 
-PARAMS = ("beta", "tau", "psi")
 SCORE_KEYS = ("heldout", "heldout_rs", "heldout_gs", "residual_rs", "residual_gs")
 DEFAULT_TIME_BUDGET_S = 30.0
 
@@ -45,11 +45,11 @@ DEFAULT_TIME_BUDGET_S = 30.0
 class SweepSettings:
     method: str = "stfm"
     grid: dict[str, list[float]] = field(default_factory=dict)  # parameter -> values
-    preset: str | None = None  # STFM preset
+    preset: str | None = None  # the method's preset (None: its default)
     time_budget_s: float | None = None  # per trial at the full budget (None with max_iters: none)
     max_iters: int | None = None  # per trial at the full budget
     holdout: float = 0.2  # fraction of RS row bins held out to score the trials
-    holdout_gs: float = 0.0  # fraction of GS pixels also held out (see rngcam.scale.holdout)
+    holdout_gs: float = 0.0  # fraction of GS pixels also held out (see rngcam.recon.holdout)
     holdout_seed: int = 0
     folds: int = 3  # held-out splits per trial (one fit each, blocks at other places); the score is their mean
     eta: int = 3  # successive halving: keep the best 1/eta at each rung
@@ -59,11 +59,14 @@ class SweepSettings:
     refit: bool = True
 
     def __post_init__(self):
-        if self.method not in ITERATIVE:
-            raise ConfigError(f"sweep needs a fitted method ({', '.join(ITERATIVE)}), not {self.method!r}")
-        unknown = sorted(set(self.grid) - set(PARAMS))
+        entry = registry.get(self.method)
+        if not entry.iterative:
+            raise ConfigError(f"sweep needs a fitted method ({', '.join(registry.names(registry.ITERATIVE))}), "
+                              f"not {self.method!r}")
+        unknown = sorted(set(self.grid) - set(entry.sweepable()))
         if unknown:
-            raise ConfigError(f"cannot sweep {', '.join(unknown)}; sweepable: {', '.join(PARAMS)}")
+            raise ConfigError(f"cannot sweep {', '.join(unknown)} of {self.method}; "
+                              f"sweepable: {', '.join(entry.sweepable())}")
         for name, values in self.grid.items():
             if not values:
                 raise ConfigError(f"--{name} needs at least one value")
@@ -86,13 +89,12 @@ class SweepSettings:
             raise ConfigError(f"eta must be >= 2, got {self.eta}")
         if self.rungs is not None and self.rungs < 1:
             raise ConfigError(f"rungs must be >= 1, got {self.rungs}")
-        if self.preset is not None and self.method != "stfm":
-            raise ConfigError("--preset applies to --method stfm only")
+        entry.settings(self.preset)  # an unknown preset is one ConfigError line
 
 
 def setting_grid(grid: dict[str, list[float]]) -> list[dict[str, float]]:
-    """Every combination, in the order beta, tau, psi (the last one varies fastest)."""
-    names = [p for p in PARAMS if p in grid]
+    """Every combination, parameters in alphabetical order (the last one varies fastest)."""
+    names = sorted(grid)
     return [dict(zip(names, combo)) for combo in itertools.product(*(grid[n] for n in names))]
 
 
@@ -195,7 +197,9 @@ def sweep(bundle_path: str | Path, out_dir: str | Path | None = None, settings: 
             if todo:
                 p = problem()
                 b = backend()
-                specs = [TrialSpec(key=trials[i]["key"], method=settings.method, options=trials[i]["options"],
+                entry = registry.get(settings.method)
+                specs = [TrialSpec(key=trials[i]["key"], method=settings.method,
+                                   settings=entry.settings(settings.preset, **trials[i]["values"]),
                                    max_iters=iters, time_budget_s=secs, trial_dir=str(trials[i]["dir"]),
                                    holdout_rs=settings.holdout, holdout_gs=settings.holdout_gs,
                                    seed=settings.holdout_seed, folds=settings.folds, device=settings.device,
@@ -272,11 +276,17 @@ def _save_cached(path: Path, res: dict) -> None:
     os.replace(tmp, path)
 
 
+def _swept(rows: list[dict]) -> list[str]:
+    """The swept settings: a row's keys other than the table's fixed columns."""
+    fixed = {"trial", "rungs", "iterations", "seconds", "status", "key", "note", *SCORE_KEYS, *TRUTH_KEYS}
+    return [k for k in rows[0] if k not in fixed] if rows else []
+
+
 def _rows(trials: list[dict], last: dict, reached: dict, rungs: int, best_i: int) -> list[dict]:
     rows = []
     for i, t in enumerate(trials):
         res = last.get(i, {})
-        row = {"trial": t["trial"], **{p: t["values"].get(p) for p in PARAMS}, "rungs": reached.get(i, 0),
+        row = {"trial": t["trial"], **t["values"], "rungs": reached.get(i, 0),
                "iterations": res.get("iterations"), "seconds": res.get("seconds"),
                **{k: res.get(k) for k in SCORE_KEYS + TRUTH_KEYS}, "status": res.get("status", "not run"),
                "key": t["key"]}
@@ -294,7 +304,7 @@ def _rows(trials: list[dict], last: dict, reached: dict, rungs: int, best_i: int
 
 
 def _columns(rows: list[dict], has_truth: bool) -> list[str]:
-    swept = [p for p in PARAMS if any(r[p] is not None for r in rows)]
+    swept = _swept(rows)
     scores = [k for k in SCORE_KEYS if any(r.get(k) is not None for r in rows)]
     truth = [k for k in TRUTH_KEYS if has_truth and any(r.get(k) is not None for r in rows)]
     return ["trial", *swept, "rungs", "iterations", "seconds", *scores, *truth, "status", "note"]
@@ -325,7 +335,7 @@ def plot_sweep(png_path: Path, rows: list[dict], has_truth: bool, title: str = "
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    swept = [p for p in PARAMS if any(r[p] is not None for r in rows)]
+    swept = _swept(rows)
     labels = [" ".join(f"{p[0]}{r[p]:g}" for p in swept) for r in rows]
     x = list(range(len(rows)))
     full = max((r["rungs"] for r in rows), default=0)
@@ -366,8 +376,8 @@ def _refit(bundle_path: Path, out: Path, settings: SweepSettings, trial: dict,
     t0 = time.perf_counter()
     metrics = reconstruct(bundle_path, out, ReconSettings(
         method=settings.method, time_budget_s=settings.time_budget_s, max_iters=settings.max_iters,
-        device=settings.device, grid_bin=settings.grid_bin, progress=False, options=dict(trial["options"])),
-        echo=echo)
+        device=settings.device, grid_bin=settings.grid_bin, progress=False, overwrite=True,
+        method_settings=registry.get(settings.method).settings(settings.preset, **trial["values"])), echo=echo)
     echo(f"refit done in {time.perf_counter() - t0:.1f} s" +
          (f", PSNR {metrics['psnr_db']:.2f} dB" if "psnr_db" in metrics else ""))
     _save_cached(marker, stamp)

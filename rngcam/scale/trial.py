@@ -13,8 +13,9 @@ from __future__ import annotations
 import math
 import time
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -33,7 +34,7 @@ class TrialSpec:
 
     key: str
     method: str
-    options: dict = field(default_factory=dict)
+    settings: Any = None  # the method's settings (rngcam.recon.registry; None: its default preset)
     max_iters: int | None = None
     time_budget_s: float | None = None  # per fold
     trial_dir: str = ""
@@ -92,7 +93,7 @@ def run_trial(spec: TrialSpec, problem: Problem) -> dict:
 
 def _fit_fold(spec: TrialSpec, problem: Problem, folder: Path, device: str) -> dict:
     """One fit on `problem`'s training split, resumed from `folder`; its figures."""
-    settings = ReconSettings(method=spec.method, options=dict(spec.options), device=device)
+    settings = ReconSettings(method=spec.method, method_settings=spec.settings, device=device)
     t0 = time.perf_counter()
     method = make_method(problem, settings, device)
     setup_s = time.perf_counter() - t0

@@ -9,12 +9,13 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.recon.loop import MethodBase
 from rngcam.recon.stfm.method import STFM
 from rngcam.recon.stfm.model import _chunks
 from rngcam.recon.stfm.settings import REFINE_LR_RATIO, STFMSettings, _base_list, _setting_or_preset
 
 
-class STFMEnsemble:
+class STFMEnsemble(MethodBase):
     """Several STFM fits, one per dynamic base, stepped in turn; the output is their average,
     refined by one more fit.
 
@@ -35,6 +36,7 @@ class STFMEnsemble:
     one buffer."""
 
     name = "stfm"
+    stops_itself = True
     supports_holdout = True
 
     def __init__(self, problem, settings: STFMSettings, bases: list[str], device="cpu", first: STFM | None = None):

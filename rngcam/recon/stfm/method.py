@@ -12,21 +12,23 @@ from torch import Tensor
 
 from rngcam.errors import ConfigError
 from rngcam.recon.components import Components, choose_components
+from rngcam.recon.loop import MethodBase
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
 from rngcam.recon.stfm.bases import BaseVideos
 from rngcam.recon.stfm.init import GSInit
 from rngcam.recon.stfm.loss import DataLoss
 from rngcam.recon.stfm.model import FieldModel, _chunks
-from rngcam.recon.stfm.settings import STFMSettings, _preset, _Resolved
+from rngcam.recon.stfm.settings import _FROM_PRESET, STFMSettings, resolve
 from rngcam.recon.stfm.stopping import NoiseStop
 
 
-class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop):
+class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
     """STFM as a `rngcam.recon.loop.Method`. Build it with `make_stfm`. Its parts live in the
     package's modules (fields and frames, bases, loss, initialisation, stop test)."""
 
     name = "stfm"
+    stops_itself = True  # NoiseStop.converged
     supports_holdout = True  # fits only the training measurements when the problem has a split
 
     def __init__(self, problem, settings: STFMSettings, device="cpu", static_from: STFM | None = None,
@@ -43,29 +45,10 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop):
         p = self.problem
         p.check_finite("stfm")
         self.C, self.K, self.H, self.W = p.shape
-        preset = _preset(settings.preset, self.H, self.W, self.K)
-        tau = preset["tau"] if settings.tau is None else settings.tau
+        self.resolved, preset = resolve(settings, self.H, self.W, self.K)
         self.parts: Components = choose_components(
             problem, auto=settings.components == "auto", no_static=settings.no_static,
-            no_motion_reg=settings.no_motion_reg, no_rs=settings.no_rs, no_gs=settings.no_gs, tau=tau)
-        self.resolved = _Resolved(
-            settings=settings, beta=preset["beta"] if settings.beta is None else settings.beta, tau=tau,
-            lr=preset["lr"] if settings.lr is None else settings.lr,
-            lr_half_life_steps=(preset["lr_half_life_steps"] if settings.lr_half_life_steps is None
-                                else settings.lr_half_life_steps),
-            rows_per_step=min(self.H, settings.rows_per_step or preset["rows_per_step"]),
-            init=settings.init or preset["init"],
-            gs_windows_per_step=(preset["gs_windows_per_step"] if settings.gs_windows_per_step is None
-                                 else settings.gs_windows_per_step),
-            dynamic_time=preset["dynamic_time"] if settings.dynamic_time is None else settings.dynamic_time,
-            dynamic_base=settings.dynamic_base or preset["dynamic_base"],
-            time_smoothness=(preset["time_smoothness"] if settings.time_smoothness is None
-                             else settings.time_smoothness),
-            stop_at_noise=preset["stop_at_noise"] if settings.stop_at_noise is None else settings.stop_at_noise,
-            stall_drop=preset["stall_drop"] if settings.stall_drop is None else settings.stall_drop,
-            ema_decay=preset["ema_decay"] if settings.ema_decay is None else settings.ema_decay,
-            motion_init=settings.motion_init or preset["motion_init"],
-            fields={k: preset[k] for k in ("static", "motion", "dynamic")})
+            no_motion_reg=settings.no_motion_reg, no_rs=settings.no_rs, no_gs=settings.no_gs, tau=self.resolved.tau)
         if "," in self.resolved.dynamic_base or self.resolved.dynamic_base == "ensemble":
             raise ConfigError(f"dynamic_base {self.resolved.dynamic_base!r} is an ensemble: build it with make_stfm")
         torch.manual_seed(settings.seed)
@@ -247,10 +230,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop):
     def resolved_settings(self) -> dict:
         """The settings as used (preset values filled in), for the outputs."""
         out = asdict(self.resolved.settings)
-        out.update({k: getattr(self.resolved, k) for k in
-                    ("beta", "tau", "lr", "lr_half_life_steps", "rows_per_step", "init", "dynamic_time",
-                     "dynamic_base", "time_smoothness", "gs_windows_per_step", "stop_at_noise", "stall_drop",
-                     "ema_decay", "motion_init")})
+        out.update({k: getattr(self.resolved, k) for k in (*_FROM_PRESET, "rows_per_step")})
         out["base_video"] = self.base_source
         out["rs_noise_level"] = self.rs_noise_level
         out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}

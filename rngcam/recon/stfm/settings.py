@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 
 from rngcam.errors import ConfigError
+from rngcam.recon.options import setting
 
 PRESETS = ("paper", "fast", "prior")
 INIT_STEPS = 100
@@ -19,15 +20,20 @@ class STFMSettings:
     """User settings; None means "the preset's value"."""
 
     preset: str = "fast"
-    beta: float | None = None  # temporal weight inside the motion TV
-    tau: float | None = None  # weight of the motion TV
-    psi: float = 1.0  # RS weight relative to GS (after operator-norm scaling)
-    components: str = "auto"  # "auto": leave out what the problem does not need; "all": keep all
-    no_static: bool = False
-    no_motion_reg: bool = False
-    no_rs: bool = False
-    no_gs: bool = False
-    gs_anchor: str = "soft"  # "soft" (loss term) or "hard" (projection onto the GS frames)
+    beta: float | None = setting(None, "weight of the motion field's change along time relative to along "
+                                       "x and y, inside the motion TV", unit="relative", sweep=True)
+    tau: float | None = setting(None, "weight of the motion field's TV against the data terms",
+                                unit="relative", sweep=True)
+    psi: float = setting(1.0, "RS data weight relative to GS (each term scaled by its operator's norm)",
+                         unit="relative", sweep=True)
+    components: str = setting("auto", "leave out the fields the scene does not need (auto) or keep all",
+                              choices=("auto", "all"))
+    no_static: bool = setting(False, "no static background field (and no alpha matte)")
+    no_motion_reg: bool = setting(False, "no TV on the motion field")
+    no_rs: bool = setting(False, "leave the RS measurement out of the fit")
+    no_gs: bool = setting(False, "leave the GS frames out of the fit")
+    gs_anchor: str = setting("soft", "GS frames as a loss term (soft) or a projection onto them (hard)",
+                             choices=("soft", "hard"))
     rows_per_step: int | None = None
     tv_frames_per_step: int = 2
     frame_chunk: int = 16  # frames evaluated with one autograd graph
@@ -37,9 +43,14 @@ class STFMSettings:
     init: str | None = None  # "gs" (fit fields to the GS frames first) or "random"
     gs_windows_per_step: int | None = None  # GS frames per step (soft anchoring; 0: all)
     dynamic_time: bool | None = None  # F_D(x + u_x, y + u_y, t) instead of F_D(x + u_x, y + u_y)
-    dynamic_base: str | None = None  # "blend": F_D's colour corrects the warped cross-fade; "none"
+    dynamic_base: str | None = setting(
+        None, "the GS-only start the dynamic field corrects: video (rife, else interp), rife, interp, keys "
+              "(key frames warped by RIFE's flows, else DIS's), keys_rife, keys_interp, blend or none; a "
+              "comma-separated list averages one fit per base; ensemble = video,keys,keys_interp", cli="base")
     time_smoothness: float | None = None  # weight of the time planes' roughness (plane fields)
-    stop_at_noise: bool | None = None  # stop once the RS residual reaches the estimated noise level, or stalls
+    stop_at_noise: bool | None = setting(None, "stop once the RS residual reaches the noise level estimated "
+                                               "from the RS image, or falls by less than stall_drop over 15 passes "
+                                               "over the RS rows")
     stall_drop: float | None = None  # ... or once it fell less than this fraction over STALL_PASSES (0: off)
     ema_decay: float | None = None  # outputs use an exponential moving average of the weights (0: off)
     refine: bool | None = None  # ensemble: one more fit on the members' average once they have stopped
@@ -155,6 +166,29 @@ class _Resolved:
     motion_init: str = "flow"
     fields: dict = field(default_factory=dict)
 
+
+
+# _Resolved's values that a None setting takes from the preset (rows_per_step also: capped by H).
+_FROM_PRESET = ("beta", "tau", "lr", "lr_half_life_steps", "init", "dynamic_time", "dynamic_base", "time_smoothness",
+                "gs_windows_per_step", "stop_at_noise", "stall_drop", "ema_decay", "motion_init")
+
+
+def resolve(settings: STFMSettings, h: int, w: int, k: int) -> tuple[_Resolved, dict]:
+    """The settings for an H x W x K video with every None filled from the preset, and the preset
+    (its field configurations and learning-rate ratios)."""
+    preset = _preset(settings.preset, h, w, k)
+    values = {name: preset[name] if getattr(settings, name) is None else getattr(settings, name)
+              for name in _FROM_PRESET}
+    return _Resolved(settings=settings, rows_per_step=min(h, settings.rows_per_step or preset["rows_per_step"]),
+                     fields={key: preset[key] for key in ("static", "motion", "dynamic")}, **values), preset
+
+
+def preset_settings(name: str) -> STFMSettings:
+    """Preset `name` as settings: every value that does not depend on the problem's size filled in
+    (what the registry offers and `--help` shows); the others stay None (resolved per problem)."""
+    values = _preset(name, 2, 2, 2)
+    return replace(STFMSettings(preset=name), **{f.name: values[f.name] for f in fields(STFMSettings)
+                                                  if f.name in values and f.name != "rows_per_step"})
 
 
 def _setting_or_preset(settings: STFMSettings, name: str):

@@ -1,0 +1,227 @@
+"""Every reconstruction method, one entry each: name, kind, settings dataclass, presets, factory.
+
+The runner, `rngcam bench`, the stress suite, sweeps, batches, the demo and the bench/ scripts
+all find methods here, and the command line generates each method's options from its settings
+dataclass (rngcam.recon.options). Adding a method is one module plus one `register(...)`.
+
+A method and preset is named by a *label*: `NAME-PRESET` for a method with named presets (e.g.
+`stfm-fast`, `stfm-prior`, `tv3d-exact`), `NAME` for one without (`pnp`, `blend`); the one
+spelling every table and script uses. A bare `NAME` also means its default (first) preset.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from rngcam.errors import ConfigError
+from rngcam.recon.baselines import BlendSettings, InterpSettings, RifeSettings
+from rngcam.recon.options import documented_fields
+from rngcam.recon.pnp import PnPSettings
+from rngcam.recon.stfm.settings import PRESETS as STFM_PRESETS
+from rngcam.recon.stfm.settings import STFMSettings, preset_settings
+from rngcam.recon.tv3d import TV3DSettings
+
+ITERATIVE = "iterative"  # fitted by rngcam.recon.loop to the RS (and GS) measurements
+GS_ONLY = "gs-only"  # one shot from the GS key frames alone
+
+
+@dataclass
+class GSOnlyVideo:
+    """What a GS-only method returns: the video (C, K, H, W) float32, notes on substitutions it
+    made, and the settings it resolved (e.g. which RIFE model ran; None: nothing to add)."""
+
+    video: np.ndarray
+    notes: list[str] = dataclasses.field(default_factory=list)
+    resolved: dict | None = None
+
+
+@dataclass(frozen=True)
+class MethodEntry:
+    """One method. `factory` builds it:
+
+    - iterative: `factory(problem, settings, device=..., budget_s=..., stage=...)` -> a
+      rngcam.recon.loop.Method on `problem` (float32 on `device`; `stage(message)` reports set-up);
+    - GS-only: `factory(key_frames, gs_times_s, frame_times_s, settings)` -> GSOnlyVideo.
+
+    `presets` maps preset names to settings instances, the default first (none: one unnamed
+    preset, the dataclass's defaults). `auto_budget_s` is the `--time-budget auto` figure at 64 px.
+    `benchmarked`: the presets `rngcam bench` compares (empty: the default one)."""
+
+    name: str
+    kind: str
+    settings_type: type
+    factory: Callable[..., Any]
+    presets: dict[str, Any] = dataclasses.field(default_factory=dict)
+    auto_budget_s: float = 60.0
+    benchmarked: tuple[str, ...] = ()
+    unavailable: Callable[[], str] | None = None  # why it cannot run here ('' when it can)
+
+    def __post_init__(self):
+        if self.kind not in (ITERATIVE, GS_ONLY):
+            raise ValueError(f"method kind must be {ITERATIVE!r} or {GS_ONLY!r}, got {self.kind!r}")
+        if not self.presets:
+            object.__setattr__(self, "presets", {"default": self.settings_type()})
+
+    @property
+    def iterative(self) -> bool:
+        return self.kind == ITERATIVE
+
+    @property
+    def default_preset(self) -> str:
+        return next(iter(self.presets))
+
+    def settings(self, preset: str | None = None, **overrides):
+        """The settings of `preset` (None: the default one) with `overrides` by field name."""
+        preset = preset or self.default_preset
+        if preset not in self.presets:
+            raise ConfigError(f"{self.name} has no preset {preset!r}; choose one of {', '.join(self.presets)}")
+        names = {f.name for f in dataclasses.fields(self.settings_type)}
+        unknown = sorted(set(overrides) - names)
+        if unknown:
+            raise ConfigError(f"{self.name} has no setting {', '.join(unknown)}")
+        return dataclasses.replace(self.presets[preset], **overrides)
+
+    @property
+    def named_presets(self) -> bool:
+        return list(self.presets) != ["default"]
+
+    def label(self, preset: str | None = None) -> str:
+        """`NAME-PRESET` (`NAME` for a method without named presets)."""
+        return f"{self.name}-{preset or self.default_preset}" if self.named_presets else self.name
+
+    def labels(self) -> list[str]:
+        """The label of every preset, the default's first."""
+        return [self.label(p) for p in self.presets]
+
+    def sweepable(self) -> list[str]:
+        """The numeric settings `rngcam sweep` may grid."""
+        return [f.name for f in documented_fields(self.settings_type) if f.metadata.get("sweep")]
+
+
+REGISTRY: dict[str, MethodEntry] = {}
+
+
+def register(entry: MethodEntry) -> MethodEntry:
+    """Add `entry` (its name must be new and must not contain '-', the label separator)."""
+    if entry.name in REGISTRY or "-" in entry.name:
+        raise ValueError(f"method name {entry.name!r} is taken or contains '-'")
+    REGISTRY[entry.name] = entry
+    return entry
+
+
+def unregister(name: str) -> None:
+    """Remove a method (tests that register a toy method clean up with this)."""
+    REGISTRY.pop(name, None)
+
+
+def get(name: str) -> MethodEntry:
+    """The entry of `name`; one ConfigError line naming the choices if there is none."""
+    try:
+        return REGISTRY[name]
+    except KeyError:
+        raise ConfigError(f"unknown method {name!r}; choose one of {', '.join(REGISTRY)}") from None
+
+
+def names(kind: str | None = None) -> tuple[str, ...]:
+    """Method names in registration order (the default method first), optionally of one kind."""
+    return tuple(n for n, e in REGISTRY.items() if kind is None or e.kind == kind)
+
+
+def labels(kind: str | None = None) -> tuple[str, ...]:
+    """Every method-and-preset label, e.g. stfm, stfm-paper, stfm-prior, tv3d, tv3d-exact, ..."""
+    return tuple(label for n in names(kind) for label in REGISTRY[n].labels())
+
+
+def bench_labels() -> tuple[str, ...]:
+    """The labels `rngcam bench` compares by default."""
+    return tuple(e.label(p) for e in REGISTRY.values() for p in (e.benchmarked or (e.default_preset,)))
+
+
+def unavailable(label: str) -> str:
+    """Why the method of `label` cannot run here ('' when it can, e.g. learned weights installed)."""
+    entry = parse_label(label)[0]
+    return entry.unavailable() if entry.unavailable is not None else ""
+
+
+def parse_label(label: str) -> tuple[MethodEntry, str]:
+    """`NAME` or `NAME-PRESET` -> (entry, preset name)."""
+    name, _, preset = label.partition("-")
+    entry = get(name)
+    preset = preset or entry.default_preset
+    if preset not in entry.presets:
+        raise ConfigError(f"unknown method {label!r}; choose one of {', '.join(labels())}")
+    return entry, preset
+
+
+def settings_for(label: str, **overrides) -> tuple[str, Any]:
+    """(method name, its settings) for a label with `overrides` by field name."""
+    entry, preset = parse_label(label)
+    return entry.name, entry.settings(preset, **overrides)
+
+
+# ----------------------------------------------------------------------------- the methods
+
+
+def _make_stfm(problem, settings, device="cpu", budget_s=None, stage=None):
+    from rngcam.recon.stfm import make_stfm
+
+    return make_stfm(problem, settings, device=device)
+
+
+def _make_tv3d(problem, settings, device="cpu", budget_s=None, stage=None):
+    from rngcam.recon.tv3d import make_tv3d
+
+    return make_tv3d(problem, settings, budget_s=budget_s, stage=stage)
+
+
+def _make_pnp(problem, settings, device="cpu", budget_s=None, stage=None):
+    from rngcam.recon.pnp import PnP
+
+    return PnP(problem, settings, device=device)
+
+
+def _blend(key, gs_times_s, frame_times_s, settings: BlendSettings) -> GSOnlyVideo:
+    from rngcam.recon.baselines import blend
+
+    return GSOnlyVideo(blend(key, gs_times_s, frame_times_s))
+
+
+def _interp(key, gs_times_s, frame_times_s, settings: InterpSettings) -> GSOnlyVideo:
+    from rngcam.recon.baselines import interp
+
+    return GSOnlyVideo(interp(key, gs_times_s, frame_times_s, method=settings.flow, occlusion=settings.occlusion))
+
+
+def _rife(key, gs_times_s, frame_times_s, settings: RifeSettings) -> GSOnlyVideo:
+    from rngcam.recon.rife import resolve_model, rife
+
+    model, note = resolve_model(settings.model)  # 4.x, or HDv3 on request or as the fallback
+    return GSOnlyVideo(rife(key, gs_times_s, frame_times_s, model=model), [note] if note else [], {"model": model})
+
+
+def _rife_unavailable() -> str:
+    from rngcam.recon.rife import resolve_model
+
+    try:
+        resolve_model()  # RIFE 4.x, else HDv3
+    except Exception as exc:  # noqa: BLE001 - any failure means "not installed"
+        return str(exc)
+    return ""
+
+
+# The default method first. STFM's fast preset stops by itself (after 1-3 min at 64 px on one CPU
+# thread), so its auto budget only guards against a fit that never settles.
+register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=600.0,
+                     presets={p: preset_settings(p) for p in ("fast", *(p for p in STFM_PRESETS if p != "fast"))},
+                     benchmarked=("fast", "paper")))
+register(MethodEntry("tv3d", ITERATIVE, TV3DSettings, _make_tv3d,
+                     presets={"haar": TV3DSettings(prox="haar"), "exact": TV3DSettings(prox="exact")}))
+register(MethodEntry("pnp", ITERATIVE, PnPSettings, _make_pnp, auto_budget_s=300.0))
+register(MethodEntry("blend", GS_ONLY, BlendSettings, _blend))
+register(MethodEntry("interp", GS_ONLY, InterpSettings, _interp))
+register(MethodEntry("rife", GS_ONLY, RifeSettings, _rife, unavailable=_rife_unavailable))
