@@ -36,7 +36,7 @@ def test_batch_runs_each_bundle_reports_failures_and_skips_done_ones(bundles, tm
     a, b, junk = bundles
     res = recon_batch([a, junk, b], tmp_path, SETTINGS, backend_factory=SequentialBackend, echo=lambda s: None)
     assert [r["status"] for r in res.rows] == ["ok", "failed", "ok"]  # the junk file did not stop b
-    assert res.ran == 3 and res.failed == 1 and res.skipped == 0
+    assert res.ran == 2 and res.failed == 1 and res.skipped == 0  # reconstructed = succeeded
     assert "bundle" in res.rows[1]["note"].lower() or "hdf5" in res.rows[1]["note"].lower()
     for name in ("a", "b"):
         metrics = json.loads((tmp_path / name / "metrics.json").read_text())
@@ -75,6 +75,7 @@ def test_cli_prints_summary_and_fails_with_one_line_when_a_bundle_fails(bundles,
     assert res.exit_code == 2, res.output
     assert "| a.h5 | ok |" in res.output and "| junk.h5 | failed |" in res.output
     assert res.output.count("error:") == 1 and "1 of 2 bundle(s) failed" in res.output
+    assert "1 reconstructed, 0 skipped (done before), 1 failed" in res.output
     ok = CliRunner().invoke(main, ["recon-batch", str(a), "--method", "tv3d", "--iters", "2", "--no-ray",
                                    "-o", str(tmp_path)])
     assert ok.exit_code == 0 and "0 reconstructed, 1 skipped" in ok.output

@@ -132,7 +132,8 @@ def recon_batch(bundles: list[str | Path], out_dir: str | Path, settings: ReconS
     md = tables.markdown([{**r, "bundle": Path(r["bundle"]).name, "out": Path(r["out"]).name} for r in rows],
                          COLUMNS, fmt)
     tables.write_text(out / "batch.md", f"# Batch reconstruction ({settings.method})\n\n{md}")
-    return BatchResult(rows=rows, out_dir=out, backend=backend_name, ran=len(todo),
+    ran = sum(rows[i]["status"] == "ok" for i, _ in todo)  # reconstructed now; failures are counted apart
+    return BatchResult(rows=rows, out_dir=out, backend=backend_name, ran=ran,
                        skipped=sum(r["note"] == SKIPPED_NOTE for r in rows),
                        failed=sum(r["status"] != "ok" for r in rows))
 
