@@ -139,7 +139,8 @@ def make_method(problem: Problem, settings: ReconSettings, device: str, stage=No
     else:
         from rngcam.recon.stfm import STFMSettings, make_stfm
 
-        method = make_stfm(problem.to(torch.float32, device), STFMSettings(**opts), device=device)
+        method = make_stfm(problem.to(torch.float32, device), STFMSettings(**opts), device=device,
+                           budget_s=settings.time_budget_s, stage=stage)
     if problem.has_holdout and not getattr(method, "supports_holdout", False):
         raise ConfigError(f"{settings.method} does not fit a held-out split yet (--holdout)")
     return method
