@@ -90,7 +90,11 @@ def summarise_run(out_dir: Path, tol_db: float = 0.5) -> dict:
            "setup_s": setup, "seconds": m["seconds"], "iterations": m["iterations"],
            "per_iter_s": (m["seconds"] - setup) / max(m["iterations"], 1),
            "peak_rss_gib": m["peak_rss_bytes"] / 2**30, "events": m.get("events", []),
+           "levels": (m.get("method_settings") or {}).get("levels"),
            "psnr_db": m.get("psnr_db"), "start_psnr_db": float(rows[0]["psnr_db"]) if rows and rows[0].get("psnr_db") else None}
+    if res["levels"]:  # coarse to fine: the final level's own time per step (evaluations excluded)
+        last = res["levels"][-1]
+        res["final_level_per_iter_s"] = last.get("step_s", float("nan")) / max(last["steps"], 1)
     if m.get("psnr_db") is not None:
         final = float(rows[-1]["psnr_db"])
         # the first time from which PSNR stays within tol_db of the final PSNR (it may fall, as tv3d's does)
@@ -112,7 +116,7 @@ def recon(bundles: list[str], method: str, budget: float, extra: list[str], work
                "--time-budget", str(budget), "-o", str(out), *extra]
         before = load()
         t0 = time.perf_counter()
-        proc = subprocess.run(cmd, capture_output=True, text=True)
+        proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
         wall = time.perf_counter() - t0
         (work / f"{out.name}.log").write_text(proc.stdout + proc.stderr)
         if proc.returncode != 0 or not (out / "metrics.json").is_file():
@@ -134,13 +138,18 @@ def main():
     r = sub.add_parser("recon")
     r.add_argument("bundles", nargs="+")
     r.add_argument("--method", default="tv3d")
-    r.add_argument("--budget", type=float, default=240)
+    r.add_argument("--budget", default="240", help="seconds, or auto")
     r.add_argument("--extra", default="", help="more recon arguments, e.g. '--base video --iters 5'")
     r.add_argument("--work", type=Path, default=Path("scale-runs"))
     r.add_argument("--json", type=Path, default=None)
+    s = sub.add_parser("summary", help="the table figures of finished `rngcam recon` output folders")
+    s.add_argument("dirs", nargs="+", type=Path)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    if args.part == "ops":
+    if args.part == "summary":
+        for d in args.dirs:
+            print(json.dumps({"dir": str(d), **summarise_run(d)}), flush=True)
+    elif args.part == "ops":
         print(json.dumps(ops(args.size, args.repeats)), flush=True)
     else:
         args.work.mkdir(parents=True, exist_ok=True)

@@ -279,8 +279,9 @@ class CoarseToFine:
     def resolved_settings(self) -> dict:
         """The current level's method's settings, and how each finished level went."""
         inner = getattr(self.method, "resolved_settings", dict)()
-        return {**inner, "levels": [*self.level_ends, {"level": self._describe(self.level),
-                                                       "steps": self.level_steps}]}
+        now = {"level": self._describe(self.level), "steps": self.level_steps,
+               "step_s": round(self.level_step_s, 2), "setup_s": round(self.level_setup_s, 2)}
+        return {**inner, "levels": [*self.level_ends, now]}
 
     def gains(self):
         return self.method.gains()
