@@ -72,9 +72,25 @@ def ops(size: str, repeats: int) -> dict:
             torch.fft.rfft2(pad[:, :m], out=spec[:, :m]).mul_(tf)
             torch.fft.irfft2(spec[:, :m], s=(fh, fw), out=img[:, :m])
 
-    out = {"size": f"{h}x{w}", "frames": k, "fft": f"{fh}x{fw}", "chunk_frames": step}
+    # STFM's hot path: 8 RS rows from the frames they see, forward and backward (autograd).
+    rows = torch.arange(h // 2, h // 2 + 8)
+    frames = torch.nonzero(rs.weights[rows].sum(0) > 0).flatten()
+    vf = v[:, frames].clone().requires_grad_()
+
+    def rows_banded():
+        rs.A_rows(vf, rows, frames).square().sum().backward()
+
+    def rows_full_ifft():  # the previous A_rows: a full inverse FFT along y, then the rows
+        oy, ox = rs.conv.offset
+        spec = torch.fft.ifft(torch.fft.rfft2(vf, s=(fh, fw)) * tf, dim=-2).index_select(-2, rows + oy)
+        wts = rs.weights.float()[rows][:, frames].T
+        out = torch.fft.irfft((spec * wts[:, :, None]).sum(1), n=fw, dim=-1)[..., ox:ox + w]
+        out.square().sum().backward()
+
+    out = {"size": f"{h}x{w}", "frames": k, "fft": f"{fh}x{fw}", "chunk_frames": step, "rows_frames": len(frames)}
     for name, fn in (("rs_A", lambda: rs.A(v)), ("rs_At", lambda: rs.A_adjoint(b)),
-                     ("bare_pair", bare), ("bare_pair_chunked", bare_chunked)):
+                     ("bare_pair", bare), ("bare_pair_chunked", bare_chunked),
+                     ("rs_rows_8_fwd_bwd", rows_banded), ("rs_rows_8_fwd_bwd_full_ifft", rows_full_ifft)):
         out[name], out[name + "_sys"] = _timed(fn, repeats)
         out[name + "_load"] = load()
     out["ratio_to_bare"] = (out["rs_A"] + out["rs_At"]) / out["bare_pair"]
