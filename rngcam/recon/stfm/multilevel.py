@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from rngcam.recon.multiscale import CoarseToFine, default_factors
+from rngcam.recon.multiscale import CoarseToFine, default_factors, upsample
 from rngcam.recon.stfm.method import STFM
 from rngcam.recon.stfm.settings import REFINE_LR_RATIO, STFMSettings, _preset
 
@@ -59,9 +59,11 @@ def transfer_fields(target: nn.Module, source: nn.Module) -> None:
 
 def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int, ...], single,
                     budget_s: float | None = None, stage=None,
-                    max_level_steps: int = MAX_LEVEL_STEPS) -> CoarseToFine:
+                    max_level_steps: int = MAX_LEVEL_STEPS, carry: str = "auto") -> CoarseToFine:
     """STFM coarse to fine over `factors` (see the module docstring). `single(problem, settings)`
-    builds the ordinary STFM of the coarsest level; `stage(message)` reports each level's set-up."""
+    builds the ordinary STFM of the coarsest level; `stage(message)` reports each level's set-up.
+    `carry`: "auto" (the preset's way, above), or "fields" for a base-video model too (its base
+    upsampled, its fields resampled: bench/scale.py `carry` compares the two)."""
     single_settings = replace(settings, coarse_to_fine=False)
     c, k, h, w = problem.shape
     with_base = _preset(settings.preset, h, w, k)["dynamic_time"] if settings.dynamic_time is None \
@@ -71,6 +73,11 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
     def make(level, x0: Tensor | None):
         if x0 is None:  # the coarsest level: the ordinary build
             method = single(level, single_settings)
+        elif with_base and carry == "fields":
+            coarse = _fit_of(previous[-1])
+            base = upsample(coarse.base_video, level.shape, level.shape[1] / coarse.K)
+            method = STFM(level, replace(single_settings, dynamic_base="video", dynamic_time=True,
+                                         lr=_lr(single_settings, level)), device, base_video=base, fields_from=coarse)
         elif with_base:
             method = _on_base(level, single_settings, device, x0)
         else:
