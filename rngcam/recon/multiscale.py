@@ -222,6 +222,7 @@ class CoarseToFine:
         i = self.level + 1
         fine = self.problems[i].shape
         x0 = upsample(self.method.estimate().detach(), fine, self.factors[i - 1] / self.factors[i])
+        self.method = None  # make() may keep what it needs of the coarser level; the rest can go
         self._start_level(i, x0)
 
     @property

@@ -79,6 +79,7 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
             method = STFM(level, replace(single_settings, dynamic_base="video", dynamic_time=True,
                                          lr=_lr(single_settings, level)), device, base_video=base, fields_from=coarse)
         elif with_base:
+            previous.clear()  # the coarser fit is not needed any more: free it before building
             method = _on_base(level, single_settings, device, x0)
         else:
             method = _from_fields(level, single_settings, device, _fit_of(previous[-1]))
@@ -107,7 +108,7 @@ def _on_base(problem, settings: STFMSettings, device, x0: Tensor) -> STFM:
     is divided by the gains the fit starts with, so its first video is x0 itself."""
     wb = problem.white_balance
     gains = torch.ones(x0.shape[0]) if wb is None else wb.float().cpu()
-    base = x0 / gains.to(x0)[:, None, None, None]
+    base = x0 if bool(torch.all(gains == 1)) else x0 / gains.to(x0)[:, None, None, None]  # no copy if 1
     fine = replace(settings, dynamic_base="video", dynamic_time=True, lr=_lr(settings, problem))
     return STFM(problem, fine, device, base_video=base)
 
