@@ -148,10 +148,10 @@ class CoarseToFine:
     gives a reason, for methods with a stochastic objective), after `max_level_steps` steps, or
     when its steps have used their share of `budget_s` (`level_share`; only time inside step()
     counts, not the loop's evaluations); the final level runs for as long as the loop lets it.
-    A finer level is not started when what is left of `budget_s` (counted from construction) looks too short for its set-up and a few steps
-    (8x the current level's, per halving): the run then ends on the current level, upsampled, and
-    `budget_cut()` says so. `estimate()` is always on the full grid. `stage(message)` reports each
-    level's set-up.
+    A finer level is not started when what is left of `budget_s` (counted from construction)
+    looks too short for its set-up and a few steps (8x the current level's, per halving): the run
+    then ends on the current level, upsampled, and `budget_cut()` says so. `estimate()` is always
+    on the full grid. `stage(message)` reports each level's set-up.
     """
 
     def __init__(self, problem: Problem, make: Callable[[Problem, Tensor | None], object],
