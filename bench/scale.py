@@ -72,9 +72,25 @@ def ops(size: str, repeats: int) -> dict:
             torch.fft.rfft2(pad[:, :m], out=spec[:, :m]).mul_(tf)
             torch.fft.irfft2(spec[:, :m], s=(fh, fw), out=img[:, :m])
 
-    out = {"size": f"{h}x{w}", "frames": k, "fft": f"{fh}x{fw}", "chunk_frames": step}
+    # STFM's hot path: 8 RS rows from the frames they see, forward and backward (autograd).
+    rows = torch.arange(h // 2, h // 2 + 8)
+    frames = torch.nonzero(rs.weights[rows].sum(0) > 0).flatten()
+    vf = v[:, frames].clone().requires_grad_()
+
+    def rows_banded():
+        rs.A_rows(vf, rows, frames).square().sum().backward()
+
+    def rows_full_ifft():  # the previous A_rows: a full inverse FFT along y, then the rows
+        oy, ox = rs.conv.offset
+        spec = torch.fft.ifft(torch.fft.rfft2(vf, s=(fh, fw)) * tf, dim=-2).index_select(-2, rows + oy)
+        wts = rs.weights.float()[rows][:, frames].T
+        out = torch.fft.irfft((spec * wts[:, :, None]).sum(1), n=fw, dim=-1)[..., ox:ox + w]
+        out.square().sum().backward()
+
+    out = {"size": f"{h}x{w}", "frames": k, "fft": f"{fh}x{fw}", "chunk_frames": step, "rows_frames": len(frames)}
     for name, fn in (("rs_A", lambda: rs.A(v)), ("rs_At", lambda: rs.A_adjoint(b)),
-                     ("bare_pair", bare), ("bare_pair_chunked", bare_chunked)):
+                     ("bare_pair", bare), ("bare_pair_chunked", bare_chunked),
+                     ("rs_rows_8_fwd_bwd", rows_banded), ("rs_rows_8_fwd_bwd_full_ifft", rows_full_ifft)):
         out[name], out[name + "_sys"] = _timed(fn, repeats)
         out[name + "_load"] = load()
     out["ratio_to_bare"] = (out["rs_A"] + out["rs_At"]) / out["bare_pair"]
@@ -90,7 +106,11 @@ def summarise_run(out_dir: Path, tol_db: float = 0.5) -> dict:
            "setup_s": setup, "seconds": m["seconds"], "iterations": m["iterations"],
            "per_iter_s": (m["seconds"] - setup) / max(m["iterations"], 1),
            "peak_rss_gib": m["peak_rss_bytes"] / 2**30, "events": m.get("events", []),
+           "levels": (m.get("method_settings") or {}).get("levels"),
            "psnr_db": m.get("psnr_db"), "start_psnr_db": float(rows[0]["psnr_db"]) if rows and rows[0].get("psnr_db") else None}
+    if res["levels"]:  # coarse to fine: the final level's own time per step (evaluations excluded)
+        last = res["levels"][-1]
+        res["final_level_per_iter_s"] = last.get("step_s", float("nan")) / max(last["steps"], 1)
     if m.get("psnr_db") is not None:
         final = float(rows[-1]["psnr_db"])
         # the first time from which PSNR stays within tol_db of the final PSNR (it may fall, as tv3d's does)
@@ -112,7 +132,7 @@ def recon(bundles: list[str], method: str, budget: float, extra: list[str], work
                "--time-budget", str(budget), "-o", str(out), "--overwrite", *extra]
         before = load()
         t0 = time.perf_counter()
-        proc = subprocess.run(cmd, capture_output=True, text=True)
+        proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
         wall = time.perf_counter() - t0
         (work / f"{out.name}.log").write_text(proc.stdout + proc.stderr)
         if proc.returncode != 0 or not (out / "metrics.json").is_file():
@@ -125,6 +145,40 @@ def recon(bundles: list[str], method: str, budget: float, extra: list[str], work
     return results
 
 
+def carry(bundle: str, fine_steps: int, every: int, coarse_steps: int) -> dict:
+    """STFM (fast) coarse to fine, two ways of starting a finer level from the coarser one: fitting
+    on its estimate upsampled (the default) or taking over its fields (planes resampled) on its
+    base upsampled. PSNR at fixed step counts of the last level (no time measured: runs niced)."""
+    from dataclasses import replace as _replace
+
+    from rngcam.bundle import read_bundle
+    from rngcam.recon.metrics import video_metrics
+    from rngcam.recon.problem import build_problem
+    from rngcam.recon.stfm import STFMSettings, make_stfm
+    from rngcam.recon.stfm.multilevel import make_multilevel, stfm_levels
+
+    problem = build_problem(read_bundle(bundle))
+    truth = problem.truth
+    p = _replace(problem, truth=None).to(torch.float32)
+    frames = problem.intermediate_frames()
+    out = {"bundle": bundle}
+    for how in ("auto", "fields"):
+        m = make_multilevel(p, STFMSettings(), "cpu", stfm_levels(p, STFMSettings()),
+                            lambda q, s: make_stfm(q, s), carry=how, max_level_steps=coarse_steps)
+        curve = []
+        while not m.final:
+            m.step()
+        for i in range(fine_steps + 1):
+            if i % every == 0:
+                met = video_metrics(m.estimate().double(), truth, frames)
+                curve.append((i, round(met["psnr_db"], 2), round(met.get("psnr_intermediate_db", float("nan")), 2)))
+            if i < fine_steps:
+                m.step()
+        out[how] = {"coarse_steps": m.level_ends, "curve": curve}
+        print(json.dumps({how: out[how]}), flush=True)
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="part", required=True)
@@ -134,13 +188,25 @@ def main():
     r = sub.add_parser("recon")
     r.add_argument("bundles", nargs="+")
     r.add_argument("--method", default="tv3d")
-    r.add_argument("--budget", type=float, default=240)
+    r.add_argument("--budget", default="240", help="seconds, or auto")
     r.add_argument("--extra", default="", help="more recon arguments, e.g. '--base video --iters 5'")
     r.add_argument("--work", type=Path, default=Path("scale-runs"))
     r.add_argument("--json", type=Path, default=None)
+    c = sub.add_parser("carry", help="STFM: a finer level from the coarser estimate or from its fields")
+    c.add_argument("bundle")
+    c.add_argument("--fine-steps", type=int, default=300)
+    c.add_argument("--every", type=int, default=50)
+    c.add_argument("--coarse-steps", type=int, default=600, help="at most this many steps per coarser level")
+    s = sub.add_parser("summary", help="the table figures of finished `rngcam recon` output folders")
+    s.add_argument("dirs", nargs="+", type=Path)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    if args.part == "ops":
+    if args.part == "carry":
+        print(json.dumps(carry(args.bundle, args.fine_steps, args.every, args.coarse_steps)), flush=True)
+    elif args.part == "summary":
+        for d in args.dirs:
+            print(json.dumps({"dir": str(d), **summarise_run(d)}), flush=True)
+    elif args.part == "ops":
         print(json.dumps(ops(args.size, args.repeats)), flush=True)
     else:
         args.work.mkdir(parents=True, exist_ok=True)

@@ -33,6 +33,14 @@ MEMORY_FRACTION = 0.8  # of the machine's memory: the default --max-memory
 BYTES_PER_ELEMENT = {"tv3d": 150, "stfm": 110, "pnp": 110, "blend": 155, "interp": 155, "rife": 170}
 BYTES_PER_FRAME = {"stfm": 1_000_000, "pnp": 1_000_000}
 BASE_BYTES = 300 * 2**20  # the interpreter, torch and OpenCV
+# STFM on grids of COARSE_TO_FINE_MIN_SIDE px and more runs coarse to fine (rngcam.recon.stfm.multilevel):
+# the ensemble and RIFE run only on the coarsest level (48-95 px on the short side), the full grid
+# holds one fit. Its peak is then the larger of the coarsest level's (about 1.0 GB: 1.20 GiB measured
+# for the whole run at 114x171x117) and 79 bytes an element (4.25 GiB for the whole run at
+# 228x342x231, /usr/bin/time), with about 10 %: 87 bytes.
+COARSE_TO_FINE_MIN_SIDE = 96  # rngcam.recon.multiscale.default_factors: two levels from here
+STFM_COARSE_TO_FINE_BYTES_PER_ELEMENT = 87
+STFM_COARSE_LEVEL_BYTES = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -111,6 +119,8 @@ def plan_grid(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = 
 
 def method_bytes(plan: GridPlan, method: str) -> int:
     """Estimated peak memory of reconstructing the plan's video with `method` (see BYTES_PER_ELEMENT)."""
+    if method == "stfm" and min(plan.height, plan.width) >= COARSE_TO_FINE_MIN_SIDE:
+        return BASE_BYTES + max(STFM_COARSE_LEVEL_BYTES, plan.elements * STFM_COARSE_TO_FINE_BYTES_PER_ELEMENT)
     per = BYTES_PER_ELEMENT.get(method, max(BYTES_PER_ELEMENT.values()))
     return BASE_BYTES + plan.elements * per + plan.grid.n_frames * BYTES_PER_FRAME.get(method, 0)
 

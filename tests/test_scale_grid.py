@@ -213,3 +213,39 @@ def test_auto_budget_scales_with_the_problem_and_says_what_it_chose():
     budget, why = auto_time_budget("tv3d", (3, 231, 228, 342))
     assert budget == pytest.approx(60 * (231 * 228 * 342 / (67 * 64 * 64)) ** 0.5) and f"{budget:.0f} s" in why
     assert auto_time_budget("stfm", (3, 231, 228, 342))[0] == 1800.0  # capped
+
+
+def test_rs_rows_gradient_is_the_rows_adjoint():
+    """STFM back-propagates through A_rows (the banded row DFT): autograd must give A_rows^T."""
+    p = _toy_problem()
+    op = p.rs_op()
+    rows = torch.tensor([3, 4, 5, 6, 7])
+    frames = torch.nonzero(op.weights[rows].sum(0) > 0).flatten()
+    gen = torch.Generator().manual_seed(3)
+    x = torch.rand(3, len(frames), *p.shape[-2:], dtype=torch.float64, generator=gen).requires_grad_()
+    y = torch.rand(3, len(rows), p.shape[-1], dtype=torch.float64, generator=gen)
+    (op.A_rows(x, rows, frames) * y).sum().backward()
+    torch.testing.assert_close(x.grad, op.A_rows_adjoint(y, rows, frames), rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(op.A_rows(x.detach(), rows, frames), op.A(_scatter(x.detach(), frames, p.shape))[:, rows],
+                               rtol=1e-10, atol=1e-12)
+
+
+def _scatter(x, frames, shape):
+    full = torch.zeros(shape, dtype=x.dtype)
+    full[:, frames] = x
+    return full
+
+
+def test_stfm_memory_estimate_follows_coarse_to_fine():
+    from types import SimpleNamespace
+
+    from rngcam.sizing import BYTES_PER_ELEMENT, method_bytes
+
+    def plan(h, w, k):
+        return SimpleNamespace(height=h, width=w, elements=3 * k * h * w, grid=SimpleNamespace(n_frames=k))
+
+    paper = method_bytes(plan(228, 342, 231), "stfm") / 2**30
+    assert 4.0 < paper < 5.0  # measured 4.25 GiB for the whole run (bench/scale.md)
+    assert 1.0 < method_bytes(plan(114, 171, 117), "stfm") / 2**30 < 1.5  # measured 1.20 GiB
+    small = plan(64, 64, 67)  # one level: the ensemble's figure, per element and per frame
+    assert method_bytes(small, "stfm") > BYTES_PER_ELEMENT["stfm"] * small.elements

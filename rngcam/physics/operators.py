@@ -278,12 +278,19 @@ class RollingShutter(LinearOperator):
         conv = self.conv
         h, w = conv.image_shape
         oy, ox = conv.offset
-        fw = conv.fft_shape[1]
+        fh, fw = conv.fft_shape
+        c, n = v_frames.shape[0], v_frames.shape[1]
         tf = conv._broadcast(conv.transfer(v_frames.dtype, v_frames.device), v_frames.ndim)
         rows = rows.to(v_frames.device)
-        spec = torch.fft.ifft(torch.fft.rfft2(v_frames, s=conv.fft_shape) * tf, dim=-2).index_select(-2, rows + oy)
+        spec = torch.fft.rfft2(v_frames, s=conv.fft_shape) * tf  # (C, F, fh, fw')
+        # Only rows `rows` of the inverse DFT along y, weighted per frame and summed over frames:
+        # one (R, F fh) x (F fh, fw') product instead of a full inverse FFT per frame and a selection.
         weights = self._w(v_frames)[rows][:, frames.to(v_frames.device)].T  # (F, R)
-        summed = (spec * weights[:, :, None].to(spec.dtype)).sum(dim=1)  # (C, R, fw // 2 + 1)
+        phase = (2 * math.pi / fh) * torch.outer((rows + oy).to(torch.float64).cpu(),
+                                                  torch.arange(fh, dtype=torch.float64))
+        dft = (torch.polar(torch.ones_like(phase), phase) / fh).to(spec.device, spec.dtype)  # (R, fh)
+        band = (weights.T[:, :, None].to(spec.dtype) * dft[:, None, :]).reshape(len(rows), n * fh)
+        summed = torch.matmul(band, spec.reshape(c, n * fh, -1))  # (C, R, fw // 2 + 1)
         return torch.fft.irfft(summed, n=fw, dim=-1)[..., ox:ox + w]
 
     def A_rows_adjoint(self, b_rows: Tensor, rows: Tensor, frames: Tensor) -> Tensor:  # noqa: N802

@@ -155,7 +155,7 @@ def error_visibility(problem, estimate: Tensor, frame_chunk: int = 16) -> dict[s
     if problem.truth is None:
         return {name: math.nan for name in sensors}
     truth = problem.truth
-    error = estimate.to(truth.device, truth.dtype) - truth
+    error = estimate.to(truth.device, truth.dtype, copy=True).sub_(truth)  # in place: one video-sized copy
     out = {}
     for name, (meas, forward, mask) in sensors.items():
         signal = float(torch.linalg.vector_norm(_masked(forward(error), mask).double()))

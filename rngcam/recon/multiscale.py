@@ -145,19 +145,21 @@ class CoarseToFine(MethodBase):
     """A `Method` (rngcam.recon.loop) that runs `make(level_problem, x0)` at each level in turn.
 
     A coarse level ends when its objective has fallen by less than `level_rtol` over its last
-    `window` steps, after `max_level_steps` steps, or when its steps have used their share of
-    `budget_s` (`level_share`; only time inside step() counts, not the loop's evaluations); the
-    final level runs for as long as the loop lets it. A finer level is not started when what is
-    left of `budget_s` (counted from construction) looks too short for its set-up and a few steps
-    (8x the current level's, per halving): the run then ends on the current level, upsampled, and
-    `budget_cut()` says so. `estimate()` is always on the full grid. `stage(message)` reports each
-    level's set-up.
+    `window` steps (`level_stop="objective"`; with "method": when the level's own `converged()`
+    gives a reason, for methods with a stochastic objective), after `max_level_steps` steps, or
+    when its steps have used their share of `budget_s` (`level_share`; only time inside step()
+    counts, not the loop's evaluations); the final level runs for as long as the loop lets it.
+    A finer level is not started when what is left of `budget_s` (counted from construction)
+    looks too short for its set-up and a few steps (8x the current level's, per halving): the run
+    then ends on the current level, upsampled, and `budget_cut()` says so. `estimate()` is always
+    on the full grid. `stage(message)` reports each level's set-up.
     """
 
     def __init__(self, problem: Problem, make: Callable[[Problem, Tensor | None], object],
                  factors: tuple[int, ...] | None = None, budget_s: float | None = None,
                  level_share: float = 0.15, level_rtol: float = 2e-3, window: int = 10,
-                 max_level_steps: int = 300, stage: Callable[[str], None] | None = None):
+                 max_level_steps: int = 300, stage: Callable[[str], None] | None = None,
+                 level_stop: str = "objective"):
         self.full_shape = problem.shape
         self.factors = tuple(factors or default_factors(problem.shape))
         if self.factors[-1] != 1:
@@ -165,6 +167,7 @@ class CoarseToFine(MethodBase):
         self.problems = [coarsen(problem, f) if f > 1 else problem for f in self.factors]
         self.make, self.budget_s, self.level_share = make, budget_s, level_share
         self.level_rtol, self.window, self.max_level_steps = level_rtol, window, max_level_steps
+        self.level_stop, self.level_ends = level_stop, []
         self.stage = stage or (lambda message: None)
         self.t0 = time.perf_counter()
         self.level, self._x0, self.held_back = 0, None, False
@@ -191,6 +194,11 @@ class CoarseToFine(MethodBase):
             return True
         if self.budget_s is not None and self.level_step_s >= self.level_share * self.budget_s:
             return True
+        if self.level_stop == "method":
+            reason = self.method.converged()
+            if reason:
+                self.stage(f"{self._describe(self.level)}: {reason}")
+            return bool(reason)
         if len(self._history) > self.window:
             old, new = self._history[-1 - self.window], self._history[-1]
             return math.isfinite(old) and abs(old - new) <= self.level_rtol * abs(old)
@@ -201,13 +209,19 @@ class CoarseToFine(MethodBase):
             return True
         growth = (self.factors[self.level] / self.factors[self.level + 1]) ** 3
         per_step = self.level_step_s / max(self.level_steps, 1)
-        needed = growth * (self.level_setup_s + 5 * per_step)
+        # A level whose build is not the coarse one's (STFM: one fit instead of RIFE and an
+        # ensemble) is guessed from its steps alone.
+        setup = self.level_setup_s if self.level_stop == "objective" else 0.0
+        needed = growth * (setup + 5 * per_step)
         return time.perf_counter() - self.t0 + needed <= self.budget_s
 
     def _next_level(self) -> None:
+        self.level_ends.append({"level": self._describe(self.level), "steps": self.level_steps,
+                                "step_s": round(self.level_step_s, 2), "setup_s": round(self.level_setup_s, 2)})
         i = self.level + 1
         fine = self.problems[i].shape
         x0 = upsample(self.method.estimate().detach(), fine, self.factors[i - 1] / self.factors[i])
+        self.method = None  # make() may keep what it needs of the coarser level; the rest can go
         self._start_level(i, x0)
 
     @property
@@ -262,11 +276,31 @@ class CoarseToFine(MethodBase):
     def reduce_step(self, factor: float) -> None:
         self.method.reduce_step(factor)
 
-    def components(self) -> dict:
-        return self.method.components()
+    def resolved_settings(self) -> dict:
+        """The current level's method's settings, and how each finished level went."""
+        inner = self.method.resolved_settings() or {}
+        now = {"level": self._describe(self.level), "steps": self.level_steps,
+               "step_s": round(self.level_step_s, 2), "setup_s": round(self.level_setup_s, 2)}
+        return {**inner, "levels": [*self.level_ends, now]}
 
-    def resolved_settings(self) -> dict | None:
-        return self.method.resolved_settings()
+    def gains(self):
+        return self.method.gains()
+
+    def components(self) -> dict:
+        """The method's components, upsampled to the full grid when the run ended on a coarser level
+        (motion in pixels scaled with the grid)."""
+        out = self.method.components()
+        if self.final:
+            return out
+        _, k, h, w = self.full_shape
+        f = self.factors[self.level]
+        full = {}
+        for name, a in out.items():
+            x = torch.as_tensor(a, dtype=torch.float32)
+            x = x[:, None] if x.ndim == 3 else x  # a still image: one frame
+            x = upsample(x, (x.shape[0], k if x.shape[1] > 1 else 1, h, w), f)
+            full[name] = (x[:, 0] if np.ndim(a) == 3 else x * (f if name == "motion" else 1)).numpy()
+        return full
 
     @property
     def left_out(self):

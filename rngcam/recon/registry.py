@@ -170,7 +170,7 @@ def settings_for(label: str, **overrides) -> tuple[str, Any]:
 def _make_stfm(problem, settings, device="cpu", budget_s=None, stage=None):
     from rngcam.recon.stfm import make_stfm
 
-    return make_stfm(problem, settings, device=device)
+    return make_stfm(problem, settings, device=device, budget_s=budget_s, stage=stage)
 
 
 def _make_tv3d(problem, settings, device="cpu", budget_s=None, stage=None):

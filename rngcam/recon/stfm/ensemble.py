@@ -178,14 +178,23 @@ class STFMEnsemble(MethodBase):
 
 
 def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
-              initial_video: Tensor | None = None) -> STFM | STFMEnsemble:
+              initial_video: Tensor | None = None, budget_s: float | None = None, stage=None):
     """The STFM method for `problem` (see STFM and STFMSettings): an STFMEnsemble when the
     dynamic base (the setting, else the preset's) lists several bases and the problem uses them.
 
     `initial_video` (C, K, H, W), on the RS scale without GS gains (e.g. a coarser level's
     estimate, upsampled): one fit whose dynamic base is that video (dynamic_base "video"), so the
-    fit starts from it instead of from a GS-only interpolation."""
+    fit starts from it instead of from a GS-only interpolation.
+    On grids of 96 px and more (`coarse_to_fine`), a coarse-to-fine run of these
+    (rngcam.recon.stfm.multilevel); `budget_s` and `stage(message)` as in make_tv3d."""
     settings = settings or STFMSettings()
+    if initial_video is None:
+        from rngcam.recon.stfm.multilevel import make_multilevel, stfm_levels
+
+        factors = stfm_levels(problem, settings)
+        if len(factors) > 1:
+            return make_multilevel(problem, settings, device, factors,
+                                   lambda level, s: make_stfm(level, s, device), budget_s, stage)
     if initial_video is not None:
         if tuple(initial_video.shape) != tuple(problem.shape):
             raise ConfigError(f"initial_video has shape {tuple(initial_video.shape)}, the problem's video "

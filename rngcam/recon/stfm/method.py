@@ -32,11 +32,13 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
     supports_holdout = True  # fits only the training measurements when the problem has a split
 
     def __init__(self, problem, settings: STFMSettings, device="cpu", static_from: STFM | None = None,
-                 base_video: Tensor | None = None):
+                 base_video: Tensor | None = None, fields_from: STFM | None = None):
         """`static_from`: an STFM of the same problem and preset whose initialised static field
         this one copies instead of fitting it again (ensemble members share that start).
         `base_video` (C, K, H, W), without GS gains: the base of a "video" dynamic base, instead
-        of RIFE's or the flow interpolation's (the ensemble's refinement fit)."""
+        of RIFE's or the flow interpolation's (the ensemble's refinement fit).
+        `fields_from`: an STFM of the same model on a coarser grid whose fields (planes resampled)
+        and gains this one starts from instead of initialising from the GS frames (coarse to fine)."""
         self.settings = settings
         self._static_from = static_from
         self._given_base = base_video
@@ -57,7 +59,13 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         self._build_base()
         self._build_fields(preset)
         self._build_scales()
-        if self.resolved.init == "gs" and self.parts.gs:
+        if fields_from is not None:
+            from rngcam.recon.stfm.multilevel import transfer_fields
+
+            transfer_fields(self.fields, fields_from.fields)
+            with torch.no_grad():
+                self.log_gain.copy_(fields_from.log_gain.detach().to(self.log_gain))
+        elif self.resolved.init == "gs" and self.parts.gs:
             self._init_from_gs()
         self._build_optimiser(preset)
         self._params = [*self.fields.parameters(), self.log_gain]

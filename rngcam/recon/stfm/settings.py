@@ -55,6 +55,7 @@ class STFMSettings:
     ema_decay: float | None = None  # outputs use an exponential moving average of the weights (0: off)
     refine: bool | None = None  # ensemble: one more fit on the members' average once they have stopped
     motion_init: str | None = None  # 2-D dynamic field: "flow" (key-frame optical flow) or "search" (motion_search)
+    coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.stfm.multilevel)
 
     def __post_init__(self):
         if self.preset not in PRESETS:

@@ -1,0 +1,119 @@
+"""STFM coarse to fine: the normal STFM build on a coarse grid, then finer grids that start from it.
+
+Levels come from rngcam.recon.multiscale (`coarsen`: the problem binned in space and time,
+e.g. 1/4, 1/2 and the full grid at 228x342). The coarsest level is the ordinary STFM of the
+settings (`make_stfm`: RIFE or flow bases, the fast preset's ensemble, the prior preset's motion
+search), so the set-up work that does not scale with the grid (RIFE, optical flow, the motion
+search, the GS initialisation fits) runs on 1/16 of the pixels and 1/4 of the frames. A coarse
+level ends at its own stop test (noise level or stall), or after `max_level_steps`.
+
+Each finer level starts from the level below, in the preset's own model:
+- a model with a time-dependent dynamic field on a base video (fast; `dynamic_time=True`):
+  one fit whose base video is the coarser level's estimate, upsampled (like the ensemble's
+  refinement fit: a quarter of the learning rate, its static/alpha composition from the GS frames);
+- a model without a base (prior, paper; one canonical dynamic image moved by the motion field):
+  the same fields, their feature planes resampled to the finer level's plane sizes and the
+  decoders copied, so the canonical image and the motion carry over (coordinates are in [-1, 1]
+  on every level) and the level fits only what the coarser grid could not resolve.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from rngcam.recon.multiscale import CoarseToFine, default_factors, upsample
+from rngcam.recon.stfm.method import STFM
+from rngcam.recon.stfm.settings import REFINE_LR_RATIO, STFMSettings, _preset
+
+MAX_LEVEL_STEPS = 3000  # a coarse level that never meets its stop test ends here
+
+
+def stfm_levels(problem, settings: STFMSettings) -> tuple[int, ...]:
+    """Spatial factors of the levels (coarse to fine); (1,) means a single level."""
+    if not settings.coarse_to_fine or problem.has_holdout:
+        return (1,)
+    return default_factors(problem.shape)
+
+
+def transfer_fields(target: nn.Module, source: nn.Module) -> None:
+    """Copy `source`'s fields into `target` (same kinds, scales and features): feature planes
+    resampled bilinearly to the target's plane sizes (corners aligned: plane coordinates span
+    [-1, 1] on every grid), every other parameter copied. ValueError if they do not match."""
+    src, dst = dict(source.named_parameters()), dict(target.named_parameters())
+    if src.keys() != dst.keys():
+        raise ValueError("fields differ in structure")
+    with torch.no_grad():
+        for name, p in dst.items():
+            q = src[name].to(p)
+            if q.shape == p.shape:
+                p.copy_(q)
+            elif q.ndim == 4 and q.shape[:2] == p.shape[:2]:
+                p.copy_(F.interpolate(q, size=p.shape[-2:], mode="bilinear", align_corners=True))
+            else:
+                raise ValueError(f"field parameter {name}: {tuple(q.shape)} cannot become {tuple(p.shape)}")
+
+
+def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int, ...], single,
+                    budget_s: float | None = None, stage=None,
+                    max_level_steps: int = MAX_LEVEL_STEPS, carry: str = "auto") -> CoarseToFine:
+    """STFM coarse to fine over `factors` (see the module docstring). `single(problem, settings)`
+    builds the ordinary STFM of the coarsest level; `stage(message)` reports each level's set-up.
+    `carry`: "auto" (the preset's way, above), or "fields" for a base-video model too (its base
+    upsampled, its fields resampled: bench/scale.py `carry` compares the two)."""
+    single_settings = replace(settings, coarse_to_fine=False)
+    c, k, h, w = problem.shape
+    with_base = _preset(settings.preset, h, w, k)["dynamic_time"] if settings.dynamic_time is None \
+        else settings.dynamic_time
+    previous: list = []
+
+    def make(level, x0: Tensor | None):
+        if x0 is None:  # the coarsest level: the ordinary build
+            method = single(level, single_settings)
+        elif with_base and carry == "fields":
+            coarse = _fit_of(previous[-1])
+            base = upsample(coarse.base_video, level.shape, level.shape[1] / coarse.K)
+            method = STFM(level, replace(single_settings, dynamic_base="video", dynamic_time=True,
+                                         lr=_lr(single_settings, level)), device, base_video=base, fields_from=coarse)
+        elif with_base:
+            previous.clear()  # the coarser fit is not needed any more: free it before building
+            method = _on_base(level, single_settings, device, x0)
+        else:
+            method = _from_fields(level, single_settings, device, _fit_of(previous[-1]))
+        previous[:] = [method]
+        return method
+
+    return CoarseToFine(problem, make, factors, budget_s=budget_s, stage=stage, level_stop="method",
+                        max_level_steps=max_level_steps)
+
+
+def _fit_of(method) -> STFM:
+    """The single fit whose fields a finer level takes (an ensemble's refinement or first member)."""
+    if isinstance(method, STFM):
+        return method
+    return method.refined if getattr(method, "refined", None) is not None else method.members[0]
+
+
+def _lr(settings: STFMSettings, problem) -> float:
+    c, k, h, w = problem.shape
+    base = settings.lr if settings.lr is not None else _preset(settings.preset, h, w, k)["lr"]
+    return REFINE_LR_RATIO * base
+
+
+def _on_base(problem, settings: STFMSettings, device, x0: Tensor) -> STFM:
+    """One fit on the base video x0 (C, K, H, W), the coarser level's estimate upsampled. The base
+    is divided by the gains the fit starts with, so its first video is x0 itself."""
+    wb = problem.white_balance
+    gains = torch.ones(x0.shape[0]) if wb is None else wb.float().cpu()
+    base = x0 if bool(torch.all(gains == 1)) else x0 / gains.to(x0)[:, None, None, None]  # no copy if 1
+    fine = replace(settings, dynamic_base="video", dynamic_time=True, lr=_lr(settings, problem))
+    return STFM(problem, fine, device, base_video=base)
+
+
+def _from_fields(problem, settings: STFMSettings, device, coarse: STFM) -> STFM:
+    """The coarse fit's model on this level: its fields resampled, its gains, a quarter of the lr."""
+    fine = replace(settings, lr=_lr(settings, problem))
+    return STFM(problem, fine, device, fields_from=coarse)

@@ -1,0 +1,103 @@
+"""STFM coarse to fine (rngcam.recon.stfm.multilevel): levels chosen, fields carried over, each
+finer level starting where the coarser one ended, in the preset's own model."""
+
+import numpy as np
+import pytest
+import torch
+
+from rngcam.recon.fields import field_on_grid, make_field
+from rngcam.recon.loop import LoopSettings, run
+from rngcam.recon.metrics import video_metrics
+from rngcam.recon.multiscale import upsample
+from rngcam.recon.stfm import STFM, STFMSettings, make_stfm
+from rngcam.recon.stfm.multilevel import make_multilevel, stfm_levels, transfer_fields
+from rngcam.sim.scenes import render_scene
+from rngcam.sim.simulate import simulation_timing
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def _toy_problem(h=32, w=48):
+    from rngcam.recon.problem import problem_from_video
+    from rngcam.sim.simulate import prepare_simulation_psf
+
+    timing = simulation_timing((h, w))
+    video = torch.from_numpy(render_scene("sineball", timing.grid, (h, w), 0)).double()
+    psf = prepare_simulation_psf(None, (h, w), (h, w), 0.25).grid
+    return problem_from_video(video, torch.from_numpy(psf), timing.rs, timing.gs).to(torch.float32)
+
+
+def _psnr(video, truth):
+    return video_metrics(video.double(), truth.double(), np.arange(truth.shape[1]))["psnr_db"]
+
+
+def test_levels_follow_the_grid_and_the_setting():
+    p = _toy_problem()
+    assert stfm_levels(p, STFMSettings()) == (1,)  # 32 px: one level
+    big = type("P", (), {"shape": (3, 231, 228, 342), "has_holdout": False})()
+    assert stfm_levels(big, STFMSettings()) == (4, 2, 1)
+    assert stfm_levels(big, STFMSettings(coarse_to_fine=False)) == (1,)
+    big.has_holdout = True
+    assert stfm_levels(big, STFMSettings()) == (1,)
+
+
+def test_transferred_plane_field_is_the_same_function_on_the_finer_grid():
+    torch.manual_seed(0)
+    coarse = make_field("planes", 3, 3, resolutions=(4, 8), time_resolutions=(3, 5), features=4, hidden=16)
+    fine = make_field("planes", 3, 3, resolutions=(7, 15), time_resolutions=(5, 9), features=4, hidden=16)
+    with torch.no_grad():  # give the planes some structure to carry over
+        for q in coarse.planes:
+            q.copy_(0.5 + 0.3 * torch.randn_like(q))
+    transfer_fields(fine, coarse)
+    axes = [torch.linspace(-1, 1, 20), torch.linspace(-1, 1, 13), torch.linspace(-1, 1, 6)]
+    with torch.no_grad():
+        a, b = field_on_grid(coarse, axes), field_on_grid(fine, axes)
+    assert float((a - b).norm() / a.norm()) < 0.05  # bilinear planes resampled: nearly the same field
+    other = make_field("planes", 3, 3, resolutions=(4,), features=4, hidden=16)
+    with pytest.raises(ValueError):
+        transfer_fields(other, coarse)
+
+
+def test_prior_preset_fine_level_starts_from_the_coarse_model():
+    p = _toy_problem()
+    m = make_multilevel(p, STFMSettings(preset="prior"), "cpu", (2, 1), lambda q, s: make_stfm(q, s),
+                        max_level_steps=30)
+    coarse = m.method
+    assert not m.final and coarse.resolved.dynamic_time is False
+    for _ in range(30):
+        m.step()
+    assert m.final
+    fine = m.method
+    assert isinstance(fine, STFM) and fine.resolved.dynamic_time is False  # the prior's own model
+    assert fine.resolved.lr == pytest.approx(0.25 * coarse.resolved.lr)
+    # before any fine step the fine video is the coarse model on the finer grid
+    up = upsample(coarse.estimate(), p.shape, 2)
+    first = fine.estimate()
+    assert float((first - up).norm() / up.norm()) < 0.1
+    torch.testing.assert_close(fine.log_gain, coarse.log_gain)
+
+
+def test_fast_preset_fine_level_fits_on_the_coarse_estimate_and_runs_to_the_end():
+    p = _toy_problem()
+    stages = []
+    m = make_multilevel(p, STFMSettings(rows_per_step=4), "cpu", (2, 1), lambda q, s: make_stfm(q, s),
+                        stage=stages.append, max_level_steps=20)
+    start = _psnr(m.estimate(), p.truth)
+    result = run(m, LoopSettings(time_budget_s=None, max_iters=60, progress=False))
+    assert m.final and result.status == "ok" and any("level 2 of 2" in s for s in stages)
+    fine = m.method
+    assert fine.base_source == "given" and fine.resolved.dynamic_time is True
+    assert fine.base_video.shape == p.shape
+    video = m.estimate()
+    assert video.shape == p.shape and torch.isfinite(video).all()
+    assert _psnr(video, p.truth) > start - 0.5  # not worse than the GS-only start it came from
+    levels = m.resolved_settings()["levels"]
+    assert len(levels) == 2 and levels[0]["steps"] == 20
+    comps = m.components()
+    assert comps["motion"].shape == (2, *p.shape[1:])
