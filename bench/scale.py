@@ -151,7 +151,7 @@ def carry(bundle: str, fine_steps: int, every: int, coarse_steps: int) -> dict:
     base upsampled. PSNR at fixed step counts of the last level (no time measured: runs niced)."""
     from dataclasses import replace as _replace
 
-    from rngcam.bundle import read_bundle
+    from rngcam.formats.bundle import read_bundle
     from rngcam.recon.metrics import video_metrics
     from rngcam.recon.problem import build_problem
     from rngcam.recon.stfm import STFMSettings, make_stfm

@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 import torch
 
-from rngcam.recon.fields import field_on_grid, make_field
+from rngcam.recon.fields import field_on_grid, make_field, transfer_fields
 from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.metrics import video_metrics
 from rngcam.recon.multiscale import upsample
 from rngcam.recon.stfm import STFM, STFMSettings, make_stfm
-from rngcam.recon.stfm.multilevel import make_multilevel, stfm_levels, transfer_fields
+from rngcam.recon.stfm.multilevel import make_multilevel, stfm_levels
 from rngcam.sim.scenes import render_scene
 from rngcam.sim.simulate import simulation_timing
 

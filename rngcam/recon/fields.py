@@ -255,3 +255,21 @@ def make_field(kind: str, in_dims: int, out_dims: int, **cfg) -> nn.Module:
     except TypeError as exc:
         raise ConfigError(f"bad settings for a {kind} field: {exc}") from None
     raise ConfigError(f"unknown field kind {kind!r} (choose from {', '.join(FIELD_KINDS)})")
+
+
+def transfer_fields(target: nn.Module, source: nn.Module) -> None:
+    """Copy `source`'s fields into `target` (same kinds, scales and features): feature planes
+    resampled bilinearly to the target's plane sizes (corners aligned: plane coordinates span
+    [-1, 1] on every grid), every other parameter copied. ValueError if they do not match."""
+    src, dst = dict(source.named_parameters()), dict(target.named_parameters())
+    if src.keys() != dst.keys():
+        raise ValueError("fields differ in structure")
+    with torch.no_grad():
+        for name, p in dst.items():
+            q = src[name].to(p)
+            if q.shape == p.shape:
+                p.copy_(q)
+            elif q.ndim == 4 and q.shape[:2] == p.shape[:2]:
+                p.copy_(F.interpolate(q, size=p.shape[-2:], mode="bilinear", align_corners=True))
+            else:
+                raise ValueError(f"field parameter {name}: {tuple(q.shape)} cannot become {tuple(p.shape)}")

@@ -12,6 +12,7 @@ from torch import Tensor
 
 from rngcam.errors import ConfigError
 from rngcam.recon.components import Components, choose_components
+from rngcam.recon.fields import transfer_fields
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
@@ -60,8 +61,6 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         self._build_fields(preset)
         self._build_scales()
         if fields_from is not None:
-            from rngcam.recon.stfm.multilevel import transfer_fields
-
             transfer_fields(self.fields, fields_from.fields)
             with torch.no_grad():
                 self.log_gain.copy_(fields_from.log_gain.detach().to(self.log_gain))

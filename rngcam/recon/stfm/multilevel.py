@@ -22,8 +22,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import torch
-import torch.nn.functional as F
-from torch import Tensor, nn
+from torch import Tensor
 
 from rngcam.recon.multiscale import CoarseToFine, default_factors, upsample
 from rngcam.recon.stfm.method import STFM
@@ -37,24 +36,6 @@ def stfm_levels(problem, settings: STFMSettings) -> tuple[int, ...]:
     if not settings.coarse_to_fine or problem.has_holdout:
         return (1,)
     return default_factors(problem.shape)
-
-
-def transfer_fields(target: nn.Module, source: nn.Module) -> None:
-    """Copy `source`'s fields into `target` (same kinds, scales and features): feature planes
-    resampled bilinearly to the target's plane sizes (corners aligned: plane coordinates span
-    [-1, 1] on every grid), every other parameter copied. ValueError if they do not match."""
-    src, dst = dict(source.named_parameters()), dict(target.named_parameters())
-    if src.keys() != dst.keys():
-        raise ValueError("fields differ in structure")
-    with torch.no_grad():
-        for name, p in dst.items():
-            q = src[name].to(p)
-            if q.shape == p.shape:
-                p.copy_(q)
-            elif q.ndim == 4 and q.shape[:2] == p.shape[:2]:
-                p.copy_(F.interpolate(q, size=p.shape[-2:], mode="bilinear", align_corners=True))
-            else:
-                raise ValueError(f"field parameter {name}: {tuple(q.shape)} cannot become {tuple(p.shape)}")
 
 
 def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int, ...], single,
