@@ -22,25 +22,22 @@ from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, Vid
 
 DEFAULT_MAX_FRAMES = 100_000
 MEMORY_FRACTION = 0.8  # of the machine's memory: the default --max-memory
-# Peak memory of a whole `rngcam recon` run per video element (C x K x H x W), measured with
-# /usr/bin/time on a 32x32x3 simulated bundle stretched to 6,531 frames (truth and metrics
-# included; 257 MB of interpreter and libraries subtracted), plus about 10 %: tv3d 137, blend and
-# interp 140 bytes. STFM fast (the ensemble) also costs per frame whatever the frame's size, so its
-# figure is fitted to two runs: 412 bytes an element at 32x32x3x6,531 and 5.8 GB peak at
-# 228x342x3x231 (300 s budget) give 98 bytes an element plus 0.92 MB a frame; with about 10 %:
-# 110 bytes and 1.0 MB. RIFE and pnp were not measured: RIFE as interp plus its model's
-# activations, pnp as STFM.
-BYTES_PER_ELEMENT = {"tv3d": 150, "stfm": 110, "pnp": 110, "blend": 155, "interp": 155, "rife": 170}
-BYTES_PER_FRAME = {"stfm": 1_000_000, "pnp": 1_000_000}
 BASE_BYTES = 300 * 2**20  # the interpreter, torch and OpenCV
-# STFM on grids of COARSE_TO_FINE_MIN_SIDE px and more runs coarse to fine (rngcam.recon.stfm.multilevel):
-# the ensemble and RIFE run only on the coarsest level (48-95 px on the short side), the full grid
-# holds one fit. Its peak is then the larger of the coarsest level's (about 1.0 GB: 1.20 GiB measured
-# for the whole run at 114x171x117) and 79 bytes an element (4.25 GiB for the whole run at
-# 228x342x231, /usr/bin/time), with about 10 %: 87 bytes.
-COARSE_TO_FINE_MIN_SIDE = 96  # rngcam.recon.multiscale.default_factors: two levels from here
-STFM_COARSE_TO_FINE_BYTES_PER_ELEMENT = 87
-STFM_COARSE_LEVEL_BYTES = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class MemoryModel:
+    """A method's peak memory for a whole `rngcam recon` run (truth and metrics included), fitted to
+    measured runs (each method's figures and their sources sit beside its registry entry):
+    `bytes_per_element` per video element (C x K x H x W) plus `bytes_per_frame` per frame; on grids
+    of `coarse_to_fine_min_side` px and more (0: never), the larger of `coarse_level_bytes` and
+    `coarse_to_fine_bytes_per_element` per element instead."""
+
+    bytes_per_element: float
+    bytes_per_frame: float = 0.0
+    coarse_to_fine_min_side: int = 0
+    coarse_to_fine_bytes_per_element: float = 0.0
+    coarse_level_bytes: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -117,12 +114,13 @@ def plan_grid(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = 
                     height=rows, width=cols, gs_kept=kept, gs_left_out=left_out)
 
 
-def method_bytes(plan: GridPlan, method: str) -> int:
-    """Estimated peak memory of reconstructing the plan's video with `method` (see BYTES_PER_ELEMENT)."""
-    if method == "stfm" and min(plan.height, plan.width) >= COARSE_TO_FINE_MIN_SIDE:
-        return BASE_BYTES + max(STFM_COARSE_LEVEL_BYTES, plan.elements * STFM_COARSE_TO_FINE_BYTES_PER_ELEMENT)
-    per = BYTES_PER_ELEMENT.get(method, max(BYTES_PER_ELEMENT.values()))
-    return BASE_BYTES + plan.elements * per + plan.grid.n_frames * BYTES_PER_FRAME.get(method, 0)
+def method_bytes(plan: GridPlan, memory: MemoryModel) -> int:
+    """Estimated peak memory of reconstructing the plan's video with a method of `memory`."""
+    if memory.coarse_to_fine_min_side and min(plan.height, plan.width) >= memory.coarse_to_fine_min_side:
+        per_run = max(memory.coarse_level_bytes, plan.elements * memory.coarse_to_fine_bytes_per_element)
+    else:
+        per_run = plan.elements * memory.bytes_per_element + plan.grid.n_frames * memory.bytes_per_frame
+    return int(BASE_BYTES + per_run)
 
 
 def default_max_memory_bytes() -> int:
@@ -144,12 +142,13 @@ def check_frames(plan: GridPlan, max_frames: int | None = None) -> None:
                           "check the bundle's timing, or raise --max-frames")
 
 
-def check_size(plan: GridPlan, method: str, max_frames: int | None = None,
+def check_size(plan: GridPlan, method: str, memory: MemoryModel, max_frames: int | None = None,
                max_memory_bytes: int | None = None) -> int:
-    """Estimated bytes; ConfigError (one line naming the figure and how to change it) past a limit."""
+    """Estimated bytes for `method` (named in the error) of `memory`; ConfigError (one line naming
+    the figure and how to change it) past a limit."""
     check_frames(plan, max_frames)
     max_memory_bytes = default_max_memory_bytes() if max_memory_bytes is None else max_memory_bytes
-    need = method_bytes(plan, method)
+    need = method_bytes(plan, memory)
     if need > max_memory_bytes:
         raise ConfigError(f"{method} would need about {gib(need)} for {plan.describe()}, above "
                           f"--max-memory {gib(max_memory_bytes)}: use a coarser --bin, or raise "

@@ -239,13 +239,16 @@ def _scatter(x, frames, shape):
 def test_stfm_memory_estimate_follows_coarse_to_fine():
     from types import SimpleNamespace
 
-    from rngcam.sizing import BYTES_PER_ELEMENT, method_bytes
+    from rngcam.recon.registry import STFM_MEMORY, get
+    from rngcam.sizing import method_bytes
+
+    assert get("stfm").memory == STFM_MEMORY
 
     def plan(h, w, k):
         return SimpleNamespace(height=h, width=w, elements=3 * k * h * w, grid=SimpleNamespace(n_frames=k))
 
-    paper = method_bytes(plan(228, 342, 231), "stfm") / 2**30
+    paper = method_bytes(plan(228, 342, 231), STFM_MEMORY) / 2**30
     assert 4.0 < paper < 5.0  # measured 4.25 GiB for the whole run (bench/scale.md)
-    assert 1.0 < method_bytes(plan(114, 171, 117), "stfm") / 2**30 < 1.5  # measured 1.20 GiB
+    assert 1.0 < method_bytes(plan(114, 171, 117), STFM_MEMORY) / 2**30 < 1.5  # measured 1.20 GiB
     small = plan(64, 64, 67)  # one level: the ensemble's figure, per element and per frame
-    assert method_bytes(small, "stfm") > BYTES_PER_ELEMENT["stfm"] * small.elements
+    assert method_bytes(small, STFM_MEMORY) > STFM_MEMORY.bytes_per_element * small.elements

@@ -8,16 +8,8 @@ import click
 
 from rngcam.errors import ConfigError, RngcamError
 from rngcam.formats.bundle import WARNING_PREFIX, inspect_bundle, open_bundle, render_summary
-from rngcam.sizing import (
-    BYTES_PER_ELEMENT,
-    DEFAULT_MAX_FRAMES,
-    check_size,
-    default_max_memory_bytes,
-    method_bytes,
-    plan_grid,
-)
-
-SIZED_METHODS = ("stfm", "tv3d", "interp")  # the default method first
+from rngcam.recon import registry
+from rngcam.sizing import DEFAULT_MAX_FRAMES, check_size, default_max_memory_bytes, method_bytes, plan_grid
 
 
 def recon_size(bundle_path: str) -> tuple[dict, list[str]]:
@@ -31,12 +23,12 @@ def recon_size(bundle_path: str) -> tuple[dict, list[str]]:
     limit = default_max_memory_bytes()
     info = {"bin": plan.rs.rows_per_bin, "frames": plan.grid.n_frames, "height": plan.height,
             "width": plan.width, "channels": plan.channels, "fps": 1 / plan.grid.dt_s,
-            "memory_bytes": {m: method_bytes(plan, m) for m in SIZED_METHODS if m in BYTES_PER_ELEMENT},
+            "memory_bytes": {m: method_bytes(plan, registry.get(m).memory) for m in registry.names()},
             "max_memory_bytes": limit, "max_frames": DEFAULT_MAX_FRAMES,
             "gs_left_out": [{"frame": i + 1, "reason": why} for i, why in plan.gs_left_out]}
-    for method in SIZED_METHODS:  # the first refusal names the figure and how to change it
+    for method in registry.names():  # the default first; the first refusal names the figure and its fix
         try:
-            check_size(plan, method)
+            check_size(plan, method, registry.get(method).memory)
         except ConfigError as exc:
             return info, [f"{WARNING_PREFIX}recon --method {method} would refuse this bundle at bin "
                           f"{info['bin']}: {exc}"]

@@ -25,6 +25,7 @@ from rngcam.recon.pnp import PnPSettings
 from rngcam.recon.stfm.settings import PRESETS as STFM_PRESETS
 from rngcam.recon.stfm.settings import STFMSettings, preset_settings
 from rngcam.recon.tv3d import TV3DSettings
+from rngcam.sizing import MemoryModel
 
 ITERATIVE = "iterative"  # fitted by rngcam.recon.loop to the RS (and GS) measurements
 GS_ONLY = "gs-only"  # one shot from the GS key frames alone
@@ -50,7 +51,8 @@ class MethodEntry:
 
     `presets` maps preset names to settings instances, the default first (none: one unnamed
     preset, the dataclass's defaults). `auto_budget_s` is the `--time-budget auto` figure at 64 px.
-    `benchmarked`: the presets `rngcam bench` compares (empty: the default one)."""
+    `benchmarked`: the presets `rngcam bench` compares (empty: the default one). `memory`: the
+    figures `rngcam.sizing` estimates its peak memory from."""
 
     name: str
     kind: str
@@ -60,6 +62,9 @@ class MethodEntry:
     auto_budget_s: float = 60.0
     benchmarked: tuple[str, ...] = ()
     unavailable: Callable[[], str] | None = None  # why it cannot run here ('' when it can)
+    # Peak memory of a whole run (rngcam.sizing), checked before anything is allocated; the default
+    # is the most a measured method needs per element.
+    memory: MemoryModel = MemoryModel(bytes_per_element=170)
 
     def __post_init__(self):
         if self.kind not in (ITERATIVE, GS_ONLY):
@@ -214,14 +219,31 @@ def _rife_unavailable() -> str:
     return ""
 
 
+# Peak memory per video element (C x K x H x W) of a whole `rngcam recon` run, measured with
+# /usr/bin/time on a 32x32x3 simulated bundle stretched to 6,531 frames (truth and metrics included;
+# 257 MB of interpreter and libraries subtracted), plus about 10 %: tv3d 137, blend and interp 140
+# bytes. STFM fast (the ensemble) also costs per frame whatever the frame's size, so its figure is
+# fitted to two runs: 412 bytes an element at 32x32x3x6,531 and 5.8 GB peak at 228x342x3x231 give 98
+# bytes an element plus 0.92 MB a frame; with about 10 %: 110 bytes and 1.0 MB. On grids of 96 px
+# and more STFM runs coarse to fine (rngcam.recon.stfm.multilevel): the ensemble and RIFE run only on
+# the coarsest level (about 1.0 GB: 1.20 GiB measured for the whole run at 114x171x117), the full
+# grid holds one fit at 79 bytes an element (4.25 GiB for the whole run at 228x342x231), with about
+# 10 %: 87 bytes. RIFE and pnp were not measured: RIFE as interp plus its model's activations, pnp
+# as STFM's single-level figure (bench/scale.md).
+STFM_MEMORY = MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000, coarse_to_fine_min_side=96,
+                          coarse_to_fine_bytes_per_element=87, coarse_level_bytes=1_000_000_000)
+
 # The default method first. STFM's fast preset stops by itself (after 1-3 min at 64 px on one CPU
 # thread), so its auto budget only guards against a fit that never settles.
 register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=600.0,
                      presets={p: preset_settings(p) for p in ("fast", *(p for p in STFM_PRESETS if p != "fast"))},
-                     benchmarked=("fast", "paper")))
+                     benchmarked=("fast", "paper"), memory=STFM_MEMORY))
 register(MethodEntry("tv3d", ITERATIVE, TV3DSettings, _make_tv3d,
-                     presets={"haar": TV3DSettings(prox="haar"), "exact": TV3DSettings(prox="exact")}))
-register(MethodEntry("pnp", ITERATIVE, PnPSettings, _make_pnp, auto_budget_s=300.0))
-register(MethodEntry("blend", GS_ONLY, BlendSettings, _blend))
-register(MethodEntry("interp", GS_ONLY, InterpSettings, _interp))
-register(MethodEntry("rife", GS_ONLY, RifeSettings, _rife, unavailable=_rife_unavailable))
+                     presets={"haar": TV3DSettings(prox="haar"), "exact": TV3DSettings(prox="exact")},
+                     memory=MemoryModel(bytes_per_element=150)))
+register(MethodEntry("pnp", ITERATIVE, PnPSettings, _make_pnp, auto_budget_s=300.0,
+                     memory=MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000)))
+register(MethodEntry("blend", GS_ONLY, BlendSettings, _blend, memory=MemoryModel(bytes_per_element=155)))
+register(MethodEntry("interp", GS_ONLY, InterpSettings, _interp, memory=MemoryModel(bytes_per_element=155)))
+register(MethodEntry("rife", GS_ONLY, RifeSettings, _rife, unavailable=_rife_unavailable,
+                     memory=MemoryModel(bytes_per_element=170)))

@@ -203,7 +203,7 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
         echo(warning)
     stage(f"read {bundle_path.name}")
     plan = plan_grid(bundle, settings.grid_bin)
-    need = check_size(plan, settings.method, max_frames=settings.max_frames,
+    need = check_size(plan, settings.method, registry.get(settings.method).memory, max_frames=settings.max_frames,
                       max_memory_bytes=settings.max_memory_bytes)
     device = resolve_device(settings.device)
     problem = build_problem(bundle, grid_bin=settings.grid_bin, max_frames=settings.max_frames)
