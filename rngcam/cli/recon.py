@@ -63,8 +63,9 @@ def _method_options(method: str, given: dict) -> dict:
 @click.option("--resume", is_flag=True, help="Continue from the checkpoint in the output folder.")
 @click.option("--device", default="auto", show_default=True, help="auto, cpu or cuda[:N].")
 @click.option("--bin", "grid_bin", type=click.IntRange(min=1), default=None, help="Sensor pixels per grid pixel.")
-@click.option("--preset", type=click.Choice(["fast", "paper", "prior"]), default=None,
-              help="STFM preset [fast]; prior: one canonical dynamic image moved by the motion field.")
+@click.option("--preset", type=click.Choice(["fast", "paper", "prior", "auto"]), default=None,
+              help="STFM preset [fast]; prior: one canonical dynamic image moved by the motion field; auto: "
+                   "prior where one translating layer explains the key frames, else fast (notes say why).")
 @click.option("--beta", type=float, default=None, help="Temporal weight of the TV term.")
 @click.option("--tau", type=float, default=None, help="TV weight.")
 @click.option("--psi", type=float, default=None, help="RS data weight relative to GS.")

@@ -172,6 +172,8 @@ class STFMEnsemble:
         out["member_steps"] = [m.steps for m in self.members]
         out["refine"] = self.use_refine
         out["refine_steps"] = None if self.refined is None else self.refined.steps
+        if getattr(self, "preset_choice", None) is not None:
+            out["preset_choice"] = self.preset_choice
         return out
 
 
@@ -182,8 +184,23 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
 
     `initial_video` (C, K, H, W), on the RS scale without GS gains (e.g. a coarser level's
     estimate, upsampled): one fit whose dynamic base is that video (dynamic_base "video"), so the
-    fit starts from it instead of from a GS-only interpolation."""
+    fit starts from it instead of from a GS-only interpolation.
+
+    Preset "auto" is resolved here (rngcam.recon.stfm.auto.choose_preset); the method's `notes`
+    and `preset_choice` (in its resolved settings) say which preset it chose and why."""
     settings = settings or STFMSettings()
+    if settings.preset != "auto":
+        return _make_stfm(problem, settings, device, initial_video)
+    from rngcam.recon.stfm.auto import choose_preset
+
+    choice = choose_preset(problem)
+    method = _make_stfm(problem, replace(settings, preset=choice.preset), device, initial_video)
+    method.notes = [*getattr(method, "notes", []), f"preset auto chose {choice.preset}: {choice.reason}"]
+    method.preset_choice = choice.as_dict()
+    return method
+
+
+def _make_stfm(problem, settings: STFMSettings, device, initial_video: Tensor | None) -> STFM | STFMEnsemble:
     if initial_video is not None:
         if tuple(initial_video.shape) != tuple(problem.shape):
             raise ConfigError(f"initial_video has shape {tuple(initial_video.shape)}, the problem's video "

@@ -255,5 +255,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop):
         out["rs_noise_level"] = self.rs_noise_level
         out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}
         out["left_out"] = [list(x) for x in self.left_out]
+        if getattr(self, "preset_choice", None) is not None:  # preset "auto" (make_stfm): what it chose and why
+            out["preset_choice"] = self.preset_choice
         return out
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 from rngcam.errors import ConfigError
 
-PRESETS = ("paper", "fast", "prior")
+PRESETS = ("paper", "fast", "prior", "auto")  # auto: prior or fast per scene (rngcam.recon.stfm.auto)
 INIT_STEPS = 100
 NOISE_CHECK_STEPS = 20  # steps between discrepancy-principle checks (one full RS forward each)
 STALL_PASSES = 15  # the stall test compares the RS residual with its value this many passes over the rows ago
@@ -90,6 +90,8 @@ DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slow
 
 def _preset(name: str, h: int, w: int, k: int) -> dict:
     """Field configurations and schedule of a preset for an H x W x K video."""
+    if name == "auto":
+        raise ConfigError("preset 'auto' chooses another preset: build the method with make_stfm")
     side = max(h, w)
     if name == "paper":
         siren = {"w0": 30.0, "n_freqs": 6}
