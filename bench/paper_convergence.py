@@ -4,7 +4,7 @@
         --until 2026-11-23T17:15 --work /tmp/rngcam-paper
     .venv/bin/python bench/paper_convergence.py report --work /tmp/rngcam-paper --out bench/paper_convergence.md
     flock /tmp/rngcam-bench.lock .venv/bin/python bench/paper_convergence.py timing --work /tmp/rngcam-paper \
-        --scenes sineball,smoke --fast 'sineball=prior,smoke=fast'
+        --scenes sineball,smoke --fast 'sineball=auto,smoke=auto'
 
 `run` fits the paper preset (SIREN fields as published, Adam 5e-6, fixed iterations: no stop
 test) on each scene in turn, one torch thread. Fit time is the process's CPU time in the steps
@@ -238,7 +238,7 @@ def main() -> None:
     t = sub.add_parser("timing")
     t.add_argument("--work", type=Path, required=True)
     t.add_argument("--scenes", default="sineball,smoke")
-    t.add_argument("--fast", default="sineball=prior,smoke=fast", help="scene=preset pairs for the fast path")
+    t.add_argument("--fast", default="sineball=auto,smoke=auto", help="scene=preset pairs for the fast path")
     t.add_argument("--steps", type=int, default=100, help="paper-preset steps timed")
     t.add_argument("--max-cpu", type=float, default=300.0, help="CPU seconds the fast path may take")
     args = ap.parse_args()
