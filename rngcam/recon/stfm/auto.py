@@ -30,7 +30,7 @@ from torch import Tensor
 from rngcam.recon.stfm.motion_search import candidate_shifts, key_frame_layer, shifted_frames
 
 LAYER_MISFIT_MAX = 0.5  # mean misfit: sineball 0.29 (64 px), 0.39 (32 px); smoke 0.68, 0.60; real clips 0.72-1.0
-SHIFT_CHUNK = 256  # candidate shifts composited at once
+CHUNK_ELEMENTS = 8_000_000  # composited values held at once (32 MB of float32 per temporary)
 
 
 @dataclass
@@ -55,6 +55,7 @@ def layer_misfits(keys: Tensor, mask: Tensor | None = None) -> list[float]:
     background, layer, obj = key_frame_layer(keys, middle)
     shifts, _, _ = candidate_shifts(h, w, keys.device)
     weight = torch.ones(h, w, device=keys.device) if mask is None else mask.to(keys.device, torch.float32)
+    chunk = max(1, CHUNK_ELEMENTS // (c * h * w))
     out = []
     for i in range(g):
         if i == middle:
@@ -62,8 +63,8 @@ def layer_misfits(keys: Tensor, mask: Tensor | None = None) -> list[float]:
         target = keys[:, i]
         moved = float(((background - target) * weight).square().sum())
         best = float("inf")
-        for j in range(0, len(shifts), SHIFT_CHUNK):
-            frames = shifted_frames(background, layer, obj, shifts[j:j + SHIFT_CHUNK])
+        for j in range(0, len(shifts), chunk):
+            frames = shifted_frames(background, layer, obj, shifts[j:j + chunk])
             best = min(best, float(((frames - target[None]) * weight).square().sum((1, 2, 3)).min()))
         out.append(best / moved if moved > 0 else float("inf"))
     return out
