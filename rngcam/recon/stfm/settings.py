@@ -83,7 +83,7 @@ KEY_WARPS = ("keys", "keys_rife", "keys_interp")  # "keys": RIFE's flows when in
 ALL_BASES = (*BASE_VIDEOS, *KEY_WARPS, "blend", "none")
 # dynamic_base="ensemble": one fit on each of these bases, averaged (STFMEnsemble). Their errors
 # in what the RS image cannot see differ, so the average is closer to the truth than any one of them.
-ENSEMBLE_BASES = "video,keys,keys_interp"
+ENSEMBLE_BASES = "video,keys"  # with keys_interp (DIS flows) too: clips 0.35-0.66 dB lower (bench/stfm_motion.md)
 REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
 DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
 
