@@ -3,6 +3,8 @@
     nice -n 19 .venv/bin/python bench/paper_convergence.py run --scenes sineball,smoke --size 32 \
         --until 2026-11-23T17:15 --work /tmp/rngcam-paper
     .venv/bin/python bench/paper_convergence.py report --work /tmp/rngcam-paper --out bench/paper_convergence.md
+    flock /tmp/rngcam-bench.lock .venv/bin/python bench/paper_convergence.py timing --work /tmp/rngcam-paper \
+        --scenes sineball,smoke --fast 'sineball=auto,smoke=auto'
 
 `run` fits the paper preset (SIREN fields as published, Adam 5e-6, fixed iterations: no stop
 test) on each scene in turn, one torch thread. Fit time is the process's CPU time in the steps
@@ -14,6 +16,9 @@ and saves the estimate (float16 .npy), so the curve can be recomputed with other
 later run resumes where this one stopped. The scenes share the time up to `--until` equally
 (a scene already further along gets what it has left). `report` turns the logs into a table and
 says whether each curve has plateaued (dynamic PSNR up by less than 0.1 dB over its last third).
+`timing` (under the bench lock: it measures time) measures the paper preset's CPU seconds per step
+on the same problem, and the CPU time (set-up included, evaluations excluded) a fast preset takes
+to reach the paper preset's best logged dynamic PSNR: the fast-against-paper time ratio.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import argparse
 import datetime as dt
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -159,6 +165,66 @@ def _spread(rows: list[dict], n: int) -> list[dict]:
     return picks
 
 
+def paper_step_cpu_s(problem, steps: int) -> float:
+    """CPU seconds per step of the paper preset on `problem` (fresh fields: a step's cost does
+    not depend on the weights)."""
+    stfm = registry.get("stfm")
+    method = stfm.factory(problem, stfm.settings("paper"))
+    method.step()  # warm-up (first-call allocations)
+    c0 = time.process_time()
+    for _ in range(steps):
+        method.step()
+    return (time.process_time() - c0) / steps
+
+
+def fast_cpu_to_reach(problem, preset: str, target_db: float, max_cpu_s: float, every: int = 10) -> dict:
+    """CPU seconds (set-up included, evaluations excluded) until `preset`'s dynamic PSNR reaches
+    target_db (checked every `every` steps), or the best it reached within max_cpu_s."""
+    c0 = time.process_time()
+    stfm = registry.get("stfm")
+    method = stfm.factory(problem, stfm.settings(preset))
+    cpu = time.process_time() - c0
+    best, steps = -math.inf, 0
+    while True:
+        score = evaluate(method, problem)["psnr_dynamic_db"]
+        best = max(best, score)
+        if score >= target_db or cpu >= max_cpu_s or method.converged():
+            return {"preset": preset, "reached": score >= target_db, "cpu_s": cpu, "steps": steps,
+                    "psnr_dynamic_db": score, "best_db": best}
+        c0 = time.process_time()
+        for _ in range(every):
+            method.step()
+        cpu += time.process_time() - c0
+        steps += every
+
+
+def timing(work: Path, scenes: list[str], fast: dict[str, str], steps: int, max_cpu_s: float) -> str:
+    lines = [f"load average at start: {os.getloadavg()[0]:.2f}"]
+    for scene in scenes:
+        rows = read_log(work / scene)
+        if not rows:
+            lines.append(f"{scene}: no paper-preset log in {work / scene}")
+            continue
+        meta = json.loads((work / scene / "meta.json").read_text())
+        problem, _ = simulated_problem(scene, meta["size"])
+        problem._bench_scene = scene
+        best = max(rows, key=lambda r: r["psnr_dynamic_db"])
+        per_step = paper_step_cpu_s(problem, steps)
+        paper_cpu = best["step"] * per_step
+        state, gain = plateau(rows)
+        got = fast_cpu_to_reach(problem, fast.get(scene, "fast"), best["psnr_dynamic_db"], max_cpu_s)
+        verdict = (f"reached it after {got['cpu_s']:.1f} CPU s ({got['steps']} steps): ratio "
+                   f"{got['cpu_s'] / paper_cpu:.4f}" if got["reached"] else
+                   f"did not reach it within {got['cpu_s']:.0f} CPU s (best {got['best_db']:.2f} dB)")
+        lines.append(f"{scene} {meta['size']} px: paper preset {per_step:.3f} CPU s/step ({steps} steps timed); "
+                     f"its best dynamic PSNR {best['psnr_dynamic_db']:.2f} dB at step {best['step']} = "
+                     f"{paper_cpu:.0f} CPU s ({state}, {gain:+.2f} dB over the last third); "
+                     f"preset {got['preset']} {verdict}")
+        print(lines[-1], flush=True)
+    lines.append(f"load average at end: {os.getloadavg()[0]:.2f}")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -172,7 +238,18 @@ def main() -> None:
     s = sub.add_parser("report")
     s.add_argument("--work", type=Path, required=True)
     s.add_argument("--out", type=Path)
+    t = sub.add_parser("timing")
+    t.add_argument("--work", type=Path, required=True)
+    t.add_argument("--scenes", default="sineball,smoke")
+    t.add_argument("--fast", default="sineball=auto,smoke=auto", help="scene=preset pairs for the fast path")
+    t.add_argument("--steps", type=int, default=100, help="paper-preset steps timed")
+    t.add_argument("--max-cpu", type=float, default=300.0, help="CPU seconds the fast path may take")
     args = ap.parse_args()
+    if args.cmd == "timing":
+        torch.set_num_threads(1)
+        fast = dict(item.split("=") for item in args.fast.split(",") if item)
+        print(timing(args.work, args.scenes.split(","), fast, args.steps, args.max_cpu))
+        return
     if args.cmd == "report":
         print(report(args.work, args.out))
         return

@@ -180,7 +180,7 @@ def test_cli_sweep_without_ray_and_clear_errors(bundle, tmp_path):
 
 
 def test_stfm_trials_run_through_the_same_code(bundle, tmp_path):
-    # 9 iterations: three steps of each of the default ensemble's three fits (the motion TV has no gradient
+    # 9 iterations: four or five steps of each of the default ensemble's two fits (the motion TV has no gradient
     # at the zero motion of the first step)
     settings = SweepSettings(method="stfm", grid={"beta": [10.0, 100.0]}, max_iters=9, holdout=0.2, folds=1,
                              refit=False)

@@ -37,6 +37,8 @@ def _default_text(entry: registry.MethodEntry, f: dataclasses.Field) -> str:
     if f.metadata.get("shown_default"):
         return f.metadata["shown_default"]
     values = {p: getattr(s, f.name) for p, s in entry.presets.items()}
+    # a preset that chooses another per scene (stfm's auto) leaves these unset: show the others
+    values = {p: v for p, v in values.items() if v is not None} or values
     if len(set(map(repr, values.values()))) == 1 or not entry.named_presets:
         return _shown(next(iter(values.values())))
     return ", ".join(f"{p} {_shown(v)}" for p, v in values.items())

@@ -176,6 +176,10 @@ class STFMEnsemble(MethodBase):
         out["refine_steps"] = None if self.refined is None else self.refined.steps
         return out
 
+    @property
+    def notes(self) -> list[str]:
+        return self.members[0].notes
+
 
 def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
               initial_video: Tensor | None = None, budget_s: float | None = None, stage=None):
@@ -186,8 +190,22 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
     estimate, upsampled): one fit whose dynamic base is that video (dynamic_base "video"), so the
     fit starts from it instead of from a GS-only interpolation.
     On grids of 96 px and more (`coarse_to_fine`), a coarse-to-fine run of these
-    (rngcam.recon.stfm.multilevel); `budget_s` and `stage(message)` as in make_tv3d."""
+    (rngcam.recon.stfm.multilevel); `budget_s` and `stage(message)` as in make_tv3d.
+
+    Preset "auto" is resolved here, on the whole problem (rngcam.recon.stfm.auto.choose_preset);
+    the method's `notes` and `preset_choice` (in its resolved settings) say which preset it chose
+    and why."""
     settings = settings or STFMSettings()
+    if settings.preset != "auto":
+        return _make_stfm(problem, settings, device, initial_video, budget_s, stage)
+    from rngcam.recon.stfm.auto import choose_preset
+
+    choice = choose_preset(problem)
+    settings = replace(settings, preset=choice.preset, preset_choice=choice.as_dict())
+    return _make_stfm(problem, settings, device, initial_video, budget_s, stage)
+
+
+def _make_stfm(problem, settings: STFMSettings, device, initial_video: Tensor | None, budget_s=None, stage=None):
     if initial_video is None:
         from rngcam.recon.stfm.multilevel import make_multilevel, stfm_levels
 

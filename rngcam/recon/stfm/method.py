@@ -41,6 +41,8 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         `fields_from`: an STFM of the same model on a coarser grid whose fields (planes resampled)
         and gains this one starts from instead of initialising from the GS frames (coarse to fine)."""
         self.settings = settings
+        choice = settings.preset_choice  # preset "auto" (make_stfm): what it chose and why
+        self.notes = [f"preset auto chose {choice['preset']}: {choice['reason']}"] if choice else []
         self._static_from = static_from
         self._given_base = base_video
         self.device = torch.device(device)

@@ -26,6 +26,15 @@ SEARCH_SMOOTH = 1e-3  # L1 penalty per pixel of shift change between frames (nor
 SEARCH_POINTS = 64  # about this many candidate positions per axis (step 1 px up to ~107 px images)
 
 
+def key_frame_layer(keys: Tensor, index: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The key frames' median (C, H, W), key frame `index` as the dynamic layer (C, H, W), and
+    that layer's object mask (H, W): 1 where it differs from the median by 10 % of its mean."""
+    background = keys.median(dim=1).values
+    layer = keys[:, index]
+    change = (layer - background).abs().mean(0)
+    return background, layer, (change / (0.1 * float(background.mean()) + 1e-6)).clamp(0, 1)
+
+
 def shifted_frames(background: Tensor, layer: Tensor, obj: Tensor, shifts: Tensor) -> Tensor:
     """(n, C, H, W): the layer and its object mask moved by each shift (n, 2) px (dx, dy) over the
     background (C, H, W)."""

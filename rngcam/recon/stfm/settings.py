@@ -8,7 +8,7 @@ from dataclasses import dataclass, field, fields, replace
 from rngcam.errors import ConfigError
 from rngcam.recon.options import setting
 
-PRESETS = ("paper", "fast", "prior")
+PRESETS = ("paper", "fast", "prior", "auto")  # auto: prior or fast per scene (rngcam.recon.stfm.auto)
 INIT_STEPS = 100
 NOISE_CHECK_STEPS = 20  # steps between discrepancy-principle checks (one full RS forward each)
 STALL_PASSES = 15  # the stall test compares the RS residual with its value this many passes over the rows ago
@@ -56,6 +56,7 @@ class STFMSettings:
     refine: bool | None = None  # ensemble: one more fit on the members' average once they have stopped
     motion_init: str | None = None  # 2-D dynamic field: "flow" (key-frame optical flow) or "search" (motion_search)
     coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.stfm.multilevel)
+    preset_choice: dict | None = None  # preset auto: what it chose and why (set by make_stfm, not by users)
 
     def __post_init__(self):
         if self.preset not in PRESETS:
@@ -95,13 +96,15 @@ KEY_WARPS = ("keys", "keys_rife", "keys_interp")  # "keys": RIFE's flows when in
 ALL_BASES = (*BASE_VIDEOS, *KEY_WARPS, "blend", "none")
 # dynamic_base="ensemble": one fit on each of these bases, averaged (STFMEnsemble). Their errors
 # in what the RS image cannot see differ, so the average is closer to the truth than any one of them.
-ENSEMBLE_BASES = "video,keys,keys_interp"
+ENSEMBLE_BASES = "video,keys"  # with keys_interp (DIS flows) too: clips 0.35-0.66 dB lower (bench/stfm_motion.md)
 REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
 DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
 
 
 def _preset(name: str, h: int, w: int, k: int) -> dict:
     """Field configurations and schedule of a preset for an H x W x K video."""
+    if name == "auto":
+        raise ConfigError("preset 'auto' chooses another preset: build the method with make_stfm")
     side = max(h, w)
     if name == "paper":
         siren = {"w0": 30.0, "n_freqs": 6}
@@ -186,7 +189,10 @@ def resolve(settings: STFMSettings, h: int, w: int, k: int) -> tuple[_Resolved, 
 
 def preset_settings(name: str) -> STFMSettings:
     """Preset `name` as settings: every value that does not depend on the problem's size filled in
-    (what the registry offers and `--help` shows); the others stay None (resolved per problem)."""
+    (what the registry offers and `--help` shows); the others stay None (resolved per problem).
+    "auto" fills nothing: make_stfm picks prior or fast per scene and fills from that one."""
+    if name == "auto":
+        return STFMSettings(preset="auto")
     values = _preset(name, 2, 2, 2)
     return replace(STFMSettings(preset=name), **{f.name: values[f.name] for f in fields(STFMSettings)
                                                   if f.name in values and f.name != "rows_per_step"})

@@ -1,0 +1,87 @@
+"""`preset="auto"`: the prior preset where one translating layer explains the key frames, else fast.
+
+The prior preset (one canonical dynamic image moved by a smooth motion field) recovers an object
+that moves, turns and comes back (sineball: ball centroid ~1 px), and collapses where the scene
+is not one moving layer (smoke that appears, a street clip: 3-8 dB under the GS-only baselines).
+The fast preset (a correction of GS-only interpolations) never falls far under those baselines
+but smears a moving object. Neither the RS residual nor held-out RS rows separate the two: both
+fit the RS image, held-out rows included, to about its noise (bench/stfm_motion.md).
+
+What does separate them is in the key frames, before any fit: the prior preset's start is the
+middle key frame's moving part (where it differs from the key frames' median) pasted over that
+median at a shift (rngcam.recon.stfm.motion_search). If some shift of it reproduces each other
+key frame, the scene is one layer that translates; if not (smoke grows, cars and walkers move
+differently, the camera pans), it is not. The test: for each other key frame g,
+
+    misfit_g = min over shifts d of ||F(d) - key_g||^2 / ||median - key_g||^2
+
+(F(d): the layer shifted by d over the median; the denominator is what moved in key frame g).
+The prior preset is chosen when their mean is below LAYER_MISFIT_MAX. It costs one
+composite per candidate shift and key frame (about a second at 64 px), no fit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from rngcam.recon.stfm.motion_search import candidate_shifts, key_frame_layer, shifted_frames
+
+LAYER_MISFIT_MAX = 0.5  # mean misfit: sineball 0.29 (64 px), 0.39 (32 px); smoke 0.68, 0.60; real clips 0.72-1.0
+CHUNK_ELEMENTS = 8_000_000  # composited values held at once (32 MB of float32 per temporary)
+
+
+@dataclass
+class PresetChoice:
+    """The preset `auto` resolved to, and why."""
+
+    preset: str
+    reason: str
+    misfits: list[float] = field(default_factory=list)  # per key frame other than the middle one
+
+    def as_dict(self) -> dict:
+        return {"preset": self.preset, "reason": self.reason, "layer_misfits": self.misfits,
+                "layer_misfit_max": LAYER_MISFIT_MAX}
+
+
+@torch.no_grad()
+def layer_misfits(keys: Tensor, mask: Tensor | None = None) -> list[float]:
+    """misfit_g (module docstring) of every key frame but the middle one; keys (C, G, H, W)."""
+    keys = keys.float()
+    c, g, h, w = keys.shape
+    middle = g // 2
+    background, layer, obj = key_frame_layer(keys, middle)
+    shifts, _, _ = candidate_shifts(h, w, keys.device)
+    weight = torch.ones(h, w, device=keys.device) if mask is None else mask.to(keys.device, torch.float32)
+    chunk = max(1, CHUNK_ELEMENTS // (c * h * w))
+    out = []
+    for i in range(g):
+        if i == middle:
+            continue
+        target = keys[:, i]
+        moved = float(((background - target) * weight).square().sum())
+        best = float("inf")
+        for j in range(0, len(shifts), chunk):
+            frames = shifted_frames(background, layer, obj, shifts[j:j + chunk])
+            best = min(best, float(((frames - target[None]) * weight).square().sum((1, 2, 3)).min()))
+        out.append(best / moved if moved > 0 else float("inf"))
+    return out
+
+
+def choose_preset(problem) -> PresetChoice:
+    """The preset for `problem` (see the module docstring); it looks at the GS key frames only
+    (held-out GS pixels filled from fitted ones, as every initialisation does)."""
+    if problem.b_gs is None or problem.b_gs.shape[1] < 2:
+        return PresetChoice("fast", "fewer than two GS key frames: no layer test")
+    keys = problem.gs_images(gains=True)
+    if not torch.isfinite(keys).all():
+        return PresetChoice("fast", "non-finite key frames: no layer test")
+    misfits = [round(m, 4) for m in layer_misfits(keys, problem.mask)]
+    mean = sum(misfits) / len(misfits)
+    if mean < LAYER_MISFIT_MAX:
+        return PresetChoice("prior", f"one translating layer explains the key frames (mean misfit {mean:.2f} "
+                                     f"< {LAYER_MISFIT_MAX}): the paper's prior", misfits)
+    return PresetChoice("fast", f"one translating layer does not explain the key frames (mean misfit "
+                                f"{mean:.2f} >= {LAYER_MISFIT_MAX}): the prior preset would collapse there", misfits)

@@ -1,0 +1,58 @@
+"""STFM preset "auto": the layer test on the key frames picks the prior preset for one translating
+object and the fast preset otherwise, and the method says which and why."""
+
+import numpy as np
+import pytest
+import torch
+from test_stfm import scene_problem
+
+from rngcam.errors import ConfigError
+from rngcam.recon.stfm import STFMSettings, make_stfm
+from rngcam.recon.stfm.auto import LAYER_MISFIT_MAX, choose_preset, layer_misfits
+from rngcam.recon.stfm.settings import _preset
+
+
+def key_frames(kind: str, size: int = 24) -> torch.Tensor:
+    """(1, 3, size, size) key frames over a textured background: a square that translates, or a
+    disc that grows (something appears: no shift of the middle frame explains the others)."""
+    rng = np.random.default_rng(0)
+    keys = np.repeat(0.3 + 0.1 * rng.random((1, 1, size, size)), 3, axis=1)
+    yy, xx = np.mgrid[0:size, 0:size]
+    for g in range(3):
+        if kind == "translate":
+            x0 = 4 + 6 * g
+            keys[0, g, 8:14, x0:x0 + 6] = 0.9
+        else:
+            keys[0, g][(yy - size / 2) ** 2 + (xx - size / 2) ** 2 < (2 + 3 * g) ** 2] = 0.9
+    return torch.from_numpy(keys).float()
+
+
+def test_a_translating_square_is_one_layer_and_a_growing_disc_is_not():
+    moving = layer_misfits(key_frames("translate"))
+    growing = layer_misfits(key_frames("grow"))
+    assert max(moving) < 0.05  # a shift of the middle frame reproduces both other key frames
+    assert min(growing) > LAYER_MISFIT_MAX
+
+
+@pytest.mark.parametrize("scene, preset", [("sineball", "prior"), ("smoke", "fast")])
+def test_auto_picks_prior_for_the_ball_and_fast_for_smoke(scene, preset):
+    choice = choose_preset(scene_problem(scene, 32))
+    assert choice.preset == preset
+    assert len(choice.misfits) == 2
+    assert ("explains" in choice.reason) == (preset == "prior")
+
+
+def test_make_stfm_auto_says_what_it_chose_and_why():
+    problem = scene_problem("sineball", 16)
+    method = make_stfm(problem, STFMSettings(preset="auto", components="all"))
+    chosen = method.resolved_settings()["preset_choice"]
+    assert chosen["preset"] == method.resolved_settings()["preset"]
+    assert any(note.startswith(f"preset auto chose {chosen['preset']}") for note in method.notes)
+    assert np.isfinite(float(method.step()))
+
+
+def test_without_two_key_frames_auto_is_fast_and_the_raw_preset_is_refused():
+    problem = scene_problem("sineball", 16, with_gs=False)
+    assert choose_preset(problem).preset == "fast"
+    with pytest.raises(ConfigError):
+        _preset("auto", 16, 16, 16)
