@@ -46,7 +46,7 @@ class STFMSettings:
     dynamic_base: str | None = setting(
         None, "the GS-only start the dynamic field corrects: video (rife, else interp), rife, interp, keys "
               "(key frames warped by RIFE's flows, else DIS's), keys_rife, keys_interp, blend or none; a "
-              "comma-separated list averages one fit per base; ensemble = video,keys,keys_interp", cli="base")
+              "comma-separated list averages one fit per base; ensemble = video,keys", cli="base")
     time_smoothness: float | None = None  # weight of the time planes' roughness (plane fields)
     stop_at_noise: bool | None = setting(None, "stop once the RS residual reaches the noise level estimated "
                                                "from the RS image, or falls by less than stall_drop over 15 passes "
