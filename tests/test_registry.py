@@ -201,6 +201,7 @@ def test_every_iterative_method_implements_the_whole_protocol(name):
     assert isinstance(method, MethodBase) and method.name == name
     assert np.isfinite(method.step()) and tuple(method.estimate().shape) == tuple(problem.shape)
     assert isinstance(method.supports_holdout, bool) and isinstance(method.stops_itself, bool)
+    assert method.supports_holdout == entry.fits_holdout  # the entry says what its methods do
     assert all(len(item) == 2 for item in method.left_out) and all(isinstance(n, str) for n in method.notes)
     assert method.converged() is None or isinstance(method.converged(), str)
     assert isinstance(method.budget_cut(), str) and isinstance(method.components(), dict)

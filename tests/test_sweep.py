@@ -177,6 +177,8 @@ def test_cli_sweep_without_ray_and_clear_errors(bundle, tmp_path):
     r = CliRunner().invoke(main, ["sweep", str(bundle), "--method", "tv3d", "--beta", "1", "--holdout", "1.5",
                                   "--no-ray"])
     assert r.exit_code == 2 and r.output.startswith("error:") and "holdout" in r.output
+    r = CliRunner().invoke(main, ["sweep", str(bundle), "--method", "pnp", "--psi", "1,2", "--no-ray"])
+    assert r.exit_code == 2 and "--method pnp cannot leave held-out" in r.output and "stfm, tv3d" in r.output
 
 
 def test_stfm_trials_run_through_the_same_code(bundle, tmp_path):

@@ -60,6 +60,10 @@ def sweep_cmd(bundle, method, time_budget, iters, holdout, holdout_gs, holdout_s
     from rngcam.scale.sweep import SweepSettings, sweep
 
     given = pop_method_values(lists)
+    if not registry.get(method).fits_holdout:
+        raise click.UsageError(f"--method {method} cannot leave held-out measurements out of its fit, so a sweep "
+                               f"cannot score it; sweepable: "
+                               f"{', '.join(n for n in registry.names() if registry.get(n).fits_holdout)}")
     preset = given.pop("preset", None)
     sweepable = registry.get(method).sweepable()
     bad = sorted(set(given) - set(sweepable))

@@ -65,6 +65,7 @@ class MethodEntry:
     # Peak memory of a whole run (rngcam.sizing), checked before anything is allocated; the default
     # is the most a measured method needs per element.
     memory: MemoryModel = MemoryModel(bytes_per_element=170)
+    fits_holdout: bool = False  # fits only the training split (Method.supports_holdout): sweeps can score it
 
     def __post_init__(self):
         if self.kind not in (ITERATIVE, GS_ONLY):
@@ -237,10 +238,10 @@ STFM_MEMORY = MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000, coar
 # thread), so its auto budget only guards against a fit that never settles.
 register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=600.0,
                      presets={p: preset_settings(p) for p in ("fast", *(p for p in STFM_PRESETS if p != "fast"))},
-                     benchmarked=("fast", "paper"), memory=STFM_MEMORY))
+                     benchmarked=("fast", "paper"), memory=STFM_MEMORY, fits_holdout=True))
 register(MethodEntry("tv3d", ITERATIVE, TV3DSettings, _make_tv3d,
                      presets={"haar": TV3DSettings(prox="haar"), "exact": TV3DSettings(prox="exact")},
-                     memory=MemoryModel(bytes_per_element=150)))
+                     memory=MemoryModel(bytes_per_element=150), fits_holdout=True))
 register(MethodEntry("pnp", ITERATIVE, PnPSettings, _make_pnp, auto_budget_s=300.0,
                      memory=MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000)))
 register(MethodEntry("blend", GS_ONLY, BlendSettings, _blend, memory=MemoryModel(bytes_per_element=155)))
