@@ -116,3 +116,18 @@ def test_without_ray_everything_runs_in_process_and_says_so(monkeypatch):
     with pytest.raises(RngcamError, match="pip install 'rngcam\\[cluster\\]'"):
         backend.make_backend(address="auto", echo=said.append)
     assert isinstance(backend.make_backend(use_ray=False), SequentialBackend)
+
+
+def test_an_auto_budget_stays_auto_for_every_bundle(bundles, tmp_path):
+    a, b, _ = bundles
+    seen = []
+
+    def record(item, shared):
+        seen.append((item["settings"].budget_auto, item["settings"].time_budget_s))
+        return {"status": "ok"}
+
+    recon_batch([a, b], tmp_path / "auto", ReconSettings(method="tv3d", time_budget_s="auto"),
+                backend_factory=SequentialBackend, task_fn=record, echo=lambda s: None)
+    recon_batch([a], tmp_path / "fixed", ReconSettings(method="tv3d", time_budget_s=30.0),
+                backend_factory=SequentialBackend, task_fn=record, echo=lambda s: None)
+    assert seen == [(True, 60.0), (True, 60.0), (False, 30.0)]  # auto is rescaled per problem in reconstruct
