@@ -60,33 +60,33 @@ class STFMSettings:
 
     def __post_init__(self):
         if self.preset not in PRESETS:
-            raise ConfigError(f"unknown STFM preset {self.preset!r} (choose from {', '.join(PRESETS)})")
+            raise ConfigError(f"stfm: unknown preset {self.preset!r} (choose from {', '.join(PRESETS)})")
         if self.components not in ("auto", "all"):
-            raise ConfigError(f"components must be 'auto' or 'all', got {self.components!r}")
+            raise ConfigError(f"stfm: components must be 'auto' or 'all', got {self.components!r}")
         if self.gs_anchor not in ("soft", "hard"):
-            raise ConfigError(f"gs_anchor must be 'soft' or 'hard', got {self.gs_anchor!r}")
+            raise ConfigError(f"stfm: gs_anchor must be 'soft' or 'hard', got {self.gs_anchor!r}")
         if self.motion_init not in (None, "flow", "search"):
-            raise ConfigError(f"motion_init must be 'flow' or 'search', got {self.motion_init!r}")
+            raise ConfigError(f"stfm: motion_init must be 'flow' or 'search', got {self.motion_init!r}")
         if self.init not in (None, "gs", "random"):
-            raise ConfigError(f"init must be 'gs' or 'random', got {self.init!r}")
+            raise ConfigError(f"stfm: init must be 'gs' or 'random', got {self.init!r}")
         if self.dynamic_base is not None:
             bases = _base_list(self.dynamic_base)
             bad = [b for b in bases if b not in ALL_BASES]
             if bad or len(set(bases)) != len(bases):
-                raise ConfigError(f"dynamic_base must be one of {', '.join(ALL_BASES)}, a comma-separated list "
+                raise ConfigError(f"stfm: dynamic_base must be one of {', '.join(ALL_BASES)}, a comma-separated list "
                                   f"of distinct ones, or 'ensemble' ({ENSEMBLE_BASES}); got {self.dynamic_base!r}")
         if self.stall_drop is not None and not 0 <= self.stall_drop < 1:
-            raise ConfigError(f"stall_drop must be in [0, 1), got {self.stall_drop!r}")
+            raise ConfigError(f"stfm: stall_drop must be in [0, 1), got {self.stall_drop!r}")
         if self.ema_decay is not None and not 0 <= self.ema_decay < 1:
-            raise ConfigError(f"ema_decay must be in [0, 1), got {self.ema_decay!r}")
+            raise ConfigError(f"stfm: ema_decay must be in [0, 1), got {self.ema_decay!r}")
         for name in ("beta", "tau", "psi", "lr"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value >= 0):
-                raise ConfigError(f"{name} must be a finite number >= 0, got {value!r}")
+                raise ConfigError(f"stfm: {name} must be a finite number >= 0, got {value!r}")
         if self.rows_per_step is not None and self.rows_per_step < 1:
-            raise ConfigError(f"rows_per_step must be >= 1, got {self.rows_per_step}")
+            raise ConfigError(f"stfm: rows_per_step must be >= 1, got {self.rows_per_step}")
         if self.gs_windows_per_step is not None and self.gs_windows_per_step < 0:
-            raise ConfigError(f"gs_windows_per_step must be >= 0, got {self.gs_windows_per_step}")
+            raise ConfigError(f"stfm: gs_windows_per_step must be >= 0, got {self.gs_windows_per_step}")
         if self.tv_frames_per_step < 1 or self.frame_chunk < 1:
             raise ConfigError("tv_frames_per_step and frame_chunk must be >= 1")
 
