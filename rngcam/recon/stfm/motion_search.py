@@ -7,7 +7,8 @@ object turns round between key frames (sineball), the start from key-frame flow 
 off and the fit stalls there. The search scores every shift d of the layer: the frame
 background (1 - o(x - d)) + layer(x - d) o(x - d) (o: the layer's object mask) is put through the
 RS operator, and each RS row's misfit is charged to the frames its exposure touches (in
-proportion to their weights); each GS frame's misfit to the frames inside its exposure. A Viterbi
+proportion to their weights); each GS frame's misfit to the frame(s) at its exposure's centre
+(a key frame is the layer averaged over its exposure: where it is on average). A Viterbi
 pass over frames with an L1 penalty `smooth` on the change of shift between frames (costs
 normalised by their spread) then picks one shift per frame. Cost: one RS forward per candidate
 shift, in chunks.
@@ -93,10 +94,26 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor) -> T
             if stfm.mask is not None:
                 miss = miss * stfm.mask
             g_cost[:, i:i + SEARCH_CHUNK] = miss.square().sum((2, 3, 4))
-        wg = stfm.w_gs / stfm.w_gs.sum(1, keepdim=True).clamp_min(1e-12)
-        cost += _normalised(wg.t() @ g_cost)
+        # Charged to the exposure's centre only: charged to every frame it touches (as the RS rows'
+        # misfits are) it held the layer still there, 5-10 px off (bench/stfm_motion.md, session 10).
+        cost += _normalised(centre_weights(stfm._gs_centre_frames(), k).to(dev).t() @ g_cost)
     best = _viterbi(cost.cpu().numpy().reshape(k, side, side), SEARCH_SMOOTH * step)
     return shifts.cpu()[torch.from_numpy(best)]
+
+
+def centre_weights(centres, k: int) -> Tensor:
+    """(G, K): each GS frame's weight on the two frames around its exposure's centre of mass
+    (linear in between). A key frame is the layer averaged over its exposure: it says where the
+    layer is on average, i.e. at the centre for motion that is smooth over the exposure."""
+    out = torch.zeros(len(centres), k)
+    for g, c in enumerate(centres):
+        c = min(max(float(c), 0.0), k - 1.0)
+        left = min(int(np.floor(c)), k - 2) if k > 1 else 0
+        a = c - left
+        out[g, left] += 1 - a
+        if k > 1:
+            out[g, left + 1] += a
+    return out
 
 
 def _normalised(cost: Tensor) -> Tensor:

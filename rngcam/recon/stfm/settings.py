@@ -141,7 +141,10 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
     if name == "prior":  # the paper's prior on the fast fields: one canonical dynamic image that the motion moves
         fast.update({"dynamic": ("planes", {"resolutions": appearance, "features": DYNAMIC_FEATURES, "hidden": 32}),
                      "dynamic_time": False, "dynamic_base": "none", "refine": False, "motion_init": "search",
-                     "stall_drop": 0.0})  # still gaining where a 2 % stall test stops (bench/stfm_motion.md)
+                     "stall_drop": 0.0,  # still gaining where a 2 % stall test stops (bench/stfm_motion.md)
+                     # A nearly rigid motion (spatial TV 10x fast's, temporal the same): a motion that
+                     # varies across the object tears the canonical image (bench/stfm_motion.md, session 10).
+                     "beta": 0.1, "tau": 1e-3})
     return fast
 
 
