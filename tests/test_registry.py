@@ -149,7 +149,8 @@ def test_every_option_of_every_command_has_help():
 def test_recon_help_gives_each_method_its_meaning_unit_and_default():
     text = CliRunner().invoke(main, ["recon", "--help"], terminal_width=400).output
     beta = next(ln for ln in text.splitlines() if ln.strip().startswith("--beta"))
-    assert "stfm: weight of the motion field's change along time" in beta and "[fast 1, paper 10, prior 1]" in beta
+    per_preset = ", ".join(f"{name} {preset_settings(name).beta:g}" for name in ("fast", "paper", "prior"))
+    assert "stfm: weight of the motion field's change along time" in beta and f"[{per_preset}]" in beta
     assert "tv3d: weight of the TV along time relative to along x and y (relative) [1]" in beta
     for flag in ("--no-rs", "--no-gs", "--no-static", "--no-motion-reg", "--gs-anchor"):
         assert next(ln for ln in text.splitlines() if ln.strip().startswith(flag)).split(flag, 1)[1].strip()
