@@ -93,7 +93,8 @@ class STFMSettings:
 
 BASE_VIDEOS = ("video", "rife", "interp")  # "video": rife when its weights are installed, else interp
 KEY_WARPS = ("keys", "keys_rife", "keys_interp")  # "keys": RIFE's flows when installed, else DIS flows
-ALL_BASES = (*BASE_VIDEOS, *KEY_WARPS, "blend", "none")
+HDV3_SUFFIX = "_hdv3"  # "video_hdv3", "keys_hdv3": the same bases from RIFE HDv3 instead of the default RIFE 4.x
+ALL_BASES = (*BASE_VIDEOS, *KEY_WARPS, "blend", "none", "video" + HDV3_SUFFIX, "keys" + HDV3_SUFFIX)
 # dynamic_base="ensemble": one fit on each of these bases, averaged (STFMEnsemble). Their errors
 # in what the RS image cannot see differ, so the average is closer to the truth than any one of them.
 ENSEMBLE_BASES = "video,keys"  # with keys_interp (DIS flows) too: clips 0.35-0.66 dB lower (bench/stfm_motion.md)
