@@ -38,6 +38,7 @@ class BaseVideos:
                                                                  self.base_model)
             self.base_video = self.base_video.to(self.device, torch.float32)
             self.base_model = _resolved_model(self.base_model) if self.base_source == "rife" else None
+            self.base_source += HDV3_SUFFIX if self.base_model == "hdv3" else ""
             if why:
                 self.substitutes.append(("RIFE base video", f"optical-flow interpolation used instead ({why})"))
             return
@@ -71,6 +72,7 @@ class BaseVideos:
             return False
         dev, px = self.device, self.px_per_unit.repeat(2)
         self.base_model = _resolved_model(self.base_model) if source == "keys_rife" else None
+        source += HDV3_SUFFIX if self.base_model == "hdv3" else ""
         self.key_images = torch.from_numpy(warps.keys).permute(1, 0, 2, 3).contiguous().to(dev)  # (G, C, H, W)
         self.key_left = torch.from_numpy(warps.left).to(dev)
         flows = torch.from_numpy(np.concatenate([warps.flow0, warps.flow1], axis=-1)).to(dev)

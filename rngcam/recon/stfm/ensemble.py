@@ -50,10 +50,9 @@ class STFMEnsemble(MethodBase):
             else:
                 member = STFM(problem, replace(settings, dynamic_base=base, seed=settings.seed + i), device,
                               static_from=self.members[0] if self.members else None)
-            source = (member.base_source, member.base_model)
-            if source in sources:  # e.g. "keys" falls back to DIS flows without RIFE
+            if member.base_source in sources:  # e.g. "keys" falls back to DIS flows without RIFE
                 continue
-            sources.add(source)
+            sources.add(member.base_source)
             self.members.append(member)
         self.device = self.members[0].device
         self.steps = 0

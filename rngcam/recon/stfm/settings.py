@@ -97,7 +97,9 @@ HDV3_SUFFIX = "_hdv3"  # "video_hdv3", "keys_hdv3": the same bases from RIFE HDv
 ALL_BASES = (*BASE_VIDEOS, *KEY_WARPS, "blend", "none", "video" + HDV3_SUFFIX, "keys" + HDV3_SUFFIX)
 # dynamic_base="ensemble": one fit on each of these bases, averaged (STFMEnsemble). Their errors
 # in what the RS image cannot see differ, so the average is closer to the truth than any one of them.
-ENSEMBLE_BASES = "video,keys"  # with keys_interp (DIS flows) too: clips 0.35-0.66 dB lower (bench/stfm_motion.md)
+# One pair per RIFE model (4.x and HDv3): smoke +0.55 dB over "video,keys"; with keys_interp (DIS flows)
+# too: clips 0.35-0.66 dB lower (bench/stfm_motion.md, bench/stfm_compare.md)
+ENSEMBLE_BASES = "video,keys,video_hdv3,keys_hdv3"
 REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
 DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
 
