@@ -45,8 +45,9 @@ class STFMSettings:
     dynamic_time: bool | None = None  # F_D(x + u_x, y + u_y, t) instead of F_D(x + u_x, y + u_y)
     dynamic_base: str | None = setting(
         None, "the GS-only start the dynamic field corrects: video (rife, else interp), rife, interp, keys "
-              "(key frames warped by RIFE's flows, else DIS's), keys_rife, keys_interp, blend or none; a "
-              "comma-separated list averages one fit per base; ensemble = video,keys", cli="base")
+              "(key frames warped by RIFE's flows, else DIS's), keys_rife, keys_interp, video_hdv3 or keys_hdv3 "
+              "(RIFE HDv3 instead of 4.x), blend or none; a comma-separated list averages one fit per base; "
+              "ensemble = video,keys,video_hdv3,keys_hdv3", cli="base")
     time_smoothness: float | None = None  # weight of the time planes' roughness (plane fields)
     stop_at_noise: bool | None = setting(None, "stop once the RS residual reaches the noise level estimated "
                                                "from the RS image, or falls by less than stall_drop over 15 passes "
