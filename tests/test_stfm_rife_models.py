@@ -4,13 +4,12 @@ per RIFE model, each starting exactly at that model's interpolation."""
 import numpy as np
 import pytest
 import torch
+from test_stfm import _key_frames, fits, scene_problem, small_settings
 
 from rngcam.errors import ConfigError
 from rngcam.recon.metrics import psnr
 from rngcam.recon.stfm import STFMSettings, make_stfm
 from rngcam.recon.stfm.bases import _rife_model_of
-
-from test_stfm import _key_frames, fits, scene_problem, small_settings
 
 
 @pytest.fixture(autouse=True)
