@@ -21,10 +21,11 @@ the motion field gives the corrections (u_a, u_b) (4 outputs) and the dynamic fi
 the colour correction, alpha and l. This starts exactly at that interpolation and can move each
 key frame on its own, which a warp of an already blended video cannot. It costs the flows and
 weights per frame: 5 floats per pixel and frame (5/3 of a colour video).
-With several bases (`dynamic_base="video,keys"`, or "ensemble" for that list, the fast preset's
-default) the method is an STFMEnsemble: one fit per base, averaged, then one more fit on that
-average (`refine`); see that class and bench/stfm_motion.md for what it gains over one fit
-(`dynamic_base="video"`) and why the DIS-flow member (`keys_interp`) is no longer in it.
+With several bases (`dynamic_base="video,keys"`, or "ensemble": video,keys,video_hdv3,keys_hdv3,
+one pair per RIFE model, the fast preset's default) the method is an STFMEnsemble: one fit per
+base, averaged, then one more fit on that average (`refine`); see that class and
+bench/stfm_motion.md for what it gains over one fit (`dynamic_base="video"`) and why the DIS-flow
+member (`keys_interp`) is no longer in it.
 Coordinates are in [-1, 1] (pixel and frame centres at the ends); u is in the same units.
 
 Loss, each data term divided by its operator's squared norm (||A|| from power iteration at

@@ -7,7 +7,7 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
-from rngcam.recon.stfm.settings import BASE_VIDEOS, KEY_WARPS, MIN_FLOW_SIZE_PX
+from rngcam.recon.stfm.settings import BASE_VIDEOS, HDV3_SUFFIX, KEY_WARPS, MIN_FLOW_SIZE_PX
 
 
 class BaseVideos:
@@ -18,7 +18,7 @@ class BaseVideos:
         self.base_keys = self.base_weights = self.base_video = None
         self.base_source = None
         self.substitutes: list[tuple[str, str]] = []  # (what was preferred, what is used instead and why)
-        kind = self.resolved.dynamic_base
+        kind, self.base_model = _rife_model_of(self.resolved.dynamic_base)
         if not (kind != "none" and self.resolved.dynamic_time and self.parts.gs and self.parts.motion):
             return
         p = self.problem
@@ -34,8 +34,11 @@ class BaseVideos:
                 return
             kind = "interp"  # too few key frames or too small for flow
         if kind in BASE_VIDEOS:
-            self.base_video, self.base_source, why = _base_video(keys, p.gs_times_s, p.frame_times_s, kind)
+            self.base_video, self.base_source, why = _base_video(keys, p.gs_times_s, p.frame_times_s, kind,
+                                                                 self.base_model)
             self.base_video = self.base_video.to(self.device, torch.float32)
+            self.base_model = _resolved_model(self.base_model) if self.base_source == "rife" else None
+            self.base_source += HDV3_SUFFIX if self.base_model == "hdv3" else ""
             if why:
                 self.substitutes.append(("RIFE base video", f"optical-flow interpolation used instead ({why})"))
             return
@@ -57,7 +60,7 @@ class BaseVideos:
         if kind != "keys_interp" and keys.shape[0] in (1, 3):
             try:
                 with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
-                    warps, source = rife_warps(*args), "keys_rife"
+                    warps, source = rife_warps(*args, model=self.base_model), "keys_rife"
             except (RifeUnavailableError, BaselineInputError) as exc:
                 if kind == "keys_rife":
                     raise
@@ -68,6 +71,8 @@ class BaseVideos:
         except BaselineInputError:
             return False
         dev, px = self.device, self.px_per_unit.repeat(2)
+        self.base_model = _resolved_model(self.base_model) if source == "keys_rife" else None
+        source += HDV3_SUFFIX if self.base_model == "hdv3" else ""
         self.key_images = torch.from_numpy(warps.keys).permute(1, 0, 2, 3).contiguous().to(dev)  # (G, C, H, W)
         self.key_left = torch.from_numpy(warps.left).to(dev)
         flows = torch.from_numpy(np.concatenate([warps.flow0, warps.flow1], axis=-1)).to(dev)
@@ -79,13 +84,27 @@ class BaseVideos:
 
 
 
+def _rife_model_of(kind: str) -> tuple[str, str | None]:
+    """A dynamic base without its RIFE-model suffix, and that model ("hdv3"; None: the default)."""
+    if kind.endswith(HDV3_SUFFIX):
+        return kind[:-len(HDV3_SUFFIX)], "hdv3"
+    return kind, None
+
+
+def _resolved_model(model: str | None) -> str:
+    from rngcam.recon.rife import resolve_model
+
+    return resolve_model(model)[0]
+
+
 def _first_line(exc: Exception) -> str:
     return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
 
 
-def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str) -> tuple[Tensor, str, str]:
+def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str, model: str | None = None
+                ) -> tuple[Tensor, str, str]:
     """The GS-only video (C, K, H, W) a dynamic field corrects, which baseline made it, and why
-    RIFE was not used where it was preferred ("" otherwise)."""
+    RIFE was not used where it was preferred ("" otherwise). `model`: the RIFE model (None: the default)."""
     from rngcam.recon.baselines import interp
 
     frames = keys.detach().float().cpu().numpy()
@@ -94,7 +113,7 @@ def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str) -> tuple[Ten
 
         try:
             with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
-                return torch.from_numpy(rife(frames, gs_times_s, frame_times_s)), "rife", ""
+                return torch.from_numpy(rife(frames, gs_times_s, frame_times_s, model=model)), "rife", ""
         except RifeUnavailableError as exc:
             if kind == "rife":
                 raise

@@ -99,7 +99,7 @@ class FieldModel:
 
     @property
     def _key_warps(self) -> bool:
-        return self.base_source in ("keys_rife", "keys_interp")
+        return self.base_source in ("keys_rife", "keys_rife_hdv3", "keys_interp")
 
     def _correction_channels(self) -> list[int]:
         """Dynamic-field outputs that correct a base (zero at the start): colour, and with

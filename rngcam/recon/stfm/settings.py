@@ -45,8 +45,9 @@ class STFMSettings:
     dynamic_time: bool | None = None  # F_D(x + u_x, y + u_y, t) instead of F_D(x + u_x, y + u_y)
     dynamic_base: str | None = setting(
         None, "the GS-only start the dynamic field corrects: video (rife, else interp), rife, interp, keys "
-              "(key frames warped by RIFE's flows, else DIS's), keys_rife, keys_interp, blend or none; a "
-              "comma-separated list averages one fit per base; ensemble = video,keys", cli="base")
+              "(key frames warped by RIFE's flows, else DIS's), keys_rife, keys_interp, video_hdv3 or keys_hdv3 "
+              "(RIFE HDv3 instead of 4.x), blend or none; a comma-separated list averages one fit per base; "
+              "ensemble = video,keys,video_hdv3,keys_hdv3", cli="base")
     time_smoothness: float | None = None  # weight of the time planes' roughness (plane fields)
     stop_at_noise: bool | None = setting(None, "stop once the RS residual reaches the noise level estimated "
                                                "from the RS image, or falls by less than stall_drop over 15 passes "
@@ -93,10 +94,13 @@ class STFMSettings:
 
 BASE_VIDEOS = ("video", "rife", "interp")  # "video": rife when its weights are installed, else interp
 KEY_WARPS = ("keys", "keys_rife", "keys_interp")  # "keys": RIFE's flows when installed, else DIS flows
-ALL_BASES = (*BASE_VIDEOS, *KEY_WARPS, "blend", "none")
+HDV3_SUFFIX = "_hdv3"  # "video_hdv3", "keys_hdv3": the same bases from RIFE HDv3 instead of the default RIFE 4.x
+ALL_BASES = (*BASE_VIDEOS, *KEY_WARPS, "blend", "none", "video" + HDV3_SUFFIX, "keys" + HDV3_SUFFIX)
 # dynamic_base="ensemble": one fit on each of these bases, averaged (STFMEnsemble). Their errors
 # in what the RS image cannot see differ, so the average is closer to the truth than any one of them.
-ENSEMBLE_BASES = "video,keys"  # with keys_interp (DIS flows) too: clips 0.35-0.66 dB lower (bench/stfm_motion.md)
+# One pair per RIFE model (4.x and HDv3): smoke +0.55 dB over "video,keys"; with keys_interp (DIS flows)
+# too: clips 0.35-0.66 dB lower (bench/stfm_motion.md, bench/stfm_compare.md)
+ENSEMBLE_BASES = "video,keys,video_hdv3,keys_hdv3"
 REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
 DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
 
