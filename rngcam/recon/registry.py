@@ -186,9 +186,9 @@ def _make_tv3d(problem, settings, device="cpu", budget_s=None, stage=None):
 
 
 def _make_pnp(problem, settings, device="cpu", budget_s=None, stage=None):
-    from rngcam.recon.pnp import PnP
+    from rngcam.recon.pnp import make_pnp
 
-    return PnP(problem, settings, device=device)
+    return make_pnp(problem, settings, device=device, budget_s=budget_s, stage=stage)
 
 
 def _blend(key, gs_times_s, frame_times_s, settings: BlendSettings) -> GSOnlyVideo:

@@ -1,0 +1,54 @@
+"""pnp coarse to fine (rngcam.recon.pnp.make_pnp through rngcam.recon.multiscale.CoarseToFine)."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from rngcam.recon.loop import LoopSettings, run
+from rngcam.recon.multiscale import CoarseToFine
+from rngcam.recon.pnp import PnP, PnPSettings, fine_level_settings, make_pnp
+from tests.test_pnp import _problem, _psnr
+
+
+def test_small_grids_stay_single_level_and_identical():
+    p = _problem(size=32)
+    settings = PnPSettings(schedule_iters=4, init="blend")
+    made, plain = make_pnp(p, settings), PnP(p, settings)
+    assert isinstance(made, PnP)
+    for _ in range(2):
+        made.step(), plain.step()
+    torch.testing.assert_close(made.estimate(), plain.estimate(), rtol=0, atol=0)
+
+
+def test_coarse_to_fine_reaches_the_full_grid_and_improves_on_its_start():
+    p = _problem(size=32)
+    stages = []
+    m = make_pnp(p, PnPSettings(schedule_iters=6, init="blend"), stage=stages.append, factors=(2, 1))
+    assert isinstance(m, CoarseToFine) and not m.final
+    start = _psnr(m.estimate(), p.truth)
+    result = run(m, LoopSettings(time_budget_s=None, max_iters=30, progress=False))
+    assert m.final and m.estimate().shape == p.shape and result.status == "ok"
+    assert any("level 2 of 2" in s for s in stages)
+    assert m.method.init_source == "coarser level"
+    assert m.method.s.sigma_start == pytest.approx(math.sqrt(0.05 * 0.01)) and m.method.s.schedule_iters == 3
+    end = _psnr(m.estimate(), p.truth)
+    assert np.isfinite(end) and end > start
+
+
+def test_finer_level_norm_is_warm_started_and_matches_the_cold_norm():
+    p = _problem(size=32)
+    settings = PnPSettings(schedule_iters=2, init="blend")
+    m = make_pnp(p, settings, factors=(2, 1))
+    while not m.final:
+        m.step()
+    assert m.method.rs_norm_vector is not None and m.method.rs_norm_vector.shape == p.shape
+    cold = p.rs_op().norm(iters=200, tol=1e-10, dtype=torch.float64)
+    assert m.method.rs_norm_sq == pytest.approx(1.02 * cold ** 2, rel=0.03)
+
+
+def test_fine_level_settings_take_up_the_schedule_half_way():
+    s = fine_level_settings(PnPSettings(sigma_start=0.08, sigma_end=0.02, schedule_iters=9))
+    assert s.sigma_start == pytest.approx(0.04) and s.sigma_end == 0.02 and s.schedule_iters == 4
+    assert fine_level_settings(PnPSettings(schedule_iters=1)).schedule_iters == 1
