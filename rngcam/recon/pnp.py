@@ -65,7 +65,8 @@ class PnPSettings:
     # one RIFE, else interp); "rife", "interp" or "blend"
     init: str = "video"
     frame_chunk: int = 16  # images per denoiser pass
-    coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (make_pnp)
+    coarse_to_fine: bool = setting(True, "on grids of 96 px and more, reconstruct 1/4 and 1/2 grids first, "
+                                         "each starting the next (else one level at the full grid)")
     stop_at_noise: bool = setting(True, "stop once the RS residual reaches the noise level estimated from "
                                         "the RS image, or stalls after the schedule")
     # The discrepancy test's tolerance: the RS noise estimate is within ~7 % of the truth
