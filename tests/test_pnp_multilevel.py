@@ -52,3 +52,21 @@ def test_fine_level_settings_take_up_the_schedule_half_way():
     s = fine_level_settings(PnPSettings(sigma_start=0.08, sigma_end=0.02, schedule_iters=9))
     assert s.sigma_start == pytest.approx(0.04) and s.sigma_end == 0.02 and s.schedule_iters == 4
     assert fine_level_settings(PnPSettings(schedule_iters=1)).schedule_iters == 1
+
+
+def test_key_frame_detail_is_what_the_coarse_grid_cannot_hold():
+    from rngcam.recon.multiscale import bin_video
+    from rngcam.recon.pnp import with_key_frame_detail
+
+    p = _problem(size=32)
+    coarse_shape = (3, -(-p.shape[1] // 2), 16, 16)
+    x0 = torch.full(p.shape, 0.5)
+    out = with_key_frame_detail(p, x0, coarse_shape)
+    assert out.shape == p.shape and bool((out >= 0).all())
+    # it adds detail only: what it adds is mostly gone when binned back to the coarse grid
+    added = out - x0
+    assert float(added.abs().max()) > 0.05
+    # (a video constant in 2x2x2 blocks keeps 0.35 of its norm when binned; this detail 0.16)
+    assert float(bin_video(added, coarse_shape, 2).norm()) < 0.25 * float(added.norm())
+    no_gs = type(p)(**{**p.__dict__, "b_gs": None})
+    assert with_key_frame_detail(no_gs, x0, coarse_shape) is x0

@@ -84,10 +84,7 @@ def coarsen(problem: Problem, factor: int, time_factor: int | None = None) -> Pr
     hp, wp = problem.psf.shape[-2:]
     psf_shape = (max(1, round(hp * h2 / h)), max(1, round(wp * w2 / w)))
     psf = torch.from_numpy(psf_mod.prepare_psf(problem.psf.double().cpu().numpy(), psf_shape, bias=None)[0])
-    truth = None
-    if problem.truth is not None:
-        mean = frames / frames.sum(1, keepdim=True)
-        truth = _bin2(torch.einsum("jk,ckhw->cjhw", mean.to(problem.truth), problem.truth), r, x)
+    truth = None if problem.truth is None else bin_video(problem.truth, (c, k2, h2, w2), t)
 
     def bin_valid(valid):
         return None if valid is None else _bin2(valid.double(), r, x) > 1 - 1e-9
@@ -100,6 +97,16 @@ def coarsen(problem: Problem, factor: int, time_factor: int | None = None) -> Pr
         mask=None if problem.mask is None else _bin2(problem.mask.double(), r, x) > 0.5,
         white_balance=problem.white_balance, notes=[],
         rs_valid=bin_valid(problem.rs_valid), gs_valid=bin_valid(problem.gs_valid))
+
+
+def bin_video(video: Tensor, shape: tuple[int, int, int, int], time_factor: int) -> Tensor:
+    """(C, K, H, W) -> `shape` (C, K', H', W'): frames averaged in blocks of `time_factor`, pixels
+    by area (how `coarsen` bins the truth)."""
+    _, k, h, w = video.shape
+    _, k2, h2, w2 = shape
+    frames = block_matrix(k2, k, time_factor)
+    mean = (frames / frames.sum(1, keepdim=True).clamp_min(1)).to(video)
+    return _bin2(torch.einsum("jk,ckhw->cjhw", mean, video), area_matrix(h2, h), area_matrix(w2, w))
 
 
 def upsample(video: Tensor, shape: tuple[int, int, int, int], time_factor: float) -> Tensor:

@@ -409,11 +409,30 @@ def fine_level_settings(settings: PnPSettings) -> PnPSettings:
     return replace(settings, sigma_start=mid, schedule_iters=max(1, settings.schedule_iters // 2))
 
 
+def with_key_frame_detail(problem: Problem, x0: Tensor, coarse_shape: tuple[int, int, int, int]) -> Tensor:
+    """A coarser estimate upsampled (x0, on `problem`'s grid) plus the detail its grid could not
+    hold, taken from the GS key frames' cross-fade B at this grid: x0 + B - up(bin(B)). The
+    upsampled estimate alone is blurred (at 128 px it started 1.4 dB below this, bench/scale.md);
+    where the cross-fade's detail is wrong (moving edges) the data and the denoiser remove it.
+    Without GS frames: x0."""
+    from rngcam.recon.baselines import blend
+    from rngcam.recon.multiscale import bin_video, upsample
+
+    if problem.b_gs is None or problem.b_gs.shape[1] == 0:
+        return x0
+    keys = problem.gs_images().detach().float().cpu().numpy()
+    b = torch.from_numpy(blend(keys, problem.gs_times_s, problem.frame_times_s)).to(x0)
+    t = max(1, round(problem.shape[1] / coarse_shape[1]))
+    b -= upsample(bin_video(b, coarse_shape, t), problem.shape, t)
+    return (b.add_(x0)).clamp_min_(0)
+
+
 def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str = "cpu",
              budget_s: float | None = None, stage=None, factors: tuple[int, ...] | None = None):
     """PnP on `problem`, coarse to fine (rngcam.recon.multiscale) on grids of 96 px and more with
     `coarse_to_fine` on: the start (RIFE, the operator norm from a random vector) is made on the
-    coarsest level only; each finer level starts from the coarser estimate, upsampled, with the
+    coarsest level only; each finer level starts from the coarser estimate, upsampled, plus the key
+    frames' detail the coarser grid could not hold (`with_key_frame_detail`), with the
     operator norm's power iteration warm-started from the coarser one's vector, and runs the
     second half of the noise-level schedule (`fine_level_settings`). A coarse level ends at pnp's
     own stop (noise level or stall), at the end of its schedule, or at its share of the budget. `stage(message)` reports set-up;
@@ -436,7 +455,9 @@ def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str 
         else:
             coarse = previous[-1].rs_norm_vector
             start = None if coarse is None else upsample(coarse, level.shape, level.shape[1] / coarse.shape[1])
+            coarse_shape = previous[-1].p.shape
             previous.clear()  # free the coarser level before building this one
+            x0 = with_key_frame_detail(level, x0, coarse_shape)
             method = PnP(level, fine_level_settings(settings), device=device, x0=x0, rs_norm_start=start,
                          coarse_level=level.shape != problem.shape)
         previous[:] = [method]
