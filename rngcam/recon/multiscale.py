@@ -157,7 +157,7 @@ class CoarseToFine(MethodBase):
     when its steps have used their share of `budget_s` (`level_share`; only time inside step()
     counts, not the loop's evaluations); the final level runs for as long as the loop lets it.
     A finer level is not started when what is left of `budget_s` (counted from construction)
-    looks too short for its set-up and a few steps (8x the current level's, per halving): the run
+    looks too short for its set-up and `fine_steps` steps (8x the current level's, per halving): the run
     then ends on the current level, upsampled, and `budget_cut()` says so. `estimate()` is always
     on the full grid. `stage(message)` reports each level's set-up.
     """
@@ -166,7 +166,7 @@ class CoarseToFine(MethodBase):
                  factors: tuple[int, ...] | None = None, budget_s: float | None = None,
                  level_share: float = 0.15, level_rtol: float = 2e-3, window: int = 10,
                  max_level_steps: int = 300, stage: Callable[[str], None] | None = None,
-                 level_stop: str = "objective"):
+                 level_stop: str = "objective", fine_steps: int = 5):
         self.full_shape = problem.shape
         self.factors = tuple(factors or default_factors(problem.shape))
         if self.factors[-1] != 1:
@@ -174,7 +174,7 @@ class CoarseToFine(MethodBase):
         self.problems = [coarsen(problem, f) if f > 1 else problem for f in self.factors]
         self.make, self.budget_s, self.level_share = make, budget_s, level_share
         self.level_rtol, self.window, self.max_level_steps = level_rtol, window, max_level_steps
-        self.level_stop, self.level_ends = level_stop, []
+        self.level_stop, self.level_ends, self.fine_steps = level_stop, [], fine_steps
         self.stage = stage or (lambda message: None)
         self.t0 = time.perf_counter()
         self.level, self._x0, self.held_back = 0, None, False
@@ -219,7 +219,7 @@ class CoarseToFine(MethodBase):
         # A level whose build is not the coarse one's (STFM: one fit instead of RIFE and an
         # ensemble) is guessed from its steps alone.
         setup = self.level_setup_s if self.level_stop == "objective" else 0.0
-        needed = growth * (setup + 5 * per_step)
+        needed = growth * (setup + self.fine_steps * per_step)
         return time.perf_counter() - self.t0 + needed <= self.budget_s
 
     def _next_level(self) -> None:

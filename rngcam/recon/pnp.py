@@ -463,4 +463,6 @@ def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str 
         previous[:] = [method]
         return method
 
-    return CoarseToFine(problem, make, factors, budget_s=budget_s, stage=stage, level_stop="method")
+    # A finer level is worth starting for one step: its start alone (the coarser estimate plus the
+    # key frames' detail) is already better than the coarser estimate upsampled.
+    return CoarseToFine(problem, make, factors, budget_s=budget_s, stage=stage, level_stop="method", fine_steps=1)
