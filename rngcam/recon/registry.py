@@ -229,8 +229,10 @@ def _rife_unavailable() -> str:
 # and more STFM runs coarse to fine (rngcam.recon.stfm.multilevel): the ensemble and RIFE run only on
 # the coarsest level (about 1.0 GB: 1.20 GiB measured for the whole run at 114x171x117), the full
 # grid holds one fit at 79 bytes an element (4.25 GiB for the whole run at 228x342x231), with about
-# 10 %: 87 bytes. RIFE and pnp were not measured: RIFE as interp plus its model's activations, pnp
-# as STFM's single-level figure (bench/scale.md).
+# 10 %: 87 bytes. RIFE was not measured: as interp plus its model's activations. pnp on one level as
+# STFM's single-level figure; coarse to fine (>= 96 px), from whole runs (bench/scale.md): 3.62 GiB at
+# 228x342x231 on one level (the full grid's arrays, as its finest level) is 66 bytes an element, with
+# about 10 %: 73; 1.31 GiB at 128x128x131 (the coarse level, the denoiser and RIFE) sets the floor.
 STFM_MEMORY = MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000, coarse_to_fine_min_side=96,
                           coarse_to_fine_bytes_per_element=87, coarse_level_bytes=1_000_000_000)
 
@@ -243,7 +245,8 @@ register(MethodEntry("tv3d", ITERATIVE, TV3DSettings, _make_tv3d,
                      presets={"haar": TV3DSettings(prox="haar"), "exact": TV3DSettings(prox="exact")},
                      memory=MemoryModel(bytes_per_element=150), fits_holdout=True))
 register(MethodEntry("pnp", ITERATIVE, PnPSettings, _make_pnp, auto_budget_s=300.0,
-                     memory=MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000)))
+                     memory=MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000, coarse_to_fine_min_side=96,
+                                        coarse_to_fine_bytes_per_element=73, coarse_level_bytes=1_200_000_000)))
 register(MethodEntry("blend", GS_ONLY, BlendSettings, _blend, memory=MemoryModel(bytes_per_element=155)))
 register(MethodEntry("interp", GS_ONLY, InterpSettings, _interp, memory=MemoryModel(bytes_per_element=155)))
 register(MethodEntry("rife", GS_ONLY, RifeSettings, _rife, unavailable=_rife_unavailable,
