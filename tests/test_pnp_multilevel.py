@@ -84,3 +84,17 @@ def test_pnp_memory_estimate_follows_coarse_to_fine():
     memory = get("pnp").memory
     assert 3.6 < method_bytes(plan(228, 342, 231), memory) / 2**30 < 4.3  # measured 3.62 GiB (bench/scale.md)
     assert 1.3 < method_bytes(plan(128, 128, 131), memory) / 2**30 < 1.6  # measured 1.31-1.38 GiB
+
+
+def test_a_run_ended_on_a_coarse_level_keeps_the_key_frame_detail():
+    from rngcam.recon.multiscale import upsample
+    from rngcam.recon.pnp import key_frame_detail
+
+    p = _problem(size=32)
+    m = make_pnp(p, PnPSettings(schedule_iters=2, init="blend"), factors=(2, 1))
+    m.step()
+    coarse = m.method.estimate()
+    plain = upsample(coarse, p.shape, 2)
+    expect = (plain + key_frame_detail(p, tuple(coarse.shape))).clamp_min(0)
+    torch.testing.assert_close(m.estimate(), expect)
+    assert float((m.estimate() - plain).abs().max()) > 0.05  # (its gain is measured on smoke: bench/scale.md)

@@ -158,15 +158,17 @@ class CoarseToFine(MethodBase):
     counts, not the loop's evaluations); the final level runs for as long as the loop lets it.
     A finer level is not started when what is left of `budget_s` (counted from construction)
     looks too short for its set-up and `fine_steps` steps (8x the current level's, per halving): the run
-    then ends on the current level, upsampled, and `budget_cut()` says so. `estimate()` is always
-    on the full grid. `stage(message)` reports each level's set-up.
+    then ends on the current level, upsampled (plus `detail(full_problem, coarse_shape)`, the
+    full grid's detail that level cannot hold, when given), and `budget_cut()` says so. `estimate()`
+    is always on the full grid. `stage(message)` reports each level's set-up.
     """
 
     def __init__(self, problem: Problem, make: Callable[[Problem, Tensor | None], object],
                  factors: tuple[int, ...] | None = None, budget_s: float | None = None,
                  level_share: float = 0.15, level_rtol: float = 2e-3, window: int = 10,
                  max_level_steps: int = 300, stage: Callable[[str], None] | None = None,
-                 level_stop: str = "objective", fine_steps: int = 5):
+                 level_stop: str = "objective", fine_steps: int = 5,
+                 detail: Callable[[Problem, tuple[int, int, int, int]], Tensor] | None = None):
         self.full_shape = problem.shape
         self.factors = tuple(factors or default_factors(problem.shape))
         if self.factors[-1] != 1:
@@ -175,6 +177,7 @@ class CoarseToFine(MethodBase):
         self.make, self.budget_s, self.level_share = make, budget_s, level_share
         self.level_rtol, self.window, self.max_level_steps = level_rtol, window, max_level_steps
         self.level_stop, self.level_ends, self.fine_steps = level_stop, [], fine_steps
+        self.detail, self._detail = detail, (None, None)  # (level, the full grid's detail for it)
         self.stage = stage or (lambda message: None)
         self.t0 = time.perf_counter()
         self.level, self._x0, self.held_back = 0, None, False
@@ -255,7 +258,13 @@ class CoarseToFine(MethodBase):
         x = self.method.estimate()
         if self.final:
             return x
-        return upsample(x.detach(), self.full_shape, self.factors[self.level])
+        up = upsample(x.detach(), self.full_shape, self.factors[self.level])
+        if self.detail is None:
+            return up
+        if self._detail[0] != self.level:  # computed once per level, on the full grid
+            self._detail = (None, None)
+            self._detail = (self.level, self.detail(self.problems[-1], tuple(x.shape)).to(up))
+        return up.add_(self._detail[1]).clamp_min_(0)
 
     def residuals(self) -> dict[str, float]:
         return self.method.residuals()  # of the current level's problem

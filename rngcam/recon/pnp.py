@@ -409,22 +409,27 @@ def fine_level_settings(settings: PnPSettings) -> PnPSettings:
     return replace(settings, sigma_start=mid, schedule_iters=max(1, settings.schedule_iters // 2))
 
 
-def with_key_frame_detail(problem: Problem, x0: Tensor, coarse_shape: tuple[int, int, int, int]) -> Tensor:
-    """A coarser estimate upsampled (x0, on `problem`'s grid) plus the detail its grid could not
-    hold, taken from the GS key frames' cross-fade B at this grid: x0 + B - up(bin(B)). The
-    upsampled estimate alone is blurred (at 128 px it started 1.4 dB below this, bench/scale.md);
-    where the cross-fade's detail is wrong (moving edges) the data and the denoiser remove it.
-    Without GS frames: x0."""
+def key_frame_detail(problem: Problem, coarse_shape: tuple[int, int, int, int]) -> Tensor | None:
+    """The detail of the GS key frames' cross-fade B on `problem`'s grid that a grid of
+    `coarse_shape` cannot hold: B - up(bin(B)) (None without GS frames)."""
     from rngcam.recon.baselines import blend
     from rngcam.recon.multiscale import bin_video, upsample
 
     if problem.b_gs is None or problem.b_gs.shape[1] == 0:
-        return x0
+        return None
     keys = problem.gs_images().detach().float().cpu().numpy()
-    b = torch.from_numpy(blend(keys, problem.gs_times_s, problem.frame_times_s)).to(x0)
+    b = torch.from_numpy(blend(keys, problem.gs_times_s, problem.frame_times_s)).to(problem.b_gs)
     t = max(1, round(problem.shape[1] / coarse_shape[1]))
-    b -= upsample(bin_video(b, coarse_shape, t), problem.shape, t)
-    return (b.add_(x0)).clamp_min_(0)
+    return b.sub_(upsample(bin_video(b, coarse_shape, t), problem.shape, t))
+
+
+def with_key_frame_detail(problem: Problem, x0: Tensor, coarse_shape: tuple[int, int, int, int]) -> Tensor:
+    """A coarser estimate upsampled (x0, on `problem`'s grid) plus `key_frame_detail`, the detail
+    its grid could not hold. The upsampled estimate alone is blurred (at 128 px it started 1.3 dB
+    below this, bench/scale.md); where the cross-fade's detail is wrong (moving edges) the data
+    and the denoiser remove it. Without GS frames: x0."""
+    detail = key_frame_detail(problem, coarse_shape)
+    return x0 if detail is None else detail.add_(x0).clamp_min_(0)
 
 
 def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str = "cpu",
@@ -465,4 +470,10 @@ def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str 
 
     # A finer level is worth starting for one step: its start alone (the coarser estimate plus the
     # key frames' detail) is already better than the coarser estimate upsampled.
-    return CoarseToFine(problem, make, factors, budget_s=budget_s, stage=stage, level_stop="method", fine_steps=1)
+    # A run the budget ends on a coarser level keeps the key frames' detail in its output too.
+    def detail(full: Problem, coarse_shape):
+        d = key_frame_detail(full, coarse_shape)
+        return torch.zeros(()) if d is None else d
+
+    return CoarseToFine(problem, make, factors, budget_s=budget_s, stage=stage, level_stop="method", fine_steps=1,
+                        detail=detail)
