@@ -192,7 +192,7 @@ class CoarseToFine(MethodBase):
     def _start_level(self, i: int, x0: Tensor | None) -> None:
         self.stage(f"{self._describe(i)}: building")
         t0 = time.perf_counter()
-        self.level, self._x0 = i, x0
+        self.level, self._x0, self._detail = i, x0, (None, None)  # the coarser level's detail can go
         self.method = self.make(self.problems[i], x0)
         self.level_steps, self.level_step_s, self._history = 0, 0.0, []
         self.level_setup_s = time.perf_counter() - t0

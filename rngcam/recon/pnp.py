@@ -455,7 +455,7 @@ def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str 
     def make(level: Problem, x0):
         if x0 is None:  # the coarsest level: the ordinary start, a seeded random vector for the norm
             gen = torch.Generator().manual_seed(0)
-            start = torch.randn(level.shape, generator=gen, dtype=torch.float64)
+            start = torch.randn(level.shape, generator=gen).to(level.b_rs)
             method = PnP(level, settings, device=device, rs_norm_start=start, coarse_level=True)
         else:
             coarse = previous[-1].rs_norm_vector
@@ -463,8 +463,12 @@ def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str 
             coarse_shape = previous[-1].p.shape
             previous.clear()  # free the coarser level before building this one
             x0 = with_key_frame_detail(level, x0, coarse_shape)
+            final = level.shape == problem.shape
             method = PnP(level, fine_level_settings(settings), device=device, x0=x0, rs_norm_start=start,
-                         coarse_level=level.shape != problem.shape)
+                         coarse_level=not final)
+            del start
+            if final:  # no finer level needs the power-iteration vector (a video's worth of memory)
+                method.rs_norm_vector = None
         previous[:] = [method]
         return method
 
