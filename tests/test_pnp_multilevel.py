@@ -82,7 +82,7 @@ def test_pnp_memory_estimate_follows_coarse_to_fine():
         return SimpleNamespace(height=h, width=w, elements=3 * k * h * w, grid=SimpleNamespace(n_frames=k))
 
     memory = get("pnp").memory
-    assert 3.6 < method_bytes(plan(228, 342, 231), memory) / 2**30 < 4.3  # measured 3.62 GiB (bench/scale.md)
+    assert 4.33 < method_bytes(plan(228, 342, 231), memory) / 2**30 < 5.0  # measured 4.33 GiB (bench/scale.md)
     assert 1.3 < method_bytes(plan(128, 128, 131), memory) / 2**30 < 1.6  # measured 1.31-1.38 GiB
 
 

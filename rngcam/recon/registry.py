@@ -231,9 +231,9 @@ def _rife_unavailable() -> str:
 # grid holds one fit: 3.61 GiB through the solve at 228x342x231 (the whole run's end stays under it
 # since the method is freed before the final metrics: 3.28 GiB whole-process over a 600 s run), 66
 # bytes an element, with about 10 %: 73 bytes. RIFE was not measured: as interp plus its model's activations. pnp on one level as
-# STFM's single-level figure; coarse to fine (>= 96 px), from whole runs (bench/scale.md): 3.62 GiB at
-# 228x342x231 on one level (the full grid's arrays, as its finest level) is 66 bytes an element, with
-# about 10 %: 73; 1.31 GiB at 128x128x131 (the coarse level, the denoiser and RIFE) sets the floor.
+# STFM's single-level figure; coarse to fine (>= 96 px), from whole runs (bench/scale.md): 4.33 GiB at
+# 228x342x231 (two steps on the full grid) is 80 bytes an element, with about 10 %: 88; 1.31 GiB at
+# 128x128x131 (the coarse level, the denoiser and RIFE) sets the floor.
 STFM_MEMORY = MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000, coarse_to_fine_min_side=96,
                           coarse_to_fine_bytes_per_element=73, coarse_level_bytes=1_000_000_000)
 
@@ -247,7 +247,7 @@ register(MethodEntry("tv3d", ITERATIVE, TV3DSettings, _make_tv3d,
                      memory=MemoryModel(bytes_per_element=150), fits_holdout=True))
 register(MethodEntry("pnp", ITERATIVE, PnPSettings, _make_pnp, auto_budget_s=300.0,
                      memory=MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000, coarse_to_fine_min_side=96,
-                                        coarse_to_fine_bytes_per_element=73, coarse_level_bytes=1_200_000_000)))
+                                        coarse_to_fine_bytes_per_element=88, coarse_level_bytes=1_200_000_000)))
 register(MethodEntry("blend", GS_ONLY, BlendSettings, _blend, memory=MemoryModel(bytes_per_element=155)))
 register(MethodEntry("interp", GS_ONLY, InterpSettings, _interp, memory=MemoryModel(bytes_per_element=155)))
 register(MethodEntry("rife", GS_ONLY, RifeSettings, _rife, unavailable=_rife_unavailable,
