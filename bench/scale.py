@@ -8,7 +8,8 @@ Usage (one at a time on the machine: run it under the bench lock):
 side by side, wall and system time (system time is where allocation churn shows), one thread.
 `recon`: `rngcam recon` in a child process per bundle (its own peak RSS), then from its outputs:
 set-up time, time per iteration, the time at which PSNR first comes within 0.5 dB of the run's
-final PSNR, peak RSS, events. Every figure line carries the load average when it was taken.
+final PSNR, peak RSS through the solve (metrics.json) and of the whole process (the child's
+rusage), events. Every figure line carries the load average when it was taken.
 """
 
 from __future__ import annotations
@@ -124,22 +125,27 @@ def summarise_run(out_dir: Path, tol_db: float = 0.5) -> dict:
     return res
 
 
-def recon(bundles: list[str], method: str, budget: float, extra: list[str], work: Path) -> list[dict]:
+def recon(bundles: list[str], method: str, budget: float, extra: list[str], work: Path, tag: str = "") -> list[dict]:
     results = []
     for bundle in bundles:
-        out = work / f"{Path(bundle).stem}-{method}"
+        out = work / f"{Path(bundle).stem}-{method}{tag}"
         cmd = [sys.executable, "-c", "from rngcam.cli import main; main()", "recon", bundle, "--method", method,
                "--time-budget", str(budget), "-o", str(out), "--overwrite", *extra]
         before = load()
         t0 = time.perf_counter()
-        proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+        log = work / f"{out.name}.log"
+        with open(log, "w") as f:
+            proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, text=True,
+                                    env={**os.environ, "OMP_NUM_THREADS": "1"})
+            _, status, usage = os.wait4(proc.pid, 0)  # this child's own rusage: its whole-process peak
         wall = time.perf_counter() - t0
-        (work / f"{out.name}.log").write_text(proc.stdout + proc.stderr)
-        if proc.returncode != 0 or not (out / "metrics.json").is_file():
-            results.append({"bundle": bundle, "method": method, "error": (proc.stdout + proc.stderr)[-400:]})
+        text = log.read_text()
+        if os.waitstatus_to_exitcode(status) != 0 or not (out / "metrics.json").is_file():
+            results.append({"bundle": bundle, "method": method, "error": text[-400:]})
             continue
         res = summarise_run(out)
-        res.update(bundle=bundle, wall_s=wall, load_before=before, load_after=load(), args=" ".join(extra))
+        res.update(bundle=bundle, wall_s=wall, load_before=before, load_after=load(), args=" ".join(extra),
+                   whole_process_peak_gib=usage.ru_maxrss / 2**20)  # ru_maxrss is in KiB on Linux
         results.append(res)
         print(json.dumps(res), flush=True)
     return results
@@ -192,6 +198,7 @@ def main():
     r.add_argument("--extra", default="", help="more recon arguments, e.g. '--base video --iters 5'")
     r.add_argument("--work", type=Path, default=Path("scale-runs"))
     r.add_argument("--json", type=Path, default=None)
+    r.add_argument("--tag", default="", help="appended to each output folder's name (e.g. -single)")
     c = sub.add_parser("carry", help="STFM: a finer level from the coarser estimate or from its fields")
     c.add_argument("bundle")
     c.add_argument("--fine-steps", type=int, default=300)
@@ -210,7 +217,7 @@ def main():
         print(json.dumps(ops(args.size, args.repeats)), flush=True)
     else:
         args.work.mkdir(parents=True, exist_ok=True)
-        res = recon(args.bundles, args.method, args.budget, args.extra.split(), args.work)
+        res = recon(args.bundles, args.method, args.budget, args.extra.split(), args.work, args.tag)
         if args.json:
             args.json.write_text(json.dumps(res, indent=2))
 

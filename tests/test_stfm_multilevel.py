@@ -101,3 +101,15 @@ def test_fast_preset_fine_level_fits_on_the_coarse_estimate_and_runs_to_the_end(
     assert len(levels) == 2 and levels[0]["steps"] == 20
     comps = m.components()
     assert comps["motion"].shape == (2, *p.shape[1:])
+
+
+def test_finer_level_rs_norm_is_warm_started_and_matches_a_converged_norm():
+    p = _toy_problem()
+    m = make_multilevel(p, STFMSettings(rows_per_step=4), "cpu", (2, 1), lambda q, s: make_stfm(q, s),
+                        max_level_steps=3)
+    while not m.final:
+        m.step()
+    fine = m.method
+    assert type(fine).__name__ == "_WarmNorm" and fine.rs_norm_vector is None  # the full grid keeps none
+    converged = p.rs_op().norm(iters=300, tol=1e-12, dtype=torch.float64)
+    assert fine.rs_norm == pytest.approx(converged, rel=0.01) and fine.rs_norm <= converged * (1 + 1e-5)

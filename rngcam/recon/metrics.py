@@ -223,9 +223,10 @@ def dynamic_region(truth: Tensor, threshold: float = DYNAMIC_THRESHOLD,
                    dilation_px: int = DYNAMIC_DILATION_PX) -> Tensor:
     """(K, H, W) boolean: where the truth (C, K, H, W) differs from its own temporal median by more
     than `threshold` in any channel, grown by `dilation_px` pixels: the moving region, per frame."""
-    t = truth.double().contiguous()  # median over a stride-0 (expanded) axis comes out wrong
-    background = t.median(dim=1).values  # (C, H, W)
-    moving = (t - background[:, None]).abs().amax(0) > threshold
+    t = truth.contiguous()  # median over a stride-0 (expanded) axis comes out wrong
+    background = t.median(dim=1).values.double()  # (C, H, W)
+    moving = torch.cat([(c.double() - background[:, None]).abs().amax(0) > threshold
+                        for c in _frame_chunks(t)])  # frame chunks: bounded temporaries at any size
     return _dilate(moving, dilation_px)
 
 
@@ -233,13 +234,17 @@ def psnr_dynamic(estimate: Tensor, truth: Tensor, frames: np.ndarray | None = No
     """PSNR in dB over the moving region (`dynamic_region`) of `frames` (default all); nan when
     nothing moves there."""
     region = dynamic_region(truth)
-    e, t = estimate.double().to(truth.device), truth.double()
-    if frames is not None:
-        idx = torch.as_tensor(np.asarray(frames), dtype=torch.long, device=truth.device)
-        region, e, t = region.index_select(0, idx), e.index_select(1, idx), t.index_select(1, idx)
-    if not bool(region.any()):
+    idx = torch.arange(truth.shape[1]) if frames is None else torch.as_tensor(np.asarray(frames), dtype=torch.long)
+    total, count = 0.0, 0
+    for i in range(0, len(idx), 16):  # 16 frames at a time: bounded float64 temporaries at any size
+        j = idx[i:i + 16].to(truth.device)
+        r = region.index_select(0, j)[None]
+        e = estimate.index_select(1, j.to(estimate.device)).double().to(truth.device)
+        diff = (e - truth.index_select(1, j).double()) ** 2
+        total, count = total + float(diff[r.expand_as(diff)].sum()), count + int(r.sum()) * diff.shape[0]
+    if count == 0:
         return math.nan
-    mse = float(((e - t) ** 2)[region[None].expand_as(e)].mean())
+    mse = total / count
     return math.inf if mse == 0 else 10 * math.log10(1.0 / mse)
 
 

@@ -84,10 +84,7 @@ def coarsen(problem: Problem, factor: int, time_factor: int | None = None) -> Pr
     hp, wp = problem.psf.shape[-2:]
     psf_shape = (max(1, round(hp * h2 / h)), max(1, round(wp * w2 / w)))
     psf = torch.from_numpy(psf_mod.prepare_psf(problem.psf.double().cpu().numpy(), psf_shape, bias=None)[0])
-    truth = None
-    if problem.truth is not None:
-        mean = frames / frames.sum(1, keepdim=True)
-        truth = _bin2(torch.einsum("jk,ckhw->cjhw", mean.to(problem.truth), problem.truth), r, x)
+    truth = None if problem.truth is None else bin_video(problem.truth, (c, k2, h2, w2), t)
 
     def bin_valid(valid):
         return None if valid is None else _bin2(valid.double(), r, x) > 1 - 1e-9
@@ -100,6 +97,16 @@ def coarsen(problem: Problem, factor: int, time_factor: int | None = None) -> Pr
         mask=None if problem.mask is None else _bin2(problem.mask.double(), r, x) > 0.5,
         white_balance=problem.white_balance, notes=[],
         rs_valid=bin_valid(problem.rs_valid), gs_valid=bin_valid(problem.gs_valid))
+
+
+def bin_video(video: Tensor, shape: tuple[int, int, int, int], time_factor: int) -> Tensor:
+    """(C, K, H, W) -> `shape` (C, K', H', W'): frames averaged in blocks of `time_factor`, pixels
+    by area (how `coarsen` bins the truth)."""
+    _, k, h, w = video.shape
+    _, k2, h2, w2 = shape
+    frames = block_matrix(k2, k, time_factor)
+    mean = (frames / frames.sum(1, keepdim=True).clamp_min(1)).to(video)
+    return _bin2(torch.einsum("jk,ckhw->cjhw", mean, video), area_matrix(h2, h), area_matrix(w2, w))
 
 
 def upsample(video: Tensor, shape: tuple[int, int, int, int], time_factor: float) -> Tensor:
@@ -150,16 +157,18 @@ class CoarseToFine(MethodBase):
     when its steps have used their share of `budget_s` (`level_share`; only time inside step()
     counts, not the loop's evaluations); the final level runs for as long as the loop lets it.
     A finer level is not started when what is left of `budget_s` (counted from construction)
-    looks too short for its set-up and a few steps (8x the current level's, per halving): the run
-    then ends on the current level, upsampled, and `budget_cut()` says so. `estimate()` is always
-    on the full grid. `stage(message)` reports each level's set-up.
+    looks too short for its set-up and `fine_steps` steps (8x the current level's, per halving): the run
+    then ends on the current level, upsampled (plus `detail(full_problem, coarse_shape)`, the
+    full grid's detail that level cannot hold, when given), and `budget_cut()` says so. `estimate()`
+    is always on the full grid. `stage(message)` reports each level's set-up.
     """
 
     def __init__(self, problem: Problem, make: Callable[[Problem, Tensor | None], object],
                  factors: tuple[int, ...] | None = None, budget_s: float | None = None,
                  level_share: float = 0.15, level_rtol: float = 2e-3, window: int = 10,
                  max_level_steps: int = 300, stage: Callable[[str], None] | None = None,
-                 level_stop: str = "objective"):
+                 level_stop: str = "objective", fine_steps: int = 5,
+                 detail: Callable[[Problem, tuple[int, int, int, int]], Tensor] | None = None):
         self.full_shape = problem.shape
         self.factors = tuple(factors or default_factors(problem.shape))
         if self.factors[-1] != 1:
@@ -167,7 +176,8 @@ class CoarseToFine(MethodBase):
         self.problems = [coarsen(problem, f) if f > 1 else problem for f in self.factors]
         self.make, self.budget_s, self.level_share = make, budget_s, level_share
         self.level_rtol, self.window, self.max_level_steps = level_rtol, window, max_level_steps
-        self.level_stop, self.level_ends = level_stop, []
+        self.level_stop, self.level_ends, self.fine_steps = level_stop, [], fine_steps
+        self.detail, self._detail = detail, (None, None)  # (level, the full grid's detail for it)
         self.stage = stage or (lambda message: None)
         self.t0 = time.perf_counter()
         self.level, self._x0, self.held_back = 0, None, False
@@ -182,7 +192,7 @@ class CoarseToFine(MethodBase):
     def _start_level(self, i: int, x0: Tensor | None) -> None:
         self.stage(f"{self._describe(i)}: building")
         t0 = time.perf_counter()
-        self.level, self._x0 = i, x0
+        self.level, self._x0, self._detail = i, x0, (None, None)  # the coarser level's detail can go
         self.method = self.make(self.problems[i], x0)
         self.level_steps, self.level_step_s, self._history = 0, 0.0, []
         self.level_setup_s = time.perf_counter() - t0
@@ -212,7 +222,7 @@ class CoarseToFine(MethodBase):
         # A level whose build is not the coarse one's (STFM: one fit instead of RIFE and an
         # ensemble) is guessed from its steps alone.
         setup = self.level_setup_s if self.level_stop == "objective" else 0.0
-        needed = growth * (setup + 5 * per_step)
+        needed = growth * (setup + self.fine_steps * per_step)
         return time.perf_counter() - self.t0 + needed <= self.budget_s
 
     def _next_level(self) -> None:
@@ -248,7 +258,13 @@ class CoarseToFine(MethodBase):
         x = self.method.estimate()
         if self.final:
             return x
-        return upsample(x.detach(), self.full_shape, self.factors[self.level])
+        up = upsample(x.detach(), self.full_shape, self.factors[self.level])
+        if self.detail is None:
+            return up
+        if self._detail[0] != self.level:  # computed once per level, on the full grid
+            self._detail = (None, None)
+            self._detail = (self.level, self.detail(self.problems[-1], tuple(x.shape)).to(up))
+        return up.add_(self._detail[1]).clamp_min_(0)
 
     def residuals(self) -> dict[str, float]:
         return self.method.residuals()  # of the current level's problem

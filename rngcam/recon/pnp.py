@@ -65,6 +65,8 @@ class PnPSettings:
     # one RIFE, else interp); "rife", "interp" or "blend"
     init: str = "video"
     frame_chunk: int = 16  # images per denoiser pass
+    coarse_to_fine: bool = setting(True, "on grids of 96 px and more, reconstruct 1/4 and 1/2 grids first, "
+                                         "each starting the next (else one level at the full grid)")
     stop_at_noise: bool = setting(True, "stop once the RS residual reaches the noise level estimated from "
                                         "the RS image, or stalls after the schedule")
     # The discrepancy test's tolerance: the RS noise estimate is within ~7 % of the truth
@@ -186,8 +188,13 @@ class PnP(MethodBase):
     name = "pnp"
     stops_itself = True  # the discrepancy principle and the stall test (converged)
 
-    def __init__(self, problem: Problem, settings: PnPSettings | None = None, device: str = "cpu"):
-        self.p, self.s = problem, settings or PnPSettings()
+    def __init__(self, problem: Problem, settings: PnPSettings | None = None, device: str = "cpu",
+                 x0: Tensor | None = None, rs_norm_start: Tensor | None = None, coarse_level: bool = False):
+        """`x0`: a starting video (C, K, H, W) instead of `settings.init` (a coarser level's estimate);
+        `rs_norm_start`: a start for the RS operator's power iteration (a coarser level's
+        `rs_norm_vector`, upsampled); `coarse_level`: also converged once the noise-level schedule
+        has ended (a coarse grid's binned model may never reach the noise level nor stall)."""
+        self.p, self.s, self.coarse_level = problem, settings or PnPSettings(), coarse_level
         problem.check_finite("pnp")
         if problem.b_rs is None:
             raise ConfigError("pnp needs the RS measurement")
@@ -200,7 +207,16 @@ class PnP(MethodBase):
         rs_mask, gs_mask = problem.rs_valid_mask(), problem.gs_valid_mask() if self.use_gs else None
         self.rs_fit = _Masked(self.rs, rs_mask, 1.0)
         self.b_rs_fit = problem.b_rs if rs_mask is None else rs_mask * problem.b_rs
-        n_r = 1.02 * self.rs.norm(iters=20, tol=1e-3, dtype=dt, device=dev) ** 2
+        self.rs_norm_vector = None
+        # Power iteration underestimates; a 2 % margin keeps the weights safe.
+        if rs_norm_start is None:
+            n_r = 1.02 * self.rs.norm(iters=20, tol=1e-3, dtype=dt, device=dev) ** 2
+        else:
+            from rngcam.recon.multiscale import power_norm
+
+            norm, self.rs_norm_vector = power_norm(self.rs, rs_norm_start.to(dtype=dt, device=dev))
+            n_r = 1.02 * norm ** 2
+        self.rs_norm_sq = n_r
         self.blocks = [(_Masked(self.rs, rs_mask, math.sqrt((self.s.psi if self.use_gs else 1.0) / max(n_r, 1e-30))),
                         self.b_rs_fit)]
         if self.use_gs:
@@ -217,7 +233,11 @@ class PnP(MethodBase):
         self.denoiser = Denoiser(str(dev), self.s.frame_chunk)
         if self.denoiser.note:
             self.notes.append(self.denoiser.note)
-        x0 = self._project(self._initial().to(dtype=dt, device=dev))
+        if x0 is None:
+            x0 = self._initial()
+        else:
+            self.init_source = "coarser level"
+        x0 = self._project(x0.to(dtype=dt, device=dev))
         self.scale = float(x0.max()) if float(x0.max()) > 0 else 1.0
         self.kinds = self.s.slices.split(",")
         self.state = {"x": x0, "z": x0, "k": 0, "mu_scale": 1.0, "history": []}
@@ -338,9 +358,13 @@ class PnP(MethodBase):
         if self.start_settled:
             return (f"the start's RS residual {self.start_residual:.4f} is already at the noise level estimated "
                     f"from the RS image ({self.rs_noise_level:.4f}, x{s.noise_margin:g}): kept the start")
-        if not s.stop_at_noise or not st["history"]:
+        if not st["history"]:
             return None
         res = st["history"][-1]
+        if self.coarse_level and st["k"] >= s.schedule_iters:
+            return f"the noise-level schedule ended at sigma {s.sigma_end:g} (RS residual {res:.4f})"
+        if not s.stop_at_noise:
+            return None
         if self._at_noise(res):
             return (f"RS residual {res:.4f} reached the noise level estimated from the RS image "
                     f"({self.rs_noise_level:.4f}, x{s.noise_margin:g}): more steps would fit noise")
@@ -373,3 +397,87 @@ class PnP(MethodBase):
     def reduce_step(self, factor: float) -> None:
         # A non-finite iterate: lean harder on the denoised estimate.
         self.state["mu_scale"] /= factor
+
+
+def fine_level_settings(settings: PnPSettings) -> PnPSettings:
+    """A finer level's schedule: it starts from a coarser level's denoised estimate, so it takes up
+    the noise-level schedule half way (geometric mid-point of sigma_start and sigma_end) and runs
+    the second half of it."""
+    from dataclasses import replace
+
+    mid = math.sqrt(settings.sigma_start * settings.sigma_end)
+    return replace(settings, sigma_start=mid, schedule_iters=max(1, settings.schedule_iters // 2))
+
+
+def key_frame_detail(problem: Problem, coarse_shape: tuple[int, int, int, int]) -> Tensor | None:
+    """The detail of the GS key frames' cross-fade B on `problem`'s grid that a grid of
+    `coarse_shape` cannot hold: B - up(bin(B)) (None without GS frames)."""
+    from rngcam.recon.baselines import blend
+    from rngcam.recon.multiscale import bin_video, upsample
+
+    if problem.b_gs is None or problem.b_gs.shape[1] == 0:
+        return None
+    keys = problem.gs_images().detach().float().cpu().numpy()
+    b = torch.from_numpy(blend(keys, problem.gs_times_s, problem.frame_times_s)).to(problem.b_gs)
+    t = max(1, round(problem.shape[1] / coarse_shape[1]))
+    return b.sub_(upsample(bin_video(b, coarse_shape, t), problem.shape, t))
+
+
+def with_key_frame_detail(problem: Problem, x0: Tensor, coarse_shape: tuple[int, int, int, int]) -> Tensor:
+    """A coarser estimate upsampled (x0, on `problem`'s grid) plus `key_frame_detail`, the detail
+    its grid could not hold. The upsampled estimate alone is blurred (at 128 px it started 1.3 dB
+    below this, bench/scale.md); where the cross-fade's detail is wrong (moving edges) the data
+    and the denoiser remove it. Without GS frames: x0."""
+    detail = key_frame_detail(problem, coarse_shape)
+    return x0 if detail is None else detail.add_(x0).clamp_min_(0)
+
+
+def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str = "cpu",
+             budget_s: float | None = None, stage=None, factors: tuple[int, ...] | None = None):
+    """PnP on `problem`, coarse to fine (rngcam.recon.multiscale) on grids of 96 px and more with
+    `coarse_to_fine` on: the start (RIFE, the operator norm from a random vector) is made on the
+    coarsest level only; each finer level starts from the coarser estimate, upsampled, plus the key
+    frames' detail the coarser grid could not hold (`with_key_frame_detail`), with the
+    operator norm's power iteration warm-started from the coarser one's vector, and runs the
+    second half of the noise-level schedule (`fine_level_settings`). A coarse level ends at pnp's
+    own stop (noise level or stall), at the end of its schedule, or at its share of the budget. `stage(message)` reports set-up;
+    `factors`: the levels' spatial factors (default: multiscale.default_factors)."""
+    from rngcam.recon.multiscale import CoarseToFine, default_factors, upsample
+
+    settings = settings or PnPSettings()
+    factors = tuple(factors or default_factors(problem.shape))
+    if not settings.coarse_to_fine or len(factors) == 1 or problem.has_holdout:
+        if stage:
+            stage(f"pnp on {problem.shape[-2]}x{problem.shape[-1]}x{problem.shape[1]}: operator norms, start")
+        return PnP(problem, settings, device=device)
+    previous: list[PnP] = []
+
+    def make(level: Problem, x0):
+        if x0 is None:  # the coarsest level: the ordinary start, a seeded random vector for the norm
+            gen = torch.Generator().manual_seed(0)
+            start = torch.randn(level.shape, generator=gen).to(level.b_rs)
+            method = PnP(level, settings, device=device, rs_norm_start=start, coarse_level=True)
+        else:
+            coarse = previous[-1].rs_norm_vector
+            start = None if coarse is None else upsample(coarse, level.shape, level.shape[1] / coarse.shape[1])
+            coarse_shape = previous[-1].p.shape
+            previous.clear()  # free the coarser level before building this one
+            x0 = with_key_frame_detail(level, x0, coarse_shape)
+            final = level.shape == problem.shape
+            method = PnP(level, fine_level_settings(settings), device=device, x0=x0, rs_norm_start=start,
+                         coarse_level=not final)
+            del start
+            if final:  # no finer level needs the power-iteration vector (a video's worth of memory)
+                method.rs_norm_vector = None
+        previous[:] = [method]
+        return method
+
+    # A finer level is worth starting for one step: its start alone (the coarser estimate plus the
+    # key frames' detail) is already better than the coarser estimate upsampled.
+    # A run the budget ends on a coarser level keeps the key frames' detail in its output too.
+    def detail(full: Problem, coarse_shape):
+        d = key_frame_detail(full, coarse_shape)
+        return torch.zeros(()) if d is None else d
+
+    return CoarseToFine(problem, make, factors, budget_s=budget_s, stage=stage, level_stop="method", fine_steps=1,
+                        detail=detail)

@@ -186,9 +186,9 @@ def _make_tv3d(problem, settings, device="cpu", budget_s=None, stage=None):
 
 
 def _make_pnp(problem, settings, device="cpu", budget_s=None, stage=None):
-    from rngcam.recon.pnp import PnP
+    from rngcam.recon.pnp import make_pnp
 
-    return PnP(problem, settings, device=device)
+    return make_pnp(problem, settings, device=device, budget_s=budget_s, stage=stage)
 
 
 def _blend(key, gs_times_s, frame_times_s, settings: BlendSettings) -> GSOnlyVideo:
@@ -228,11 +228,14 @@ def _rife_unavailable() -> str:
 # bytes an element plus 0.92 MB a frame; with about 10 %: 110 bytes and 1.0 MB. On grids of 96 px
 # and more STFM runs coarse to fine (rngcam.recon.stfm.multilevel): the ensemble and RIFE run only on
 # the coarsest level (about 1.0 GB: 1.20 GiB measured for the whole run at 114x171x117), the full
-# grid holds one fit at 79 bytes an element (4.25 GiB for the whole run at 228x342x231), with about
-# 10 %: 87 bytes. RIFE and pnp were not measured: RIFE as interp plus its model's activations, pnp
-# as STFM's single-level figure (bench/scale.md).
+# grid holds one fit: 3.61 GiB through the solve at 228x342x231 (the whole run's end stays under it
+# since the method is freed before the final metrics: 3.28 GiB whole-process over a 600 s run), 66
+# bytes an element, with about 10 %: 73 bytes. RIFE was not measured: as interp plus its model's activations. pnp on one level as
+# STFM's single-level figure; coarse to fine (>= 96 px), from whole runs (bench/scale.md): 4.33 GiB at
+# 228x342x231 (two steps on the full grid) is 80 bytes an element, with about 10 %: 88; 1.31 GiB at
+# 128x128x131 (the coarse level, the denoiser and RIFE) sets the floor.
 STFM_MEMORY = MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000, coarse_to_fine_min_side=96,
-                          coarse_to_fine_bytes_per_element=87, coarse_level_bytes=1_000_000_000)
+                          coarse_to_fine_bytes_per_element=73, coarse_level_bytes=1_000_000_000)
 
 # The default method first. STFM's fast preset stops by itself (after 1-3 min at 64 px on one CPU
 # thread), so its auto budget only guards against a fit that never settles.
@@ -243,7 +246,8 @@ register(MethodEntry("tv3d", ITERATIVE, TV3DSettings, _make_tv3d,
                      presets={"haar": TV3DSettings(prox="haar"), "exact": TV3DSettings(prox="exact")},
                      memory=MemoryModel(bytes_per_element=150), fits_holdout=True))
 register(MethodEntry("pnp", ITERATIVE, PnPSettings, _make_pnp, auto_budget_s=300.0,
-                     memory=MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000)))
+                     memory=MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000, coarse_to_fine_min_side=96,
+                                        coarse_to_fine_bytes_per_element=88, coarse_level_bytes=1_200_000_000)))
 register(MethodEntry("blend", GS_ONLY, BlendSettings, _blend, memory=MemoryModel(bytes_per_element=155)))
 register(MethodEntry("interp", GS_ONLY, InterpSettings, _interp, memory=MemoryModel(bytes_per_element=155)))
 register(MethodEntry("rife", GS_ONLY, RifeSettings, _rife, unavailable=_rife_unavailable,

@@ -15,6 +15,10 @@ Each finer level starts from the level below, in the preset's own model:
   the same fields, their feature planes resampled to the finer level's plane sizes and the
   decoders copied, so the canonical image and the motion carry over (coordinates are in [-1, 1]
   on every level) and the level fits only what the coarser grid could not resolve.
+
+A finer level's RS operator norm (the data term's scale) comes from a power iteration started at
+the coarser level's last iterate, upsampled (`_WarmNorm`): it settles in a few iterations where a
+cold start at the full grid took its six allowed ones and most of the level's set-up.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
-from rngcam.recon.multiscale import CoarseToFine, default_factors, upsample
+from rngcam.recon.multiscale import CoarseToFine, default_factors, power_norm, upsample
 from rngcam.recon.stfm.method import STFM
 from rngcam.recon.stfm.settings import REFINE_LR_RATIO, STFMSettings, _preset
 
@@ -50,20 +54,35 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
     with_base = _preset(settings.preset, h, w, k)["dynamic_time"] if settings.dynamic_time is None \
         else settings.dynamic_time
     previous: list = []
+    norm_vector: list[Tensor] = []  # the last level's power-iteration vector for ||A_R||
 
     def make(level, x0: Tensor | None):
         if x0 is None:  # the coarsest level: the ordinary build
             method = single(level, single_settings)
-        elif with_base and carry == "fields":
+            if level.b_rs is not None:  # and a cold power-iteration vector (cheap here) for the next
+                gen = torch.Generator().manual_seed(0)
+                start = torch.randn(level.shape, generator=gen).to(level.b_rs)
+                norm_vector[:] = [power_norm(level.rs_op(), start)[1]]
+            previous[:] = [method]
+            return method
+        start = None
+        if norm_vector:
+            start = upsample(norm_vector[0], level.shape, level.shape[1] / norm_vector[0].shape[1])
+            norm_vector.clear()
+        if with_base and carry == "fields":
             coarse = _fit_of(previous[-1])
             base = upsample(coarse.base_video, level.shape, level.shape[1] / coarse.K)
-            method = STFM(level, replace(single_settings, dynamic_base="video", dynamic_time=True,
-                                         lr=_lr(single_settings, level)), device, base_video=base, fields_from=coarse)
+            method = _WarmNorm(level, replace(single_settings, dynamic_base="video", dynamic_time=True,
+                                              lr=_lr(single_settings, level)), device, base_video=base,
+                               fields_from=coarse, norm_start=start)
         elif with_base:
             previous.clear()  # the coarser fit is not needed any more: free it before building
-            method = _on_base(level, single_settings, device, x0)
+            method = _on_base(level, single_settings, device, x0, start)
         else:
-            method = _from_fields(level, single_settings, device, _fit_of(previous[-1]))
+            method = _from_fields(level, single_settings, device, _fit_of(previous[-1]), start)
+        if level.shape != problem.shape and method.rs_norm_vector is not None:
+            norm_vector[:] = [method.rs_norm_vector]  # for the next level (the full grid keeps none)
+        method.rs_norm_vector = None
         previous[:] = [method]
         return method
 
@@ -84,17 +103,34 @@ def _lr(settings: STFMSettings, problem) -> float:
     return REFINE_LR_RATIO * base
 
 
-def _on_base(problem, settings: STFMSettings, device, x0: Tensor) -> STFM:
+class _WarmNorm(STFM):
+    """STFM whose ||A_R|| comes from `power_norm` (the operator's banded forward and adjoint)
+    started at `norm_start` (a coarser level's vector, upsampled); its last iterate is kept in
+    `rs_norm_vector` for the next level. Without a start: STFM's own cold estimate."""
+
+    def __init__(self, *args, norm_start: Tensor | None = None, **kwargs):
+        self._norm_start, self.rs_norm_vector = norm_start, None
+        super().__init__(*args, **kwargs)
+
+    def _rs_norm(self, iters: int = 6, tol: float = 1e-3) -> float:
+        if self._norm_start is None:
+            return super()._rs_norm(iters, tol)
+        start, self._norm_start = self._norm_start.to(self.device, torch.float32), None
+        norm, self.rs_norm_vector = power_norm(self.rs_op, start, iters=iters, tol=tol)
+        return norm
+
+
+def _on_base(problem, settings: STFMSettings, device, x0: Tensor, norm_start: Tensor | None = None) -> STFM:
     """One fit on the base video x0 (C, K, H, W), the coarser level's estimate upsampled. The base
     is divided by the gains the fit starts with, so its first video is x0 itself."""
     wb = problem.white_balance
     gains = torch.ones(x0.shape[0]) if wb is None else wb.float().cpu()
     base = x0 if bool(torch.all(gains == 1)) else x0 / gains.to(x0)[:, None, None, None]  # no copy if 1
     fine = replace(settings, dynamic_base="video", dynamic_time=True, lr=_lr(settings, problem))
-    return STFM(problem, fine, device, base_video=base)
+    return _WarmNorm(problem, fine, device, base_video=base, norm_start=norm_start)
 
 
-def _from_fields(problem, settings: STFMSettings, device, coarse: STFM) -> STFM:
+def _from_fields(problem, settings: STFMSettings, device, coarse: STFM, norm_start: Tensor | None = None) -> STFM:
     """The coarse fit's model on this level: its fields resampled, its gains, a quarter of the lr."""
     fine = replace(settings, lr=_lr(settings, problem))
-    return STFM(problem, fine, device, fields_from=coarse)
+    return _WarmNorm(problem, fine, device, fields_from=coarse, norm_start=norm_start)
