@@ -440,8 +440,9 @@ def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str 
     frames' detail the coarser grid could not hold (`with_key_frame_detail`), with the
     operator norm's power iteration warm-started from the coarser one's vector, and runs the
     second half of the noise-level schedule (`fine_level_settings`). A coarse level ends at pnp's
-    own stop (noise level or stall), at the end of its schedule, or at its share of the budget. `stage(message)` reports set-up;
-    `factors`: the levels' spatial factors (default: multiscale.default_factors)."""
+    own stop (noise level or stall), at the end of its schedule, or at its share of the budget.
+    `stage(message)` reports set-up; `factors`: the levels' spatial factors (default:
+    multiscale.default_factors)."""
     from rngcam.recon.multiscale import CoarseToFine, default_factors, upsample
 
     settings = settings or PnPSettings()
