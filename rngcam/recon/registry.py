@@ -232,8 +232,9 @@ def _rife_unavailable() -> str:
 # since the method is freed before the final metrics: 3.28 GiB whole-process over a 600 s run), 66
 # bytes an element, with about 10 %: 73 bytes. RIFE was not measured: as interp plus its model's
 # activations. pnp on one level as STFM's single-level figure; coarse to fine (>= 96 px), from
-# whole runs (bench/scale.md): 4.33 GiB at 228x342x231 (two steps on the full grid) is 80 bytes an element, with about 10 %: 88; 1.31 GiB at
-# 128x128x131 (the coarse level, the denoiser and RIFE) sets the floor.
+# whole runs (bench/scale.md): 4.33 GiB at 228x342x231 (two steps on the full grid) is 80 bytes an
+# element, with about 10 %: 88; 1.31 GiB at 128x128x131 (the coarse level, the denoiser and RIFE)
+# sets the floor.
 STFM_MEMORY = MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000, coarse_to_fine_min_side=96,
                           coarse_to_fine_bytes_per_element=73, coarse_level_bytes=1_000_000_000)
 
