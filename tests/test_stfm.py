@@ -20,15 +20,6 @@ from rngcam.sim.scenes import render_scene
 DT_S, EXPOSURE_S = 208e-6, 650e-6  # the reference rig scaled to the grid (see rngcam.sim)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small tensors: one thread is faster on a shared 2-core machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def synthetic_psf(size: int, seed: int = 0) -> torch.Tensor:
     """A caustic-like PSF: a few random bright spots on a weak floor, summing to 1."""
     rng = np.random.default_rng(seed)

@@ -15,14 +15,6 @@ from rngcam.sim.scenes import render_scene
 from rngcam.sim.simulate import simulation_timing
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def _toy_problem(h=32, w=48):
     from rngcam.recon.problem import problem_from_video
     from rngcam.sim.simulate import prepare_simulation_psf

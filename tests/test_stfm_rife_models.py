@@ -12,14 +12,6 @@ from rngcam.recon.stfm import STFMSettings, make_stfm
 from rngcam.recon.stfm.bases import _rife_model_of
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="module")
 def sineball16():
     return scene_problem("sineball", 16)
