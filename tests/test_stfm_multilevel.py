@@ -102,6 +102,19 @@ def test_finer_level_rs_norm_is_warm_started_and_matches_a_converged_norm():
     while not m.final:
         m.step()
     fine = m.method
-    assert type(fine).__name__ == "_WarmNorm" and fine.rs_norm_vector is None  # the full grid keeps none
+    assert isinstance(fine, STFM) and fine.rs_norm_vector is None  # the full grid keeps none
     converged = p.rs_op().norm(iters=300, tol=1e-12, dtype=torch.float64)
     assert fine.rs_norm == pytest.approx(converged, rel=0.01) and fine.rs_norm <= converged * (1 + 1e-5)
+
+
+def test_rs_norm_start_is_used_and_its_last_iterate_kept():
+    p = _toy_problem()
+    s = STFMSettings(rows_per_step=4, dynamic_base="video", refine=False)
+    cold = STFM(p, s)
+    assert cold.rs_norm_vector is None  # no start given: no video-sized vector kept
+    top = torch.ones(p.shape)  # near the top singular vector (the PSF is a low-pass filter)
+    warm = STFM(p, s, rs_norm_start=top)
+    assert warm.rs_norm_vector is not None and warm.rs_norm_vector.shape == p.shape
+    assert warm.rs_norm == pytest.approx(cold.rs_norm, rel=0.01)
+    worse = STFM(p, s, rs_norm_start=torch.randn(p.shape, generator=torch.Generator().manual_seed(1)))
+    assert worse.rs_norm < warm.rs_norm  # six iterations from noise fall short: the start was used

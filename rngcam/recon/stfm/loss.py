@@ -22,15 +22,21 @@ class DataLoss:
             norm_sq = self.gs_op.norm() ** 2
             self.c_gs = 1.0 / (max(norm_sq, 1e-12) * pixels)
         if self.parts.rs:
-            self.rs_norm = self._rs_norm()
+            self.rs_norm, vector = self._rs_norm(self._rs_norm_start)
+            self._rs_norm_start = None
+            self.rs_norm_vector = vector if self._keep_norm_vector else None
             self.c_rs = self.settings.psi / (max(self.rs_norm ** 2, 1e-12) * pixels)
 
-    def _rs_norm(self, iters: int = 6, tol: float = 1e-3) -> float:
-        """||A_R|| by power iteration on A_R^T A_R, applied frame chunk by frame chunk. It starts
-        near a constant video (close to the top singular vector: the PSF is a low-pass filter)."""
-        gen = torch.Generator(device="cpu").manual_seed(0)
-        x = 1 + 0.1 * torch.randn((self.C, self.K, self.H, self.W), generator=gen).to(self.device)
-        x /= x.norm()
+    def _rs_norm(self, start: Tensor | None = None, iters: int = 6, tol: float = 1e-3) -> tuple[float, Tensor]:
+        """(||A_R||, the last iterate) by power iteration on A_R^T A_R, applied frame chunk by frame
+        chunk. It starts at `start` (a coarser level's vector, upsampled), else near a constant
+        video (close to the top singular vector: the PSF is a low-pass filter)."""
+        if start is None:
+            gen = torch.Generator(device="cpu").manual_seed(0)
+            x = 1 + 0.1 * torch.randn((self.C, self.K, self.H, self.W), generator=gen).to(self.device)
+        else:
+            x = start.to(self.device, torch.float32)
+        x = x / x.norm().clamp_min(1e-30)
         lam = 0.0
         all_rows = torch.arange(self.H, device=self.device)
         for _ in range(iters):
@@ -44,7 +50,7 @@ class DataLoss:
                 lam = new
                 break
             lam = new
-        return math.sqrt(max(lam, 0.0))
+        return math.sqrt(max(lam, 0.0)), x
 
     def _rs_apply(self, frames_fn, rows: Tensor, frames: Tensor | None = None) -> Tensor:
         """RS rows `rows` of the video frames_fn(idx) -> (C, n, H, W), frame chunk by frame chunk."""

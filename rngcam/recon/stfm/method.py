@@ -33,18 +33,24 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
     supports_holdout = True  # fits only the training measurements when the problem has a split
 
     def __init__(self, problem, settings: STFMSettings, device="cpu", static_from: STFM | None = None,
-                 base_video: Tensor | None = None, fields_from: STFM | None = None):
+                 base_video: Tensor | None = None, fields_from: STFM | None = None,
+                 rs_norm_start: Tensor | None = None):
         """`static_from`: an STFM of the same problem and preset whose initialised static field
         this one copies instead of fitting it again (ensemble members share that start).
         `base_video` (C, K, H, W), without GS gains: the base of a "video" dynamic base, instead
         of RIFE's or the flow interpolation's (the ensemble's refinement fit).
         `fields_from`: an STFM of the same model on a coarser grid whose fields (planes resampled)
-        and gains this one starts from instead of initialising from the GS frames (coarse to fine)."""
+        and gains this one starts from instead of initialising from the GS frames (coarse to fine).
+        `rs_norm_start`: a start for the RS operator's power iteration (a coarser level's
+        `rs_norm_vector`, upsampled); given one, the fit keeps its last iterate in `rs_norm_vector`
+        for the next level (a video-sized buffer the caller frees), else `rs_norm_vector` is None."""
         self.settings = settings
         choice = settings.preset_choice  # preset "auto" (make_stfm): what it chose and why
         self.notes = [f"preset auto chose {choice['preset']}: {choice['reason']}"] if choice else []
         self._static_from = static_from
         self._given_base = base_video
+        self._rs_norm_start, self._keep_norm_vector = rs_norm_start, rs_norm_start is not None
+        self.rs_norm_vector = None
         self.device = torch.device(device)
         self.problem = problem.to(torch.float32, self.device)
         p = self.problem

@@ -17,7 +17,7 @@ Each finer level starts from the level below, in the preset's own model:
   on every level) and the level fits only what the coarser grid could not resolve.
 
 A finer level's RS operator norm (the data term's scale) comes from a power iteration started at
-the coarser level's last iterate, upsampled (`_WarmNorm`): it settles in a few iterations where a
+the coarser level's last iterate, upsampled (STFM's `rs_norm_start`): it settles in a few iterations where a
 cold start at the full grid took its six allowed ones and most of the level's set-up.
 """
 
@@ -72,9 +72,9 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
         if with_base and carry == "fields":
             coarse = _fit_of(previous[-1])
             base = upsample(coarse.base_video, level.shape, level.shape[1] / coarse.K)
-            method = _WarmNorm(level, replace(single_settings, dynamic_base="video", dynamic_time=True,
-                                              lr=_lr(single_settings, level)), device, base_video=base,
-                               fields_from=coarse, norm_start=start)
+            method = STFM(level, replace(single_settings, dynamic_base="video", dynamic_time=True,
+                                         lr=_lr(single_settings, level)), device, base_video=base,
+                          fields_from=coarse, rs_norm_start=start)
         elif with_base:
             previous.clear()  # the coarser fit is not needed any more: free it before building
             method = _on_base(level, single_settings, device, x0, start)
@@ -103,23 +103,6 @@ def _lr(settings: STFMSettings, problem) -> float:
     return REFINE_LR_RATIO * base
 
 
-class _WarmNorm(STFM):
-    """STFM whose ||A_R|| comes from `power_norm` (the operator's banded forward and adjoint)
-    started at `norm_start` (a coarser level's vector, upsampled); its last iterate is kept in
-    `rs_norm_vector` for the next level. Without a start: STFM's own cold estimate."""
-
-    def __init__(self, *args, norm_start: Tensor | None = None, **kwargs):
-        self._norm_start, self.rs_norm_vector = norm_start, None
-        super().__init__(*args, **kwargs)
-
-    def _rs_norm(self, iters: int = 6, tol: float = 1e-3) -> float:
-        if self._norm_start is None:
-            return super()._rs_norm(iters, tol)
-        start, self._norm_start = self._norm_start.to(self.device, torch.float32), None
-        norm, self.rs_norm_vector = power_norm(self.rs_op, start, iters=iters, tol=tol)
-        return norm
-
-
 def _on_base(problem, settings: STFMSettings, device, x0: Tensor, norm_start: Tensor | None = None) -> STFM:
     """One fit on the base video x0 (C, K, H, W), the coarser level's estimate upsampled. The base
     is divided by the gains the fit starts with, so its first video is x0 itself."""
@@ -127,10 +110,10 @@ def _on_base(problem, settings: STFMSettings, device, x0: Tensor, norm_start: Te
     gains = torch.ones(x0.shape[0]) if wb is None else wb.float().cpu()
     base = x0 if bool(torch.all(gains == 1)) else x0 / gains.to(x0)[:, None, None, None]  # no copy if 1
     fine = replace(settings, dynamic_base="video", dynamic_time=True, lr=_lr(settings, problem))
-    return _WarmNorm(problem, fine, device, base_video=base, norm_start=norm_start)
+    return STFM(problem, fine, device, base_video=base, rs_norm_start=norm_start)
 
 
 def _from_fields(problem, settings: STFMSettings, device, coarse: STFM, norm_start: Tensor | None = None) -> STFM:
     """The coarse fit's model on this level: its fields resampled, its gains, a quarter of the lr."""
     fine = replace(settings, lr=_lr(settings, problem))
-    return _WarmNorm(problem, fine, device, fields_from=coarse, norm_start=norm_start)
+    return STFM(problem, fine, device, fields_from=coarse, rs_norm_start=norm_start)
