@@ -31,9 +31,12 @@ Coordinates are in [-1, 1] (pixel and frame centres at the ends); u is in the sa
 Loss, each data term divided by its operator's squared norm (||A|| from power iteration at
 setup) and by the number of pixels C H W, so psi is a relative weight:
     ||A_G v - Lambda b_G||^2 / (||A_G||^2 C H W) + psi ||A_R v - b_R||^2 / (||A_R||^2 C H W)
-    + tau TV_S(U) + time_smoothness * (roughness of the plane fields' time planes),
+    + tau TV_S(U) + time_smoothness * (roughness of the plane fields' time planes)
+    + matte_l1 * mean(1 - alpha of the canonical dynamic image)   (2-D dynamic field only),
 TV_S(U) = mean over (t, y, x) of |D_x u| + |D_y u| + beta |D_t u| (both components, u in
-pixels); the roughness is the mean squared second difference along t (as in K-planes).
+pixels); the roughness is the mean squared second difference along t (as in K-planes). The matte term
+(prior preset) keeps the moving layer no larger than the data need: its start, the motion-blurred
+middle key frame, covers the whole smear, which otherwise stays as a rim around the object.
 Lambda (per-channel GS/RS gains) is learned (slowly) when both sensors are used, starting at
 problem.white_balance (or one). With gs_anchor="hard" the GS term is replaced by a
 projection of the video onto {A_G v = Lambda b_G}: frames inside GS exposures get

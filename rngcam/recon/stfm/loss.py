@@ -8,6 +8,7 @@ import math
 import torch
 from torch import Tensor
 
+from rngcam.recon.fields import field_on_grid
 from rngcam.recon.stfm.model import _chunks
 
 
@@ -85,6 +86,17 @@ class DataLoss:
     def rs_scale(self, n_rows: int) -> float:
         return self.c_rs * len(self.rs_rows_fit) / n_rows
 
+    @property
+    def _has_canonical_matte(self) -> bool:
+        return (self.resolved.matte_l1 > 0 and self.parts.static and self.parts.motion
+                and not self.resolved.dynamic_time and not self._key_warps)
+
+    def matte_term(self) -> Tensor:
+        """matte_l1 times the mean of the canonical dynamic image's matte, 1 - alpha (the share of
+        each pixel the moving layer covers), on the pixel grid."""
+        raw = field_on_grid(self.fields["dynamic"], [self.xs, self.ys])  # (H, W, C + 1)
+        return self.resolved.matte_l1 * (1 - torch.sigmoid(raw[..., self.C])).mean()
+
     def tv_term(self, idx: Tensor) -> Tensor:
         """Unbiased estimate of tau TV_S(U) from frames idx (uniform sample without replacement)."""
         nxt = (idx + 1).clamp(max=self.K - 1)
@@ -118,9 +130,13 @@ class DataLoss:
         else:
             windows = gs_windows.to(dev)
             win_frames = torch.nonzero(self.w_gs[windows].sum(0) > 0).flatten()
-        terms = {"gs": 0.0, "rs": 0.0, "tv": 0.0, "smooth": 0.0}
+        terms = {"gs": 0.0, "rs": 0.0, "tv": 0.0, "smooth": 0.0, "matte": 0.0}
         static = self._static() if self.parts.static else None
         graph_loss = torch.zeros((), device=dev)
+        if self._has_canonical_matte:
+            matte = self.matte_term()
+            terms["matte"] = float(matte.detach())
+            graph_loss = graph_loss + matte
         if self.resolved.time_smoothness > 0:
             rough = [f.time_roughness() for f in self.fields.values() if hasattr(f, "time_roughness")]
             if rough:

@@ -49,6 +49,9 @@ class STFMSettings:
               "(RIFE HDv3 instead of 4.x), blend or none; a comma-separated list averages one fit per base; "
               "ensemble = video,keys,video_hdv3,keys_hdv3", cli="base")
     time_smoothness: float | None = None  # weight of the time planes' roughness (plane fields)
+    matte_l1: float | None = setting(None, "weight of an L1 penalty on the canonical dynamic image's matte "
+                                           "(1 - alpha; 2-D dynamic field only): the moving layer covers no "
+                                           "more than the data need", unit="relative", sweep=True)
     stop_at_noise: bool | None = setting(None, "stop once the RS residual reaches the noise level estimated "
                                                "from the RS image, or falls by less than stall_drop over 15 passes "
                                                "over the RS rows")
@@ -80,7 +83,7 @@ class STFMSettings:
             raise ConfigError(f"stfm: stall_drop must be in [0, 1), got {self.stall_drop!r}")
         if self.ema_decay is not None and not 0 <= self.ema_decay < 1:
             raise ConfigError(f"stfm: ema_decay must be in [0, 1), got {self.ema_decay!r}")
-        for name in ("beta", "tau", "psi", "lr"):
+        for name in ("beta", "tau", "psi", "lr", "matte_l1"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"stfm: {name} must be a finite number >= 0, got {value!r}")
@@ -119,7 +122,8 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
             "lr": 5e-6, "decoder_lr_ratio": 1.0, "gain_lr_ratio": 1.0, "lr_half_life_steps": math.inf,
             "beta": 10.0, "tau": 1e-3, "rows_per_step": max(1, h // 4), "init": "random",
             "dynamic_time": False, "dynamic_base": "none", "gs_windows_per_step": 0, "time_smoothness": 0.0,
-            "stop_at_noise": False, "stall_drop": 0.0, "ema_decay": 0.0, "refine": False, "motion_init": "flow"}
+            "stop_at_noise": False, "stall_drop": 0.0, "ema_decay": 0.0, "refine": False, "motion_init": "flow",
+            "matte_l1": 0.0}
 
     def scales(fractions, n):
         return tuple(sorted({max(2, round(n * f)) for f in fractions}))
@@ -141,14 +145,19 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
         "lr": 1e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
         "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 8)), "init": "gs",
         "dynamic_time": True, "dynamic_base": "ensemble", "gs_windows_per_step": 1, "time_smoothness": 0.3,
-        "stop_at_noise": True, "stall_drop": 0.02, "ema_decay": 0.95, "refine": True, "motion_init": "flow"}
+        "stop_at_noise": True, "stall_drop": 0.02, "ema_decay": 0.95, "refine": True, "motion_init": "flow",
+        "matte_l1": 0.0}
     if name == "prior":  # the paper's prior on the fast fields: one canonical dynamic image that the motion moves
         fast.update({"dynamic": ("planes", {"resolutions": appearance, "features": DYNAMIC_FEATURES, "hidden": 32}),
                      "dynamic_time": False, "dynamic_base": "none", "refine": False, "motion_init": "search",
                      "stall_drop": 0.0,  # still gaining where a 2 % stall test stops (bench/stfm_motion.md)
                      # A nearly rigid motion (spatial TV 10x fast's, temporal the same): a motion that
                      # varies across the object tears the canonical image (bench/stfm_motion.md, session 10).
-                     "beta": 0.1, "tau": 1e-3})
+                     "beta": 0.1, "tau": 1e-3,
+                     # The canonical image starts from a motion-blurred key frame whose matte covers the
+                     # whole smear: without this its edge stays as a rim and shadow (bench/stfm_motion.md,
+                     # session 11).
+                     "matte_l1": 0.02})
     return fast
 
 
@@ -175,13 +184,14 @@ class _Resolved:
     stall_drop: float
     ema_decay: float
     motion_init: str = "flow"
+    matte_l1: float = 0.0
     fields: dict = field(default_factory=dict)
 
 
 
 # _Resolved's values that a None setting takes from the preset (rows_per_step also: capped by H).
 _FROM_PRESET = ("beta", "tau", "lr", "lr_half_life_steps", "init", "dynamic_time", "dynamic_base", "time_smoothness",
-                "gs_windows_per_step", "stop_at_noise", "stall_drop", "ema_decay", "motion_init")
+                "gs_windows_per_step", "stop_at_noise", "stall_drop", "ema_decay", "motion_init", "matte_l1")
 
 
 def resolve(settings: STFMSettings, h: int, w: int, k: int) -> tuple[_Resolved, dict]:
