@@ -23,9 +23,9 @@ class DataLoss:
             norm_sq = self.gs_op.norm() ** 2
             self.c_gs = 1.0 / (max(norm_sq, 1e-12) * pixels)
         if self.parts.rs:
-            self.rs_norm, vector = self._rs_norm(self._rs_norm_start)
-            self._rs_norm_start = None
-            self.rs_norm_vector = vector if self._keep_norm_vector else None
+            start, self._rs_norm_start = self._rs_norm_start, None
+            self.rs_norm, vector = self._rs_norm(start)
+            self.rs_norm_vector = vector if start is not None else None  # kept only for a next level
             self.c_rs = self.settings.psi / (max(self.rs_norm ** 2, 1e-12) * pixels)
 
     def _rs_norm(self, start: Tensor | None = None, iters: int = 6, tol: float = 1e-3) -> tuple[float, Tensor]:

@@ -49,8 +49,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         self.notes = [f"preset auto chose {choice['preset']}: {choice['reason']}"] if choice else []
         self._static_from = static_from
         self._given_base = base_video
-        self._rs_norm_start, self._keep_norm_vector = rs_norm_start, rs_norm_start is not None
-        self.rs_norm_vector = None
+        self._rs_norm_start, self.rs_norm_vector = rs_norm_start, None
         self.device = torch.device(device)
         self.problem = problem.to(torch.float32, self.device)
         p = self.problem
