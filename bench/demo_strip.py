@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from stfm_compare import simulated_problem  # noqa: E402
+from problems import simulated_problem  # noqa: E402
 
 from rngcam.cli.demo import _strip  # noqa: E402
 

@@ -39,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from stfm_compare import simulated_problem  # noqa: E402
+from problems import simulated_problem  # noqa: E402
 
 from rngcam.recon import registry  # noqa: E402
 from rngcam.recon.metrics import motion_metrics, video_metrics  # noqa: E402

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from stfm_compare import gs_only_video, simulated_problem  # noqa: E402
+from problems import gs_only_video, simulated_problem  # noqa: E402
 
 from rngcam.recon import registry  # noqa: E402
 from rngcam.recon.loop import LoopSettings, run  # noqa: E402

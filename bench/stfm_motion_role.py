@@ -18,7 +18,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from stfm_compare import simulated_problem  # noqa: E402
+from problems import simulated_problem  # noqa: E402
 
 from rngcam.recon.loop import LoopSettings, run  # noqa: E402
 from rngcam.recon.metrics import motion_metrics, video_metrics  # noqa: E402
