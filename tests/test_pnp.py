@@ -250,3 +250,19 @@ def test_pnp_keeps_a_start_that_already_fits_the_rs_image_to_its_noise(monkeypat
     # a poor start (the cross-fade) is not kept
     monkeypatch.undo()
     assert not PnP(p, PnPSettings(schedule_iters=3, init="blend")).start_settled
+
+
+def test_the_x_step_solves_the_normal_equations_and_leaves_its_start_alone():
+    p = _problem(size=16)
+    method = PnP(p, PnPSettings(init="blend", cg_iters=60))
+    z = method.estimate()
+    z_before = z.clone()
+    mu = 0.3
+    rhs = method.rhs_data + mu * z
+
+    def misfit(v):
+        return float((method._normal(v, mu) - rhs).norm() / rhs.norm())
+
+    v = method._x_step(z, mu)
+    assert torch.equal(z, z_before)  # the CG works in place on its own copies only
+    assert misfit(v) < 1e-4 < misfit(z)
