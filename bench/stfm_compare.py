@@ -181,6 +181,19 @@ def verdict(gain: float, target: float | None) -> str:
     return "" if target is None else f" (target {target:+.1f}: {'met' if gain >= target else 'NOT met'})"
 
 
+def ablation_order(db: dict[str, float | None]) -> str:
+    """The paper's order on smoke, full > no_static > no_rs and no_gs > no_motion_reg, against `db`
+    (intermediate PSNR per variant): met, or which of its steps fail."""
+    if any(db.get(k) is None for k in ("full", "no_static", "no_rs", "no_gs", "no_motion_reg")):
+        return "Paper's ablation order: not measured (a variant failed)."
+    steps = [("full", "no_static"), ("no_static", "no_rs"), ("no_static", "no_gs"),
+             ("no_rs", "no_motion_reg"), ("no_gs", "no_motion_reg")]
+    failed = [f"{a} {db[a]:.2f} <= {b} {db[b]:.2f}" for a, b in steps if not db[a] > db[b]]
+    ours = " > ".join(sorted(db, key=db.get, reverse=True))
+    return (f"Paper's ablation order (full > no_static > no_rs and no_gs > no_motion_reg): "
+            f"{'met' if not failed else 'NOT met (' + '; '.join(failed) + ')'}; ours: {ours}.")
+
+
 def time_to_reach(log: list[tuple[float, float]], target: float) -> float | None:
     for t, value in log:
         if value is not None and value >= target:
@@ -421,12 +434,15 @@ def main() -> None:
         p, source = simulated_problem("smoke", sizes[0])
         lines += ["", f"## Ablations on smoke {sizes[0]}x{sizes[0]} (STFM fast, components='all')", "",
                   "| variant | PSNR all / intermediate | iterations |", "|---|---|---|"]
+        ablations: dict[str, float | None] = {}
         for flag in ("full", "no_static", "no_motion_reg", "no_rs", "no_gs"):
             opts = {"components": "all"} | ({flag: True} if flag != "full" else {})
             print(f"[ablation] {flag}", flush=True)
             r = run_iterative("stfm-fast", p, args.budget, opts)
             print("   ", fmt(r), flush=True)
             lines.append(f"| {flag} | {fmt(r)} | {r.get('iterations', '-')} |")
+            ablations[flag] = r.get("psnr_intermediate_db")
+        lines += ["", ablation_order(ablations)]
     if "seeds" not in skip:
         lines += seed_spread(args, results)
     if "tv3d_beta" not in skip:
