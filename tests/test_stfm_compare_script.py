@@ -51,3 +51,16 @@ def test_stfm_compare_runs_every_method_and_reports_targets(tmp_path):
     assert seen_rows["stfm-fast"][3] == cells[0] and seen_rows["tv3d"][3] == cells[3]
     for cols in seen_rows.values():
         assert all(re.fullmatch(r"\d+\.\d\d", c) for c in cols[4:6]), cols
+
+
+def test_the_ablation_order_is_judged_step_by_step():
+    sys.path.insert(0, str(SCRIPT.parent))
+    from stfm_compare import ablation_order
+
+    paper_like = {"full": 32.0, "no_static": 30.0, "no_rs": 28.0, "no_gs": 27.5, "no_motion_reg": 25.0}
+    assert ablation_order(paper_like).split(": ")[1].startswith("met;")
+    ours = paper_like | {"no_motion_reg": 31.0}
+    verdict = ablation_order(ours)
+    assert "NOT met (no_rs 28.00 <= no_motion_reg 31.00; no_gs 27.50 <= no_motion_reg 31.00)" in verdict
+    assert verdict.endswith("ours: full > no_motion_reg > no_static > no_rs > no_gs.")
+    assert "not measured" in ablation_order(paper_like | {"no_gs": None})
