@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from rngcam.acquire.camera import Camera, CameraSettings, Frame
-from rngcam.acquire.factory import open_devices
-from rngcam.acquire.generator import FunctionGenerator, PulseTrain
+from rngcam.acquire.factory import open_devices, open_generator
+from rngcam.acquire.generator import PulseTrain
 from rngcam.acquire.resolve import ResolvedRig, resolve_rig
 from rngcam.config import CameraConfig, Rig
 from rngcam.errors import ConfigError, HardwareError, RngcamError
@@ -125,32 +125,6 @@ def pulse_trains(rig: Rig) -> list[PulseTrain]:
     ]
 
 
-# --------------------------------------------------------------------------- hardware set-up
-
-
-def _connect_generator(rig: Rig, stack: contextlib.ExitStack, progress: Progress):
-    """(FunctionGenerator, fake instrument or None), both closed by `stack`."""
-    from rngcam.acquire.scpi import SerialTransport, VisaTransport
-
-    g = rig.config.generator
-    fake = None
-    if g.transport == "fake":
-        from rngcam.acquire.fake_generator import FakeGenerator
-
-        fake = stack.enter_context(FakeGenerator(g.dialect, g.fake_fault))
-        port = fake.port
-        progress(f"generator: fake {g.dialect} instrument serving on {port}")
-    else:
-        port = g.port
-    if g.transport == "visa":
-        transport = VisaTransport(g.visa_resource, g.timeout_s)
-    else:
-        transport = SerialTransport(port, g.baudrate, g.timeout_s)
-    gen = stack.enter_context(FunctionGenerator(transport, g.dialect))
-    progress(f"generator: {gen.identify()} ({g.dialect} over {g.transport})")
-    return gen, fake
-
-
 # --------------------------------------------------------------------------- the capture
 
 
@@ -216,7 +190,7 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
     try:
         with contextlib.ExitStack() as stack:
             devices = open_devices(resolved)
-            gen, fake = _connect_generator(rig, stack, progress)
+            gen, fake = open_generator(rig, stack, progress)
             cams: dict[str, Camera] = {}
             for role in ("rs", "gs"):
                 cfg = getattr(c.cameras, role)

@@ -237,3 +237,12 @@ def _maybe(read):
         return read()
     except Exception:  # noqa: BLE001
         return None
+
+
+def make_camera(cfg, role: str) -> GenicamCamera:
+    """The factory's entry point (rngcam.backends)."""
+    return GenicamCamera(cfg.serial, role.upper(), cti=cfg.cti)
+
+
+def list_cameras(cti: str | Path | None = None, **_options) -> list[CameraInfo]:
+    return list_genicam_cameras(cti)

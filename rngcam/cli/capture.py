@@ -29,18 +29,27 @@ def capture_cmd(rig_path: Path, out: Path | None, count: int):
                    + (f" with {len(r.warnings)} warning(s)" if r.warnings else ""))
 
 
+def _camera_backends() -> list[str]:
+    from rngcam.backends import CAMERAS
+
+    return list(CAMERAS)
+
+
 @click.command("devices")
-@click.option("--backend", type=click.Choice(["genicam", "pylon", "mock"]), default=None,
+@click.option("--backend", type=click.Choice(_camera_backends()), default=None,
               help="Camera backend to list (default: mock, plus genicam when a .cti is known).")
 @click.option("--cti", type=click.Path(dir_okay=False), default=None,
               help="GenTL producer for the genicam backend (default: $RNGCAM_CTI).")
 @click.option("--pylon-tl", "pylon_tl", default=None,
               help="Only this pylon transport layer (e.g. BaslerCamEmu); default: all "
                    "(broadcasts discovery on GigE networks).")
+@click.option("--address", "addresses", multiple=True,
+              help="aravis: open the camera at this IP address (repeatable); no discovery is sent. "
+                   "Without it aravis discovery broadcasts on every interface.")
 @click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="List the mock cameras of this rig.")
+              help="List the simulated cameras of this rig.")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
-def devices_cmd(backend, cti, pylon_tl, rig_path, as_json):
+def devices_cmd(backend, cti, pylon_tl, addresses, rig_path, as_json):
     """List cameras (model, serial, interface) and serial ports."""
     import os
 
@@ -52,7 +61,7 @@ def devices_cmd(backend, cti, pylon_tl, rig_path, as_json):
     backends = [backend] if backend else ["mock"] + (["genicam"] if (cti or os.environ.get(CTI_ENV)) else [])
     cameras = []
     for b in backends:
-        cameras += list_cameras(b, cti=cti, pylon_transport=pylon_tl, rig=rig)
+        cameras += list_cameras(b, rig=rig, cti=cti, pylon_transport=pylon_tl, addresses=list(addresses))
     ports = list_serial_ports()
     if as_json:
         click.echo(json.dumps({"cameras": [asdict(c) for c in cameras],
