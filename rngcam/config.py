@@ -254,6 +254,12 @@ class RigConfig(_Model):
         problems = []
         if rs.line_time_s is None:
             problems.append("cameras.rs.line_time_s is required (the RS row-to-row delay)")
+        period = self.timing.gs_period_s
+        if period is not None and period < gs.exposure_s + (gs.readout_s or 0.0):
+            problems.append(f"timing.gs_trigger_s: GS triggers {period * 1e3:.4g} ms apart, but each GS frame needs "
+                            f"at least its exposure ({gs.exposure_s * 1e3:.4g} ms"
+                            + (f") + readout_s ({gs.readout_s * 1e3:.4g} ms)" if gs.readout_s else ")")
+                            + ": the camera would miss triggers")
         if rs.trigger.channel == gs.trigger.channel:
             problems.append("cameras.rs.trigger.channel and cameras.gs.trigger.channel must "
                             "differ (one pulse for the RS camera, a burst for the GS camera)")

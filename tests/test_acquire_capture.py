@@ -57,6 +57,7 @@ def spy(monkeypatch):
 
     def spy_stop(self):
         seen["outputs"] = {n: ch.output for n, ch in self.channels.items()}
+        seen["received"] = list(self.received)
         stop(self)
 
     def spy_close(self):
@@ -173,10 +174,15 @@ FAILURES = {
     "no trigger arrived (1 V pulses)": (dict(v=("high_v: 5.0", "high_v: 1.0"),
                                              t=("fetch_timeout_s: 2.0", "fetch_timeout_s: 0.3")),
                                         HardwareError, r"RS camera MOCK-RS-0001: no RS frame 1 of 1 within 0.3 s \(no trigger arrived\)"),
-    "GS busy, triggers missed": (dict(r=("readout_s: 1.0e-3", "readout_s: 15.0e-3"),
-                                      t=("fetch_timeout_s: 2.0\n    mock: {noise: true, seed: 12", "fetch_timeout_s: 0.3\n    mock: {noise: true, seed: 12")),
-                                 HardwareError, r"GS camera MOCK-GS-0001: no GS frame 2 of 3 .*2 trigger\(s\) missed while busy"),
+    "GS triggers closer than the GS frame period": (
+        dict(r=("readout_s: 1.0e-3", "readout_s: 15.0e-3")), ConfigError,
+        r"timing.gs_trigger_s: GS triggers 6.500 ms apart, but the GS camera needs 15.650 ms per frame "
+        r"\(exposure 650 us \+ readout 15000 us from the camera's SensorReadoutTime\)"),
+    "fetch timeout shorter than the RS window": (
+        dict(t=("fetch_timeout_s: 2.0\n    mock: {noise: true, seed: 11", "fetch_timeout_s: 0.01\n    mock: {noise: true, seed: 11")),
+        ConfigError, r"cameras.rs.fetch_timeout_s: 0.01 s ends before the RS camera's last frame can arrive"),
 }
+SETUP_FAILURES = ("silent generator", "garbage from generator", "SCPI error")  # before arming
 
 
 @pytest.mark.parametrize("case", list(FAILURES))
@@ -189,6 +195,16 @@ def test_failures_give_one_line_leave_hardware_safe_and_write_nothing(tmp_path, 
     assert os.listdir(tmp_path) == []
     assert spy["outputs"] == {1: False, 2: False}
     assert all(not armed for _, armed in spy["closed"])
+    if kind is ConfigError:  # refused before anything was armed: no output ever went on
+        assert not any(c.endswith(" ON") for c in spy["received"]), spy["received"]
+    elif case not in SETUP_FAILURES:  # failed after arming: the one line says the hardware is safe
+        assert str(err.value).endswith("hardware safe: cameras disarmed, generator outputs off; no bundle written")
+
+
+def test_gs_spacing_shorter_than_the_exposure_is_refused_when_the_rig_loads():
+    with pytest.raises(ConfigError, match=r"GS triggers 0.3 ms apart, but each GS frame needs at least its exposure "
+                                          r"\(0.65 ms\)"):
+        _rig(g=("gs_trigger_s: [0.0, 6.5e-3, 13.0e-3]", "gs_trigger_s: [0.0, 0.3e-3, 0.6e-3]"))
 
 
 def _genicam_rig(tmp_path, port, serial):

@@ -24,6 +24,7 @@ import numpy as np
 
 from rngcam.acquire.camera import Camera, CameraSettings, Frame
 from rngcam.acquire.factory import open_devices, open_generator
+from rngcam.acquire.feasibility import gs_readout, refuse_impossible
 from rngcam.acquire.generator import PulseTrain
 from rngcam.acquire.resolve import ResolvedRig, resolve_rig
 from rngcam.config import CameraConfig, Rig
@@ -210,6 +211,14 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
                                                      cams["gs"].configured.exposure_s,
                                                      cams["rs"].line_time_s())
             warnings += timing_warnings
+            gs_info = cams["gs"].info
+            readout_s, readout_source = gs_readout(c.cameras.gs, cams["gs"].configured.features,
+                                                   gs_info.model if gs_info else "")
+            rs_window_s = ((c.cameras.rs.roi.height - 1) * resolved.line_time_s + cams["rs"].configured.exposure_s)
+            summary += refuse_impossible(rig, rs_window_s, cams["gs"].configured.exposure_s, readout_s,
+                                         readout_source)
+            if readout_s is None:
+                warnings.append(f"GS readout time {readout_source}: trigger spacing checked against the exposure only")
             for line in summary:
                 progress(f"timing: {line}")
             gen.configure(pulse_trains(rig), c.generator.high_v, c.generator.low_v)
@@ -249,8 +258,12 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
                                     settings=gen.settings | {"transport": c.generator.transport,
                                                              "fired_channels": gen.channels},
                                     errors=list(gen.errors))
-    except RngcamError:
-        raise  # already one line, raised after the stack disarmed the cameras and switched outputs off
+    except RngcamError as exc:
+        if stage[0] == "while setting up":
+            raise  # nothing was armed: the one line says what is wrong
+        # already one line, raised after the stack disarmed the cameras and switched outputs off
+        raise type(exc)(f"{exc} ({stage[0]}); hardware safe: cameras disarmed, generator outputs off; "
+                        "no bundle written") from None
     except BaseException as exc:  # noqa: BLE001 - MemoryError, KeyboardInterrupt, any bug: one line
         raise _failure(stage[0], exc) from None
     t0 = c.timing.rs_trigger_s

@@ -76,6 +76,18 @@ class HardwareDevices:
         return None
 
 
+def needs_private_network(rig: Rig) -> bool:
+    """True when a backend of the rig serves simulated network cameras (rngcam.acquire.netns):
+    the process must then run in a network namespace of its own."""
+    for name in {rig.config.cameras.rs.backend, rig.config.cameras.gs.backend}:
+        spec = CAMERAS[name]
+        if spec.simulated and spec.twin_of is not None and not spec.missing():
+            module = spec.load()
+            if getattr(module, "needs_private_network", lambda r: False)(rig):
+                return True
+    return False
+
+
 def open_devices(resolved: ResolvedRig) -> Devices:
     """The rig's devices: a backend that simulates a whole world (the mock: `make_devices`)
     makes them itself, the others camera by camera."""
