@@ -34,6 +34,15 @@ def aravis():
     return Aravis
 
 
+def check() -> str | None:
+    """What stops this backend here (for `rngcam doctor`), or None."""
+    try:
+        aravis()
+    except HardwareError as exc:
+        return str(exc)
+    return None
+
+
 def _one_line(exc: Exception) -> str:
     text = getattr(exc, "message", None) or str(exc) or type(exc).__name__
     return text.strip().splitlines()[0][:160]

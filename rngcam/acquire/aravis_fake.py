@@ -20,12 +20,24 @@ import time
 
 from rngcam.acquire import netns
 from rngcam.acquire.aravis_camera import AravisCamera, aravis
+from rngcam.acquire.aravis_camera import check as _aravis_check
 from rngcam.acquire.camera import CameraInfo, Frame
 from rngcam.errors import HardwareError
 
 TRIGGER_POLL_HZ = 1000  # how often the fake checks for a software trigger (its default is slower)
 _servers: dict[str, object] = {}  # address -> ArvGvFakeCamera (alive for the process)
 _lock = threading.Lock()
+
+
+def check() -> str | None:
+    """What stops the fake cameras here (for `rngcam doctor`): Aravis, or a private namespace."""
+    problem = _aravis_check()
+    if problem is None:
+        try:
+            netns.unshare_prefix()
+        except HardwareError as exc:
+            problem = str(exc)
+    return problem
 
 
 def needs_private_network(rig) -> bool:

@@ -202,7 +202,7 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
                     fake.connect(cfg.trigger.channel, cam.hardware_input)
             for role, cam in cams.items():
                 cfg = getattr(c.cameras, role)
-                configured = cam.configure(CameraSettings.from_config(cfg))
+                configured = cam.configure(CameraSettings.from_config(cfg, role))
                 warnings += configured.warnings
                 progress(f"{role} camera configured: {cfg.pixel_format}, {cfg.roi.width}x{cfg.roi.height}, "
                          f"exposure {configured.exposure_s * 1e6:g} us, trigger {cfg.trigger.source} "

@@ -118,6 +118,12 @@ class HarvestersFeatures(FeatureMap):
         except Exception:  # noqa: BLE001
             return None
 
+    def entries(self, name):
+        try:
+            return list(self._node(name).symbolics)
+        except Exception:  # noqa: BLE001
+            return None
+
 
 class GenicamCamera(Camera):
     backend = "genicam"

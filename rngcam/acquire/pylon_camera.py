@@ -87,6 +87,12 @@ class PylonFeatures(FeatureMap):
         except Exception:  # noqa: BLE001
             return None
 
+    def entries(self, name):
+        try:
+            return list(self._node(name).Symbolics)
+        except Exception:  # noqa: BLE001
+            return None
+
 
 class PylonCamera(Camera):
     backend = "pylon"
