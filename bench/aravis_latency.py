@@ -18,9 +18,8 @@ import time
 
 
 def measure(n: int, spacing_s: float, width: int, height: int) -> dict:
-    from rngcam.acquire.aravis_fake import serve
+    from rngcam.acquire.aravis_fake import AravisFakeCamera, serve
     from rngcam.acquire.camera import CameraSettings
-    from rngcam.acquire.aravis_fake import AravisFakeCamera
     from rngcam.acquire.fake_generator import Pulse
     from rngcam.errors import HardwareError
 

@@ -37,9 +37,10 @@ def unshare_prefix() -> list[str]:
         raise HardwareError("simulated GigE cameras need a private network namespace, and `unshare` "
                             "(util-linux) is not installed")
     prefix = [exe, "--net"] + ([] if os.geteuid() == 0 else ["--map-root-user"])
-    probe = subprocess.run([*prefix, "true"], capture_output=True, text=True)
+    with subprocess.Popen([*prefix, "true"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True) as probe:
+        _, err = probe.communicate()
     if probe.returncode != 0:
-        why = probe.stderr.strip().splitlines()[-1] if probe.stderr.strip() else f"exit {probe.returncode}"
+        why = err.strip().splitlines()[-1] if err.strip() else f"exit {probe.returncode}"
         raise HardwareError(f"cannot create a private network namespace for simulated GigE cameras ({why}); "
                             "run as root or enable unprivileged user namespaces")
     return prefix
