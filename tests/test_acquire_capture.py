@@ -290,3 +290,16 @@ def test_default_output_name_is_timestamped(tmp_path, monkeypatch):
     assert result.exit_code == 0, result.output
     [written] = os.listdir(tmp_path)
     assert re.fullmatch(r"capture-\d{8}-\d{6}\.h5", written)
+
+
+@pytest.mark.parametrize("dialect, link, one_event", [("rigol_dg", "trigger_out", True), ("siglent_sdg", "none", False)])
+def test_how_the_trains_started_is_in_the_bundle(tmp_path, dialect, link, one_event):
+    rig = _rig(d=("dialect: keysight_33500b", f"dialect: {dialect}\n  link: {link}"))
+    [r] = capture(rig, tmp_path / "fire.h5", progress=lambda s: None)
+    fire = read_bundle(r.path).trigger.settings["fire"]
+    assert fire["one_event"] is one_event
+    if one_event:
+        assert fire["commands"] == [":SOUR1:BURS:TRIG:IMM"] and "skew_bound_s" not in fire
+    else:
+        assert fire["commands"] == ["C1:BTWV MTRIG", "C2:BTWV MTRIG"]
+        assert fire["skew_bound_s"] >= 14 * 10 / 9600 and "firmware latency not included" in fire["skew_source"]

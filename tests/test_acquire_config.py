@@ -161,3 +161,8 @@ def test_simulated_cameras_need_the_simulated_generator_and_vice_versa():
     lab = (RIGS / "lab.yaml").read_text().replace("transport: visa", "transport: fake").replace(
         "  visa_resource:", "  # visa_resource:")
     assert "generator transport 'fake' can only trigger simulated cameras" in _bad(lab)
+
+
+def test_trigger_out_link_is_for_rigol_only():
+    message = _bad(MOCK_TEXT.replace("dialect: keysight_33500b", "dialect: keysight_33500b\n  link: trigger_out", 1))
+    assert "link 'trigger_out' is wired for rigol_dg only" in message

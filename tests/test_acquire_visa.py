@@ -143,3 +143,18 @@ def test_keysight_fires_both_channels_with_one_bus_trigger():
 def test_link_needs_an_instrument_with_a_per_channel_trigger_output():
     with pytest.raises(HardwareError, match="trigger output"):
         FunctionGenerator(None, "siglent_sdg", link="trigger_out")
+
+
+def test_linked_rigol_commands_are_in_the_manual_too():
+    with _visa("rigol_dg", link="trigger_out") as gen:
+        gen.identify()
+        gen.configure([RS, GS], 5.0, 0.0)
+        gen.arm()
+        gen.fire()
+        assert gen.transport.query(":SOUR2:BURS:TRIG:SOUR?") == "EXT"
+    assert ":SOUR1:BURS:TRIG:TRIGO POS" in gen.sent and ":SOUR2:BURS:TRIG:SLOP POS" in gen.sent
+
+
+@pytest.mark.parametrize("dialect", sorted(DIALECTS))
+def test_the_driver_asks_the_error_queue_the_definition_answers(dialect):
+    assert DIALECTS[dialect].error_query == instrument(dialect).error_query
