@@ -109,6 +109,13 @@ def verify_timing(resolved: ResolvedRig, rs_exposure_s: float, gs_exposure_s: fl
     if reported_line_time_s is None:
         lines.append(f"line time: camera does not report it; using {source}'s {line * 1e6:g} us")
     elif not math.isclose(reported_line_time_s, line, rel_tol=LINE_TIME_RTOL):
+        real_end = (rows - 1) * reported_line_time_s + rs_exposure_s
+        late = [i for i, t in enumerate(c.timing.gs_trigger_s) if t - t0 + gs_exposure_s > real_end * (1 + 1e-9)]
+        if late:
+            raise ConfigError(f"{rig.path}: timing.gs_trigger_s: the RS camera reports a {reported_line_time_s * 1e6:.4g} us "
+                              f"line time, so its exposure window ends at {real_end * 1e3:.3f} ms, before GS exposure "
+                              f"{late[0] + 1} ends ({(c.timing.gs_trigger_s[late[0]] - t0 + gs_exposure_s) * 1e3:.3f} ms); "
+                              f"{source} says {line * 1e6:.4g} us: recalibrate the line time or move the GS triggers")
         warnings.append(f"RS camera line time is {reported_line_time_s * 1e6:.4g} us but {source} says "
                         f"{line * 1e6:.4g} us (the bundle records {source}'s value)")
     else:
