@@ -112,9 +112,11 @@ def verify_timing(resolved: ResolvedRig, rs_exposure_s: float, gs_exposure_s: fl
         real_end = (rows - 1) * reported_line_time_s + rs_exposure_s
         late = [i for i, t in enumerate(c.timing.gs_trigger_s) if t - t0 + gs_exposure_s > real_end * (1 + 1e-9)]
         if late:
-            raise ConfigError(f"{rig.path}: timing.gs_trigger_s: the RS camera reports a {reported_line_time_s * 1e6:.4g} us "
-                              f"line time, so its exposure window ends at {real_end * 1e3:.3f} ms, before GS exposure "
-                              f"{late[0] + 1} ends ({(c.timing.gs_trigger_s[late[0]] - t0 + gs_exposure_s) * 1e3:.3f} ms); "
+            k = late[0]
+            gs_end = c.timing.gs_trigger_s[k] - t0 + gs_exposure_s
+            raise ConfigError(f"{rig.path}: timing.gs_trigger_s: the RS camera reports a "
+                              f"{reported_line_time_s * 1e6:.4g} us line time, so its exposure window ends at "
+                              f"{real_end * 1e3:.3f} ms, before GS exposure {k + 1} ends ({gs_end * 1e3:.3f} ms); "
                               f"{source} says {line * 1e6:.4g} us: recalibrate the line time or move the GS triggers")
         warnings.append(f"RS camera line time is {reported_line_time_s * 1e6:.4g} us but {source} says "
                         f"{line * 1e6:.4g} us (the bundle records {source}'s value)")
