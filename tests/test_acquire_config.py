@@ -100,9 +100,12 @@ def test_gs_exposure_outside_the_rs_window_fails_before_any_hardware():
 
 def test_line_time_mismatch_and_long_exposure_warn():
     rig = load_rig(RIGS / "mock.yaml")
-    _, warnings = verify_timing(resolve_rig(rig, psf=False), 650e-6, 650e-6, 200e-6)
-    assert any("line time is 200 us but the rig file says 208 us (the bundle records the rig file's value)" in w
+    # 212 us: the camera's window (63 x 212 us + 650 us) still holds the last GS exposure; a warning
+    _, warnings = verify_timing(resolve_rig(rig, psf=False), 650e-6, 650e-6, 212e-6)
+    assert any("line time is 212 us but the rig file says 208 us (the bundle records the rig file's value)" in w
                for w in warnings)
+    with pytest.raises(ConfigError, match="reports a 200 us line time"):  # 13.25 ms < 13.65 ms: refused
+        verify_timing(resolve_rig(rig, psf=False), 650e-6, 650e-6, 200e-6)
     long_rig = parse_rig(MOCK_TEXT.replace("exposure_s: 650.0e-6", "exposure_s: 20.0e-3", 1), RIGS / "mock.yaml")
     _, warnings = verify_timing(resolve_rig(long_rig, psf=False), 20e-3, 650e-6, None)
     assert any("longer than its readout" in w for w in warnings)
