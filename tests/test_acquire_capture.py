@@ -57,6 +57,7 @@ def spy(monkeypatch):
 
     def spy_stop(self):
         seen["outputs"] = {n: ch.output for n, ch in self.channels.items()}
+        seen["received"] = list(self.received)
         stop(self)
 
     def spy_close(self):
@@ -156,11 +157,23 @@ def test_existing_output_is_never_overwritten(tmp_path):
 
 
 def test_line_time_mismatch_is_warned_and_recorded(tmp_path):
-    rig = _rig(lt=("read_noise_e: 3.0}\n  gs", "read_noise_e: 3.0, line_time_s: 200.0e-6}\n  gs"))
+    # the camera's 200 us still holds every GS exposure (the last ends at 12.65 ms < 13.25 ms)
+    rig = _rig(lt=("read_noise_e: 3.0}\n  gs", "read_noise_e: 3.0, line_time_s: 200.0e-6}\n  gs"),
+               g=("gs_trigger_s: [0.0, 6.5e-3, 13.0e-3]", "gs_trigger_s: [0.0, 6.0e-3, 12.0e-3]"))
     lines = []
     [r] = capture(rig, tmp_path / "w.h5", progress=lines.append)
     assert any(line.startswith("warning: RS camera line time is 200 us") for line in lines)
     assert any("line time" in w for w in read_bundle(r.path).meta["warnings"])
+
+
+def test_an_rs_window_the_cameras_line_time_cannot_fit_is_refused_before_arming(tmp_path, spy):
+    """At the camera's 200 us (not the rig's 208 us) the RS window ends at 13.250 ms, before the
+    third GS exposure (13.0 + 0.65 ms): refused, nothing armed."""
+    rig = _rig(lt=("read_noise_e: 3.0}\n  gs", "read_noise_e: 3.0, line_time_s: 200.0e-6}\n  gs"))
+    with pytest.raises(ConfigError, match=r"reports a 200 us line time, so its exposure window ends at 13.250 ms, "
+                                          r"before GS exposure 3 ends \(13.650 ms\)"):
+        capture(rig, tmp_path / "w.h5", progress=lambda s: None)
+    assert not any(c.endswith(" ON") for c in spy["received"]) and os.listdir(tmp_path) == []
 
 
 FAILURES = {
@@ -173,10 +186,15 @@ FAILURES = {
     "no trigger arrived (1 V pulses)": (dict(v=("high_v: 5.0", "high_v: 1.0"),
                                              t=("fetch_timeout_s: 2.0", "fetch_timeout_s: 0.3")),
                                         HardwareError, r"RS camera MOCK-RS-0001: no RS frame 1 of 1 within 0.3 s \(no trigger arrived\)"),
-    "GS busy, triggers missed": (dict(r=("readout_s: 1.0e-3", "readout_s: 15.0e-3"),
-                                      t=("fetch_timeout_s: 2.0\n    mock: {noise: true, seed: 12", "fetch_timeout_s: 0.3\n    mock: {noise: true, seed: 12")),
-                                 HardwareError, r"GS camera MOCK-GS-0001: no GS frame 2 of 3 .*2 trigger\(s\) missed while busy"),
+    "GS triggers closer than the GS frame period": (
+        dict(r=("readout_s: 1.0e-3", "readout_s: 15.0e-3")), ConfigError,
+        r"timing.gs_trigger_s: GS triggers 6.500 ms apart, but the GS camera needs 15.650 ms per frame "
+        r"\(exposure 650 us \+ readout 15000 us from the camera's SensorReadoutTime\)"),
+    "fetch timeout shorter than the RS window": (
+        dict(t=("fetch_timeout_s: 2.0\n    mock: {noise: true, seed: 11", "fetch_timeout_s: 0.01\n    mock: {noise: true, seed: 11")),
+        ConfigError, r"cameras.rs.fetch_timeout_s: 0.01 s ends before the RS camera's last frame can arrive"),
 }
+SETUP_FAILURES = ("silent generator", "garbage from generator", "SCPI error")  # before arming
 
 
 @pytest.mark.parametrize("case", list(FAILURES))
@@ -189,6 +207,16 @@ def test_failures_give_one_line_leave_hardware_safe_and_write_nothing(tmp_path, 
     assert os.listdir(tmp_path) == []
     assert spy["outputs"] == {1: False, 2: False}
     assert all(not armed for _, armed in spy["closed"])
+    if kind is ConfigError:  # refused before anything was armed: no output ever went on
+        assert not any(c.endswith(" ON") for c in spy["received"]), spy["received"]
+    elif case not in SETUP_FAILURES:  # failed after arming: the one line says the hardware is safe
+        assert str(err.value).endswith("hardware safe: cameras disarmed, generator outputs off; no bundle written")
+
+
+def test_gs_spacing_shorter_than_the_exposure_is_refused_when_the_rig_loads():
+    with pytest.raises(ConfigError, match=r"GS triggers 0.3 ms apart, but each GS frame needs at least its exposure "
+                                          r"\(0.65 ms\)"):
+        _rig(g=("gs_trigger_s: [0.0, 6.5e-3, 13.0e-3]", "gs_trigger_s: [0.0, 0.3e-3, 0.6e-3]"))
 
 
 def _genicam_rig(tmp_path, port, serial):
@@ -274,3 +302,16 @@ def test_default_output_name_is_timestamped(tmp_path, monkeypatch):
     assert result.exit_code == 0, result.output
     [written] = os.listdir(tmp_path)
     assert re.fullmatch(r"capture-\d{8}-\d{6}\.h5", written)
+
+
+@pytest.mark.parametrize("dialect, link, one_event", [("rigol_dg", "trigger_out", True), ("siglent_sdg", "none", False)])
+def test_how_the_trains_started_is_in_the_bundle(tmp_path, dialect, link, one_event):
+    rig = _rig(d=("dialect: keysight_33500b", f"dialect: {dialect}\n  link: {link}"))
+    [r] = capture(rig, tmp_path / "fire.h5", progress=lambda s: None)
+    fire = read_bundle(r.path).trigger.settings["fire"]
+    assert fire["one_event"] is one_event
+    if one_event:
+        assert fire["commands"] == [":SOUR1:BURS:TRIG:IMM"] and "skew_bound_s" not in fire
+    else:
+        assert fire["commands"] == ["C1:BTWV MTRIG", "C2:BTWV MTRIG"]
+        assert fire["skew_bound_s"] >= 14 * 10 / 9600 and "firmware latency not included" in fire["skew_source"]

@@ -31,7 +31,8 @@ def test_lab_rig_is_the_reference_prototype():
     assert (c.cameras.rs.roi.width, c.cameras.rs.roi.height) == (5472, 3648)
     assert c.cameras.rs.exposure_s == c.cameras.gs.exposure_s == 650e-6
     assert c.cameras.rs.line_time_s == 13e-6 and c.recon.grid_bin == 16
-    assert len(c.timing.gs_trigger_s) == 3 and c.generator.transport == "serial"
+    assert len(c.timing.gs_trigger_s) == 3 and c.generator.transport == "visa"
+    assert c.generator.visa_resource.startswith("USB0::")
     resolved = resolve_rig(rig, psf=False)
     rs, gs, grid = resolved.timing()
     assert grid.dt_s == pytest.approx(208e-6)
@@ -99,9 +100,12 @@ def test_gs_exposure_outside_the_rs_window_fails_before_any_hardware():
 
 def test_line_time_mismatch_and_long_exposure_warn():
     rig = load_rig(RIGS / "mock.yaml")
-    _, warnings = verify_timing(resolve_rig(rig, psf=False), 650e-6, 650e-6, 200e-6)
-    assert any("line time is 200 us but the rig file says 208 us (the bundle records the rig file's value)" in w
+    # 212 us: the camera's window (63 x 212 us + 650 us) still holds the last GS exposure; a warning
+    _, warnings = verify_timing(resolve_rig(rig, psf=False), 650e-6, 650e-6, 212e-6)
+    assert any("line time is 212 us but the rig file says 208 us (the bundle records the rig file's value)" in w
                for w in warnings)
+    with pytest.raises(ConfigError, match="reports a 200 us line time"):  # 13.25 ms < 13.65 ms: refused
+        verify_timing(resolve_rig(rig, psf=False), 650e-6, 650e-6, 200e-6)
     long_rig = parse_rig(MOCK_TEXT.replace("exposure_s: 650.0e-6", "exposure_s: 20.0e-3", 1), RIGS / "mock.yaml")
     _, warnings = verify_timing(resolve_rig(long_rig, psf=False), 20e-3, 650e-6, None)
     assert any("longer than its readout" in w for w in warnings)
@@ -125,3 +129,43 @@ def test_every_consistency_problem_is_named_on_one_line():
     message = _bad(text)
     assert "must differ" in message and "mock cameras need equal ROIs" in message
     assert message.count("; ") >= 1
+
+
+def test_unknown_backend_and_transport_name_the_registry():
+    from rngcam.backends import CAMERAS, GENERATORS
+
+    message = _bad(MOCK_TEXT.replace("backend: mock", "backend: nosuch", 1))
+    assert "cameras.rs.backend: unknown camera backend 'nosuch'" in message
+    assert all(name in message for name in CAMERAS)
+    message = _bad(MOCK_TEXT.replace("transport: fake", "transport: carrier-pigeon", 1))
+    assert "unknown generator transport 'carrier-pigeon'" in message and all(n in message for n in GENERATORS)
+
+
+def test_every_registered_backend_module_has_the_factory_entry_points():
+    """A backend is one module + one line in rngcam.backends: the line names the module, and the
+    module has what the factory, `devices` and capture call."""
+    import ast
+
+    from rngcam.backends import CAMERAS, GENERATORS
+
+    root = Path(__file__).resolve().parents[1]
+    for table, needed in ((CAMERAS, ({"make_camera", "make_devices"}, {"list_cameras"})),
+                          (GENERATORS, ({"open_transport"},))):
+        for spec in table.values():
+            path = root / (spec.module.replace(".", "/") + ".py")
+            names = {n.name for n in ast.parse(path.read_text()).body if isinstance(n, ast.FunctionDef)}
+            for alternatives in needed:
+                assert names & alternatives, f"{spec.module} (backend {spec.name}) lacks {alternatives}"
+
+
+def test_simulated_cameras_need_the_simulated_generator_and_vice_versa():
+    message = _bad(MOCK_TEXT.replace("transport: fake", "transport: serial\n  port: /dev/ttyUSB0", 1))
+    assert "simulated cameras only receive triggers from generator transport 'fake'" in message
+    lab = (RIGS / "lab.yaml").read_text().replace("transport: visa", "transport: fake").replace(
+        "  visa_resource:", "  # visa_resource:")
+    assert "generator transport 'fake' can only trigger simulated cameras" in _bad(lab)
+
+
+def test_trigger_out_link_is_for_rigol_only():
+    message = _bad(MOCK_TEXT.replace("dialect: keysight_33500b", "dialect: keysight_33500b\n  link: trigger_out", 1))
+    assert "link 'trigger_out' is wired for rigol_dg only" in message

@@ -51,3 +51,32 @@ def test_genicam_without_a_producer_is_one_clear_line(monkeypatch):
     assert result.exit_code == 2
     assert result.output.strip().startswith("error:") and "RNGCAM_CTI" in result.output
     assert len(result.output.strip().splitlines()) == 1
+
+
+def test_doctor_names_each_backend_and_how_to_get_what_it_lacks(monkeypatch):
+    import dataclasses
+
+    from rngcam import backends
+
+    out = CliRunner().invoke(main, ["doctor"])
+    assert out.exit_code == 0
+    for name in list(backends.CAMERAS) + list(backends.GENERATORS):
+        assert f"backend {name} (" in out.output
+    gone = dataclasses.replace(backends.CAMERAS["aravis"], needs=("gi_is_not_here",))
+    monkeypatch.setitem(backends.CAMERAS, "aravis", gone)
+    out = CliRunner().invoke(main, ["doctor"])
+    line = next(x for x in out.output.splitlines() if "backend aravis (" in x)
+    assert line.startswith("missing  backend aravis") and "needs gi_is_not_here" in line
+    assert "apt-get install gir1.2-aravis-0.8 libgirepository1.0-dev" in line and "make aravis" in line
+
+
+def test_aravis_without_its_typelib_is_one_line(monkeypatch):
+    gi = pytest.importorskip("gi", reason="PyGObject not installed (make aravis)")
+    from rngcam.acquire import aravis_camera
+
+    def no_typelib(name, version):
+        raise ValueError(f"Namespace {name} not available")
+
+    monkeypatch.setattr(gi, "require_version", no_typelib)
+    assert aravis_camera.check() == ("the aravis backend needs Aravis 0.8's introspection data: apt-get install "
+                                     "gir1.2-aravis-0.8 libgirepository1.0-dev, then `make aravis`")

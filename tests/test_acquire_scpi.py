@@ -31,9 +31,11 @@ def test_configure_arm_fire_delivers_the_planned_pulses(dialect):
             gen.configure([RS, GS], high_v=5.0, low_v=0.0)
             for n in (1, 2):
                 ch = fake.channels[n]
-                assert (ch.function, ch.load, ch.high_v, ch.low_v) == ("PULS", "INF", 5.0, 0.0)
+                # each instrument's own words for a pulse, high-Z, a triggered N-cycle burst
+                assert ch.function in ("PULS", "PULSE") and ch.load in ("INF", "HZ")
+                assert (ch.high_v, ch.low_v) == (5.0, 0.0)
                 assert ch.width_s == pytest.approx(100e-6)
-                assert ch.burst and ch.burst_mode == "TRIG"
+                assert ch.burst == "ON" and ch.burst_mode in ("TRIG", "NCYC")
                 assert not ch.output, "outputs must stay off until armed"
             assert fake.channels[2].count == 3
             assert fake.channels[2].period_s == pytest.approx(6.5e-3)

@@ -168,6 +168,34 @@ def test_cli_align_prints_transform_residual_and_truth(tmp_path, monkeypatch):
     out = result.output
     assert "GS -> RS transform (raw GS pixel -> raw RS pixel):" in out
     assert "residual:" in out and "px median local shift" in out and "mock truth: shift (+1.500, -2.000) px" in out
-    assert (tmp_path / "mock.calib.h5").is_file() and "calibration: {file:" in out
+    # no calibration.file in the rig: the file goes beside the rig file, where captures find it
+    assert (tmp_path / "calib-mock.calib.h5").is_file() and not (tmp_path / "mock.calib.h5").exists()
+    assert "captures with calib-mock.yaml use it: it is the calibration file beside the rig file" in out
     bad = CliRunner().invoke(main, ["calibrate", "psf", "--rig", str(tmp_path / "nope.yaml"), "-y"])
     assert bad.exit_code == 2 and bad.output.startswith("error: ") and "rig file not found" in bad.output
+
+
+def test_capture_after_calibrate_uses_the_calibration_beside_the_rig(tmp_path, monkeypatch):
+    """The README's rule: `rngcam calibrate` writes <rig>.calib.h5 beside the rig file and
+    `rngcam capture` with that rig reads it, and the bundle says so."""
+
+    rigs = tmp_path / "rigs"
+    rigs.mkdir()
+    rig_path = rigs / "bench.yaml"
+    rig_path.write_text(_rig_text(None).replace(f"package:{MEASURED_PSF}", str(PSF)))
+    elsewhere = tmp_path / "work"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)  # the current folder plays no part
+    cal = CliRunner().invoke(main, ["calibrate", "align", "--rig", str(rig_path), "-y", "--frames", "4"])
+    assert cal.exit_code == 0, cal.output
+    beside = rigs / "bench.calib.h5"
+    assert beside.is_file() and not list(elsewhere.iterdir())
+    shot = CliRunner().invoke(main, ["capture", "--rig", str(rig_path), "-o", str(elsewhere / "after.h5")])
+    assert shot.exit_code == 0, shot.output
+    assert f"from {beside}" in shot.output
+    b = read_bundle(elsewhere / "after.h5")
+    extra = b.calibration.extra
+    assert extra["calibration_file"] == str(beside) and extra["calibration_found"].startswith("beside the rig file")
+    assert extra["sources"]["gs_to_rs"] == "calibration" and extra["sources"]["white_balance"] == "calibration"
+    stored = store.read_calibration(beside)
+    np.testing.assert_allclose(b.calibration.gs_to_rs, stored.gs_to_rs)

@@ -20,6 +20,8 @@ class CameraSettings:
 
     roi: (width, height, offset_x, offset_y) in pixels. trigger_source: "Software", "Line1", ...
     or None for free-running (trigger mode off). White balance is always switched off (raw data).
+    shutter_mode: "Rolling" for the RS camera (set where the camera has a writable ShutterMode,
+    e.g. ace USB's Global / Rolling / GlobalResetRelease; recorded either way).
     """
 
     exposure_s: float | None = None
@@ -30,14 +32,16 @@ class CameraSettings:
     trigger_activation: str = "RisingEdge"
     line_debouncer_s: float | None = None
     chunk_timestamps: bool = False
+    shutter_mode: str | None = None
 
     @classmethod
-    def from_config(cls, cfg) -> CameraSettings:
-        """From a rngcam.config.CameraConfig."""
+    def from_config(cls, cfg, role: str | None = None) -> CameraSettings:
+        """From a rngcam.config.CameraConfig; the RS role asks for a rolling shutter."""
         return cls(exposure_s=cfg.exposure_s, gain_db=cfg.gain_db, pixel_format=cfg.pixel_format,
                    roi=(cfg.roi.width, cfg.roi.height, cfg.roi.offset_x, cfg.roi.offset_y),
                    trigger_source=cfg.trigger.source, trigger_activation=cfg.trigger.activation,
-                   line_debouncer_s=cfg.trigger.debouncer_s, chunk_timestamps=cfg.chunk_timestamps)
+                   line_debouncer_s=cfg.trigger.debouncer_s, chunk_timestamps=cfg.chunk_timestamps,
+                   shutter_mode="Rolling" if role == "rs" else None)
 
 
 @dataclass(frozen=True)

@@ -23,8 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from rngcam.acquire.camera import Camera, CameraSettings, Frame
-from rngcam.acquire.factory import open_devices
-from rngcam.acquire.generator import FunctionGenerator, PulseTrain
+from rngcam.acquire.factory import open_devices, open_generator
+from rngcam.acquire.feasibility import gs_readout, refuse_impossible
+from rngcam.acquire.generator import PulseTrain
 from rngcam.acquire.resolve import ResolvedRig, resolve_rig
 from rngcam.config import CameraConfig, Rig
 from rngcam.errors import ConfigError, HardwareError, RngcamError
@@ -108,6 +109,15 @@ def verify_timing(resolved: ResolvedRig, rs_exposure_s: float, gs_exposure_s: fl
     if reported_line_time_s is None:
         lines.append(f"line time: camera does not report it; using {source}'s {line * 1e6:g} us")
     elif not math.isclose(reported_line_time_s, line, rel_tol=LINE_TIME_RTOL):
+        real_end = (rows - 1) * reported_line_time_s + rs_exposure_s
+        late = [i for i, t in enumerate(c.timing.gs_trigger_s) if t - t0 + gs_exposure_s > real_end * (1 + 1e-9)]
+        if late:
+            k = late[0]
+            gs_end = c.timing.gs_trigger_s[k] - t0 + gs_exposure_s
+            raise ConfigError(f"{rig.path}: timing.gs_trigger_s: the RS camera reports a "
+                              f"{reported_line_time_s * 1e6:.4g} us line time, so its exposure window ends at "
+                              f"{real_end * 1e3:.3f} ms, before GS exposure {k + 1} ends ({gs_end * 1e3:.3f} ms); "
+                              f"{source} says {line * 1e6:.4g} us: recalibrate the line time or move the GS triggers")
         warnings.append(f"RS camera line time is {reported_line_time_s * 1e6:.4g} us but {source} says "
                         f"{line * 1e6:.4g} us (the bundle records {source}'s value)")
     else:
@@ -123,32 +133,6 @@ def pulse_trains(rig: Rig) -> list[PulseTrain]:
         PulseTrain(c.cameras.gs.trigger.channel, t.gs_trigger_s[0], t.pulse_width_s,
                    count=len(t.gs_trigger_s), period_s=t.gs_period_s),
     ]
-
-
-# --------------------------------------------------------------------------- hardware set-up
-
-
-def _connect_generator(rig: Rig, stack: contextlib.ExitStack, progress: Progress):
-    """(FunctionGenerator, fake instrument or None), both closed by `stack`."""
-    from rngcam.acquire.scpi import SerialTransport, VisaTransport
-
-    g = rig.config.generator
-    fake = None
-    if g.transport == "fake":
-        from rngcam.acquire.fake_generator import FakeGenerator
-
-        fake = stack.enter_context(FakeGenerator(g.dialect, g.fake_fault))
-        port = fake.port
-        progress(f"generator: fake {g.dialect} instrument serving on {port}")
-    else:
-        port = g.port
-    if g.transport == "visa":
-        transport = VisaTransport(g.visa_resource, g.timeout_s)
-    else:
-        transport = SerialTransport(port, g.baudrate, g.timeout_s)
-    gen = stack.enter_context(FunctionGenerator(transport, g.dialect))
-    progress(f"generator: {gen.identify()} ({g.dialect} over {g.transport})")
-    return gen, fake
 
 
 # --------------------------------------------------------------------------- the capture
@@ -216,7 +200,7 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
     try:
         with contextlib.ExitStack() as stack:
             devices = open_devices(resolved)
-            gen, fake = _connect_generator(rig, stack, progress)
+            gen, fake = open_generator(rig, stack, progress)
             cams: dict[str, Camera] = {}
             for role in ("rs", "gs"):
                 cfg = getattr(c.cameras, role)
@@ -227,7 +211,7 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
                     fake.connect(cfg.trigger.channel, cam.hardware_input)
             for role, cam in cams.items():
                 cfg = getattr(c.cameras, role)
-                configured = cam.configure(CameraSettings.from_config(cfg))
+                configured = cam.configure(CameraSettings.from_config(cfg, role))
                 warnings += configured.warnings
                 progress(f"{role} camera configured: {cfg.pixel_format}, {cfg.roi.width}x{cfg.roi.height}, "
                          f"exposure {configured.exposure_s * 1e6:g} us, trigger {cfg.trigger.source} "
@@ -236,6 +220,14 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
                                                      cams["gs"].configured.exposure_s,
                                                      cams["rs"].line_time_s())
             warnings += timing_warnings
+            gs_info = cams["gs"].info
+            readout_s, readout_source = gs_readout(c.cameras.gs, cams["gs"].configured.features,
+                                                   gs_info.model if gs_info else "")
+            rs_window_s = ((c.cameras.rs.roi.height - 1) * resolved.line_time_s + cams["rs"].configured.exposure_s)
+            summary += refuse_impossible(rig, rs_window_s, cams["gs"].configured.exposure_s, readout_s,
+                                         readout_source)
+            if readout_s is None:
+                warnings.append(f"GS readout time {readout_source}: trigger spacing checked against the exposure only")
             for line in summary:
                 progress(f"timing: {line}")
             gen.configure(pulse_trains(rig), c.generator.high_v, c.generator.low_v)
@@ -275,8 +267,12 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
                                     settings=gen.settings | {"transport": c.generator.transport,
                                                              "fired_channels": gen.channels},
                                     errors=list(gen.errors))
-    except RngcamError:
-        raise  # already one line, raised after the stack disarmed the cameras and switched outputs off
+    except RngcamError as exc:
+        if stage[0] == "while setting up":
+            raise  # nothing was armed: the one line says what is wrong
+        # already one line, raised after the stack disarmed the cameras and switched outputs off
+        raise type(exc)(f"{exc} ({stage[0]}); hardware safe: cameras disarmed, generator outputs off; "
+                        "no bundle written") from None
     except BaseException as exc:  # noqa: BLE001 - MemoryError, KeyboardInterrupt, any bug: one line
         raise _failure(stage[0], exc) from None
     t0 = c.timing.rs_trigger_s

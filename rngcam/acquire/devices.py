@@ -1,8 +1,9 @@
 """Listing what is connected: cameras per backend and serial ports.
 
 Discovery is explicit: genicam loads only the producer file it is given; pylon can be held to
-one transport layer (e.g. BaslerCamEmu). Unrestricted pylon discovery broadcasts on GigE
-networks, so the CLI only does it when asked for the pylon backend.
+one transport layer (e.g. BaslerCamEmu); aravis opens the addresses it is given (its discovery
+broadcasts on every interface, so it runs only when asked). Unrestricted pylon or aravis
+discovery broadcasts on GigE networks, so the CLI only does it when asked for that backend.
 """
 
 from __future__ import annotations
@@ -37,17 +38,13 @@ def list_mock_cameras(rig=None) -> list[CameraInfo]:
             for role, c in (("rs", cams.rs), ("gs", cams.gs)) if c.backend == "mock"]
 
 
-def list_cameras(backend: str, cti: str | None = None, pylon_transport: str | None = None,
-                 rig=None) -> list[CameraInfo]:
-    """Cameras of one backend; HardwareError (one line) when the backend is unavailable."""
-    if backend == "mock":
-        return list_mock_cameras(rig)
-    if backend == "pylon":
-        from rngcam.acquire.pylon_camera import list_pylon_cameras
+def list_cameras(backend: str, rig=None, **options) -> list[CameraInfo]:
+    """Cameras of one backend (rngcam.backends); HardwareError (one line) when it is unknown or
+    unavailable. `options` go to the backend's lister (cti, pylon_transport, address ...)."""
+    from rngcam.acquire.factory import load_backend
+    from rngcam.backends import CAMERAS
 
-        return list_pylon_cameras(pylon_transport)
-    if backend == "genicam":
-        from rngcam.acquire.genicam_camera import list_genicam_cameras
-
-        return list_genicam_cameras(cti)
-    raise HardwareError(f"unknown backend {backend!r} (genicam, pylon or mock)")
+    spec = CAMERAS.get(backend)
+    if spec is None:
+        raise HardwareError(f"unknown backend {backend!r} ({', '.join(CAMERAS)})")
+    return load_backend(spec).list_cameras(rig=rig, **options)

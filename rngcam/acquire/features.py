@@ -48,6 +48,10 @@ class FeatureMap(ABC):
         """The smallest allowed value of a numeric feature, when known."""
         return
 
+    def entries(self, name: str) -> list[str] | None:
+        """The values an enumeration feature offers now, when known."""
+        return
+
     def first_writable(self, names) -> str | None:
         return next((n for n in names if self.writable(n)), None)
 
@@ -104,10 +108,9 @@ def apply_settings(fm: FeatureMap, s: CameraSettings, label: str) -> Configured:
     """Set the features of `s` on a GenICam camera (not acquiring), read them back."""
     a = _Applier(fm, label)
     # Trigger mode off first: some features are locked while the camera waits for triggers.
-    if fm.writable("TriggerSelector"):
-        a.set("TriggerSelector", "FrameStart", required=False)
-    if fm.writable("TriggerMode"):
-        a.set("TriggerMode", "Off")
+    _all_triggers_off(fm, a)
+    if s.shutter_mode is not None:
+        _set_shutter_mode(fm, a, s.shutter_mode)
     for name in AUTO_OFF:
         a.set(name, "Off", required=False)
     if s.pixel_format is not None:
@@ -151,6 +154,42 @@ def apply_settings(fm: FeatureMap, s: CameraSettings, label: str) -> Configured:
         if name is not None:
             a.out.features["exposure_s"] = float(fm.get(name)) * 1e-6
     return a.out
+
+
+def _all_triggers_off(fm: FeatureMap, a: _Applier) -> None:
+    """TriggerMode Off under every TriggerSelector (ace USB also has FrameBurstStart, others
+    AcquisitionStart ...: one left on holds the camera), each recorded as TriggerMode[selector];
+    FrameStart stays selected, the only trigger a capture uses."""
+    if fm.writable("TriggerSelector"):
+        for selector in fm.entries("TriggerSelector") or []:
+            if selector == "FrameStart":
+                continue
+            try:
+                fm.set("TriggerSelector", selector)
+            except Exception:  # noqa: BLE001 - an entry not selectable now
+                continue
+            if fm.writable("TriggerMode"):
+                a.set("TriggerMode", "Off")
+                a.out.features[f"TriggerMode[{selector}]"] = a.out.features.pop("TriggerMode")
+        a.set("TriggerSelector", "FrameStart", required=False)
+    if fm.writable("TriggerMode"):
+        a.set("TriggerMode", "Off")
+
+
+def _set_shutter_mode(fm: FeatureMap, a: _Applier, mode: str) -> None:
+    """ShutterMode where the camera has it (ace USB: Global, Rolling, GlobalResetRelease), read
+    back and recorded; a camera without it keeps its sensor's only mode (nothing to record)."""
+    if fm.writable("ShutterMode"):
+        offered = fm.entries("ShutterMode")
+        if offered is None or mode in offered:
+            a.set("ShutterMode", mode)
+            return
+        a.out.warnings.append(f"{a.label}: ShutterMode offers {', '.join(offered)}, not {mode}; left as is")
+    value = fm.get_or_none("ShutterMode")
+    if value is not None:
+        a.out.features["ShutterMode"] = _plain(value)
+        if str(value) != mode:
+            a.out.warnings.append(f"{a.label}: ShutterMode is {value!r} and cannot be set to {mode!r}")
 
 
 def _set_gain(fm: FeatureMap, a: _Applier, gain_db: float) -> None:

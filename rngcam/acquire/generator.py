@@ -3,18 +3,27 @@
 Channel plan: the RS camera's channel sends one pulse at T0 (rs_trigger_s after the fire);
 the GS camera's channel sends a triggered burst of N pulses, the first at T1 and then one
 per GS period. Both channels are TTL 0-5 V into a high-impedance load, armed on a bus/manual
-trigger, and fired together. After configuring, the driver checks `*OPC?` and drains the
-error queue (`SYST:ERR?`); any SCPI error is a HardwareError. Outputs are switched off on
-exit, whatever happened.
+trigger, and fired from one event where the instrument allows it. After configuring, the driver
+checks `*OPC?` and drains the error queue; any SCPI error is a HardwareError. Outputs are
+switched off on exit, whatever happened.
 
-Dialects: Keysight 33500B, Rigol DG1000Z/DG800 and Siglent SDG. The command sets follow the
-vendors' programming guides; they are tested against rngcam's fake instrument only, not on
-real generators.
+Dialects: Keysight 33500B, Rigol DG1000Z/DG800 and Siglent SDG. Their commands are the manuals'
+(rngcam/acquire/instruments/generators.yaml holds each command set; the tests drive this driver
+through pyvisa-sim and the pty fake, both of which refuse anything outside it).
+
+How the two trains start (`fire_plan`, recorded in the bundle):
+- keysight_33500b: `*TRG`, one bus trigger that starts every channel whose source is BUS: one event.
+- rigol_dg with `link: trigger_out` (the RS channel's rear Sync/Ext Trig output cabled into the
+  GS channel's): the RS channel's manual trigger also triggers the GS channel: one event.
+- rigol_dg without the link, siglent_sdg: one manual-trigger command per channel, back to back;
+  the GS train starts later by the time the second command takes, which the driver measures on
+  the host (write to drained output) and records as a bound, firmware latency not included.
 """
 
 from __future__ import annotations
 
 import re
+import time
 from dataclasses import asdict, dataclass
 
 from rngcam.errors import HardwareError
@@ -55,15 +64,21 @@ def _num(x: float) -> str:
 
 
 class Dialect:
-    """A generator family's SCPI commands. Subclasses fill in the command text."""
+    """A generator family's SCPI commands. Subclasses fill in the command text.
+
+    `setup(train, ..., role)`: role "master" (the RS train, fired by the host), "slave" (the
+    GS train when it takes the master's trigger output) or "own" (fired by its own command).
+    """
 
     name = "generic"
     error_query = "SYST:ERR?"
+    one_event = False  # fire() starts every channel from one instrument event
+    can_link = False  # has a per-channel trigger output the next channel can take
 
     def reset(self) -> list[str]:
         return ["*RST", "*CLS"]
 
-    def setup(self, train: PulseTrain, high_v: float, low_v: float) -> list[str]:
+    def setup(self, train: PulseTrain, high_v: float, low_v: float, role: str = "own") -> list[str]:
         raise NotImplementedError
 
     def output(self, channel: int, on: bool) -> list[str]:
@@ -75,8 +90,9 @@ class Dialect:
 
 class Keysight33500B(Dialect):
     name = "keysight_33500b"
+    one_event = True
 
-    def setup(self, train, high_v, low_v):
+    def setup(self, train, high_v, low_v, role="own"):
         n = train.channel
         return [
             f"OUTP{n}:LOAD INF",
@@ -98,12 +114,18 @@ class Keysight33500B(Dialect):
 
 
 class RigolDG(Dialect):
-    """Rigol DG1000Z / DG800: `*TRG` fires every channel in manual-trigger burst mode."""
+    """Rigol DG1000Z / DG800: a manual burst trigger per channel; the master's trigger output
+    (rear Sync/Ext Trig) can start the slave channel's burst (external source, rising edge)."""
 
     name = "rigol_dg"
+    error_query = ":SYST:ERR?"
+    can_link = True
 
-    def setup(self, train, high_v, low_v):
+    def setup(self, train, high_v, low_v, role="own"):
         n = train.channel
+        source = "EXT" if role == "slave" else "MAN"
+        linked = {"master": [f":SOUR{n}:BURS:TRIG:TRIGO POS"],
+                  "slave": [f":SOUR{n}:BURS:TRIG:SLOP POS"]}.get(role, [])
         return [
             f":OUTP{n}:LOAD INF",
             f":SOUR{n}:FUNC PULS",
@@ -114,27 +136,37 @@ class RigolDG(Dialect):
             f":SOUR{n}:BURS ON",
             f":SOUR{n}:BURS:MODE TRIG",
             f":SOUR{n}:BURS:NCYC {train.count}",
-            f":SOUR{n}:BURS:TRIG:SOUR MAN",
+            f":SOUR{n}:BURS:TRIG:SOUR {source}",
+            *linked,
             f":SOUR{n}:BURS:TDEL {_num(train.delay_s)}",
         ]
 
     def output(self, channel, on):
         return [f":OUTP{channel} {'ON' if on else 'OFF'}"]
 
+    def fire(self, channels):
+        return [f":SOUR{n}:BURS:TRIG:IMM" for n in channels]
+
 
 class SiglentSDG(Dialect):
-    """Siglent SDG: one manual trigger per channel (sent back to back; a few µs apart)."""
+    """Siglent SDG: one manual trigger per channel, sent back to back (the skew is measured)."""
 
     name = "siglent_sdg"
 
-    def setup(self, train, high_v, low_v):
+    def setup(self, train, high_v, low_v, role="own"):
         n = train.channel
         return [
             f"C{n}:OUTP LOAD,HZ",
-            (f"C{n}:BSWV WVTP,PULSE,PRD,{_num(train.waveform_period_s)},WIDTH,{_num(train.width_s)},"
-             f"HLEV,{_num(high_v)},LLEV,{_num(low_v)}"),
-            (f"C{n}:BTWV STATE,ON,GATE_NCYC,NCYC,TIME,{train.count},TRSR,MAN,"
-             f"DLAY,{_num(train.delay_s)}"),
+            f"C{n}:BSWV WVTP,PULSE",
+            f"C{n}:BSWV PERI,{_num(train.waveform_period_s)}",
+            f"C{n}:BSWV WIDTH,{_num(train.width_s)}",
+            f"C{n}:BSWV HLEV,{_num(high_v)}",
+            f"C{n}:BSWV LLEV,{_num(low_v)}",
+            f"C{n}:BTWV STATE,ON",
+            f"C{n}:BTWV GATE_NCYC,NCYC",
+            f"C{n}:BTWV TIME,{train.count}",
+            f"C{n}:BTWV TRSR,MAN",
+            f"C{n}:BTWV DLAY,{_num(train.delay_s)}",
         ]
 
     def output(self, channel, on):
@@ -167,11 +199,15 @@ class FunctionGenerator:
     Use as a context manager: outputs are switched off and the transport closed on exit.
     """
 
-    def __init__(self, transport, dialect: Dialect | str):
+    def __init__(self, transport, dialect: Dialect | str, link: str = "none"):
         self.transport = transport
         self.dialect = dialect_by_name(dialect) if isinstance(dialect, str) else dialect
+        if link == "trigger_out" and not self.dialect.can_link:
+            raise HardwareError(f"{self.dialect.name} has no per-channel trigger output to link the channels")
+        self.link = link
         self.identity = ""
         self.channels: list[int] = []
+        self.fired: list[int] = []  # the channels the host triggers
         self.sent: list[str] = []
         self.errors: list[str] = []
         self.settings: dict = {}
@@ -217,15 +253,19 @@ class FunctionGenerator:
         if len({t.channel for t in trains}) != len(trains):
             raise HardwareError("two pulse trains on one generator channel")
         self.channels = [t.channel for t in trains]
+        linked = self.link == "trigger_out" and len(trains) == 2
+        roles = ["master", "slave"] if linked else ["own"] * len(trains)
+        self.fired = [trains[0].channel] if linked else list(self.channels)
         self._send(self.dialect.reset())
-        for t in trains:
-            self._send(self.dialect.setup(t, high_v, low_v))
+        for t, role in zip(trains, roles):
+            self._send(self.dialect.setup(t, high_v, low_v, role))
         self.settings = {
             "dialect": self.dialect.name,
             "high_v": high_v,
             "low_v": low_v,
             "load": "high-Z",
             "trains": [asdict(t) | {"rising_edges_s": t.rising_edges_s()} for t in trains],
+            "fire": self.fire_plan(),
         }
         self.check("configuration")
 
@@ -235,9 +275,35 @@ class FunctionGenerator:
             self._send(self.dialect.output(ch, True))
         self.check("arming")
 
+    def fire_plan(self) -> dict:
+        """How the trains start: one instrument event, or one command per channel."""
+        if self.dialect.one_event:
+            how = "one event: a bus trigger starts every channel"
+        elif self.link == "trigger_out":
+            how = (f"one event: channel {self.fired[0]}'s trigger output starts channel "
+                   f"{[c for c in self.channels if c not in self.fired][0]} (cabled)")
+        else:
+            how = "sequential: one manual-trigger command per channel; skew bounded by the measured host gap"
+        return {"one_event": self.dialect.one_event or self.link == "trigger_out", "how": how,
+                "commands": self.dialect.fire(self.fired)}
+
     def fire(self) -> None:
-        """Send the trigger (all channels) and wait until the instrument has processed it."""
-        self._send(self.dialect.fire(self.channels))
+        """Send the trigger and wait until the instrument has processed it. With one command per
+        channel, the time from the start of the first write to the end of the last (output
+        drained) bounds the skew between the trains' starts; it goes into `settings["fire"]`."""
+        commands = self.dialect.fire(self.fired)
+        t0 = time.perf_counter()
+        self._send(commands)
+        gap = time.perf_counter() - t0
+        if len(commands) > 1:
+            wire = getattr(self.transport, "wire_time_s", None)
+            wire_s = sum(wire(c) for c in commands[1:]) if wire else 0.0
+            fire = self.settings.setdefault("fire", {})
+            fire["skew_bound_s"] = max(gap, wire_s)
+            fire["skew_host_s"], fire["skew_wire_s"] = gap, wire_s
+            fire["skew_source"] = ("the later of: host time from the first trigger write to the last write "
+                                   "drained, and the later commands' time on the wire at the baud rate; "
+                                   "instrument firmware latency not included")
         self.check("firing")
 
     def outputs_off(self) -> None:

@@ -118,6 +118,12 @@ class HarvestersFeatures(FeatureMap):
         except Exception:  # noqa: BLE001
             return None
 
+    def entries(self, name):
+        try:
+            return list(self._node(name).symbolics)
+        except Exception:  # noqa: BLE001
+            return None
+
 
 class GenicamCamera(Camera):
     backend = "genicam"
@@ -237,3 +243,12 @@ def _maybe(read):
         return read()
     except Exception:  # noqa: BLE001
         return None
+
+
+def make_camera(cfg, role: str) -> GenicamCamera:
+    """The factory's entry point (rngcam.backends)."""
+    return GenicamCamera(cfg.serial, role.upper(), cti=cfg.cti)
+
+
+def list_cameras(cti: str | Path | None = None, **_options) -> list[CameraInfo]:
+    return list_genicam_cameras(cti)

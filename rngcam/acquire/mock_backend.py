@@ -63,3 +63,15 @@ class MockDevices:
 
     def truth(self) -> Truth:
         return Truth(video=self.world.video(), frame_times_s=self.grid.edges_s()[:-1], dt_s=self.grid.dt_s)
+
+
+def make_devices(resolved: ResolvedRig) -> MockDevices:
+    """The factory's entry point (rngcam.backends): the mock builds its whole world at once."""
+    return MockDevices(resolved)
+
+
+def list_cameras(rig=None, **_options):
+    """The mock cameras a rig plugs in (those of rigs/mock.yaml without a rig)."""
+    from rngcam.acquire.devices import list_mock_cameras
+
+    return list_mock_cameras(rig)

@@ -256,6 +256,8 @@ class MockCamera(Camera):
             "MockNoise": dev.noise, "MockSeed": dev.seed, "MockFullWell_e": dev.sensor.full_well_e,
             "MockReadNoise_e": dev.sensor.read_noise_e,
         }
+        if dev.kind == "gs":  # the mock GS says how long its readout takes, as a real camera does
+            out.features["SensorReadoutTime"] = round(dev.readout_s * 1e6, 2)
         if dev.kind == "rs":
             out.features["SensorReadoutTime"] = self.features.get("SensorReadoutTime")
         if settings.exposure_s is not None and abs(self.exposure_s - settings.exposure_s) > 1e-12:

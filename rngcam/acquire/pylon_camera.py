@@ -87,6 +87,12 @@ class PylonFeatures(FeatureMap):
         except Exception:  # noqa: BLE001
             return None
 
+    def entries(self, name):
+        try:
+            return list(self._node(name).Symbolics)
+        except Exception:  # noqa: BLE001
+            return None
+
 
 class PylonCamera(Camera):
     backend = "pylon"
@@ -224,3 +230,12 @@ def emulator_serve_images(camera: PylonCamera, path) -> None:
         if not fm.writable(name):
             raise HardwareError(f"{camera.label}: feature {name} is missing (not the pylon camera emulator?)")
         fm.set(name, value)
+
+
+def make_camera(cfg, role: str) -> PylonCamera:
+    """The factory's entry point (rngcam.backends)."""
+    return PylonCamera(cfg.serial, role.upper(), transport=cfg.pylon_transport)
+
+
+def list_cameras(pylon_transport: str | None = None, **_options) -> list[CameraInfo]:
+    return list_pylon_cameras(pylon_transport)

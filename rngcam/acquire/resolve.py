@@ -209,6 +209,9 @@ def resolve_rig(rig: Rig, progress: Progress = print, psf: bool = True,
                                       c.calibration.white_balance, np.ones(channels)), np.float64)
     out.sources = {k: sources[k] for k in SOURCE_ORDER if k in sources}
     if stored is not None:
-        out.extra = {"calibration_file": str(stored_path), "calibration_parts": stored.parts(),
+        found = ("the rig's calibration.file" if c.calibration.file else
+                 "beside the rig file (<rig>.calib.h5, the rule when the rig names none)")
+        out.extra = {"calibration_file": str(stored_path), "calibration_found": found,
+                     "calibration_parts": stored.parts(),
                      "calibration_provenance": {k: v for k, v in stored.provenance.items() if k in stored.parts()}}
     return out

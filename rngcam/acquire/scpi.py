@@ -45,6 +45,7 @@ class SerialTransport:
 
         self.name = f"generator on {port}"
         self.port = port
+        self.baudrate = int(baudrate)
         self.timeout_s = float(timeout_s)
         try:
             self._serial = serial.Serial(port, baudrate=baudrate, timeout=min(0.05, timeout_s),
@@ -64,6 +65,10 @@ class SerialTransport:
             self._serial.flush()
         except (serial.SerialException, OSError) as exc:
             raise HardwareError(f"{self.name}: writing {command!r} failed ({exc})") from None
+
+    def wire_time_s(self, command: str) -> float:
+        """How long `command` and its terminator take on the line (8N1: 10 bits a byte)."""
+        return (len(command) + len(TERMINATOR)) * 10 / self.baudrate
 
     def read_line(self, command: str) -> str:
         """Read one answer line within timeout_s (the answer to `command`)."""
@@ -98,21 +103,35 @@ class SerialTransport:
             pass
 
 
+def sim_library() -> str:
+    """pyvisa's library spec for rngcam's instrument definitions (pyvisa-sim)."""
+    from rngcam.acquire.instruments import DEFINITIONS
+
+    return f"{DEFINITIONS}@sim"
+
+
 class VisaTransport:
     """SCPI over VISA (USB-TMC or LAN generators). Needs the optional extra `rngcam[visa]`.
 
-    Not exercised by the test suite (no VISA instrument or simulator is available there).
+    `library`: pyvisa's backend ("@py", a VISA shared library, or "sim": rngcam's pyvisa-sim
+    definitions of the three instruments, which the tests drive); default: the system VISA,
+    else pyvisa-py.
     """
 
-    def __init__(self, resource: str, timeout_s: float = 1.0):
+    def __init__(self, resource: str, timeout_s: float = 1.0, library: str | None = None):
         try:
             import pyvisa
         except ImportError:
             raise HardwareError("VISA transport needs pyvisa: pip install 'rngcam[visa]'") from None
         self.name = f"generator at {resource}"
         self.timeout_s = float(timeout_s)
+        if library == "sim":
+            library = sim_library()
         try:
-            rm = pyvisa.ResourceManager("@py") if _only_pyvisa_py() else pyvisa.ResourceManager()
+            if library:
+                rm = pyvisa.ResourceManager(library)
+            else:
+                rm = pyvisa.ResourceManager("@py") if _only_pyvisa_py() else pyvisa.ResourceManager()
             self._inst = rm.open_resource(resource)
         except Exception as exc:  # noqa: BLE001 - pyvisa raises many types; report one line
             raise HardwareError(f"VISA resource {resource} cannot be opened ({exc})") from None
@@ -139,6 +158,15 @@ class VisaTransport:
             self._inst.close()
         except Exception:  # noqa: BLE001
             pass
+
+
+def open_transport(cfg, stack, progress, channels=None):
+    """The factory's entry point (rngcam.backends): serial or VISA, as the rig says; (transport, None)."""
+    if cfg.transport == "visa":
+        transport = VisaTransport(cfg.visa_resource, cfg.timeout_s, cfg.visa_library)
+    else:
+        transport = SerialTransport(cfg.port, cfg.baudrate, cfg.timeout_s)
+    return transport, None
 
 
 def _only_pyvisa_py() -> bool:

@@ -60,10 +60,12 @@ def _store(rig: Rig, out, **parts) -> Path:
 
 
 def rig_hint(rig: Rig, path: Path) -> str | None:
-    """A line telling how to make captures use `path`, unless the rig already names it."""
+    """A line telling whether captures with this rig use `path` and, when not, how to make them."""
     named = rig.config.calibration.file
     if named and rig.resolve(named) == path.resolve():
         return None
+    if not named and path.resolve() == store.beside_rig(rig).resolve():
+        return f"captures with {rig.path.name} use it: it is the calibration file beside the rig file"
     return (f"to use it in captures, add to {rig.path.name}: calibration: {{file: {path.resolve()}}} "
             "(a path relative to the rig file also works)")
 

@@ -10,7 +10,7 @@ _RIG = click.option("--rig", "rig_path", required=True, type=click.Path(dir_okay
                     help="Rig file (YAML), e.g. rigs/mock.yaml.")
 _OUT = click.option("-o", "--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
                     help="Calibration file to update (default: the rig's calibration.file, else "
-                         "<rig name>.calib.h5 here).")
+                         "<rig>.calib.h5 beside the rig file, where captures find it).")
 _YES = click.option("-y", "--yes", is_flag=True,
                     help="Do not wait for Enter before each shot (the target is already in place).")
 
@@ -41,8 +41,8 @@ def _finish(rig, outcome) -> None:
 def calibrate_group():
     """Measure the rig's PSF, RS line time, GS-to-RS alignment and white balance.
 
-    Results go to one calibration HDF5 file (see -o); captures copy them into every bundle
-    when the rig names that file (calibration: {file: ...})."""
+    Results go to one calibration HDF5 file: the rig's calibration.file, else <rig>.calib.h5 beside
+    the rig file (see -o); captures with the rig read it from there into every bundle."""
 
 
 @calibrate_group.command("psf")

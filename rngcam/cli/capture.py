@@ -9,6 +9,22 @@ from pathlib import Path
 import click
 
 
+def _rerun_in_private_network(rig, args: list[str]) -> None:
+    """Simulated GigE cameras are served in a network namespace of their own (loopback only):
+    run this same command there and exit with its status."""
+    import sys
+
+    from rngcam.acquire import netns
+    from rngcam.acquire.factory import needs_private_network
+
+    if netns.inside() or not needs_private_network(rig):
+        return
+    click.echo("simulated GigE cameras: running in a private network namespace (loopback only)")
+    sys.stdout.flush()
+    argv = [sys.executable, "-c", "from rngcam.cli import main; main()", *args]
+    raise SystemExit(netns.run_private(argv).returncode)
+
+
 @click.command("capture")
 @click.option("--rig", "rig_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Rig file (YAML), e.g. rigs/mock.yaml.")
@@ -23,24 +39,35 @@ def capture_cmd(rig_path: Path, out: Path | None, count: int):
 
     rig = load_rig(rig_path)
     click.echo(f"rig: {rig.config.name} ({rig_path})")
+    args = ["capture", "--rig", str(rig_path), "--count", str(count)] + (["-o", str(out)] if out else [])
+    _rerun_in_private_network(rig, args)
     results = capture(rig, out, count=count, progress=click.echo)
     for r in results:
         click.echo(f"done: {r.path} in {r.seconds['total_s']:.2f} s"
                    + (f" with {len(r.warnings)} warning(s)" if r.warnings else ""))
 
 
+def _camera_backends() -> list[str]:
+    from rngcam.backends import CAMERAS
+
+    return list(CAMERAS)
+
+
 @click.command("devices")
-@click.option("--backend", type=click.Choice(["genicam", "pylon", "mock"]), default=None,
-              help="Camera backend to list (default: mock, plus genicam when a .cti is known).")
+@click.option("--backend", type=click.Choice(_camera_backends()), default=None,
+              help="Camera backend to list (default: the rig's, else mock plus genicam when a .cti is known).")
 @click.option("--cti", type=click.Path(dir_okay=False), default=None,
               help="GenTL producer for the genicam backend (default: $RNGCAM_CTI).")
 @click.option("--pylon-tl", "pylon_tl", default=None,
               help="Only this pylon transport layer (e.g. BaslerCamEmu); default: all "
                    "(broadcasts discovery on GigE networks).")
+@click.option("--address", "addresses", multiple=True,
+              help="aravis: open the camera at this IP address (repeatable); no discovery is sent. "
+                   "Without it aravis discovery broadcasts on every interface.")
 @click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="List the mock cameras of this rig.")
+              help="List this rig's cameras (a simulated rig's are started for it).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
-def devices_cmd(backend, cti, pylon_tl, rig_path, as_json):
+def devices_cmd(backend, cti, pylon_tl, addresses, rig_path, as_json):
     """List cameras (model, serial, interface) and serial ports."""
     import os
 
@@ -49,10 +76,18 @@ def devices_cmd(backend, cti, pylon_tl, rig_path, as_json):
     from rngcam.config import load_rig
 
     rig = load_rig(rig_path) if rig_path else None
-    backends = [backend] if backend else ["mock"] + (["genicam"] if (cti or os.environ.get(CTI_ENV)) else [])
+    if rig is not None and backend in (None, rig.config.cameras.rs.backend):
+        _rerun_in_private_network(rig, ["devices", "--rig", str(rig_path)] + (["--backend", backend] if backend else [])
+                                  + (["--json"] if as_json else []))
+    if backend:
+        backends = [backend]
+    elif rig is not None:
+        backends = [rig.config.cameras.rs.backend]
+    else:
+        backends = ["mock"] + (["genicam"] if (cti or os.environ.get(CTI_ENV)) else [])
     cameras = []
     for b in backends:
-        cameras += list_cameras(b, cti=cti, pylon_transport=pylon_tl, rig=rig)
+        cameras += list_cameras(b, rig=rig, cti=cti, pylon_transport=pylon_tl, addresses=list(addresses))
     ports = list_serial_ports()
     if as_json:
         click.echo(json.dumps({"cameras": [asdict(c) for c in cameras],

@@ -1,5 +1,6 @@
-"""`rngcam doctor`: what this install can run (learned weights present or missing), and
-`--install-weights` to add the missing ones."""
+"""`rngcam doctor`: what this install can run (learned weights present or missing, and each
+acquisition backend of rngcam.backends usable or not, with how to get what it lacks), and
+`--install-weights` to add the missing weights."""
 
 from __future__ import annotations
 
@@ -42,3 +43,26 @@ def doctor_cmd(install_weights: bool):
     if missing:
         click.echo(f"{len(missing)} learned weight file(s) missing: `rngcam doctor --install-weights` "
                    f"(or `make venv`) installs them")
+    for line in backend_lines():
+        click.echo(line)
+
+
+def backend_lines() -> list[str]:
+    """One line per acquisition backend: usable, or what it lacks and how to get it."""
+    from rngcam.backends import CAMERAS, GENERATORS
+
+    lines = []
+    for kind, table in (("camera", CAMERAS), ("generator", GENERATORS)):
+        for spec in table.values():
+            missing = spec.missing()
+            problem = f"needs {', '.join(missing)}" if missing else None
+            if problem is None:
+                try:
+                    check = getattr(spec.load(), "check", None)
+                    problem = check() if check else None
+                except ImportError as exc:
+                    problem = str(exc)
+            label = f"backend {spec.name} ({kind}: {spec.summary})"
+            lines.append(f"ok       {label}" if problem is None else
+                         f"missing  {label}: {problem}. Install: {spec.install}")
+    return lines

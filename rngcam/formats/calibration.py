@@ -1,10 +1,10 @@
 """The calibration file: one HDF5 per rig holding what `rngcam calibrate` measured.
 
-Where: the rig names it (`calibration.file`, relative to the rig file); without that,
-`rngcam calibrate` writes `<rig name>.calib.h5` in the current folder (or `-o FILE`) and says
-how to point the rig at it. Before a capture, rngcam.acquire.resolve merges what the file holds
-with the rig (the file's values replace the rig's inline ones) and the bundle records which
-came from where.
+Where: the rig names it (`calibration.file`, relative to the rig file); without that, it lives
+beside the rig file as `<rig file name without .yaml>.calib.h5` (rigs/lab.yaml ->
+rigs/lab.calib.h5): `rngcam calibrate` writes there (or to `-o FILE`) and a capture finds it
+there. Before a capture, rngcam.acquire.resolve merges what the file holds with the rig (the
+file's values replace the rig's inline ones) and the bundle records which came from where.
 
 Layout (every part optional; each subcommand replaces only its own part, the others stay):
 
@@ -167,24 +167,34 @@ def update_calibration(path: str | Path, rig_name: str = "", **parts) -> StoredC
     return read_calibration(path)
 
 
+def beside_rig(rig) -> Path:
+    """The calibration file the rule puts beside the rig file: rigs/lab.yaml -> rigs/lab.calib.h5
+    (a rig parsed from text, with no file, uses `<rig name>.calib.h5` in the current folder)."""
+    if rig.path.suffix in (".yaml", ".yml") and rig.path.parent.is_dir():
+        return rig.path.with_suffix(".calib.h5")
+    return Path(f"{rig.config.name}.calib.h5")
+
+
 def calibration_path(rig, override: str | Path | None = None) -> Path:
     """Where `rngcam calibrate` writes: `override`, else the rig's calibration.file, else
-    `<rig name>.calib.h5` in the current folder."""
+    beside the rig file (`beside_rig`), where a capture finds it."""
     if override is not None:
         return Path(override)
     named = getattr(rig.config.calibration, "file", None)
     if named:
         return rig.resolve(named)
-    return Path(f"{rig.config.name}.calib.h5")
+    return beside_rig(rig)
 
 
 def rig_calibration(rig, missing_ok: bool = False) -> tuple[StoredCalibration | None, Path | None]:
-    """The calibration file the rig names, read (None, None when it names none). A named file
-    that does not exist is a ConfigError (a capture would otherwise silently use the rig's
-    inline values), unless `missing_ok` (calibrate is about to create it)."""
+    """The rig's calibration file, read: the one it names, else the one beside it (`beside_rig`)
+    if present; (None, None) when there is none. A named file that does not exist is a
+    ConfigError (a capture would otherwise silently use the rig's inline values), unless
+    `missing_ok` (calibrate is about to create it)."""
     named = getattr(rig.config.calibration, "file", None)
     if not named:
-        return None, None
+        path = beside_rig(rig)
+        return (read_calibration(path), path) if path.is_file() else (None, None)
     path = rig.resolve(named)
     if missing_ok and not path.exists():
         return None, path
