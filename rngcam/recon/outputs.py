@@ -140,16 +140,17 @@ def stamp_frames(frames: np.ndarray, times_s: np.ndarray, key_times_s: np.ndarra
 
     out = frames.copy()
     h = out.shape[1]
-    scale = max(0.3, h / 256 * 0.45)
+    scale = max(0.35, h / 256 * 0.45)
     thick = max(1, round(h / 256))
     keys = np.asarray(key_times_s if key_times_s is not None else [], np.float64)
+    font = cv2.FONT_HERSHEY_SIMPLEX
     for k, t in enumerate(np.asarray(times_s, np.float64)):
         text = f"{t * 1e6:,.1f} us"
         if dt_s and keys.size and np.any(np.abs(keys - t) <= dt_s / 2):
-            text += "  GS"
-        org = (4, int(4 + 22 * scale / 0.45))
-        cv2.putText(out[k], text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), thick + 2, cv2.LINE_AA)
-        cv2.putText(out[k], text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), thick, cv2.LINE_AA)
+            text += " GS"
+        (tw, th), base = cv2.getTextSize(text, font, scale, thick)
+        out[k, :th + base + 4, :tw + 6] //= 3  # a dark box under the text: legible on any frame
+        cv2.putText(out[k], text, (3, th + 2), font, scale, (255, 255, 255), thick, cv2.LINE_AA)
     return out
 
 
