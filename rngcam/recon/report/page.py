@@ -42,7 +42,8 @@ SCRIPT = r"""
     D.players.forEach(function (p, i) { imgs[i].src = p.frames[frame]; });
     const t = D.times_us[frame];
     const key = D.key_shown.indexOf(frame) >= 0 ? ' \u2014 GS key frame' : '';
-    timeText.textContent = 't = ' + fmt(t) + ' \u00b5s (frame ' + D.frames[frame] + ' of 0\u2013' + (D.total - 1) + ')' + key;
+    timeText.textContent = 't = ' + fmt(t) + ' \u00b5s (frame ' + D.frames[frame] + ' of 0\u2013' +
+      (D.total - 1) + ')' + key;
     D.cursors.forEach(function (c) {
       const el = document.getElementById(c.id);
       const f = c.x0 + (t - c.t0) / (c.t1 - c.t0) * (c.x1 - c.x0);
