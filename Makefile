@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test venv lint bench clean
+.PHONY: demo test venv lint bench clean browser
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -22,7 +22,14 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/python -m rngcam.cli.demo
 
-test: $(STAMP)
+# The report test loads report.html in headless Chromium (Debian's `chromium`); on a machine where
+# it cannot be installed (not root, not Debian) that one test skips and says why.
+browser:
+	@command -v chromium >/dev/null 2>&1 || dpkg -s chromium >/dev/null 2>&1 || \
+		(apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium) || \
+		echo "chromium could not be installed: the report's browser test will skip"
+
+test: $(STAMP) browser
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)
