@@ -173,7 +173,7 @@ def test_error_plot_handles_one_shot_runs_and_the_noise_level(tmp_path):
         plt.Figure.savefig = real_savefig
     ax = saved["fig"].axes[0]
     labels = {line.get_label(): line for line in ax.get_lines()}
-    assert labels["blend RS (one shot)"].get_linestyle() == "None"  # a marker, not a one-point line
+    assert labels["blend RS (single point)"].get_linestyle() == "None"  # a marker, not a one-point line
     rs, gs = labels["tv3d RS"], labels["tv3d GS"]
     assert (rs.get_linestyle(), rs.get_marker()) != (gs.get_linestyle(), gs.get_marker())
     assert "RS noise level (0.02)" in labels and "set-up" in ax.get_xlabel()

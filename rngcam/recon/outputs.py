@@ -26,8 +26,8 @@ def _atomic_h5(path: Path):
 
 
 # What the numbers in recon.h5 mean, for tools that read its attributes (napari, h5py, Fiji's HDF5).
-INTENSITY_UNIT = ("linear; 1.0 = the sensor's full scale (black level removed) reached by a static scene "
-                  "in an exposure of one frame interval")
+INTENSITY_UNIT = ("linear; 1.0 = a static scene that fills the sensor's full scale (above the black level) "
+                  "in the camera's exposure")
 FRAME_TIMES_NOTE = "centre of each frame's interval [k dt, (k+1) dt), in seconds from T0 (the RS trigger)"
 
 
@@ -100,8 +100,7 @@ def write_recon_h5(path: Path, video: np.ndarray, frame_times_s: np.ndarray, set
                           meaning="mid-exposure time of each GS key frame, seconds from T0")
             if "key_frames" in ctx:
                 f["key_frames"] = np.asarray(ctx["key_frames"], np.float32)
-                _set_axes(f["key_frames"], "C,G,Y,X", intensity_unit=INTENSITY_UNIT + " (each GS frame "
-                          "divided by its exposure in frames)")
+                _set_axes(f["key_frames"], "C,G,Y,X", intensity_unit=INTENSITY_UNIT)
             if "rs_image" in ctx:
                 f["rs_image"] = np.asarray(ctx["rs_image"], np.float32)
                 _set_axes(f["rs_image"], "C,Y,X", intensity_unit="the RS measurement on the grid, "
@@ -235,7 +234,8 @@ def write_errors(csv_path: Path, png_path: Path, log: list[dict], title: str = "
 
 # RS and GS residuals differ by line and marker, not only by colour (colour is the method).
 SENSOR_STYLE = {"residual_rs": ("-", "o", "RS"), "residual_gs": ("--", "s", "GS")}
-ONE_SHOT_NOTE = "one shot (no iterations): a single point"
+ONE_SHOT_NOTE = ("a single point: a one-shot baseline, or a fit whose budget ended before its first "
+                 "iteration (see events)")
 
 
 def plot_errors(png_path: Path, runs: dict[str, list[dict]], noise_level: float | None = None) -> None:
@@ -243,8 +243,9 @@ def plot_errors(png_path: Path, runs: dict[str, list[dict]], noise_level: float 
 
     Run time is the method's own compute time with set-up included; each iterative run's first
     point (the end of its set-up) is marked with a bar. A run with one log row (a GS-only
-    baseline) is one large marker with a note, not a line. `noise_level` (the RS image's relative
-    noise level, where STFM's and pnp's stop aims) is a horizontal line."""
+    baseline, or a fit stopped before its first iteration) is one large marker with a note.
+    `noise_level` (the RS image's relative noise level, where STFM's and pnp's stop aims) is a
+    horizontal line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -269,7 +270,7 @@ def plot_errors(png_path: Path, runs: dict[str, list[dict]], noise_level: float 
                 continue
             if single:
                 ax_r.plot(t, vals, linestyle="none", marker="*" if sensor == "RS" else "P", ms=12, color=c,
-                          mec="black", mew=0.6, label=f"{name} {sensor} (one shot)")
+                          mec="black", mew=0.6, label=f"{name} {sensor} (single point)")
             else:
                 ax_r.plot(t, vals, ls, marker=marker, ms=3, color=c, mfc=c if sensor == "RS" else "white",
                           label=f"{name} {sensor}")
@@ -286,7 +287,7 @@ def plot_errors(png_path: Path, runs: dict[str, list[dict]], noise_level: float 
                     continue
                 if single:
                     ax_p.plot(t, vals, linestyle="none", marker="*" if key == "psnr_db" else "X", ms=12,
-                              color=c, mec="black", mew=0.6, label=f"{name} {what} (one shot)")
+                              color=c, mec="black", mew=0.6, label=f"{name} {what} (single point)")
                 else:
                     ax_p.plot(t, vals, ls, marker=marker, ms=3, color=c, label=f"{name} {what}")
             if not single:

@@ -75,7 +75,7 @@ def _runs_sections(runs: list[Run], labels: list[str], truth, frames, factor, cu
         if not {"static", "alpha", "motion"} <= set(comps):
             continue
         speed = np.linalg.norm(comps["motion"], axis=0)  # (K, H, W) px
-        data["players"].append({"name": f"{lab}: alpha (dynamic share)",
+        data["players"].append({"name": f"{lab}: alpha (white: static background; black: moving layer)",
                                 "frames": figures.map_uris(comps["alpha"][0, frames], factor, 1.0, "gray")})
         data["players"].append({"name": f"{lab}: |motion| (0 to {float(speed.max()):.1f} px)",
                                 "frames": figures.map_uris(speed[frames], factor)})
@@ -187,9 +187,10 @@ def write_comparison(folders: list[str | Path], out: str | Path, check_hash: boo
 
 
 def write_report_or_warn(folder: Path, echo=print) -> Path | None:
-    """write_report, but a failure is one warning line: the reconstruction's outputs stand."""
+    """write_report at the end of a reconstruction (whose bundle was just read and hashed, so it is
+    not hashed again); a failure is one warning line: the reconstruction's outputs stand."""
     try:
-        path = write_report(folder)
+        path = write_report(folder, check_hash=False)
     except (RngcamError, OSError, ValueError, RuntimeError) as exc:
         echo(f"warning: report.html not written ({type(exc).__name__}: {exc})")
         return None

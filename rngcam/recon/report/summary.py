@@ -66,7 +66,7 @@ def render_recon_summary(s: dict) -> str:
     row("method", f"{s['method']}" + (f"  status {s['status']}" if s["status"] else ""))
     c, k, h, w = s["video_shape_ctyx"]
     row("video", f"{k} frames of {w}x{h} px, {c} channel(s) (axes C,T,Y,X; linear intensity, "
-        f"1 = full scale in one frame)")
+        f"1 = the sensor's full scale over its exposure)")
     if s["frame_times_s"]:
         row("time", f"{s['fps']:,.1f} fps, one frame every {s['frame_interval_s'] * 1e6:,.3f} us; frame centres "
             f"{s['frame_times_s'][0] * 1e6:,.1f} to {s['frame_times_s'][1] * 1e6:,.1f} us from the RS trigger")
