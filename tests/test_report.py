@@ -195,3 +195,27 @@ def test_report_in_a_real_browser_loads_cleanly_and_the_slider_moves_the_frame(r
     players = (slice(150, 350), slice(0, 400))  # the player row below the controls
     assert np.abs(ia[players].astype(int) - ib[players]).mean() > 1  # another frame shown
     assert np.array_equal(ia[players], ic[players])  # the same frame again: the same pixels
+
+
+def test_a_large_or_old_recon_folder_still_makes_a_sane_page(tmp_path):
+    """Frames past 320 px are downscaled JPEG, past 600 frames every n-th is shown (the page says
+    both); a recon.h5 without the newer attributes (no bundle path, key frames or log) still works."""
+    from rngcam.recon.report import figures
+
+    frames, factor, notes = figures.frame_plan(1300, 480, 640)
+    assert frames[1] == 3 and len(frames) == 434 and factor == pytest.approx(0.5) and len(notes) == 3
+    rng = np.random.default_rng(0)
+    video = rng.random((3, 8, 400, 200)).astype(np.float32)
+    outputs.write_recon_h5(tmp_path / "recon.h5", video, (np.arange(8) + 0.5) * 1e-4, {"method": "tv3d"}, "ab" * 32)
+    page = (write_comparison([tmp_path], tmp_path / "report.html")).read_text()
+    data = json.loads(re.search(r'id="rngcam-data">(.*?)</script>', page, re.S).group(1))
+    (player,) = data["players"]
+    assert player["frames"][0].startswith("data:image/jpeg;base64,") and len(player["frames"]) == 8
+    import base64
+
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(base64.b64decode(player["frames"][0].split(",", 1)[1]), np.uint8), 1)
+    assert img.shape[:2] == (320, 160)
+    assert "downscaled from 200x400 to 160x320" in page and "does not record its bundle" in page
+    assert data["dt_us"] == pytest.approx(100.0) and data["key_shown"] == []
