@@ -1,6 +1,10 @@
 """Headless Debian Chromium for the report tests (and the README's screenshot): load a page from
 disk, read its console and DOM, take a screenshot. No network: the page is a local file, and
-every feature that would call out is switched off."""
+every feature that would call out is switched off.
+
+The README's screenshot, after `make demo`:
+    .venv/bin/python tests/browser.py demo-out/report.html docs/demo_report.png '#frame=40'
+"""
 
 from __future__ import annotations
 
@@ -47,3 +51,11 @@ def screenshot(page: Path, png: Path, fragment: str = "", size: str = "1200,1400
     if not png.is_file():
         raise RuntimeError(f"chromium wrote no screenshot: {res.stderr[-500:]}")
     return png
+
+
+if __name__ == "__main__":
+    import sys
+
+    if len(sys.argv) not in (3, 4):
+        sys.exit("usage: browser.py PAGE.html SHOT.png ['#frame=N']")
+    print(screenshot(Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3] if len(sys.argv) == 4 else "", "1280,900"))

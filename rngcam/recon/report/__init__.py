@@ -26,9 +26,15 @@ METRIC_COLUMNS = [
 ]
 
 
+def _name(run: Run) -> str:
+    """The method, or the folder's name where it says more (demo-out/stfm-prior: stfm-prior)."""
+    folder = run.folder.resolve().name
+    return folder if folder.startswith(run.method + "-") else run.method
+
+
 def _label(run: Run, runs: list[Run]) -> str:
-    same = sum(r.method == run.method for r in runs) > 1
-    return f"{run.method} ({run.folder.name})" if same else run.method
+    same = sum(_name(r) == _name(run) for r in runs) > 1
+    return f"{_name(run)} ({run.folder.resolve().name})" if same else _name(run)
 
 
 def _one_object(runs: list[Run]) -> bool:
@@ -50,7 +56,7 @@ def _runs_sections(runs: list[Run], labels: list[str], truth, frames, factor, cu
                 images[f"GS key frame {g + 1}{t}"] = first.key_frames[:, g]
         if first.rs_image is not None:
             rs = first.rs_image / max(float(np.percentile(first.rs_image, 99.5)), 1e-12)
-            images["RS image (coded; scaled to its 99.5th percentile)"] = rs
+            images["RS image (coded; scaled)"] = rs
         sections.append(("What the cameras saw", f'<img src="{figures.image_figure(images)}" '
                          f'alt="key frames and RS image" style="max-width:100%">'))
     # per-frame figures against the truth

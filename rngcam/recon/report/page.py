@@ -13,7 +13,7 @@ STYLE = """
 body{font-family:system-ui,sans-serif;margin:1.2em auto;max-width:1200px;color:#222;padding:0 1em}
 h1{font-size:1.4em;margin-bottom:.2em}h2{font-size:1.1em;border-bottom:1px solid #ccc;margin-top:1.6em}
 .meta{color:#555;font-size:.9em}.warn{background:#fff4d6;border-left:4px solid #e0a800;padding:.3em .8em}
-.players{display:flex;flex-wrap:wrap;gap:10px}.players figure{margin:0;text-align:center}
+.players{display:flex;flex-wrap:wrap;gap:10px}.players figure{margin:0;text-align:center;width:var(--pw,256px)}
 .players img{width:var(--pw,256px);image-rendering:pixelated;background:#000;display:block}
 figcaption{font-size:.85em;margin-top:2px}.controls{position:sticky;top:0;background:#fff;z-index:2;
 padding:.5em 0;border-bottom:1px solid #eee}#slider{width:100%}
@@ -22,7 +22,7 @@ font-size:10px;color:#b00;cursor:pointer}#time{font-variant-numeric:tabular-nums
 .plot{position:relative;display:inline-block}.plot img{max-width:100%;display:block}
 .cursor{position:absolute;top:0;bottom:0;width:0;border-left:2px solid rgba(220,0,0,.6);pointer-events:none}
 table{border-collapse:collapse;font-size:.85em}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}
-th:first-child,td:first-child{text-align:left}pre{font-size:.8em;background:#f6f6f6;padding:.5em;overflow:auto}
+th:first-child,td:first-child{text-align:left;white-space:nowrap}pre{font-size:.8em;background:#f6f6f6;padding:.5em;overflow:auto}
 """
 
 SCRIPT = r"""
