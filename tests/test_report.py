@@ -219,3 +219,12 @@ def test_a_large_or_old_recon_folder_still_makes_a_sane_page(tmp_path):
     assert img.shape[:2] == (320, 160)
     assert "downscaled from 200x400 to 160x320" in page and "does not record its bundle" in page
     assert data["dt_us"] == pytest.approx(100.0) and data["key_shown"] == []
+
+
+def test_a_report_that_cannot_be_written_is_one_warning_not_a_lost_reconstruction(tmp_path):
+    from rngcam.recon.report import write_report_or_warn
+
+    lines = []
+    assert write_report_or_warn(tmp_path, echo=lines.append) is None
+    (line,) = lines
+    assert line.startswith("warning: report.html not written") and "other outputs are complete" in line
