@@ -92,7 +92,7 @@ def test_report_without_its_bundle_says_why_there_is_no_truth(recons, tmp_path):
     with h5py.File(moved / "recon.h5", "a") as f:
         f.attrs["bundle_path"] = str(tmp_path / "gone.h5")
     page = (write_comparison([moved], tmp_path / "r.html")).read_text()
-    assert "no truth shown: the bundle" in page and "is no longer there" in page
+    assert "No truth shown: the bundle" in page and "is no longer there" in page
     assert 'alt="truth"' not in page and 'alt="tv3d"' in page
 
 

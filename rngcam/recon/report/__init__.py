@@ -157,9 +157,16 @@ def build_report(runs: list[Run], title: str | None = None, check_hash: bool = T
             "Drag the slider (or use ← →) to step through time; ▲GS marks the key frames; "
             "append <code>#frame=N</code> to the address to open at frame N."]
     warnings = [w for r in runs for w in r.metrics.get("warnings", [])]
-    warnings = list(dict.fromkeys(warnings)) + [n for n in notes]
-    if truth is None:
-        warnings.append(f"no truth shown: {truth_note}")
+    warnings = list(dict.fromkeys(warnings))
+    meta += [f"On this page: {page.esc(n)}." for n in notes]  # what the page reduced, not a warning
+    if truth is None and "has no ground truth" in truth_note:  # a real capture: nothing amiss
+        meta.append(f"No truth shown: {page.esc(truth_note)}.")
+    elif truth is None:
+        warnings.append(f"No truth shown: {truth_note}.")
+    cut = [lab for lab, r in zip(labels, runs) if any("time budget" in e for e in r.metrics.get("events", []))]
+    if cut:
+        meta.append(f"Ended by their time budget, before their own stop: {page.esc(', '.join(cut))} "
+                    f"(each run's events are under Settings, notes, left-out parts and warnings).")
     bad = [f"{lab}: {r.metrics.get('status')}" for lab, r in zip(labels, runs) if r.metrics.get("status", "ok") != "ok"]
     warnings += [f"run did not finish cleanly: {b}" for b in bad]
     name = Path(str(bundle)).name

@@ -36,7 +36,7 @@ def frame_plan(k: int, h: int, w: int) -> tuple[np.ndarray, float, list[str]]:
         notes.append(f"frames downscaled from {w}x{h} to {round(w * factor)}x{round(h * factor)} px "
                      f"for the page; recon.h5 and video.tif are full size")
     if h * w * factor * factor > PNG_BELOW_PX:
-        notes.append("frames are JPEG (quality 85) in the page; small frames would be lossless PNG")
+        notes.append("frames are JPEG (quality 85); recon.h5 and video.tif keep the linear values")
     return np.arange(0, k, stride), factor, notes
 
 
