@@ -228,3 +228,37 @@ def test_a_report_that_cannot_be_written_is_one_warning_not_a_lost_reconstructio
     assert write_report_or_warn(tmp_path, echo=lines.append) is None
     (line,) = lines
     assert line.startswith("warning: report.html not written") and "other outputs are complete" in line
+
+
+def test_a_real_capture_without_truth_and_stfm_parts(recons, tmp_path):
+    """A bundle without truth: no truth player and no per-frame figures, said as a note (nothing is
+    amiss); a run with STFM's components gets its alpha and motion players on the same slider and
+    their figure."""
+    import shutil
+
+    bundle = tmp_path / "real.h5"
+    shutil.copy(recons / "m.h5", bundle)
+    with h5py.File(bundle, "a") as f:
+        del f["truth"]
+    res = _cli("recon", bundle, "--method", "blend", "-o", tmp_path / "b", "--quiet")
+    assert res.exit_code == 0, res.output
+    page = (tmp_path / "b" / "report.html").read_text()
+    assert "No truth shown: real.h5 has no ground truth (a real capture)." in page
+    assert 'class="warn">No truth' not in page and 'alt="truth"' not in page
+    assert "Per frame against the truth" not in page and "What the cameras saw" in page
+    # STFM's parts, from a recon.h5 that has them
+    k = 6
+    comps = {"static": np.full((3, 8, 8), 0.5, np.float32), "alpha": np.ones((1, k, 8, 8), np.float32),
+             "motion": np.zeros((2, k, 8, 8), np.float32)}
+    comps["motion"][0, :, 2:4, 2:4] = np.arange(k)[:, None, None]
+    comps["alpha"][0, :, 2:4, 2:4] = 0
+    (tmp_path / "s").mkdir()
+    outputs.write_recon_h5(tmp_path / "s" / "recon.h5", np.full((3, k, 8, 8), 0.4, np.float32), (np.arange(k) + 0.5) * 2e-4,
+                           {"method": "stfm"}, "cd" * 32, components=comps)
+    page = write_comparison([tmp_path / "s"], tmp_path / "s.html").read_text()
+    data = json.loads(re.search(r'id="rngcam-data">(.*?)</script>', page, re.S).group(1))
+    names = [p["name"] for p in data["players"]]
+    assert names == ["stfm", "stfm: alpha (white: static background; black: moving layer)",
+                     "stfm: |motion| (0 to 5.0 px)"]
+    assert all(len(p["frames"]) == k for p in data["players"]) and "STFM&#x27;s parts: stfm" in page
+    assert len(data["cursors"]) == 1  # the motion-magnitude figure follows the slider

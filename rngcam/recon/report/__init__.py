@@ -169,8 +169,8 @@ def build_report(runs: list[Run], title: str | None = None, check_hash: bool = T
                     f"(each run's events are under Settings, notes, left-out parts and warnings).")
     bad = [f"{lab}: {r.metrics.get('status')}" for lab, r in zip(labels, runs) if r.metrics.get("status", "ok") != "ok"]
     warnings += [f"run did not finish cleanly: {b}" for b in bad]
-    name = Path(str(bundle)).name
-    title = title or (f"rngcam: {labels[0]} on {name}" if len(runs) == 1 else f"rngcam: {len(runs)} methods on {name}")
+    on = f" on {Path(str(bundle)).name}" if first.attrs.get("bundle_path") else ""
+    title = title or (f"rngcam: {labels[0]}{on}" if len(runs) == 1 else f"rngcam: {len(runs)} methods{on}")
     return page.page(title, meta, warnings, sections, data)
 
 
