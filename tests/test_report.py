@@ -262,3 +262,24 @@ def test_a_real_capture_without_truth_and_stfm_parts(recons, tmp_path):
                      "stfm: |motion| (0 to 5.0 px)"]
     assert all(len(p["frames"]) == k for p in data["players"]) and "STFM&#x27;s parts: stfm" in page
     assert len(data["cursors"]) == 1  # the motion-magnitude figure follows the slider
+
+
+def test_per_frame_figures_agree_with_metrics_json(recons):
+    """The page's per-frame PSNR and object centroid error are the per-frame parts of the figures
+    in metrics.json (same truth, same definitions)."""
+    from rngcam.recon.report import figures
+    from rngcam.recon.report.load import load_run, load_truth
+
+    run = load_run(recons / "tv3d")
+    truth, why = load_truth(run)
+    assert truth is not None, why
+    pf = figures.per_frame(run.video, truth, one_object=True)
+    mse = np.mean(10 ** (-pf["psnr_db"] / 10))  # frames are equal in size: the mean of their MSEs
+    assert 10 * np.log10(1 / mse) == pytest.approx(run.metrics["psnr_db"], abs=1e-3)
+    from rngcam.formats.bundle import read_bundle
+    from rngcam.recon.problem import build_problem
+
+    away = build_problem(read_bundle(recons / "m.h5")).intermediate_frames()  # metrics.json's frames
+    err = pf["centroid_error_px"][away]
+    assert np.median(err) == pytest.approx(run.metrics["centroid_error_median_px"], rel=1e-3)
+    assert np.percentile(err, 90) == pytest.approx(run.metrics["centroid_error_p90_px"], rel=1e-3)

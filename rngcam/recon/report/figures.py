@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from rngcam.recon.metrics import dynamic_region, object_signal
+from rngcam.recon.metrics import OBJECT_FRACTION, dynamic_region
 from rngcam.recon.outputs import plot_errors, to_display
 
 MAX_SIDE = 320  # frames larger than this are downscaled (the report says so)
@@ -97,19 +97,22 @@ def per_frame(video: np.ndarray, truth: np.ndarray, one_object: bool) -> dict[st
     """Per frame: PSNR (dB) over the image and over the moving region (where the truth differs
     from its temporal median, as in metrics.json's psnr_dynamic_db) and, for a one-object scene,
     the object's centroid error in pixels (as centroid_error_*_px)."""
-    v, t = np.clip(np.nan_to_num(video, nan=0.0), None, None).astype(np.float64), truth.astype(np.float64)
+    k_all = video.shape[1]
     moving = dynamic_region(torch.from_numpy(truth)).numpy()  # (K, H, W)
-    err2 = ((v - t) ** 2)
-    out = {"psnr_db": np.array([_psnr(err2[:, k]) for k in range(v.shape[1])]),
-           "psnr_moving_db": np.array([_psnr(err2[:, k][:, moving[k]]) if moving[k].any() else math.nan
-                                       for k in range(v.shape[1])])}
+    psnr_all, psnr_moving = np.full(k_all, np.nan), np.full(k_all, np.nan)
+    for k in range(k_all):  # a frame at a time: no video-sized float64 copies
+        err2 = (np.nan_to_num(video[:, k], nan=0.0).astype(np.float64) - truth[:, k]) ** 2
+        psnr_all[k] = _psnr(err2)
+        if moving[k].any():
+            psnr_moving[k] = _psnr(err2[:, moving[k]])
+    out = {"psnr_db": psnr_all, "psnr_moving_db": psnr_moving}
     if one_object:
-        bg = torch.from_numpy(np.median(t, axis=1))
-        s_true = object_signal(torch.from_numpy(t), bg).numpy()
-        s_est = object_signal(torch.from_numpy(v), bg).numpy()
-        floor = 0.1 * s_true.max(axis=(1, 2), keepdims=True)
-        c_t = _centroids(np.clip(s_true - floor, 0, None))
-        c_e = _centroids(np.clip(s_est - floor, 0, None))
+        bg = np.median(truth, axis=1)
+        s_true = np.abs(truth - bg[:, None]).sum(0)  # object_signal in float32: (K, H, W)
+        s_est = np.abs(np.nan_to_num(video, nan=0.0) - bg[:, None]).sum(0)
+        floor = OBJECT_FRACTION * s_true.max(axis=(1, 2), keepdims=True)
+        c_t = _centroids(np.clip(s_true - floor, 0, None).astype(np.float64))
+        c_e = _centroids(np.clip(s_est - floor, 0, None).astype(np.float64))
         out["centroid_error_px"] = np.linalg.norm(c_e - c_t, axis=1)
     return out
 
