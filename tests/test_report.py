@@ -186,6 +186,9 @@ def test_report_in_a_real_browser_loads_cleanly_and_the_slider_moves_the_frame(r
     dom, console = load(page, "#frame=30")
     assert console == [], console
     assert 'data-frame="30"' in dom and "t = 6,344.0 µs (frame 30" in dom
+    data = json.loads(re.search(r'id="rngcam-data">(.*?)</script>', page.read_text(), re.S).group(1))
+    shown = re.search(r'<img id="player-1"[^>]*src="([^"]+)"', dom).group(1)
+    assert shown == data["players"][1]["frames"][30] != data["players"][1]["frames"][0]  # the method's frame 30
     a = screenshot(page, tmp_path / "a.png", "#frame=0")
     b = screenshot(page, tmp_path / "b.png", "#frame=30")
     c = screenshot(page, tmp_path / "c.png", "#frame=0")
