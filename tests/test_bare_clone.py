@@ -23,6 +23,8 @@ def test_demo_runs_on_package_data_only(tmp_path, monkeypatch, capsys):
     rows = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert [r["label"] for r in rows] == ["blend", "tv3d"] and all(r["psnr_db"] > 10 for r in rows)
     assert (tmp_path / "out" / "strip.png").stat().st_size > 0 and (tmp_path / "out" / "errors.png").is_file()
+    page = (tmp_path / "out" / "report.html").read_text()  # every method side by side, with the truth
+    assert all(f'alt="{name}"' in page for name in ("truth", "blend", "tv3d")) and "open" in out
 
 
 def test_simulate_defaults_need_no_data_folder(tmp_path, monkeypatch):

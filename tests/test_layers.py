@@ -25,7 +25,7 @@ LAYERS = (
     ("calibrate",),
     ("recon",),
     ("scale", "evaluate"),
-    ("cli",),
+    ("cli", "viewers"),
 )
 
 

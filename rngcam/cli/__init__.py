@@ -21,6 +21,8 @@ COMMANDS = {
     "calibrate": "rngcam.cli.calibrate:calibrate_group",
     "inspect": "rngcam.cli.inspect:inspect_cmd",
     "recon": "rngcam.cli.recon:recon_cmd",
+    "report": "rngcam.cli.report:report_cmd",
+    "preview": "rngcam.cli.report:preview_cmd",
     "sweep": "rngcam.cli.scale:sweep_cmd",
     "recon-batch": "rngcam.cli.scale:recon_batch_cmd",
     "bench": "rngcam.cli.bench:bench_cmd",

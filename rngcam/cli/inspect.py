@@ -36,14 +36,24 @@ def recon_size(bundle_path: str) -> tuple[dict, list[str]]:
 
 
 @click.command("inspect")
-@click.argument("bundle_path", metavar="BUNDLE")
+@click.argument("bundle_path", metavar="FILE")
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
-@click.option("--checksum", is_flag=True, help="Also print the sha256 of the file.")
+@click.option("--checksum", is_flag=True,
+              help="Also print the sha256 of the file (of a recon file: check its bundle's against the record).")
 def inspect_cmd(bundle_path: str, as_json: bool, checksum: bool) -> None:
-    """Summarise a capture bundle; exit 2 with one 'error:' line if it is unusable.
+    """Summarise a capture bundle or a reconstruction (recon.h5); exit 2 with one 'error:' line
+    if it is unusable.
 
     Warnings (e.g. a GS trigger outside the RS exposure window) are listed but do not fail.
     """
+    from rngcam.recon.report import is_recon_file
+
+    if is_recon_file(bundle_path):
+        from rngcam.recon.report.summary import recon_summary, render_recon_summary
+
+        s = recon_summary(bundle_path, checksum=checksum)
+        click.echo(json.dumps(s, indent=2) if as_json else render_recon_summary(s))
+        return
     # A missing/bad file raises BundleError; the cli group prints it as one line.
     summary = inspect_bundle(bundle_path, checksum=checksum)
     recon, warnings = recon_size(bundle_path)

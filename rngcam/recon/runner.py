@@ -37,6 +37,7 @@ from rngcam.recon.metrics import (
     video_metrics,
 )
 from rngcam.recon.problem import Problem, build_problem
+from rngcam.recon.report import write_report_or_warn
 from rngcam.sizing import check_size, gib, plan_grid
 
 # "auto" scales the registry's budgets (MethodEntry.auto_budget_s, set at 64x64 px, 67 frames, 3
@@ -209,6 +210,7 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
     device = resolve_device(settings.device)
     problem = build_problem(bundle, grid_bin=settings.grid_bin, max_frames=settings.max_frames)
     one_object = one_object_scene(bundle.rig_yaml)  # for the motion yardstick
+    context = outputs.recon_context(bundle_path, bundle, problem)  # [report] what the outputs record of the input
     del bundle  # the problem holds what the reconstruction needs; the raw frames can go
     stage("measurements binned onto the grid")
     out.mkdir(parents=True, exist_ok=True)
@@ -311,11 +313,16 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
     if method_settings is not None:
         resolved["method_settings"] = method_settings
     outputs.write_recon_h5(out / "recon.h5", video, problem.frame_times_s, resolved,
-                           bundle_checksum(bundle_path), components, problem.left_out + left_out)
-    outputs.write_tiff(out / "video.tif", video, frame_interval_s=problem.grid.dt_s)
-    outputs.write_mp4(out / "preview.mp4", video, capture_fps=1 / problem.grid.dt_s)
-    outputs.write_errors(out / "errors.csv", out / "errors.png", result.log, settings.method)
+                           bundle_checksum(bundle_path), components, problem.left_out + left_out,
+                           context=context)  # [report]
+    outputs.write_tiff(out / "video.tif", video, frame_interval_s=problem.grid.dt_s,
+                       pixel_size_m=context.get("pixel_size_m"))  # [report]
+    outputs.write_mp4(out / "preview.mp4", video, capture_fps=1 / problem.grid.dt_s,
+                      frame_times_s=problem.frame_times_s, key_times_s=problem.gs_times_s)  # [report]
+    outputs.write_errors(out / "errors.csv", out / "errors.png", result.log, settings.method,
+                         noise_level=context.get("rs_noise_level"))  # [report]
     outputs.write_metrics(out / "metrics.json", metrics)
+    write_report_or_warn(out, echo)  # [report] report.html from the folder just written
     if status != "ok":
         raise RngcamError(f"{message}; outputs from the last good state are in {out}")
     return metrics

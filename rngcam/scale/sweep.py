@@ -336,7 +336,7 @@ def plot_sweep(png_path: Path, rows: list[dict], has_truth: bool, title: str = "
     import matplotlib.pyplot as plt
 
     swept = _swept(rows)
-    labels = [" ".join(f"{p[0]}{r[p]:g}" for p in swept) for r in rows]
+    labels = [", ".join(f"{p}={r[p]:g}" for p in swept) or f"trial {i + 1}" for i, r in enumerate(rows)]
     x = list(range(len(rows)))
     full = max((r["rungs"] for r in rows), default=0)
     fig, ax = plt.subplots(figsize=(max(6.0, 0.55 * len(rows) + 2), 4.2))
@@ -349,7 +349,8 @@ def plot_sweep(png_path: Path, rows: list[dict], has_truth: bool, title: str = "
     best = [i for i, r in enumerate(rows) if r["note"].startswith("best")]
     for i in best:
         ax.plot(i, rows[i]["heldout"], "*", color="C3", ms=14, label="chosen")
-    ax.set(ylabel="held-out relative residual (filled: full budget)", yscale="log", title=title)
+    ax.set(ylabel="held-out relative residual (filled: full budget)", yscale="log", title=title,
+           xlabel="trial (swept settings: " + (", ".join(swept) or "none") + ")")
     ax.set_xticks(x, labels, rotation=60, ha="right", fontsize=7)
     if has_truth:
         ax2 = ax.twinx()

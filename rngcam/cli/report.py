@@ -1,0 +1,79 @@
+"""`rngcam report DIR...`: report.html for reconstructions (several of one bundle side by side);
+`rngcam preview DIR`: re-encode a reconstruction's preview.mp4 at another playback rate."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import click
+
+from rngcam.errors import ConfigError
+
+
+def _folders(dirs: tuple[str, ...]) -> list[Path]:
+    out = []
+    for d in dirs:
+        p = Path(d)
+        if p.is_file() and p.name.endswith(".h5"):
+            p = p.parent
+        if not (p / "recon.h5").is_file():
+            raise ConfigError(f"{d} is not a recon folder (no recon.h5 in it)")
+        out.append(p)
+    return out
+
+
+@click.command("report")
+@click.argument("dirs", nargs=-1, required=True, metavar="DIR...")
+@click.option("-o", "--output", type=click.Path(dir_okay=True), default=None,
+              help="Where to write the page [one DIR: DIR/report.html; several: report.html in their "
+                   "common parent folder].")
+@click.option("--no-hash-check", is_flag=True,
+              help="Show the bundle's truth without checking its sha256 against recon.h5 (faster on big bundles).")
+def report_cmd(dirs: tuple[str, ...], output: str | None, no_hash_check: bool) -> None:
+    """Write report.html for the reconstructions in DIR...: one page, one frame slider, every
+    method's video beside the truth (when the bundle has one), figures, settings and notes.
+
+    The page is one self-contained file (no network); open it in any browser."""
+    from rngcam.recon.report import write_comparison, write_report
+
+    folders = _folders(dirs)
+    if output is None and len(folders) == 1:
+        path = write_report(folders[0], check_hash=not no_hash_check)
+    else:
+        if output is None:
+            output = Path(os.path.commonpath([str(f.resolve()) for f in folders])) / "report.html"
+        path = write_comparison(folders, output, check_hash=not no_hash_check)
+    click.echo(f"report: {path}")
+
+
+@click.command("preview")
+@click.argument("folder", metavar="DIR")
+@click.option("--fps", type=float, default=None, help="Playback rate of the MP4 in frames per second [30].")
+@click.option("--slowdown", type=float, default=None,
+              help="Play this many times slower than captured (sets --fps from the capture rate).")
+@click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
+              help="The MP4 to write [DIR/preview.mp4, replaced].")
+@click.option("--no-stamp", is_flag=True, help="Leave the frames without their time stamp.")
+def preview_cmd(folder: str, fps: float | None, slowdown: float | None, output: str | None, no_stamp: bool) -> None:
+    """Re-encode DIR's preview.mp4 from recon.h5 at a chosen playback rate, each frame stamped
+    with its time in µs (and GS where a key frame sits)."""
+    from rngcam.recon.outputs import write_mp4
+    from rngcam.recon.report import read_recon_h5
+
+    (path,) = _folders((folder,))
+    if fps is not None and slowdown is not None:
+        raise ConfigError("give --fps or --slowdown, not both")
+    for name, value in (("--fps", fps), ("--slowdown", slowdown)):
+        if value is not None and not value > 0:
+            raise ConfigError(f"{name} must be positive, got {value:g}")
+    h5 = read_recon_h5(path / "recon.h5")
+    capture_fps = float(h5["attrs"].get("fps") or 0) or None
+    if slowdown is not None:
+        if capture_fps is None:
+            raise ConfigError("recon.h5 does not record its frame rate; give --fps")
+        fps = capture_fps / slowdown
+    out = Path(output) if output else path / "preview.mp4"
+    write_mp4(out, h5["video"], fps=fps or 30.0, capture_fps=capture_fps,
+              frame_times_s=None if no_stamp else h5["frame_times_s"], key_times_s=h5.get("key_frame_times_s"))
+    click.echo(f"preview: {out} at {fps or 30.0:g} fps")

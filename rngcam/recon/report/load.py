@@ -1,0 +1,167 @@
+"""Read what a report shows from a recon folder (recon.h5, metrics.json, errors.csv) and, for the
+truth, from the bundle whose path and sha256 recon.h5 records."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from rngcam.errors import ConfigError, RngcamError
+
+RECON_FORMAT = "rngcam-recon"
+
+
+@dataclass
+class Run:
+    """One reconstruction as the report sees it; arrays are (C, K, H, W) linear intensity."""
+
+    folder: Path
+    method: str
+    video: np.ndarray
+    frame_times_s: np.ndarray
+    attrs: dict
+    settings: dict
+    metrics: dict
+    log: list[dict]
+    key_frames: np.ndarray | None = None  # (C, G, H, W)
+    key_times_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rs_image: np.ndarray | None = None  # (C, H, W)
+    components: dict[str, np.ndarray] = field(default_factory=dict)
+    left_out: list = field(default_factory=list)
+
+    @property
+    def dt_s(self) -> float:
+        dt = float(self.attrs.get("frame_interval_s", math.nan))
+        if not math.isfinite(dt) and self.frame_times_s.size > 1:
+            dt = float(np.median(np.diff(self.frame_times_s)))
+        return dt
+
+
+def _text(value) -> str:
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def _floats(row: dict) -> dict:
+    out = {}
+    for k, v in row.items():
+        if v in ("", None):
+            continue
+        try:
+            out[k] = float(v)
+        except ValueError:
+            out[k] = v
+    return out
+
+
+def is_recon_file(path: str | Path) -> bool:
+    """True when `path` is an HDF5 file whose `format` attribute says rngcam-recon."""
+    try:
+        with h5py.File(path, "r") as f:
+            return _text(f.attrs.get("format", "")) == RECON_FORMAT
+    except (OSError, ValueError):
+        return False
+
+
+def read_recon_h5(path: str | Path, video: bool = True) -> dict:
+    """recon.h5's attributes (settings and left_out decoded) and arrays (`video` False: no video)."""
+    path = Path(path)
+    if not path.is_file():
+        raise RngcamError(f"{path}: no such recon file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as exc:
+        raise RngcamError(f"{path} is not a readable HDF5 file ({str(exc).splitlines()[0]})") from None
+    with f:
+        if _text(f.attrs.get("format", "")) != RECON_FORMAT:
+            raise RngcamError(f"{path} is not an rngcam recon file (format attribute "
+                              f"{_text(f.attrs.get('format', ''))!r})")
+        attrs = {k: (_text(v) if isinstance(v, (bytes, str)) else v) for k, v in f.attrs.items()}
+        for key in ("settings", "left_out"):
+            attrs[key] = json.loads(attrs.get(key) or ("{}" if key == "settings" else "[]"))
+        out = {"attrs": attrs, "shape": tuple(f["video"].shape)}
+        out["frame_times_s"] = f["frame_times_s"][()]
+        for name in ("key_frame_times_s", "key_frames", "rs_image"):
+            if name in f:
+                out[name] = f[name][()]
+        out["components"] = {k: f["components"][k][()] for k in f.get("components", {})}
+        if video:
+            out["video"] = f["video"][()]
+    return out
+
+
+def load_run(folder: str | Path) -> Run:
+    """The recon folder's run; RngcamError (one line) when it holds no recon.h5."""
+    folder = Path(folder)
+    if folder.is_file() and folder.name.endswith(".h5"):
+        folder = folder.parent
+    h5 = read_recon_h5(folder / "recon.h5")
+    metrics = {}
+    if (folder / "metrics.json").is_file():
+        metrics = json.loads((folder / "metrics.json").read_text())
+    log = []
+    if (folder / "errors.csv").is_file():
+        with open(folder / "errors.csv") as fh:
+            log = [_floats(r) for r in csv.DictReader(fh)]
+    settings = h5["attrs"]["settings"]
+    method = metrics.get("method") or settings.get("method") or folder.name
+    return Run(folder=folder, method=method, video=h5["video"], frame_times_s=h5["frame_times_s"],
+               attrs=h5["attrs"], settings=settings, metrics=metrics, log=log,
+               key_frames=h5.get("key_frames"), key_times_s=h5.get("key_frame_times_s", np.zeros(0)),
+               rs_image=h5.get("rs_image"), components=h5["components"], left_out=h5["attrs"]["left_out"])
+
+
+def _to_grid(video: np.ndarray, shape: tuple) -> np.ndarray | None:
+    """The truth (C, T, h, w) on the recon's (C, K, H, W) grid by block averaging, or None."""
+    c, k, h, w = shape
+    if video.shape[0] != c or video.shape[1] != k or video.shape[2] % h or video.shape[3] % w:
+        return None
+    fy, fx = video.shape[2] // h, video.shape[3] // w
+    return video.reshape(c, k, h, fy, w, fx).mean(axis=(3, 5)).astype(np.float32)
+
+
+def load_truth(run: Run, check_hash: bool = True) -> tuple[np.ndarray | None, str]:
+    """The bundle's truth on the run's grid (None when there is none) and a line saying where it
+    came from or why it is missing."""
+    from rngcam.formats.bundle import bundle_checksum, open_bundle
+
+    path = Path(run.attrs.get("bundle_path") or "")
+    if not str(path) or str(path) == ".":
+        return None, "recon.h5 does not record its bundle's path (written by an older rngcam)"
+    if not path.is_file():
+        return None, f"the bundle {path} is no longer there"
+    if check_hash and bundle_checksum(path) != run.attrs.get("bundle_sha256"):
+        return None, f"the bundle at {path} has changed since this reconstruction (sha256 differs)"
+    try:
+        with open_bundle(path) as bundle:
+            if bundle.truth is None:
+                return None, f"{path.name} has no ground truth (a real capture)"
+            truth = np.asarray(bundle.truth.video, np.float32)
+    except RngcamError as exc:
+        return None, f"the bundle cannot be read: {exc}"
+    on_grid = _to_grid(truth, run.video.shape)
+    if on_grid is None:
+        return None, (f"the truth {truth.shape} does not match this video's grid {run.video.shape} "
+                      f"(another bin?); left out")
+    return on_grid, f"truth from {path}"
+
+
+def load_runs(folders: list[str | Path]) -> list[Run]:
+    """Runs of one bundle (ConfigError, one line, when their bundles' sha256 differ)."""
+    if not folders:
+        raise ConfigError("name at least one recon folder")
+    runs = [load_run(f) for f in folders]
+    hashes = {r.attrs.get("bundle_sha256") for r in runs}
+    if len(hashes) > 1:
+        names = ", ".join(f"{r.folder.name} ({str(r.attrs.get('bundle_sha256'))[:8]})" for r in runs)
+        raise ConfigError(f"these reconstructions are of different bundles: {names}")
+    shapes = {r.video.shape for r in runs}
+    if len(shapes) > 1:
+        raise ConfigError("these reconstructions are on different grids (" +
+                          ", ".join(f"{r.folder.name} {r.video.shape}" for r in runs) + "); compare one bin")
+    return runs
