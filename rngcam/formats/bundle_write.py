@@ -14,7 +14,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from rngcam import __version__
+from rngcam.version import __version__
 from rngcam.errors import BundleError
 from rngcam.formats.bundle_schema import (
     COMPRESSIONS,

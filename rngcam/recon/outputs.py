@@ -16,7 +16,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from rngcam import __version__
+from rngcam.version import __version__
 
 
 def _atomic_h5(path: Path):

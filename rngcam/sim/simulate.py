@@ -20,7 +20,7 @@ import numpy as np
 import torch
 import yaml
 
-from rngcam import __version__
+from rngcam.version import __version__
 from rngcam.errors import RngcamError
 from rngcam.formats.bundle import Bundle, Calibration, CameraRecord, Truth, write_bundle
 from rngcam.paths import MEASURED_PSF, PACKAGE_PREFIX, package_data
