@@ -86,18 +86,19 @@ def _echo(progress) -> Callable[[str], None]:
 
 def reconstruct(bundle_or_problem: str | Path | OpenBundle | Bundle | Problem, method: str = "stfm",
                 out: str | Path | None = None, progress: bool | Callable[[str], None] | None = None,
-                **settings: Any) -> Result:
+                bar: bool | None = None, **settings: Any) -> Result:
     """Reconstruct a bundle (a path, an open_bundle or a Bundle) or a Problem with `method`.
 
     `out`: a folder to checkpoint into and write every output to (None: nothing on disk).
     `progress`: None or True prints set-up stages and progress on stderr, False is silent, a
-    callable gets each line (the loop's progress bar or lines still go to stderr). `settings`: see `run_settings`. SIGINT or
-    SIGTERM (a notebook's interrupt too) end the run with the current estimate and
-    `status == "interrupted"`; a run whose budget ends in set-up has status
+    callable gets each line. `bar`: the loop's progress bar (a terminal) or progress lines on
+    stderr, and the set-up stages [on unless progress is False]. `settings`:
+    see `run_settings`. SIGINT or SIGTERM (a notebook's interrupt too) end the run with the
+    current estimate and `status == "interrupted"`; a run whose budget ends in set-up has status
     "budget_before_first_iteration" and the start video.
     """
     echo = _echo(progress)
-    recon = run_settings(method, progress=progress is not False, **settings)
+    recon = run_settings(method, progress=progress is not False if bar is None else bar, **settings)
     if isinstance(bundle_or_problem, (str, Path)):
         source = Source(path=Path(bundle_or_problem))
     elif isinstance(bundle_or_problem, OpenBundle):

@@ -20,7 +20,7 @@ from rngcam.errors import RngcamError
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_NAME = "recon.log"
 # Every file a reconstruction writes into its folder (report.html: the report of the folder).
-OUTPUT_NAMES = ("recon.h5", "video.tif", "preview.mp4", "errors.csv", "errors.png", "metrics.json",
+OUTPUT_NAMES = ("recon.h5", "video.tif", "preview.mp4", "preview.json", "errors.csv", "errors.png", "metrics.json",
                 CHECKPOINT_NAME, CHECKPOINT_NAME + ".partial", LOG_NAME, "report.html")
 CHECKPOINT_FORMAT = 2  # 1: no identity (before resume was checked)
 
