@@ -144,13 +144,19 @@ def check_frames(plan: GridPlan, max_frames: int | None = None) -> None:
 
 def check_size(plan: GridPlan, method: str, memory: MemoryModel, max_frames: int | None = None,
                max_memory_bytes: int | None = None) -> int:
-    """Estimated bytes for `method` (named in the error) of `memory`; ConfigError (one line naming
+    """Estimated bytes for `method` (named in the error) of `memory`; SettingError (one line naming
     the figure and how to change it) past a limit."""
     check_frames(plan, max_frames)
+    return check_memory(method_bytes(plan, memory), f"{method} would need about {{need}} for {plan.describe()}",
+                        max_memory_bytes, "use a coarser grid_bin, or raise max_memory_bytes", "grid_bin")
+
+
+def check_memory(need: int, what: str, max_memory_bytes: int | None = None,
+                 fix: str = "raise max_memory_bytes", *settings: str) -> int:
+    """`need` if it is within `max_memory_bytes` (None: the default); else SettingError: `what`
+    (with {need} for the figure), the limit and `fix`, naming `settings` and max_memory_bytes."""
     max_memory_bytes = default_max_memory_bytes() if max_memory_bytes is None else max_memory_bytes
-    need = method_bytes(plan, memory)
     if need > max_memory_bytes:
-        raise SettingError(f"{method} would need about {gib(need)} for {plan.describe()}, above "
-                           f"max_memory_bytes {gib(max_memory_bytes)}: use a coarser grid_bin, or raise "
-                           "max_memory_bytes", "max_memory_bytes", "grid_bin")
+        raise SettingError(f"{what.format(need=gib(need))}, above max_memory_bytes {gib(max_memory_bytes)}: {fix}",
+                           "max_memory_bytes", *settings)
     return need

@@ -17,7 +17,7 @@ from rngcam.sizing import DEFAULT_MAX_FRAMES
 INTERRUPTED_EXIT = 130  # as a shell reports a command ended by SIGINT
 
 
-def _positive(ctx, param, value):
+def positive_option(ctx, param, value):
     """Refuse 0, negative, NaN or infinite figures where they are parsed (one usage line)."""
     if value is not None and not (value > 0 and value != float("inf")):
         raise click.BadParameter(f"must be a positive number, got {value}")
@@ -32,7 +32,7 @@ def device_option(ctx, param, value):
         raise click.BadParameter(error_line(exc).removeprefix("--device ")) from None
 
 
-def _budget(ctx, param, value):
+def budget_option(ctx, param, value):
     """--time-budget: 'auto' (or not given) or a positive number of seconds."""
     if value is None or value == "auto":
         return value
@@ -40,14 +40,14 @@ def _budget(ctx, param, value):
         seconds = float(value)
     except ValueError:
         raise click.BadParameter(f"{value!r} is not a number of seconds or auto") from None
-    return _positive(ctx, param, seconds)
+    return positive_option(ctx, param, seconds)
 
 
 @method_command("recon")
 @click.argument("bundle", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder [default: <bundle>-recon-<method>/ beside the bundle].")
-@click.option("--time-budget", default=None, callback=_budget,
+@click.option("--time-budget", default=None, callback=budget_option,
               help="Wall-clock seconds for set-up and solve together, or auto [auto: "
                    + ", ".join(f"{e.name} {e.auto_budget_s:g}" for e in registry.REGISTRY.values() if e.iterative)
                    + " s at 64 px (stfm's fast preset stops itself once the data are fitted), scaled with the "
@@ -55,14 +55,14 @@ def _budget(ctx, param, value):
 @click.option("--iters", type=click.IntRange(min=1), default=None, help="Stop after this many iterations.")
 @click.option("--max-frames", type=click.IntRange(min=1), default=None,
               help=f"Refuse a video of more frames, before allocating it [{DEFAULT_MAX_FRAMES:,}].")
-@click.option("--max-memory", type=float, default=None, callback=_positive,
+@click.option("--max-memory", type=float, default=None, callback=positive_option,
               help="Refuse a reconstruction estimated to need more memory, in GiB [80 % of this machine's].")
 @click.option("--resume", is_flag=True,
               help="Continue from the checkpoint in the output folder (same bundle, method and settings; "
                    "the time budget is this run's own).")
 @click.option("--overwrite", is_flag=True, help="Write into a non-empty output folder, removing its earlier outputs "
                                                 "and checkpoint first.")
-@click.option("--checkpoint-every", type=float, default=60.0, show_default=True, callback=_positive,
+@click.option("--checkpoint-every", type=float, default=60.0, show_default=True, callback=positive_option,
               help="Seconds between checkpoints during the solve (one is always written at the end, and "
                    "on SIGINT or SIGTERM).")
 @click.option("--device", default="auto", show_default=True, callback=device_option, help="auto, cpu or cuda[:N].")
