@@ -310,7 +310,7 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
         why = (f"time budget of {budget:g} s reached in set-up ({time.perf_counter() - t_start:.1f} s), "
                f"before the first iteration")
         return _cut(fit, problem, "budget_before_first_iteration", why, one_row, t_start, saved)
-    setup_s = time.perf_counter() - t_start
+    setup_s = fit["setup_s"] = time.perf_counter() - t_start
     stage_line = say if settings.progress else log.write
     stage_line(f"set-up: {settings.method} ready ({setup_s:.1f} s)")
     fit["left_out"], fit["notes"] = list(method.left_out), list(method.notes)
@@ -368,6 +368,7 @@ def _finish(source: Source, problem: Problem, settings: ReconSettings, extra: di
         "method": settings.method,
         "seconds": fit["solve_s"],
         "wall_seconds": fit["wall_s"],
+        "setup_seconds": fit.get("setup_s", fit["wall_s"]),  # reading the bundle and the method's set-up
         "iterations": fit["iterations"],
         "peak_rss_bytes": peak_rss_bytes(),  # this process only (VmHWM)
         "frames": k, "height": h, "width": w, "channels": c, "fps": 1 / problem.grid.dt_s,
