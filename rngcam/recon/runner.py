@@ -227,6 +227,8 @@ def _solve(source: Source, settings: ReconSettings, out: Path | None, echo) -> R
             if settings.budget_auto and entry.iterative:
                 budget, why = auto_time_budget(settings.method, problem.shape)
                 say(why)
+            elif settings.budget_auto:  # a one-shot method runs to its end unless given a budget
+                budget = None
             guard.set_deadline(None if budget is None else t_start + budget)
             run_out = _fit(problem, settings, extra, budget, guard, stage, say, log, t_start, out, want, saved)
             guard.enter("finish")
@@ -344,10 +346,11 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
 def _cut(fit: dict, problem: Problem, status: str, why: str, one_row, t_start: float, saved: dict | None) -> dict:
     """A run ended in set-up: the start video as its result (the checkpoint, if one is resumed, is better:
     the folder then keeps what it has)."""
+    wall_s = time.perf_counter() - t_start  # when it was cut; the start video and its scores come after
     video = start_video(problem)
     keep = saved is not None and saved.get("method") is not None
     fit.update(video=video, log=one_row(video, 0.0, 0), iterations=0, solve_s=0.0,
-               wall_s=time.perf_counter() - t_start, status=status, message=f"{why}",
+               wall_s=wall_s, status=status, message=f"{why}",
                events=[f"{why}: the start video (GS key frames cross-faded) is the result"
                        if not keep else f"{why}: the folder keeps its earlier result and checkpoint"],
                keep_folder=keep, cut=True)
