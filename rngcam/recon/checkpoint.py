@@ -42,7 +42,7 @@ def save(path: Path, payload: dict) -> None:
 def load(path: Path) -> dict:
     """The checkpoint at `path`; RngcamError (one line) when it cannot be read."""
     try:
-        return torch.load(path, weights_only=False, map_location="cpu")
+        return torch.load(path, weights_only=False)  # tensors back on the device they were saved from
     except Exception as exc:  # noqa: BLE001 - any failure to read is the same for the user
         raise RngcamError(f"cannot read the checkpoint {path}: {type(exc).__name__}: {exc}") from None
 
