@@ -179,3 +179,11 @@ def test_import_rngcam_stays_light():
     from rngcam import api
 
     assert rngcam.reconstruct is api.reconstruct and rngcam.open_bundle is api.open_bundle
+
+
+def test_recon_batch_takes_auto_as_recon_does_and_checks_the_device(shot, tmp_path):
+    args = ["recon-batch", str(shot), "--method", "tv3d", "--iters", "1", "--no-ray", "-o", str(tmp_path / "b")]
+    res = CliRunner().invoke(main, [*args, "--time-budget", "auto"])
+    assert res.exit_code == 0, res.output
+    bad = CliRunner().invoke(main, [*args, "--device", "gpu"])
+    assert bad.exit_code == 2 and "must be auto, cpu, cuda or cuda:N" in bad.output
