@@ -188,3 +188,28 @@ def test_a_copy_of_the_folder_resumes_after_the_bundle_moves(mock_bundle, tmp_pa
     shutil.copy(mock_bundle, moved)
     code, text = recon([str(moved), "--method", "tv3d", "-o", str(out), "--resume", "--iters", "3", "--quiet"])
     assert code == 0 and metrics(out)["iterations"] == 3, text
+
+
+def test_the_guard_holds_a_signal_while_reading_and_cuts_a_set_up_at_its_deadline():
+    from rngcam.recon.guard import BudgetCut, Interrupted, RunGuard
+
+    with RunGuard() as guard:
+        os.kill(os.getpid(), signal.SIGINT)  # while reading: held
+        time.sleep(0.05)
+        assert guard.signame == "SIGINT"
+        with pytest.raises(Interrupted):
+            guard.enter("setup")
+    with RunGuard() as guard:
+        guard.set_deadline(time.perf_counter() + 0.2)
+        guard.enter("setup")
+        t0 = time.perf_counter()
+        with pytest.raises(BudgetCut):
+            while time.perf_counter() - t0 < 5:  # a long set-up stage that never reports
+                sum(range(1000))
+        assert time.perf_counter() - t0 < 1.0
+    with RunGuard() as guard:
+        guard.enter("solve")
+        os.kill(os.getpid(), signal.SIGTERM)  # in the solve: the loop is asked to stop
+        time.sleep(0.05)
+        assert guard.stop_reason() == "interrupted by SIGTERM"
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # handlers given back

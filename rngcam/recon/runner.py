@@ -222,7 +222,6 @@ def _solve(source: Source, settings: ReconSettings, out: Path | None, echo) -> R
                 say(f"resuming {out / checkpoint.CHECKPOINT_NAME} (iteration {saved.get('iteration', 0)})")
             problem, extra = _read(source, settings, say, stage)
             log.open(out)
-            guard.enter("setup")
             budget = None if settings.time_budget_s is None else float(settings.time_budget_s)
             if settings.budget_auto and entry.iterative:
                 budget, why = auto_time_budget(settings.method, problem.shape)
@@ -294,6 +293,7 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
     fit = {"device": device, "components": {}, "left_out": [], "notes": [], "method_settings": None,
            "events": [], "status": "ok", "message": "", "truth_metrics": truth_metrics}
     try:
+        guard.enter("setup")  # raises a signal held while reading
         if not entry.iterative:
             made, result = run_gs_only(problem, settings)
             fit.update(video=made.video, notes=list(made.notes), method_settings=made.resolved,
