@@ -86,13 +86,15 @@ def _echo(progress) -> Callable[[str], None]:
 
 def reconstruct(bundle_or_problem: str | Path | OpenBundle | Bundle | Problem, method: str = "stfm",
                 out: str | Path | None = None, progress: bool | Callable[[str], None] | None = None,
-                bar: bool | None = None, **settings: Any) -> Result:
+                bar: bool | None = None, started: float | None = None, **settings: Any) -> Result:
     """Reconstruct a bundle (a path, an open_bundle or a Bundle) or a Problem with `method`.
 
     `out`: a folder to checkpoint into and write every output to (None: nothing on disk).
     `progress`: None or True prints set-up stages and progress on stderr, False is silent, a
     callable gets each line. `bar`: the loop's progress bar (a terminal) or progress lines on
-    stderr, and the set-up stages [on unless progress is False]. `settings`:
+    stderr, and the set-up stages [on unless progress is False]. `started`: the
+    time.perf_counter() the time budget counts from [the call; `rngcam recon` passes its own
+    start]. `settings`:
     see `run_settings`. SIGINT or SIGTERM (a notebook's interrupt too) end the run with the
     current estimate and `status == "interrupted"`; a run whose budget ends in set-up has status
     "budget_before_first_iteration" and the start video.
@@ -111,4 +113,4 @@ def reconstruct(bundle_or_problem: str | Path | OpenBundle | Bundle | Problem, m
     else:
         raise SettingError(f"bundle_or_problem must be a bundle path, an open_bundle(), a Bundle or a Problem, "
                            f"not {type(bundle_or_problem).__name__}", "bundle_or_problem")
-    return solve(source, recon, None if out is None else Path(out), echo)
+    return solve(source, recon, None if out is None else Path(out), echo, started)

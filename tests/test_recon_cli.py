@@ -114,7 +114,7 @@ def test_recon_time_budget_defaults_by_method(mock_bundle, tmp_path, monkeypatch
 
     seen = {}
 
-    def fake_solve(source, settings, out, echo):
+    def fake_solve(source, settings, out, echo, started=None):
         seen["budget"] = settings.time_budget_s
         return Result(np.zeros((1, 1, 1, 1), np.float32), np.zeros(1), {"method": method, "seconds": 0.0,
                                                                         "iterations": 0})

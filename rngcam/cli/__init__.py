@@ -7,11 +7,20 @@ from __future__ import annotations
 
 import importlib
 import sys
+import time
 
 import click
 
 from rngcam.errors import RngcamError, SettingError
 from rngcam.version import __version__
+
+_STARTED = [time.perf_counter()]  # when the running command started (set again by each invocation)
+
+
+def started() -> float:
+    """The time.perf_counter() the running command started at (`recon`'s time budget counts from it:
+    importing torch and reading the bundle included)."""
+    return _STARTED[0]
 
 # The flag of each reconstruction setting whose name differs from its flag (the Python API's name ->
 # the command line's); any other setting `x_y` is `--x-y` (a method's options).
@@ -64,6 +73,7 @@ class _Group(click.Group):
             raise
 
     def invoke(self, ctx):
+        _STARTED[0] = time.perf_counter()
         try:
             return super().invoke(ctx)
         except RngcamError as exc:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from rngcam.cli import error_line
+from rngcam.cli import error_line, started
 from rngcam.cli.method_options import method_command, pop_method_values
 from rngcam.cli.method_options import method_settings as settings_from_options
 from rngcam.errors import SettingError
@@ -48,7 +48,8 @@ def budget_option(ctx, param, value):
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder [default: <bundle>-recon-<method>/ beside the bundle].")
 @click.option("--time-budget", default=None, callback=budget_option,
-              help="Wall-clock seconds for set-up and solve together, or auto [auto: "
+              help="Wall-clock seconds for the whole command (a tenth, at most 60 s, is kept for the metrics and "
+                   "outputs), or auto [auto: "
                    + ", ".join(f"{e.name} {e.auto_budget_s:g}" for e in registry.REGISTRY.values() if e.iterative)
                    + " s at 64 px (stfm's fast preset stops itself once the data are fitted), scaled with the "
                      "square root of the problem's size up to 1800].")
@@ -82,7 +83,7 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memor
 
     method_settings = settings_from_options(method, pop_method_values(opts))
     out = out_dir or default_out_dir(bundle, method)
-    result = reconstruct(bundle, method, out=out, progress=click.echo, bar=not quiet,
+    result = reconstruct(bundle, method, out=out, progress=click.echo, bar=not quiet, started=started(),
                          method_settings=method_settings,
                          time_budget_s="auto" if time_budget in (None, "auto") else time_budget,
                          max_iters=iters, device=device, grid_bin=grid_bin, resume=resume, overwrite=overwrite,

@@ -74,8 +74,9 @@ class RunGuard:
             self._arm()
 
     def check(self) -> None:
-        """Raise what is due now (called at every set-up stage, so threads without signals are cut too)."""
-        if self.signame is not None and self.phase in ("setup", "read"):
+        """Raise what is due now in set-up (called at every stage line, so a run in a thread without
+        signal handlers is cut too); nothing in the other phases."""
+        if self.signame is not None and self.phase == "setup":
             raise Interrupted(self.signame)
         if self.phase == "setup" and self.deadline is not None and time.perf_counter() >= self.deadline:
             raise BudgetCut()

@@ -59,6 +59,11 @@ from rngcam.recon.settings import (  # noqa: F401 - their home before settings.p
 )
 from rngcam.sizing import check_size, gib, plan_grid
 
+# Of a time budget, this fraction (at most FINISH_MAX_S) is kept for what follows the solve (the
+# final metrics, recon.h5, the TIFF, MP4 and plots), so a whole run ends near its budget.
+FINISH_FRACTION = 0.1
+FINISH_MAX_S = 60.0
+
 
 def method_view(problem: Problem) -> Problem:
     """What a method may see of `problem`: everything but the truth (the one place it is stripped)."""
@@ -143,8 +148,9 @@ class Source:
 
 
 def solve(source: Source, settings: ReconSettings, out: Path | None = None,
-          echo: Callable[[str], None] | None = print) -> Result:
+          echo: Callable[[str], None] | None = print, started: float | None = None) -> Result:
     """Reconstruct `source` under `settings`; with `out`, checkpoint there and write every output.
+    The budget counts from `started` (a time.perf_counter(); None: now).
 
     The folder is checked first (rngcam.recon.checkpoint.prepare: nothing is touched on a
     refusal); the video's frame count and memory are checked against the limits before anything
@@ -152,7 +158,7 @@ def solve(source: Source, settings: ReconSettings, out: Path | None = None,
     """
     echo = echo or (lambda _line: None)
     try:
-        return _solve(source, settings, Path(out) if out is not None else None, echo)
+        return _solve(source, settings, Path(out) if out is not None else None, echo, started)
     except (MemoryError, RuntimeError) as exc:
         if not _out_of_memory(exc):
             raise
@@ -201,8 +207,8 @@ class _Log:
             self.fh.close()
 
 
-def _solve(source: Source, settings: ReconSettings, out: Path | None, echo) -> Result:
-    t_start = time.perf_counter()  # the budget bounds reading, set-up and solve together
+def _solve(source: Source, settings: ReconSettings, out: Path | None, echo, started: float | None) -> Result:
+    t_start = time.perf_counter() if started is None else started  # the budget bounds the whole run
     entry = registry.get(settings.method)
     want = saved = None
     if out is not None:
@@ -228,6 +234,11 @@ def _solve(source: Source, settings: ReconSettings, out: Path | None, echo) -> R
                 say(why)
             elif settings.budget_auto:  # a one-shot method runs to its end unless given a budget
                 budget = None
+            if budget is not None:  # set-up and solve stop early enough for the metrics and outputs
+                keep = min(FINISH_FRACTION * budget, FINISH_MAX_S)
+                stage_line(f"time budget {budget:g} s: {budget - keep:.1f} s for set-up and solve, "
+                           f"{keep:.1f} s kept for the metrics and outputs")
+                budget -= keep
             guard.set_deadline(None if budget is None else t_start + budget)
             run_out = _fit(problem, settings, extra, budget, guard, stage, say, log, t_start, out, want, saved)
             guard.enter("finish")
@@ -306,9 +317,11 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
         method = make_method(problem, settings, device, stage=stage, budget_s=left)
         guard.enter("solve")
     except KeyboardInterrupt as exc:  # guard.Interrupted (SIGINT, SIGTERM) or a plain Ctrl-C
+        guard.enter("finish")  # the timer off, further signals held: the start video is written whole
         why = f"interrupted by {getattr(exc, 'signame', 'KeyboardInterrupt')} in set-up"
         return _cut(fit, problem, "interrupted", why, one_row, t_start, saved)
     except BudgetCut:
+        guard.enter("finish")
         why = (f"time budget of {budget:g} s reached in set-up ({time.perf_counter() - t_start:.1f} s), "
                f"before the first iteration")
         return _cut(fit, problem, "budget_before_first_iteration", why, one_row, t_start, saved)
