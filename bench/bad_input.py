@@ -26,8 +26,8 @@ ROWS = {
     "saturated_gs": [edits.saturate_gs_frame(1)],
     "dead_rs": [edits.edit_frames("rs", lambda x: x * 0)],
     "line_time_1ns": [edits.set_attr("rs", "line_time_s", 1e-9)],
-    "gs_before": [edits.set_gs_triggers(lambda t, end: edits._set(t, 0, -end))],
-    "gs_after": [edits.set_gs_triggers(lambda t, end: edits._set(t, len(t) - 1, 2 * end))],
+    "gs_before": [edits.set_gs_triggers(lambda t, end: edits.set_at(t, 0, -end))],
+    "gs_after": [edits.set_gs_triggers(lambda t, end: edits.set_at(t, len(t) - 1, 2 * end))],
     "rs_patch_4pct": [edits.saturate_rs_patch(0.04)],
 }
 

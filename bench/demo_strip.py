@@ -11,18 +11,12 @@ rngcam.cli.demo's strip function, so the picture reads like the demo's.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from problems import simulated_problem  # noqa: E402
-
-from rngcam.cli.demo import _strip  # noqa: E402
+from rngcam.cli.demo import strip_png
+from rngcam.evaluate.scenes import scene_problem as simulated_problem
 
 
 def main() -> None:
@@ -42,7 +36,7 @@ def main() -> None:
     for item in args.show.split(","):
         label, _, config = item.partition("=")
         videos[label] = np.load(args.runs / f"sineball{args.size}_{config or label}.npy").astype(np.float32)
-    _strip(args.out, truth, videos, frames)
+    strip_png(args.out, truth, videos, frames)
     print(f"wrote {args.out} (frames {frames})")
 
 

@@ -18,16 +18,17 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from problems import GS_ONLY, gs_only_video, simulated_problem  # noqa: E402
+from rngcam.evaluate.scenes import gs_only_video
+from rngcam.evaluate.scenes import scene_problem as simulated_problem
+from rngcam.recon import registry
+from rngcam.recon.metrics import psnr, psnr_dynamic
 
-from rngcam.recon.metrics import psnr, psnr_dynamic  # noqa: E402
+GS_ONLY = registry.labels(registry.GS_ONLY)
 
 MARKS = (10, 30, 100, 300)
 

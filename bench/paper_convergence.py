@@ -28,21 +28,16 @@ import datetime as dt
 import json
 import math
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from problems import simulated_problem  # noqa: E402
-
-from rngcam.recon import registry  # noqa: E402
-from rngcam.recon.metrics import motion_metrics, video_metrics  # noqa: E402
+from rngcam.evaluate.scenes import scene_problem as simulated_problem
+from rngcam.recon import registry
+from rngcam.recon.metrics import motion_metrics, video_metrics
+from rngcam.recon.runner import method_view
 
 PLATEAU_DB = 0.1  # dynamic PSNR gained over the last third of the run below this: plateaued
 ONE_OBJECT = {"sineball"}
@@ -67,7 +62,7 @@ def run_scene(scene: str, size: int, work: Path, deadline: float, log_every: flo
     problem, source = simulated_problem(scene, size)
     problem._bench_scene = scene
     stfm = registry.get("stfm")
-    method = stfm.factory(problem, stfm.settings("paper"))
+    method = stfm.factory(method_view(problem), stfm.settings("paper"))
     ckpt, log_path = folder / "checkpoint.pt", folder / "log.jsonl"
     fit_s, cpu_s = 0.0, 0.0
     if ckpt.is_file():
@@ -169,7 +164,7 @@ def paper_step_cpu_s(problem, steps: int) -> float:
     """CPU seconds per step of the paper preset on `problem` (fresh fields: a step's cost does
     not depend on the weights)."""
     stfm = registry.get("stfm")
-    method = stfm.factory(problem, stfm.settings("paper"))
+    method = stfm.factory(method_view(problem), stfm.settings("paper"))
     method.step()  # warm-up (first-call allocations)
     c0 = time.process_time()
     for _ in range(steps):
@@ -182,7 +177,7 @@ def fast_cpu_to_reach(problem, preset: str, target_db: float, max_cpu_s: float, 
     target_db (checked every `every` steps), or the best it reached within max_cpu_s."""
     c0 = time.process_time()
     stfm = registry.get("stfm")
-    method = stfm.factory(problem, stfm.settings(preset))
+    method = stfm.factory(method_view(problem), stfm.settings(preset))
     cpu = time.process_time() - c0
     best, steps = -math.inf, 0
     while True:

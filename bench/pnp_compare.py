@@ -1,6 +1,6 @@
 """Side-by-side benchmark of pnp and RIFE 4.x against tv3d and the GS-only baselines, by hand:
 
-    flock /tmp/rngcam-bench.lock .venv/bin/python bench/pnp_compare.py --budget 300 --out bench/pnp_compare.md
+    flock /tmp/rngcam-bench.lock .venv/bin/python -m bench.pnp_compare --budget 300 --out bench/pnp_compare.md
 
 In one process, one torch thread, on the CPU, each scene simulated by `rngcam.sim.simulate` at 64 px
 (the three real clips at span 8):
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -25,34 +24,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from rngcam.formats.bundle import read_bundle
-from rngcam.paths import DATA_HINT, SHORT_CLIP, external_data, package_data
-from rngcam.recon import ffdnet, registry
-from rngcam.recon.loop import LoopSettings, run
+from rngcam.api import reconstruct
+from rngcam.evaluate.scenes import scene_problem
+from rngcam.paths import SHORT_CLIP, package_data
+from rngcam.recon import ffdnet
 from rngcam.recon.metrics import video_metrics
-from rngcam.recon.problem import build_problem
 from rngcam.recon.rife import rife
-from rngcam.sim.simulate import simulate
 
 GS_ROWS = ("blend", "interp", "rife 4.x", "rife hdv3", "rife mean (4.x + HDv3)")
-CLIPS = {"car": "videos/bikes_car_256.npz", "walk": "videos/bikes_walk_256.npz", "vtest": "videos/vtest_256.npz"}
-
-
-def clip_path(scene: str) -> Path:
-    """The clip scene's npz under $RNGCAM_DATA (the larger clips do not ship with rngcam)."""
-    if external_data() is None:
-        raise SystemExit(f"scene {scene}: {DATA_HINT}")
-    return external_data() / CLIPS[scene]
 
 
 def problem(scene: str, size: int, tmp: Path):
-    opts = {"clip": str(clip_path(scene)), "span": 8} if scene in CLIPS else {}
-    path = tmp / f"{scene}.h5"
-    simulate("clip" if scene in CLIPS else scene, path, size=size, seed=0, overwrite=True, **opts)
-    return build_problem(read_bundle(path)).to(torch.float32)
+    """The scene (rngcam.evaluate.scenes) as a float32 problem with truth."""
+    return scene_problem(scene, size)[0].to(torch.float32)
 
 
 def scores(p, video) -> dict:
@@ -60,21 +44,13 @@ def scores(p, video) -> dict:
     return {"psnr": m["psnr_db"], "inter": m["psnr_intermediate_db"]}
 
 
-def make(label: str, p, **overrides):
-    """The registry's method of `label` on `p` with settings `overrides`."""
-    entry, preset = registry.parse_label(label)
-    return entry.factory(p, entry.settings(preset, **overrides))
-
-
 def gs_only(p) -> dict[str, dict]:
-    keys = p.gs_images().float().numpy()
     out = {}
     videos = {}
     for name, label, overrides in (("blend", "blend", {}), ("interp", "interp", {}), ("rife 4.x", "rife", {"model": "4"}),
                                    ("rife hdv3", "rife", {"model": "hdv3"})):
         t0 = time.perf_counter()
-        entry = registry.get(label)
-        videos[name] = entry.factory(keys, p.gs_times_s, p.frame_times_s, entry.settings(**overrides)).video
+        videos[name] = reconstruct(p, label, progress=False, **overrides).video
         out[name] = {**scores(p, videos[name]), "seconds": time.perf_counter() - t0, "note": ""}
     # pnp's other candidate start: a GS-only video too, so it competes as a baseline
     out["rife mean (4.x + HDv3)"] = {**scores(p, 0.5 * (videos["rife 4.x"] + videos["rife hdv3"])),
@@ -85,16 +61,13 @@ def gs_only(p) -> dict[str, dict]:
 LAST_START = [""]
 
 
-def iterative(p, method, budget: float | None, iters: int | None = None) -> dict:
-    t0 = time.perf_counter()
-    m = method()
-    LAST_START[0] = (m.resolved_settings() or {}).get("init_source", "")
-    setup = time.perf_counter() - t0
-    result = run(m, LoopSettings(time_budget_s=budget, max_iters=iters, progress=False, log_every_s=1e9),
-                 setup_s=setup)
-    note = "; ".join(e for e in result.events if "stopped" in e or "budget" in e)
-    return {**scores(p, m.estimate().detach()), "seconds": result.solve_s, "iterations": result.iterations,
-            "note": note.split(":")[0] if note else f"{result.iterations} iterations"}
+def iterative(p, label: str, budget: float | None, iters: int | None = None, **overrides) -> dict:
+    """`label` on `p` through rngcam.api.reconstruct (the budget counts set-up and solve)."""
+    r = reconstruct(p, label, progress=False, time_budget_s=budget, max_iters=iters, log_every_s=1e9, **overrides)
+    LAST_START[0] = r.metrics.get("method_settings", {}).get("init_source", "")
+    note = "; ".join(e for e in r.metrics["events"] if "stopped" in e or "budget" in e)
+    return {**scores(p, r.video), "seconds": r.metrics["seconds"], "iterations": r.metrics["iterations"],
+            "note": note.split(":")[0] if note else f"{r.metrics['iterations']} iterations"}
 
 
 def table(rows: dict[str, dict]) -> list[str]:
@@ -144,15 +117,15 @@ def main() -> None:
             rows = gs_only(p)
             if scene == "smoke":
                 for beta in a.tv3d_betas.split(","):
-                    rows[f"tv3d beta {beta}"] = iterative(p, lambda b=float(beta), p=p: make("tv3d", p, beta=b), budget, a.iters)
-            rows["pnp"] = iterative(p, lambda p=p: make("pnp", p), budget, a.iters)
+                    rows[f"tv3d beta {beta}"] = iterative(p, "tv3d", budget, a.iters, beta=float(beta))
+            rows["pnp"] = iterative(p, "pnp", budget, a.iters)
             rows["pnp"]["note"] += f" (start: {LAST_START[0]})"
             if scene == "smoke" and not a.no_ablations:
-                rows["pnp, frames only (slices=xy)"] = iterative(p, lambda p=p: make("pnp", p, slices="xy"), budget, a.iters)
+                rows["pnp, frames only (slices=xy)"] = iterative(p, "pnp", budget, a.iters, slices="xy")
                 real = ffdnet.load_ffdnet
                 ffdnet.load_ffdnet = lambda *_, **__: (_ for _ in ()).throw(ffdnet.DenoiserUnavailableError("hidden"))
                 try:
-                    rows["pnp, 2-D TV instead of FFDNet"] = iterative(p, lambda p=p: make("pnp", p), budget, a.iters)
+                    rows["pnp, 2-D TV instead of FFDNet"] = iterative(p, "pnp", budget, a.iters)
                 finally:
                     ffdnet.load_ffdnet = real
             best_gs = max((r["inter"], n) for n, r in rows.items() if n in GS_ROWS)

@@ -155,17 +155,17 @@ def carry(bundle: str, fine_steps: int, every: int, coarse_steps: int) -> dict:
     """STFM (fast) coarse to fine, two ways of starting a finer level from the coarser one: fitting
     on its estimate upsampled (the default) or taking over its fields (planes resampled) on its
     base upsampled. PSNR at fixed step counts of the last level (no time measured: runs niced)."""
-    from dataclasses import replace as _replace
 
     from rngcam.formats.bundle import read_bundle
     from rngcam.recon.metrics import video_metrics
     from rngcam.recon.problem import build_problem
+    from rngcam.recon.runner import method_view
     from rngcam.recon.stfm import STFMSettings, make_stfm
     from rngcam.recon.stfm.multilevel import make_multilevel, stfm_levels
 
     problem = build_problem(read_bundle(bundle))
     truth = problem.truth
-    p = _replace(problem, truth=None).to(torch.float32)
+    p = method_view(problem).to(torch.float32)
     frames = problem.intermediate_frames()
     out = {"bundle": bundle}
     for how in ("auto", "fields"):

@@ -1,6 +1,6 @@
 """Side-by-side benchmark of STFM against the baselines, run by hand (not part of the tests).
 
-    .venv/bin/python bench/stfm_compare.py --budget 200 --out bench/stfm_compare.md
+    .venv/bin/python -m bench.stfm_compare --budget 200 --out bench/stfm_compare.md
 
 In one process on the CPU, under the same time budget per iterative method:
 1. STFM fast (the default: three fits on different GS-only starts, averaged, then refined), STFM single
@@ -46,14 +46,15 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from problems import GS_ONLY, gs_only_video, inline_problem, simulated_problem  # noqa: E402
-
+from rngcam.api import reconstruct
+from rngcam.evaluate.scenes import gs_only_video, inline_problem
+from rngcam.evaluate.scenes import scene_problem as simulated_problem
 from rngcam.recon import registry
-from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.metrics import ONE_OBJECT_SCENES, error_visibility, motion_metrics, video_metrics
 from rngcam.recon.problem import Problem
+
+GS_ONLY = registry.labels(registry.GS_ONLY)
 
 
 def run_gs_only(name: str, p: Problem) -> dict:
@@ -69,36 +70,25 @@ def run_gs_only(name: str, p: Problem) -> dict:
             "visibility": error_visibility(p, video)}
 
 
-def make_iterative(name: str, p: Problem, opts: dict):
-    """The method of a registry label or of one of this script's VARIANTS, with `opts` on top."""
-    label, base = VARIANTS.get(name, (name, {}))
-    entry, preset = registry.parse_label(label)
-    return entry.factory(p.to(torch.float32), entry.settings(preset, **base, **opts))
-
-
 def run_iterative(name: str, p: Problem, budget_s: float, opts: dict | None = None,
                   max_iters: int | None = None) -> dict:
-    """Setup + the shared loop for `budget_s` seconds (and at most `max_iters` iterations);
-    PSNR logged against solve time."""
-    truth = p.truth.float()
-    inter = p.intermediate_frames()
-    t0 = time.perf_counter()
+    """A registry label or one of this script's VARIANTS (with `opts` on top) through
+    rngcam.api.reconstruct for `budget_s` seconds, set-up included (and at most `max_iters`
+    iterations); PSNR logged against solve time."""
+    label, base = VARIANTS.get(name, (name, {}))
     try:
-        method = make_iterative(name, p, opts or {})
+        r = reconstruct(p, label, progress=False, time_budget_s=budget_s, max_iters=max_iters,
+                        log_every_s=max(budget_s / 20, 0.5), **base, **(opts or {}))
     except ImportError as exc:
         return {"error": f"not available: {exc}"}
-    setup_s = time.perf_counter() - t0
-    result = run(method, LoopSettings(time_budget_s=budget_s, max_iters=max_iters,
-                                      log_every_s=max(budget_s / 20, 0.5), progress=False),
-                 evaluate=lambda m: video_metrics(m.estimate().float().cpu(), truth, inter))
-    final = result.log[-1]
-    out = {k: final[k] for k in ("psnr_db", "psnr_intermediate_db", "ssim") if k in final}
-    out.update(setup_s=setup_s, solve_s=result.solve_s, iterations=result.iterations,
-               log=[(r["solve_s"], r.get("psnr_db")) for r in result.log], status=result.status,
-               stopped=any(e.startswith("stopped at") for e in result.events),
-               visibility=error_visibility(p, method.estimate().detach().cpu()),
-               **motion_of(method.estimate().detach().cpu(), p))
-    out["left_out"] = [c for c, _ in method.left_out]
+    m = r.metrics
+    out = {k: m[k] for k in ("psnr_db", "psnr_intermediate_db", "ssim") if k in m}
+    video = torch.from_numpy(r.video)
+    out.update(setup_s=m.get("setup_seconds", 0.0), solve_s=m["seconds"], iterations=m["iterations"],
+               log=[(row["solve_s"], row.get("psnr_db")) for row in r.log], status=r.status,
+               stopped=any(e.startswith("stopped at") for e in m["events"]),
+               visibility=error_visibility(p, video), **motion_of(video, p))
+    out["left_out"] = [c for c, _ in r.left_out if c not in {a for a, _ in p.left_out}]
     return out
 
 
@@ -120,15 +110,11 @@ def memory_child(problem_path: str, steps: int) -> None:
     p = torch.load(problem_path, weights_only=False)
     torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # import the optimiser machinery first
     before = peak_rss_mib()
-    m = make_iterative("stfm-fast", p, {})
-    done = 0
-    while (done < steps) if steps else not m.converged():
-        m.step()
-        done += 1
-    m.estimate()
+    r = reconstruct(p, "stfm-fast", progress=False, max_iters=steps or None, time_budget_s=None if steps else 1e6)
+    done = r.metrics["iterations"]
     peak = peak_rss_mib()
     print(json.dumps({"frames": p.grid.n_frames, "before_mib": before, "peak_mib": peak, "steps": done,
-                      "refined": getattr(m, "refined", None) is not None}))
+                      "refined": r.metrics.get("method_settings", {}).get("refine_steps") is not None}))
 
 
 def measure_memory(scene: str, size: int, steps: int) -> list[dict]:

@@ -1,6 +1,6 @@
 """STFM configurations side by side with the motion yardstick (run by hand, under the bench lock).
 
-    flock /tmp/rngcam-bench.lock .venv/bin/python bench/stfm_motion.py --scenes sineball,smoke,car --size 64 \
+    flock /tmp/rngcam-bench.lock .venv/bin/python -m bench.stfm_motion --scenes sineball,smoke,car --size 64 \
         --budget 300 --config 'fast={}' --config 'prior={"preset": "prior"}' --config 'auto={"preset": "auto"}'
 
 Each `--config name=JSON` is a set of STFMSettings overrides; every configuration runs on every
@@ -19,22 +19,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-
-from problems import gs_only_video, simulated_problem  # noqa: E402
-
-from rngcam.recon import registry  # noqa: E402
-from rngcam.recon.loop import LoopSettings, run  # noqa: E402
-from rngcam.recon.metrics import ONE_OBJECT_SCENES, motion_metrics, video_metrics  # noqa: E402
+from rngcam.api import reconstruct
+from rngcam.evaluate.scenes import gs_only_video
+from rngcam.evaluate.scenes import scene_problem as simulated_problem
+from rngcam.recon.metrics import ONE_OBJECT_SCENES, motion_metrics, video_metrics
 
 
 def scores(video: torch.Tensor, problem, scene: str) -> dict:
@@ -128,21 +121,17 @@ def main() -> None:
                 rows.append(r)
                 print(line(name, r), flush=True)
         for name, overrides in configs.items():
-            t0 = time.perf_counter()
-            stfm = registry.get("stfm")
-            method = stfm.factory(problem, stfm.settings(**overrides))
-            setup_s = time.perf_counter() - t0
-            result = run(method, LoopSettings(time_budget_s=args.budget, max_iters=args.max_iters, progress=False,
-                                              log_every_s=args.budget), setup_s=setup_s)
-            video = method.estimate().detach().double().cpu()
-            stop = next((e for e in result.events if e.startswith("stopped")), "budget")
-            r = {"scene": scene, "method": name, "settings": overrides, "setup_s": setup_s, "solve_s": result.solve_s,
-                 "iterations": result.iterations, "stop": stop[:120], "load": os.getloadavg()[0],
-                 "notes": [f"{a}: {b}" for a, b in method.left_out] + list(method.notes),
+            res = reconstruct(problem, "stfm", progress=False, time_budget_s=args.budget, max_iters=args.max_iters,
+                              log_every_s=args.budget, **overrides)
+            video = torch.from_numpy(res.video).double()
+            stop = next((e for e in res.metrics["events"] if e.startswith("stopped")), "budget")
+            r = {"scene": scene, "method": name, "settings": overrides, "setup_s": res.metrics["setup_seconds"],
+                 "solve_s": res.metrics["seconds"], "iterations": res.metrics["iterations"], "stop": stop[:120],
+                 "load": os.getloadavg()[0], "notes": [f"{a}: {b}" for a, b in res.left_out] + list(res.notes),
                  **scores(video, problem, scene)}
             rows.append(r)
             print(line(name, r), flush=True)
-            for note in getattr(method, "notes", []):
+            for note in res.notes:
                 print(f"    note: {note}", flush=True)
             if args.save is not None:
                 args.save.mkdir(parents=True, exist_ok=True)

@@ -10,19 +10,15 @@ corrects), and the PSNR of the same fit's video with u set to zero: what the mot
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from problems import simulated_problem  # noqa: E402
-
-from rngcam.recon.loop import LoopSettings, run  # noqa: E402
-from rngcam.recon.metrics import motion_metrics, video_metrics  # noqa: E402
-from rngcam.recon.stfm import STFMSettings, make_stfm  # noqa: E402
+from rngcam.evaluate.scenes import scene_problem as simulated_problem
+from rngcam.recon.loop import LoopSettings, run
+from rngcam.recon.metrics import motion_metrics, video_metrics
+from rngcam.recon.runner import method_view
+from rngcam.recon.stfm import STFMSettings, make_stfm
 
 
 def score(video: torch.Tensor, problem) -> str:
@@ -61,7 +57,7 @@ def main() -> None:
     moving = ((truth - truth.median(1, keepdim=True).values).abs().amax(0) > 0.02).numpy()  # (K, H, W)
     for base in args.bases.split(","):
         for no_reg in (False, True):
-            fit = make_stfm(problem, STFMSettings(dynamic_base=base, components="all", no_motion_reg=no_reg))
+            fit = make_stfm(method_view(problem), STFMSettings(dynamic_base=base, components="all", no_motion_reg=no_reg))
             result = run(fit, LoopSettings(time_budget_s=1e4, max_iters=3000, progress=False, log_every_s=1e4))
             video = fit.estimate().detach()
             mag = learned_motion_px(fit)

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rngcam.errors import BundleError, ConfigError
+from rngcam.errors import BundleError, SettingError
 from rngcam.formats.bundle import Bundle, camera_channels
 from rngcam.memory import total_memory_bytes
 from rngcam.physics.sensor import BAYER_FORMATS
@@ -76,7 +76,7 @@ def plan_grid(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = 
     if grid_bin is None:
         grid_bin = int(bundle.meta.get("grid_bin", mosaic))
     if int(grid_bin) != grid_bin or grid_bin < 1:
-        raise ConfigError(f"--bin must be a positive integer, got {grid_bin!r}")
+        raise SettingError(f"grid_bin must be a positive integer, got {grid_bin!r}", "grid_bin")
     if grid_bin % mosaic:
         raise BundleError(f"grid_bin {grid_bin} must be a multiple of 2 for a Bayer RS frame")
     shape = tuple(np.shape(cam.frames))
@@ -133,24 +133,30 @@ def gib(n: float) -> str:
 
 
 def check_frames(plan: GridPlan, max_frames: int | None = None) -> None:
-    """ConfigError (one line) when the grid has more than `max_frames` frames."""
+    """SettingError (one line) when the grid has more than `max_frames` frames."""
     max_frames = DEFAULT_MAX_FRAMES if max_frames is None else max_frames
     k = plan.grid.n_frames
     if k > max_frames:
-        raise ConfigError(f"the video would have {plan.describe()} (RS line time "
-                          f"{plan.rs.line_time_s * 1e6:.4g} us), above --max-frames {max_frames:,}: "
-                          "check the bundle's timing, or raise --max-frames")
+        raise SettingError(f"the video would have {plan.describe()} (RS line time "
+                           f"{plan.rs.line_time_s * 1e6:.4g} us), above max_frames {max_frames:,}: "
+                           "check the bundle's timing, or raise max_frames", "max_frames")
 
 
 def check_size(plan: GridPlan, method: str, memory: MemoryModel, max_frames: int | None = None,
                max_memory_bytes: int | None = None) -> int:
-    """Estimated bytes for `method` (named in the error) of `memory`; ConfigError (one line naming
+    """Estimated bytes for `method` (named in the error) of `memory`; SettingError (one line naming
     the figure and how to change it) past a limit."""
     check_frames(plan, max_frames)
+    return check_memory(method_bytes(plan, memory), f"{method} would need about {{need}} for {plan.describe()}",
+                        max_memory_bytes, "use a coarser grid_bin, or raise max_memory_bytes", "grid_bin")
+
+
+def check_memory(need: int, what: str, max_memory_bytes: int | None = None,
+                 fix: str = "raise max_memory_bytes", *settings: str) -> int:
+    """`need` if it is within `max_memory_bytes` (None: the default); else SettingError: `what`
+    (with {need} for the figure), the limit and `fix`, naming `settings` and max_memory_bytes."""
     max_memory_bytes = default_max_memory_bytes() if max_memory_bytes is None else max_memory_bytes
-    need = method_bytes(plan, memory)
     if need > max_memory_bytes:
-        raise ConfigError(f"{method} would need about {gib(need)} for {plan.describe()}, above "
-                          f"--max-memory {gib(max_memory_bytes)}: use a coarser --bin, or raise "
-                          "--max-memory (GiB)")
+        raise SettingError(f"{what.format(need=gib(need))}, above max_memory_bytes {gib(max_memory_bytes)}: {fix}",
+                           "max_memory_bytes", *settings)
     return need

@@ -149,10 +149,10 @@ def test_running_out_of_memory_is_one_line(clean, tmp_path, monkeypatch):
 @pytest.mark.parametrize("where", ["before", "after"])
 def test_gs_frames_before_and_after_the_rs_window_get_the_same_treatment(clean, tmp_path, where):
     if where == "before":
-        hook = edits.set_gs_triggers(lambda t, end: edits._set(t, 0, -end))
+        hook = edits.set_gs_triggers(lambda t, end: edits.set_at(t, 0, -end))
         frame = "GS frame 1"
     else:
-        hook = edits.set_gs_triggers(lambda t, end: edits._set(t, len(t) - 1, 2 * end))
+        hook = edits.set_gs_triggers(lambda t, end: edits.set_at(t, len(t) - 1, 2 * end))
         frame = "GS frame 3"
     path = edited(clean, tmp_path, where, hook)
     res = cli("inspect", str(path))
@@ -169,7 +169,7 @@ def test_gs_frames_before_and_after_the_rs_window_get_the_same_treatment(clean, 
 
 
 def test_a_gs_exposure_straddling_t0_extends_the_grid_before_t0(clean, tmp_path):
-    path = edited(clean, tmp_path, "straddle", edits.set_gs_triggers(lambda t, end: edits._set(t, 0, -300e-6)))
+    path = edited(clean, tmp_path, "straddle", edits.set_gs_triggers(lambda t, end: edits.set_at(t, 0, -300e-6)))
     problem = build_problem(read_bundle(path))
     assert problem.time_origin_s == pytest.approx(-208e-6 * 2)  # two whole frames before T0
     assert problem.frame_times_s[0] < 0 < problem.frame_times_s[2]

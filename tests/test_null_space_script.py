@@ -10,11 +10,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
-sys.path.insert(0, str(BENCH))
+from bench.null_space import seen_part
+from rngcam.evaluate.scenes import scene_problem as simulated_problem
 
-from null_space import seen_part  # noqa: E402
-from problems import simulated_problem  # noqa: E402
+BENCH = Path(__file__).resolve().parents[1] / "bench"
 
 
 def _tiny():

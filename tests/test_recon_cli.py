@@ -107,15 +107,19 @@ def test_stfm_base_list_runs_an_ensemble_and_a_bad_base_is_a_clear_error(mock_bu
 
 @pytest.mark.parametrize("method,args,budget", [("stfm", [], 600.0), ("tv3d", [], 60.0), ("stfm", ["--time-budget", "7"], 7.0)])
 def test_recon_time_budget_defaults_by_method(mock_bundle, tmp_path, monkeypatch, method, args, budget):
-    from rngcam.cli import recon as recon_cli
+    import numpy as np
+
+    from rngcam import api
+    from rngcam.recon.result import Result
 
     seen = {}
 
-    def fake_reconstruct(bundle, out, settings, echo):
+    def fake_solve(source, settings, out, echo, started=None):
         seen["budget"] = settings.time_budget_s
-        return {"seconds": 0.0, "iterations": 0}
+        return Result(np.zeros((1, 1, 1, 1), np.float32), np.zeros(1), {"method": method, "seconds": 0.0,
+                                                                        "iterations": 0})
 
-    monkeypatch.setattr(recon_cli, "reconstruct", fake_reconstruct)
+    monkeypatch.setattr(api, "solve", fake_solve)
     res = CliRunner().invoke(main, ["recon", str(mock_bundle), "--method", method, "-o", str(tmp_path / "o"),
                                     "--quiet", *args])
     assert res.exit_code == 0, res.output

@@ -7,11 +7,38 @@ from __future__ import annotations
 
 import importlib
 import sys
+import time
 
 import click
 
-from rngcam import __version__
-from rngcam.errors import RngcamError
+from rngcam.errors import RngcamError, SettingError
+from rngcam.version import __version__
+
+_STARTED = [time.perf_counter()]  # when the running command started (set again by each invocation)
+
+
+def started() -> float:
+    """The time.perf_counter() the running command started at (`recon`'s time budget counts from it:
+    importing torch and reading the bundle included)."""
+    return _STARTED[0]
+
+# The flag of each reconstruction setting whose name differs from its flag (the Python API's name ->
+# the command line's); any other setting `x_y` is `--x-y` (a method's options).
+SETTING_FLAGS = {"time_budget_s": "--time-budget", "max_iters": "--iters", "max_memory_bytes": "--max-memory",
+                 "grid_bin": "--bin", "checkpoint_every_s": "--checkpoint-every", "method": "--method"}
+
+
+def flag_of(setting: str) -> str:
+    """The command line's flag for the API setting `setting`."""
+    return SETTING_FLAGS.get(setting, "--" + setting.replace("_", "-"))
+
+
+def error_line(exc: RngcamError) -> str:
+    """`exc`'s one line, with settings named by their flags."""
+    if isinstance(exc, SettingError):
+        return exc.flagged({name: flag_of(name) for name in exc.settings})
+    return str(exc)
+
 
 # name -> "module:attribute" of a click command
 COMMANDS = {
@@ -48,10 +75,11 @@ class _Group(click.Group):
             raise
 
     def invoke(self, ctx):
+        _STARTED[0] = time.perf_counter()
         try:
             return super().invoke(ctx)
         except RngcamError as exc:
-            click.echo(f"error: {exc}", err=True)
+            click.echo(f"error: {error_line(exc)}", err=True)
             sys.exit(2)
 
 

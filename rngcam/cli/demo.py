@@ -54,7 +54,7 @@ def _capture(out: Path) -> Path:
     return bundle
 
 
-def _strip(png: Path, truth: np.ndarray, videos: dict[str, np.ndarray], frames: list[int]) -> None:
+def strip_png(png: Path, truth: np.ndarray, videos: dict[str, np.ndarray], frames: list[int]) -> None:
     """Rows: truth and each method; columns: the chosen frames (gamma-encoded)."""
     import matplotlib
 
@@ -83,16 +83,12 @@ def _strip(png: Path, truth: np.ndarray, videos: dict[str, np.ndarray], frames: 
 
 def main(out: Path = OUT, plan: list | None = None) -> int:
     """Run `plan` (default PLAN) on a fresh mock-rig capture in `out`; print the summary table."""
-    import csv
-
-    import h5py
     import torch
 
+    from rngcam.api import reconstruct
     from rngcam.formats.bundle import read_bundle
-    from rngcam.recon import registry
     from rngcam.recon.outputs import plot_errors
     from rngcam.recon.report import write_comparison
-    from rngcam.recon.runner import ReconSettings, reconstruct
 
     out.mkdir(exist_ok=True)
     t0 = time.perf_counter()
@@ -106,23 +102,18 @@ def main(out: Path = OUT, plan: list | None = None) -> int:
             budget = max(5.0, min(budget, DEADLINE_S - FINISH_S - (time.perf_counter() - t0)))
         click.echo(f"== {label}" + (f" (time budget {budget:.0f} s)" if budget else ""))
         t_part = time.perf_counter()
-        method, method_settings = registry.settings_for(label, **overrides)
-        settings = ReconSettings(method=method, method_settings=method_settings, time_budget_s=budget or "auto",
-                                 progress=sys.stdout.isatty(), overwrite=True)  # a fresh capture each run
-        try:
-            m = reconstruct(bundle, out / label, settings, echo=click.echo)
+        try:  # a fresh capture each run: overwrite
+            result = reconstruct(bundle, label, out=out / label, progress=click.echo, bar=sys.stdout.isatty(),
+                                 time_budget_s=budget or "auto", overwrite=True, **overrides)
         except ImportError as exc:  # an optional method that is not installed
             click.echo(f"skipped {label}: {exc}")
             continue
-        with h5py.File(out / label / "recon.h5") as f:
-            videos[label] = f["video"][()]
-            noise = f.attrs.get("rs_noise_level", noise)
-        with open(out / label / "errors.csv") as fh:
-            logs[label] = [{k: float(v) for k, v in r.items() if v != ""} for r in csv.DictReader(fh)]
-        rows.append({**m, "label": label, "wall_s": time.perf_counter() - t_part})
+        videos[label], logs[label] = result.video, result.log
+        noise = result.context.get("rs_noise_level", noise)
+        rows.append({**result.metrics, "label": label, "wall_s": time.perf_counter() - t_part})
         click.echo(f"== {label} done in {rows[-1]['wall_s']:.1f} s")
     k = truth.shape[1]
-    _strip(out / "strip.png", truth, videos, [0, k // 6, k // 3, k // 2, 2 * k // 3, 5 * k // 6])
+    strip_png(out / "strip.png", truth, videos, [0, k // 6, k // 3, k // 2, 2 * k // 3, 5 * k // 6])
     plot_errors(out / "errors.png", logs, noise_level=noise)
     report = write_comparison([out / m["label"] for m in rows], out / "report.html") if rows else None
     click.echo("")

@@ -6,6 +6,7 @@ import json
 
 import click
 
+from rngcam.cli import error_line
 from rngcam.errors import ConfigError, RngcamError
 from rngcam.formats.bundle import WARNING_PREFIX, inspect_bundle, open_bundle, render_summary
 from rngcam.recon import registry
@@ -31,7 +32,7 @@ def recon_size(bundle_path: str) -> tuple[dict, list[str]]:
             check_size(plan, method, registry.get(method).memory)
         except ConfigError as exc:
             return info, [f"{WARNING_PREFIX}recon --method {method} would refuse this bundle at bin "
-                          f"{info['bin']}: {exc}"]
+                          f"{info['bin']}: {error_line(exc)}"]
     return info, []
 
 

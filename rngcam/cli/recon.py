@@ -6,21 +6,33 @@ from pathlib import Path
 
 import click
 
+from rngcam.cli import error_line, started
 from rngcam.cli.method_options import method_command, pop_method_values
 from rngcam.cli.method_options import method_settings as settings_from_options
+from rngcam.errors import SettingError
 from rngcam.recon import registry
-from rngcam.recon.runner import ReconSettings, default_out_dir, reconstruct
+from rngcam.recon.settings import check_device, default_out_dir
 from rngcam.sizing import DEFAULT_MAX_FRAMES
 
+INTERRUPTED_EXIT = 130  # as a shell reports a command ended by SIGINT
 
-def _positive(ctx, param, value):
+
+def positive_option(ctx, param, value):
     """Refuse 0, negative, NaN or infinite figures where they are parsed (one usage line)."""
     if value is not None and not (value > 0 and value != float("inf")):
         raise click.BadParameter(f"must be a positive number, got {value}")
     return value
 
 
-def _budget(ctx, param, value):
+def device_option(ctx, param, value):
+    """--device: auto, cpu, cuda or cuda:N that this machine has (one usage line otherwise)."""
+    try:
+        return check_device(value)
+    except SettingError as exc:
+        raise click.BadParameter(error_line(exc).removeprefix("--device ")) from None
+
+
+def budget_option(ctx, param, value):
     """--time-budget: 'auto' (or not given) or a positive number of seconds."""
     if value is None or value == "auto":
         return value
@@ -28,55 +40,62 @@ def _budget(ctx, param, value):
         seconds = float(value)
     except ValueError:
         raise click.BadParameter(f"{value!r} is not a number of seconds or auto") from None
-    return _positive(ctx, param, seconds)
+    return positive_option(ctx, param, seconds)
 
 
 @method_command("recon")
 @click.argument("bundle", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder [default: <bundle>-recon-<method>/ beside the bundle].")
-@click.option("--time-budget", default=None, callback=_budget,
-              help="Wall-clock seconds for set-up and solve together, or auto [auto: "
+@click.option("--time-budget", default=None, callback=budget_option,
+              help="Wall-clock seconds for the whole command (a tenth, at most 60 s, is kept for the metrics and "
+                   "outputs), or auto [auto: "
                    + ", ".join(f"{e.name} {e.auto_budget_s:g}" for e in registry.REGISTRY.values() if e.iterative)
                    + " s at 64 px (stfm's fast preset stops itself once the data are fitted), scaled with the "
                      "square root of the problem's size up to 1800].")
 @click.option("--iters", type=click.IntRange(min=1), default=None, help="Stop after this many iterations.")
 @click.option("--max-frames", type=click.IntRange(min=1), default=None,
               help=f"Refuse a video of more frames, before allocating it [{DEFAULT_MAX_FRAMES:,}].")
-@click.option("--max-memory", type=float, default=None, callback=_positive,
+@click.option("--max-memory", type=float, default=None, callback=positive_option,
               help="Refuse a reconstruction estimated to need more memory, in GiB [80 % of this machine's].")
-@click.option("--resume", is_flag=True, help="Continue from the checkpoint in the output folder.")
-@click.option("--overwrite", is_flag=True, help="Write into a non-empty output folder, replacing its outputs.")
-@click.option("--device", default="auto", show_default=True, help="auto, cpu or cuda[:N].")
+@click.option("--resume", is_flag=True,
+              help="Continue from the checkpoint in the output folder (same bundle, method and settings; "
+                   "the time budget is this run's own).")
+@click.option("--overwrite", is_flag=True, help="Write into a non-empty output folder, removing its earlier outputs "
+                                                "and checkpoint first.")
+@click.option("--checkpoint-every", type=float, default=60.0, show_default=True, callback=positive_option,
+              help="Seconds between checkpoints during the solve (one is always written at the end, and "
+                   "on SIGINT or SIGTERM).")
+@click.option("--device", default="auto", show_default=True, callback=device_option, help="auto, cpu or cuda[:N].")
 @click.option("--bin", "grid_bin", type=click.IntRange(min=1), default=None,
               help="Sensor pixels per grid pixel [the rig's binning].")
 @click.option("--holdout", type=float, default=None,
               help="Hold this fraction of RS row bins out of the fit and report the residual on them.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memory, resume, overwrite, device,
-              grid_bin, holdout, quiet, **opts):
-    """Reconstruct the high-speed video in BUNDLE and report error against run time."""
+def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memory, resume, overwrite,
+              checkpoint_every, device, grid_bin, holdout, quiet, **opts):
+    """Reconstruct the high-speed video in BUNDLE and report error against run time.
+
+    Ctrl-C (SIGINT) or SIGTERM ends the run with the current estimate written as the result
+    ("status": "interrupted") and a checkpoint that --resume continues.
+    """
+    from rngcam.api import reconstruct
+
     method_settings = settings_from_options(method, pop_method_values(opts))
-    budget = "auto" if time_budget in (None, "auto") else time_budget
-    settings = ReconSettings(method=method, time_budget_s=budget, max_iters=iters, device=device,
-                             grid_bin=grid_bin, resume=resume, overwrite=overwrite, progress=not quiet,
-                             holdout=holdout, method_settings=method_settings,
-                             max_frames=max_frames,
-                             max_memory_bytes=None if max_memory is None else int(max_memory * 2**30))
     out = out_dir or default_out_dir(bundle, method)
-    m = reconstruct(bundle, out, settings, echo=click.echo)
-    line = f"{method}: {m['seconds']:.1f} s, {m['iterations']} iterations"
-    if "psnr_db" in m:
-        line += f", PSNR {m['psnr_db']:.2f} dB"
-        if "psnr_intermediate_db" in m:
-            line += f" (intermediate {m['psnr_intermediate_db']:.2f} dB)"
-        line += f", SSIM {m['ssim']:.3f}"
-    seen = {k: v for k, v in m.get("error_visibility", {}).items() if v == v}  # nan: cannot vouch
-    if seen:
-        line += ", error seen at " + " / ".join(f"{v:.2f}x the {k.upper()} noise" for k, v in seen.items())
-    if "heldout" in m:
-        line += f", held-out residual {m['heldout']:.4g}"
-    click.echo(line)
-    for caveat in m.get("error_visibility_caveats", []):
+    result = reconstruct(bundle, method, out=out, progress=click.echo, bar=not quiet, started=started(),
+                         method_settings=method_settings,
+                         time_budget_s="auto" if time_budget in (None, "auto") else time_budget,
+                         max_iters=iters, device=device, grid_bin=grid_bin, resume=resume, overwrite=overwrite,
+                         checkpoint_every_s=checkpoint_every, holdout=holdout, max_frames=max_frames,
+                         max_memory_bytes=None if max_memory is None else int(max_memory * 2**30))
+    click.echo(result.summary())
+    for caveat in result.metrics.get("error_visibility_caveats", []):
         click.echo(f"caveat: {caveat}")
     click.echo(f"outputs: {out}")
+    if result.status == "failed":
+        click.echo(f"error: {result.message}; outputs from the last good state are in {out}", err=True)
+        raise SystemExit(2)
+    if result.status == "interrupted":
+        click.echo(f"interrupted: the state at the signal is in {out}; --resume continues it", err=True)
+        raise SystemExit(INTERRUPTED_EXIT)

@@ -7,9 +7,10 @@ from pathlib import Path
 import click
 
 from rngcam.cli.method_options import method_command, method_settings, pop_method_values
+from rngcam.cli.recon import budget_option, device_option
 from rngcam.errors import RngcamError
 from rngcam.recon import registry
-from rngcam.recon.runner import ReconSettings
+from rngcam.recon.settings import ReconSettings
 from rngcam.scale.backend import make_backend
 
 
@@ -48,7 +49,8 @@ def _with(options):
               help="Held-out splits per trial (one fit each); the score is their mean (steadier than one).")
 @click.option("--eta", type=int, default=3, show_default=True, help="Successive halving: keep the best 1/eta per rung.")
 @click.option("--rungs", type=int, default=None, help="Successive-halving rungs (1: no early stopping) [auto, <= 3].")
-@click.option("--device", default="cpu", show_default=True, help="cpu or cuda (one GPU per trial).")
+@click.option("--device", default="cpu", show_default=True, callback=device_option,
+              help="cpu or cuda[:N] (one GPU per trial).")
 @click.option("--bin", "grid_bin", type=int, default=None, help="Sensor pixels per grid pixel.")
 @click.option("--no-refit", is_flag=True, help="Do not refit the best setting on all measurements.")
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
@@ -93,17 +95,18 @@ def sweep_cmd(bundle, method, time_budget, iters, holdout, holdout_gs, holdout_s
 @click.argument("bundles", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=Path("recon-batch"),
               show_default=True, help="Output folder: one sub-folder per bundle, batch.csv and batch.md.")
-@click.option("--time-budget", type=float, default=None,
-              help="Wall-clock seconds per bundle [stfm: 600 (the fast preset stops itself); otherwise 60].")
+@click.option("--time-budget", default=None, callback=budget_option,
+              help="Wall-clock seconds per bundle, or auto [auto: as recon's, scaled to each bundle's size].")
 @click.option("--iters", type=int, default=None, help="Stop each fit after this many iterations.")
-@click.option("--device", default="cpu", show_default=True, help="cpu or cuda (one GPU per bundle).")
+@click.option("--device", default="cpu", show_default=True, callback=device_option,
+              help="cpu or cuda[:N] (one GPU per bundle).")
 @click.option("--bin", "grid_bin", type=int, default=None, help="Sensor pixels per grid pixel.")
 @_with(_ray_options)
 def recon_batch_cmd(bundles, method, out_dir, time_budget, iters, device, grid_bin, address, no_ray, **opts):
     """Reconstruct every bundle in BUNDLES (one task each); finished ones are skipped on a re-run."""
     from rngcam.scale.batch import recon_batch
 
-    settings = ReconSettings(method=method, time_budget_s="auto" if time_budget is None else time_budget,
+    settings = ReconSettings(method=method, time_budget_s="auto" if time_budget in (None, "auto") else time_budget,
                              max_iters=iters, device=device, grid_bin=grid_bin, progress=False,
                              method_settings=method_settings(method, pop_method_values(opts)))
     result = recon_batch(bundles, out_dir, settings, backend_factory=_backend_factory(address, no_ray, device),

@@ -6,8 +6,13 @@ from pathlib import Path
 
 import click
 
+from rngcam.cli import error_line
 from rngcam.sim.scenes import SCENES
 from rngcam.sim.simulate import DEFAULT_PSF_CROP
+
+# Peak memory per video element (3 x frames x H x W) of `simulate` above the interpreter: 20 bytes
+# measured with /usr/bin/time (sineball: 551 MB at 128 px, 1,458 MB at 256 px), plus about 15 %.
+SIM_BYTES_PER_ELEMENT = 23
 
 
 @click.command("simulate")
@@ -31,14 +36,28 @@ from rngcam.sim.simulate import DEFAULT_PSF_CROP
               help="Clip scene: first source frame (default: the window with the most motion).")
 @click.option("--bayer", is_flag=True, help="Cameras deliver BayerRG12 mosaics at 2x size (grid_bin 2).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start, bayer, overwrite):
+@click.option("--max-memory", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Refuse a simulation estimated to need more memory, in GiB [80 % of this machine's].")
+def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start, bayer, overwrite, max_memory):
     """Simulate SCENE (sineball, smoke or clip) through the RS+GS physics into a bundle."""
-    from rngcam.sim.simulate import SimulationError, grid_shape, simulate, summary
+    from rngcam.errors import SettingError
+    from rngcam.sim.simulate import SimulationError, grid_shape, simulate, simulation_timing, summary
+    from rngcam.sizing import BASE_BYTES, DEFAULT_MAX_FRAMES, check_memory
 
     try:
         size = grid_shape(size)
     except SimulationError as exc:
         raise click.BadParameter(str(exc), param_hint="--size") from None
+    # Refused before anything video-sized is allocated, as recon refuses (rngcam.sizing).
+    frames = simulation_timing(size, bayer).grid.n_frames
+    try:
+        if frames > DEFAULT_MAX_FRAMES:
+            raise SettingError(f"{frames:,} frames, above {DEFAULT_MAX_FRAMES:,}: use a smaller size", "size")
+        check_memory(BASE_BYTES + SIM_BYTES_PER_ELEMENT * 3 * frames * size[0] * size[1],
+                     f"{size[0]}x{size[1]} ({frames:,} frames) would need about {{need}}",
+                     None if max_memory is None else int(max_memory * 2**30), "use a smaller size")
+    except SettingError as exc:
+        raise click.BadParameter(error_line(exc), param_hint="--size") from None
     bundle = simulate(scene, out, size=size, seed=seed, psf=psf, psf_crop=psf_crop, noise=noise,
                       clip=clip, span=span, start=start, bayer=bayer, overwrite=overwrite)
     for line in summary(bundle, out):

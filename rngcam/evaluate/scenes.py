@@ -69,3 +69,87 @@ def make_scene_bundle(scene: BenchScene, path: Path, size: int, seed: int = 0) -
     if scene.kind == "clip":
         text += f"; clip {scene.clip.name}, {CLIP_SPAN} source frames from frame {m.get('clip_start')}"
     return text
+
+
+# ----------------------------------------------------------------------------- scenes as problems
+# The bench/ scripts' scenes: sineball, smoke, and the clips under $RNGCAM_DATA by short name.
+
+CLIPS = {"car": "videos/bikes_car_256.npz", "walk": "videos/bikes_walk_256.npz", "vtest": "videos/vtest_256.npz"}
+DT_S, EXPOSURE_S = 208e-6, 650e-6  # the reference rig scaled to the grid (rngcam.sim.simulate)
+
+
+def clip_path(scene: str) -> Path:
+    """The clip scene's npz under $RNGCAM_DATA (the larger clips do not ship with rngcam)."""
+    from rngcam.paths import DATA_HINT, external_data
+
+    if external_data() is None:
+        raise RngcamError(f"scene {scene}: {DATA_HINT}")
+    return external_data() / CLIPS[scene]
+
+
+def scene_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1):
+    """(Problem with truth, how it was made) of a named scene: simulated into a bundle by
+    rngcam.sim.simulate and built as `rngcam recon` builds it; `dt_factor` > 1 (a finer grid than
+    the simulator's) uses `inline_problem`."""
+    import tempfile
+
+    from rngcam.formats.bundle import read_bundle
+    from rngcam.recon.problem import build_problem
+
+    if dt_factor != 1:
+        problem = inline_problem(scene, size, seed, dt_factor)
+        problem.bench_scene = scene  # for the motion yardstick: which scenes have one moving object
+        return problem, "in-process simulation (Gaussian noise 0.3 %)"
+    kind = "clip" if scene in CLIPS else scene
+    opts = {"clip": clip_path(scene), "span": CLIP_SPAN} if scene in CLIPS else {}
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"{scene}.h5"
+        make_scene_bundle(BenchScene(scene, kind, opts.get("clip")), path, size, seed)
+        problem = build_problem(read_bundle(path))
+    problem.bench_scene = scene
+    return problem, "rngcam.sim.simulate"
+
+
+def inline_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1, noise: float = 0.003,
+                   psf_crop: float = 0.25):
+    """The simulator's timing and forward model without the bundle (and with Gaussian noise)."""
+    import torch
+
+    from rngcam.paths import MEASURED_PSF, package_data
+    from rngcam.physics import psf as psf_mod
+    from rngcam.physics.operators import GlobalShutter, RollingShutter
+    from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+    from rngcam.recon.problem import Problem
+    from rngcam.sim.scenes import render_scene
+
+    rs = RollingShutterTiming(line_time_s=DT_S, exposure_s=EXPOSURE_S, rows=size)
+    end = (size - 1) * DT_S
+    gs = GlobalShutterTiming(trigger_s=(0.0, end / 2, end), exposure_s=EXPOSURE_S)
+    grid = VideoGrid.covering(rs, gs, dt_s=DT_S / dt_factor)
+    opts = {"path": clip_path(scene), "span": CLIP_SPAN} if scene in CLIPS else {"key_times_s": gs.centres_s()}
+    truth = torch.from_numpy(render_scene("clip" if scene in CLIPS else scene, grid, size, seed, **opts)).double()
+    raw = psf_mod.load_psf(package_data(MEASURED_PSF))
+    psf = torch.from_numpy(psf_mod.prepare_psf(raw, (size, size), crop=psf_crop, channels=3)[0])
+    w_rs, w_gs = torch.from_numpy(rs.weights(grid)), torch.from_numpy(gs.weights(grid))
+    b_rs = RollingShutter(psf, w_rs, size, 3).A(truth)
+    b_gs = GlobalShutter(w_gs, 3, (size, size)).A(truth)
+    gen = torch.Generator().manual_seed(seed + 99)
+    scale = noise * EXPOSURE_S / DT_S
+    b_rs = b_rs + scale * torch.randn(b_rs.shape, generator=gen, dtype=torch.float64)
+    b_gs = b_gs + scale * torch.randn(b_gs.shape, generator=gen, dtype=torch.float64)
+    return Problem(b_rs=b_rs, b_gs=b_gs, rs_weights=w_rs, gs_weights=w_gs, psf=psf, grid=grid,
+                   gs_times_s=gs.centres_s(), truth=truth)
+
+
+def gs_only_video(label: str, problem):
+    """A GS-only baseline's video (through rngcam.api.reconstruct); "gs_mean" is the plain average
+    of the GS-only methods' videos (those installed: RIFE needs its weights)."""
+    import numpy as np
+
+    from rngcam.api import reconstruct
+    from rngcam.recon import registry
+
+    if label == "gs_mean":
+        videos = [gs_only_video(n, problem) for n in registry.labels(registry.GS_ONLY) if not registry.unavailable(n)]
+        return np.mean(videos, axis=0)
+    return reconstruct(problem, label, progress=False).video

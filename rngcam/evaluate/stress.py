@@ -14,7 +14,6 @@ difference between float32 and float64 forward and adjoint results, for the RS a
 
 from __future__ import annotations
 
-import csv
 import itertools
 import json
 import math
@@ -24,17 +23,15 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import h5py
-import numpy as np
 import torch
 
+from rngcam.api import reconstruct
 from rngcam.errors import RngcamError
 from rngcam.evaluate import report
 from rngcam.evaluate.stress_cases import StressCase, stress_cases
 from rngcam.formats.bundle import read_bundle
 from rngcam.physics.operators import inner
 from rngcam.recon import registry
-from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.problem import Problem, build_problem
 
 ADJOINT_TOL = 1e-9  # relative, float64
@@ -108,22 +105,7 @@ def operator_row(problem: Problem) -> dict:
             "fp32_diff": r["fp32_diff"], "message": "; ".join(problems)}
 
 
-# ----------------------------------------------------------------------------- methods on a Problem
-
-
-def _iterative(problem: Problem, method: str, options: dict):
-    entry, preset = registry.parse_label(method)
-    return entry.factory(problem.to(torch.float32), entry.settings(preset, **options), device="cpu")
-
-
-def _gs_only(problem: Problem, method: str) -> np.ndarray:
-    from rngcam.recon.runner import gs_key_frames
-
-    if problem.b_gs is None or problem.b_gs.shape[1] == 0:
-        raise RngcamError(f"{method} needs GS frames")
-    entry, preset = registry.parse_label(method)
-    return entry.factory(gs_key_frames(problem), problem.gs_times_s, problem.frame_times_s,
-                         entry.settings(preset)).video
+# ----------------------------------------------------------------------------- methods through the API
 
 
 def monotone(objectives: list[float]) -> tuple[bool, float]:
@@ -143,43 +125,30 @@ def _iterations(method: str, settings: StressSettings) -> int | None:
     return settings.stfm_iters if method.startswith("stfm") else None
 
 
+def _short_run(source, method: str, options: dict, settings: StressSettings, out: Path | None = None) -> dict:
+    """A short `rngcam.reconstruct` of `source` (a Problem or a bundle path): {video, iterations,
+    objectives, status, message}; every logged iteration's objective (a subsequence is monotone
+    when the run is)."""
+    where = {"overwrite": True} if out is not None else {"device": "cpu"}
+    result = reconstruct(source, method, out=out, progress=False, time_budget_s=settings.time_cap_s,
+                         max_iters=_iterations(method, settings), log_every_s=0.0, checkpoint_every_s=1e9,
+                         **where, **options)
+    if result.status == "failed" and out is not None:  # as `rngcam recon` reports it: one error line
+        raise RngcamError(f"{result.message}; outputs from the last good state are in {out}")
+    return {"video": torch.from_numpy(result.video), "iterations": result.metrics["iterations"],
+            "objectives": [r["objective"] for r in result.log], "status": result.status,
+            "message": "; ".join([result.message, *result.metrics["events"]]).strip("; "),
+            "psnr_db": result.metrics.get("psnr_db")}
+
+
 def run_on_problem(problem: Problem, method: str, options: dict, settings: StressSettings) -> dict:
     """Short run of `method` on `problem`: {video, iterations, objectives, status, message}."""
-    if registry.parse_label(method)[0].iterative:
-        t0 = time.perf_counter()
-        m = _iterative(problem, method, options)
-        iters = _iterations(method, settings)
-        loop = LoopSettings(time_budget_s=settings.time_cap_s, max_iters=iters, log_every_iters=1,
-                            progress=False)
-        res = run(m, loop, setup_s=time.perf_counter() - t0)
-        return {"video": m.estimate().detach().cpu(), "iterations": res.iterations,
-                "objectives": [r["objective"] for r in res.log], "status": res.status,
-                "message": "; ".join([res.message] + res.events).strip("; ")}
-    video = torch.from_numpy(np.asarray(_gs_only(problem, method)))
-    return {"video": video, "iterations": 1, "objectives": [], "status": "ok", "message": ""}
-
-
-# ----------------------------------------------------------------------------- methods on a bundle
+    return _short_run(problem, method, options, settings)
 
 
 def run_on_bundle(bundle: Path, method: str, options: dict, settings: StressSettings, out: Path) -> dict:
-    """`reconstruct` the bundle (the user's path); read back the written video and log."""
-    from rngcam.recon.runner import ReconSettings, reconstruct
-
-    iters = _iterations(method, settings)
-    entry, preset = registry.parse_label(method)
-    recon = ReconSettings(method=entry.name, method_settings=entry.settings(preset, **options),
-                          time_budget_s=settings.time_cap_s, max_iters=iters, progress=False, overwrite=True,
-                          log_every_s=0.0, checkpoint_every_s=1e9)
-    metrics = reconstruct(bundle, out, recon, echo=lambda _msg: None)
-    with h5py.File(out / "recon.h5", "r") as f:
-        video = torch.from_numpy(f["video"][()])
-    with open(out / "errors.csv") as fh:
-        objectives = [float(r["objective"]) if r.get("objective") not in (None, "") else math.nan
-                      for r in csv.DictReader(fh)]
-    return {"video": video, "iterations": metrics["iterations"], "objectives": objectives,
-            "status": metrics["status"], "message": "; ".join(metrics.get("events", [])),
-            "psnr_db": metrics.get("psnr_db")}
+    """`reconstruct` the bundle (the user's path) into `out`, every output written."""
+    return _short_run(bundle, method, options, settings, out)
 
 
 # ----------------------------------------------------------------------------- classification

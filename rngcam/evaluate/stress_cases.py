@@ -108,14 +108,14 @@ def scale_values(factor: int) -> Callable[[Path], None]:
     return hook
 
 
-def _set(frames: np.ndarray, index, value) -> np.ndarray:
+def set_at(frames: np.ndarray, index, value) -> np.ndarray:
     frames = frames.copy()
     frames[index] = value
     return frames
 
 
 def saturate_gs_frame(i: int, full_scale: int = 4095):
-    return edit_frames("gs", lambda x: _set(x, i, full_scale))
+    return edit_frames("gs", lambda x: set_at(x, i, full_scale))
 
 
 def saturate_rs_patch(fraction: float, full_scale: int = 4095):
@@ -124,14 +124,14 @@ def saturate_rs_patch(fraction: float, full_scale: int = 4095):
     def edit(x):
         h, w = x.shape[1:3]
         side = max(1, round((fraction * h * w) ** 0.5))
-        return _set(x, (0, slice(h // 3, h // 3 + side), slice(w // 3, w // 3 + side)), full_scale)
+        return set_at(x, (0, slice(h // 3, h // 3 + side), slice(w // 3, w // 3 + side)), full_scale)
 
     return edit_frames("rs", edit)
 
 
 def zero_rows(camera: str, i: int, start_fraction: float):
     """Rows from `start_fraction` of the height down at 0 DN: a partially transferred frame."""
-    return edit_frames(camera, lambda x: _set(x, (i, slice(int(start_fraction * x.shape[1]), None)), 0))
+    return edit_frames(camera, lambda x: set_at(x, (i, slice(int(start_fraction * x.shape[1]), None)), 0))
 
 
 def set_attr(group: str, name: str, value) -> Callable[[Path], None]:
@@ -196,19 +196,19 @@ def bad_input_cases() -> list[StressCase]:
                    after_write=_chain(edit_frames("rs", lambda x: x * 0 + 4095),
                                       edit_frames("gs", lambda x: x * 0 + 4095)), **b),
         StressCase("RS all 0 DN (below black)", "dead frame", after_write=edit_frames("rs", lambda x: x * 0), **b),
-        StressCase("GS frame 1 all 0 DN", "dead frame", after_write=edit_frames("gs", lambda x: _set(x, 0, 0)), **b),
+        StressCase("GS frame 1 all 0 DN", "dead frame", after_write=edit_frames("gs", lambda x: set_at(x, 0, 0)), **b),
         StressCase("GS frame 3 flat 1000 DN", "dead frame",
-                   after_write=edit_frames("gs", lambda x: _set(x, 2, 1000)), **b),
+                   after_write=edit_frames("gs", lambda x: set_at(x, 2, 1000)), **b),
         StressCase("RS flat 1000 DN", "dead frame", after_write=edit_frames("rs", lambda x: x * 0 + 1000), **b),
         StressCase("RS line time 0.1 ns", "absurd timing", expect="reject",
                    after_write=set_attr("rs", "line_time_s", 1e-10), **b),
         StressCase("RS line time 1 s", "absurd timing", after_write=set_attr("rs", "line_time_s", 1.0), **b),
         StressCase("GS frame before the RS window", "absurd timing",
-                   after_write=set_gs_triggers(lambda t, end: _set(t, 0, -0.5 * end)), **b),
+                   after_write=set_gs_triggers(lambda t, end: set_at(t, 0, -0.5 * end)), **b),
         StressCase("GS frame after the RS window", "absurd timing",
-                   after_write=set_gs_triggers(lambda t, end: _set(t, len(t) - 1, 1.5 * end)), **b),
+                   after_write=set_gs_triggers(lambda t, end: set_at(t, len(t) - 1, 1.5 * end)), **b),
         StressCase("GS exposure straddling T0", "absurd timing",
-                   after_write=set_gs_triggers(lambda t, end: _set(t, 0, -2e-6)), **b),
+                   after_write=set_gs_triggers(lambda t, end: set_at(t, 0, -2e-6)), **b),
         StressCase("RS trigger after T0", "absurd timing", expect="reject",
                    after_write=lambda p: _write_dataset(p, "rs/trigger_times_s", np.array([1e-3])), **b),
         StressCase("RS bottom half 0 DN", "partial frame", after_write=zero_rows("rs", 0, 0.5), **b),

@@ -2,7 +2,7 @@
 
 The job names the bundle, the output folder, the method's registry label (e.g. stfm-fast), any
 settings it overrides by name (`overrides`), the time budget and the log spacing. It calls
-`rngcam.recon.runner.reconstruct` (which writes every output)
+`rngcam.api.reconstruct` (which writes every output)
 and adds `bench_worker.json` with this process's peak resident set size and its base (the
 resident size once the interpreter, torch and the output writers are loaded, before the run):
 peak - base is what the method itself added.
@@ -38,19 +38,18 @@ def main(job_path: str) -> int:
         import cv2
         import torch
 
-        from rngcam.recon import registry
-        from rngcam.recon.runner import ReconSettings, reconstruct
+        from rngcam.api import reconstruct
 
         torch.set_num_threads(int(job.get("threads", 1)))
         cv2.setNumThreads(int(job.get("threads", 1)))
         _import_output_writers()
         report["base_rss_bytes"] = current_rss_bytes()
-
-        name, method_settings = registry.settings_for(job["method"], **job.get("overrides", {}))
-        settings = ReconSettings(method=name, method_settings=method_settings, time_budget_s=job["time_budget_s"],
-                                 progress=False, log_every_s=job["log_every_s"], checkpoint_every_s=1e9,
-                                 overwrite=True)  # the folder already holds this job's own files
-        reconstruct(job["bundle"], out, settings, echo=lambda _msg: None)
+        result = reconstruct(job["bundle"], job["method"], out=out, progress=False, time_budget_s=job["time_budget_s"],
+                             log_every_s=job["log_every_s"], checkpoint_every_s=1e9,
+                             overwrite=True,  # the folder already holds this job's own files
+                             **job.get("overrides", {}))
+        if result.status == "failed":
+            report["error"] = f"RngcamError: {result.message}"
     except Exception as exc:  # noqa: BLE001 - reported in the results table, not raised
         report["error"] = f"{type(exc).__name__}: {exc}"
     report["peak_rss_bytes"] = peak_rss_bytes()

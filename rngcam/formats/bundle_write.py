@@ -14,7 +14,6 @@ from typing import Any
 import h5py
 import numpy as np
 
-from rngcam import __version__
 from rngcam.errors import BundleError
 from rngcam.formats.bundle_schema import (
     COMPRESSIONS,
@@ -26,6 +25,7 @@ from rngcam.formats.bundle_schema import (
     check_bundle,
     is_warning,
 )
+from rngcam.version import __version__
 
 _WRITE_BLOCK_BYTES = 16 * 2**20  # frames are copied in blocks of about this size
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import copy
 import math
-import os
 import sys
 import time
 from collections.abc import Callable
@@ -25,7 +24,8 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
-CHECKPOINT_NAME = "checkpoint.pt"
+from rngcam.recon import checkpoint
+from rngcam.recon.checkpoint import CHECKPOINT_NAME
 
 
 class Method(Protocol):
@@ -93,12 +93,20 @@ class MethodBase:
 @dataclass
 class LoopSettings:
     time_budget_s: float | None = 60.0
-    max_iters: int | None = None
+    max_iters: int | None = None  # the iteration to stop at (a resumed run counts from its checkpoint's)
     log_every_s: float = 2.0
     log_every_iters: int | None = None
     checkpoint_dir: Path | None = None
     checkpoint_every_s: float = 60.0
+    # resume: continue from checkpoint_dir's checkpoint if there is one, its wall time counted in the
+    # budget (a sweep's rung extends a fit to a larger total). resume_from: continue from this
+    # checkpoint payload with a budget of the run's own (a user's --resume; rngcam.recon.runner).
     resume: bool = False
+    resume_from: dict | None = None
+    checkpoint_meta: dict = field(default_factory=dict)  # stored with every checkpoint (its identity)
+    start_time: float | None = None  # time.perf_counter() the budget counts from [now less setup_s]
+    stop_requested: Callable[[], str | None] | None = None  # asked after every step: a reason stops the run
+    log_line: Callable[[str], None] | None = None  # also gets every plain progress line (a log file)
     max_failures: int = 5
     progress: bool = True
     progress_every_s: float = 10.0  # without a terminal: one progress line this often (stderr)
@@ -119,7 +127,7 @@ class RunResult:
     solve_s: float
     wall_s: float
     events: list[str] = field(default_factory=list)
-    status: str = "ok"  # "ok" or "failed"
+    status: str = "ok"  # "ok", "failed", "interrupted" or "budget_before_first_iteration"
     message: str = ""
 
 
@@ -135,34 +143,39 @@ def _finite_state(state) -> bool:
     return True
 
 
-def _save_checkpoint(path: Path, payload: dict) -> None:
-    tmp = path.with_name(path.name + ".partial")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
-
-
 def run(method: Method, settings: LoopSettings,
         evaluate: Callable[[Method], dict[str, float]] | None = None, setup_s: float = 0.0) -> RunResult:
     """Iterate `method` under `settings`; `evaluate(method)` adds truth metrics to each log row.
 
     `setup_s` is the time the method took to build (operator norms, initialisation): it counts
-    as solve time. Logs are spaced so that evaluation costs at most ~20 % of the run.
+    as solve time. Logs are spaced so that evaluation costs at most ~20 % of the run. A
+    KeyboardInterrupt inside a step (a second Ctrl-C, a notebook's interrupt) or a reason from
+    `stop_requested` ends the run "interrupted" with the last good state.
     """
     log: list[dict] = []
     events: list[str] = []
     iteration, solve_s, wall_offset = 0, float(setup_s), 0.0
     ckpt = None if settings.checkpoint_dir is None else Path(settings.checkpoint_dir) / CHECKPOINT_NAME
-    if settings.resume and ckpt is not None and ckpt.is_file():
-        saved = torch.load(ckpt, weights_only=False)
+    saved = settings.resume_from
+    if saved is None and settings.resume and ckpt is not None and ckpt.is_file():
+        saved = checkpoint.load(ckpt)
+        wall_offset = saved["wall_s"]  # a sweep's rung: the budget is the fit's total
+    if saved is not None and saved.get("method") is not None:
         method.load_state_dict(saved["method"])
-        iteration, solve_s, wall_offset = saved["iteration"], saved["solve_s"], saved["wall_s"]
-        log, events = saved["log"], saved["events"] + [f"resumed from {ckpt.name} at iteration {iteration}"]
+        iteration, solve_s = saved["iteration"], saved["solve_s"] + (setup_s if settings.resume_from else 0.0)
+        log = saved["log"]
+        events = [e for e in saved["events"] if not e.startswith("resumed from ")]
+        events.append(f"resumed from {CHECKPOINT_NAME} at iteration {iteration}")
         torch.set_rng_state(saved["rng"])
 
-    start = time.perf_counter() - wall_offset - (setup_s if not log else 0.0)
+    if settings.start_time is not None:
+        start = settings.start_time - wall_offset
+    else:
+        start = time.perf_counter() - wall_offset - (setup_s if not log else 0.0)
     last_good = (copy.deepcopy(method.state_dict()), iteration, solve_s)
     failures, objective = 0, float("nan")
     last_log_solve, eval_s, last_ckpt_t = -math.inf, 0.0, time.perf_counter()
+    status, message = "ok", ""
 
     def wall() -> float:
         return time.perf_counter() - start
@@ -183,13 +196,16 @@ def run(method: Method, settings: LoopSettings,
         eval_s = time.perf_counter() - t0
         return row
 
-    def checkpoint() -> None:
-        if ckpt is None:
-            return
-        ckpt.parent.mkdir(parents=True, exist_ok=True)
-        _save_checkpoint(ckpt, {"method": method.state_dict(), "iteration": iteration,
-                                "solve_s": solve_s, "wall_s": wall(), "log": log,
-                                "events": events, "rng": torch.get_rng_state()})
+    def save_checkpoint() -> None:
+        if ckpt is not None:
+            checkpoint.save(ckpt, {"method": method.state_dict(), "iteration": iteration, "solve_s": solve_s,
+                                   "wall_s": wall(), "log": log, "events": events, "rng": torch.get_rng_state(),
+                                   "identity": settings.checkpoint_meta or None})
+
+    def roll_back() -> None:
+        nonlocal iteration, solve_s
+        good, iteration, solve_s = last_good
+        method.load_state_dict(copy.deepcopy(good))
 
     stop_reason = None
     with _progress(settings, method.name) as bar:
@@ -197,52 +213,68 @@ def run(method: Method, settings: LoopSettings,
             record(float("nan"))
         while not done() and stop_reason is None:
             t0 = time.perf_counter()
-            objective = float(method.step())
+            try:
+                objective = float(method.step())
+            except KeyboardInterrupt as exc:  # mid-step: the state may be half updated
+                roll_back()
+                status, message = "interrupted", f"{method.name}: interrupted ({exc or 'KeyboardInterrupt'})"
+                events.append(f"interrupted by {exc or 'KeyboardInterrupt'} in iteration {iteration + 1}: "
+                              f"kept the state of iteration {iteration}")
+                break
             solve_s += time.perf_counter() - t0
             iteration += 1
             due = (settings.log_every_iters is not None and iteration % settings.log_every_iters == 0) or (
                 settings.log_every_iters is None
                 and solve_s - last_log_solve >= max(settings.log_every_s, 4 * eval_s))
             ckpt_due = ckpt is not None and time.perf_counter() - last_ckpt_t >= settings.checkpoint_every_s
+            asked = settings.stop_requested() if settings.stop_requested is not None else None
             # A non-finite state shows in the next objective; the whole state is checked only
             # where it is kept (log snapshot, checkpoint, the end), not after every step.
             bad, state = not math.isfinite(objective), None
             if not bad and method.stops_itself:
                 stop_reason = method.converged()
-            if not bad and (due or ckpt_due or done() or stop_reason):
+            if not bad and (due or ckpt_due or done() or stop_reason or asked):
                 state = method.state_dict()
                 bad = not _finite_state(state)
             if bad:
                 failures += 1
-                good, iteration, solve_s = last_good
-                method.load_state_dict(copy.deepcopy(good))
+                roll_back()
                 method.reduce_step(0.5)
                 events.append(f"non-finite state at iteration {iteration + 1}: rolled back, step halved "
                               f"(failure {failures} of {settings.max_failures})")
                 if failures >= settings.max_failures:
                     record(float("nan"))
+                    save_checkpoint()
                     return RunResult(log, iteration, solve_s, wall(), events, "failed",
                                      f"{method.name}: {failures} non-finite steps in a row; "
                                      f"kept the last good state (iteration {iteration})")
                 stop_reason = None
-                continue
+                if asked is None:
+                    continue
             failures = 0
             if due:
                 last_log_solve = solve_s
                 bar.show(record(objective), iteration, wall())
                 last_good = (copy.deepcopy(state), iteration, solve_s)
             if ckpt_due:
-                checkpoint()
+                save_checkpoint()
                 last_ckpt_t = time.perf_counter()
+            if asked:
+                status, message = "interrupted", f"{method.name}: {asked}"
+                events.append(f"{asked} at iteration {iteration}: the state there is written (--resume continues)")
+                break
         if stop_reason:
             events.append(f"stopped at iteration {iteration}: {stop_reason}")
-        elif settings.time_budget_s is not None and wall() >= settings.time_budget_s and (
+        elif status == "ok" and settings.time_budget_s is not None and wall() >= settings.time_budget_s and (
                 settings.max_iters is None or iteration < settings.max_iters):
             events.append(budget_event(method, settings.time_budget_s, iteration, setup_s))
+            if iteration == (saved or {}).get("iteration", 0):
+                status = "budget_before_first_iteration"
+                message = f"{method.name}: the time budget ran out before the first iteration"
         if not log or log[-1]["iteration"] != iteration:
             bar.show(record(objective), iteration, wall())
-        checkpoint()
-    return RunResult(log, iteration, solve_s, wall(), events)
+        save_checkpoint()
+    return RunResult(log, iteration, solve_s, wall(), events, status, message)
 
 
 def budget_event(method, budget_s: float, iteration: int, setup_s: float) -> str:
@@ -266,13 +298,16 @@ def is_terminal(stream=None) -> bool:
     return bool(getattr(stream, "isatty", lambda: False)())
 
 
-def stage_printer(echo=None, enabled: bool = True):
+def stage_printer(echo=None, enabled: bool = True, check: Callable[[], None] | None = None):
     """A callable `stage(message)` that prints 'set-up: message (t s)' with the time since it was made,
-    so every set-up stage shows progress in a terminal and in a log alike."""
+    so every set-up stage shows progress in a terminal and in a log alike; `check()` runs first (it
+    raises what ends the set-up: rngcam.recon.guard)."""
     t0 = time.perf_counter()
     echo = echo or (lambda line: print(line, file=sys.stderr, flush=True))
 
     def stage(message: str) -> None:
+        if check is not None:
+            check()
         if enabled:
             echo(f"set-up: {message} ({time.perf_counter() - t0:.1f} s)")
     return stage
@@ -303,11 +338,16 @@ class _progress:
         figs = f"it {iteration}  obj {row['objective']:.4g}"
         if "psnr_db" in row:
             figs += f"  PSNR {row['psnr_db']:.2f} dB"
+        log_line = self.settings.log_line
+        if (self._lines or log_line) and wall_s - self._last_line >= self.settings.progress_every_s:
+            self._last_line = wall_s
+            budget = f" of {self.settings.time_budget_s:g} s" if self.settings.time_budget_s else ""
+            line = f"{self.name}: {wall_s:.0f} s{budget}  {figs}"
+            if log_line:
+                log_line(line)
+            if self._lines:
+                print(line, file=sys.stderr, flush=True)
         if self._lines:
-            if wall_s - self._last_line >= self.settings.progress_every_s:
-                self._last_line = wall_s
-                budget = f" of {self.settings.time_budget_s:g} s" if self.settings.time_budget_s else ""
-                print(f"{self.name}: {wall_s:.0f} s{budget}  {figs}", file=sys.stderr, flush=True)
             return
         if self._bar is None:
             return

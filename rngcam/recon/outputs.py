@@ -16,7 +16,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from rngcam import __version__
+from rngcam.version import __version__
 from rngcam.errors import ConfigError
 
 
@@ -31,21 +31,22 @@ INTENSITY_UNIT = ("linear; 1.0 = a static scene that fills the sensor's full sca
 FRAME_TIMES_NOTE = "centre of each frame's interval [k dt, (k+1) dt), in seconds from T0 (the RS trigger)"
 
 
-def recon_context(bundle_path: Path, bundle, problem) -> dict:
+def recon_context(bundle_path: Path | None, bundle, problem) -> dict:
     """What a recon folder records of its input beyond the video: the bundle's absolute path and
     capture time, the grid's frame interval, the GS key frames and their times, the RS image
     (grid units), its relative noise level (where STFM's and pnp's stop aims) and, when the bundle
     states it (meta `pixel_size_m`: the scene's size of one RS sensor pixel), that of one grid pixel."""
     from rngcam.recon.noise import relative_noise_level
 
-    ctx = {"bundle_path": str(Path(bundle_path).resolve()), "capture_utc": bundle.created_utc or "",
+    ctx = {"bundle_path": str(Path(bundle_path).resolve()) if bundle_path is not None else "",
+           "capture_utc": (bundle.created_utc or "") if bundle is not None else "",
            "dt_s": float(problem.grid.dt_s), "key_frame_times_s": np.asarray(problem.gs_times_s, np.float64)}
     if problem.b_gs is not None and problem.b_gs.shape[1]:
         ctx["key_frames"] = problem.gs_images().cpu().float().numpy()
     if problem.b_rs is not None:
         ctx["rs_image"] = problem.b_rs.cpu().float().numpy()
         ctx["rs_noise_level"] = relative_noise_level(problem.b_rs)
-    size = (bundle.meta or {}).get("pixel_size_m")
+    size = (bundle.meta or {}).get("pixel_size_m") if bundle is not None else None
     if isinstance(size, (int, float)) and math.isfinite(size) and size > 0:
         sensor_rows = bundle.rs.frames.shape[1] if bundle.rs is not None else problem.shape[2]
         ctx["pixel_size_m"] = float(size) * sensor_rows / problem.shape[2]  # one grid pixel

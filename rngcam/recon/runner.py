@@ -1,8 +1,18 @@
-"""Run one reconstruction of a bundle with any method and write every output.
+"""Run one reconstruction with any method: the one place every caller goes through.
 
-Methods come from rngcam.recon.registry. Iterative ones (stfm, tv3d, pnp) go through the shared
-loop; GS-only baselines (blend, interp, rife) are one shot and give a single point of error
-against time. The bundle is only read.
+`solve(source, settings, out)` takes a bundle (on disk or read) or a Problem, runs the method
+of `settings` (rngcam.recon.registry) and returns a `Result` (rngcam.recon.result); with `out`
+it also checkpoints there and writes every output (recon.h5, video.tif, preview.mp4,
+errors.csv/png, metrics.json, and recon.log: every line it printed). Iterative methods (stfm,
+tv3d, pnp) go through the shared loop; GS-only baselines (blend, interp, rife) are one shot and
+give a single point of error against time. The bundle is only read, and the truth never
+reaches a method (`method_view`).
+
+The time budget counts from the start: reading, set-up and solve. Set-up is cut where the budget
+ends (rngcam.recon.guard), the result then being the start video with status
+"budget_before_first_iteration"; SIGINT or SIGTERM end the run "interrupted" with the current
+estimate and a checkpoint. `resume` continues a checkpoint of the same bundle, method and
+settings (rngcam.recon.checkpoint), with a budget of its own.
 
 With `holdout` set (a fraction of RS row bins; `holdout_gs`, a fraction of GS pixels, is 0 by
 default), iterative methods fit only a seeded training split of the measurements
@@ -14,19 +24,19 @@ rngcam.recon.holdout) next to the training residuals.
 from __future__ import annotations
 
 import gc
-import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 
-from rngcam.errors import ConfigError, RngcamError
-from rngcam.formats.bundle import bundle_checksum, read_bundle_with_warnings
+from rngcam.errors import RngcamError, SettingError
+from rngcam.formats.bundle import Bundle, bundle_checksum, read_bundle_with_warnings
 from rngcam.memory import peak_rss_bytes
-from rngcam.recon import outputs, registry
+from rngcam.recon import checkpoint, outputs, registry
+from rngcam.recon.guard import BudgetCut, RunGuard
 from rngcam.recon.loop import LoopSettings, RunResult, run, stage_printer
 from rngcam.recon.metrics import (
     error_visibility,
@@ -37,87 +47,39 @@ from rngcam.recon.metrics import (
     video_metrics,
 )
 from rngcam.recon.problem import Problem, build_problem
-from rngcam.recon.report import write_report_or_warn
+from rngcam.recon.result import Result
+from rngcam.recon.settings import (  # noqa: F401 - their home before settings.py; callers import them here
+    AUTO_MAX_S,
+    ReconSettings,
+    auto_time_budget,
+    check_device,
+    check_settings_figures,
+    default_out_dir,
+    resolve_device,
+)
 from rngcam.sizing import check_size, gib, plan_grid
 
-# "auto" scales the registry's budgets (MethodEntry.auto_budget_s, set at 64x64 px, 67 frames, 3
-# channels) with the square root of the problem's size, capped at half an hour: 64 px keeps its
-# figure, 228x342x232 gets 8.1x it.
-AUTO_REFERENCE_VOXELS = 3 * 67 * 64 * 64
-AUTO_MAX_S = 1800.0
+# Of a time budget, this fraction (at most FINISH_MAX_S) is kept for what follows the solve (the
+# final metrics, recon.h5, the TIFF, MP4 and plots), so a whole run ends near its budget.
+FINISH_FRACTION = 0.1
+FINISH_MAX_S = 60.0
 
 
-def auto_time_budget(method: str, shape: tuple[int, int, int, int]) -> tuple[float, str]:
-    """The `auto` budget for `method` on a video of `shape` (C, K, H, W), and a line saying why."""
-    base = registry.get(method).auto_budget_s
-    scale = max(1.0, math.sqrt(math.prod(shape) / AUTO_REFERENCE_VOXELS))
-    budget = min(AUTO_MAX_S, base * scale)
-    return budget, (f"time budget auto: {budget:.0f} s ({method}'s {base:g} s at 64 px x "
-                    f"{scale:.1f} for {math.prod(shape) / 1e6:.1f} M voxels, at most {AUTO_MAX_S:g} s)")
+def method_view(problem: Problem) -> Problem:
+    """What a method may see of `problem`: everything but the truth (the one place it is stripped)."""
+    return replace(problem, truth=None)
 
 
-@dataclass
-class ReconSettings:
-    method: str = "stfm"  # a registry name
-    method_settings: Any = None  # an instance of the method's settings dataclass (None: its default preset)
-    time_budget_s: float | str | None = "auto"  # "auto": the method's MethodEntry.auto_budget_s, scaled
-    max_iters: int | None = None
-    device: str = "auto"
-    grid_bin: int | None = None
-    log_every_s: float = 2.0
-    checkpoint_every_s: float = 60.0
-    resume: bool = False
-    overwrite: bool = False  # write into a non-empty output folder (else refused, unless resuming)
-    progress: bool = True
-    holdout: float | None = None  # fraction of RS row bins held out of the fit (None: fit everything)
-    holdout_gs: float = 0.0  # fraction of GS pixels also held out (with holdout set)
-    holdout_seed: int = 0
-    max_frames: int | None = None  # refuse a longer video before allocating it (None: sizing's default)
-    max_memory_bytes: int | None = None  # refuse a larger estimate (None: a fraction of the machine's)
-
-    def __post_init__(self):
-        entry = registry.get(self.method)
-        if self.method_settings is None:
-            self.method_settings = entry.settings()
-        elif not isinstance(self.method_settings, entry.settings_type):
-            raise ConfigError(f"{self.method} takes {entry.settings_type.__name__}, "
-                              f"not {type(self.method_settings).__name__}")
-        self.budget_auto = self.time_budget_s == "auto"  # rescaled to the problem in reconstruct()
-        if self.time_budget_s == "auto":
-            self.time_budget_s = entry.auto_budget_s
-        check_settings_figures(self.time_budget_s, self.max_iters, self.max_frames, self.max_memory_bytes)
-        if self.holdout is not None:
-            if not 0 < self.holdout < 1:
-                raise ConfigError(f"holdout must be a fraction in (0, 1), got {self.holdout}")
-            if not entry.iterative:
-                fitted = ", ".join(registry.names(registry.ITERATIVE))
-                raise ConfigError(f"--holdout applies to fitted methods ({fitted}), not {self.method}")
-
-
-def check_settings_figures(time_budget_s, max_iters, max_frames=None, max_memory_bytes=None) -> None:
-    """ConfigError (one line) for a budget, iteration count or limit that cannot be meant."""
-    import math
-
-    if time_budget_s is not None and not (isinstance(time_budget_s, (int, float))
-                                          and math.isfinite(time_budget_s) and time_budget_s > 0):
-        raise ConfigError(f"--time-budget must be a positive number of seconds, got {time_budget_s!r}")
-    for name, value in (("--iters", max_iters), ("--max-frames", max_frames),
-                        ("--max-memory", max_memory_bytes)):
-        if value is not None and not (isinstance(value, (int, float)) and value >= 1):
-            raise ConfigError(f"{name} must be at least 1, got {value!r}")
-
-
-def resolve_device(name: str) -> str:
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError("--device cuda was asked for but no GPU is available")
-    return name
-
-
-def default_out_dir(bundle_path: Path, method: str) -> Path:
-    """A sibling folder of the bundle: <stem>-recon-<method>/."""
-    return bundle_path.with_name(f"{bundle_path.stem}-recon-{method}")
+def make_method(problem: Problem, settings: ReconSettings, device: str, stage=None, budget_s: float | None = None):
+    """The iterative method of `settings` on `problem` (float32 on `device`, without the truth);
+    `stage(message)` reports set-up stages; `budget_s` is what is left of the budget [all of it]."""
+    entry = registry.get(settings.method)
+    seen = method_view(problem)  # a float32 copy is 4 bytes a voxel
+    method = entry.factory(seen.to(torch.float32, device), settings.method_settings, device=device,
+                           budget_s=settings.time_budget_s if budget_s is None else budget_s, stage=stage)
+    if problem.has_holdout and not method.supports_holdout:
+        raise SettingError(f"{settings.method} does not fit a held-out split yet (holdout)", "holdout")
+    return method
 
 
 def gs_key_frames(problem: Problem) -> np.ndarray:
@@ -125,24 +87,12 @@ def gs_key_frames(problem: Problem) -> np.ndarray:
     return problem.gs_images().cpu().float().numpy()
 
 
-def make_method(problem: Problem, settings: ReconSettings, device: str, stage=None):
-    """The iterative method of `settings` on `problem` (float32 on `device`); `stage(message)`
-    reports set-up stages."""
-    entry = registry.get(settings.method)
-    problem = replace(problem, truth=None)  # methods never see the truth; a float32 copy is 4 bytes a voxel
-    method = entry.factory(problem.to(torch.float32, device), settings.method_settings, device=device,
-                           budget_s=settings.time_budget_s, stage=stage)
-    if problem.has_holdout and not method.supports_holdout:
-        raise ConfigError(f"{settings.method} does not fit a held-out split yet (--holdout)")
-    return method
-
-
 def run_gs_only(problem: Problem, settings: ReconSettings) -> tuple[registry.GSOnlyVideo, RunResult]:
     """The GS-only method of `settings` on `problem`'s key frames, and its one-point run."""
     if problem.b_gs is None or problem.b_gs.shape[1] == 0:
         gone = [m for m, _ in problem.left_out if m.startswith("GS")]
         why = f"every GS frame was left out ({', '.join(gone)})" if gone else "the bundle has none"
-        raise RngcamError(f"--method {settings.method} needs GS frames; {why}")
+        raise SettingError(f"method {settings.method} needs GS frames; {why}", "method")
     key = gs_key_frames(problem)
     t0 = time.perf_counter()
     out = registry.get(settings.method).factory(key, problem.gs_times_s, problem.frame_times_s,
@@ -150,6 +100,15 @@ def run_gs_only(problem: Problem, settings: ReconSettings) -> tuple[registry.GSO
     secs = time.perf_counter() - t0
     out.video = np.asarray(out.video, np.float32)
     return out, RunResult(log=[], iterations=1, solve_s=secs, wall_s=secs)
+
+
+def start_video(problem: Problem) -> np.ndarray:
+    """The video a run that never iterated reports: the GS key frames cross-faded, else zeros."""
+    if problem.b_gs is not None and problem.b_gs.shape[1]:
+        from rngcam.recon.baselines import blend
+
+        return np.asarray(blend(gs_key_frames(problem), problem.gs_times_s, problem.frame_times_s), np.float32)
+    return np.zeros(problem.shape, np.float32)
 
 
 def _residuals(problem: Problem, video: torch.Tensor) -> dict[str, float]:
@@ -167,70 +126,168 @@ def _out_of_memory(exc: BaseException) -> bool:
         "can't allocate memory" in text or "out of memory" in text or "not enough memory" in text))
 
 
-def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
-                settings: ReconSettings | None = None, echo=print) -> dict:
-    """Reconstruct `bundle_path` into `out_dir`; returns the metrics written to metrics.json.
+@dataclass
+class Source:
+    """What a run reconstructs: a bundle (read, or a `path` to read) or a ready Problem."""
 
-    The bundle's warnings are echoed first and stored in metrics.json; the video's frame count
-    and memory are checked against the limits before anything frame-sized is allocated; running
-    out of memory anyway is one RngcamError line.
+    path: Path | None = None
+    bundle: Bundle | None = None
+    problem: Problem | None = None
+    warnings: tuple[str, ...] = ()
+    sha256: str | None = None
+
+    @property
+    def name(self) -> str:
+        return self.path.name if self.path is not None else "the bundle" if self.bundle else "the problem"
+
+    def checksum(self) -> str:
+        """The bundle file's sha256 ('' for a Problem given directly), computed once."""
+        if self.sha256 is None:
+            self.sha256 = bundle_checksum(self.path) if self.path is not None else ""
+        return self.sha256
+
+
+def solve(source: Source, settings: ReconSettings, out: Path | None = None,
+          echo: Callable[[str], None] | None = print, started: float | None = None) -> Result:
+    """Reconstruct `source` under `settings`; with `out`, checkpoint there and write every output.
+    The budget counts from `started` (a time.perf_counter(); None: now).
+
+    The folder is checked first (rngcam.recon.checkpoint.prepare: nothing is touched on a
+    refusal); the video's frame count and memory are checked against the limits before anything
+    frame-sized is allocated; running out of memory anyway is one RngcamError line.
     """
-    settings = settings or ReconSettings()
-    bundle_path = Path(bundle_path)
+    echo = echo or (lambda _line: None)
     try:
-        return _reconstruct(bundle_path, out_dir, settings, echo)
+        return _solve(source, settings, Path(out) if out is not None else None, echo, started)
     except (MemoryError, RuntimeError) as exc:
         if not _out_of_memory(exc):
             raise
-        raise RngcamError(f"{settings.method} ran out of memory on {bundle_path.name} "
-                          f"({type(exc).__name__}); use a coarser --bin or free memory") from None
+        raise SettingError(f"{settings.method} ran out of memory on {source.name} ({type(exc).__name__}); "
+                           f"use a coarser grid_bin or free memory", "grid_bin") from None
 
 
-def check_out_dir(out: Path, settings: ReconSettings) -> None:
-    """Refuse (one line) to write into a non-empty folder unless told to overwrite or resume."""
-    if out.exists() and not out.is_dir():
-        raise RngcamError(f"output folder {out} is a file")
-    if out.is_dir() and any(out.iterdir()) and not (settings.overwrite or settings.resume):
-        raise RngcamError(f"output folder {out} is not empty; pass --overwrite to replace what is in it "
-                          f"(or --resume to continue from its checkpoint)")
-
-
-def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> dict:
-    t_start = time.perf_counter()  # the budget bounds reading, set-up and solve together
+def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
+                settings: ReconSettings | None = None, echo=print) -> dict:
+    """Reconstruct the bundle at `bundle_path` into `out_dir` [default_out_dir]; returns the metrics
+    written to metrics.json. A failed run (non-finite steps) raises RngcamError after writing."""
+    settings = settings or ReconSettings()
+    bundle_path = Path(bundle_path)
     out = Path(out_dir) if out_dir is not None else default_out_dir(bundle_path, settings.method)
-    check_out_dir(out, settings)
-    stage = stage_printer(echo, settings.progress)
-    bundle, warnings = read_bundle_with_warnings(bundle_path)
-    for warning in warnings:
-        echo(warning)
-    stage(f"read {bundle_path.name}")
-    plan = plan_grid(bundle, settings.grid_bin)
-    need = check_size(plan, settings.method, registry.get(settings.method).memory, max_frames=settings.max_frames,
-                      max_memory_bytes=settings.max_memory_bytes)
-    device = resolve_device(settings.device)
-    problem = build_problem(bundle, grid_bin=settings.grid_bin, max_frames=settings.max_frames)
-    one_object = one_object_scene(bundle.rig_yaml)  # for the motion yardstick
-    context = outputs.recon_context(bundle_path, bundle, problem)  # [report] what the outputs record of the input
-    del bundle  # the problem holds what the reconstruction needs; the raw frames can go
-    stage("measurements binned onto the grid")
-    out.mkdir(parents=True, exist_ok=True)
-    from rngcam.recon.holdout import HELDOUT_KEYS, HoldoutScorer
+    result = solve(Source(path=bundle_path), settings, out, echo)
+    if result.status == "failed":
+        raise RngcamError(f"{result.message}; outputs from the last good state are in {out}")
+    return result.metrics
 
-    scorer = None
+
+class _Log:
+    """recon.log in the output folder: every line the run prints, and the progress lines. Lines are
+    held until `open` (the folder is made only once the bundle has been read and checked)."""
+
+    def __init__(self):
+        self.fh, self.held = None, []
+
+    def open(self, out: Path | None) -> None:
+        if out is not None:
+            out.mkdir(parents=True, exist_ok=True)
+            self.fh = open(out / checkpoint.LOG_NAME, "a", encoding="utf-8")  # noqa: SIM115 - closed by close()
+            self.fh.writelines(self.held)
+            self.fh.flush()
+        self.held = []
+
+    def write(self, line: str) -> None:
+        text = f"{time.strftime('%H:%M:%S')} {line}\n"
+        if self.fh is None:
+            self.held.append(text)
+            return
+        self.fh.write(text)
+        self.fh.flush()
+
+    def close(self) -> None:
+        if self.fh is not None:
+            self.fh.close()
+
+
+def _solve(source: Source, settings: ReconSettings, out: Path | None, echo, started: float | None) -> Result:
+    t_start = time.perf_counter() if started is None else started  # the budget bounds the whole run
+    entry = registry.get(settings.method)
+    want = saved = None
+    if out is not None:
+        want = checkpoint.identity(source.checksum(), settings.method, settings.fitted())
+        saved = checkpoint.prepare(out, want, settings.resume, settings.overwrite)
+    log = _Log()
+
+    def say(line: str) -> None:
+        echo(line)
+        log.write(line)
+
+    stage_line = say if settings.progress else log.write
+    try:
+        with RunGuard() as guard:
+            stage = stage_printer(stage_line, check=guard.check)
+            if saved is not None:
+                say(f"resuming {out / checkpoint.CHECKPOINT_NAME} (iteration {saved.get('iteration', 0)})")
+            problem, extra = _read(source, settings, say, stage)
+            log.open(out)
+            budget = None if settings.time_budget_s is None else float(settings.time_budget_s)
+            if settings.budget_auto and entry.iterative:
+                budget, why = auto_time_budget(settings.method, problem.shape)
+                say(why)
+            elif settings.budget_auto:  # a one-shot method runs to its end unless given a budget
+                budget = None
+            if budget is not None:  # set-up and solve stop early enough for the metrics and outputs
+                keep = min(FINISH_FRACTION * budget, FINISH_MAX_S)
+                stage_line(f"time budget {budget:g} s: {budget - keep:.1f} s for set-up and solve, "
+                           f"{keep:.1f} s kept for the metrics and outputs")
+                budget -= keep
+            guard.set_deadline(None if budget is None else t_start + budget)
+            run_out = _fit(problem, settings, extra, budget, guard, stage, say, log, t_start, out, want, saved)
+            guard.enter("finish")
+            return _finish(source, problem, settings, extra, run_out, out, want, saved, say)
+    finally:
+        log.close()
+
+
+def _read(source: Source, settings: ReconSettings, say, stage) -> tuple[Problem, dict]:
+    """The problem on the grid of `settings` (the bundle read and checked first), and what the
+    metrics need of the bundle."""
+    problem, bundle, warnings = source.problem, source.bundle, list(source.warnings)
+    extra: dict = {"one_object": False, "need": None}
+    if problem is None:
+        if bundle is None:
+            bundle, read_warnings = read_bundle_with_warnings(source.path)
+            warnings += read_warnings
+        for warning in warnings:
+            say(warning)
+        stage(f"read {source.name}")
+        plan = plan_grid(bundle, settings.grid_bin)
+        extra["need"] = check_size(plan, settings.method, registry.get(settings.method).memory,
+                                   max_frames=settings.max_frames, max_memory_bytes=settings.max_memory_bytes)
+        problem = build_problem(bundle, grid_bin=settings.grid_bin, max_frames=settings.max_frames)
+        extra["one_object"] = one_object_scene(bundle.rig_yaml)  # for the motion yardstick
+        extra["context"] = outputs.recon_context(source.path, bundle, problem)  # what the outputs record of it
+        del bundle  # the problem holds what the reconstruction needs; the raw frames can go
+        stage("measurements binned onto the grid")
+    extra["warnings"] = warnings
     if settings.holdout is not None:
         problem = problem.with_holdout(settings.holdout, settings.holdout_gs, settings.holdout_seed)
-        scorer = HoldoutScorer(problem)
     for note in problem.notes:
-        echo(f"note: {note}")
+        say(f"note: {note}")
     for what, why in problem.left_out:
-        echo(f"left out: {what} ({why})")
-    c, k, h, w = problem.shape
-    echo(f"{settings.method}: {k} frames of {h}x{w}x{c} at {1 / problem.grid.dt_s:,.0f} fps on {device} "
-         f"(about {gib(need)} estimated)")
+        say(f"left out: {what} ({why})")
+    return problem, extra
+
+
+def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float | None, guard: RunGuard, stage,
+         say, log, t_start: float, out: Path | None, want: dict | None, saved: dict | None) -> dict:
+    """Set up and run the method; what it gave (video, log, status, ...) as a dict for _finish."""
+    from rngcam.recon.holdout import HoldoutScorer
+
     entry = registry.get(settings.method)
-    if settings.budget_auto and entry.iterative:
-        settings.time_budget_s, why = auto_time_budget(settings.method, problem.shape)
-        echo(why)
+    device = resolve_device(settings.device)
+    c, k, h, w = problem.shape
+    need = f" (about {gib(extra['need'])} estimated)" if extra.get("need") else ""
+    say(f"{settings.method}: {k} frames of {h}x{w}x{c} at {1 / problem.grid.dt_s:,.0f} fps on {device}{need}")
+    scorer = HoldoutScorer(problem) if settings.holdout is not None else None
     intermediate = problem.intermediate_frames()
 
     def truth_metrics(video: torch.Tensor) -> dict:
@@ -238,91 +295,139 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
             return {}
         return video_metrics(video.detach().cpu(), problem.truth, intermediate, problem.mask)  # float64 per chunk
 
-    components, left_out, status, message, method_settings = {}, [], "ok", "", None
-    notes: list[str] = []  # substitutions a method made (e.g. missing learned weights) and their cost
-    if not entry.iterative:
-        made, result = run_gs_only(problem, settings)
-        video, notes, method_settings = made.video, list(made.notes), made.resolved
-        for note in notes:
-            echo(f"note: {note}")
+    def one_row(video: np.ndarray, seconds: float, iteration: int) -> list[dict]:
         vt = torch.from_numpy(video).double()
-        row = {"iteration": 1, "wall_s": result.solve_s, "solve_s": result.solve_s, "objective": float("nan")}
-        row.update({f"residual_{k2}": v for k2, v in _residuals(problem, vt).items()})
-        row.update(truth_metrics(vt))
-        result.log = [row]
-    else:
-        method = make_method(problem, settings, device, stage=stage)
-        setup_s = time.perf_counter() - t_start
-        stage(f"{settings.method} ready")
-        left_out, notes = list(method.left_out), list(method.notes)
-        for note in notes:
-            echo(f"note: {note}")
-        for comp, why in left_out:
-            echo(f"left out: {comp} ({why})")
-        loop = LoopSettings(time_budget_s=settings.time_budget_s, max_iters=settings.max_iters,
-                            log_every_s=settings.log_every_s, checkpoint_dir=out,
-                            checkpoint_every_s=settings.checkpoint_every_s, resume=settings.resume,
-                            progress=settings.progress)
-        def evaluate(m) -> dict:
-            row = scorer(m.estimate().detach()) if scorer is not None else {}
-            return {**row, **truth_metrics(m.estimate())}
+        row = {"iteration": iteration, "wall_s": time.perf_counter() - t_start, "solve_s": seconds,
+               "objective": float("nan")}
+        row.update({f"residual_{key}": v for key, v in _residuals(problem, vt).items()})
+        return [{**row, **truth_metrics(vt)}]
 
-        result = run(method, loop, evaluate, setup_s=setup_s)
-        video = method.estimate().detach().float().cpu().numpy()
-        components = method.components()
-        method_settings = method.resolved_settings()
-        status, message = result.status, result.message
-        # The method's state (the solve's peak) goes before the end-of-run metrics and outputs,
-        # which then add to a much smaller base (bench/scale.md: whole-process peak).
-        del method
-        gc.collect()
-        for event in result.events:
-            echo(f"event: {event}")
+    fit = {"device": device, "components": {}, "left_out": [], "notes": [], "method_settings": None,
+           "events": [], "status": "ok", "message": "", "truth_metrics": truth_metrics}
+    try:
+        guard.enter("setup")  # raises a signal held while reading
+        if not entry.iterative:
+            made, result = run_gs_only(problem, settings)
+            fit.update(video=made.video, notes=list(made.notes), method_settings=made.resolved,
+                       log=one_row(made.video, result.solve_s, 1), iterations=1, solve_s=result.solve_s,
+                       wall_s=time.perf_counter() - t_start)
+            for note in fit["notes"]:
+                say(f"note: {note}")
+            return fit
+        left = None if budget is None else budget - (time.perf_counter() - t_start)
+        method = make_method(problem, settings, device, stage=stage, budget_s=left)
+        guard.enter("solve")
+    except KeyboardInterrupt as exc:  # guard.Interrupted (SIGINT, SIGTERM) or a plain Ctrl-C
+        guard.enter("finish")  # the timer off, further signals held: the start video is written whole
+        why = f"interrupted by {getattr(exc, 'signame', 'KeyboardInterrupt')} in set-up"
+        return _cut(fit, problem, "interrupted", why, one_row, t_start, saved)
+    except BudgetCut:
+        guard.enter("finish")
+        why = (f"time budget of {budget:g} s reached in set-up ({time.perf_counter() - t_start:.1f} s), "
+               f"before the first iteration")
+        return _cut(fit, problem, "budget_before_first_iteration", why, one_row, t_start, saved)
+    setup_s = fit["setup_s"] = time.perf_counter() - t_start
+    stage_line = say if settings.progress else log.write
+    stage_line(f"set-up: {settings.method} ready ({setup_s:.1f} s)")
+    fit["left_out"], fit["notes"] = list(method.left_out), list(method.notes)
+    for note in fit["notes"]:
+        say(f"note: {note}")
+    for comp, why in fit["left_out"]:
+        say(f"left out: {comp} ({why})")
+    loop = LoopSettings(time_budget_s=budget, max_iters=settings.max_iters, log_every_s=settings.log_every_s,
+                        checkpoint_dir=out, checkpoint_every_s=settings.checkpoint_every_s, resume_from=saved,
+                        checkpoint_meta=want or {}, start_time=t_start, stop_requested=guard.stop_reason,
+                        log_line=log.write, progress=settings.progress)
 
-    final = result.log[-1] if result.log else {}
+    def evaluate(m) -> dict:
+        row = scorer(m.estimate().detach()) if scorer is not None else {}
+        return {**row, **truth_metrics(m.estimate())}
+
+    result = run(method, loop, evaluate, setup_s=setup_s)
+    fit.update(video=method.estimate().detach().float().cpu().numpy(), components=method.components(),
+               method_settings=method.resolved_settings(), log=result.log, iterations=result.iterations,
+               solve_s=result.solve_s, wall_s=result.wall_s, events=result.events, status=result.status,
+               message=result.message)
+    # The method's state (the solve's peak) goes before the end-of-run metrics and outputs, which
+    # then add to a much smaller base (bench/scale.md: whole-process peak).
+    del method
+    gc.collect()
+    for event in result.events:
+        say(f"event: {event}")
+    return fit
+
+
+def _cut(fit: dict, problem: Problem, status: str, why: str, one_row, t_start: float, saved: dict | None) -> dict:
+    """A run ended in set-up: the start video as its result (the checkpoint, if one is resumed, is better:
+    the folder then keeps what it has)."""
+    wall_s = time.perf_counter() - t_start  # when it was cut; the start video and its scores come after
+    video = start_video(problem)
+    keep = saved is not None and saved.get("method") is not None
+    fit.update(video=video, log=one_row(video, 0.0, 0), iterations=0, solve_s=0.0,
+               wall_s=wall_s, status=status, message=f"{why}",
+               events=[f"{why}: the start video (GS key frames cross-faded) is the result"
+                       if not keep else f"{why}: the folder keeps its earlier result and checkpoint"],
+               keep_folder=keep, cut=True)
+    return fit
+
+
+def _finish(source: Source, problem: Problem, settings: ReconSettings, extra: dict, fit: dict,
+            out: Path | None, want: dict | None, saved: dict | None, say) -> Result:
+    """The metrics and the Result; with `out`, its files (and, for a run cut in set-up, a checkpoint
+    that `resume` continues)."""
+    from rngcam.recon.holdout import HELDOUT_KEYS
+
+    c, k, h, w = problem.shape
+    video = fit["video"]
+    final = fit["log"][-1] if fit["log"] else {}
+    left_out = problem.left_out + fit["left_out"]
     metrics = {
         "method": settings.method,
-        "seconds": result.solve_s,
-        "wall_seconds": result.wall_s,
-        "iterations": result.iterations,
+        "seconds": fit["solve_s"],
+        "wall_seconds": fit["wall_s"],
+        "setup_seconds": fit.get("setup_s", fit["wall_s"]),  # reading the bundle and the method's set-up
+        "iterations": fit["iterations"],
         "peak_rss_bytes": peak_rss_bytes(),  # this process only (VmHWM)
         "frames": k, "height": h, "width": w, "channels": c, "fps": 1 / problem.grid.dt_s,
-        "device": device, "status": status,
-        "left_out": [{"component": a, "reason": b} for a, b in problem.left_out + left_out],
-        "events": result.events,
-        "warnings": list(warnings),
+        "device": fit["device"], "status": fit["status"],
+        "left_out": [{"component": a, "reason": b} for a, b in left_out],
+        "events": fit["events"],
+        "warnings": list(extra["warnings"]),
         "masked_fraction": {name: float(1 - m.mean()) for name, m in
                             (("rs", problem.rs_valid_mask()), ("gs", problem.gs_valid_mask())) if m is not None},
-        "notes": notes,
+        "notes": fit["notes"],
     }
+    if fit["message"]:
+        metrics["message"] = fit["message"]
     for key in ("psnr_db", "ssim", "psnr_intermediate_db", "ssim_intermediate", "residual_rs", "residual_gs",
                 *HELDOUT_KEYS):
         if key in final:
             metrics[key] = final[key]
     if problem.truth is not None:  # is the remaining error visible above each measurement's noise?
-        metrics["error_visibility"] = error_visibility(problem, torch.from_numpy(np.asarray(video)))
+        vt = torch.from_numpy(np.asarray(video))
+        metrics["error_visibility"] = error_visibility(problem, vt)
         caveats = error_visibility_caveats(problem)
         if caveats:
             metrics["error_visibility_caveats"] = caveats
-        metrics.update(motion_metrics(torch.from_numpy(np.asarray(video)), problem.truth, intermediate,
-                                      one_object=one_object))
-    method_settings = method_settings or asdict(settings.method_settings) or None
+        metrics.update(motion_metrics(vt, problem.truth, problem.intermediate_frames(),
+                                      one_object=extra["one_object"]))
+    method_settings = fit["method_settings"] or asdict(settings.method_settings) or None
     if method_settings is not None:
         metrics["method_settings"] = method_settings  # the preset's values filled in
-    resolved = {**asdict(settings), "device": device, "grid_bin": settings.grid_bin}
+    resolved = {**asdict(settings), "device": fit["device"], "grid_bin": settings.grid_bin}
     if method_settings is not None:
         resolved["method_settings"] = method_settings
-    outputs.write_recon_h5(out / "recon.h5", video, problem.frame_times_s, resolved,
-                           bundle_checksum(bundle_path), components, problem.left_out + left_out,
-                           context=context)  # [report]
-    outputs.write_tiff(out / "video.tif", video, frame_interval_s=problem.grid.dt_s,
-                       pixel_size_m=context.get("pixel_size_m"))  # [report]
-    outputs.write_mp4(out / "preview.mp4", video, capture_fps=1 / problem.grid.dt_s,
-                      frame_times_s=problem.frame_times_s, key_times_s=problem.gs_times_s)  # [report]
-    outputs.write_errors(out / "errors.csv", out / "errors.png", result.log, settings.method,
-                         noise_level=context.get("rs_noise_level"))  # [report]
-    outputs.write_metrics(out / "metrics.json", metrics)
-    write_report_or_warn(out, echo)  # [report] report.html from the folder just written
-    if status != "ok":
-        raise RngcamError(f"{message}; outputs from the last good state are in {out}")
-    return metrics
+    result = Result(video=video, frame_times_s=np.asarray(problem.frame_times_s), metrics=metrics,
+                    components=fit["components"], notes=fit["notes"], warnings=list(extra["warnings"]),
+                    left_out=left_out, status=fit["status"], log=fit["log"], message=fit["message"],
+                    settings=resolved, bundle_sha256=source.checksum(), frame_interval_s=problem.grid.dt_s,
+                    context=extra.get("context") or outputs.recon_context(source.path, None, problem))
+    if out is not None and not fit.get("keep_folder"):
+        result.save(out, echo=say)
+        if fit.get("cut"):
+            checkpoint.save(out / checkpoint.CHECKPOINT_NAME, {
+                "method": None, "iteration": 0, "solve_s": 0.0, "wall_s": fit["wall_s"], "log": [],
+                "events": [], "rng": torch.get_rng_state(), "identity": want})
+    for event in fit["events"] if fit.get("cut") else ():
+        say(f"event: {event}")
+    return result

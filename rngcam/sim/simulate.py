@@ -20,7 +20,6 @@ import numpy as np
 import torch
 import yaml
 
-from rngcam import __version__
 from rngcam.errors import RngcamError
 from rngcam.formats.bundle import Bundle, Calibration, CameraRecord, Truth, write_bundle
 from rngcam.paths import MEASURED_PSF, PACKAGE_PREFIX, package_data
@@ -29,6 +28,7 @@ from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.sensor import SensorModel
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 from rngcam.sim.scenes import SCENES, choose_clip_start, default_clip_path, load_clip, render_scene
+from rngcam.version import __version__
 
 GRID_DT_S = 208e-6  # reference: 13 us line time x 16 sensor rows per grid row
 EXPOSURE_S = 650e-6  # both cameras, as in the reference prototype

@@ -1,0 +1,87 @@
+"""The result of one reconstruction, in memory, and how it is written to a folder."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rngcam.recon import outputs
+
+# What a run's `status` can be: "ok" (the method's own stop, its iterations or the budget after
+# some iterations), "failed" (non-finite steps: the last good state), "interrupted" (SIGINT or
+# SIGTERM: the state at the signal), "budget_before_first_iteration" (the budget ran out in
+# set-up: the start video).
+STATUSES = ("ok", "failed", "interrupted", "budget_before_first_iteration")
+
+
+@dataclass
+class Result:
+    """`video` (C, T, H, W) float32 linear intensity at `frame_times_s`; `metrics` as in
+    metrics.json; `components` the method's named parts (e.g. STFM's static image); `notes` the
+    substitutions it made; `warnings` the bundle's; `left_out` (part, why) pairs; `status` one
+    of STATUSES; `log` the error-against-time rows; `message` why a run that is not "ok" ended."""
+
+    video: np.ndarray
+    frame_times_s: np.ndarray
+    metrics: dict
+    components: dict = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    left_out: list[tuple[str, str]] = field(default_factory=list)
+    status: str = "ok"
+    log: list[dict] = field(default_factory=list)
+    message: str = ""
+    settings: dict = field(default_factory=dict)  # resolved, as stored in recon.h5
+    bundle_sha256: str = ""
+    frame_interval_s: float = 0.0
+    context: dict = field(default_factory=dict)  # what the outputs record of the input (outputs.recon_context)
+
+    @property
+    def method(self) -> str:
+        return self.metrics.get("method", "")
+
+    def save(self, folder: str | Path, echo=None) -> Path:
+        """Write recon.h5, video.tif, preview.mp4, errors.csv/png, metrics.json and report.html into
+        `folder` (created if needed; files of the same names are replaced); returns the folder.
+        `echo(line)` hears where the report went, or why it was not written [silent]."""
+        from rngcam.recon.report import write_report_or_warn
+
+        out = Path(folder)
+        out.mkdir(parents=True, exist_ok=True)
+        fps = 1 / self.frame_interval_s if self.frame_interval_s else None
+        ctx = self.context
+        outputs.write_recon_h5(out / "recon.h5", self.video, self.frame_times_s, self.settings,
+                               self.bundle_sha256, self.components, self.left_out, context=ctx)
+        outputs.write_tiff(out / "video.tif", self.video, frame_interval_s=self.frame_interval_s or None,
+                           pixel_size_m=ctx.get("pixel_size_m"))
+        outputs.write_mp4(out / "preview.mp4", self.video, capture_fps=fps, frame_times_s=self.frame_times_s,
+                          key_times_s=ctx.get("key_frame_times_s"))
+        outputs.write_errors(out / "errors.csv", out / "errors.png", self.log, self.method,
+                             noise_level=ctx.get("rs_noise_level"))
+        outputs.write_metrics(out / "metrics.json", self.metrics)
+        write_report_or_warn(out, echo or (lambda line: None))  # from the folder just written
+        return out
+
+    def summary(self) -> str:
+        """The one-line summary the command line prints."""
+        m = self.metrics
+        line = f"{self.method}: {m['seconds']:.1f} s, {m['iterations']} iterations"
+        if self.status == "budget_before_first_iteration":
+            line += " (the time budget ran out in set-up: this is the start video)"
+        elif self.status == "interrupted":
+            line += f" (interrupted: {'the start video' if not m['iterations'] else 'the state at the signal'})"
+        elif self.status == "failed":
+            line += " (failed: the last good state)"
+        if "psnr_db" in m:
+            line += f", PSNR {m['psnr_db']:.2f} dB"
+            if "psnr_intermediate_db" in m:
+                line += f" (intermediate {m['psnr_intermediate_db']:.2f} dB)"
+            line += f", SSIM {m['ssim']:.3f}"
+        seen = {k: v for k, v in m.get("error_visibility", {}).items() if v == v}  # nan: cannot vouch
+        if seen:
+            line += ", error seen at " + " / ".join(f"{v:.2f}x the {k.upper()} noise" for k, v in seen.items())
+        if "heldout" in m:
+            line += f", held-out residual {m['heldout']:.4g}"
+        return line
