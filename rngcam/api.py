@@ -27,7 +27,7 @@ from rngcam.recon.result import Result
 from rngcam.recon.runner import Source, solve
 from rngcam.recon.settings import ReconSettings
 
-__all__ = ["OpenBundle", "Problem", "Result", "open_bundle", "reconstruct", "run_settings"]
+__all__ = ["OpenBundle", "Problem", "Result", "keywords", "open_bundle", "reconstruct", "run_settings"]
 
 # The keyword settings of `reconstruct` besides the method's own (ReconSettings' fields).
 RUN_SETTINGS = tuple(f.name for f in dataclasses.fields(ReconSettings) if f.name not in ("method", "progress"))
@@ -74,6 +74,14 @@ def run_settings(method: str = "stfm", progress: bool = True, **settings: Any) -
     if own or settings.get("method_settings") is None:
         settings["method_settings"] = entry.settings(preset, **own)
     return ReconSettings(method=entry.name, progress=progress, **settings)
+
+
+def keywords(settings: ReconSettings) -> dict[str, Any]:
+    """`reconstruct`'s keyword settings that give `settings` again (its method aside)."""
+    out = {name: getattr(settings, name) for name in RUN_SETTINGS}
+    if settings.budget_auto:
+        out["time_budget_s"] = "auto"  # scaled to each problem, not the 64 px figure it became
+    return out
 
 
 def _echo(progress) -> Callable[[str], None]:

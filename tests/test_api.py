@@ -187,3 +187,24 @@ def test_recon_batch_takes_auto_as_recon_does_and_checks_the_device(shot, tmp_pa
     assert res.exit_code == 0, res.output
     bad = CliRunner().invoke(main, [*args, "--device", "gpu"])
     assert bad.exit_code == 2 and "must be auto, cpu, cuda or cuda:N" in bad.output
+
+
+def test_a_long_silent_set_up_still_shows_progress(shot, monkeypatch):
+    import time
+
+    from rngcam.recon import runner
+
+    monkeypatch.setattr(runner, "HEARTBEAT_S", 0.05)
+
+    def slow(problem, settings, **_):
+        time.sleep(0.5)  # a set-up stage that reports nothing
+        return Peek(problem)
+
+    registry.register(registry.MethodEntry("slowpeek", registry.ITERATIVE, PeekSettings, slow))
+    try:
+        lines: list[str] = []
+        r = rngcam.reconstruct(shot, method="slowpeek", max_iters=1, progress=lines.append)
+    finally:
+        registry.unregister("slowpeek")
+    assert r.status == "ok"
+    assert sum("set-up: slowpeek still setting up" in ln for ln in lines) >= 3, lines

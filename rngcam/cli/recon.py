@@ -14,7 +14,7 @@ from rngcam.recon import registry
 from rngcam.recon.settings import check_device, default_out_dir
 from rngcam.sizing import DEFAULT_MAX_FRAMES
 
-INTERRUPTED_EXIT = 130  # as a shell reports a command ended by SIGINT
+INTERRUPTED_EXIT = {"SIGINT": 130, "SIGTERM": 143}  # as a shell reports a command ended by the signal
 
 
 def positive_option(ctx, param, value):
@@ -98,4 +98,4 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memor
         raise SystemExit(2)
     if result.status == "interrupted":
         click.echo(f"interrupted: the state at the signal is in {out}; --resume continues it", err=True)
-        raise SystemExit(INTERRUPTED_EXIT)
+        raise SystemExit(next((code for name, code in INTERRUPTED_EXIT.items() if name in result.message), 130))

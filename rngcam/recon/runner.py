@@ -23,7 +23,9 @@ rngcam.recon.holdout) next to the training residuals.
 
 from __future__ import annotations
 
+import contextlib
 import gc
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
@@ -184,7 +186,7 @@ class _Log:
     held until `open` (the folder is made only once the bundle has been read and checked)."""
 
     def __init__(self):
-        self.fh, self.held = None, []
+        self.fh, self.held, self.lock = None, [], threading.Lock()
 
     def open(self, out: Path | None) -> None:
         if out is not None:
@@ -196,11 +198,12 @@ class _Log:
 
     def write(self, line: str) -> None:
         text = f"{time.strftime('%H:%M:%S')} {line}\n"
-        if self.fh is None:
-            self.held.append(text)
-            return
-        self.fh.write(text)
-        self.fh.flush()
+        with self.lock:  # the set-up heartbeat writes from its thread
+            if self.fh is None:
+                self.held.append(text)
+                return
+            self.fh.write(text)
+            self.fh.flush()
 
     def close(self) -> None:
         if self.fh is not None:
@@ -277,6 +280,29 @@ def _read(source: Source, settings: ReconSettings, say, stage) -> tuple[Problem,
     return problem, extra
 
 
+HEARTBEAT_S = 10.0  # a set-up stage that says nothing for this long gets a "still setting up" line
+
+
+@contextlib.contextmanager
+def _heartbeat(line: Callable[[str], None], name: str, t_start: float, budget: float | None):
+    """While the body runs, a line every HEARTBEAT_S seconds: every set-up shows progress, in a
+    terminal and in recon.log, even through a long stage of a method that reports none."""
+    done = threading.Event()
+
+    def beat() -> None:
+        while not done.wait(HEARTBEAT_S):
+            of = f" of the {budget:.0f} s" if budget is not None else ""
+            line(f"set-up: {name} still setting up ({time.perf_counter() - t_start:.0f} s{of})")
+
+    thread = threading.Thread(target=beat, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+
+
 def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float | None, guard: RunGuard, stage,
          say, log, t_start: float, out: Path | None, want: dict | None, saved: dict | None) -> dict:
     """Set up and run the method; what it gave (video, log, status, ...) as a dict for _finish."""
@@ -315,7 +341,8 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
                 say(f"note: {note}")
             return fit
         left = None if budget is None else budget - (time.perf_counter() - t_start)
-        method = make_method(problem, settings, device, stage=stage, budget_s=left)
+        with _heartbeat(settings.progress and say or log.write, settings.method, t_start, budget):
+            method = make_method(problem, settings, device, stage=stage, budget_s=left)
         guard.enter("solve")
     except KeyboardInterrupt as exc:  # guard.Interrupted (SIGINT, SIGTERM) or a plain Ctrl-C
         guard.enter("finish")  # the timer off, further signals held: the start video is written whole

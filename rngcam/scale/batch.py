@@ -1,6 +1,6 @@
 """Reconstruct many bundles: one task per bundle, skip what is done, a summary table at the end.
 
-Each bundle goes to <out>/<bundle stem>/ (rngcam.recon.runner.reconstruct, every usual output)
+Each bundle goes to <out>/<bundle stem>/ (rngcam.api.reconstruct, every usual output)
 and is marked done there with its checksum and settings (batch-done.json): a re-run skips it.
 A bundle that fails (bad file, failed fit, lost worker) is a row in the summary, not the end
 of the batch. Summary: <out>/batch.csv and <out>/batch.md.
@@ -17,9 +17,10 @@ from pathlib import Path
 
 import torch
 
+from rngcam.api import keywords, reconstruct
 from rngcam.errors import RngcamError
 from rngcam.formats.bundle import bundle_checksum
-from rngcam.recon.runner import ReconSettings, reconstruct
+from rngcam.recon.settings import ReconSettings
 from rngcam.scale import tables
 from rngcam.scale.backend import Backend, make_backend
 
@@ -67,9 +68,12 @@ def batch_task(item: dict, shared: object = None) -> dict:
     t0 = time.perf_counter()
     try:
         settings = item["settings"]
-        metrics = reconstruct(item["bundle"], item["out"], settings, echo=lines.append)
+        result = reconstruct(item["bundle"], settings.method, out=item["out"], progress=lines.append, bar=False,
+                             **keywords(settings))
+        if result.status == "failed":
+            raise RngcamError(f"{result.message}; outputs from the last good state are in {item['out']}")
         (Path(item["out"]) / DONE_NAME).write_text(json.dumps(item["stamp"]))
-        res = {"status": "ok", "message": "", **{k: metrics.get(k) for k in METRIC_KEYS}}
+        res = {"status": "ok", "message": "", **{k: result.metrics.get(k) for k in METRIC_KEYS}}
     except RngcamError as exc:
         res = {"status": "failed", "message": str(exc)}
     except Exception as exc:  # noqa: BLE001 - one bundle must not stop the batch

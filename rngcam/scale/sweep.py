@@ -10,7 +10,7 @@ a longer rung continues a shorter one. The decisions depend only on the scores, 
 an in-process run of an iteration budget give the same table.
 
 The best setting by held-out score at the last rung is refitted on all measurements with
-rngcam.recon.runner.reconstruct (outputs in <out>/best/). Outputs: sweep.csv, sweep.md,
+rngcam.api.reconstruct (outputs in <out>/best/). Outputs: sweep.csv, sweep.md,
 sweep.png (held-out score and, with truth, PSNR per trial), sweep.json. Each trial's result
 is cached under <out>/trials/<key>/ keyed by bundle checksum, method, settings, split and
 budget: re-running skips finished trials (delete a trial's folder to redo it).
@@ -28,11 +28,11 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from rngcam.api import reconstruct
 from rngcam.errors import ConfigError, RngcamError
 from rngcam.formats.bundle import bundle_checksum, read_bundle
 from rngcam.recon import registry
 from rngcam.recon.problem import build_problem
-from rngcam.recon.runner import ReconSettings, reconstruct
 from rngcam.scale import tables
 from rngcam.scale.backend import Backend, make_backend
 from rngcam.scale.trial import TRUTH_KEYS, TrialSpec, run_trial
@@ -375,10 +375,13 @@ def _refit(bundle_path: Path, out: Path, settings: SweepSettings, trial: dict,
         return json.loads((out / "metrics.json").read_text()), True
     echo(f"refitting {_describe(trial['values'])} on all measurements into {out}")
     t0 = time.perf_counter()
-    metrics = reconstruct(bundle_path, out, ReconSettings(
-        method=settings.method, time_budget_s=settings.time_budget_s, max_iters=settings.max_iters,
-        device=settings.device, grid_bin=settings.grid_bin, progress=False, overwrite=True,
-        method_settings=registry.get(settings.method).settings(settings.preset, **trial["values"])), echo=echo)
+    result = reconstruct(bundle_path, settings.method, out=out, progress=echo, bar=False,
+                         time_budget_s=settings.time_budget_s, max_iters=settings.max_iters, device=settings.device,
+                         grid_bin=settings.grid_bin, overwrite=True,
+                         method_settings=registry.get(settings.method).settings(settings.preset, **trial["values"]))
+    if result.status == "failed":
+        raise RngcamError(f"{result.message}; outputs from the last good state are in {out}")
+    metrics = result.metrics
     echo(f"refit done in {time.perf_counter() - t0:.1f} s" +
          (f", PSNR {metrics['psnr_db']:.2f} dB" if "psnr_db" in metrics else ""))
     _save_cached(marker, stamp)
