@@ -11,6 +11,7 @@ import torch
 
 from rngcam.errors import RngcamError
 from rngcam.recon import rife as rife_mod
+from rngcam.recon import rife_hdv3
 from rngcam.recon.baselines import (
     MIN_FLOW_SIZE_PX,
     BaselineInputError,
@@ -199,9 +200,9 @@ def _weights_or_skip():
 
 def test_rife_weights_load_strictly():
     path = _weights_or_skip()
-    state = rife_mod.load_state_dict(path)
-    assert set(state) == set(rife_mod.IFNet().state_dict())
-    net = rife_mod.load_ifnet()
+    state = rife_hdv3.load_state_dict(path)
+    assert set(state) == set(rife_hdv3.IFNet().state_dict())
+    net = rife_hdv3.load_ifnet()
     assert torch.equal(net.block2.conv0[0][0].weight, state["block2.conv0.0.0.weight"])
 
 

@@ -16,8 +16,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from rngcam.version import __version__
 from rngcam.errors import ConfigError
+from rngcam.version import __version__
 
 
 def _atomic_h5(path: Path):

@@ -96,7 +96,7 @@ class PnPSettings:
 
 
 def _hdv3_installed() -> bool:
-    from rngcam.recon.rife import RifeUnavailableError, find_weights
+    from rngcam.recon.rife_hdv3 import RifeUnavailableError, find_weights
 
     try:
         find_weights()

