@@ -27,9 +27,9 @@ import torch
 from rngcam.api import reconstruct
 from rngcam.evaluate.scenes import scene_problem
 from rngcam.paths import SHORT_CLIP, package_data
-from rngcam.recon import ffdnet
+from rngcam.recon.methods.rife import rife
 from rngcam.recon.metrics import video_metrics
-from rngcam.recon.rife import rife
+from rngcam.recon.nets import ffdnet
 
 GS_ROWS = ("blend", "interp", "rife 4.x", "rife hdv3", "rife mean (4.x + HDv3)")
 

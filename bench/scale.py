@@ -157,11 +157,11 @@ def carry(bundle: str, fine_steps: int, every: int, coarse_steps: int) -> dict:
     base upsampled. PSNR at fixed step counts of the last level (no time measured: runs niced)."""
 
     from rngcam.formats.bundle import read_bundle
+    from rngcam.recon.methods.stfm import STFMSettings, make_stfm
+    from rngcam.recon.methods.stfm.multilevel import make_multilevel, stfm_levels
     from rngcam.recon.metrics import video_metrics
     from rngcam.recon.problem import build_problem
     from rngcam.recon.runner import method_view
-    from rngcam.recon.stfm import STFMSettings, make_stfm
-    from rngcam.recon.stfm.multilevel import make_multilevel, stfm_levels
 
     problem = build_problem(read_bundle(bundle))
     truth = problem.truth

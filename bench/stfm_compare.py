@@ -250,7 +250,7 @@ def tv3d_beta(args, results: dict) -> list[str]:
     """tv3d on smoke with each temporal weight beta in args.tv3d_betas, scored by the truth: the most
     favourable beta for tv3d (an oracle; a sweep scored on held-out RS rows can only do as well or
     worse), and STFM fast's margin over it (seed 0 and, when the seeds part ran, the seeds' mean)."""
-    from rngcam.recon.tv3d import TV3DSettings
+    from rngcam.recon.methods.tv3d import TV3DSettings
 
     size = int(args.sizes.split(",")[0])
     p, _ = simulated_problem("smoke", size)

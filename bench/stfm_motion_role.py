@@ -16,9 +16,9 @@ import torch
 
 from rngcam.evaluate.scenes import scene_problem as simulated_problem
 from rngcam.recon.loop import LoopSettings, run
+from rngcam.recon.methods.stfm import STFMSettings, make_stfm
 from rngcam.recon.metrics import motion_metrics, video_metrics
 from rngcam.recon.runner import method_view
-from rngcam.recon.stfm import STFMSettings, make_stfm
 
 
 def score(video: torch.Tensor, problem) -> str:

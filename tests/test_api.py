@@ -19,7 +19,7 @@ from rngcam.cli import main
 from rngcam.errors import SettingError
 from rngcam.recon import registry
 from rngcam.recon.loop import MethodBase
-from rngcam.recon.tv3d import TV3DSettings
+from rngcam.recon.methods.tv3d import TV3DSettings
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -214,7 +214,7 @@ def test_stfm_a_saturated_rs_patch_costs_at_most_2_db(clean, tmp_path):
 def test_saturated_pixels_leave_the_tv3d_data_term(clean, tmp_path):
     """The masked fit does not see the patch: its RS residual on the valid pixels is unchanged
     by any value written into the saturated ones."""
-    from rngcam.recon.tv3d import TV3D
+    from rngcam.recon.methods.tv3d import TV3D
 
     problem = build_problem(read_bundle(_patch_pair(clean, tmp_path))).to(torch.float32)
     assert problem.rs_valid is not None and not bool(problem.rs_valid.all())

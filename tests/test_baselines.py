@@ -10,9 +10,8 @@ import pytest
 import torch
 
 from rngcam.errors import RngcamError
-from rngcam.recon import rife as rife_mod
-from rngcam.recon import rife_hdv3
-from rngcam.recon.baselines import (
+from rngcam.recon.methods import rife as rife_mod
+from rngcam.recon.methods.baselines import (
     MIN_FLOW_SIZE_PX,
     BaselineInputError,
     blend,
@@ -21,6 +20,7 @@ from rngcam.recon.baselines import (
     linear_to_srgb,
     srgb_to_linear,
 )
+from rngcam.recon.nets import rife_hdv3
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -124,7 +124,7 @@ def test_interp_one_channel_and_single_key_frame():
 def test_interp_tiny_images_fall_back_to_blend(caplog):
     gs = random_frames(h=MIN_FLOW_SIZE_PX - 2, w=12)
     targets = [0.25, 0.5, 1.5]
-    with caplog.at_level(logging.WARNING, logger="rngcam.recon.baselines"):
+    with caplog.at_level(logging.WARNING, logger="rngcam.recon.methods.baselines"):
         out = interp(gs, [0, 1, 2], targets)
     np.testing.assert_array_equal(out, blend(gs, [0, 1, 2], targets))
     assert "using blend" in caplog.text

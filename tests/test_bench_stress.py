@@ -177,7 +177,7 @@ def test_a_method_that_returns_nan_is_reported_failed_in_the_table(tmp_path, mon
         out[0, 0, 0, 0] = np.nan
         return out
 
-    monkeypatch.setattr("rngcam.recon.baselines.blend", nan_blend)
+    monkeypatch.setattr("rngcam.recon.methods.baselines.blend", nan_blend)
     rows = run_stress(tmp_path, SHORT, [StressCase("odd", "size", BASE.with_(height=7, width=9))], ["blend"],
                       echo=lambda _m: None)
     assert [r["outcome"] for r in rows] == ["finite", "FAILED"]

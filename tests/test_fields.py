@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from rngcam.errors import ConfigError
-from rngcam.recon.fields import PlaneField, PositionalEncoding, Siren, field_on_grid, make_field
+from rngcam.recon.methods.stfm.fields import PlaneField, PositionalEncoding, Siren, field_on_grid, make_field
 
 
 def test_positional_encoding_values_and_size():

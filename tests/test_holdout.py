@@ -7,7 +7,7 @@ from tiny_scenes import tiny_sineball_problem
 from rngcam.errors import ConfigError
 from rngcam.recon.holdout import HoldoutScorer, holdout_residuals
 from rngcam.recon.loop import LoopSettings, run
-from rngcam.recon.tv3d import TV3D, TV3DSettings, _Masked
+from rngcam.recon.methods.tv3d import TV3D, TV3DSettings, _Masked
 
 DT = 1e-4
 

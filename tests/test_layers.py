@@ -195,3 +195,56 @@ def test_a_planted_violation_is_caught(tmp_path, files, rule, needle):
     found = violations(_package(tmp_path, {**base, **files}), TOY_LAYERS)
     assert rule in found, found
     assert any(needle in line for line in found[rule]), found[rule]
+
+
+# Inside recon, floor to top: the pipeline's parts that methods stand on (the problem, the loop and
+# its checkpoint and guard, settings fields, noise, metrics, held-out scoring, output writers); the
+# learned networks; the methods; the pipeline that runs a method (registry, run settings, runner,
+# result, report page).
+RECON_LAYERS = (
+    ("problem", "loop", "checkpoint", "guard", "options", "noise", "metrics", "holdout", "outputs"),
+    ("nets",),
+    ("methods",),
+    ("registry", "settings", "runner", "result", "report"),
+)
+# Packages recon must never import, whatever their layer: a reconstruction reads bundles, not devices.
+RECON_NEVER_IMPORTS = ("rngcam.acquire", "rngcam.calibrate")
+
+
+def recon_violations(root: Path = ROOT) -> list[str]:
+    """Imports inside rngcam.recon that point up RECON_LAYERS, or out to RECON_NEVER_IMPORTS."""
+    level = {u: i for i, layer in enumerate(RECON_LAYERS) for u in layer}
+    found = []
+    for module, targets in sorted(imports(root).items()):
+        if not module.startswith("rngcam.recon."):
+            continue
+        a = module.split(".")[2]
+        for target, _ in sorted(targets, key=str):
+            if target.startswith(RECON_NEVER_IMPORTS):
+                found.append(f"{module} imports {target} (recon never imports acquire or calibrate)")
+            if not target.startswith("rngcam.recon."):
+                continue
+            b = target.split(".")[2]
+            for u in (a, b):
+                if u not in level:
+                    found.append(f"recon.{u} (in {module}) has no place in RECON_LAYERS")
+            if a in level and b in level and level[b] > level[a]:
+                found.append(f"{module} imports {target} (recon.{a} is below recon.{b})")
+    return sorted(set(found))
+
+
+def test_recon_is_laid_out_by_concern_and_never_reaches_for_devices():
+    assert recon_violations() == []
+
+
+def test_recon_layers_catch_a_planted_breach(tmp_path):
+    root = tmp_path / "rngcam"
+    for rel, text in {"__init__.py": "", "recon/__init__.py": "", "recon/loop.py": "",
+                      "recon/nets/__init__.py": "", "recon/nets/net.py": "from rngcam.recon.methods import m\n",
+                      "recon/methods/__init__.py": "", "recon/methods/m.py": "import rngcam.acquire.capture\n",
+                      "acquire/__init__.py": "", "acquire/capture.py": ""}.items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_text(text)
+    found = recon_violations(root)
+    assert any("rngcam.recon.nets.net imports rngcam.recon.methods" in f for f in found), found
+    assert any("never imports acquire" in f for f in found), found

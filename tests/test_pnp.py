@@ -7,10 +7,10 @@ import pytest
 import torch
 
 from rngcam.errors import ConfigError
-from rngcam.recon import ffdnet
 from rngcam.recon.loop import LoopSettings, run
+from rngcam.recon.methods.pnp import PnP, PnPSettings
 from rngcam.recon.metrics import relative_residual
-from rngcam.recon.pnp import PnP, PnPSettings
+from rngcam.recon.nets import ffdnet
 
 try:
     WEIGHTS = ffdnet.find_weights()
@@ -154,7 +154,7 @@ def test_doctor_lists_learned_weights_and_installs_missing_ones_without_deps(mon
 
     from rngcam.cli import doctor as doctor_cli
     from rngcam.cli import main
-    from rngcam.recon import weights as weights_mod
+    from rngcam.recon.nets import weights as weights_mod
 
     real = weights_mod.learned_weights()
     out = CliRunner().invoke(main, ["doctor"])
@@ -176,8 +176,8 @@ def test_doctor_lists_learned_weights_and_installs_missing_ones_without_deps(mon
 
 
 def test_rife_falls_back_to_hdv3_with_a_note_and_fails_in_one_line_without_either(monkeypatch):
-    from rngcam.recon import rife as rife_mod
-    from rngcam.recon import rife4
+    from rngcam.recon.methods import rife as rife_mod
+    from rngcam.recon.nets import rife4
 
     def absent(*_):
         raise rife_mod.RifeUnavailableError("RIFE 4.x weights not installed; install them with: x")
@@ -229,7 +229,7 @@ def test_recon_cli_pnp_writes_its_notes_and_settings(tmp_path, monkeypatch):
 @needs_weights
 @pytest.mark.parametrize("kind", ["xy", "xt", "yt"])
 def test_denoising_in_chunks_equals_denoising_at_once(kind):
-    from rngcam.recon.pnp import Denoiser
+    from rngcam.recon.methods.pnp import Denoiser
 
     video = torch.rand((3, 10, 12, 14), generator=torch.Generator().manual_seed(0))
     small, large = Denoiser("cpu", chunk=1)(video, 0.05, kind, 1.0), Denoiser("cpu", chunk=100)(video, 0.05, kind, 1.0)

@@ -1,4 +1,4 @@
-"""pnp coarse to fine (rngcam.recon.pnp.make_pnp through rngcam.recon.multiscale.CoarseToFine)."""
+"""pnp coarse to fine (rngcam.recon.methods.pnp.make_pnp through rngcam.recon.methods.multiscale.CoarseToFine)."""
 
 import math
 
@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from rngcam.recon.loop import LoopSettings, run
-from rngcam.recon.multiscale import CoarseToFine
-from rngcam.recon.pnp import PnP, PnPSettings, fine_level_settings, make_pnp
+from rngcam.recon.methods.multiscale import CoarseToFine
+from rngcam.recon.methods.pnp import PnP, PnPSettings, fine_level_settings, make_pnp
 from tests.test_pnp import _problem, _psnr
 
 
@@ -55,8 +55,8 @@ def test_fine_level_settings_take_up_the_schedule_half_way():
 
 
 def test_key_frame_detail_is_what_the_coarse_grid_cannot_hold():
-    from rngcam.recon.multiscale import bin_video
-    from rngcam.recon.pnp import with_key_frame_detail
+    from rngcam.recon.methods.multiscale import bin_video
+    from rngcam.recon.methods.pnp import with_key_frame_detail
 
     p = _problem(size=32)
     coarse_shape = (3, -(-p.shape[1] // 2), 16, 16)
@@ -87,8 +87,8 @@ def test_pnp_memory_estimate_follows_coarse_to_fine():
 
 
 def test_a_run_ended_on_a_coarse_level_keeps_the_key_frame_detail():
-    from rngcam.recon.multiscale import upsample
-    from rngcam.recon.pnp import key_frame_detail
+    from rngcam.recon.methods.multiscale import upsample
+    from rngcam.recon.methods.pnp import key_frame_detail
 
     p = _problem(size=32)
     m = make_pnp(p, PnPSettings(schedule_iters=2, init="blend"), factors=(2, 1))

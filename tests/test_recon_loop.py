@@ -8,9 +8,9 @@ from tiny_scenes import tiny_sineball_problem
 
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming
 from rngcam.recon.loop import LoopSettings, run
+from rngcam.recon.methods.tv3d import TV3D, TV3DSettings
 from rngcam.recon.metrics import psnr
 from rngcam.recon.problem import problem_from_video
-from rngcam.recon.tv3d import TV3D, TV3DSettings
 
 DT = 1e-4
 

@@ -18,13 +18,13 @@ from rngcam.cli import main
 from rngcam.cli.method_options import method_settings
 from rngcam.errors import ConfigError
 from rngcam.recon import registry
-from rngcam.recon.baselines import blend
 from rngcam.recon.loop import MethodBase
+from rngcam.recon.methods.baselines import blend
+from rngcam.recon.methods.stfm import STFMSettings
+from rngcam.recon.methods.stfm.settings import PRESETS, preset_settings, resolve
+from rngcam.recon.methods.tv3d import TV3DSettings
 from rngcam.recon.options import setting
 from rngcam.recon.runner import ReconSettings, reconstruct
-from rngcam.recon.stfm import STFMSettings
-from rngcam.recon.stfm.settings import PRESETS, preset_settings, resolve
-from rngcam.recon.tv3d import TV3DSettings
 
 
 @dataclass

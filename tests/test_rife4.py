@@ -1,12 +1,12 @@
 """RIFE 4.25/4.26: strict weight loading, agreement with the reference implementation, and the
-model choice of rngcam.recon.rife."""
+model choice of rngcam.recon.methods.rife."""
 
 import numpy as np
 import pytest
 import torch
 
-rife4 = pytest.importorskip("rngcam.recon.rife4")
-from rngcam.recon.rife import RifeUnavailableError, resolve_model, rife, rife_warps
+rife4 = pytest.importorskip("rngcam.recon.nets.rife4")
+from rngcam.recon.methods.rife import RifeUnavailableError, resolve_model, rife, rife_warps
 
 try:
     WEIGHTS = rife4.find_weights()

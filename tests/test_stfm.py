@@ -10,11 +10,11 @@ import torch
 from rngcam.errors import ConfigError
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
-from rngcam.recon.components import choose_components
 from rngcam.recon.loop import LoopSettings, run
+from rngcam.recon.methods.stfm import STFMSettings, make_stfm
+from rngcam.recon.methods.stfm.components import choose_components
 from rngcam.recon.metrics import psnr
 from rngcam.recon.problem import Problem
-from rngcam.recon.stfm import STFMSettings, make_stfm
 from rngcam.sim.scenes import render_scene
 
 DT_S, EXPOSURE_S = 208e-6, 650e-6  # the reference rig scaled to the grid (see rngcam.sim)
@@ -415,7 +415,7 @@ def _key_frames(p):
 
 
 def test_dynamic_field_on_a_base_starts_exactly_at_that_base(sineball16):
-    from rngcam.recon.baselines import blend, interp
+    from rngcam.recon.methods.baselines import blend, interp
 
     p = sineball16
     for base, baseline in (("blend", blend), ("interp", interp)):
@@ -428,7 +428,7 @@ def test_dynamic_field_on_a_base_starts_exactly_at_that_base(sineball16):
 
 
 def test_fast_preset_corrects_the_rife_video_when_rife_is_installed(sineball16):
-    from rngcam.recon.rife import RifeUnavailableError, rife
+    from rngcam.recon.methods.rife import RifeUnavailableError, rife
 
     p = sineball16
     try:
@@ -448,7 +448,7 @@ def test_a_moving_base_video_needs_the_motion_field():
 
 
 def test_discrepancy_stop_ends_the_fit_at_the_noise_level(sineball16):
-    from rngcam.recon.stfm import NOISE_CHECK_STEPS
+    from rngcam.recon.methods.stfm import NOISE_CHECK_STEPS
 
     m = make_stfm(sineball16, small_settings())
     assert m.rs_noise_level > 0 and m.resolved.stop_at_noise
@@ -466,7 +466,7 @@ def test_discrepancy_stop_ends_the_fit_at_the_noise_level(sineball16):
 
 
 def test_stall_stop_ends_a_fit_whose_residual_no_longer_falls(sineball16):
-    from rngcam.recon.stfm import NOISE_CHECK_STEPS, STALL_PASSES
+    from rngcam.recon.methods.stfm import NOISE_CHECK_STEPS, STALL_PASSES
 
     m = make_stfm(sineball16, small_settings(stall_drop=0.999))  # demands a 99.9 % fall: stalls at once
     m.rs_noise_level = 0.0  # the noise test never fires
@@ -533,7 +533,7 @@ def test_outputs_use_the_moving_average_and_training_keeps_its_weights(sineball1
 
 
 def test_keys_base_starts_exactly_at_the_flow_interpolation(sineball16):
-    from rngcam.recon.baselines import interp
+    from rngcam.recon.methods.baselines import interp
 
     p = sineball16
     video = torch.from_numpy(interp(_key_frames(p), p.gs_times_s, p.frame_times_s))
@@ -545,7 +545,7 @@ def test_keys_base_starts_exactly_at_the_flow_interpolation(sineball16):
 
 
 def test_ensemble_averages_fits_on_distinct_bases(sineball16):
-    from rngcam.recon.stfm import STFMEnsemble
+    from rngcam.recon.methods.stfm import STFMEnsemble
 
     assert not isinstance(make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video")), STFMEnsemble)
     m = make_stfm(sineball16, STFMSettings(components="all"))  # the fast preset's default
@@ -563,7 +563,7 @@ def test_ensemble_averages_fits_on_distinct_bases(sineball16):
 
 
 def test_ensemble_without_rife_drops_the_duplicate_base(sineball16, monkeypatch):
-    from rngcam.recon import rife as rife_mod
+    from rngcam.recon.methods import rife as rife_mod
 
     def unavailable(*args, **kwargs):
         raise rife_mod.RifeUnavailableError("not installed (test)")
@@ -575,7 +575,7 @@ def test_ensemble_without_rife_drops_the_duplicate_base(sineball16, monkeypatch)
 
 
 def test_ensemble_stops_only_when_every_member_reached_the_noise_level(sineball16):
-    from rngcam.recon.stfm import NOISE_CHECK_STEPS
+    from rngcam.recon.methods.stfm import NOISE_CHECK_STEPS
 
     m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video,keys_interp", refine=False))
     first, second = fits(m)
@@ -589,7 +589,7 @@ def test_ensemble_stops_only_when_every_member_reached_the_noise_level(sineball1
 
 
 def test_ensemble_fits_share_one_float32_copy_of_the_problem(sineball16):
-    from rngcam.recon.stfm import NOISE_CHECK_STEPS
+    from rngcam.recon.methods.stfm import NOISE_CHECK_STEPS
 
     m = make_stfm(sineball16.to(torch.float64), STFMSettings(components="all", dynamic_base="video,keys_interp",
                                                              refine=True))
@@ -607,7 +607,7 @@ def _stopped_members(m):
 
 
 def test_ensemble_refines_the_members_average_once_they_have_stopped(sineball16):
-    from rngcam.recon.stfm import NOISE_CHECK_STEPS, REFINE_LR_RATIO
+    from rngcam.recon.methods.stfm import NOISE_CHECK_STEPS, REFINE_LR_RATIO
 
     m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video,keys_interp"))
     _stopped_members(m)
@@ -632,7 +632,7 @@ def test_ensemble_refines_the_members_average_once_they_have_stopped(sineball16)
 def test_ensemble_without_refinement_stops_with_its_members_and_returns_their_average(sineball16):
     m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video,keys_interp", refine=False))
     _stopped_members(m)
-    from rngcam.recon.stfm import NOISE_CHECK_STEPS
+    from rngcam.recon.methods.stfm import NOISE_CHECK_STEPS
 
     result = run(m, LoopSettings(time_budget_s=None, max_iters=4 * NOISE_CHECK_STEPS, progress=False))
     assert result.iterations == 2 * NOISE_CHECK_STEPS and m.refined is None
@@ -640,7 +640,7 @@ def test_ensemble_without_refinement_stops_with_its_members_and_returns_their_av
 
 
 def test_ensemble_resumes_inside_its_refinement(sineball16):
-    from rngcam.recon.stfm import NOISE_CHECK_STEPS
+    from rngcam.recon.methods.stfm import NOISE_CHECK_STEPS
 
     settings = STFMSettings(components="all", dynamic_base="video,keys_interp")
     straight, first, resumed = (make_stfm(sineball16, settings) for _ in range(3))
@@ -685,7 +685,7 @@ def test_base_lists_are_validated():
 def test_viterbi_finds_the_cheapest_path_with_its_l1_penalty():
     from itertools import product
 
-    from rngcam.recon.stfm.motion_search import _viterbi
+    from rngcam.recon.methods.stfm.motion_search import _viterbi
 
     rng = np.random.default_rng(0)
     cost = rng.random((4, 3, 3))
@@ -726,7 +726,7 @@ def test_prior_preset_keeps_one_canonical_image_and_finds_the_turning_object():
 
 
 def test_without_rife_weights_stfm_says_what_it_uses_instead(sineball16, monkeypatch):
-    import rngcam.recon.rife as rife_mod
+    import rngcam.recon.methods.rife as rife_mod
 
     def unavailable(*args, **kwargs):
         raise rife_mod.RifeUnavailableError("no RIFE weights installed\nsecond line")

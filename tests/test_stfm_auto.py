@@ -7,9 +7,9 @@ import torch
 from test_stfm import scene_problem
 
 from rngcam.errors import ConfigError
-from rngcam.recon.stfm import STFMSettings, make_stfm
-from rngcam.recon.stfm.auto import LAYER_MISFIT_MAX, choose_preset, layer_misfits
-from rngcam.recon.stfm.settings import _preset
+from rngcam.recon.methods.stfm import STFMSettings, make_stfm
+from rngcam.recon.methods.stfm.auto import LAYER_MISFIT_MAX, choose_preset, layer_misfits
+from rngcam.recon.methods.stfm.settings import _preset
 
 
 def key_frames(kind: str, size: int = 24) -> torch.Tensor:

@@ -1,11 +1,11 @@
-"""STFM's translation search (rngcam.recon.stfm.motion_search): where a GS key frame's misfit goes."""
+"""STFM's translation search (rngcam.recon.methods.stfm.motion_search): where a GS key frame's misfit goes."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from rngcam.recon.stfm.motion_search import centre_weights
+from rngcam.recon.methods.stfm.motion_search import centre_weights
 
 
 def test_centre_weights_put_each_key_frame_at_its_exposure_centre():
@@ -34,7 +34,7 @@ def _sineball(h=32, w=32):
 
 
 def _matte(m) -> float:
-    from rngcam.recon.fields import field_on_grid
+    from rngcam.recon.methods.stfm.fields import field_on_grid
 
     with torch.no_grad():
         raw = field_on_grid(m.fields["dynamic"], [m.xs, m.ys])
@@ -42,7 +42,7 @@ def _matte(m) -> float:
 
 
 def test_matte_l1_shrinks_the_moving_layer_to_what_the_data_need():
-    from rngcam.recon.stfm import STFMSettings, make_stfm
+    from rngcam.recon.methods.stfm import STFMSettings, make_stfm
 
     p = _sineball()
     plain = make_stfm(p, STFMSettings(preset="prior", matte_l1=0.0, components="all"))
@@ -59,7 +59,7 @@ def test_matte_l1_shrinks_the_moving_layer_to_what_the_data_need():
 
 def test_matte_l1_is_left_out_where_there_is_no_canonical_image():
     from rngcam.errors import ConfigError
-    from rngcam.recon.stfm import STFM, STFMSettings
+    from rngcam.recon.methods.stfm import STFM, STFMSettings
 
     p = _sineball(16, 16)
     fast = STFM(p, STFMSettings(dynamic_base="blend", matte_l1=1.0))  # time-dependent dynamic field

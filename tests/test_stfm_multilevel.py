@@ -1,16 +1,16 @@
-"""STFM coarse to fine (rngcam.recon.stfm.multilevel): levels chosen, fields carried over, each
+"""STFM coarse to fine (rngcam.recon.methods.stfm.multilevel): levels chosen, fields carried over, each
 finer level starting where the coarser one ended, in the preset's own model."""
 
 import numpy as np
 import pytest
 import torch
 
-from rngcam.recon.fields import field_on_grid, make_field, transfer_fields
 from rngcam.recon.loop import LoopSettings, run
+from rngcam.recon.methods.multiscale import upsample
+from rngcam.recon.methods.stfm import STFM, STFMSettings, make_stfm
+from rngcam.recon.methods.stfm.fields import field_on_grid, make_field, transfer_fields
+from rngcam.recon.methods.stfm.multilevel import make_multilevel, stfm_levels
 from rngcam.recon.metrics import video_metrics
-from rngcam.recon.multiscale import upsample
-from rngcam.recon.stfm import STFM, STFMSettings, make_stfm
-from rngcam.recon.stfm.multilevel import make_multilevel, stfm_levels
 from rngcam.sim.scenes import render_scene
 from rngcam.sim.simulate import simulation_timing
 

@@ -7,9 +7,9 @@ import torch
 from test_stfm import _key_frames, fits, scene_problem, small_settings
 
 from rngcam.errors import ConfigError
+from rngcam.recon.methods.stfm import STFMSettings, make_stfm
+from rngcam.recon.methods.stfm.bases import _rife_model_of
 from rngcam.recon.metrics import psnr
-from rngcam.recon.stfm import STFMSettings, make_stfm
-from rngcam.recon.stfm.bases import _rife_model_of
 
 
 @pytest.fixture(scope="module")
@@ -18,7 +18,7 @@ def sineball16():
 
 
 def _rife_or_skip(p, model):
-    from rngcam.recon.rife import RifeUnavailableError, rife
+    from rngcam.recon.methods.rife import RifeUnavailableError, rife
 
     try:
         return torch.from_numpy(rife(_key_frames(p), p.gs_times_s, p.frame_times_s, model=model))
@@ -56,7 +56,7 @@ def test_ensemble_keeps_one_member_per_rife_model(sineball16):
 
 
 def test_without_hdv3_weights_the_pinned_member_falls_back_to_interpolation(sineball16, monkeypatch):
-    from rngcam.recon import rife as rife_mod
+    from rngcam.recon.methods import rife as rife_mod
 
     _rife_or_skip(sineball16, "4")
 

@@ -22,7 +22,7 @@ def install_command(specs: list[str]) -> list[str]:
 def doctor_cmd(install_weights: bool):
     """List the learned weights, where they are, and what runs instead of a missing one."""
     from rngcam.errors import RngcamError
-    from rngcam.recon.weights import learned_weights
+    from rngcam.recon.nets.weights import learned_weights
 
     weights = learned_weights()
     missing = [w for w in weights if w.path is None]

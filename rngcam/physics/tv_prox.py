@@ -1,5 +1,5 @@
-"""Proximal operators of anisotropic 3-D total variation: the FISTA-3DTV baseline (recon.tv3d),
-plug-and-play's 2-D fallback (recon.pnp) and the RS deconvolution of calibration (calibrate.deconv).
+"""Proximal operators of anisotropic 3-D total variation: the FISTA-3DTV baseline (recon.methods.tv3d),
+plug-and-play's 2-D fallback (recon.methods.pnp) and the RS deconvolution of calibration (calibrate.deconv).
 
 Convention (every function in this module uses it)
 --------------------------------------------------

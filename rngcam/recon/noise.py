@@ -7,7 +7,7 @@ almost pure noise. For independent noise of standard deviation s a second differ
 standard deviation s sqrt(6), and the median absolute value of a normal variable is 0.6745
 times its standard deviation (the robust estimator of Donoho & Johnstone, applied to second
 differences). Where the signal itself has fine detail the estimate is too high, which makes a
-discrepancy-principle stop (rngcam.recon.stfm) conservative: it stops early, nearer its start.
+discrepancy-principle stop (rngcam.recon.methods.stfm) conservative: it stops early, nearer its start.
 """
 
 from __future__ import annotations

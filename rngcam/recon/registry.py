@@ -19,12 +19,12 @@ from typing import Any
 import numpy as np
 
 from rngcam.errors import ConfigError
-from rngcam.recon.baselines import BlendSettings, InterpSettings, RifeSettings
+from rngcam.recon.methods.baselines import BlendSettings, InterpSettings, RifeSettings
+from rngcam.recon.methods.pnp import PnPSettings
+from rngcam.recon.methods.stfm.settings import PRESETS as STFM_PRESETS
+from rngcam.recon.methods.stfm.settings import STFMSettings, preset_settings
+from rngcam.recon.methods.tv3d import TV3DSettings
 from rngcam.recon.options import documented_fields
-from rngcam.recon.pnp import PnPSettings
-from rngcam.recon.stfm.settings import PRESETS as STFM_PRESETS
-from rngcam.recon.stfm.settings import STFMSettings, preset_settings
-from rngcam.recon.tv3d import TV3DSettings
 from rngcam.sizing import MemoryModel
 
 ITERATIVE = "iterative"  # fitted by rngcam.recon.loop to the RS (and GS) measurements
@@ -174,44 +174,44 @@ def settings_for(label: str, **overrides) -> tuple[str, Any]:
 
 
 def _make_stfm(problem, settings, device="cpu", budget_s=None, stage=None):
-    from rngcam.recon.stfm import make_stfm
+    from rngcam.recon.methods.stfm import make_stfm
 
     return make_stfm(problem, settings, device=device, budget_s=budget_s, stage=stage)
 
 
 def _make_tv3d(problem, settings, device="cpu", budget_s=None, stage=None):
-    from rngcam.recon.tv3d import make_tv3d
+    from rngcam.recon.methods.tv3d import make_tv3d
 
     return make_tv3d(problem, settings, budget_s=budget_s, stage=stage)
 
 
 def _make_pnp(problem, settings, device="cpu", budget_s=None, stage=None):
-    from rngcam.recon.pnp import make_pnp
+    from rngcam.recon.methods.pnp import make_pnp
 
     return make_pnp(problem, settings, device=device, budget_s=budget_s, stage=stage)
 
 
 def _blend(key, gs_times_s, frame_times_s, settings: BlendSettings) -> GSOnlyVideo:
-    from rngcam.recon.baselines import blend
+    from rngcam.recon.methods.baselines import blend
 
     return GSOnlyVideo(blend(key, gs_times_s, frame_times_s))
 
 
 def _interp(key, gs_times_s, frame_times_s, settings: InterpSettings) -> GSOnlyVideo:
-    from rngcam.recon.baselines import interp
+    from rngcam.recon.methods.baselines import interp
 
     return GSOnlyVideo(interp(key, gs_times_s, frame_times_s, method=settings.flow, occlusion=settings.occlusion))
 
 
 def _rife(key, gs_times_s, frame_times_s, settings: RifeSettings) -> GSOnlyVideo:
-    from rngcam.recon.rife import resolve_model, rife
+    from rngcam.recon.methods.rife import resolve_model, rife
 
     model, note = resolve_model(settings.model)  # 4.x, or HDv3 on request or as the fallback
     return GSOnlyVideo(rife(key, gs_times_s, frame_times_s, model=model), [note] if note else [], {"model": model})
 
 
 def _rife_unavailable() -> str:
-    from rngcam.recon.rife import resolve_model
+    from rngcam.recon.methods.rife import resolve_model
 
     try:
         resolve_model()  # RIFE 4.x, else HDv3
@@ -226,7 +226,7 @@ def _rife_unavailable() -> str:
 # bytes. STFM fast (the ensemble) also costs per frame whatever the frame's size, so its figure is
 # fitted to two runs: 412 bytes an element at 32x32x3x6,531 and 5.8 GB peak at 228x342x3x231 give 98
 # bytes an element plus 0.92 MB a frame; with about 10 %: 110 bytes and 1.0 MB. On grids of 96 px
-# and more STFM runs coarse to fine (rngcam.recon.stfm.multilevel): the ensemble and RIFE run only on
+# and more STFM runs coarse to fine (rngcam.recon.methods.stfm.multilevel): the ensemble and RIFE run only on
 # the coarsest level (about 1.0 GB: 1.20 GiB measured for the whole run at 114x171x117), the full
 # grid holds one fit: 3.61 GiB through the solve at 228x342x231 (the whole run's end stays under it
 # since the method is freed before the final metrics: 3.28 GiB whole-process over a 600 s run), 66

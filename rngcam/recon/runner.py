@@ -107,7 +107,7 @@ def run_gs_only(problem: Problem, settings: ReconSettings) -> tuple[registry.GSO
 def start_video(problem: Problem) -> np.ndarray:
     """The video a run that never iterated reports: the GS key frames cross-faded, else zeros."""
     if problem.b_gs is not None and problem.b_gs.shape[1]:
-        from rngcam.recon.baselines import blend
+        from rngcam.recon.methods.baselines import blend
 
         return np.asarray(blend(gs_key_frames(problem), problem.gs_times_s, problem.frame_times_s), np.float32)
     return np.zeros(problem.shape, np.float32)

@@ -8,7 +8,7 @@ from torch import Tensor, nn
 
 from rngcam.errors import ConfigError
 from rngcam.physics.operators import GlobalShutter, RollingShutter
-from rngcam.recon.fields import field_on_grid, make_field
+from rngcam.recon.methods.stfm.fields import field_on_grid, make_field
 
 
 def _chunks(idx: Tensor, size: int) -> list[Tensor]:
@@ -22,7 +22,7 @@ def _inverse_softplus(y: Tensor) -> Tensor:
 
 
 class FieldModel:
-    """Part of STFM (rngcam.recon.stfm.method): geometry, the fields, and frames of the video."""
+    """Part of STFM (rngcam.recon.methods.stfm.method): geometry, the fields, and frames of the video."""
 
     def _build_geometry(self) -> None:
         p, dev = self.problem, self.device

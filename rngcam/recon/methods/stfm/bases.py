@@ -7,7 +7,7 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
-from rngcam.recon.stfm.settings import BASE_VIDEOS, HDV3_SUFFIX, KEY_WARPS, MIN_FLOW_SIZE_PX
+from rngcam.recon.methods.stfm.settings import BASE_VIDEOS, HDV3_SUFFIX, KEY_WARPS, MIN_FLOW_SIZE_PX
 
 
 class BaseVideos:
@@ -52,8 +52,8 @@ class BaseVideos:
         flows ("keys_rife"; "keys" when RIFE is installed) or DIS optical-flow interpolation
         ("keys_interp"), that the motion and dynamic fields correct. False where no flow can be
         computed (fewer than two key frames, images under MIN_FLOW_SIZE_PX)."""
-        from rngcam.recon.baselines import BaselineInputError, interp_warps
-        from rngcam.recon.rife import RifeUnavailableError, rife_warps
+        from rngcam.recon.methods.baselines import BaselineInputError, interp_warps
+        from rngcam.recon.methods.rife import RifeUnavailableError, rife_warps
 
         args = (keys.detach().float().cpu().numpy(), self.problem.gs_times_s, self.problem.frame_times_s)
         warps = None
@@ -92,7 +92,7 @@ def _rife_model_of(kind: str) -> tuple[str, str | None]:
 
 
 def _resolved_model(model: str | None) -> str:
-    from rngcam.recon.rife import resolve_model
+    from rngcam.recon.methods.rife import resolve_model
 
     return resolve_model(model)[0]
 
@@ -105,11 +105,11 @@ def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str, model: str |
                 ) -> tuple[Tensor, str, str]:
     """The GS-only video (C, K, H, W) a dynamic field corrects, which baseline made it, and why
     RIFE was not used where it was preferred ("" otherwise). `model`: the RIFE model (None: the default)."""
-    from rngcam.recon.baselines import interp
+    from rngcam.recon.methods.baselines import interp
 
     frames = keys.detach().float().cpu().numpy()
     if kind in ("video", "rife") and frames.shape[0] in (1, 3) and min(frames.shape[-2:]) >= MIN_FLOW_SIZE_PX:
-        from rngcam.recon.rife import RifeUnavailableError, rife
+        from rngcam.recon.methods.rife import RifeUnavailableError, rife
 
         try:
             with torch.random.fork_rng(devices=[]):  # building the network draws random numbers

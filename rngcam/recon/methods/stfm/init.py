@@ -8,8 +8,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from rngcam.recon.fields import field_on_grid
-from rngcam.recon.stfm.settings import INIT_STEPS, MIN_FLOW_SIZE_PX
+from rngcam.recon.methods.stfm.fields import field_on_grid
+from rngcam.recon.methods.stfm.settings import INIT_STEPS, MIN_FLOW_SIZE_PX
 
 
 class GSInit:
@@ -51,8 +51,8 @@ class GSInit:
     def _init_by_search(self, layer: Tensor, background: Tensor, steps: int) -> None:
         """The canonical dynamic image is the middle key frame; alpha is where that frame (not every
         key frame: the image moves) differs from the background; the motion is the per-frame
-        translation of that image found by rngcam.recon.stfm.motion_search."""
-        from rngcam.recon.stfm.motion_search import translation_track
+        translation of that image found by rngcam.recon.methods.stfm.motion_search."""
+        from rngcam.recon.methods.stfm.motion_search import translation_track
 
         change = (layer - background).abs().mean(0)
         obj = (change / (0.1 * float(background.mean()) + 1e-6)).clamp(0, 1)  # 1 on the moving object
@@ -146,7 +146,7 @@ class GSInit:
 
 
 def _grey_u8(frame: np.ndarray, scale: float) -> np.ndarray:
-    from rngcam.recon.baselines import linear_to_srgb
+    from rngcam.recon.methods.baselines import linear_to_srgb
 
     grey = frame.mean(0) if frame.shape[0] != 3 else 0.2126 * frame[0] + 0.7152 * frame[1] + 0.0722 * frame[2]
     return np.round(linear_to_srgb(grey / scale) * 255).astype(np.uint8)

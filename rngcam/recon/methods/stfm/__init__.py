@@ -86,9 +86,9 @@ stopping (noise and stall tests), motion_search (the prior preset's motion start
 fit), ensemble (STFMEnsemble, make_stfm).
 """
 
-from rngcam.recon.stfm.ensemble import STFMEnsemble, make_stfm
-from rngcam.recon.stfm.method import STFM
-from rngcam.recon.stfm.settings import (
+from rngcam.recon.methods.stfm.ensemble import STFMEnsemble, make_stfm
+from rngcam.recon.methods.stfm.method import STFM
+from rngcam.recon.methods.stfm.settings import (
     ALL_BASES,
     ENSEMBLE_BASES,
     INIT_STEPS,

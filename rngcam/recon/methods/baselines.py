@@ -12,7 +12,7 @@ Before the first / after the last key frame the nearest key frame is held; exact
 time that key frame is returned bit for bit; with one key frame every output equals it.
 
 `blend` cross-fades linearly; `interp` warps along dense optical flow (OpenCV DIS or
-Farneback) with occlusion-aware blending. RIFE lives in `rngcam.recon.rife`.
+Farneback) with occlusion-aware blending. RIFE lives in `rngcam.recon.methods.rife`.
 """
 
 from __future__ import annotations

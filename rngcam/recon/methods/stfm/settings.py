@@ -8,7 +8,7 @@ from dataclasses import dataclass, field, fields, replace
 from rngcam.errors import ConfigError
 from rngcam.recon.options import setting
 
-PRESETS = ("paper", "fast", "prior", "auto")  # auto: prior or fast per scene (rngcam.recon.stfm.auto)
+PRESETS = ("paper", "fast", "prior", "auto")  # auto: prior or fast per scene (rngcam.recon.methods.stfm.auto)
 INIT_STEPS = 100
 NOISE_CHECK_STEPS = 20  # steps between discrepancy-principle checks (one full RS forward each)
 STALL_PASSES = 15  # the stall test compares the RS residual with its value this many passes over the rows ago
@@ -59,7 +59,7 @@ class STFMSettings:
     ema_decay: float | None = None  # outputs use an exponential moving average of the weights (0: off)
     refine: bool | None = None  # ensemble: one more fit on the members' average once they have stopped
     motion_init: str | None = None  # 2-D dynamic field: "flow" (key-frame optical flow) or "search" (motion_search)
-    coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.stfm.multilevel)
+    coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.methods.stfm.multilevel)
     preset_choice: dict | None = None  # preset auto: what it chose and why (set by make_stfm, not by users)
 
     def __post_init__(self):

@@ -1,6 +1,6 @@
 """STFM coarse to fine: the normal STFM build on a coarse grid, then finer grids that start from it.
 
-Levels come from rngcam.recon.multiscale (`coarsen`: the problem binned in space and time,
+Levels come from rngcam.recon.methods.multiscale (`coarsen`: the problem binned in space and time,
 e.g. 1/4, 1/2 and the full grid at 228x342). The coarsest level is the ordinary STFM of the
 settings (`make_stfm`: RIFE or flow bases, the fast preset's ensemble, the prior preset's motion
 search), so the set-up work that does not scale with the grid (RIFE, optical flow, the motion
@@ -28,9 +28,9 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
-from rngcam.recon.multiscale import CoarseToFine, default_factors, power_norm, upsample
-from rngcam.recon.stfm.method import STFM
-from rngcam.recon.stfm.settings import REFINE_LR_RATIO, STFMSettings, _preset
+from rngcam.recon.methods.multiscale import CoarseToFine, default_factors, power_norm, upsample
+from rngcam.recon.methods.stfm.method import STFM
+from rngcam.recon.methods.stfm.settings import REFINE_LR_RATIO, STFMSettings, _preset
 
 MAX_LEVEL_STEPS = 3000  # a coarse level that never meets its stop test ends here
 

@@ -10,9 +10,9 @@ from torch import Tensor
 
 from rngcam.errors import ConfigError
 from rngcam.recon.loop import MethodBase
-from rngcam.recon.stfm.method import STFM
-from rngcam.recon.stfm.model import _chunks
-from rngcam.recon.stfm.settings import REFINE_LR_RATIO, STFMSettings, _base_list, _setting_or_preset
+from rngcam.recon.methods.stfm.method import STFM
+from rngcam.recon.methods.stfm.model import _chunks
+from rngcam.recon.methods.stfm.settings import REFINE_LR_RATIO, STFMSettings, _base_list, _setting_or_preset
 
 
 class STFMEnsemble(MethodBase):
@@ -190,15 +190,15 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
     estimate, upsampled): one fit whose dynamic base is that video (dynamic_base "video"), so the
     fit starts from it instead of from a GS-only interpolation.
     On grids of 96 px and more (`coarse_to_fine`), a coarse-to-fine run of these
-    (rngcam.recon.stfm.multilevel); `budget_s` and `stage(message)` as in make_tv3d.
+    (rngcam.recon.methods.stfm.multilevel); `budget_s` and `stage(message)` as in make_tv3d.
 
-    Preset "auto" is resolved here, on the whole problem (rngcam.recon.stfm.auto.choose_preset);
+    Preset "auto" is resolved here, on the whole problem (rngcam.recon.methods.stfm.auto.choose_preset);
     the method's `notes` and `preset_choice` (in its resolved settings) say which preset it chose
     and why."""
     settings = settings or STFMSettings()
     if settings.preset != "auto":
         return _make_stfm(problem, settings, device, initial_video, budget_s, stage)
-    from rngcam.recon.stfm.auto import choose_preset
+    from rngcam.recon.methods.stfm.auto import choose_preset
 
     choice = choose_preset(problem)
     settings = replace(settings, preset=choice.preset, preset_choice=choice.as_dict())
@@ -207,7 +207,7 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
 
 def _make_stfm(problem, settings: STFMSettings, device, initial_video: Tensor | None, budget_s=None, stage=None):
     if initial_video is None:
-        from rngcam.recon.stfm.multilevel import make_multilevel, stfm_levels
+        from rngcam.recon.methods.stfm.multilevel import make_multilevel, stfm_levels
 
         factors = stfm_levels(problem, settings)
         if len(factors) > 1:

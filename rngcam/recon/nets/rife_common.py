@@ -1,4 +1,4 @@
-"""What both RIFE networks (rngcam.recon.rife: HDv3, rngcam.recon.rife4: 4.x) share: the error
+"""What both RIFE networks (rngcam.recon.methods.rife: HDv3, rngcam.recon.nets.rife4: 4.x) share: the error
 raised when their weights are not installed, and the backward warp of their flows."""
 
 from __future__ import annotations

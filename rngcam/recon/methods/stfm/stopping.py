@@ -6,8 +6,8 @@ import math
 
 import torch
 
+from rngcam.recon.methods.stfm.settings import NOISE_CHECK_STEPS, STALL_PASSES
 from rngcam.recon.metrics import relative_residual
-from rngcam.recon.stfm.settings import NOISE_CHECK_STEPS, STALL_PASSES
 
 
 class NoiseStop:

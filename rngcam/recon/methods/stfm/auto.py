@@ -9,7 +9,7 @@ fit the RS image, held-out rows included, to about its noise (bench/stfm_motion.
 
 What does separate them is in the key frames, before any fit: the prior preset's start is the
 middle key frame's moving part (where it differs from the key frames' median) pasted over that
-median at a shift (rngcam.recon.stfm.motion_search). If some shift of it reproduces each other
+median at a shift (rngcam.recon.methods.stfm.motion_search). If some shift of it reproduces each other
 key frame, the scene is one layer that translates; if not (smoke grows, cars and walkers move
 differently, the camera pans), it is not. The test: for each other key frame g,
 
@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from rngcam.recon.stfm.motion_search import candidate_shifts, key_frame_layer, shifted_frames
+from rngcam.recon.methods.stfm.motion_search import candidate_shifts, key_frame_layer, shifted_frames
 
 LAYER_MISFIT_MAX = 0.5  # mean misfit: sineball 0.29 (64 px), 0.39 (32 px); smoke 0.68, 0.60; real clips 0.72-1.0
 CHUNK_ELEMENTS = 8_000_000  # composited values held at once (32 MB of float32 per temporary)

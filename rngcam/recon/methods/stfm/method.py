@@ -11,17 +11,17 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
-from rngcam.recon.components import Components, choose_components
-from rngcam.recon.fields import transfer_fields
 from rngcam.recon.loop import MethodBase
+from rngcam.recon.methods.stfm.bases import BaseVideos
+from rngcam.recon.methods.stfm.components import Components, choose_components
+from rngcam.recon.methods.stfm.fields import transfer_fields
+from rngcam.recon.methods.stfm.init import GSInit
+from rngcam.recon.methods.stfm.loss import DataLoss
+from rngcam.recon.methods.stfm.model import FieldModel, _chunks
+from rngcam.recon.methods.stfm.settings import _FROM_PRESET, STFMSettings, resolve
+from rngcam.recon.methods.stfm.stopping import NoiseStop
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
-from rngcam.recon.stfm.bases import BaseVideos
-from rngcam.recon.stfm.init import GSInit
-from rngcam.recon.stfm.loss import DataLoss
-from rngcam.recon.stfm.model import FieldModel, _chunks
-from rngcam.recon.stfm.settings import _FROM_PRESET, STFMSettings, resolve
-from rngcam.recon.stfm.stopping import NoiseStop
 
 
 class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):

@@ -12,7 +12,7 @@ and each iteration alternates (Zhang et al., DPIR, TPAMI 2021)
 
 with a noise level sigma_k falling geometrically from `sigma_start` to `sigma_end` over
 `schedule_iters` iterations and mu_k = mu (sigma_start / sigma_k)^2 rising with it. D is FFDNet
-(rngcam.recon.ffdnet) on the sRGB-encoded frames (scaled so the brightest key-frame value is 1),
+(rngcam.recon.nets.ffdnet) on the sRGB-encoded frames (scaled so the brightest key-frame value is 1),
 so sigma is on the [0, 1] scale of an 8-bit image (0.02 ~ 5/255). `slices` is the cycle of 2-D
 images the denoiser sees, one kind per iteration: the frames (xy), the x-t slices (one per row)
 or the y-t slices (one per column); the default "xt,yt" puts the learned prior along time, which
@@ -96,7 +96,7 @@ class PnPSettings:
 
 
 def _hdv3_installed() -> bool:
-    from rngcam.recon.rife_hdv3 import RifeUnavailableError, find_weights
+    from rngcam.recon.nets.rife_hdv3 import RifeUnavailableError, find_weights
 
     try:
         find_weights()
@@ -137,7 +137,7 @@ class Denoiser:
     FFDNet when its weights are installed, else 2-D TV (tv.prox_tv_nonneg without a time term)."""
 
     def __init__(self, device: str, chunk: int):
-        from rngcam.recon.ffdnet import DenoiserUnavailableError, load_ffdnet
+        from rngcam.recon.nets.ffdnet import DenoiserUnavailableError, load_ffdnet
 
         self.chunk, self.note = chunk, ""
         try:
@@ -212,7 +212,7 @@ class PnP(MethodBase):
         if rs_norm_start is None:
             n_r = 1.02 * self.rs.norm(iters=20, tol=1e-3, dtype=dt, device=dev) ** 2
         else:
-            from rngcam.recon.multiscale import power_norm
+            from rngcam.recon.methods.multiscale import power_norm
 
             norm, self.rs_norm_vector = power_norm(self.rs, rs_norm_start.to(dtype=dt, device=dev))
             n_r = 1.02 * norm ** 2
@@ -249,7 +249,7 @@ class PnP(MethodBase):
     # ------------------------------------------------------------------ set-up
 
     def _initial(self) -> Tensor:
-        from rngcam.recon.baselines import blend, interp
+        from rngcam.recon.methods.baselines import blend, interp
 
         p = self.p
         if not self.use_gs:
@@ -258,8 +258,8 @@ class PnP(MethodBase):
         args = (keys, p.gs_times_s, p.frame_times_s)
         kind = self.s.init
         if kind in ("video", "rife") and keys.shape[0] in (1, 3):
-            from rngcam.recon.baselines import BaselineInputError
-            from rngcam.recon.rife import RifeUnavailableError, resolve_model, rife
+            from rngcam.recon.methods.baselines import BaselineInputError
+            from rngcam.recon.methods.rife import RifeUnavailableError, resolve_model, rife
 
             try:
                 model, note = resolve_model()
@@ -420,8 +420,8 @@ def fine_level_settings(settings: PnPSettings) -> PnPSettings:
 def key_frame_detail(problem: Problem, coarse_shape: tuple[int, int, int, int]) -> Tensor | None:
     """The detail of the GS key frames' cross-fade B on `problem`'s grid that a grid of
     `coarse_shape` cannot hold: B - up(bin(B)) (None without GS frames)."""
-    from rngcam.recon.baselines import blend
-    from rngcam.recon.multiscale import bin_video, upsample
+    from rngcam.recon.methods.baselines import blend
+    from rngcam.recon.methods.multiscale import bin_video, upsample
 
     if problem.b_gs is None or problem.b_gs.shape[1] == 0:
         return None
@@ -442,7 +442,7 @@ def with_key_frame_detail(problem: Problem, x0: Tensor, coarse_shape: tuple[int,
 
 def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str = "cpu",
              budget_s: float | None = None, stage=None, factors: tuple[int, ...] | None = None):
-    """PnP on `problem`, coarse to fine (rngcam.recon.multiscale) on grids of 96 px and more with
+    """PnP on `problem`, coarse to fine (rngcam.recon.methods.multiscale) on grids of 96 px and more with
     `coarse_to_fine` on: the start (RIFE, the operator norm from a random vector) is made on the
     coarsest level only; each finer level starts from the coarser estimate, upsampled, plus the key
     frames' detail the coarser grid could not hold (`with_key_frame_detail`), with the
@@ -451,7 +451,7 @@ def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str 
     own stop (noise level or stall), at the end of its schedule, or at its share of the budget.
     `stage(message)` reports set-up; `factors`: the levels' spatial factors (default:
     multiscale.default_factors)."""
-    from rngcam.recon.multiscale import CoarseToFine, default_factors, upsample
+    from rngcam.recon.methods.multiscale import CoarseToFine, default_factors, upsample
 
     settings = settings or PnPSettings()
     factors = tuple(factors or default_factors(problem.shape))

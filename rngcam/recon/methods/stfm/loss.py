@@ -8,8 +8,8 @@ import math
 import torch
 from torch import Tensor
 
-from rngcam.recon.fields import field_on_grid
-from rngcam.recon.stfm.model import _chunks
+from rngcam.recon.methods.stfm.fields import field_on_grid
+from rngcam.recon.methods.stfm.model import _chunks
 
 
 class DataLoss:

