@@ -61,7 +61,7 @@ def ops(size: str, repeats: int) -> dict:
     def bare():
         torch.fft.irfft2(torch.fft.rfft2(v, s=(fh, fw)) * tf, s=(fh, fw))
 
-    step = rs._chunk(3, None)
+    step = rs.frames_per_chunk(3)
     pad = torch.zeros(3, step, fh, fw)
     spec = torch.empty(3, step, fh, fw // 2 + 1, dtype=torch.complex64)
     img = torch.empty(3, step, fh, fw)

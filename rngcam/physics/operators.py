@@ -194,7 +194,8 @@ class RollingShutter(LinearOperator):
                                      adj.to(device=device, dtype=cdt).contiguous())
         return self._band_cache[key]
 
-    def _chunk(self, channels: int, frame_chunk: int | None) -> int:
+    def frames_per_chunk(self, channels: int, frame_chunk: int | None = None) -> int:
+        """Frames that go through the FFTs at a time: `frame_chunk`, else as many as fit CHUNK_BYTES."""
         if frame_chunk is not None:
             return max(1, int(frame_chunk))
         fh, fw = self.conv.fft_shape
@@ -224,7 +225,7 @@ class RollingShutter(LinearOperator):
         rows_k, fwd, _ = self._band(v.dtype, v.device)
         n = rows_k.shape[1]
         reuse = not (torch.is_grad_enabled() and v.requires_grad)
-        step = self._chunk(c, frame_chunk)
+        step = self.frames_per_chunk(c, frame_chunk)
         rows = torch.zeros((c, h, fw // 2 + 1), dtype=fwd.dtype, device=v.device)
         for start in range(0, k, step):
             m = min(step, k - start)
@@ -254,7 +255,7 @@ class RollingShutter(LinearOperator):
         # The row weights commute with the transform along x: transform the measurement once.
         bx = torch.fft.rfft(torch.nn.functional.pad(b, (ox, fw - w - ox)), dim=-1)  # (C, H, fw')
         out = torch.empty((c, k, h, w), dtype=b.dtype, device=b.device) if reuse else []
-        step = self._chunk(c, frame_chunk)
+        step = self.frames_per_chunk(c, frame_chunk)
         for start in range(0, k, step):
             m = min(step, k - start)
             sel = bx[:, rows_k[start:start + m]]  # (C, m, n, fw')
