@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from rngcam.sim.fidelity import FIDELITIES
 from rngcam.sim.scenes import SCENES
 from rngcam.sim.simulate import DEFAULT_PSF_CROP
 
@@ -30,8 +31,12 @@ from rngcam.sim.simulate import DEFAULT_PSF_CROP
 @click.option("--start", default=None, type=click.IntRange(min=0),
               help="Clip scene: first source frame (default: the window with the most motion).")
 @click.option("--bayer", is_flag=True, help="Cameras deliver BayerRG12 mosaics at 2x size (grid_bin 2).")
+@click.option("--fidelity", type=click.Choice(FIDELITIES), default="grid", show_default=True,
+              help="grid: the truth on the reconstruction's grid; fine: rendered 2x finer in space and 4x "
+                   "in time, binned as the rig bins; lab: fine plus calibration errors of the size "
+                   "calibration leaves (true values in the bundle's meta.truth_calibration).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
-def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start, bayer, overwrite):
+def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start, bayer, fidelity, overwrite):
     """Simulate SCENE (sineball, smoke or clip) through the RS+GS physics into a bundle."""
     from rngcam.sim.simulate import SimulationError, grid_shape, simulate, summary
 
@@ -40,6 +45,7 @@ def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start
     except SimulationError as exc:
         raise click.BadParameter(str(exc), param_hint="--size") from None
     bundle = simulate(scene, out, size=size, seed=seed, psf=psf, psf_crop=psf_crop, noise=noise,
-                      clip=clip, span=span, start=start, bayer=bayer, overwrite=overwrite)
+                      clip=clip, span=span, start=start, bayer=bayer, overwrite=overwrite,
+                      fidelity=fidelity)
     for line in summary(bundle, out):
         click.echo(line)
