@@ -34,16 +34,18 @@ def test_fine_is_the_rig_binning_of_a_finer_truth(tmp_path):
     grid_b = simulate("sineball", tmp_path / "g.h5", size=SIZE, noise=False, fidelity="grid")
     fine_b = simulate("sineball", tmp_path / "f.h5", size=SIZE, noise=False, fidelity="fine")
     assert fine_b.meta["fidelity"] == "fine" and fine_b.meta["fine"] == {"space": 2, "time": 4}
-    k = grid_b.meta["n_frames"]
-    assert fine_b.truth.video.shape == grid_b.truth.video.shape
+    k = fine_b.meta["n_frames"]
+    assert fine_b.truth.video.shape == (3, k, SIZE, SIZE) and abs(k - grid_b.meta["n_frames"]) <= 1
     # The truth is the mean of the 2x finer, 4x faster render over each grid pixel and frame.
-    fgrid = VideoGrid(grid_b.meta["dt_s"] / 4, 4 * k)
-    kt = {"key_times_s": grid_b.meta["key_times_s"]}
+    fgrid = VideoGrid(fine_b.meta["dt_s"] / 4, 4 * k)
+    kt = {"key_times_s": fine_b.meta["key_times_s"]}
     fine = render_scene("sineball", fgrid, 2 * SIZE, 0, **kt)
     np.testing.assert_allclose(fine_b.truth.video, fm.bin_space(fm.bin_time(fine, k)), atol=1e-6)
     # Not the inverse crime: the RS image differs from the grid operator applied to that truth
     # (sub-row timing, sub-pixel detail), but only by a few percent.
-    rs_f, rs_g = rs_meas(fine_b), rs_meas(grid_b)
+    assert fine_b.rs.frames.shape[1:3] == (2 * SIZE, 2 * SIZE) and fine_b.meta["grid_bin"] == 2
+    assert fine_b.rs.line_time_s == pytest.approx(grid_b.rs.line_time_s / 2)
+    rs_f, rs_g = fm.bin_space(rs_meas(fine_b)), rs_meas(grid_b)
     rel = np.linalg.norm(rs_f - rs_g) / np.linalg.norm(rs_g)
     assert 1e-3 < rel < 0.1
     # Exact calibration: identity transform, unit gains, no defects.
@@ -62,7 +64,8 @@ def test_each_grid_row_bins_sensor_rows_with_their_own_start_times():
     psf[0, 1, 1] = 1
     from rngcam.physics.timing import GlobalShutterTiming
 
-    rs, _ = fm.fine_measure(video, psf, grid, fgrid, dt, 2 * dt, GlobalShutterTiming((0.0,), dt), fm.LabErrors())
+    rs, _ = fm.fine_measure(video, psf, grid, fgrid, dt / 2, 2 * dt, GlobalShutterTiming((0.0,), dt), fm.LabErrors())
+    rs = fm.bin_space(np.repeat(rs, 2, axis=-1))  # the rows as the reconstruction bins them
     # Sensor row r exposes [r * 104 us, r * 104 us + 416 us): rows 0..6 see sub-frame 13 (in units of dt:
     # [r/2, r/2 + 2) overlaps [3.25, 3.5) for r = 3..6), each for a quarter frame.
     rows = RollingShutterTiming(dt / 2, 2 * dt, 16).weights(fgrid)[:, 13] * (fgrid.dt_s / dt)
@@ -106,8 +109,8 @@ def test_lab_gs_frames_carry_the_drawn_gains_and_shift():
     err = fm.LabErrors(shift_px=(0.5, 0.0), gs_gains=(1.02, 0.97, 1.0))
     _, plain = fm.fine_measure(ramp, psf, grid, fgrid, dt, dt, gs_t, fm.LabErrors())
     _, lab = fm.fine_measure(ramp, psf, grid, fgrid, dt, dt, gs_t, err)
-    step = 1 / (2 * w - 1) * 2  # the ramp's rise per grid pixel
-    mid = (slice(None), 0, slice(8, 24), slice(8, 24))
+    step = 1 / (2 * w - 1) * 2  # the ramp's rise per grid pixel (2 sensor pixels)
+    mid = (slice(None), 0, slice(16, 48), slice(16, 48))
     np.testing.assert_allclose(lab[mid] / np.array(err.gs_gains)[:, None, None] - plain[mid], 0.5 * step, rtol=1e-3)
 
 

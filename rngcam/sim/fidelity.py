@@ -2,11 +2,13 @@
 
 - grid: the truth on the grid, measured with the operators the reconstruction inverts (an
   inverse crime, kept as the default for the existing benchmarks).
-- fine: the truth rendered at SPACE x the grid in space and TIME x in time, measured there and
-  binned the way the rig bins: each grid row is the mean of SPACE sensor rows, each with its own
-  start time (line time / SPACE apart), each grid pixel the mean of SPACE x SPACE sensor pixels.
-  The PSF is the same physical PSF resampled at the fine size; the bundle stores it binned.
-  Calibration handed to the reconstruction is exact.
+- fine: the truth rendered at SPACE x the grid in space and TIME x in time and measured there,
+  as the rig measures: the sensors have SPACE x the grid's pixels along each side, each RS sensor
+  row with its own start time (line time = grid dt / SPACE), and the bundle holds those frames
+  with grid_bin SPACE, so the reconstruction bins them as it bins the rig's (16 there): each grid
+  row the mean of SPACE sensor rows (a trapezoid in time), each grid pixel of SPACE x SPACE
+  sensor pixels. The PSF is the physical PSF at the sensor's resolution. The truth is the fine
+  render's mean over each grid pixel and frame. Calibration handed over is exact.
 - lab: fine plus every calibration error, drawn from the seed at the size the project's own
   calibration reports with a margin (LAB_MAGNITUDES): a GS-to-RS similarity (sub-pixel shift,
   rotation, scale) and radial GS lens distortion; PSF measurement noise and background; a
@@ -94,9 +96,10 @@ def bin_time(video: np.ndarray, frames: int, factor: int = TIME) -> np.ndarray:
     return video[:, :frames * factor].reshape(c, frames, factor, h, w).mean(axis=2)
 
 
-def fine_grid(grid: VideoGrid, line_time_scale: float, rows: int, exposure_s: float) -> VideoGrid:
-    """The sub-frame grid: TIME x the grid's frames, more if a longer true line time needs them."""
-    end = (rows - 1) * grid.dt_s * line_time_scale + exposure_s
+def fine_grid(grid: VideoGrid, line_time_scale: float, last_start_s: float, exposure_s: float) -> VideoGrid:
+    """The sub-frame grid: TIME x the grid's frames, more if a longer true line time needs them
+    (`last_start_s`: the last sensor row's start at the recorded line time)."""
+    end = last_start_s * line_time_scale + exposure_s
     n = max(grid.n_frames * TIME, int(np.ceil(end / (grid.dt_s / TIME) - 1e-9)))
     return VideoGrid(grid.dt_s / TIME, n)
 
@@ -128,15 +131,16 @@ def vignetting_field(shape: tuple[int, int], amount: float) -> np.ndarray:
 def fine_measure(video: np.ndarray, psf_fine: np.ndarray, grid: VideoGrid, fgrid: VideoGrid,
                  line_time_s: float, exposure_s: float, gs: GlobalShutterTiming,
                  errors: LabErrors) -> tuple[np.ndarray, np.ndarray]:
-    """Noiseless RS (C, H, W) and GS (C, G, H, W) on the grid, in grid operator units, from a
-    video (C, Kf, SPACE H, SPACE W) on the sub-frame grid `fgrid`."""
+    """Noiseless RS (C, Hs, Ws) and GS (C, G, Hs, Ws) at the sensors' resolution, in the grid's
+    operator units, from a video (C, Kf, Hs, Ws) on the sub-frame grid `fgrid` (Hs = SPACE H);
+    `line_time_s` is a sensor row's, as recorded (the true one is errors.line_time_scale x it)."""
     import torch  # here: the CLI imports this module for its choices
 
     from rngcam.physics.operators import GlobalShutter, RollingShutter
 
     v = torch.from_numpy(np.asarray(video, np.float64))
     c, _, hf, wf = v.shape
-    true_line = line_time_s * errors.line_time_scale / SPACE  # SPACE sensor rows per grid row
+    true_line = line_time_s * errors.line_time_scale
     rs_t = RollingShutterTiming(line_time_s=true_line, exposure_s=exposure_s, rows=hf)
     units = fgrid.dt_s / grid.dt_s  # operator units count exposure in frames of the grid
     rs = RollingShutter(torch.from_numpy(psf_fine), torch.from_numpy(rs_t.weights(fgrid)), wf,
@@ -151,7 +155,7 @@ def fine_measure(video: np.ndarray, psf_fine: np.ndarray, grid: VideoGrid, fgrid
                 warped = cv2.remap(gs_img[ch, g], mx.astype(np.float32), my.astype(np.float32),
                                    cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
                 gs_img[ch, g] = np.clip(warped, 0, None) * vig * gains[ch]
-    return bin_space(rs), bin_space(gs_img)
+    return rs, gs_img
 
 
 def psf_measured(psf_sensor: np.ndarray, errors: LabErrors, seed: int) -> np.ndarray:

@@ -77,11 +77,11 @@ def grid_shape(size) -> tuple[int, int]:
 
 
 def simulation_timing(size, bayer: bool = False, dt_s: float = GRID_DT_S,
-                      exposure_s: float = EXPOSURE_S) -> SimTiming:
+                      exposure_s: float = EXPOSURE_S, grid_bin: int | None = None) -> SimTiming:
     """RS over the grid's rows (`size`: N or (H, W)), GS key frames at the start, middle and end
-    of the RS window."""
+    of the RS window. grid_bin: sensor rows per grid row (default 2 with `bayer`, else 1)."""
     size = grid_shape(size)[0]
-    grid_bin = 2 if bayer else 1
+    grid_bin = (2 if bayer else 1) if grid_bin is None else int(grid_bin)
     line_time_s = dt_s / grid_bin
     rs = RollingShutterTiming(line_time_s=line_time_s, exposure_s=exposure_s, rows=size,
                               rows_per_bin=grid_bin)
@@ -170,19 +170,19 @@ def measure(video: np.ndarray, psf_grid: np.ndarray, timing: SimTiming) -> tuple
 
 def _fine_capture(scene: str, size: tuple[int, int], seed: int, timing: SimTiming, psf, psf_crop: float,
                   errors: fidelity_mod.LabErrors, render_opts: dict):
-    """--fidelity fine/lab: (truth on the grid, the PSF as stored, RS, GS) rendered and measured
-    SPACE x finer in space and TIME x in time, then binned (rngcam.sim.fidelity)."""
+    """--fidelity fine/lab: (truth on the grid, the PSF as stored, RS, GS at the sensors'
+    resolution, SPACE x the grid's) rendered and measured SPACE x finer in space and TIME x in
+    time (rngcam.sim.fidelity); the reconstruction bins them (grid_bin SPACE)."""
     fm = fidelity_mod
     fine_size = (size[0] * fm.SPACE, size[1] * fm.SPACE)
-    fgrid = fm.fine_grid(timing.grid, errors.line_time_scale, size[0], EXPOSURE_S)
+    fgrid = fm.fine_grid(timing.grid, errors.line_time_scale, timing.rs_sensor.end_s - EXPOSURE_S, EXPOSURE_S)
     fine_video = render_scene(scene, fgrid, fine_size, seed, **render_opts)
     fine_psf = prepare_simulation_psf(psf, fine_size, fine_size, psf_crop, seed)
-    rs_y, gs_y = fm.fine_measure(fine_video, fine_psf.grid, timing.grid, fgrid, timing.rs.line_time_s,
+    rs_y, gs_y = fm.fine_measure(fine_video, fine_psf.grid, timing.grid, fgrid, timing.rs_sensor.line_time_s,
                                  EXPOSURE_S, timing.gs, errors)
     video = fm.bin_space(fm.bin_time(fine_video, timing.grid.n_frames)).astype(np.float32)
     del fine_video
-    stored = fm.bin_space(fine_psf.sensor.astype(np.float64))
-    stored = fm.psf_measured((stored / stored.sum(axis=(-2, -1), keepdims=True)).astype(np.float32), errors, seed)
+    stored = fm.psf_measured(fine_psf.sensor, errors, seed)
     grid_psf, _ = psf_mod.prepare_psf(stored.astype(np.float64), size, bias=None)
     return video, PreparedPSF(stored, grid_psf, fine_psf.source, fine_psf.bias, fine_psf.model), rs_y, gs_y
 
@@ -235,7 +235,8 @@ def rig_yaml(scene: str, seed: int, size, timing: SimTiming, sensor: SensorModel
 def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
              psf: str | Path | None = None, psf_crop: float = DEFAULT_PSF_CROP, noise: bool = True,
              clip: str | Path | None = None, span: int = 8, start: int | None = None,
-             bayer: bool = False, overwrite: bool = False, fidelity: str = "grid") -> Bundle:
+             bayer: bool = False, overwrite: bool = False, fidelity: str = "grid",
+             lab_errors: fidelity_mod.LabErrors | None = None) -> Bundle:
     """Simulate `scene` on a grid of `size` (N, (H, W) or "HxW") and write the bundle to `out`.
 
     psf: PSF file (default: the measured DiffuserCam caustic in rngcam/data), or 'lenslets' for
@@ -243,6 +244,7 @@ def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
     (default: most motion). bayer: BayerRG12 frames at 2x size (grid_bin 2).
     fidelity: 'grid' (the truth on the reconstruction's grid), 'fine' (rendered finer than the
     grid and binned as the rig bins) or 'lab' (fine plus calibration errors), rngcam.sim.fidelity.
+    lab_errors: with 'lab', these errors instead of the seed's draw (one error family alone).
     """
     if fidelity not in fidelity_mod.FIDELITIES:
         raise SimulationError(f"--fidelity must be one of {', '.join(fidelity_mod.FIDELITIES)}, got {fidelity!r}")
@@ -257,7 +259,7 @@ def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
     if scene != "clip" and (clip is not None or start is not None):
         raise SimulationError("--clip and the clip start only apply to the clip scene")
 
-    timing = simulation_timing(size, bayer)
+    timing = simulation_timing(size, bayer, grid_bin=None if fidelity == "grid" else fidelity_mod.SPACE)
     sensor = default_sensor(bayer)
     scene_options: dict = {}
     meta_clip: dict = {}
@@ -274,7 +276,9 @@ def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
         scene_options = {"key_times_s": [float(t) for t in timing.gs.centres_s()]}
         render_opts = dict(scene_options)
 
-    errors = fidelity_mod.LabErrors.draw(seed) if fidelity == "lab" else fidelity_mod.LabErrors()
+    errors = fidelity_mod.LabErrors()
+    if fidelity == "lab":
+        errors = fidelity_mod.LabErrors.draw(seed) if lab_errors is None else lab_errors
     if fidelity == "grid":
         video = render_scene(scene, timing.grid, size, seed, **render_opts)
         prepared = prepare_simulation_psf(psf, tuple(n * timing.grid_bin for n in size), size, psf_crop, seed)

@@ -20,11 +20,12 @@ from rngcam.recon.stfm.bases import BaseVideos
 from rngcam.recon.stfm.init import GSInit
 from rngcam.recon.stfm.loss import DataLoss
 from rngcam.recon.stfm.model import FieldModel, _chunks
+from rngcam.recon.stfm.selfcal import SelfCalibration
 from rngcam.recon.stfm.settings import _FROM_PRESET, STFMSettings, resolve
 from rngcam.recon.stfm.stopping import NoiseStop
 
 
-class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
+class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, SelfCalibration, MethodBase):
     """STFM as a `rngcam.recon.loop.Method`. Build it with `make_stfm`. Its parts live in the
     package's modules (fields and frames, bases, loss, initialisation, stop test)."""
 
@@ -78,6 +79,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         self._ema = [q.detach().clone() for q in self._params] if self.resolved.ema_decay > 0 else None
         self.steps = 0
         self._cache: tuple[int, Tensor] | None = None
+        self._build_selfcal()
         self._rs_history: dict[int, float] = {}  # step -> relative RS residual at the stop checks
         self.rs_noise_level = (relative_noise_level(self.problem.b_rs.index_select(1, self.rs_rows_fit.to(self.device)))
                                if self.parts.rs else None)
@@ -182,7 +184,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
                 pred, target = pred * self.rs_valid, target * self.rs_valid
             out["rs"] = relative_residual(pred, target)
         if self.problem.b_gs is not None and self.problem.b_gs.shape[1] > 0:
-            pred = self.gs_op.A(video)
+            pred = self.warp_gs(self.gs_op.A(video))
             target = torch.from_numpy(gains).to(self.device)[:, None, None, None] * self.problem.b_gs
             if self.mask is not None:
                 pred, target = pred * self.mask, target * self.mask
