@@ -409,6 +409,7 @@ def _grid_psf(bundle: Bundle, grid_bin: int, channels: int) -> np.ndarray:
         raise BundleError("the bundle has no PSF (calibration/psf); run `rngcam calibrate psf`")
     raw = psf_mod.as_chw(np.asarray(raw, np.float64))
     shape = (max(1, round(raw.shape[-2] / grid_bin)), max(1, round(raw.shape[-1] / grid_bin)))
+    raw = psf_mod.centre_for_binning(raw, shape)
     try:
         psf, _ = psf_mod.prepare_psf(raw, shape, crop=1.0, bias=None,
                                      channels=channels if raw.shape[0] == 1 else None)
