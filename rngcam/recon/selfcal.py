@@ -135,6 +135,17 @@ def key_rows(rs_weights: Tensor, gs_weights: Tensor, overlap: float = KEY_ROW_OV
     return out
 
 
+def _filled(images: Tensor, valid: Tensor | None) -> Tensor:
+    """Invalid pixels (hot, dead, saturated) replaced by their 3x3 neighbourhood's median: through
+    the PSF one hot pixel reaches the whole row."""
+    if valid is None or bool(valid.all()):
+        return images
+    c, g, h, w = images.shape
+    padded = torch.nn.functional.pad(images.reshape(c * g, 1, h, w), (1, 1, 1, 1), mode="replicate")
+    med = padded.unfold(2, 3, 1).unfold(3, 3, 1).reshape(c * g, 1, h, w, 9).median(-1).values.reshape(c, g, h, w)
+    return torch.where(valid.expand_as(images), images, med)
+
+
 def register_key_rows(problem, iters: int = 30, free: int = 4) -> dict | None:
     """GS-to-RS similarity S and GS/RS gains from the RS rows exposed with a GS frame.
 
@@ -150,7 +161,7 @@ def register_key_rows(problem, iters: int = 30, free: int = 4) -> dict | None:
     if not pairs:
         return None
     p = problem.to(torch.float64)
-    images = p.gs_images()  # (C, G, H, W) video intensity, GS scale
+    images = _filled(p.gs_images(), p.gs_valid)  # (C, G, H, W) video intensity, GS scale
     c = images.shape[0]
     conv = p.rs_op().conv
     valid = p.rs_valid_mask()
@@ -162,16 +173,20 @@ def register_key_rows(problem, iters: int = 30, free: int = 4) -> dict | None:
     params = torch.zeros(free, dtype=torch.float64, requires_grad=True)
     log_gain = torch.log(gain0.clone()).requires_grad_(True)
 
-    def misfit() -> Tensor:
-        m = _matrix_t(torch.cat([params, torch.zeros(4 - free, dtype=params.dtype)]))
-        total = torch.zeros((), dtype=torch.float64)
+    def misses(prm: Tensor, lg: Tensor) -> Tensor:
+        """The weighted residual vector over the key rows, / sqrt(norm)."""
+        m = _matrix_t(torch.cat([prm, torch.zeros(4 - free, dtype=prm.dtype)]))
+        out = []
         for (g, rows), target in zip(sel, targets, strict=True):
-            img = warp(images[:, g:g + 1], m)[:, 0] * torch.exp(log_gain)[:, None, None]
+            img = warp(images[:, g:g + 1], m)[:, 0] * torch.exp(lg)[:, None, None]
             pred = conv.A(img)[:, rows] * rowsum[rows][None, :, None]
             if valid is not None:
                 pred = pred * valid[:, rows]
-            total = total + (pred - target).square().sum()
-        return total / norm
+            out.append((pred - target).flatten())
+        return torch.cat(out) / math.sqrt(norm)
+
+    def misfit() -> Tensor:
+        return misses(params, log_gain).square().sum()
 
     with torch.no_grad():
         start = float(misfit())
@@ -187,10 +202,124 @@ def register_key_rows(problem, iters: int = 30, free: int = 4) -> dict | None:
     opt.step(closure)
     with torch.no_grad():
         end = float(misfit())
-        if not (math.isfinite(end) and end < start):
-            return {"matrix": np.eye(3), "gains": gain0.numpy(), "rs_residual_before": math.sqrt(start),
-                    "rs_residual_after": math.sqrt(start), "rows": int(sum(len(r) for _, r in sel))}
-        inv = _matrix_t(torch.cat([params, torch.zeros(4 - free, dtype=params.dtype)])).numpy()
-        return {"matrix": np.linalg.inv(inv), "gains": torch.exp(log_gain).numpy(),
-                "rs_residual_before": math.sqrt(start), "rs_residual_after": math.sqrt(end),
-                "rows": int(sum(len(r) for _, r in sel))}
+    sigma = _uncertainty(misses, params.detach(), log_gain.detach())
+    rows_used = int(sum(len(r) for _, r in sel))
+    if not (math.isfinite(end) and end < start):
+        return {"matrix": np.eye(3), "gains": gain0.numpy(), "rs_residual_before": math.sqrt(start),
+                "rs_residual_after": math.sqrt(start), "rows": rows_used, "sigma": sigma}
+    inv = _matrix_t(torch.cat([params.detach(), torch.zeros(4 - free, dtype=params.dtype)])).numpy()
+    return {"matrix": np.linalg.inv(inv), "gains": torch.exp(log_gain.detach()).numpy(),
+            "rs_residual_before": math.sqrt(start), "rs_residual_after": math.sqrt(end), "rows": rows_used,
+            "sigma": sigma}
+
+
+def _uncertainty(misses, params: Tensor, log_gain: Tensor) -> dict:
+    """Standard errors of the fitted values, sigma^2 (J^T J)^-1 with sigma^2 from the residual
+    (noise only: a model error between the rows and the key frames biases without showing here)."""
+    n = len(params)
+    x0 = torch.cat([params, log_gain])
+    with torch.no_grad():
+        r = misses(params, log_gain)
+        cols = []
+        for i in range(len(x0)):  # central differences: 2 evaluations per value, no per-residual backward
+            e = torch.zeros_like(x0)
+            e[i] = 1e-4
+            hi, lo = x0 + e, x0 - e
+            cols.append((misses(hi[:n], hi[n:]) - misses(lo[:n], lo[n:])) / 2e-4)
+        jac = torch.stack(cols, dim=1)
+    dof = max(len(r) - len(x0), 1)
+    cov = torch.linalg.pinv(jac.T @ jac) * float(r.square().sum()) / dof
+    std = cov.diagonal().clamp_min(0).sqrt().numpy()
+    names = ["shift_x_px", "shift_y_px", "rotation_rad", "log_scale"][:n]
+    out = {k: float(v) for k, v in zip(names, std[:n], strict=True)}
+    out["gains_rel"] = [float(v) for v in std[n:]]
+    return out
+
+
+# ----------------------------------------------------------------------------- the problem
+
+MODES = ("off", "gains", "all")  # what calibrate_problem applies (all: gains and the GS-to-RS transform)
+MAX_SIGMA_PX = 0.1  # a transform whose shift is less certain than this is not applied
+MAX_ROTATION_DEG, MAX_SCALE = 2.0, 0.03  # beyond these the key rows fitted something else
+
+
+def calibrate_problem(problem, mode: str = "gains"):
+    """(problem with its GS frames on the RS scale and in RS coordinates, report) from the key
+    rows (register_key_rows): b_gs becomes gains x b_gs sampled at S^-1 (white balance then 1).
+    The report has the start values (identity, the bundle's white balance), the refined ones,
+    their standard errors, and why a transform was not applied. mode "off": (problem, None)."""
+    if mode not in MODES:
+        from rngcam.errors import ConfigError
+
+        raise ConfigError(f"self_calibrate must be one of {', '.join(MODES)}, got {mode!r}")
+    if mode == "off" or problem.b_rs is None or problem.b_gs is None:
+        return problem, None
+    c = problem.channels
+    wb0 = np.ones(c) if problem.white_balance is None else problem.white_balance.double().cpu().numpy()
+    # The transform is always fitted: left out, a misregistration biases the gains by several percent.
+    result = register_key_rows(problem, free=4)
+    if result is None:
+        return problem, {"mode": mode, "applied": False,
+                         "why": "no RS row is exposed over the same window as a GS frame"}
+    why = None
+    d = describe(result["matrix"])
+    sig = result["sigma"]
+    if mode == "gains":
+        why = "self_calibrate=gains"
+    elif max(sig.get("shift_x_px", 0), sig.get("shift_y_px", 0)) > MAX_SIGMA_PX:
+        why = f"shift uncertain (standard error > {MAX_SIGMA_PX} px)"
+    elif abs(d["rotation_deg"]) > MAX_ROTATION_DEG or abs(d["scale"] - 1) > MAX_SCALE:
+        why = f"rotation {d['rotation_deg']:.2f} deg / scale {d['scale']:.4f} beyond what calibration leaves"
+    gains = np.asarray(result["gains"], np.float64)
+    report = {"mode": mode, "applied": True, "rows": result["rows"],
+              "rs_residual_before": result["rs_residual_before"], "rs_residual_after": result["rs_residual_after"],
+              "start": {**describe(np.eye(3)), "gains": wb0.tolist()},
+              "refined": {**describe(result["matrix"]), "gains": gains.tolist()},
+              "sigma": result["sigma"]}
+    if why is not None:
+        report["transform_not_applied"] = why
+        report["transform_rejected"] = report["refined"]
+        report["refined"] = {**describe(np.eye(3)), "gains": gains.tolist()}
+    return _apply(problem, np.eye(3) if why is not None else result["matrix"], gains), report
+
+
+def _apply(problem, matrix: np.ndarray, gains: np.ndarray):
+    """The problem with b_gs := gains * b_gs sampled at S^-1 (valid pixels likewise), white balance 1."""
+    from dataclasses import replace
+
+    b_gs = problem.b_gs
+    inv = np.linalg.inv(matrix)
+    gs_valid = problem.gs_valid
+    if not is_identity(matrix):
+        b_gs = warp(b_gs, inv)
+        if gs_valid is not None:
+            moved = warp(gs_valid.to(b_gs.dtype).expand(b_gs.shape[0], *gs_valid.shape[1:]), inv)
+            gs_valid = moved > 1 - 1e-6
+    g = torch.as_tensor(gains, dtype=b_gs.dtype, device=b_gs.device)
+    return replace(problem, b_gs=b_gs * g[:, None, None, None], gs_valid=gs_valid,
+                   white_balance=torch.ones_like(g), notes=list(problem.notes))
+
+
+def report_lines(report: dict | None, end_gains=None) -> list[str]:
+    """One note per refined value: start -> refined (-> end for the gains a fit learned further)."""
+    if not report:
+        return []
+    if not report.get("applied"):
+        return [f"self-calibration ({report['mode']}) not applied: {report['why']}"]
+    s, r = report["start"], report["refined"]
+    lines = [f"self-calibration ({report['mode']}) from {report['rows']} RS rows exposed with the GS frames: "
+             f"RS residual on them {report['rs_residual_before']:.4f} -> {report['rs_residual_after']:.4f}"]
+    if "transform_not_applied" not in report:
+        lines.append(f"GS-to-RS shift ({s['shift_px'][0]:+.3f}, {s['shift_px'][1]:+.3f}) -> "
+                     f"({r['shift_px'][0]:+.3f}, {r['shift_px'][1]:+.3f}) px, rotation {s['rotation_deg']:+.3f} -> "
+                     f"{r['rotation_deg']:+.3f} deg, scale {s['scale']:.4f} -> {r['scale']:.4f}")
+    if "transform_not_applied" in report:
+        x = report["transform_rejected"]
+        lines.append(f"GS-to-RS transform kept ({report['transform_not_applied']}); the key rows suggested shift "
+                     f"({x['shift_px'][0]:+.3f}, {x['shift_px'][1]:+.3f}) px, rotation {x['rotation_deg']:+.3f} deg, "
+                     f"scale {x['scale']:.4f}")
+    gains = "/".join(f"{g:.3f}" for g in s["gains"]) + " -> " + "/".join(f"{g:.3f}" for g in r["gains"])
+    if end_gains is not None:
+        gains += " -> " + "/".join(f"{g * r0:.3f}" for g, r0 in zip(end_gains, r["gains"], strict=True)) + " (fit)"
+    lines.append(f"GS/RS gains {gains}")
+    return lines

@@ -196,6 +196,11 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
     the method's `notes` and `preset_choice` (in its resolved settings) say which preset it chose
     and why."""
     settings = settings or STFMSettings()
+    if settings.selfcal_report is None and settings.self_calibrate != "off":
+        from rngcam.recon.selfcal import calibrate_problem
+
+        problem, report = calibrate_problem(problem, settings.self_calibrate)
+        settings = replace(settings, selfcal_report=report or {})
     if settings.preset != "auto":
         return _make_stfm(problem, settings, device, initial_video, budget_s, stage)
     from rngcam.recon.stfm.auto import choose_preset

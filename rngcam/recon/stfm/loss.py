@@ -73,7 +73,7 @@ class DataLoss:
     def gs_term(self, v_win: Tensor, windows: Tensor, win_frames: Tensor) -> Tensor:
         """Normalised GS data term of GS frames `windows` from the frames their exposures touch,
         `win_frames` (values v_win (C, S, H, W)); an unbiased estimate for a uniform sample."""
-        pred = self.warp_gs(self.gs_op.A_frames(v_win, windows, win_frames))
+        pred = self.gs_op.A_frames(v_win, windows, win_frames)
         miss = pred - self._gain()[:, None, None, None] * self.problem.b_gs.index_select(1, windows)
         if self.mask is not None:
             miss = miss * self.mask

@@ -16,16 +16,16 @@ from rngcam.recon.fields import transfer_fields
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
+from rngcam.recon.selfcal import report_lines
 from rngcam.recon.stfm.bases import BaseVideos
 from rngcam.recon.stfm.init import GSInit
 from rngcam.recon.stfm.loss import DataLoss
 from rngcam.recon.stfm.model import FieldModel, _chunks
-from rngcam.recon.stfm.selfcal import SelfCalibration
 from rngcam.recon.stfm.settings import _FROM_PRESET, STFMSettings, resolve
 from rngcam.recon.stfm.stopping import NoiseStop
 
 
-class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, SelfCalibration, MethodBase):
+class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
     """STFM as a `rngcam.recon.loop.Method`. Build it with `make_stfm`. Its parts live in the
     package's modules (fields and frames, bases, loss, initialisation, stop test)."""
 
@@ -48,6 +48,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, SelfCalibration,
         self.settings = settings
         choice = settings.preset_choice  # preset "auto" (make_stfm): what it chose and why
         self.notes = [f"preset auto chose {choice['preset']}: {choice['reason']}"] if choice else []
+        self.notes += report_lines(settings.selfcal_report)  # the end values: resolved_settings
         self._static_from = static_from
         self._given_base = base_video
         self._rs_norm_start, self.rs_norm_vector = rs_norm_start, None
@@ -79,7 +80,6 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, SelfCalibration,
         self._ema = [q.detach().clone() for q in self._params] if self.resolved.ema_decay > 0 else None
         self.steps = 0
         self._cache: tuple[int, Tensor] | None = None
-        self._build_selfcal()
         self._rs_history: dict[int, float] = {}  # step -> relative RS residual at the stop checks
         self.rs_noise_level = (relative_noise_level(self.problem.b_rs.index_select(1, self.rs_rows_fit.to(self.device)))
                                if self.parts.rs else None)
@@ -184,7 +184,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, SelfCalibration,
                 pred, target = pred * self.rs_valid, target * self.rs_valid
             out["rs"] = relative_residual(pred, target)
         if self.problem.b_gs is not None and self.problem.b_gs.shape[1] > 0:
-            pred = self.warp_gs(self.gs_op.A(video))
+            pred = self.gs_op.A(video)
             target = torch.from_numpy(gains).to(self.device)[:, None, None, None] * self.problem.b_gs
             if self.mask is not None:
                 pred, target = pred * self.mask, target * self.mask
@@ -251,5 +251,12 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, SelfCalibration,
         out["rs_noise_level"] = self.rs_noise_level
         out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}
         out["left_out"] = [list(x) for x in self.left_out]
+        report = self.settings.selfcal_report
+        if report:
+            out["self_calibration"] = dict(report)
+            if report.get("applied"):  # the fit learns the gains further (Lambda, on the refined scale)
+                learned = self.gains() if self.learn_gain else np.ones(self.C)
+                end = [float(g) * r for g, r in zip(learned, report["refined"]["gains"], strict=True)]
+                out["self_calibration"]["end"] = {**report["refined"], "gains": end}
         return out
 

@@ -61,6 +61,11 @@ class STFMSettings:
     motion_init: str | None = None  # 2-D dynamic field: "flow" (key-frame optical flow) or "search" (motion_search)
     coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.stfm.multilevel)
     preset_choice: dict | None = None  # preset auto: what it chose and why (set by make_stfm, not by users)
+    self_calibrate: str = setting(
+        "gains", "refine the calibration from the RS rows exposed with the GS frames before the fit "
+                 "(rngcam.recon.selfcal): gains (GS/RS colour gains), all (and the GS-to-RS shift, rotation "
+                 "and scale where the data pin them), or off", choices=("off", "gains", "all"))
+    selfcal_report: dict | None = None  # what self-calibration refined (set by make_stfm, not by users)
 
     def __post_init__(self):
         if self.preset not in PRESETS:
@@ -69,6 +74,8 @@ class STFMSettings:
             raise ConfigError(f"stfm: components must be 'auto' or 'all', got {self.components!r}")
         if self.gs_anchor not in ("soft", "hard"):
             raise ConfigError(f"stfm: gs_anchor must be 'soft' or 'hard', got {self.gs_anchor!r}")
+        if self.self_calibrate not in ("off", "gains", "all"):
+            raise ConfigError(f"stfm: self_calibrate must be off, gains or all, got {self.self_calibrate!r}")
         if self.motion_init not in (None, "flow", "search"):
             raise ConfigError(f"stfm: motion_init must be 'flow' or 'search', got {self.motion_init!r}")
         if self.init not in (None, "gs", "random"):
