@@ -238,6 +238,15 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
                     a.copy_(saved)
         self._cache = None
 
+    def budget_cut(self) -> str:
+        """Said when a time budget ends the run: how far the fit was from its own stop."""
+        if not self._rs_history:
+            return "the fit had not reached its first convergence check"
+        step = max(self._rs_history)
+        noise = f"; noise level {self.rs_noise_level:.4f}" if self.rs_noise_level is not None else ""
+        return (f"the fit had not converged (RS residual {self._rs_history[step]:.4f} at step {step}{noise}); "
+                "its output is the state at the budget")
+
     def reduce_step(self, factor: float) -> None:
         self.base_lr *= factor
         for g in self.optimiser.param_groups:

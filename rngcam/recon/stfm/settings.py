@@ -66,6 +66,8 @@ class STFMSettings:
                  "(rngcam.recon.selfcal): gains (GS/RS colour gains), all (and the GS-to-RS shift, rotation "
                  "and scale where the data pin them), or off", choices=("off", "gains", "all"))
     selfcal_report: dict | None = None  # what self-calibration refined (set by make_stfm, not by users)
+    start_floor: bool = setting(True, "output the best GS-only video (cross-fade or flow interpolation) "
+                                      "instead of the fit when the fit's RS residual is not below its own")
 
     def __post_init__(self):
         if self.preset not in PRESETS:
