@@ -49,6 +49,7 @@ def test_the_default_stfm_is_auto_guarded_and_reports_self_calibration():
     p = tiny_sineball_problem(16).to(torch.float32)
     name, settings = registry.settings_for("stfm")
     assert settings.preset == "auto" and settings.start_floor and settings.self_calibrate == "gains"
+    assert not STFMSettings().start_floor and STFMSettings().self_calibrate == "off"  # the bare model
     m = make_stfm(p, settings)
     assert isinstance(m, StartGuard)
     assert any(n.startswith("preset auto chose") for n in m.notes)

@@ -62,11 +62,11 @@ class STFMSettings:
     coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.stfm.multilevel)
     preset_choice: dict | None = None  # preset auto: what it chose and why (set by make_stfm, not by users)
     self_calibrate: str = setting(
-        "gains", "refine the calibration from the RS rows exposed with the GS frames before the fit "
+        "off", "refine the calibration from the RS rows exposed with the GS frames before the fit "
                  "(rngcam.recon.selfcal): gains (GS/RS colour gains), all (and the GS-to-RS shift, rotation "
                  "and scale where the data pin them), or off", choices=("off", "gains", "all"))
     selfcal_report: dict | None = None  # what self-calibration refined (set by make_stfm, not by users)
-    start_floor: bool = setting(True, "output the best GS-only video (cross-fade or flow interpolation) "
+    start_floor: bool = setting(False, "output the best GS-only video (cross-fade or flow interpolation) "
                                       "instead of the fit when the fit's RS residual is not below its own")
 
     def __post_init__(self):
@@ -213,15 +213,23 @@ def resolve(settings: STFMSettings, h: int, w: int, k: int) -> tuple[_Resolved, 
                      fields={key: preset[key] for key in ("static", "motion", "dynamic")}, **values), preset
 
 
+# What the registry's presets (the command line, the Python API by label) add to the dataclass's
+# defaults: the gains refined from the data before the fit and the GS-only start as the floor of the
+# output (rngcam.recon.selfcal, rngcam.recon.stfm.guard). The dataclass keeps both off, so that a
+# fit built from STFMSettings directly is exactly the model and nothing around it.
+USER_DEFAULTS = {"self_calibrate": "gains", "start_floor": True}
+
+
 def preset_settings(name: str) -> STFMSettings:
     """Preset `name` as settings: every value that does not depend on the problem's size filled in
     (what the registry offers and `--help` shows); the others stay None (resolved per problem).
     "auto" fills nothing: make_stfm picks prior or fast per scene and fills from that one."""
     if name == "auto":
-        return STFMSettings(preset="auto")
+        return STFMSettings(preset="auto", **USER_DEFAULTS)
     values = _preset(name, 2, 2, 2)
-    return replace(STFMSettings(preset=name), **{f.name: values[f.name] for f in fields(STFMSettings)
-                                                  if f.name in values and f.name != "rows_per_step"})
+    user = {} if name == "paper" else USER_DEFAULTS  # paper: the paper's method as published
+    return replace(STFMSettings(preset=name, **user), **{f.name: values[f.name] for f in fields(STFMSettings)
+                                                          if f.name in values and f.name != "rows_per_step"})
 
 
 def _setting_or_preset(settings: STFMSettings, name: str):
