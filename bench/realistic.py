@@ -30,7 +30,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from rngcam.recon import registry, selfcal  # noqa: E402
+from rngcam.recon import registry  # noqa: E402
 from rngcam.recon.loop import LoopSettings, run  # noqa: E402
 from rngcam.recon.metrics import motion_metrics, video_metrics  # noqa: E402
 from rngcam.recon.problem import build_problem  # noqa: E402

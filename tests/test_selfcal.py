@@ -92,3 +92,15 @@ def test_calibrate_problem_applies_what_it_refined_and_reports_it():
     kept, rep = selfcal.calibrate_problem(p, "gains")
     assert rep["transform_not_applied"] == "self_calibrate=gains" and rep["refined"]["shift_px"] == [0.0, 0.0]
     assert selfcal.calibrate_problem(p, "off") == (p, None)
+
+
+def test_tv3d_self_calibrates_on_request_only():
+    from rngcam.recon.tv3d import TV3DSettings, make_tv3d
+
+    gains = np.array([1.03, 0.98, 1.01])
+    p = _static_problem(np.eye(3), gains).to(torch.float32)
+    m = make_tv3d(p, TV3DSettings(self_calibrate="gains", coarse_to_fine=False))
+    np.testing.assert_allclose(m.selfcal_report["refined"]["gains"], gains, rtol=0.02)
+    assert any(n.startswith("GS/RS gains 1.000/1.000/1.000 -> 1.03") for n in m.notes)
+    plain = make_tv3d(p, TV3DSettings(coarse_to_fine=False))
+    assert not hasattr(plain, "selfcal_report")
