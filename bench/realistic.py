@@ -136,6 +136,57 @@ def run_gs_only(name: str, p, scene: str) -> dict:
     return metrics(torch.from_numpy(np.ascontiguousarray(make(keys, p.gs_times_s, p.frame_times_s))), p, scene)
 
 
+def report(results: dict, size: int = 64) -> str:
+    """Markdown tables of a results file: per scene, what each family costs before and after
+    self-calibration, and the refined values against the truth."""
+    def get(scene, fam, method):
+        return results.get(f"{scene}|{fam}|{method}|{size}")
+
+    lines = []
+    scenes = sorted({k.split("|")[0] for k in results}, key=lambda x: ("sineball", "smoke", "clip").index(x)
+                    if x in ("sineball", "smoke", "clip") else 9)
+    for scene in scenes:
+        fams = [f for f in FAMILIES if get(scene, f, "blend")]
+        lines += [f"### {scene} ({size} px)", "",
+                  "| family | blend | interp | STFM, no self-cal | STFM, gains | STFM - best GS-only (gains) | "
+                  "STFM vs fine (no self-cal / gains) | moving-region PSNR (no / gains) |"
+                  + (" centroid med / p90 px (no / gains) |" if scene == "sineball" else ""),
+                  "|---|---|---|---|---|---|---|---|" + ("---|" if scene == "sineball" else "")]
+        fine_off, fine_on = get(scene, "fine", "stfm|off"), get(scene, "fine", "stfm|gains")
+        for fam in fams:
+            bl, it = get(scene, fam, "blend"), get(scene, fam, "interp")
+            off, on = get(scene, fam, "stfm|off"), get(scene, fam, "stfm|gains")
+
+            def db(r, key="psnr_intermediate_db"):
+                return f"{r[key]:.2f}" if r else "-"
+            best = max(bl["psnr_intermediate_db"], it["psnr_intermediate_db"]) if bl and it else None
+            lead = f"{on['psnr_intermediate_db'] - best:+.2f}" if on and best is not None else "-"
+            vs = "/".join(f"{r['psnr_intermediate_db'] - f['psnr_intermediate_db']:+.2f}" if r and f else "-"
+                          for r, f in ((off, fine_off), (on, fine_on)))
+            row = (f"| {fam} | {db(bl)} | {db(it)} | {db(off)} | {db(on)} | {lead} | {vs} | "
+                   f"{db(off, 'psnr_dynamic_db')} / {db(on, 'psnr_dynamic_db')} |")
+            if scene == "sineball":
+                row += " " + " / ".join(f"{r['centroid_error_median_px']:.1f}-{r['centroid_error_p90_px']:.1f}"
+                                        if r else "-" for r in (off, on)) + " |"
+            lines.append(row)
+        lines.append("")
+    lines += ["### Self-calibration against the truth", "",
+              "| scene | family | gains error refined / after the fit | suggested GS-to-RS shift (true) | "
+              "shift error px | rotation deg (true) | scale (true) | transform applied |", "|---|---|---|---|---|---|---|---|"]
+    for key, r in results.items():
+        cal = r.get("calibration") or {}
+        if not cal or not key.endswith(f"|gains|{size}"):
+            continue
+        scene, fam = key.split("|")[:2]
+        lines.append(f"| {scene} | {fam} | {100 * cal['gain_error_refined']:.1f} % / "
+                     f"{100 * cal.get('gain_error_end', float('nan')):.1f} % | "
+                     f"({cal['shift_px'][0]:+.2f}, {cal['shift_px'][1]:+.2f}) "
+                     f"({cal['true_shift_px'][0]:+.2f}, {cal['true_shift_px'][1]:+.2f}) | {cal['shift_error_px']:.2f} | "
+                     f"{cal['rotation_deg']:+.2f} ({cal['true_rotation_deg']:+.2f}) | {cal['scale']:.4f} "
+                     f"({cal['true_scale']:.4f}) | {'yes' if cal['applied_transform'] else 'no'} |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="sineball,smoke,clip")
@@ -147,9 +198,13 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=str(ROOT / "bench" / "realistic.json"))
+    ap.add_argument("--report", action="store_true", help="print the tables of --out and stop")
     args = ap.parse_args()
     torch.set_num_threads(1)
     results = json.loads(Path(args.out).read_text()) if Path(args.out).exists() else {}
+    if args.report:
+        print(report(results, args.size))
+        return
     with tempfile.TemporaryDirectory() as tmp:
         for scene in args.scenes.split(","):
             for family in args.families.split(","):

@@ -269,6 +269,7 @@ def _reconstruct(bundle_path: Path, out_dir, settings: ReconSettings, echo) -> d
         video = method.estimate().detach().float().cpu().numpy()
         components = method.components()
         method_settings = method.resolved_settings()
+        notes += [n for n in method.notes if n not in notes]  # what a method learns by the end (stfm's start floor)
         status, message = result.status, result.message
         # The method's state (the solve's peak) goes before the end-of-run metrics and outputs,
         # which then add to a much smaller base (bench/scale.md: whole-process peak).
