@@ -122,8 +122,13 @@ def run_stfm(p, scene: str, steps: int, mode: str, truth_cal: dict | None) -> di
 
 
 def run_linear(name: str, p, scene: str, steps: int) -> dict:
-    entry, preset = registry.parse_label(name)
-    method = entry.factory(p.to(torch.float32), entry.settings(preset), device="cpu", budget_s=None, stage=None)
+    """tv3d or pnp (a registry label); "LABEL:gains" with self_calibrate=gains (tv3d)."""
+    label, _, mode = name.partition(":")
+    entry, preset = registry.parse_label(label)
+    settings = entry.settings(preset)
+    if mode:
+        settings = replace(settings, self_calibrate=mode)
+    method = entry.factory(p.to(torch.float32), settings, device="cpu", budget_s=None, stage=None)
     result = run(method, LoopSettings(time_budget_s=None, max_iters=steps, log_every_iters=steps, progress=False))
     return {**metrics(method.estimate(), p, scene), "steps": result.iterations, "solve_s": result.solve_s}
 
