@@ -121,6 +121,23 @@ def run_stfm(p, scene: str, steps: int, mode: str, truth_cal: dict | None) -> di
     return out
 
 
+def run_default(p, scene: str, max_steps: int, truth_cal: dict | None) -> dict:
+    """`rngcam recon BUNDLE`'s STFM (the registry's default preset and options) to its own stop,
+    or `max_steps`."""
+    name, settings = registry.settings_for("stfm")
+    method = registry.get(name).factory(p.to(torch.float32), settings, device="cpu", budget_s=None, stage=None)
+    result = run(method, LoopSettings(time_budget_s=None, max_iters=max_steps, log_every_iters=max_steps,
+                                      progress=False))
+    rs = method.resolved_settings()
+    out = metrics(method.estimate(), p, scene)
+    cal = rs.get("self_calibration") or {}
+    out.update(steps=result.iterations, events=result.events, notes=list(method.notes),
+               preset=(rs.get("preset_choice") or {}).get("preset"),
+               output_is_start=rs.get("start_floor", {}).get("output_is_start"),
+               calibration=calibration_vs_truth(cal, truth_cal, cal.get("end")))
+    return out
+
+
 def run_linear(name: str, p, scene: str, steps: int) -> dict:
     """tv3d or pnp (a registry label); "LABEL:gains" with self_calibrate=gains (tv3d)."""
     label, _, mode = name.partition(":")
@@ -196,7 +213,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="sineball,smoke,clip")
     ap.add_argument("--families", default=",".join(FAMILIES))
-    ap.add_argument("--methods", default="stfm,blend,interp", help="stfm, tv3d, pnp, blend, interp")
+    ap.add_argument("--methods", default="stfm,blend,interp",
+                    help="stfm (one fit, --steps), default (rngcam recon's STFM to its own stop, at most "
+                         "--max-steps), tv3d, pnp, tv3d:gains, blend, interp")
+    ap.add_argument("--max-steps", type=int, default=3500, help="the default's cap")
     ap.add_argument("--selfcal", default="off,gains,all", help="STFM's self_calibrate modes to compare")
     ap.add_argument("--steps", type=int, default=400, help="steps per iterative method (fixed: load-independent)")
     ap.add_argument("--linear-steps", type=int, default=100)
@@ -225,6 +245,8 @@ def main() -> None:
                         t0 = time.perf_counter()
                         if method == "stfm":
                             r = run_stfm(p, scene, args.steps, mode, truth_cal)
+                        elif method == "default":
+                            r = run_default(p, scene, args.max_steps, truth_cal)
                         elif method in ("blend", "interp"):
                             r = run_gs_only(method, p, scene)
                         else:
