@@ -84,7 +84,7 @@ def test_clear_errors(tmp_path, mock_bundle):
 def test_stfm_base_and_stop_options_reach_the_method(mock_bundle, tmp_path):
     out = tmp_path / "s"
     res = CliRunner().invoke(main, ["recon", str(mock_bundle), "-o", str(out), "--quiet", "--iters", "2",
-                                    "--base", "interp", "--no-stop-at-noise"])
+                                    "--preset", "fast", "--base", "interp", "--no-stop-at-noise"])
     assert res.exit_code == 0, res.output
     with h5py.File(out / "recon.h5") as f:
         settings = json.loads(f.attrs["settings"])
@@ -96,7 +96,7 @@ def test_stfm_base_and_stop_options_reach_the_method(mock_bundle, tmp_path):
 def test_stfm_base_list_runs_an_ensemble_and_a_bad_base_is_a_clear_error(mock_bundle, tmp_path):
     out = tmp_path / "e"
     res = CliRunner().invoke(main, ["recon", str(mock_bundle), "-o", str(out), "--quiet", "--iters", "4",
-                                    "--base", "interp,keys_interp"])
+                                    "--preset", "fast", "--base", "interp,keys_interp"])
     assert res.exit_code == 0, res.output
     used = json.loads((out / "metrics.json").read_text())["method_settings"]
     assert used["base_video"] == ["interp", "keys_interp"] and used["member_steps"] == [2, 2]

@@ -167,11 +167,11 @@ def test_one_option_sets_one_field_per_method():
 
 
 def test_labels_name_a_method_and_preset_in_one_spelling():
-    assert registry.labels() == ("stfm-fast", "stfm-paper", "stfm-prior", "stfm-auto", "tv3d-haar", "tv3d-exact", "pnp",
+    assert registry.labels() == ("stfm-auto", "stfm-fast", "stfm-paper", "stfm-prior", "tv3d-haar", "tv3d-exact", "pnp",
                                  "blend", "interp", "rife")
     name, settings = registry.settings_for("stfm-prior", beta=3.0)
     assert name == "stfm" and settings == dataclasses.replace(preset_settings("prior"), beta=3.0)
-    assert registry.settings_for("stfm") == ("stfm", preset_settings("fast"))
+    assert registry.settings_for("stfm") == ("stfm", preset_settings("auto"))
     for bad, why in (("stfm_fast", "unknown method 'stfm_fast'"), ("stfm-slow", "unknown method 'stfm-slow'")):
         with pytest.raises(ConfigError, match=why):
             registry.parse_label(bad)

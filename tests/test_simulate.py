@@ -38,7 +38,7 @@ def bundle_physics(b):
     grid = VideoGrid.covering(rs, gs)
     raw = np.asarray(b.calibration.psf, np.float64)
     shape = (raw.shape[-2] // grid_bin, raw.shape[-1] // grid_bin)
-    psf, _ = psf_mod.prepare_psf(raw, shape, bias=None)
+    psf, _ = psf_mod.prepare_psf(psf_mod.centre_for_binning(raw, shape), shape, bias=None)
     return rs, gs, grid, torch.from_numpy(psf)
 
 

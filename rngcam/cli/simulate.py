@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from rngcam.cli import error_line
+from rngcam.sim.fidelity import FIDELITIES, SPACE, TIME
 from rngcam.sim.scenes import SCENES
 from rngcam.sim.simulate import DEFAULT_PSF_CROP
 
@@ -35,10 +36,15 @@ SIM_BYTES_PER_ELEMENT = 23
 @click.option("--start", default=None, type=click.IntRange(min=0),
               help="Clip scene: first source frame (default: the window with the most motion).")
 @click.option("--bayer", is_flag=True, help="Cameras deliver BayerRG12 mosaics at 2x size (grid_bin 2).")
+@click.option("--fidelity", type=click.Choice(FIDELITIES), default="grid", show_default=True,
+              help="grid: the truth on the reconstruction's grid; fine: rendered 2x finer in space and 4x "
+                   "in time, binned as the rig bins; lab: fine plus calibration errors of the size "
+                   "calibration leaves (true values in the bundle's meta.truth_calibration).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 @click.option("--max-memory", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Refuse a simulation estimated to need more memory, in GiB [80 % of this machine's].")
-def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start, bayer, overwrite, max_memory):
+def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start, bayer, fidelity, overwrite,
+                 max_memory):
     """Simulate SCENE (sineball, smoke or clip) through the RS+GS physics into a bundle."""
     from rngcam.errors import SettingError
     from rngcam.sim.simulate import SimulationError, grid_shape, simulate, simulation_timing, summary
@@ -53,12 +59,14 @@ def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start
     try:
         if frames > DEFAULT_MAX_FRAMES:
             raise SettingError(f"{frames:,} frames, above {DEFAULT_MAX_FRAMES:,}: use a smaller size", "size")
-        check_memory(BASE_BYTES + SIM_BYTES_PER_ELEMENT * 3 * frames * size[0] * size[1],
+        finer = 1 if fidelity == "grid" else SPACE * SPACE * TIME  # fine and lab render the truth finer
+        check_memory(BASE_BYTES + SIM_BYTES_PER_ELEMENT * finer * 3 * frames * size[0] * size[1],
                      f"{size[0]}x{size[1]} ({frames:,} frames) would need about {{need}}",
                      None if max_memory is None else int(max_memory * 2**30), "use a smaller size")
     except SettingError as exc:
         raise click.BadParameter(error_line(exc), param_hint="--size") from None
     bundle = simulate(scene, out, size=size, seed=seed, psf=psf, psf_crop=psf_crop, noise=noise,
-                      clip=clip, span=span, start=start, bayer=bayer, overwrite=overwrite)
+                      clip=clip, span=span, start=start, bayer=bayer, overwrite=overwrite,
+                      fidelity=fidelity)
     for line in summary(bundle, out):
         click.echo(line)

@@ -240,3 +240,20 @@ def lenslet_psf(grid_shape: tuple[int, int], binning: int = 8, lenslets: int = 6
     sensor = (grid_shape[0] * binning, grid_shape[1] * binning)
     centres, energy = lenslet_spots(sensor, lenslets, spot_fwhm_px, coverage, seed)
     return normalise(bin_sum(render_spots(sensor, centres, energy, spot_fwhm_px), binning)[None])
+
+
+def centre_for_binning(raw: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The raw PSF moved so that its centre pixel (the one a point's own pixel sees, Hp // 2)
+    lands on the centre of the binned PSF's centre pixel (h // 2). Without this a PSF binned by f
+    sits (f - 1) / 2 raw pixels off the binned GS frames, whose binning is centred (0.25 grid px
+    at f = 2, 0.47 at the lab rig's 16)."""
+    hp, wp = raw.shape[-2:]
+    h, w = shape
+    fy, fx = hp / h, wp / w
+    sy = (h // 2 + 0.5) * fy - (hp // 2 + 0.5)
+    sx = (w // 2 + 0.5) * fx - (wp // 2 + 0.5)
+    if abs(sy) < 1e-9 and abs(sx) < 1e-9:
+        return raw
+    m = np.array([[1.0, 0.0, sx], [0.0, 1.0, sy]])
+    return np.stack([cv2.warpAffine(ch, m, (wp, hp), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+                     for ch in raw])

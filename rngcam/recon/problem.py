@@ -380,6 +380,7 @@ def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | Non
     for name, arr in (("RS", b_rs), ("GS", b_gs)):
         if arr is not None and not np.all(np.isfinite(arr)):
             raise BundleError(f"the {name} frames contain NaN or Inf")
+    notes.extend(_mask_defects(b_rs, rs_invalid, b_gs, gs_invalid))
     for name, inv, used in (("RS", rs_invalid, use_rs), ("GS", gs_invalid, b_gs is not None)):
         note = _masked_note(name, inv) if used else None
         if note:
@@ -403,12 +404,29 @@ def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | Non
     )
 
 
+def _mask_defects(b_rs, rs_invalid, b_gs, gs_invalid) -> list[str]:
+    """Hot and dead pixels (rngcam.recon.defects) join the invalid masks, in place; a note each."""
+    from rngcam.recon.defects import outliers
+
+    notes = []
+    for name, img, invalid in (("RS", b_rs, rs_invalid), ("GS", b_gs, gs_invalid)):
+        if img is None:
+            continue
+        bad = outliers(img)
+        if bad.any():
+            invalid[..., bad] = True
+            notes.append(f"{int(bad.sum())} {name} pixels read far from their neighbours in every frame "
+                         "(hot or dead): left out of the data term")
+    return notes
+
+
 def _grid_psf(bundle: Bundle, grid_bin: int, channels: int) -> np.ndarray:
     raw = bundle.calibration.psf
     if raw is None:
         raise BundleError("the bundle has no PSF (calibration/psf); run `rngcam calibrate psf`")
     raw = psf_mod.as_chw(np.asarray(raw, np.float64))
     shape = (max(1, round(raw.shape[-2] / grid_bin)), max(1, round(raw.shape[-1] / grid_bin)))
+    raw = psf_mod.centre_for_binning(raw, shape)
     try:
         psf, _ = psf_mod.prepare_psf(raw, shape, crop=1.0, bias=None,
                                      channels=channels if raw.shape[0] == 1 else None)

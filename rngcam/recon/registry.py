@@ -238,10 +238,12 @@ def _rife_unavailable() -> str:
 STFM_MEMORY = MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000, coarse_to_fine_min_side=96,
                           coarse_to_fine_bytes_per_element=73, coarse_level_bytes=1_000_000_000)
 
-# The default method first. STFM's fast preset stops by itself (after 1-3 min at 64 px on one CPU
-# thread), so its auto budget only guards against a fit that never settles.
+# The default method first. STFM's default preset is auto (prior or fast, chosen per scene from the
+# key frames, rngcam.recon.methods.stfm.auto); both stop by themselves (fast after 1-3 min at 64 px on one
+# CPU thread), so the auto budget only guards against a fit that never settles.
 register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=600.0,
-                     presets={p: preset_settings(p) for p in ("fast", *(p for p in STFM_PRESETS if p != "fast"))},
+                     presets={p: preset_settings(p)
+                              for p in ("auto", "fast", *(p for p in STFM_PRESETS if p not in ("auto", "fast")))},
                      benchmarked=("fast", "paper"), memory=STFM_MEMORY, fits_holdout=True))
 register(MethodEntry("tv3d", ITERATIVE, TV3DSettings, _make_tv3d,
                      presets={"haar": TV3DSettings(prox="haar"), "exact": TV3DSettings(prox="exact")},

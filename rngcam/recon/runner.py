@@ -375,6 +375,7 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
                method_settings=method.resolved_settings(), log=result.log, iterations=result.iterations,
                solve_s=result.solve_s, wall_s=result.wall_s, events=result.events, status=result.status,
                message=result.message)
+    fit["notes"] += [n for n in method.notes if n not in fit["notes"]]  # what it learns by the end (the floor)
     # The method's state (the solve's peak) goes before the end-of-run metrics and outputs, which
     # then add to a much smaller base (bench/scale.md: whole-process peak).
     del method

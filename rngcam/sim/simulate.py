@@ -27,6 +27,7 @@ from rngcam.physics import psf as psf_mod
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.sensor import SensorModel
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+from rngcam.sim import fidelity as fidelity_mod
 from rngcam.sim.scenes import SCENES, choose_clip_start, default_clip_path, load_clip, render_scene
 from rngcam.version import __version__
 
@@ -76,11 +77,11 @@ def grid_shape(size) -> tuple[int, int]:
 
 
 def simulation_timing(size, bayer: bool = False, dt_s: float = GRID_DT_S,
-                      exposure_s: float = EXPOSURE_S) -> SimTiming:
+                      exposure_s: float = EXPOSURE_S, grid_bin: int | None = None) -> SimTiming:
     """RS over the grid's rows (`size`: N or (H, W)), GS key frames at the start, middle and end
-    of the RS window."""
+    of the RS window. grid_bin: sensor rows per grid row (default 2 with `bayer`, else 1)."""
     size = grid_shape(size)[0]
-    grid_bin = 2 if bayer else 1
+    grid_bin = (2 if bayer else 1) if grid_bin is None else int(grid_bin)
     line_time_s = dt_s / grid_bin
     rs = RollingShutterTiming(line_time_s=line_time_s, exposure_s=exposure_s, rows=size,
                               rows_per_bin=grid_bin)
@@ -138,7 +139,7 @@ def prepare_simulation_psf(psf: str | Path | None, sensor_size, grid_size, crop:
             raise SimulationError(f"PSF {path}: {exc}") from None
         source = PACKAGE_PREFIX + MEASURED_PSF if psf is None else str(path.resolve())
     sensor = sensor.astype(np.float32)
-    grid, _ = psf_mod.prepare_psf(sensor.astype(np.float64), grid_hw, bias=None)
+    grid, _ = psf_mod.prepare_psf(psf_mod.centre_for_binning(sensor.astype(np.float64), grid_hw), grid_hw, bias=None)
     return PreparedPSF(sensor, grid, source, float(bias), model)
 
 
@@ -165,6 +166,25 @@ def measure(video: np.ndarray, psf_grid: np.ndarray, timing: SimTiming) -> tuple
         rs_np = np.repeat(rs_np, b, axis=-1)
         gs_np = np.repeat(np.repeat(gs_np, b, axis=-2), b, axis=-1)
     return rs_np, gs_np
+
+
+def _fine_capture(scene: str, size: tuple[int, int], seed: int, timing: SimTiming, psf, psf_crop: float,
+                  errors: fidelity_mod.LabErrors, render_opts: dict):
+    """--fidelity fine/lab: (truth on the grid, the PSF as stored, RS, GS at the sensors'
+    resolution, SPACE x the grid's) rendered and measured SPACE x finer in space and TIME x in
+    time (rngcam.sim.fidelity); the reconstruction bins them (grid_bin SPACE)."""
+    fm = fidelity_mod
+    fine_size = (size[0] * fm.SPACE, size[1] * fm.SPACE)
+    fgrid = fm.fine_grid(timing.grid, errors.line_time_scale, timing.rs_sensor.end_s - EXPOSURE_S, EXPOSURE_S)
+    fine_video = render_scene(scene, fgrid, fine_size, seed, **render_opts)
+    fine_psf = prepare_simulation_psf(psf, fine_size, fine_size, psf_crop, seed)
+    rs_y, gs_y = fm.fine_measure(fine_video, fine_psf.grid, timing.grid, fgrid, timing.rs_sensor.line_time_s,
+                                 EXPOSURE_S, timing.gs, errors)
+    video = fm.bin_space(fm.bin_time(fine_video, timing.grid.n_frames)).astype(np.float32)
+    del fine_video
+    stored = fm.psf_measured(fine_psf.sensor, errors, seed)
+    grid_psf, _ = psf_mod.prepare_psf(psf_mod.centre_for_binning(stored.astype(np.float64), size), size, bias=None)
+    return video, PreparedPSF(stored, grid_psf, fine_psf.source, fine_psf.bias, fine_psf.model), rs_y, gs_y
 
 
 # --------------------------------------------------------------------------- bundle
@@ -215,13 +235,21 @@ def rig_yaml(scene: str, seed: int, size, timing: SimTiming, sensor: SensorModel
 def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
              psf: str | Path | None = None, psf_crop: float = DEFAULT_PSF_CROP, noise: bool = True,
              clip: str | Path | None = None, span: int = 8, start: int | None = None,
-             bayer: bool = False, overwrite: bool = False) -> Bundle:
+             bayer: bool = False, overwrite: bool = False, fidelity: str = "grid",
+             lab_errors: fidelity_mod.LabErrors | None = None) -> Bundle:
     """Simulate `scene` on a grid of `size` (N, (H, W) or "HxW") and write the bundle to `out`.
 
     psf: PSF file (default: the measured DiffuserCam caustic in rngcam/data), or 'lenslets' for
     the lenslet diffuser model. clip/span/start: the clip scene's source file, source frames covered, first frame
     (default: most motion). bayer: BayerRG12 frames at 2x size (grid_bin 2).
+    fidelity: 'grid' (the truth on the reconstruction's grid), 'fine' (rendered finer than the
+    grid and binned as the rig bins) or 'lab' (fine plus calibration errors), rngcam.sim.fidelity.
+    lab_errors: with 'lab', these errors instead of the seed's draw (one error family alone).
     """
+    if fidelity not in fidelity_mod.FIDELITIES:
+        raise SimulationError(f"--fidelity must be one of {', '.join(fidelity_mod.FIDELITIES)}, got {fidelity!r}")
+    if fidelity != "grid" and bayer:
+        raise SimulationError(f"--fidelity {fidelity} renders RGB sensors only (leave out --bayer)")
     if scene not in SCENES:
         raise SimulationError(f"unknown scene {scene!r} (choose from {', '.join(SCENES)})")
     size = grid_shape(size)
@@ -231,7 +259,7 @@ def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
     if scene != "clip" and (clip is not None or start is not None):
         raise SimulationError("--clip and the clip start only apply to the clip scene")
 
-    timing = simulation_timing(size, bayer)
+    timing = simulation_timing(size, bayer, grid_bin=None if fidelity == "grid" else fidelity_mod.SPACE)
     sensor = default_sensor(bayer)
     scene_options: dict = {}
     meta_clip: dict = {}
@@ -242,19 +270,28 @@ def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
             start = choose_clip_start(frames, span) if len(frames) >= span else 0
         scene_options = {"span": int(span), "start": int(start)}
         meta_clip = {"clip": str(clip_path.resolve()), "clip_start": int(start)}
-        video = render_scene(scene, timing.grid, size, seed, frames=frames, **scene_options)
+        render_opts = {"frames": frames, **scene_options}
         scene_options["path"] = str(clip_path.resolve())
     else:
         scene_options = {"key_times_s": [float(t) for t in timing.gs.centres_s()]}
-        video = render_scene(scene, timing.grid, size, seed, **scene_options)
+        render_opts = dict(scene_options)
 
-    prepared = prepare_simulation_psf(psf, tuple(n * timing.grid_bin for n in size), size, psf_crop, seed)
-    rs_y, gs_y = measure(video, prepared.grid, timing)
+    errors = fidelity_mod.LabErrors()
+    if fidelity == "lab":
+        errors = fidelity_mod.LabErrors.draw(seed) if lab_errors is None else lab_errors
+    if fidelity == "grid":
+        video = render_scene(scene, timing.grid, size, seed, **render_opts)
+        prepared = prepare_simulation_psf(psf, tuple(n * timing.grid_bin for n in size), size, psf_crop, seed)
+        rs_y, gs_y = measure(video, prepared.grid, timing)
+    else:
+        video, prepared, rs_y, gs_y = _fine_capture(scene, size, seed, timing, psf, psf_crop, errors, render_opts)
     dt = timing.grid.dt_s
     rng = np.random.default_rng([seed, 101])
     rs_frames = sensor.capture(rs_y, EXPOSURE_S, dt, rng, noise)[None]
     gs_frames = np.stack([sensor.capture(gs_y[:, g], EXPOSURE_S, dt, rng, noise)
                           for g in range(gs_y.shape[1])])
+    rs_frames, rs_defects = fidelity_mod.pixel_defects(rs_frames, errors, sensor.max_dn, sensor.black_level_dn, seed, 0)
+    gs_frames, gs_defects = fidelity_mod.pixel_defects(gs_frames, errors, sensor.max_dn, sensor.black_level_dn, seed, 1)
 
     def camera(frames, triggers, serial, model, line_time_s=None) -> CameraRecord:
         triggers = np.asarray(triggers, np.float64)
@@ -280,7 +317,12 @@ def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
         "noise": bool(noise), "bayer": bool(bayer), "grid_bin": timing.grid_bin,
         "dt_s": dt, "n_frames": timing.grid.n_frames,
         "key_times_s": [float(t) for t in timing.gs.centres_s()],
+        "fidelity": fidelity,
     }
+    if fidelity != "grid":
+        meta["fine"] = {"space": fidelity_mod.SPACE, "time": fidelity_mod.TIME}
+        meta["truth_calibration"] = {**errors.as_dict(), "rs_defects": rs_defects, "gs_defects": gs_defects,
+                                     "line_time_s": timing.rs.line_time_s * errors.line_time_scale}
     bundle = Bundle(
         rs=camera(rs_frames, [0.0], "SIM-RS", "rngcam simulated RS", timing.rs.line_time_s),
         gs=camera(gs_frames, timing.gs.trigger_s, "SIM-GS", "rngcam simulated GS"),

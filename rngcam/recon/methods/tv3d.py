@@ -56,6 +56,9 @@ class TV3DSettings:
     no_rs: bool = setting(False, "leave the RS measurement out of the fit")
     no_gs: bool = setting(False, "leave the GS frames out of the fit")
     init: str = "blend"  # "blend" (cross-fade of the GS frames) or "zeros"
+    self_calibrate: str = setting("off", "refine the calibration from the RS rows exposed with the GS frames "
+                                         "first (rngcam.recon.methods.selfcal): gains, all (and the GS-to-RS transform "
+                                         "where the data pin it) or off", choices=("off", "gains", "all"))
     coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.methods.multiscale)
 
     def __post_init__(self):
@@ -67,6 +70,10 @@ class TV3DSettings:
             raise ConfigError(f"tv3d: prox must be 'exact' or 'haar', got {self.prox!r}")
         if self.gs_anchor not in ("soft", "hard"):
             raise ConfigError(f"tv3d: gs_anchor must be 'soft' or 'hard', got {self.gs_anchor!r}")
+        if self.self_calibrate not in ("off", "gains", "all"):
+            raise ConfigError(f"tv3d: self_calibrate must be off, gains or all, got {self.self_calibrate!r}")
+        if self.self_calibrate not in ("off", "gains", "all"):
+            raise ConfigError(f"tv3d: self_calibrate must be off, gains or all, got {self.self_calibrate!r}")
 
 
 class _Scaled(LinearOperator):
@@ -282,10 +289,27 @@ class TV3D(MethodBase):
 def make_tv3d(problem: Problem, settings: TV3DSettings | None = None, budget_s: float | None = None,
               stage=None):
     """TV3D on `problem`, coarse-to-fine (rngcam.recon.methods.multiscale) when the grid is large enough,
-    the setting is on and no held-out split is fitted; `stage(message)` reports set-up stages."""
+    the setting is on and no held-out split is fitted; `stage(message)` reports set-up stages.
+    With `self_calibrate`, the problem's GS frames are first corrected (rngcam.recon.methods.selfcal) and
+    the refined values are in the method's notes and `selfcal_report`."""
+    settings = settings or TV3DSettings()
+    method = _make_tv3d(problem, settings, budget_s, stage) if settings.self_calibrate == "off" else None
+    if method is None:
+        from rngcam.recon.methods.selfcal import calibrate_problem, report_lines
+
+        problem, report = calibrate_problem(problem, settings.self_calibrate)
+        method = _make_tv3d(problem, settings, budget_s, stage)
+        method.selfcal_report = report
+        try:
+            method.notes = list(method.notes) + report_lines(report)
+        except AttributeError:  # coarse to fine: its notes are its last level's (selfcal_report has all)
+            pass
+    return method
+
+
+def _make_tv3d(problem: Problem, settings: TV3DSettings, budget_s: float | None, stage):
     from rngcam.recon.methods.multiscale import CoarseToFine, default_factors
 
-    settings = settings or TV3DSettings()
     factors = default_factors(problem.shape)
     if not settings.coarse_to_fine or len(factors) == 1 or problem.has_holdout:
         if stage:

@@ -167,6 +167,18 @@ class STFMEnsemble(MethodBase):
         for m in [*self.members, *([self.refined] if self.refined is not None else [])]:
             m.reduce_step(factor)
 
+    def budget_cut(self) -> str:
+        """Said when a time budget ends the run: which fits had not stopped by themselves."""
+        open_members = [i + 1 for i, d in enumerate(self._done) if d is None]
+        if open_members:
+            return (f"ensemble members {', '.join(map(str, open_members))} of {len(self.members)} had not converged"
+                    + (" and the refinement had not started" if self.use_refine else "")
+                    + f" ({self.members[open_members[0] - 1].budget_cut()})")
+        if self.use_refine and self._refine_done is None:
+            return "the refinement fit had not converged" + (
+                f" ({self.refined.budget_cut()})" if self.refined is not None else "")
+        return ""
+
     def resolved_settings(self) -> dict:
         out = self.members[0].resolved_settings()
         out["dynamic_base"] = ",".join(m.resolved.dynamic_base for m in self.members)
@@ -196,13 +208,23 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
     the method's `notes` and `preset_choice` (in its resolved settings) say which preset it chose
     and why."""
     settings = settings or STFMSettings()
-    if settings.preset != "auto":
-        return _make_stfm(problem, settings, device, initial_video, budget_s, stage)
-    from rngcam.recon.methods.stfm.auto import choose_preset
+    if settings.selfcal_report is None and settings.self_calibrate != "off":
+        from rngcam.recon.methods.selfcal import calibrate_problem
 
-    choice = choose_preset(problem)
-    settings = replace(settings, preset=choice.preset, preset_choice=choice.as_dict())
-    return _make_stfm(problem, settings, device, initial_video, budget_s, stage)
+        problem, report = calibrate_problem(problem, settings.self_calibrate)
+        settings = replace(settings, selfcal_report=report or {})
+    if settings.preset == "auto":
+        from rngcam.recon.methods.stfm.auto import choose_preset
+
+        choice = choose_preset(problem)
+        settings = replace(settings, preset=choice.preset, preset_choice=choice.as_dict())
+    guard = initial_video is None and settings.start_floor
+    method = _make_stfm(problem, replace(settings, start_floor=False), device, initial_video, budget_s, stage)
+    if guard:  # once, around the whole run (not around its levels or members)
+        from rngcam.recon.methods.stfm.guard import StartGuard
+
+        method = StartGuard(method, problem)
+    return method
 
 
 def _make_stfm(problem, settings: STFMSettings, device, initial_video: Tensor | None, budget_s=None, stage=None):

@@ -12,6 +12,7 @@ from torch import Tensor
 
 from rngcam.errors import ConfigError
 from rngcam.recon.loop import MethodBase
+from rngcam.recon.methods.selfcal import report_lines
 from rngcam.recon.methods.stfm.bases import BaseVideos
 from rngcam.recon.methods.stfm.components import Components, choose_components
 from rngcam.recon.methods.stfm.fields import transfer_fields
@@ -47,6 +48,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         self.settings = settings
         choice = settings.preset_choice  # preset "auto" (make_stfm): what it chose and why
         self.notes = [f"preset auto chose {choice['preset']}: {choice['reason']}"] if choice else []
+        self.notes += report_lines(settings.selfcal_report)  # the end values: resolved_settings
         self._static_from = static_from
         self._given_base = base_video
         self._rs_norm_start, self.rs_norm_vector = rs_norm_start, None
@@ -236,6 +238,15 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
                     a.copy_(saved)
         self._cache = None
 
+    def budget_cut(self) -> str:
+        """Said when a time budget ends the run: how far the fit was from its own stop."""
+        if not self._rs_history:
+            return "the fit had not reached its first convergence check"
+        step = max(self._rs_history)
+        noise = f"; noise level {self.rs_noise_level:.4f}" if self.rs_noise_level is not None else ""
+        return (f"the fit had not converged (RS residual {self._rs_history[step]:.4f} at step {step}{noise}); "
+                "its output is the state at the budget")
+
     def reduce_step(self, factor: float) -> None:
         self.base_lr *= factor
         for g in self.optimiser.param_groups:
@@ -249,5 +260,12 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         out["rs_noise_level"] = self.rs_noise_level
         out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}
         out["left_out"] = [list(x) for x in self.left_out]
+        report = self.settings.selfcal_report
+        if report:
+            out["self_calibration"] = dict(report)
+            if report.get("applied"):  # the fit learns the gains further (Lambda, on the refined scale)
+                learned = self.gains() if self.learn_gain else np.ones(self.C)
+                end = [float(g) * r for g, r in zip(learned, report["refined"]["gains"], strict=True)]
+                out["self_calibration"]["end"] = {**report["refined"], "gains": end}
         return out
 

@@ -61,6 +61,13 @@ class STFMSettings:
     motion_init: str | None = None  # 2-D dynamic field: "flow" (key-frame optical flow) or "search" (motion_search)
     coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.methods.stfm.multilevel)
     preset_choice: dict | None = None  # preset auto: what it chose and why (set by make_stfm, not by users)
+    self_calibrate: str = setting(
+        "off", "refine the calibration from the RS rows exposed with the GS frames before the fit "
+                 "(rngcam.recon.methods.selfcal): gains (GS/RS colour gains), all (and the GS-to-RS shift, rotation "
+                 "and scale where the data pin them), or off", choices=("off", "gains", "all"))
+    selfcal_report: dict | None = None  # what self-calibration refined (set by make_stfm, not by users)
+    start_floor: bool = setting(False, "output the best GS-only video (cross-fade or flow interpolation) "
+                                      "instead of the fit when the fit's RS residual is not below its own")
 
     def __post_init__(self):
         if self.preset not in PRESETS:
@@ -69,6 +76,8 @@ class STFMSettings:
             raise ConfigError(f"stfm: components must be 'auto' or 'all', got {self.components!r}")
         if self.gs_anchor not in ("soft", "hard"):
             raise ConfigError(f"stfm: gs_anchor must be 'soft' or 'hard', got {self.gs_anchor!r}")
+        if self.self_calibrate not in ("off", "gains", "all"):
+            raise ConfigError(f"stfm: self_calibrate must be off, gains or all, got {self.self_calibrate!r}")
         if self.motion_init not in (None, "flow", "search"):
             raise ConfigError(f"stfm: motion_init must be 'flow' or 'search', got {self.motion_init!r}")
         if self.init not in (None, "gs", "random"):
@@ -204,15 +213,23 @@ def resolve(settings: STFMSettings, h: int, w: int, k: int) -> tuple[_Resolved, 
                      fields={key: preset[key] for key in ("static", "motion", "dynamic")}, **values), preset
 
 
+# What the registry's presets (the command line, the Python API by label) add to the dataclass's
+# defaults: the gains refined from the data before the fit and the GS-only start as the floor of the
+# output (rngcam.recon.methods.selfcal, rngcam.recon.methods.stfm.guard). The dataclass keeps both off, so that a
+# fit built from STFMSettings directly is exactly the model and nothing around it.
+USER_DEFAULTS = {"self_calibrate": "gains", "start_floor": True}
+
+
 def preset_settings(name: str) -> STFMSettings:
     """Preset `name` as settings: every value that does not depend on the problem's size filled in
     (what the registry offers and `--help` shows); the others stay None (resolved per problem).
     "auto" fills nothing: make_stfm picks prior or fast per scene and fills from that one."""
     if name == "auto":
-        return STFMSettings(preset="auto")
+        return STFMSettings(preset="auto", **USER_DEFAULTS)
     values = _preset(name, 2, 2, 2)
-    return replace(STFMSettings(preset=name), **{f.name: values[f.name] for f in fields(STFMSettings)
-                                                  if f.name in values and f.name != "rows_per_step"})
+    user = {} if name == "paper" else USER_DEFAULTS  # paper: the paper's method as published
+    return replace(STFMSettings(preset=name, **user), **{f.name: values[f.name] for f in fields(STFMSettings)
+                                                          if f.name in values and f.name != "rows_per_step"})
 
 
 def _setting_or_preset(settings: STFMSettings, name: str):

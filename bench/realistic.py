@@ -1,0 +1,266 @@
+"""Realistic captures (rngcam simulate --fidelity fine|lab): what each calibration error costs,
+and what self-calibration wins back. Results: bench/realistic.md.
+
+Every scene is rendered 2x finer in space and 4x in time and measured as the rig measures
+(rngcam.sim.fidelity); "fine" hands the reconstruction exact calibration, each other family adds
+one kind of calibration error at the size the project's calibration leaves (LAB_MAGNITUDES),
+"all" adds every one. Every method runs a fixed number of steps (load-independent outcomes; the
+machine's load is recorded anyway). Per run: intermediate-frame PSNR, moving-region PSNR, on
+sineball the ball centroid error (median / p90 px) and ghost, and STFM's self-calibration values
+against the truth.
+
+    python bench/realistic.py --scenes sineball,smoke,clip --families fine,geometry,all \\
+        --methods stfm,blend,interp --selfcal off,gains --steps 400 --out bench/realistic.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from rngcam.recon import registry  # noqa: E402
+from rngcam.recon.loop import LoopSettings, run  # noqa: E402
+from rngcam.recon.methods.stfm import STFMSettings  # noqa: E402
+from rngcam.recon.methods.stfm.auto import choose_preset  # noqa: E402
+from rngcam.recon.methods.stfm.ensemble import make_stfm  # noqa: E402
+from rngcam.recon.metrics import motion_metrics, video_metrics  # noqa: E402
+from rngcam.recon.problem import build_problem  # noqa: E402
+from rngcam.sim.fidelity import LabErrors  # noqa: E402
+from rngcam.sim.simulate import simulate  # noqa: E402
+
+FAMILIES = ("fine", "geometry", "distortion", "psf", "linetime", "gains", "vignetting", "defects", "all")
+
+
+def family_errors(name: str, seed: int) -> LabErrors | None:
+    """The lab errors of one family (None: --fidelity fine)."""
+    full = LabErrors.draw(seed)
+    pick = {
+        "fine": None, "all": full,
+        "geometry": dict(shift_px=full.shift_px, rotation_deg=full.rotation_deg, scale=full.scale),
+        "distortion": dict(distortion_k1=full.distortion_k1),
+        "psf": dict(psf_noise=full.psf_noise, psf_background=full.psf_background),
+        "linetime": dict(line_time_scale=full.line_time_scale),
+        "gains": dict(gs_gains=full.gs_gains), "vignetting": dict(vignetting=full.vignetting),
+        "defects": dict(hot_fraction=full.hot_fraction, dead_fraction=full.dead_fraction),
+    }[name]
+    return pick if pick is None or isinstance(pick, LabErrors) else LabErrors(**pick)
+
+
+def bundle(scene: str, family: str, size: int, seed: int, tmp: Path):
+    errors = family_errors(family, seed)
+    out = tmp / f"{scene}-{family}.h5"
+    b = simulate(scene, out, size=size, seed=seed, fidelity="fine" if errors is None else "lab",
+                 lab_errors=errors, overwrite=True)
+    return b, build_problem(b)
+
+
+def metrics(video: torch.Tensor, p, scene: str) -> dict:
+    truth = p.truth.float()
+    inter = p.intermediate_frames()
+    out = video_metrics(video.float().cpu(), truth, inter)
+    out.update(motion_metrics(video.double().cpu(), truth.double(), inter, one_object=scene == "sineball"))
+    return {k: float(v) for k, v in out.items()}
+
+
+def stfm_settings(p, selfcal_mode: str) -> STFMSettings:
+    """The default (preset auto, start floor), one fit instead of fast's ensemble so that a fixed
+    step count means the same thing for every scene."""
+    choice = choose_preset(p.to(torch.float32))
+    s = STFMSettings(preset=choice.preset, preset_choice=choice.as_dict(), self_calibrate=selfcal_mode,
+                     stop_at_noise=False, start_floor=True)
+    if choice.preset == "fast":
+        s = replace(s, dynamic_base="interp", refine=False)
+    return s
+
+
+def calibration_vs_truth(report: dict | None, truth: dict | None, end: dict | None) -> dict:
+    """Refined values and their errors against the bundle's truth (gains as the RS/GS ratio)."""
+    if not report or not report.get("applied"):
+        return {}
+    t_shift = truth["shift_px"] if truth else [0.0, 0.0]
+    t_lambda = [1 / g for g in (truth["gs_gains"] if truth else [1.0, 1.0, 1.0])]
+    ref = report["refined"]
+    sug = report.get("transform_rejected", ref)
+    out = {"applied_transform": "transform_not_applied" not in report,
+           "shift_px": sug["shift_px"], "true_shift_px": t_shift,
+           "shift_error_px": float(np.hypot(sug["shift_px"][0] - t_shift[0], sug["shift_px"][1] - t_shift[1])),
+           "rotation_deg": sug["rotation_deg"], "true_rotation_deg": truth["rotation_deg"] if truth else 0.0,
+           "scale": sug["scale"], "true_scale": truth["scale"] if truth else 1.0,
+           "gains_refined": ref["gains"], "true_gains": t_lambda,
+           "gain_error_refined": float(max(abs(g / t - 1) for g, t in zip(ref["gains"], t_lambda, strict=True)))}
+    if end:
+        out["gains_end"] = end["gains"]
+        out["gain_error_end"] = float(max(abs(g / t - 1) for g, t in zip(end["gains"], t_lambda, strict=True)))
+    return out
+
+
+def run_stfm(p, scene: str, steps: int, mode: str, truth_cal: dict | None) -> dict:
+    settings = stfm_settings(p, mode)
+    t0 = time.perf_counter()
+    method = make_stfm(p.to(torch.float32), settings)
+    setup = time.perf_counter() - t0
+    result = run(method, LoopSettings(time_budget_s=None, max_iters=steps, log_every_iters=steps, progress=False))
+    rs = method.resolved_settings()
+    out = metrics(method.estimate(), p, scene)
+    out.update(preset=settings.preset, steps=result.iterations, setup_s=setup, solve_s=result.solve_s,
+               output_is_start=rs.get("start_floor", {}).get("output_is_start"),
+               calibration=calibration_vs_truth(rs.get("self_calibration"), truth_cal,
+                                                rs.get("self_calibration", {}).get("end")))
+    return out
+
+
+def run_default(p, scene: str, max_steps: int, truth_cal: dict | None) -> dict:
+    """`rngcam recon BUNDLE`'s STFM (the registry's default preset and options) to its own stop,
+    or `max_steps`."""
+    name, settings = registry.settings_for("stfm")
+    method = registry.get(name).factory(p.to(torch.float32), settings, device="cpu", budget_s=None, stage=None)
+    result = run(method, LoopSettings(time_budget_s=None, max_iters=max_steps, log_every_iters=max_steps,
+                                      progress=False))
+    rs = method.resolved_settings()
+    out = metrics(method.estimate(), p, scene)
+    cal = rs.get("self_calibration") or {}
+    out.update(steps=result.iterations, events=result.events, notes=list(method.notes),
+               preset=(rs.get("preset_choice") or {}).get("preset"),
+               output_is_start=rs.get("start_floor", {}).get("output_is_start"),
+               calibration=calibration_vs_truth(cal, truth_cal, cal.get("end")))
+    return out
+
+
+def run_linear(name: str, p, scene: str, steps: int) -> dict:
+    """tv3d or pnp (a registry label); "LABEL:gains" with self_calibrate=gains (tv3d)."""
+    label, _, mode = name.partition(":")
+    entry, preset = registry.parse_label(label)
+    settings = entry.settings(preset)
+    if mode:
+        settings = replace(settings, self_calibrate=mode)
+    method = entry.factory(p.to(torch.float32), settings, device="cpu", budget_s=None, stage=None)
+    result = run(method, LoopSettings(time_budget_s=None, max_iters=steps, log_every_iters=steps, progress=False))
+    return {**metrics(method.estimate(), p, scene), "steps": result.iterations, "solve_s": result.solve_s}
+
+
+def run_gs_only(name: str, p, scene: str) -> dict:
+    from rngcam.recon.methods.baselines import blend, interp
+
+    keys = p.gs_images(gains=True).numpy()
+    make = {"blend": blend, "interp": interp}[name]
+    return metrics(torch.from_numpy(np.ascontiguousarray(make(keys, p.gs_times_s, p.frame_times_s))), p, scene)
+
+
+def report(results: dict, size: int = 64) -> str:
+    """Markdown tables of a results file: per scene, what each family costs before and after
+    self-calibration, and the refined values against the truth."""
+    def get(scene, fam, method):
+        return results.get(f"{scene}|{fam}|{method}|{size}")
+
+    lines = []
+    scenes = sorted({k.split("|")[0] for k in results}, key=lambda x: ("sineball", "smoke", "clip").index(x)
+                    if x in ("sineball", "smoke", "clip") else 9)
+    for scene in scenes:
+        fams = [f for f in FAMILIES if get(scene, f, "blend")]
+        lines += [f"### {scene} ({size} px)", "",
+                  "| family | blend | interp | STFM, no self-cal | STFM, gains | STFM - best GS-only (gains) | "
+                  "STFM vs fine (no self-cal / gains) | moving-region PSNR (no / gains) |"
+                  + (" centroid med / p90 px (no / gains) |" if scene == "sineball" else ""),
+                  "|---|---|---|---|---|---|---|---|" + ("---|" if scene == "sineball" else "")]
+        fine_off, fine_on = get(scene, "fine", "stfm|off"), get(scene, "fine", "stfm|gains")
+        for fam in fams:
+            bl, it = get(scene, fam, "blend"), get(scene, fam, "interp")
+            off, on = get(scene, fam, "stfm|off"), get(scene, fam, "stfm|gains")
+
+            def db(r, key="psnr_intermediate_db"):
+                return f"{r[key]:.2f}" if r else "-"
+            best = max(bl["psnr_intermediate_db"], it["psnr_intermediate_db"]) if bl and it else None
+            lead = f"{on['psnr_intermediate_db'] - best:+.2f}" if on and best is not None else "-"
+            vs = "/".join(f"{r['psnr_intermediate_db'] - f['psnr_intermediate_db']:+.2f}" if r and f else "-"
+                          for r, f in ((off, fine_off), (on, fine_on)))
+            row = (f"| {fam} | {db(bl)} | {db(it)} | {db(off)} | {db(on)} | {lead} | {vs} | "
+                   f"{db(off, 'psnr_dynamic_db')} / {db(on, 'psnr_dynamic_db')} |")
+            if scene == "sineball":
+                row += " " + " / ".join(f"{r['centroid_error_median_px']:.1f}-{r['centroid_error_p90_px']:.1f}"
+                                        if r else "-" for r in (off, on)) + " |"
+            lines.append(row)
+        lines.append("")
+    lines += ["### Self-calibration against the truth", "",
+              "| scene | family | gains error refined / after the fit | suggested GS-to-RS shift (true) | "
+              "shift error px | rotation deg (true) | scale (true) | transform applied |", "|---|---|---|---|---|---|---|---|"]
+    for key, r in results.items():
+        cal = r.get("calibration") or {}
+        if not cal or not key.endswith(f"|gains|{size}"):
+            continue
+        scene, fam = key.split("|")[:2]
+        lines.append(f"| {scene} | {fam} | {100 * cal['gain_error_refined']:.1f} % / "
+                     f"{100 * cal.get('gain_error_end', float('nan')):.1f} % | "
+                     f"({cal['shift_px'][0]:+.2f}, {cal['shift_px'][1]:+.2f}) "
+                     f"({cal['true_shift_px'][0]:+.2f}, {cal['true_shift_px'][1]:+.2f}) | {cal['shift_error_px']:.2f} | "
+                     f"{cal['rotation_deg']:+.2f} ({cal['true_rotation_deg']:+.2f}) | {cal['scale']:.4f} "
+                     f"({cal['true_scale']:.4f}) | {'yes' if cal['applied_transform'] else 'no'} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="sineball,smoke,clip")
+    ap.add_argument("--families", default=",".join(FAMILIES))
+    ap.add_argument("--methods", default="stfm,blend,interp",
+                    help="stfm (one fit, --steps), default (rngcam recon's STFM to its own stop, at most "
+                         "--max-steps), tv3d, pnp, tv3d:gains, blend, interp")
+    ap.add_argument("--max-steps", type=int, default=3500, help="the default's cap")
+    ap.add_argument("--selfcal", default="off,gains,all", help="STFM's self_calibrate modes to compare")
+    ap.add_argument("--steps", type=int, default=400, help="steps per iterative method (fixed: load-independent)")
+    ap.add_argument("--linear-steps", type=int, default=100)
+    ap.add_argument("--size", type=int, default=64)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default=str(ROOT / "bench" / "realistic.json"))
+    ap.add_argument("--report", action="store_true", help="print the tables of --out and stop")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    results = json.loads(Path(args.out).read_text()) if Path(args.out).exists() else {}
+    if args.report:
+        print(report(results, args.size))
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        for scene in args.scenes.split(","):
+            for family in args.families.split(","):
+                b, p = bundle(scene, family, args.size, args.seed, Path(tmp))
+                truth_cal = b.meta.get("truth_calibration")
+                for method in args.methods.split(","):
+                    modes = args.selfcal.split(",") if method == "stfm" else [""]
+                    for mode in modes:
+                        key = f"{scene}|{family}|{method}{'|' + mode if mode else ''}|{args.size}"
+                        if key in results:
+                            continue
+                        load = os.getloadavg()[0]
+                        t0 = time.perf_counter()
+                        if method == "stfm":
+                            r = run_stfm(p, scene, args.steps, mode, truth_cal)
+                        elif method == "default":
+                            r = run_default(p, scene, args.max_steps, truth_cal)
+                        elif method in ("blend", "interp"):
+                            r = run_gs_only(method, p, scene)
+                        else:
+                            r = run_linear(method, p, scene, args.linear_steps)
+                        r.update(load_before=load, load_after=os.getloadavg()[0], wall_s=time.perf_counter() - t0)
+                        results[key] = r
+                        Path(args.out).write_text(json.dumps(results, indent=1, default=float))
+                        cal = r.get("calibration") or {}
+                        print(f"{key}: inter {r['psnr_intermediate_db']:.2f} dB, moving {r['psnr_dynamic_db']:.2f}"
+                              + (f", centroid {r['centroid_error_median_px']:.2f}/{r['centroid_error_p90_px']:.2f} px"
+                                 if "centroid_error_median_px" in r else "")
+                              + (f", shift err {cal['shift_error_px']:.3f} px, gain err {cal['gain_error_refined']:.3f}"
+                                 if cal else "") + f" (load {load:.1f}, {r['wall_s']:.0f} s)", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,325 @@
+"""Self-calibration: the GS-to-RS transform refined from the data during a fit.
+
+Calibration leaves the GS frames misregistered against the RS image by a fraction of a pixel, a
+small rotation and scale (`calibrate align`: 0.28 px median residual on the mock rig). A fit
+anchored to the GS frames then reconstructs the video in the GS camera's coordinates, and the RS
+image, which sees the scene in its own, cannot be fitted there.
+
+The estimate, by registration against the RS image: for the current video V find the similarity
+T (shift, rotation, scale about the grid's centre) for which the RS operator applied to V o T
+reproduces the RS image best (a few L-BFGS steps on 4 numbers). If V was reconstructed in
+coordinates E away from the RS camera's (V = v o E^-1 ... V o T ~ v), then E = T^-1, and the GS
+prediction's warp S (the GS camera sees the video at S(p), p a GS pixel) becomes T^-1 o S. Repeated
+as the fit moves V towards the RS coordinates, S converges to the true transform.
+
+Transforms are 3x3 matrices acting on pixel coordinates (x, y) measured from the grid's centre
+(pixel centres at i + 0.5 - W / 2), the convention of rngcam.sim.fidelity's truth values.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+
+def similarity(dx: float = 0.0, dy: float = 0.0, rotation_rad: float = 0.0, scale: float = 1.0) -> np.ndarray:
+    """3x3: p -> scale R(rotation) p + (dx, dy)."""
+    c, s = math.cos(rotation_rad) * scale, math.sin(rotation_rad) * scale
+    return np.array([[c, -s, dx], [s, c, dy], [0.0, 0.0, 1.0]])
+
+
+def describe(matrix) -> dict:
+    """The shift (px), rotation (degrees) and scale of a similarity matrix."""
+    m = np.asarray(matrix, np.float64)
+    return {"shift_px": [float(m[0, 2]), float(m[1, 2])],
+            "rotation_deg": float(np.degrees(math.atan2(m[1, 0], m[0, 0]))),
+            "scale": float(math.hypot(m[0, 0], m[1, 0]))}
+
+
+def _matrix_t(params: Tensor) -> Tensor:
+    """params (dx, dy, rotation, log scale) -> 3x3 (differentiable)."""
+    dx, dy, rot, log_s = params
+    s = torch.exp(log_s)
+    c, n = torch.cos(rot) * s, torch.sin(rot) * s
+    zero, one = torch.zeros_like(dx), torch.ones_like(dx)
+    return torch.stack([torch.stack([c, -n, dx]), torch.stack([n, c, dy]), torch.stack([zero, zero, one])])
+
+
+def sample_grid(matrix: Tensor, h: int, w: int) -> Tensor:
+    """(1, H, W, 2) grid_sample coordinates (align_corners=False) of M p for every pixel p."""
+    dev, dt = matrix.device, matrix.dtype
+    ys = torch.arange(h, device=dev, dtype=dt) + 0.5 - h / 2
+    xs = torch.arange(w, device=dev, dtype=dt) + 0.5 - w / 2
+    yy, xx = torch.meshgrid(ys, xs, indexing="ij")
+    qx = matrix[0, 0] * xx + matrix[0, 1] * yy + matrix[0, 2]
+    qy = matrix[1, 0] * xx + matrix[1, 1] * yy + matrix[1, 2]
+    return torch.stack([qx * (2.0 / w), qy * (2.0 / h)], dim=-1)[None]
+
+
+def warp(images: Tensor, matrix: Tensor | np.ndarray) -> Tensor:
+    """images (C, N, H, W) sampled at M p (bicubic, border values outside): out(p) = in(M p)."""
+    c, n, h, w = images.shape
+    m = torch.as_tensor(np.asarray(matrix) if not isinstance(matrix, Tensor) else matrix,
+                        dtype=images.dtype, device=images.device)
+    grid = sample_grid(m, h, w).expand(n, h, w, 2)
+    out = torch.nn.functional.grid_sample(images.transpose(0, 1), grid, mode="bicubic",
+                                          padding_mode="border", align_corners=False)
+    return out.transpose(0, 1)
+
+
+def is_identity(matrix, tol: float = 1e-9) -> bool:
+    return bool(np.allclose(np.asarray(matrix), np.eye(3), atol=tol))
+
+
+def register_to_rs(video: Tensor, rs_forward, b_rs: Tensor, valid: Tensor | None = None,
+                   iters: int = 20, frame_chunk: int = 16, free: int = 4) -> tuple[np.ndarray, float, float]:
+    """The similarity T minimising ||A_R(V o T) - b_rs||^2 (see module docstring).
+
+    video (C, K, H, W); rs_forward(v) -> (C, H, W) differentiable. Returns (T as 3x3, relative
+    RS residual at the identity, at T). Frames the RS image does not see cost nothing."""
+    video = video.detach()
+    target = b_rs if valid is None else b_rs * valid
+    norm = float(target.square().sum().clamp_min(1e-30))
+    params = torch.zeros(free, dtype=torch.float64, device=video.device, requires_grad=True)
+
+    def full() -> Tensor:
+        return torch.cat([params, torch.zeros(4 - free, dtype=params.dtype, device=params.device)])
+
+    def misfit() -> Tensor:
+        m = _matrix_t(full()).to(video.dtype)
+        pred = rs_forward(warp(video, m))
+        miss = pred - b_rs
+        if valid is not None:
+            miss = miss * valid
+        return miss.square().sum().double() / norm
+
+    with torch.no_grad():
+        start = float(misfit())
+    opt = torch.optim.LBFGS([params], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe",
+                            tolerance_grad=1e-12, tolerance_change=1e-14)
+
+    def closure():
+        opt.zero_grad()
+        loss = misfit()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    with torch.no_grad():
+        end = float(misfit())
+        if not (math.isfinite(end) and end < start):  # no better than the identity: keep it
+            return np.eye(3), math.sqrt(start), math.sqrt(start)
+        return _matrix_t(full().detach()).cpu().numpy(), math.sqrt(start), math.sqrt(end)
+
+
+# ----------------------------------------------------------------------------- key rows
+
+KEY_ROW_OVERLAP = 0.85  # an RS row bin whose exposure covers this share of a GS exposure sees that key frame
+
+
+def key_rows(rs_weights: Tensor, gs_weights: Tensor, overlap: float = KEY_ROW_OVERLAP) -> list[tuple[int, np.ndarray]]:
+    """(GS frame g, the RS row bins exposed over (nearly) the same window as g) for every g that has some.
+
+    Overlap of two exposures: sum_k min(w_r[k], w_g[k]) / max(sum w_r, sum w_g)."""
+    rs_w, gs_w = rs_weights.double().cpu(), gs_weights.double().cpu()
+    out = []
+    for g in range(gs_w.shape[0]):
+        shared = torch.minimum(rs_w, gs_w[g][None]).sum(1)
+        denom = torch.maximum(rs_w.sum(1), gs_w[g].sum()).clamp_min(1e-12)
+        rows = torch.nonzero(shared / denom >= overlap).flatten().numpy()
+        if len(rows):
+            out.append((g, rows))
+    return out
+
+
+def _filled(images: Tensor, valid: Tensor | None) -> Tensor:
+    """Invalid pixels (hot, dead, saturated) replaced by their 3x3 neighbourhood's median: through
+    the PSF one hot pixel reaches the whole row."""
+    if valid is None or bool(valid.all()):
+        return images
+    c, g, h, w = images.shape
+    padded = torch.nn.functional.pad(images.reshape(c * g, 1, h, w), (1, 1, 1, 1), mode="replicate")
+    med = padded.unfold(2, 3, 1).unfold(3, 3, 1).reshape(c * g, 1, h, w, 9).median(-1).values.reshape(c, g, h, w)
+    return torch.where(valid.expand_as(images), images, med)
+
+
+def register_key_rows(problem, iters: int = 30, free: int = 4) -> dict | None:
+    """GS-to-RS similarity S and GS/RS gains from the RS rows exposed with a GS frame.
+
+    Such a row sees the scene the GS frame saw (over the same window): through the PSF, it is row
+    r of the GS image taken to RS coordinates (sampled at S^-1), times the gains, times its
+    exposure. Fitting S^-1 (`free` of shift x, y, rotation, log scale) and the gains to those rows
+    is a small least-squares problem, independent of how anything moves between key frames.
+    Returns {"matrix": S (3x3), "gains": (C,), "rs_residual_before"/"after": relative, "rows": n}
+    or None without such rows."""
+    if problem.b_rs is None or problem.b_gs is None:
+        return None
+    pairs = key_rows(problem.rs_weights, problem.gs_weights)
+    if not pairs:
+        return None
+    p = problem.to(torch.float64)
+    images = _filled(p.gs_images(), p.gs_valid)  # (C, G, H, W) video intensity, GS scale
+    c = images.shape[0]
+    conv = p.rs_op().conv
+    valid = p.rs_valid_mask()
+    rowsum = p.rs_weights.sum(1)  # a constant video's row r is scaled by its total weight
+    sel = [(g, torch.from_numpy(rows)) for g, rows in pairs]
+    targets = [p.b_rs[:, rows] * (1 if valid is None else valid[:, rows]) for _, rows in sel]
+    norm = float(sum(t.square().sum() for t in targets).clamp_min(1e-30))
+    gain0 = torch.ones(c, dtype=torch.float64) if p.white_balance is None else p.white_balance.double()
+    params = torch.zeros(free, dtype=torch.float64, requires_grad=True)
+    log_gain = torch.log(gain0.clone()).requires_grad_(True)
+
+    def misses(prm: Tensor, lg: Tensor) -> Tensor:
+        """The weighted residual vector over the key rows, / sqrt(norm)."""
+        m = _matrix_t(torch.cat([prm, torch.zeros(4 - free, dtype=prm.dtype)]))
+        out = []
+        for (g, rows), target in zip(sel, targets, strict=True):
+            img = warp(images[:, g:g + 1], m)[:, 0] * torch.exp(lg)[:, None, None]
+            pred = conv.A(img)[:, rows] * rowsum[rows][None, :, None]
+            if valid is not None:
+                pred = pred * valid[:, rows]
+            out.append((pred - target).flatten())
+        return torch.cat(out) / math.sqrt(norm)
+
+    def misfit() -> Tensor:
+        return misses(params, log_gain).square().sum()
+
+    with torch.no_grad():
+        start = float(misfit())
+    opt = torch.optim.LBFGS([params, log_gain], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe",
+                            tolerance_grad=1e-12, tolerance_change=1e-15)
+
+    def closure():
+        opt.zero_grad()
+        loss = misfit()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    with torch.no_grad():
+        end = float(misfit())
+    sigma = _uncertainty(misses, params.detach(), log_gain.detach())
+    rows_used = int(sum(len(r) for _, r in sel))
+    if not (math.isfinite(end) and end < start):
+        return {"matrix": np.eye(3), "gains": gain0.numpy(), "rs_residual_before": math.sqrt(start),
+                "rs_residual_after": math.sqrt(start), "rows": rows_used, "sigma": sigma}
+    inv = _matrix_t(torch.cat([params.detach(), torch.zeros(4 - free, dtype=params.dtype)])).numpy()
+    return {"matrix": np.linalg.inv(inv), "gains": torch.exp(log_gain.detach()).numpy(),
+            "rs_residual_before": math.sqrt(start), "rs_residual_after": math.sqrt(end), "rows": rows_used,
+            "sigma": sigma}
+
+
+def _uncertainty(misses, params: Tensor, log_gain: Tensor) -> dict:
+    """Standard errors of the fitted values, sigma^2 (J^T J)^-1 with sigma^2 from the residual
+    (noise only: a model error between the rows and the key frames biases without showing here)."""
+    n = len(params)
+    x0 = torch.cat([params, log_gain])
+    with torch.no_grad():
+        r = misses(params, log_gain)
+        cols = []
+        for i in range(len(x0)):  # central differences: 2 evaluations per value, no per-residual backward
+            e = torch.zeros_like(x0)
+            e[i] = 1e-4
+            hi, lo = x0 + e, x0 - e
+            cols.append((misses(hi[:n], hi[n:]) - misses(lo[:n], lo[n:])) / 2e-4)
+        jac = torch.stack(cols, dim=1)
+    dof = max(len(r) - len(x0), 1)
+    cov = torch.linalg.pinv(jac.T @ jac) * float(r.square().sum()) / dof
+    std = cov.diagonal().clamp_min(0).sqrt().numpy()
+    names = ["shift_x_px", "shift_y_px", "rotation_rad", "log_scale"][:n]
+    out = {k: float(v) for k, v in zip(names, std[:n], strict=True)}
+    out["gains_rel"] = [float(v) for v in std[n:]]
+    return out
+
+
+# ----------------------------------------------------------------------------- the problem
+
+MODES = ("off", "gains", "all")  # what calibrate_problem applies (all: gains and the GS-to-RS transform)
+MAX_SIGMA_PX = 0.1  # a transform whose shift is less certain than this is not applied
+MAX_ROTATION_DEG, MAX_SCALE = 2.0, 0.03  # beyond these the key rows fitted something else
+
+
+def calibrate_problem(problem, mode: str = "gains"):
+    """(problem with its GS frames on the RS scale and in RS coordinates, report) from the key
+    rows (register_key_rows): b_gs becomes gains x b_gs sampled at S^-1 (white balance then 1).
+    The report has the start values (identity, the bundle's white balance), the refined ones,
+    their standard errors, and why a transform was not applied. mode "off": (problem, None)."""
+    if mode not in MODES:
+        from rngcam.errors import ConfigError
+
+        raise ConfigError(f"self_calibrate must be one of {', '.join(MODES)}, got {mode!r}")
+    if mode == "off" or problem.b_rs is None or problem.b_gs is None:
+        return problem, None
+    c = problem.channels
+    wb0 = np.ones(c) if problem.white_balance is None else problem.white_balance.double().cpu().numpy()
+    # The transform is always fitted: left out, a misregistration biases the gains by several percent.
+    result = register_key_rows(problem, free=4)
+    if result is None:
+        return problem, {"mode": mode, "applied": False,
+                         "why": "no RS row is exposed over the same window as a GS frame"}
+    why = None
+    d = describe(result["matrix"])
+    sig = result["sigma"]
+    if mode == "gains":
+        why = "self_calibrate=gains"
+    elif max(sig.get("shift_x_px", 0), sig.get("shift_y_px", 0)) > MAX_SIGMA_PX:
+        why = f"shift uncertain (standard error > {MAX_SIGMA_PX} px)"
+    elif abs(d["rotation_deg"]) > MAX_ROTATION_DEG or abs(d["scale"] - 1) > MAX_SCALE:
+        why = f"rotation {d['rotation_deg']:.2f} deg / scale {d['scale']:.4f} beyond what calibration leaves"
+    gains = np.asarray(result["gains"], np.float64)
+    report = {"mode": mode, "applied": True, "rows": result["rows"],
+              "rs_residual_before": result["rs_residual_before"], "rs_residual_after": result["rs_residual_after"],
+              "start": {**describe(np.eye(3)), "gains": wb0.tolist()},
+              "refined": {**describe(result["matrix"]), "gains": gains.tolist()},
+              "sigma": result["sigma"]}
+    if why is not None:
+        report["transform_not_applied"] = why
+        report["transform_rejected"] = report["refined"]
+        report["refined"] = {**describe(np.eye(3)), "gains": gains.tolist()}
+    return _apply(problem, np.eye(3) if why is not None else result["matrix"], gains), report
+
+
+def _apply(problem, matrix: np.ndarray, gains: np.ndarray):
+    """The problem with b_gs := gains * b_gs sampled at S^-1 (valid pixels likewise), white balance 1."""
+    from dataclasses import replace
+
+    b_gs = problem.b_gs
+    inv = np.linalg.inv(matrix)
+    gs_valid = problem.gs_valid
+    if not is_identity(matrix):
+        b_gs = warp(b_gs, inv)
+        if gs_valid is not None:
+            moved = warp(gs_valid.to(b_gs.dtype).expand(b_gs.shape[0], *gs_valid.shape[1:]), inv)
+            gs_valid = moved > 1 - 1e-6
+    g = torch.as_tensor(gains, dtype=b_gs.dtype, device=b_gs.device)
+    return replace(problem, b_gs=b_gs * g[:, None, None, None], gs_valid=gs_valid,
+                   white_balance=torch.ones_like(g), notes=list(problem.notes))
+
+
+def report_lines(report: dict | None, end_gains=None) -> list[str]:
+    """One note per refined value: start -> refined (-> end for the gains a fit learned further)."""
+    if not report:
+        return []
+    if not report.get("applied"):
+        return [f"self-calibration ({report['mode']}) not applied: {report['why']}"]
+    s, r = report["start"], report["refined"]
+    lines = [f"self-calibration ({report['mode']}) from {report['rows']} RS rows exposed with the GS frames: "
+             f"RS residual on them {report['rs_residual_before']:.4f} -> {report['rs_residual_after']:.4f}"]
+    if "transform_not_applied" not in report:
+        lines.append(f"GS-to-RS shift ({s['shift_px'][0]:+.3f}, {s['shift_px'][1]:+.3f}) -> "
+                     f"({r['shift_px'][0]:+.3f}, {r['shift_px'][1]:+.3f}) px, rotation {s['rotation_deg']:+.3f} -> "
+                     f"{r['rotation_deg']:+.3f} deg, scale {s['scale']:.4f} -> {r['scale']:.4f}")
+    if "transform_not_applied" in report:
+        x = report["transform_rejected"]
+        lines.append(f"GS-to-RS transform kept ({report['transform_not_applied']}); the key rows suggested shift "
+                     f"({x['shift_px'][0]:+.3f}, {x['shift_px'][1]:+.3f}) px, rotation {x['rotation_deg']:+.3f} deg, "
+                     f"scale {x['scale']:.4f}")
+    gains = "/".join(f"{g:.3f}" for g in s["gains"]) + " -> " + "/".join(f"{g:.3f}" for g in r["gains"])
+    if end_gains is not None:
+        gains += " -> " + "/".join(f"{g * r0:.3f}" for g, r0 in zip(end_gains, r["gains"], strict=True)) + " (fit)"
+    lines.append(f"GS/RS gains {gains}")
+    return lines

@@ -1,0 +1,109 @@
+"""The output is never worse, by the data, than the GS-only video a fit starts from.
+
+A fit that a budget cut short, or that went wrong, can explain the RS image worse than a plain
+GS-only interpolation. The RS image is the one measurement of the in-between frames, so it
+judges: StartGuard wraps a method; its `estimate()` is the fit's unless the fit's relative RS
+residual is not below the best GS-only video's (cross-fade or optical-flow interpolation of the
+key frames), and then that video, with a note saying so. Everything else is the method's."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from rngcam.recon.loop import MethodBase
+from rngcam.recon.metrics import relative_residual
+
+
+class StartGuard(MethodBase):
+    """`method` (an STFM, ensemble or coarse-to-fine run) with the start as the floor of its output."""
+
+    def __init__(self, method, problem):
+        self._method = method
+        self._problem = problem.to(torch.float32)
+        self._rs_op = self._problem.rs_op()
+        self._checked: tuple[int, int, bool] | None = None  # (id, version of the fit's estimate, kept the start)
+        self.guard_note: str | None = None
+        self.start_name, self.start_video, self.start_rs = self._best_start()
+
+    def __getattr__(self, name):  # everything but the output is the method's
+        if name.startswith("__") or name == "_method":
+            raise AttributeError(name)
+        return getattr(self._method, name)
+
+    # MethodBase's defaults would hide the method's own: hand these on explicitly.
+    @property
+    def supports_holdout(self) -> bool:
+        return self._method.supports_holdout
+
+    @property
+    def stops_itself(self) -> bool:
+        return self._method.stops_itself
+
+    @property
+    def left_out(self) -> list:
+        return self._method.left_out
+
+    def converged(self) -> str | None:
+        return self._method.converged()
+
+    def budget_cut(self) -> str:
+        return self._method.budget_cut()
+
+    def components(self) -> dict:
+        return self._method.components()
+
+    def _rs_residual(self, video: Tensor) -> float:
+        p = self._problem
+        valid = p.rs_valid_mask()
+        pred = self._rs_op.A(video.to(p.b_rs.dtype))
+        target = p.b_rs
+        if valid is not None:
+            pred, target = pred * valid, target * valid
+        return relative_residual(pred, target)
+
+    @torch.no_grad()
+    def _best_start(self) -> tuple[str | None, Tensor | None, float]:
+        p = self._problem
+        if p.b_rs is None or p.b_gs is None or p.b_gs.shape[1] < 1:
+            return None, None, float("inf")
+        from rngcam.recon.methods.baselines import blend, interp
+
+        keys = p.gs_images(gains=True).cpu().numpy()
+        times = p.frame_times_s
+        best = (None, None, float("inf"))
+        for name, make in (("blend", blend), ("interp", interp)):
+            try:
+                video = torch.from_numpy(np.ascontiguousarray(make(keys, p.gs_times_s, times), np.float32))
+            except Exception:  # noqa: BLE001 - a start that cannot be made is no floor
+                continue
+            res = self._rs_residual(video)
+            if res < best[2]:
+                best = (name, video, res)
+        return best
+
+    @torch.no_grad()
+    def estimate(self) -> Tensor:
+        video = self._method.estimate()
+        if self.start_video is None:
+            return video
+        key = (id(video), video._version)
+        if self._checked is None or self._checked[:2] != key:
+            res = self._rs_residual(video)
+            keep = not res < self.start_rs
+            self._checked = (*key, keep)
+            self.guard_note = (f"the fit's RS residual {res:.4f} is not below the best GS-only video's "
+                               f"({self.start_name}, {self.start_rs:.4f}): the output is that video") if keep else None
+        return self.start_video.to(video.device) if self._checked[2] else video
+
+    @property
+    def notes(self) -> list[str]:
+        return list(self._method.notes) + ([self.guard_note] if self.guard_note else [])
+
+    def resolved_settings(self) -> dict | None:
+        out = self._method.resolved_settings()
+        out = {} if out is None else dict(out)
+        out["start_floor"] = {"video": self.start_name, "rs_residual": self.start_rs,
+                              "output_is_start": bool(self._checked and self._checked[2])}
+        return out
