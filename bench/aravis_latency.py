@@ -5,7 +5,7 @@ frame, sends N software triggers that far apart through rngcam.acquire.aravis_fa
 twin's path) and measures, per frame, the buffer's system timestamp (when Aravis finished
 receiving it) minus the host time of its trigger; also the frames lost (triggers without a frame).
 
-    python bench/aravis_latency.py [--n 50] [--spacing-ms 5,10,20,50]
+    python -m bench.aravis_latency [--n 50] [--spacing-ms 5,10,20,50]
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Re-measure issue 20's table: bundles edited by hand from a 32 px simulated one, through
 `rngcam inspect` and `rngcam recon` (each method under one time budget).
 
-    flock /tmp/rngcam-bench.lock python bench/bad_input.py OUT_DIR --rows clean,saturated_gs \
+    flock /tmp/rngcam-bench.lock python -m bench.bad_input OUT_DIR --rows clean,saturated_gs \
         --methods tv3d,stfm,interp --budget 30
 
 Prints one markdown row per (input, method) and writes OUT_DIR/ROW.json.

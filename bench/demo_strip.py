@@ -1,6 +1,6 @@
 """Before/after strip of the demo's sineball scene from estimates saved by bench/stfm_motion.py.
 
-    .venv/bin/python bench/demo_strip.py --runs /tmp/stfm_runs/new --size 64 \
+    .venv/bin/python -m bench.demo_strip --runs /tmp/stfm_runs/new --size 64 \
         --show stfm-fast=fast,stfm-prior=prior --out bench/demo_strip_sineball.png
 
 Rows: the truth, then each `label=config` whose `sineball<size>_<config>.npy` is in `--runs`;

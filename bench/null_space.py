@@ -1,7 +1,7 @@
 """How much of a video's error can the two cameras see at all? (issue 19: why smoke stops short of 32 dB)
 
 Usage:
-    python bench/null_space.py --scene smoke --size 64 [--video stfm.npy ...] [-o bench/out/null_space.md]
+    python -m bench.null_space --scene smoke --size 64 [--video stfm.npy ...] [-o bench/out/null_space.md]
 
 For a video s (a GS-only baseline, or a reconstruction saved as a (C, K, H, W) .npy), its error
 e = truth - s splits into the part the stacked operator [RS; GS] sees (its projection onto the

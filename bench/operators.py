@@ -1,6 +1,6 @@
 """Time the RS/GS operators (forward, adjoint) against the bare batched rfft2 + irfft2 inside them.
 
-Usage: python bench/operators.py [--threads N] [--repeats R]
+Usage: python -m bench.operators [--threads N] [--repeats R]
 Sizes follow the reference timing scaled to the grid: dt = 208 us, exposure 650 us, K = H + 3.
 """
 

@@ -1,9 +1,9 @@
 """The STFM `paper` preset run towards its plateau (long, unattended; not part of the tests).
 
-    nice -n 19 .venv/bin/python bench/paper_convergence.py run --scenes sineball,smoke --size 32 \
+    nice -n 19 .venv/bin/python -m bench.paper_convergence run --scenes sineball,smoke --size 32 \
         --until 2026-11-23T17:15 --work /tmp/rngcam-paper
-    .venv/bin/python bench/paper_convergence.py report --work /tmp/rngcam-paper --out bench/paper_convergence.md
-    flock /tmp/rngcam-bench.lock .venv/bin/python bench/paper_convergence.py timing --work /tmp/rngcam-paper \
+    .venv/bin/python -m bench.paper_convergence report --work /tmp/rngcam-paper --out bench/paper_convergence.md
+    flock /tmp/rngcam-bench.lock .venv/bin/python -m bench.paper_convergence timing --work /tmp/rngcam-paper \
         --scenes sineball,smoke --fast 'sineball=auto,smoke=auto'
 
 `run` fits the paper preset (SIREN fields as published, Adam 5e-6, fixed iterations: no stop

@@ -9,7 +9,7 @@ machine's load is recorded anyway). Per run: intermediate-frame PSNR, moving-reg
 sineball the ball centroid error (median / p90 px) and ghost, and STFM's self-calibration values
 against the truth.
 
-    python bench/realistic.py --scenes sineball,smoke,clip --families fine,geometry,all \\
+    python -m bench.realistic --scenes sineball,smoke,clip --families fine,geometry,all \\
         --methods stfm,blend,interp --selfcal off,gains --steps 400 --out bench/realistic.json
 """
 
@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import tempfile
 import time
 from dataclasses import replace
@@ -27,18 +26,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from rngcam.recon import registry
+from rngcam.recon.loop import LoopSettings, run
+from rngcam.recon.methods.stfm import STFMSettings
+from rngcam.recon.methods.stfm.auto import choose_preset
+from rngcam.recon.methods.stfm.ensemble import make_stfm
+from rngcam.recon.metrics import motion_metrics, video_metrics
+from rngcam.recon.problem import build_problem
+from rngcam.sim.fidelity import LabErrors
+from rngcam.sim.simulate import simulate
 
-from rngcam.recon import registry  # noqa: E402
-from rngcam.recon.loop import LoopSettings, run  # noqa: E402
-from rngcam.recon.methods.stfm import STFMSettings  # noqa: E402
-from rngcam.recon.methods.stfm.auto import choose_preset  # noqa: E402
-from rngcam.recon.methods.stfm.ensemble import make_stfm  # noqa: E402
-from rngcam.recon.metrics import motion_metrics, video_metrics  # noqa: E402
-from rngcam.recon.problem import build_problem  # noqa: E402
-from rngcam.sim.fidelity import LabErrors  # noqa: E402
-from rngcam.sim.simulate import simulate  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 FAMILIES = ("fine", "geometry", "distortion", "psf", "linetime", "gains", "vignetting", "defects", "all")
 

@@ -1,6 +1,6 @@
 """What the motion field does in one fast-preset fit on smoke 64 (bench/stfm_compare.md, session 10).
 
-    PYTHONPATH=. nice -n 10 .venv/bin/python bench/stfm_motion_role.py --bases video,keys
+    PYTHONPATH=. nice -n 10 .venv/bin/python -m bench.stfm_motion_role --bases video,keys
 
 Per base, with and without the motion TV, each fit to its own stop (so the load does not matter):
 PSNR, the size of the learned motion u in pixels (for "keys" bases without the RIFE flows that u
