@@ -114,6 +114,30 @@ def test_lab_gs_frames_carry_the_drawn_gains_and_shift():
     np.testing.assert_allclose(lab[mid] / np.array(err.gs_gains)[:, None, None] - plain[mid], 0.5 * step, rtol=1e-3)
 
 
+def test_lab_gs_frames_of_a_textured_scene_are_exact_where_the_map_is_exact():
+    # Fine texture (random pixels) through the GS warp: with gains only the map is the identity and
+    # every pixel is the plain frame's times its gain; a whole-pixel shift moves every pixel
+    # inside the border by exactly that much (OpenCV 5.0's bicubic remap of float64 images wrote
+    # wrong values at hundreds of such pixels).
+    from rngcam.physics.timing import GlobalShutterTiming
+
+    h = w = 32
+    dt = 208e-6
+    grid, fgrid = VideoGrid(dt, 4), VideoGrid(dt / 4, 16)
+    rng = np.random.default_rng(3)
+    texture = np.broadcast_to(rng.random((3, 1, 2 * h, 2 * w)), (3, 16, 2 * h, 2 * w)).copy()
+    gs_t = GlobalShutterTiming((0.0,), dt)
+    psf = np.zeros((3, 3, 3))
+    psf[:, 1, 1] = 1
+    _, plain = fm.fine_measure(texture, psf, grid, fgrid, dt, dt, gs_t, fm.LabErrors())
+    gains = fm.LabErrors(gs_gains=(1.02, 0.97, 1.0))
+    _, lab = fm.fine_measure(texture, psf, grid, fgrid, dt, dt, gs_t, gains)
+    np.testing.assert_allclose(lab, plain * np.array(gains.gs_gains)[:, None, None, None], rtol=1e-5, atol=1e-6)
+    _, moved = fm.fine_measure(texture, psf, grid, fgrid, dt, dt, gs_t, fm.LabErrors(shift_px=(1.0, 0.0)))
+    # S(p) = p + 1 grid px: GS sensor pixel x sees the scene at x + 2 sensor pixels
+    np.testing.assert_allclose(moved[..., 4:-4, 4:-6], plain[..., 4:-4, 6:-4], rtol=1e-5, atol=1e-6)
+
+
 def test_bad_fidelity_is_one_clear_error(tmp_path):
     with pytest.raises(RngcamError, match="fidelity"):
         simulate("smoke", tmp_path / "x.h5", size=SIZE, fidelity="exact")

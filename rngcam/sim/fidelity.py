@@ -148,13 +148,15 @@ def fine_measure(video: np.ndarray, psf_fine: np.ndarray, grid: VideoGrid, fgrid
                         channels=c).A(v).numpy() * units
     gs_img = GlobalShutter(torch.from_numpy(gs.weights(fgrid)), c, (hf, wf)).A(v).numpy() * units
     if errors != LabErrors():
-        mx, my = similarity_map((hf, wf), errors)
+        mx, my = similarity_map((hf, wf), errors)  # float32
         vig = vignetting_field((hf, wf), errors.vignetting)
         gains = np.asarray(errors.gs_gains, np.float64)
         for g in range(gs_img.shape[1]):
             for ch in range(c):
-                warped = cv2.remap(gs_img[ch, g], mx.astype(np.float32), my.astype(np.float32),
-                                   cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+                # float32: OpenCV 5.0's bicubic remap of float64 images writes wrong values at
+                # hundreds of pixels per frame (tests/test_sim_fidelity.py)
+                warped = cv2.remap(gs_img[ch, g].astype(np.float32), mx, my,
+                                   cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT).astype(np.float64)
                 gs_img[ch, g] = np.clip(warped, 0, None) * vig * gains[ch]
     return rs, gs_img
 
