@@ -22,14 +22,23 @@ def test_outliers_find_fixed_pattern_spikes_not_texture():
     assert set(map(tuple, np.argwhere(found))) == {(5, 7), (20, 20)}
 
 
-def test_lab_bundle_defects_leave_the_data_term(tmp_path):
-    b = simulate("sineball", tmp_path / "l.h5", size=64, seed=1, fidelity="lab",
-                 lab_errors=LabErrors(hot_fraction=0.002, dead_fraction=0.0))
-    p = build_problem(b)
-    hot = {(y // 2, x // 2) for y, x in b.meta["truth_calibration"]["rs_defects"]["hot"]}
-    masked = {tuple(a) for a in np.argwhere(~p.rs_valid.numpy().all(axis=0))}
-    assert len(hot & masked) >= 0.75 * len(hot) and len(masked - hot) <= 1
-    assert any("hot or dead" in n for n in p.notes)
+def test_lab_bundle_defects_are_found_at_the_sensor_resolution_and_filled_before_binning(tmp_path):
+    errors = LabErrors(hot_fraction=0.004, dead_fraction=0.002)
+    b = simulate("sineball", tmp_path / "l.h5", size=32, seed=1, fidelity="lab", lab_errors=errors)
+    clean = build_problem(simulate("sineball", tmp_path / "c.h5", size=32, seed=1, fidelity="fine"))
+    p = build_problem(b)  # grid_bin 2: each defect is filled from its neighbours, then binned
+    truth = b.meta["truth_calibration"]
+    assert p.rs_valid is None and any("RS sensor pixels" in n and "before binning" in n for n in p.notes)
+    hot = truth["rs_defects"]["hot"]
+    # a hot RS pixel adds 200-1500 DN (0.05-0.37 after 2x2 binning); filled, the grid pixel is the clean one's
+    assert max(float((p.b_rs - clean.b_rs)[:, y // 2, x // 2].abs().max()) for y, x in hot) < 0.02
+    gs_hot = truth["gs_defects"]["hot"] + truth["gs_defects"]["dead"]
+    off = [float((p.b_gs - clean.b_gs)[..., y // 2, x // 2].abs().max()) for y, x in gs_hot]
+    assert sum(d < 0.03 for d in off) >= 0.75 * len(off)  # texture and the ball hide a few
+    unbinned = build_problem(b, grid_bin=1)  # nothing to fill from: the defects leave the data term
+    masked = {tuple(a) for a in np.argwhere(~unbinned.rs_valid.numpy().all(axis=0))}
+    defects = {tuple(a) for a in hot + truth["rs_defects"]["dead"]}
+    assert defects <= masked and any("left out of the data term" in n and "hot or dead" in n for n in unbinned.notes)
 
 
 def _static_problem(matrix, gains, size=32):

@@ -328,8 +328,10 @@ def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | Non
 
     rs_img, rs_bad = _camera_frames(cam, grid.dt_s, keep=[0])[0]  # one RS frame per capture
     sensor_shape = rs_img.shape[-2:]
-    b_rs = _bin(rs_img, grid_bin // mosaic)
-    rs_invalid = _bin(rs_bad.astype(np.float32), grid_bin // mosaic) > 0
+    factor = grid_bin // mosaic
+    rs_bad |= _defects("RS", rs_img[:, None], factor, notes)
+    b_rs = _bin(rs_img, factor)
+    rs_invalid = _bin(rs_bad.astype(np.float32), factor) > 0
     if use_rs and ("rs", 0) in unusable:
         left_out.append(("RS image", unusable[("rs", 0)]))
         use_rs = False
@@ -355,9 +357,13 @@ def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | Non
             h = np.asarray(calib.gs_to_rs, np.float64)
             h = _binned_pixels(mosaic) @ h @ np.linalg.inv(_binned_pixels(gs_mosaic))
         frames, bad = [], []
-        for meas, invalid in _camera_frames(bundle.gs, grid.dt_s, keep=kept):
-            frames.append(_bin(_warp_to(meas, h, sensor_shape), grid_bin // mosaic))
-            bad.append(_bin(_warp_to(invalid.astype(np.float32), h, sensor_shape), grid_bin // mosaic) > 0)
+        raw = _camera_frames(bundle.gs, grid.dt_s, keep=kept)
+        stack = np.stack([m for m, _ in raw], axis=1)  # (C, G, h, w): defects are the same in every frame
+        gs_defects = _defects("GS", stack, factor, notes)
+        for j, (_, invalid) in enumerate(raw):
+            invalid |= gs_defects
+            frames.append(_bin(_warp_to(stack[:, j], h, sensor_shape), factor))
+            bad.append(_bin(_warp_to(invalid.astype(np.float32), h, sensor_shape), factor) > 0)
         b_gs = np.stack(frames, axis=1)
         gs_invalid = np.stack(bad, axis=1)
     else:
@@ -380,7 +386,6 @@ def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | Non
     for name, arr in (("RS", b_rs), ("GS", b_gs)):
         if arr is not None and not np.all(np.isfinite(arr)):
             raise BundleError(f"the {name} frames contain NaN or Inf")
-    notes.extend(_mask_defects(b_rs, rs_invalid, b_gs, gs_invalid))
     for name, inv, used in (("RS", rs_invalid, use_rs), ("GS", gs_invalid, b_gs is not None)):
         note = _masked_note(name, inv) if used else None
         if note:
@@ -404,20 +409,24 @@ def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | Non
     )
 
 
-def _mask_defects(b_rs, rs_invalid, b_gs, gs_invalid) -> list[str]:
-    """Hot and dead pixels (rngcam.recon.defects) join the invalid masks, in place; a note each."""
-    from rngcam.recon.defects import outliers
+def _defects(name: str, frames: np.ndarray, factor: int, notes: list[str]) -> np.ndarray:
+    """Hot and dead pixels of a camera's frames (C, F, h, w) at the sensor's resolution
+    (rngcam.recon.defects). Binned (factor > 1), each is replaced by its neighbours' median in place
+    and the returned mask is empty; unbinned, the mask (h, w) marks them invalid. A note either way."""
+    from rngcam.recon.defects import fill, outliers
 
-    notes = []
-    for name, img, invalid in (("RS", b_rs, rs_invalid), ("GS", b_gs, gs_invalid)):
-        if img is None:
-            continue
-        bad = outliers(img)
-        if bad.any():
-            invalid[..., bad] = True
-            notes.append(f"{int(bad.sum())} {name} pixels read far from their neighbours in every frame "
-                         "(hot or dead): left out of the data term")
-    return notes
+    bad = outliers(frames)
+    if not bad.any():
+        return bad
+    n = int(bad.sum())
+    if factor > 1:
+        fill(frames, bad)
+        notes.append(f"{n} {name} sensor pixels read far from their neighbours in every frame (hot or dead): "
+                     "replaced by their neighbours' median before binning")
+        return np.zeros_like(bad)
+    notes.append(f"{n} {name} pixels read far from their neighbours in every frame (hot or dead): "
+                 "left out of the data term")
+    return bad
 
 
 def _grid_psf(bundle: Bundle, grid_bin: int, channels: int) -> np.ndarray:
