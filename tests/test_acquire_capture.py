@@ -315,3 +315,18 @@ def test_how_the_trains_started_is_in_the_bundle(tmp_path, dialect, link, one_ev
     else:
         assert fire["commands"] == ["C1:BTWV MTRIG", "C2:BTWV MTRIG"]
         assert fire["skew_bound_s"] >= 14 * 10 / 9600 and "firmware latency not included" in fire["skew_source"]
+
+
+def test_gs_timestamps_tell_a_missing_frame_from_jitter():
+    from types import SimpleNamespace
+
+    from rngcam.acquire.capture import _check_gs_timestamps
+
+    def frames(*stamps_ms):
+        return [SimpleNamespace(timestamp_s=s * 1e-3) for s in stamps_ms]
+
+    assert _check_gs_timestamps(frames(0.0, 19.0, 38.0), 19e-3) == []
+    (missing,) = _check_gs_timestamps(frames(0.0, 38.0, 57.0), 19e-3)
+    assert "dropped or extra trigger" in missing
+    (jitter,) = _check_gs_timestamps(frames(0.0, 18.2, 37.0), 19e-3)
+    assert "800 us off the burst period" in jitter and "dropped" not in jitter
