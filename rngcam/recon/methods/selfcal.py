@@ -1,16 +1,14 @@
-"""Self-calibration: the GS-to-RS transform refined from the data during a fit.
+"""Self-calibration: the GS/RS gains (and, where the data pin it, the GS-to-RS transform) from the data.
 
 Calibration leaves the GS frames misregistered against the RS image by a fraction of a pixel, a
-small rotation and scale (`calibrate align`: 0.28 px median residual on the mock rig). A fit
-anchored to the GS frames then reconstructs the video in the GS camera's coordinates, and the RS
-image, which sees the scene in its own, cannot be fitted there.
-
-The estimate, by registration against the RS image: for the current video V find the similarity
-T (shift, rotation, scale about the grid's centre) for which the RS operator applied to V o T
-reproduces the RS image best (a few L-BFGS steps on 4 numbers). If V was reconstructed in
-coordinates E away from the RS camera's (V = v o E^-1 ... V o T ~ v), then E = T^-1, and the GS
-prediction's warp S (the GS camera sees the video at S(p), p a GS pixel) becomes T^-1 o S. Repeated
-as the fit moves V towards the RS coordinates, S converges to the true transform.
+small rotation and scale (`calibrate align`: 0.28 px median residual on the mock rig), and their
+colour gains a few percent off. The RS row bins exposed over (nearly) the same window as a GS
+frame see the scene that frame saw; through the PSF they are rows of the GS image taken to RS
+coordinates, times the gains (`register_key_rows`). A small least-squares fit of the similarity
+and the gains to those rows gives the gains to about a percent; the similarity it suggests is
+biased by what the rows and the key frame do not share (motion within the part of the exposures
+they do not overlap, the binned forward model's own error), so it is applied only where its
+standard error says it is pinned (`calibrate_problem`, mode "all"; bench/realistic.md).
 
 Transforms are 3x3 matrices acting on pixel coordinates (x, y) measured from the grid's centre
 (pixel centres at i + 0.5 - W / 2), the convention of rngcam.sim.fidelity's truth values.
@@ -72,47 +70,6 @@ def warp(images: Tensor, matrix: Tensor | np.ndarray) -> Tensor:
 
 def is_identity(matrix, tol: float = 1e-9) -> bool:
     return bool(np.allclose(np.asarray(matrix), np.eye(3), atol=tol))
-
-
-def register_to_rs(video: Tensor, rs_forward, b_rs: Tensor, valid: Tensor | None = None,
-                   iters: int = 20, frame_chunk: int = 16, free: int = 4) -> tuple[np.ndarray, float, float]:
-    """The similarity T minimising ||A_R(V o T) - b_rs||^2 (see module docstring).
-
-    video (C, K, H, W); rs_forward(v) -> (C, H, W) differentiable. Returns (T as 3x3, relative
-    RS residual at the identity, at T). Frames the RS image does not see cost nothing."""
-    video = video.detach()
-    target = b_rs if valid is None else b_rs * valid
-    norm = float(target.square().sum().clamp_min(1e-30))
-    params = torch.zeros(free, dtype=torch.float64, device=video.device, requires_grad=True)
-
-    def full() -> Tensor:
-        return torch.cat([params, torch.zeros(4 - free, dtype=params.dtype, device=params.device)])
-
-    def misfit() -> Tensor:
-        m = _matrix_t(full()).to(video.dtype)
-        pred = rs_forward(warp(video, m))
-        miss = pred - b_rs
-        if valid is not None:
-            miss = miss * valid
-        return miss.square().sum().double() / norm
-
-    with torch.no_grad():
-        start = float(misfit())
-    opt = torch.optim.LBFGS([params], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe",
-                            tolerance_grad=1e-12, tolerance_change=1e-14)
-
-    def closure():
-        opt.zero_grad()
-        loss = misfit()
-        loss.backward()
-        return loss
-
-    opt.step(closure)
-    with torch.no_grad():
-        end = float(misfit())
-        if not (math.isfinite(end) and end < start):  # no better than the identity: keep it
-            return np.eye(3), math.sqrt(start), math.sqrt(start)
-        return _matrix_t(full().detach()).cpu().numpy(), math.sqrt(start), math.sqrt(end)
 
 
 # ----------------------------------------------------------------------------- key rows
