@@ -52,11 +52,12 @@ chunk against the residual of a first, gradient-free pass, so no autograd graph 
 than one chunk plus the GS windows. Outputs evaluate the video in chunks. A held-out split
 (Problem.with_holdout) is honoured: only training rows and GS pixels are fitted or looked at.
 
-Stopping (fast preset, `stop_at_noise`): every NOISE_CHECK_STEPS steps the relative RS
+Stopping (`stop_at_noise`; fast and prior): every NOISE_CHECK_STEPS steps the relative RS
 residual on the fitted rows is compared with the noise level estimated from the RS image alone
 (rngcam.recon.noise); once the fit reaches it, further steps would fit noise (the discrepancy
 principle), so the loop stops and says so. It also stops once that residual has fallen by less
-than `stall_drop` (2 %) over the last STALL_PASSES passes over the rows: on the benchmark scenes
+than `stall_drop` over the last `stall_passes` passes over the rows (fast: 2 % over STALL_PASSES,
+15; prior: 0.1 % over 30, since it gains slowly for longer): on the benchmark scenes
 the truth-PSNR peaked about there and then fell (by 0.7-8 dB over the next 150 s on the real
 clips) while the residual crept towards the noise level, because the fields then buy residual
 with structure the truth does not have. Where the base video already explains the RS image

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from rngcam.recon.methods.stfm.settings import NOISE_CHECK_STEPS, STALL_PASSES
+from rngcam.recon.methods.stfm.settings import NOISE_CHECK_STEPS
 from rngcam.recon.metrics import relative_residual
 
 
@@ -15,10 +15,10 @@ class NoiseStop:
 
     @torch.no_grad()
     def converged(self) -> str | None:
-        """Every NOISE_CHECK_STEPS steps (fast preset; `stop_at_noise`), the relative RS residual on
+        """Every NOISE_CHECK_STEPS steps (`stop_at_noise`), the relative RS residual on
         the fitted rows is tested twice. The discrepancy principle: at or below the noise level
         estimated from the RS image (rngcam.recon.noise) the fit would start fitting noise. The
-        stall test: once the residual fell by less than `stall_drop` over the last STALL_PASSES
+        stall test: once the residual fell by less than `stall_drop` over the last `stall_passes`
         passes over the rows, further steps buy little residual with structure the data do not
         demand (on the benchmark clips the truth-PSNR peaked there, then fell)."""
         if not (self.resolved.stop_at_noise and self.parts.rs and self.steps % NOISE_CHECK_STEPS == 0):
@@ -40,12 +40,13 @@ class NoiseStop:
         then = self.steps - window
         drop = self.resolved.stall_drop
         if drop > 0 and then in self._rs_history and residual > (1 - drop) * self._rs_history[then]:
-            return (f"RS residual {residual:.4f} fell less than {100 * drop:g}% in {STALL_PASSES} passes over the "
+            passes = self.resolved.stall_passes
+            return (f"RS residual {residual:.4f} fell less than {100 * drop:g}% in {passes} passes over the "
                     f"rows (from {self._rs_history[then]:.4f}; noise level {self.rs_noise_level:.4f})")
         return None
 
     def _stall_window(self) -> int:
-        """STALL_PASSES passes over the fitted rows, in steps (a multiple of NOISE_CHECK_STEPS)."""
-        steps = STALL_PASSES * len(self.rs_rows_fit) / self.resolved.rows_per_step
+        """`stall_passes` passes over the fitted rows, in steps (a multiple of NOISE_CHECK_STEPS)."""
+        steps = self.resolved.stall_passes * len(self.rs_rows_fit) / self.resolved.rows_per_step
         return NOISE_CHECK_STEPS * max(1, math.ceil(steps / NOISE_CHECK_STEPS))
 
