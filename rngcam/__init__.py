@@ -9,7 +9,8 @@ The Python API (rngcam.api), loaded on first use so that `import rngcam` stays l
 
 from rngcam.version import __version__
 
-__all__ = ["OpenBundle", "Problem", "Result", "__version__", "open_bundle", "reconstruct", "run_settings"]
+__all__ = ["OpenBundle", "Problem", "Result", "SettingError", "__version__", "open_bundle", "reconstruct",
+           "run_settings"]
 _API = frozenset(__all__) - {"__version__"}
 
 

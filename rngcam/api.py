@@ -27,7 +27,7 @@ from rngcam.recon.result import Result
 from rngcam.recon.runner import Source, solve
 from rngcam.recon.settings import ReconSettings
 
-__all__ = ["OpenBundle", "Problem", "Result", "keywords", "open_bundle", "reconstruct", "run_settings"]
+__all__ = ["OpenBundle", "Problem", "Result", "SettingError", "keywords", "open_bundle", "reconstruct", "run_settings"]
 
 # The keyword settings of `reconstruct` besides the method's own (ReconSettings' fields).
 RUN_SETTINGS = tuple(f.name for f in dataclasses.fields(ReconSettings) if f.name not in ("method", "progress"))
@@ -62,7 +62,7 @@ def run_settings(method: str = "stfm", progress: bool = True, **settings: Any) -
     entry, preset = registry.parse_label(method)
     own = {k: settings.pop(k) for k in list(settings) if k not in RUN_SETTINGS}
     if own:
-        fields = {f.name for f in dataclasses.fields(entry.settings_type)}
+        fields = {f.name for f in dataclasses.fields(entry.settings_type) if not f.metadata.get("internal")}
         unknown = sorted(set(own) - fields)
         if unknown:
             raise SettingError(f"{', '.join(unknown)} is not a setting of reconstruct or of {entry.name} "

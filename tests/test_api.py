@@ -92,8 +92,12 @@ def test_settings_by_keyword_method_labels_and_an_open_bundle(shot):
     ({"bogus": 1}, "bogus"),
     ({"grid_bin": 0, "method": "blend"}, "grid_bin"),
     ({"max_memory_bytes": 10, "method": "blend"}, "max_memory_bytes"),
+    ({"method": "stmf"}, "method"),
+    ({"method": "stfm-slow"}, "method"),
+    ({"beta": -1.0}, "beta"),
 ])
 def test_errors_name_the_setting_not_a_flag(shot, kwargs, setting):
+    assert rngcam.SettingError is SettingError
     with pytest.raises(SettingError) as err:
         rngcam.reconstruct(shot, progress=False, **kwargs)
     assert setting in str(err.value) and "--" not in str(err.value)

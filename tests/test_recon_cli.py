@@ -102,7 +102,7 @@ def test_stfm_base_list_runs_an_ensemble_and_a_bad_base_is_a_clear_error(mock_bu
     assert used["base_video"] == ["interp", "keys_interp"] and used["member_steps"] == [2, 2]
     bad = CliRunner().invoke(main, ["recon", str(mock_bundle), "-o", str(tmp_path / "b"), "--quiet", "--iters", "1",
                                     "--base", "interp,warp"])
-    assert bad.exit_code == 2 and "dynamic_base must be one of" in bad.output and "Traceback" not in bad.output
+    assert bad.exit_code == 2 and "--base must be one of" in bad.output and "Traceback" not in bad.output
 
 
 @pytest.mark.parametrize("method,args,budget", [("stfm", [], 600.0), ("tv3d", [], 60.0), ("stfm", ["--time-budget", "7"], 7.0)])

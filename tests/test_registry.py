@@ -16,7 +16,7 @@ from click.testing import CliRunner
 
 from rngcam.cli import main
 from rngcam.cli.method_options import method_settings
-from rngcam.errors import ConfigError
+from rngcam.errors import ConfigError, SettingError
 from rngcam.recon import registry
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.baselines import blend
@@ -172,11 +172,16 @@ def test_labels_name_a_method_and_preset_in_one_spelling():
     name, settings = registry.settings_for("stfm-prior", beta=3.0)
     assert name == "stfm" and settings == dataclasses.replace(preset_settings("prior"), beta=3.0)
     assert registry.settings_for("stfm") == ("stfm", preset_settings("auto"))
-    for bad, why in (("stfm_fast", "unknown method 'stfm_fast'"), ("stfm-slow", "unknown method 'stfm-slow'")):
-        with pytest.raises(ConfigError, match=why):
+    for bad, why in (("stfm_fast", "method 'stfm_fast' is not one of"), ("stfm-slow", "method 'stfm-slow' is not")):
+        with pytest.raises(SettingError, match=why) as err:
             registry.parse_label(bad)
-    with pytest.raises(ConfigError, match="tv3d has no setting mu"):
+        assert err.value.settings == ("method",)
+    with pytest.raises(SettingError, match="tv3d has no setting mu") as err:
         registry.settings_for("tv3d", mu=1.0)
+    assert err.value.settings == ("mu",)
+    with pytest.raises(SettingError, match="beta must be a finite number") as err:  # the settings' own check
+        registry.settings_for("stfm", beta=-1.0)
+    assert err.value.settings == ("beta",) and err.value.flagged({"beta": "--beta"}).startswith("stfm: --beta must")
     with pytest.raises(ConfigError, match="takes TV3DSettings, not STFMSettings"):
         ReconSettings(method="tv3d", method_settings=STFMSettings())
 

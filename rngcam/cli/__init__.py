@@ -29,8 +29,18 @@ SETTING_FLAGS = {"time_budget_s": "--time-budget", "max_iters": "--iters", "max_
 
 
 def flag_of(setting: str) -> str:
-    """The command line's flag for the API setting `setting`."""
-    return SETTING_FLAGS.get(setting, "--" + setting.replace("_", "-"))
+    """The command line's flag for the API setting `setting` (a method's option by its own name,
+    e.g. dynamic_base -> --base)."""
+    if setting in SETTING_FLAGS:
+        return SETTING_FLAGS[setting]
+    from rngcam.recon import registry
+    from rngcam.recon.options import cli_name, documented_fields
+
+    for entry in registry.REGISTRY.values():
+        for f in documented_fields(entry.settings_type):
+            if f.name == setting:
+                return "--" + cli_name(f)
+    return "--" + setting.replace("_", "-")
 
 
 def error_line(exc: RngcamError) -> str:

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from rngcam.errors import ConfigError
+from rngcam.errors import ConfigError, SettingError
 from rngcam.recon.methods.baselines import BlendSettings, InterpSettings, RifeSettings
 from rngcam.recon.methods.pnp import PnPSettings
 from rngcam.recon.methods.stfm.settings import PRESETS as STFM_PRESETS
@@ -82,15 +82,22 @@ class MethodEntry:
         return next(iter(self.presets))
 
     def settings(self, preset: str | None = None, **overrides):
-        """The settings of `preset` (None: the default one) with `overrides` by field name."""
+        """The settings of `preset` (None: the default one) with `overrides` by field name; a bad
+        preset, setting or value is one SettingError naming it."""
         preset = preset or self.default_preset
         if preset not in self.presets:
-            raise ConfigError(f"{self.name} has no preset {preset!r}; choose one of {', '.join(self.presets)}")
+            raise SettingError(f"{self.name} has no preset {preset!r}; choose one of {', '.join(self.presets)}",
+                               "preset")
         names = {f.name for f in dataclasses.fields(self.settings_type)}
         unknown = sorted(set(overrides) - names)
         if unknown:
-            raise ConfigError(f"{self.name} has no setting {', '.join(unknown)}")
-        return dataclasses.replace(self.presets[preset], **overrides)
+            raise SettingError(f"{self.name} has no setting {', '.join(unknown)}", *unknown)
+        try:
+            return dataclasses.replace(self.presets[preset], **overrides)
+        except SettingError:
+            raise
+        except ConfigError as exc:  # the settings' own check of a value: name what was given
+            raise SettingError(str(exc), *overrides) from None
 
     @property
     def named_presets(self) -> bool:
@@ -130,7 +137,7 @@ def get(name: str) -> MethodEntry:
     try:
         return REGISTRY[name]
     except KeyError:
-        raise ConfigError(f"unknown method {name!r}; choose one of {', '.join(REGISTRY)}") from None
+        raise SettingError(f"method {name!r} is not one of {', '.join(REGISTRY)}", "method") from None
 
 
 def names(kind: str | None = None) -> tuple[str, ...]:
@@ -160,7 +167,7 @@ def parse_label(label: str) -> tuple[MethodEntry, str]:
     entry = get(name)
     preset = preset or entry.default_preset
     if preset not in entry.presets:
-        raise ConfigError(f"unknown method {label!r}; choose one of {', '.join(labels())}")
+        raise SettingError(f"method {label!r} is not one of {', '.join(labels())}", "method")
     return entry, preset
 
 

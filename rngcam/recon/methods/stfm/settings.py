@@ -61,12 +61,12 @@ class STFMSettings:
     refine: bool | None = None  # ensemble: one more fit on the members' average once they have stopped
     motion_init: str | None = None  # 2-D dynamic field: "flow" (key-frame optical flow) or "search" (motion_search)
     coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.methods.stfm.multilevel)
-    preset_choice: dict | None = None  # preset auto: what it chose and why (set by make_stfm, not by users)
+    preset_choice: dict | None = field(default=None, metadata={"internal": True})  # auto's choice (make_stfm)
     self_calibrate: str = setting(
         "off", "refine the calibration from the RS rows exposed with the GS frames before the fit "
                  "(rngcam.recon.methods.selfcal): gains (GS/RS colour gains), all (and the GS-to-RS shift, rotation "
                  "and scale where the data pin them), or off", choices=("off", "gains", "all"))
-    selfcal_report: dict | None = None  # what self-calibration refined (set by make_stfm, not by users)
+    selfcal_report: dict | None = field(default=None, metadata={"internal": True})  # what self-calibration refined
     start_floor: bool = setting(False, "output the best GS-only video (cross-fade or flow interpolation) "
                                       "instead of the fit when the fit's RS residual is not below its own")
 
