@@ -126,7 +126,8 @@ def test_resume_refuses_another_bundle_method_or_folder_in_one_line_and_touches_
     before = folder_state(out)
     for args, why in (([str(other), "--method", "tv3d"], "it fits another bundle"),
                       ([str(mock_bundle), "--method", "pnp"], "it is tv3d's, not pnp's"),
-                      ([str(mock_bundle), "--method", "tv3d", "--beta", "7"], "its settings differ")):
+                      ([str(mock_bundle), "--method", "tv3d", "--beta", "7"],
+                       "its settings differ: method_settings.beta 1.0 there, 7.0 now")):
         code, text = recon([*args, "-o", str(out), "--resume", "--iters", "4", "--quiet"])
         lines = text.strip().splitlines()
         assert code == 2 and len(lines) == 1 and why in lines[0] and lines[0].startswith("error: cannot resume"), text

@@ -57,11 +57,22 @@ def mismatch(saved: dict, want: dict) -> str:
                 f"{str(want['bundle_sha256'])[:12]}...)")
     if have["method"] != want["method"]:
         return f"it is {have['method']}'s, not {want['method']}'s"
-    a, b = have["settings"], want["settings"]
-    differ = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+    differ = _differences(have["settings"], want["settings"])
     if differ:
-        return "its settings differ: " + ", ".join(f"{k} {a.get(k)!r} there, {b.get(k)!r} now" for k in differ[:3])
+        return "its settings differ: " + ", ".join(f"{k} {a!r} there, {b!r} now" for k, a, b in differ[:3])
     return ""
+
+
+def _differences(a: dict, b: dict, prefix: str = "") -> list[tuple[str, object, object]]:
+    """(dotted key, value in a, value in b) for every leaf where two nested dicts differ."""
+    out = []
+    for k in sorted(set(a) | set(b), key=str):
+        x, y = a.get(k), b.get(k)
+        if isinstance(x, dict) and isinstance(y, dict):
+            out += _differences(x, y, f"{prefix}{k}.")
+        elif x != y:
+            out.append((f"{prefix}{k}", x, y))
+    return out
 
 
 def folder_method(out: Path) -> str | None:
