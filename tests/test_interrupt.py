@@ -214,3 +214,14 @@ def test_the_guard_holds_a_signal_while_reading_and_cuts_a_set_up_at_its_deadlin
         time.sleep(0.05)
         assert guard.stop_reason() == "interrupted by SIGTERM"
     assert signal.getsignal(signal.SIGTERM) == before  # handlers given back
+
+
+def test_resume_into_an_empty_folder_says_it_starts_afresh_and_a_one_shot_folder_offers_no_resume(mock_bundle, tmp_path):
+    out = tmp_path / "new"
+    code, text = recon([str(mock_bundle), "--method", "tv3d", "-o", str(out), "--resume", "--iters", "2"])
+    assert code == 0 and f"nothing to resume in {out} (no checkpoint yet): a new run" in text, text
+    blend = tmp_path / "blend"
+    assert recon([str(mock_bundle), "--method", "blend", "-o", str(blend), "--quiet"])[0] == 0
+    assert not (blend / "checkpoint.pt").exists()
+    code, text = recon([str(mock_bundle), "--method", "blend", "-o", str(blend), "--quiet"])
+    assert code == 2 and "--overwrite" in text and "--resume" not in text, text

@@ -105,8 +105,8 @@ def prepare(out: Path, want: dict, resume: bool, overwrite: bool) -> dict | None
             raise RngcamError(f"cannot resume from {ckpt}: {why}; use another folder, or --overwrite to start again")
         return saved
     if full and not overwrite:
-        raise RngcamError(f"output folder {out} is not empty; pass --overwrite to replace what is in it "
-                          f"(or --resume to continue from its checkpoint)")
+        hint = " (or --resume to continue from its checkpoint)" if (out / CHECKPOINT_NAME).is_file() else ""
+        raise RngcamError(f"output folder {out} is not empty; pass --overwrite to replace what is in it{hint}")
     for name in OUTPUT_NAMES if full else ():
         (out / name).unlink(missing_ok=True)
     return None

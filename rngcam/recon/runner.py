@@ -229,6 +229,8 @@ def _solve(source: Source, settings: ReconSettings, out: Path | None, echo, star
             stage = stage_printer(stage_line, check=guard.check)
             if saved is not None:
                 say(f"resuming {out / checkpoint.CHECKPOINT_NAME} (iteration {saved.get('iteration', 0)})")
+            elif settings.resume:
+                say(f"nothing to resume in {out} (no checkpoint yet): a new run")
             problem, extra = _read(source, settings, say, stage)
             log.open(out)
             budget = None if settings.time_budget_s is None else float(settings.time_budget_s)
