@@ -41,6 +41,8 @@ def _default_text(entry: registry.MethodEntry, f: dataclasses.Field) -> str:
     values = {p: v for p, v in values.items() if v is not None} or values
     if len(set(map(repr, values.values()))) == 1 or not entry.named_presets:
         return _shown(next(iter(values.values())))
+    if all(str(v) == p for p, v in values.items()):  # presets named after this setting's values
+        return "the preset's: " + " or ".join(values)
     return ", ".join(f"{p} {_shown(v)}" for p, v in values.items())
 
 
@@ -77,7 +79,8 @@ def _option(name: str, pairs) -> click.Option:
     dest = name.replace("-", "_")
     text = _help(pairs)
     if kind is bool:
-        if all(g.default is False for _, g in pairs):  # a flag that turns something off or on
+        values = [getattr(s, g.name) for e, g in pairs for s in e.presets.values()]
+        if all(g.default is False for _, g in pairs) and not any(values):  # a flag that turns something on
             return click.Option([f"--{name}", dest], is_flag=True, default=None, flag_value=True, help=text)
         return click.Option([f"--{name}/--no-{name}", dest], default=None, help=text)
     choices = sorted({c for _, g in pairs for c in (g.metadata.get("choices") or ())})

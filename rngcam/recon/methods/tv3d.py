@@ -59,7 +59,8 @@ class TV3DSettings:
     self_calibrate: str = setting("off", "refine the calibration from the RS rows exposed with the GS frames "
                                          "first (rngcam.recon.methods.selfcal): gains, all (and the GS-to-RS transform "
                                          "where the data pin it) or off", choices=("off", "gains", "all"))
-    coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.methods.multiscale)
+    coarse_to_fine: bool = setting(True, "on grids of 96 px and more, reconstruct 1/4 and 1/2 grids first, "
+                                         "each starting the next (else one level at the full grid)")
 
     def __post_init__(self):
         for name in ("tau", "beta", "psi"):

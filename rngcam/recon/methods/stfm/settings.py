@@ -60,7 +60,8 @@ class STFMSettings:
     ema_decay: float | None = None  # outputs use an exponential moving average of the weights (0: off)
     refine: bool | None = None  # ensemble: one more fit on the members' average once they have stopped
     motion_init: str | None = None  # 2-D dynamic field: "flow" (key-frame optical flow) or "search" (motion_search)
-    coarse_to_fine: bool = True  # on grids >= 96 px: coarser levels first (rngcam.recon.methods.stfm.multilevel)
+    coarse_to_fine: bool = setting(True, "on grids of 96 px and more, reconstruct 1/4 and 1/2 grids first, "
+                                         "each starting the next (else one level at the full grid)")
     preset_choice: dict | None = field(default=None, metadata={"internal": True})  # auto's choice (make_stfm)
     self_calibrate: str = setting(
         "off", "refine the calibration from the RS rows exposed with the GS frames before the fit "
