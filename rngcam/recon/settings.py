@@ -104,12 +104,12 @@ def check_device(name) -> str:
         raise SettingError(f"device must be auto, cpu, cuda or cuda:N, got {name!r}", "device")
     if name.startswith("cuda"):
         if not torch.cuda.is_available():
-            raise SettingError(f"device is {name} but this machine has no CUDA GPU (torch "
-                               f"{torch.__version__}); use cpu or auto", "device")
+            raise SettingError(f"device {name}: this machine has no CUDA GPU (torch {torch.__version__}); "
+                               "use cpu or auto", "device")
         index = int(name.partition(":")[2] or 0)
         if index >= torch.cuda.device_count():
-            raise SettingError(f"device is {name} but this machine has {torch.cuda.device_count()} "
-                               f"CUDA GPU(s)", "device")
+            raise SettingError(f"device {name}: this machine has {torch.cuda.device_count()} CUDA GPU(s)",
+                               "device")
     return name
 
 
