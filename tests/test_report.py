@@ -119,6 +119,8 @@ def test_inspect_reads_a_recon_file(recons):
         assert text in res.output, text
     s = json.loads(_cli("inspect", recons / "blend" / "recon.h5", "--json").output)
     assert s["method"] == "blend" and s["figures"]["psnr_db"] > 15 and s["video_shape_ctyx"] == [3, 67, 64, 64]
+    folder = json.loads(_cli("inspect", recons / "blend", "--json").output)  # the folder: its recon.h5
+    assert folder == s
 
 
 def test_preview_is_stamped_and_plays_at_the_rate_asked(recons, tmp_path):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import click
 
@@ -37,18 +38,20 @@ def recon_size(bundle_path: str) -> tuple[dict, list[str]]:
 
 
 @click.command("inspect")
-@click.argument("bundle_path", metavar="FILE")
+@click.argument("bundle_path", metavar="FILE")  # a bundle, a recon.h5, or a reconstruction's folder
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 @click.option("--checksum", is_flag=True,
               help="Also print the sha256 of the file (of a recon file: check its bundle's against the record).")
 def inspect_cmd(bundle_path: str, as_json: bool, checksum: bool) -> None:
-    """Summarise a capture bundle or a reconstruction (recon.h5); exit 2 with one 'error:' line
-    if it is unusable.
+    """Summarise a capture bundle or a reconstruction (its recon.h5, or its folder); exit 2 with one
+    'error:' line if it is unusable.
 
     Warnings (e.g. a GS trigger outside the RS exposure window) are listed but do not fail.
     """
     from rngcam.recon.report import is_recon_file
 
+    if Path(bundle_path).is_dir() and (Path(bundle_path) / "recon.h5").is_file():  # a reconstruction's folder
+        bundle_path = str(Path(bundle_path) / "recon.h5")
     if is_recon_file(bundle_path):
         from rngcam.recon.report.summary import recon_summary, render_recon_summary
 
