@@ -76,4 +76,6 @@ def preview_cmd(folder: str, fps: float | None, slowdown: float | None, output: 
     out = Path(output) if output else path / "preview.mp4"
     write_mp4(out, h5["video"], fps=fps or 30.0, capture_fps=capture_fps,
               frame_times_s=None if no_stamp else h5["frame_times_s"], key_times_s=h5.get("key_frame_times_s"))
-    click.echo(f"preview: {out} at {fps or 30.0:g} fps")
+    rate = fps or 30.0
+    slower = f" ({capture_fps / rate:,.0f}x slower than captured)" if capture_fps else ""
+    click.echo(f"preview: {out} at {rate:.3g} fps{slower}")
