@@ -33,7 +33,7 @@ __all__ = ["OpenBundle", "Problem", "Result", "SettingError", "keywords", "open_
 RUN_SETTINGS = tuple(f.name for f in dataclasses.fields(ReconSettings) if f.name not in ("method", "progress"))
 
 
-@dataclass
+@dataclass(repr=False)
 class OpenBundle:
     """A bundle read into memory (`bundle`: rngcam.formats.bundle.Bundle, whose fields it also
     shows: `b.rs`, `b.gs`, `b.truth`, ...), its `path` and the `warnings` found reading it."""
@@ -46,6 +46,9 @@ class OpenBundle:
         if name == "bundle":  # not set yet (unpickling)
             raise AttributeError(name)
         return getattr(self.bundle, name)
+
+    def __repr__(self) -> str:
+        return f"OpenBundle({str(self.path)!r}, {self.bundle!r}, warnings={self.warnings!r})"
 
 
 def open_bundle(path: str | Path) -> OpenBundle:

@@ -23,7 +23,7 @@ never leaves a file that reads as a bundle.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -34,8 +34,27 @@ WARNING_PREFIX = "warning: "
 COMPRESSIONS = (None, "lzf", "gzip")
 
 
-@dataclass
-class CameraRecord:
+def short(value) -> str:
+    """A field's value for a repr: arrays (and long texts) by their shape, not their contents."""
+    if isinstance(value, np.ndarray) or hasattr(value, "shape") and hasattr(value, "dtype"):
+        return f"array({tuple(value.shape)}, {value.dtype})"
+    if isinstance(value, ShortRepr):
+        return repr(value)
+    text = repr(value)
+    return text if len(text) <= 80 else text[:60] + f"... ({len(text)} characters)"
+
+
+class ShortRepr:
+    """A dataclass whose repr shows arrays by their shape: a bundle prints in a few lines, not
+    its pixels."""
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(" + ", ".join(f"{f.name}={short(getattr(self, f.name))}"
+                                                     for f in fields(self)) + ")"
+
+
+@dataclass(repr=False)
+class CameraRecord(ShortRepr):
     """One camera's capture: raw frames in their native dtype plus how they were taken.
 
     frames: (N, H, W) raw mosaic/mono or (N, H, W, C) colour (uint8/uint16/float32 ...).
@@ -60,8 +79,8 @@ class CameraRecord:
     features: dict = field(default_factory=dict)
 
 
-@dataclass
-class Calibration:
+@dataclass(repr=False)
+class Calibration(ShortRepr):
     """Optical calibration, every part optional.
 
     psf: (C, Hp, Wp) float32, bias-subtracted, on the RS sensor's pixel grid.
@@ -79,8 +98,8 @@ class Calibration:
     extra: dict = field(default_factory=dict)
 
 
-@dataclass
-class TriggerRecord:
+@dataclass(repr=False)
+class TriggerRecord(ShortRepr):
     """The trigger generator: identity (*IDN? or "fake"/"mock"), settings sent, SYST:ERR? queue."""
 
     generator: str
@@ -88,8 +107,8 @@ class TriggerRecord:
     errors: list[str]
 
 
-@dataclass
-class Truth:
+@dataclass(repr=False)
+class Truth(ShortRepr):
     """Ground truth of a simulated bundle: video (C, T, H, W) float32 and its time grid."""
 
     video: np.ndarray
@@ -97,8 +116,8 @@ class Truth:
     dt_s: float
 
 
-@dataclass
-class Bundle:
+@dataclass(repr=False)
+class Bundle(ShortRepr):
     """A whole capture. `created_utc` is filled on write when empty; `rngcam_version` always."""
 
     rs: CameraRecord | None
