@@ -4,7 +4,7 @@ The Python API (rngcam.api), loaded on first use so that `import rngcam` stays l
 
     import rngcam
     b = rngcam.open_bundle("shot.h5")
-    r = rngcam.reconstruct(b, method="stfm", time_budget_s=60)   # r.video: (C, T, H, W)
+    r = rngcam.reconstruct(b, method="stfm", time_budget_s=300)   # r.video: (C, T, H, W)
 """
 
 from rngcam.version import __version__

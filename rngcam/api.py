@@ -2,7 +2,7 @@
 
     import rngcam
     b = rngcam.open_bundle("shot.h5")
-    r = rngcam.reconstruct(b, method="stfm", time_budget_s=60)   # r.video: (C, T, H, W)
+    r = rngcam.reconstruct(b, method="stfm", time_budget_s=300)   # r.video: (C, T, H, W)
 
 Nothing touches the disk unless `out` names a folder (then the run checkpoints there and writes
 every output, as `rngcam recon` does; `Result.save(folder)` writes them later). The command line,

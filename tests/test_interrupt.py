@@ -157,6 +157,7 @@ def test_a_budget_spent_in_set_up_says_so(mock_bundle, tmp_path):
     assert m["status"] == "budget_before_first_iteration" and m["iterations"] == 0
     assert any("reached in set-up" in e for e in m["events"])
     assert "the time budget ran out in set-up: this is the start video" in text
+    assert any("give a larger time budget" in w for w in m["warnings"])  # what to do about it
     # ... and --resume goes on from there (the checkpoint says which bundle and settings it is)
     code, text = recon([str(mock_bundle), "--method", "stfm", "-o", str(out), "--resume", "--iters", "1", "--quiet"])
     assert code == 0 and metrics(out)["iterations"] == 1, text

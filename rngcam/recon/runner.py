@@ -427,6 +427,10 @@ def _finish(source: Source, problem: Problem, settings: ReconSettings, extra: di
                             (("rs", problem.rs_valid_mask()), ("gs", problem.gs_valid_mask())) if m is not None},
         "notes": fit["notes"],
     }
+    if fit["status"] == "budget_before_first_iteration":
+        metrics["warnings"].append(f"the time budget ended the run in set-up ({fit['wall_s']:.0f} s), so the result is "
+                                   "the start video, not a fit: give a larger time budget (time_budget_s; "
+                                   "on the command line --time-budget), or --resume it")
     if fit["message"]:
         metrics["message"] = fit["message"]
     for key in ("psnr_db", "ssim", "psnr_intermediate_db", "ssim_intermediate", "residual_rs", "residual_gs",
