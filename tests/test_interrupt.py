@@ -77,7 +77,8 @@ def test_sigint_in_set_up_leaves_the_start_video_marked_interrupted_and_resume_c
     assert any("interrupted by SIGINT in set-up" in e for e in m["events"])
     for name in ("recon.h5", "video.tif", "preview.mp4", "errors.csv", "checkpoint.pt", "recon.log"):
         assert (out / name).is_file(), name
-    assert "set-up: read m.h5" in (out / "recon.log").read_text()
+    logged = (out / "recon.log").read_text()
+    assert "set-up: read m.h5" in logged and f"outputs: {out}" in logged and "interrupted: the state" in logged
     code, text = recon([str(mock_bundle), "--method", "stfm", "-o", str(out), "--resume", "--iters", "2", "--quiet"])
     assert code == 0, text
     m = metrics(out)

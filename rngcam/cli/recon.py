@@ -90,13 +90,21 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memor
                          max_iters=iters, device=device, grid_bin=grid_bin, resume=resume, overwrite=overwrite,
                          checkpoint_every_s=checkpoint_every, holdout=holdout, max_frames=max_frames,
                          max_memory_bytes=None if max_memory is None else int(max_memory * 2**30))
-    click.echo(result.summary())
+    log = Path(out) / "recon.log"
+
+    def say(line: str, err: bool = False) -> None:  # the run's last lines go to its recon.log too
+        click.echo(line, err=err)
+        if log.is_file():
+            with log.open("a") as fh:
+                fh.write(line + "\n")
+
+    say(result.summary())
     for caveat in result.metrics.get("error_visibility_caveats", []):
-        click.echo(f"caveat: {caveat}")
-    click.echo(f"outputs: {out}")
+        say(f"caveat: {caveat}")
+    say(f"outputs: {out}")
     if result.status == "failed":
-        click.echo(f"error: {result.message}; outputs from the last good state are in {out}", err=True)
+        say(f"error: {result.message}; outputs from the last good state are in {out}", err=True)
         raise SystemExit(2)
     if result.status == "interrupted":
-        click.echo(f"interrupted: the state at the signal is in {out}; --resume continues it", err=True)
+        say(f"interrupted: the state at the signal is in {out}; --resume continues it", err=True)
         raise SystemExit(next((code for name, code in INTERRUPTED_EXIT.items() if name in result.message), 130))
