@@ -72,7 +72,7 @@ def budget_option(ctx, param, value):
 @click.option("--holdout", type=float, default=None,
               help="Hold this fraction of RS row bins out of the fit and report the residual on them.")
 @click.option("--quiet", is_flag=True,
-              help="No progress lines (set-up stages, the fit's progress); events, notes and the summary still print.")
+              help="No progress (bar or lines: set-up stages, the fit's progress); events and the summary still print.")
 def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memory, resume, overwrite,
               checkpoint_every, device, grid_bin, holdout, quiet, **opts):
     """Reconstruct the high-speed video in BUNDLE and report error against run time.

@@ -335,7 +335,11 @@ class _progress:
         return self
 
     def show(self, row: dict, iteration: int, wall_s: float) -> None:
-        figs = f"it {iteration}  obj {row['objective']:.4g}"
+        # the data residuals (relative, of every measurement) say how well the fit explains the
+        # cameras; the objective of one step is a noisy estimate from a sample of RS rows
+        res = "  ".join(f"{k[9:].upper()} residual {v:.4f}" for k, v in row.items()
+                        if k.startswith("residual_") and v == v)
+        figs = f"iteration {iteration}  " + (res or f"objective {row['objective']:.4g}")
         if "psnr_db" in row:
             figs += f"  PSNR {row['psnr_db']:.2f} dB"
         log_line = self.settings.log_line
