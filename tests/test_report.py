@@ -67,7 +67,7 @@ def test_comparison_puts_methods_side_by_side_and_refuses_other_bundles(recons, 
     assert res.exit_code == 0, res.output
     page = (tmp_path / "both.html").read_text()
     assert all(f'alt="{n}"' in page for n in ("truth", "tv3d", "blend"))
-    assert "2 methods on m.h5" in page
+    assert "2 reconstructions on m.h5" in page
     res = _cli("report", recons / "tv3d", recons / "blend")  # default: their common parent
     assert res.exit_code == 0 and (recons / "report.html").is_file(), res.output
     # another bundle: one line, exit 2

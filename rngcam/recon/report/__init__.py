@@ -170,7 +170,7 @@ def build_report(runs: list[Run], title: str | None = None, check_hash: bool = T
     bad = [f"{lab}: {r.metrics.get('status')}" for lab, r in zip(labels, runs) if r.metrics.get("status", "ok") != "ok"]
     warnings += [f"run did not finish cleanly: {b}" for b in bad]
     on = f" on {Path(str(bundle)).name}" if first.attrs.get("bundle_path") else ""
-    title = title or (f"rngcam: {labels[0]}{on}" if len(runs) == 1 else f"rngcam: {len(runs)} methods{on}")
+    title = title or (f"rngcam: {labels[0]}{on}" if len(runs) == 1 else f"rngcam: {len(runs)} reconstructions{on}")
     return page.page(title, meta, warnings, sections, data)
 
 
