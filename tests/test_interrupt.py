@@ -100,6 +100,7 @@ def test_sigint_in_the_solve_keeps_the_estimate_and_resume_continues_it(mock_bun
     m = metrics(out)
     assert m["status"] == "ok" and m["iterations"] == done + 5
     assert [e for e in m["events"] if e.startswith("resumed from")] == [f"resumed from checkpoint.pt at iteration {done}"]
+    assert "event: interrupted by SIGINT" not in text  # the earlier run's events stay in metrics.json, unprinted
     # a second resume keeps one "resumed" event, and its budget is its own (not the earlier runs' time)
     code, text = recon([str(mock_bundle), "--method", "tv3d", "-o", str(out), "--resume", "--time-budget", "10",
                         "--quiet"])

@@ -382,7 +382,9 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
     # then add to a much smaller base (bench/scale.md: whole-process peak).
     del method
     gc.collect()
-    for event in result.events:
+    # this run's events (a resumed run's list goes on from its checkpoint's: metrics.json keeps all)
+    now = max((i for i, e in enumerate(result.events) if e.startswith("resumed from ")), default=0)
+    for event in result.events[now:]:
         say(f"event: {event}")
     return fit
 
