@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from rngcam.errors import RngcamError, SettingError
-from rngcam.formats.bundle import Bundle, bundle_checksum, read_bundle_with_warnings
+from rngcam.formats.bundle import Bundle, bundle_checksum, is_warning, open_checked
 from rngcam.memory import peak_rss_bytes
 from rngcam.recon import checkpoint, outputs, registry
 from rngcam.recon.guard import BudgetCut, RunGuard
@@ -43,6 +43,7 @@ from rngcam.recon.loop import LoopSettings, RunResult, run, stage_printer
 from rngcam.recon.metrics import (
     error_visibility,
     error_visibility_caveats,
+    gs_forward,
     motion_metrics,
     one_object_scene,
     relative_residual,
@@ -114,11 +115,12 @@ def start_video(problem: Problem) -> np.ndarray:
 
 
 def _residuals(problem: Problem, video: torch.Tensor) -> dict[str, float]:
+    """Relative RS and GS residuals of `video`, computed in float64 a chunk of frames at a time."""
     out = {}
     if problem.b_rs is not None:
-        out["rs"] = relative_residual(problem.rs_op().A(video, frame_chunk=16), problem.b_rs)
+        out["rs"] = relative_residual(problem.rs_op().A(video, frame_chunk=16, dtype=torch.float64), problem.b_rs)
     if problem.b_gs is not None and problem.b_gs.shape[1]:
-        out["gs"] = relative_residual(problem.gs_op().A(video), problem.b_gs)
+        out["gs"] = relative_residual(gs_forward(problem.gs_op(), video), problem.b_gs)
     return out
 
 
@@ -250,25 +252,34 @@ def _solve(source: Source, settings: ReconSettings, out: Path | None, echo, star
         log.close()
 
 
+@contextlib.contextmanager
+def _opened(source: Source):
+    """(bundle, its warnings): the one already read, or the file opened lazily, so that frames and
+    truth stay on disk until the size check has passed and then are read one at a time."""
+    if source.bundle is not None:
+        yield source.bundle, []
+        return
+    with open_checked(source.path) as (bundle, problems, _stats):
+        yield bundle, [p for p in problems if is_warning(p)]
+
+
 def _read(source: Source, settings: ReconSettings, say, stage) -> tuple[Problem, dict]:
     """The problem on the grid of `settings` (the bundle read and checked first), and what the
     metrics need of the bundle."""
-    problem, bundle, warnings = source.problem, source.bundle, list(source.warnings)
+    problem, warnings = source.problem, list(source.warnings)
     extra: dict = {"one_object": False, "need": None}
     if problem is None:
-        if bundle is None:
-            bundle, read_warnings = read_bundle_with_warnings(source.path)
+        with _opened(source) as (bundle, read_warnings):
             warnings += read_warnings
-        for warning in warnings:
-            say(warning)
-        stage(f"read {source.name}")
-        plan = plan_grid(bundle, settings.grid_bin)
-        extra["need"] = check_size(plan, settings.method, registry.get(settings.method).memory,
-                                   max_frames=settings.max_frames, max_memory_bytes=settings.max_memory_bytes)
-        problem = build_problem(bundle, grid_bin=settings.grid_bin, max_frames=settings.max_frames)
-        extra["one_object"] = one_object_scene(bundle.rig_yaml)  # for the motion yardstick
-        extra["context"] = outputs.recon_context(source.path, bundle, problem)  # what the outputs record of it
-        del bundle  # the problem holds what the reconstruction needs; the raw frames can go
+            for warning in warnings:
+                say(warning)
+            stage(f"read {source.name}")
+            plan = plan_grid(bundle, settings.grid_bin)
+            extra["need"] = check_size(plan, settings.method, registry.get(settings.method).memory,
+                                       max_frames=settings.max_frames, max_memory_bytes=settings.max_memory_bytes)
+            problem = build_problem(bundle, grid_bin=settings.grid_bin, max_frames=settings.max_frames)
+            extra["one_object"] = one_object_scene(bundle.rig_yaml)  # for the motion yardstick
+            extra["context"] = outputs.recon_context(source.path, bundle, problem)  # what the outputs record of it
         stage("measurements binned onto the grid")
     extra["warnings"] = warnings
     if settings.holdout is not None:
@@ -322,7 +333,7 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
         return video_metrics(video.detach().cpu(), problem.truth, intermediate, problem.mask)  # float64 per chunk
 
     def one_row(video: np.ndarray, seconds: float, iteration: int) -> list[dict]:
-        vt = torch.from_numpy(video).double()
+        vt = torch.from_numpy(video)  # float32: the metrics accumulate in float64 chunk by chunk
         row = {"iteration": iteration, "wall_s": time.perf_counter() - t_start, "solve_s": seconds,
                "objective": float("nan")}
         row.update({f"residual_{key}": v for key, v in _residuals(problem, vt).items()})
@@ -451,7 +462,8 @@ def _finish(source: Source, problem: Problem, settings: ReconSettings, extra: di
                     settings=resolved, bundle_sha256=source.checksum(), frame_interval_s=problem.grid.dt_s,
                     context=extra.get("context") or outputs.recon_context(source.path, None, problem))
     if out is not None and not fit.get("keep_folder"):
-        result.save(out, echo=say)
+        truth = None if problem.truth is None else problem.truth.numpy()  # the report need not read it again
+        result.save(out, echo=say, truth=truth)
         if fit.get("cut"):
             checkpoint.save(out / checkpoint.CHECKPOINT_NAME, {
                 "method": None, "iteration": 0, "solve_s": 0.0, "wall_s": fit["wall_s"], "log": [],
