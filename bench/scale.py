@@ -3,6 +3,7 @@
 Usage (one at a time on the machine: run it under the bench lock):
     flock /tmp/rngcam-bench.lock python -m bench.scale ops --size 228x342
     flock /tmp/rngcam-bench.lock python -m bench.scale recon BUNDLE... --method tv3d --budget 240
+    nice -n 10 python -m bench.scale fixed BUNDLE --method stfm --final-steps 60
 
 `ops`: the RS operator's forward and adjoint against the bare batched rfft2 + irfft2 pair it needs,
 side by side, wall and system time (system time is where allocation churn shows), one thread.
@@ -10,6 +11,8 @@ side by side, wall and system time (system time is where allocation churn shows)
 set-up time, time per iteration, the time at which PSNR first comes within 0.5 dB of the run's
 final PSNR, peak RSS through the solve (metrics.json) and of the whole process (the child's
 rusage), events. Every figure line carries the load average when it was taken.
+`fixed`: PSNR after fixed step counts of the final level (no budget: load-independent), and the
+process's peak RSS.
 """
 
 from __future__ import annotations
@@ -185,6 +188,44 @@ def carry(bundle: str, fine_steps: int, every: int, coarse_steps: int) -> dict:
     return out
 
 
+def fixed(bundle: str, label: str, final_steps: int, every: int, grid_bin: int | None = None) -> dict:
+    """A method as `rngcam recon` builds it (its default settings, no time budget: coarse levels end
+    at their own stop), stepped to the final level and then `final_steps` more; PSNR of the output
+    at every `every`-th of those steps, the steps each level took, and this process's peak RSS.
+    Fixed step counts: load-independent (run it niced beside other work)."""
+    from rngcam.api import run_settings
+    from rngcam.formats.bundle import open_checked
+    from rngcam.memory import peak_rss_bytes
+    from rngcam.recon.metrics import video_metrics
+    from rngcam.recon.problem import build_problem
+    from rngcam.recon.runner import make_method
+
+    with open_checked(bundle) as (b, _, _):
+        problem = build_problem(b, grid_bin=grid_bin)
+    settings = run_settings(label, progress=False, time_budget_s=None, grid_bin=grid_bin)
+    t0 = time.perf_counter()
+    m = make_method(problem, settings, "cpu", budget_s=None)
+    out = {"bundle": bundle, "label": label, "setup_s": time.perf_counter() - t0, "curve": [], "load_start": load()}
+    steps = 0
+    while not getattr(m, "final", True):
+        m.step()
+        steps += 1
+    out["steps_to_final_level"] = steps
+    frames = problem.intermediate_frames()
+    for i in range(final_steps + 1):
+        if i % every == 0 or i == final_steps:
+            met = video_metrics(m.estimate().detach(), problem.truth, frames, problem.mask)
+            out["curve"].append((i, round(met["psnr_db"], 3), round(met.get("psnr_intermediate_db", float("nan")), 3)))
+            print(json.dumps({"final_level_step": i, "psnr": out["curve"][-1][1:], "peak_gib": peak_rss_bytes() / 2**30,
+                              "load": load()}), flush=True)
+        if i < final_steps:
+            m.step()
+    out["levels"] = (m.resolved_settings() or {}).get("levels")
+    out["peak_rss_gib"] = peak_rss_bytes() / 2**30
+    out["load_end"] = load()
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="part", required=True)
@@ -204,11 +245,19 @@ def main():
     c.add_argument("--fine-steps", type=int, default=300)
     c.add_argument("--every", type=int, default=50)
     c.add_argument("--coarse-steps", type=int, default=600, help="at most this many steps per coarser level")
+    f = sub.add_parser("fixed", help="PSNR after fixed step counts of the final level (load-independent)")
+    f.add_argument("bundle")
+    f.add_argument("--method", default="stfm", help="a label: stfm, stfm-fast, tv3d, pnp, ...")
+    f.add_argument("--final-steps", type=int, default=60)
+    f.add_argument("--every", type=int, default=20)
+    f.add_argument("--bin", type=int, default=None)
     s = sub.add_parser("summary", help="the table figures of finished `rngcam recon` output folders")
     s.add_argument("dirs", nargs="+", type=Path)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    if args.part == "carry":
+    if args.part == "fixed":
+        print(json.dumps(fixed(args.bundle, args.method, args.final_steps, args.every, args.bin)), flush=True)
+    elif args.part == "carry":
         print(json.dumps(carry(args.bundle, args.fine_steps, args.every, args.coarse_steps)), flush=True)
     elif args.part == "summary":
         for d in args.dirs:

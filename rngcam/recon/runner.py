@@ -462,8 +462,7 @@ def _finish(source: Source, problem: Problem, settings: ReconSettings, extra: di
                     settings=resolved, bundle_sha256=source.checksum(), frame_interval_s=problem.grid.dt_s,
                     context=extra.get("context") or outputs.recon_context(source.path, None, problem))
     if out is not None and not fit.get("keep_folder"):
-        truth = None if problem.truth is None else problem.truth.numpy()  # the report need not read it again
-        result.save(out, echo=say, truth=truth)
+        result.save(out, echo=say, truth=problem.truth)  # the report need not read the truth again
         if fit.get("cut"):
             checkpoint.save(out / checkpoint.CHECKPOINT_NAME, {
                 "method": None, "iteration": 0, "solve_s": 0.0, "wall_s": fit["wall_s"], "log": [],

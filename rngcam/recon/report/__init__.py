@@ -127,13 +127,14 @@ def _details(runs: list[Run], labels: list[str], truth_note: str) -> str:
 def build_report(runs: list[Run], title: str | None = None, check_hash: bool = True,
                  truth: np.ndarray | None = None) -> str:
     """The report page (HTML text) for runs of one bundle on one grid. `truth`: the bundle's truth
-    on that grid, where the caller holds it already (else it is read from the bundle)."""
+    on that grid (an array or a host tensor), where the caller holds it already (else it is read
+    from the bundle)."""
     first = runs[0]
     labels = [_label(r, runs) for r in runs]
     if truth is None:
         truth, truth_note = load_truth(first, check_hash)
-    else:
-        truth_note = f"truth from {first.attrs.get('bundle_path') or 'the bundle'}"
+    else:  # a host tensor or array: a view, not a copy
+        truth, truth_note = np.asarray(truth), f"truth from {first.attrs.get('bundle_path') or 'the bundle'}"
     c, k, h, w = first.video.shape
     frames, factor, notes = figures.frame_plan(k, h, w)
     players = ([{"name": "truth", "frames": figures.video_uris(truth, frames, factor)}] if truth is not None

@@ -35,11 +35,13 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
 
     def __init__(self, problem, settings: STFMSettings, device="cpu", static_from: STFM | None = None,
                  base_video: Tensor | None = None, fields_from: STFM | None = None,
-                 rs_norm_start: Tensor | None = None):
+                 rs_norm_start: Tensor | None = None, base_gains: Tensor | None = None):
         """`static_from`: an STFM of the same problem and preset whose initialised static field
         this one copies instead of fitting it again (ensemble members share that start).
         `base_video` (C, K, H, W), without GS gains: the base of a "video" dynamic base, instead
-        of RIFE's or the flow interpolation's (the ensemble's refinement fit).
+        of RIFE's or the flow interpolation's (the ensemble's refinement fit); kept as given (half
+        precision too: frames are cast as they are sampled), not copied. `base_gains` (C,): the
+        base is `base_video` divided by these, on the fly (no divided copy).
         `fields_from`: an STFM of the same model on a coarser grid whose fields (planes resampled)
         and gains this one starts from instead of initialising from the GS frames (coarse to fine).
         `rs_norm_start`: a start for the RS operator's power iteration (a coarser level's
@@ -51,6 +53,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         self.notes += report_lines(settings.selfcal_report)  # the end values: resolved_settings
         self._static_from = static_from
         self._given_base = base_video
+        self.base_gains = None if base_gains is None else base_gains.to(device, torch.float32)
         self._rs_norm_start, self.rs_norm_vector = rs_norm_start, None
         self.device = torch.device(device)
         self.problem = problem.to(torch.float32, self.device)
