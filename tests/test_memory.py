@@ -153,3 +153,59 @@ def test_upsample_in_chunks_matches_the_whole_and_casts_to_the_storage_dtype():
     half = upsample(v, (3, 13, 10, 12), 2.0, dtype=torch.float16)
     assert half.dtype == torch.float16
     torch.testing.assert_close(half.float(), whole, rtol=1e-3, atol=1e-3)
+
+
+def test_rs_operators_share_their_scratch_and_keep_their_zero_padding_apart():
+    from rngcam.physics import operators
+
+    gen = torch.Generator().manual_seed(0)
+    psf = torch.rand(3, 8, 8, generator=gen)
+    big = operators.RollingShutter(psf, torch.rand(20, 6, generator=gen), width=20, channels=3)
+    small = operators.RollingShutter(psf, torch.rand(19, 6, generator=gen), width=19, channels=3)
+    assert big.conv.fft_shape == small.conv.fft_shape  # the same scratch shapes: one pool entry each
+    v_big, v_small = torch.rand(3, 6, 20, 20, generator=gen), torch.rand(3, 6, 19, 19, generator=gen)
+    big.A(v_big)
+    got = small.A(v_small)  # after the larger image filled the shared buffer's padding region
+    with torch.enable_grad():  # the same arithmetic without kept buffers
+        fresh = small.A(v_small.clone().requires_grad_()).detach()
+    torch.testing.assert_close(got, fresh)
+    assert len([k for k in operators._scratch() if k[0] == "padded"]) <= operators.SCRATCH_PER_NAME
+
+
+class _SavedBytes:
+    """Autograd's saved tensors alive at once, in bytes (the peak over a step): what a graph holds."""
+
+    def __init__(self):
+        self.alive = self.peak = 0
+
+    def pack(self, t):
+        counter = self
+
+        class Held:
+            def __init__(self):
+                self.t, self.n = t, t.numel() * t.element_size()
+                counter.alive += self.n
+                counter.peak = max(counter.peak, counter.alive)
+
+            def __del__(self):
+                counter.alive -= self.n
+
+        return Held()
+
+    @staticmethod
+    def unpack(held):
+        return held.t
+
+
+def test_an_stfm_step_holds_one_chunk_of_frames_in_its_graph_at_a_time():
+    p = _toy_problem(24, 32)
+    peaks = {}
+    for chunk in (64, 2):
+        m = make_stfm(p, STFMSettings(rows_per_step=6, dynamic_base="video", refine=False, frame_chunk=chunk,
+                                      gs_windows_per_step=1))
+        saved = _SavedBytes()
+        with torch.autograd.graph.saved_tensors_hooks(saved.pack, saved.unpack):
+            m.loss_terms(torch.arange(6, 12), torch.tensor([1, 5]), backward=True, gs_windows=torch.tensor([1]))
+        peaks[chunk] = saved.peak
+        assert saved.alive == 0  # every graph freed by the end of the step
+    assert peaks[2] < 0.6 * peaks[64], peaks  # the chunks' graphs are not kept until the last one

@@ -8,6 +8,7 @@ operator returns a tuple of measurements; `inner` and `norm_sq` handle tensors a
 from __future__ import annotations
 
 import math
+import threading
 
 import torch
 from torch import Tensor
@@ -144,6 +145,17 @@ class PSFConvolution(LinearOperator):
         return z[..., :h, :w]
 
 
+SCRATCH_PER_NAME = 2  # kept scratch buffers per name and thread (RollingShutter._buffer)
+_SCRATCH = threading.local()
+
+
+def _scratch() -> dict:
+    """This thread's kept scratch buffers, by (name, shape, dtype, device, zeroed, tag)."""
+    if not hasattr(_SCRATCH, "pool"):
+        _SCRATCH.pool = {}
+    return _SCRATCH.pool
+
+
 class RollingShutter(LinearOperator):
     """RS measurement: convolve each frame with the PSF, weight row i of frame k by W[i, k], sum over k.
 
@@ -167,7 +179,6 @@ class RollingShutter(LinearOperator):
         self.conv = PSFConvolution(psf, (rows, width), batch_shape=(k,), channels=channels)
         self.domain_shape = self.conv.domain_shape
         self._band_cache: dict = {}
-        self._buffers: dict = {}
 
     def _w(self, like: Tensor) -> Tensor:
         return self.weights.to(dtype=like.dtype, device=like.device)
@@ -209,16 +220,24 @@ class RollingShutter(LinearOperator):
         fh, fw = self.conv.fft_shape
         return max(1, self.CHUNK_BYTES // (channels * fh * (fw // 2 + 1) * 8))
 
-    def _buffer(self, name: str, shape, dtype, device, reuse: bool, zero: bool = False) -> Tensor | None:
-        """A scratch tensor kept across calls (None under autograd: out= is not differentiable)."""
+    def _buffer(self, name: str, shape, dtype, device, reuse: bool, zero: bool = False,
+                tag: tuple = ()) -> Tensor | None:
+        """A scratch tensor kept across calls (None under autograd: out= is not differentiable).
+        Kept per thread, not per operator: a run builds many operators (every level, every
+        ensemble member, the start floor's), and each kept four 16 MiB buffers of its own. `tag`
+        tells apart buffers whose contents matter between calls (the zero padding of one image size)."""
         if not reuse:
             return None
-        key = (name, tuple(shape), dtype, str(device))
-        buf = self._buffers.get(key)
+        pool = _scratch()
+        key = (name, tuple(shape), dtype, str(device), zero, tag)
+        buf = pool.pop(key, None)
         if buf is None:
-            self._buffers = {k: b for k, b in self._buffers.items() if k[0] != name}  # one per name
             make = torch.zeros if zero else torch.empty
-            buf = self._buffers[key] = make(shape, dtype=dtype, device=device)
+            buf = make(shape, dtype=dtype, device=device)
+        pool[key] = buf  # the most recently used last
+        same = [k for k in pool if k[0] == name]
+        for k in same[:-SCRATCH_PER_NAME]:  # a few shapes per name (levels alternate with the floor's grid)
+            del pool[k]
         return buf
 
     def A(self, v: Tensor, frame_chunk: int | None = None, dtype=None) -> Tensor:  # noqa: N802
@@ -241,7 +260,7 @@ class RollingShutter(LinearOperator):
         for start in range(0, k, step):
             m = min(step, k - start)
             if reuse:  # zero-padded frames in a kept buffer: only the top-left block is ever written
-                padded = self._buffer("padded", (c, step, fh, fw), dt, v.device, reuse, zero=True)[:, :m]
+                padded = self._buffer("padded", (c, step, fh, fw), dt, v.device, reuse, zero=True, tag=(h, w))[:, :m]
                 padded[..., :h, :w] = v[:, start:start + m]
                 buf = self._buffer("spec", (c, step, fh, fw // 2 + 1), fwd.dtype, v.device, reuse)[:, :m]
                 spec = torch.fft.rfft2(padded, out=buf).mul_(tf)

@@ -24,7 +24,6 @@ rngcam.recon.holdout) next to the training residuals.
 from __future__ import annotations
 
 import contextlib
-import gc
 import threading
 import time
 from collections.abc import Callable
@@ -36,7 +35,7 @@ import torch
 
 from rngcam.errors import RngcamError, SettingError
 from rngcam.formats.bundle import Bundle, bundle_checksum, is_warning, open_checked
-from rngcam.memory import peak_rss_bytes
+from rngcam.memory import peak_rss_bytes, release_free_memory
 from rngcam.recon import checkpoint, outputs, registry
 from rngcam.recon.guard import BudgetCut, RunGuard
 from rngcam.recon.loop import LoopSettings, RunResult, run, stage_printer
@@ -354,6 +353,7 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
         left = None if budget is None else budget - (time.perf_counter() - t_start)
         with _heartbeat(settings.progress and say or log.write, settings.method, t_start, budget):
             method = make_method(problem, settings, device, stage=stage, budget_s=left)
+        release_free_memory()  # what the set-up let go of (coarse levels, learned networks' activations)
         guard.enter("solve")
     except KeyboardInterrupt as exc:  # guard.Interrupted (SIGINT, SIGTERM) or a plain Ctrl-C
         guard.enter("finish")  # the timer off, further signals held: the start video is written whole
@@ -390,7 +390,7 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
     # The method's state (the solve's peak) goes before the end-of-run metrics and outputs, which
     # then add to a much smaller base (bench/scale.md: whole-process peak).
     del method
-    gc.collect()
+    release_free_memory()
     for event in result.events:
         say(f"event: {event}")
     return fit

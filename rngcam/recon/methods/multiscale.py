@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from rngcam.memory import release_free_memory
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.timing import VideoGrid
 from rngcam.recon.loop import MethodBase
@@ -273,7 +274,9 @@ class CoarseToFine(MethodBase):
         x0 = upsample(self.method.estimate().detach(), fine, self.factors[i - 1] / self.factors[i],
                       dtype=START_DTYPE)
         self.method = None  # make() may keep what it needs of the coarser level; the rest can go
+        release_free_memory()
         self._start_level(i, x0)
+        release_free_memory()  # what make() let go of the coarser level
 
     @property
     def final(self) -> bool:

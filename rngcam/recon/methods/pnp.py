@@ -38,6 +38,7 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.memory import release_free_memory
 from rngcam.physics.operators import LinearOperator
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.multiscale import Kept, kept
@@ -313,10 +314,12 @@ class PnP(MethodBase):
         return s.sigma_start * (s.sigma_end / s.sigma_start) ** frac
 
     def _normal(self, v: Tensor, mu: float) -> Tensor:
-        out = mu * v
+        """(sum A_i^T A_i + mu I) v, accumulated in the first adjoint's own new tensor."""
+        out = None
         for op, _ in self.blocks:
-            out.add_(op.A_adjoint(op.A(v)))
-        return out
+            part = op.A_adjoint(op.A(v))
+            out = part if out is None else out.add_(part)
+        return out.add_(v, alpha=mu)
 
     def data_rhs(self) -> Tensor:
         """sum A_i^T b_i (made again each step: a video less to keep for one adjoint per step)."""
@@ -483,6 +486,7 @@ def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str 
             start = None if coarse is None else upsample(coarse.float(), level.shape, level.shape[1] / coarse.shape[1])
             coarse_shape = previous[-1].p.shape
             previous.clear()  # free the coarser level before building this one
+            release_free_memory()
             x0 = with_key_frame_detail(level, x0, coarse_shape)
             final = level.shape == problem.shape
             method = PnP(level, fine_level_settings(settings), device=device, x0=x0, rs_norm_start=start,

@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.memory import release_free_memory
 from rngcam.physics import tv_prox as tv
 from rngcam.physics.operators import LinearOperator
 from rngcam.recon.loop import MethodBase
@@ -340,6 +341,7 @@ def _make_tv3d(problem: Problem, settings: TV3DSettings, budget_s: float | None,
             gen = torch.Generator().manual_seed(0)
             start = torch.randn(level.shape, generator=gen, dtype=torch.float64)
         previous.clear()  # the coarser level goes before this one is built
+        release_free_memory()
         method = TV3D(level, settings, x0=x0, rs_norm_start=start)
         # Only a finer level needs the power iteration's vector (a warm start: half precision will do).
         final = level.shape == problem.shape

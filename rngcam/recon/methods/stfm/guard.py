@@ -12,6 +12,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from rngcam.memory import release_free_memory
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.metrics import relative_residual
 
@@ -29,6 +30,7 @@ class StartGuard(MethodBase):
         # again if and when it becomes the output.
         self.start_name, self.start_rs = self._best_start()
         self._start_video: Tensor | None = None
+        release_free_memory()
 
     def __getattr__(self, name):  # everything but the output is the method's
         if name.startswith("__") or name == "_method":

@@ -122,6 +122,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         return self.base_lr * decay
 
     def step(self) -> float:
+        self._cache = None  # the last evaluated video goes before this step's graph is built
         lr = self._lr_now()
         for g in self.optimiser.param_groups:
             g["lr"] = lr * g["lr_ratio"]

@@ -28,6 +28,7 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
+from rngcam.memory import release_free_memory
 from rngcam.recon.methods.multiscale import CoarseToFine, default_factors, power_norm, upsample
 from rngcam.recon.methods.stfm.method import STFM
 from rngcam.recon.methods.stfm.settings import REFINE_LR_RATIO, STFMSettings, _preset
@@ -78,6 +79,7 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
                           base_gains=coarse.base_gains, fields_from=coarse, rs_norm_start=start)
         elif with_base:
             previous.clear()  # the coarser fit is not needed any more: free it before building
+            release_free_memory()
             method = _on_base(level, single_settings, device, x0, start)
         else:
             method = _from_fields(level, single_settings, device, _fit_of(previous[-1]), start)
