@@ -12,7 +12,7 @@ set-up time, time per iteration, the time at which PSNR first comes within 0.5 d
 final PSNR, peak RSS through the solve (metrics.json) and of the whole process (the child's
 rusage), events. Every figure line carries the load average when it was taken.
 `fixed`: PSNR after fixed step counts of the final level (no budget: load-independent), and the
-process's peak RSS.
+process's peak RSS. `strip`: six frames of the truth and of recon folders' videos as one PNG.
 """
 
 from __future__ import annotations
@@ -226,6 +226,44 @@ def fixed(bundle: str, label: str, final_steps: int, every: int, grid_bin: int |
     return out
 
 
+def strip(out_dirs: list[Path], png: Path, labels: list[str] | None = None) -> list[int]:
+    """Six frames (0, K/6, ..., 5K/6) of the truth and of each recon folder's video, read frame by
+    frame from recon.h5 and the bundle it names (no whole video in memory), as one PNG."""
+    import h5py
+    import matplotlib
+    import numpy as np
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rngcam.formats.bundle import open_bundle
+    from rngcam.recon.outputs import to_display
+
+    with h5py.File(out_dirs[0] / "recon.h5") as f:
+        k, bundle, times = f["video"].shape[1], f.attrs["bundle_path"], f["frame_times_s"][()]
+    frames = [0, k // 6, k // 3, k // 2, 2 * k // 3, 5 * k // 6]
+    with open_bundle(bundle) as b:
+        rows = {"truth": np.stack([np.asarray(b.truth.video[:, j], np.float32) for j in frames], axis=1)}
+    for i, d in enumerate(out_dirs):
+        with h5py.File(d / "recon.h5") as f:
+            rows[labels[i] if labels else d.name] = np.stack([f["video"][:, j] for j in frames], axis=1)
+    fig, axes = plt.subplots(len(rows), len(frames), figsize=(1.9 * len(frames), 1.45 * len(rows)), squeeze=False)
+    for r, (name, video) in enumerate(rows.items()):
+        disp = to_display(video)
+        for c, j in enumerate(frames):
+            ax = axes[r, c]
+            ax.imshow(disp[c], interpolation="nearest")
+            ax.set_xticks([]), ax.set_yticks([])
+            if c == 0:
+                ax.set_ylabel(name, fontsize=8)
+            if r == 0:
+                ax.set_title(f"frame {j} ({times[j] * 1e6:,.0f} us)", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(png, dpi=90)
+    plt.close(fig)
+    return frames
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="part", required=True)
@@ -251,11 +289,18 @@ def main():
     f.add_argument("--final-steps", type=int, default=60)
     f.add_argument("--every", type=int, default=20)
     f.add_argument("--bin", type=int, default=None)
+    st = sub.add_parser("strip", help="six frames of the truth and of recon folders' videos as one PNG")
+    st.add_argument("dirs", nargs="+", type=Path)
+    st.add_argument("--out", type=Path, required=True)
+    st.add_argument("--labels", default=None, help="comma-separated row names (default: the folders' names)")
     s = sub.add_parser("summary", help="the table figures of finished `rngcam recon` output folders")
     s.add_argument("dirs", nargs="+", type=Path)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    if args.part == "fixed":
+    if args.part == "strip":
+        frames = strip(args.dirs, args.out, args.labels.split(",") if args.labels else None)
+        print(json.dumps({"png": str(args.out), "frames": frames}), flush=True)
+    elif args.part == "fixed":
         print(json.dumps(fixed(args.bundle, args.method, args.final_steps, args.every, args.bin)), flush=True)
     elif args.part == "carry":
         print(json.dumps(carry(args.bundle, args.fine_steps, args.every, args.coarse_steps)), flush=True)

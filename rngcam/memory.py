@@ -50,11 +50,13 @@ def total_memory_bytes() -> int:
         return 8 * 2**30
 
 
-def release_free_memory() -> None:
-    """Collect garbage and hand the C heap's free pages back to the system (glibc's malloc_trim;
-    nothing elsewhere). Tensors under glibc's mmap threshold (up to 32 MiB, e.g. a coarse level's
-    videos) live in the heap; once freed, their pages stay in this process's RSS until trimmed."""
-    gc.collect()
+def release_free_memory(collect: bool = True) -> None:
+    """Hand the C heap's free pages back to the system (glibc's malloc_trim, well under a
+    millisecond; nothing elsewhere), after collecting garbage cycles with `collect` (~0.1 s).
+    Tensors under glibc's mmap threshold (up to 32 MiB, e.g. a coarse level's videos, a step's
+    temporaries at 228x342) live in the heap; once freed, their pages stay in RSS until trimmed."""
+    if collect:
+        gc.collect()
     try:
         trim = ctypes.CDLL(None).malloc_trim  # the process's own libc
     except (OSError, AttributeError):  # not glibc

@@ -156,6 +156,11 @@ def _scratch() -> dict:
     return _SCRATCH.pool
 
 
+def drop_scratch() -> None:
+    """Let go of this thread's kept scratch buffers (a run's end: the next calls make new ones)."""
+    _scratch().clear()
+
+
 class RollingShutter(LinearOperator):
     """RS measurement: convolve each frame with the PSF, weight row i of frame k by W[i, k], sum over k.
 

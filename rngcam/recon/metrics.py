@@ -127,9 +127,10 @@ _CONSISTENT_NOISE_RATIO = 3.0
 
 def _visibility_sensors(problem, frame_chunk: int) -> dict:
     """name -> (measurement, forward operator computing in float64, 0/1 valid mask or None) for the
-    sensors in use; the operators take `frame_chunk` frames at a time and copy no whole video."""
+    sensors in use; they take a chunk of frames at a time (GS: `frame_chunk`) and copy no whole video."""
     rs, gs = problem.rs_op(), problem.gs_op()
-    sensors = {"rs": (problem.b_rs, lambda x: rs.A(x, frame_chunk=frame_chunk, dtype=torch.float64),
+    # the RS operator sizes its own chunks (its kept scratch stays small in float64 too)
+    sensors = {"rs": (problem.b_rs, lambda x: rs.A(x, dtype=torch.float64),
                       problem.rs_valid_mask()),
                "gs": (problem.b_gs, lambda x: gs_forward(gs, x, frame_chunk), problem.gs_valid_mask())}
     return {name: s for name, s in sensors.items() if s[0] is not None and s[0].numel()}
@@ -171,8 +172,8 @@ def error_visibility(problem, estimate: Tensor, frame_chunk: int = 16) -> dict[s
     only a better prior. inf when a measurement has no noise but sees the error; nan without truth,
     and nan when the data cannot vouch for anything: the truth's prediction differs from the
     measurement by more than a few times the noise estimated from the measurement alone
-    (mis-scaled or broken data; `error_visibility_caveats` says which). The RS operator takes
-    `frame_chunk` frames at a time, in float64, so memory does not grow with K.
+    (mis-scaled or broken data; `error_visibility_caveats` says which). The operators take a
+    chunk of frames at a time (GS: `frame_chunk`), in float64, so memory does not grow with K.
     """
     sensors = _visibility_sensors(problem, frame_chunk)
     if problem.truth is None:

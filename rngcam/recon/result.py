@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rngcam.memory import release_free_memory
 from rngcam.recon import outputs
 
 # What a run's `status` can be: "ok" (the method's own stop, its iterations or the budget after
@@ -62,6 +63,7 @@ class Result:
         outputs.write_errors(out / "errors.csv", out / "errors.png", self.log, self.method,
                              noise_level=ctx.get("rs_noise_level"))
         outputs.write_metrics(out / "metrics.json", self.metrics)
+        release_free_memory(collect=False)  # the writers' freed heap pages go before the page is built
         write_report_or_warn(out, echo or (lambda line: None), truth)  # from the folder just written
         return out
 

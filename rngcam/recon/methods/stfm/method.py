@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.memory import release_free_memory
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.selfcal import report_lines
 from rngcam.recon.methods.stfm.bases import BaseVideos
@@ -166,6 +167,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
     def estimate(self) -> Tensor:
         if self._cache is not None and self._cache[0] == self.steps:
             return self._cache[1]
+        release_free_memory(collect=False)  # the steps' freed heap pages go before a video-sized buffer comes
         video = torch.empty(self.C, self.K, self.H, self.W, device=self.device)
         with self._averaged():
             for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):
