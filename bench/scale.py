@@ -3,6 +3,7 @@
 Usage (one at a time on the machine: run it under the bench lock):
     flock /tmp/rngcam-bench.lock python -m bench.scale ops --size 228x342
     flock /tmp/rngcam-bench.lock python -m bench.scale recon BUNDLE... --method tv3d --budget 240
+    nice -n 10 python -m bench.scale fixed BUNDLE --method stfm --final-steps 60
 
 `ops`: the RS operator's forward and adjoint against the bare batched rfft2 + irfft2 pair it needs,
 side by side, wall and system time (system time is where allocation churn shows), one thread.
@@ -10,6 +11,8 @@ side by side, wall and system time (system time is where allocation churn shows)
 set-up time, time per iteration, the time at which PSNR first comes within 0.5 dB of the run's
 final PSNR, peak RSS through the solve (metrics.json) and of the whole process (the child's
 rusage), events. Every figure line carries the load average when it was taken.
+`fixed`: PSNR after fixed step counts of the final level (no budget: load-independent), and the
+process's peak RSS. `strip`: six frames of the truth and of recon folders' videos as one PNG.
 """
 
 from __future__ import annotations
@@ -185,6 +188,82 @@ def carry(bundle: str, fine_steps: int, every: int, coarse_steps: int) -> dict:
     return out
 
 
+def fixed(bundle: str, label: str, final_steps: int, every: int, grid_bin: int | None = None) -> dict:
+    """A method as `rngcam recon` builds it (its default settings, no time budget: coarse levels end
+    at their own stop), stepped to the final level and then `final_steps` more; PSNR of the output
+    at every `every`-th of those steps, the steps each level took, and this process's peak RSS.
+    Fixed step counts: load-independent (run it niced beside other work)."""
+    from rngcam.api import run_settings
+    from rngcam.formats.bundle import open_checked
+    from rngcam.memory import peak_rss_bytes
+    from rngcam.recon.metrics import video_metrics
+    from rngcam.recon.problem import build_problem
+    from rngcam.recon.runner import make_method
+
+    with open_checked(bundle) as (b, _, _):
+        problem = build_problem(b, grid_bin=grid_bin)
+    settings = run_settings(label, progress=False, time_budget_s=None, grid_bin=grid_bin)
+    t0 = time.perf_counter()
+    m = make_method(problem, settings, "cpu", budget_s=None)
+    out = {"bundle": bundle, "label": label, "setup_s": time.perf_counter() - t0, "curve": [], "load_start": load()}
+    steps = 0
+    while not getattr(m, "final", True):
+        m.step()
+        steps += 1
+    out["steps_to_final_level"] = steps
+    frames = problem.intermediate_frames()
+    for i in range(final_steps + 1):
+        if i % every == 0 or i == final_steps:
+            met = video_metrics(m.estimate().detach(), problem.truth, frames, problem.mask)
+            out["curve"].append((i, round(met["psnr_db"], 3), round(met.get("psnr_intermediate_db", float("nan")), 3)))
+            print(json.dumps({"final_level_step": i, "psnr": out["curve"][-1][1:], "peak_gib": peak_rss_bytes() / 2**30,
+                              "load": load()}), flush=True)
+        if i < final_steps:
+            m.step()
+    out["levels"] = (m.resolved_settings() or {}).get("levels")
+    out["peak_rss_gib"] = peak_rss_bytes() / 2**30
+    out["load_end"] = load()
+    return out
+
+
+def strip(out_dirs: list[Path], png: Path, labels: list[str] | None = None) -> list[int]:
+    """Six frames (0, K/6, ..., 5K/6) of the truth and of each recon folder's video, read frame by
+    frame from recon.h5 and the bundle it names (no whole video in memory), as one PNG."""
+    import h5py
+    import matplotlib
+    import numpy as np
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rngcam.formats.bundle import open_bundle
+    from rngcam.recon.outputs import to_display
+
+    with h5py.File(out_dirs[0] / "recon.h5") as f:
+        k, bundle, times = f["video"].shape[1], f.attrs["bundle_path"], f["frame_times_s"][()]
+    frames = [0, k // 6, k // 3, k // 2, 2 * k // 3, 5 * k // 6]
+    with open_bundle(bundle) as b:
+        rows = {"truth": np.stack([np.asarray(b.truth.video[:, j], np.float32) for j in frames], axis=1)}
+    for i, d in enumerate(out_dirs):
+        with h5py.File(d / "recon.h5") as f:
+            rows[labels[i] if labels else d.name] = np.stack([f["video"][:, j] for j in frames], axis=1)
+    fig, axes = plt.subplots(len(rows), len(frames), figsize=(1.9 * len(frames), 1.45 * len(rows)), squeeze=False)
+    for r, (name, video) in enumerate(rows.items()):
+        disp = to_display(video)
+        for c, j in enumerate(frames):
+            ax = axes[r, c]
+            ax.imshow(disp[c], interpolation="nearest")
+            ax.set_xticks([]), ax.set_yticks([])
+            if c == 0:
+                ax.set_ylabel(name, fontsize=8)
+            if r == 0:
+                ax.set_title(f"frame {j} ({times[j] * 1e6:,.0f} us)", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(png, dpi=90)
+    plt.close(fig)
+    return frames
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="part", required=True)
@@ -204,11 +283,26 @@ def main():
     c.add_argument("--fine-steps", type=int, default=300)
     c.add_argument("--every", type=int, default=50)
     c.add_argument("--coarse-steps", type=int, default=600, help="at most this many steps per coarser level")
+    f = sub.add_parser("fixed", help="PSNR after fixed step counts of the final level (load-independent)")
+    f.add_argument("bundle")
+    f.add_argument("--method", default="stfm", help="a label: stfm, stfm-fast, tv3d, pnp, ...")
+    f.add_argument("--final-steps", type=int, default=60)
+    f.add_argument("--every", type=int, default=20)
+    f.add_argument("--bin", type=int, default=None)
+    st = sub.add_parser("strip", help="six frames of the truth and of recon folders' videos as one PNG")
+    st.add_argument("dirs", nargs="+", type=Path)
+    st.add_argument("--out", type=Path, required=True)
+    st.add_argument("--labels", default=None, help="comma-separated row names (default: the folders' names)")
     s = sub.add_parser("summary", help="the table figures of finished `rngcam recon` output folders")
     s.add_argument("dirs", nargs="+", type=Path)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    if args.part == "carry":
+    if args.part == "strip":
+        frames = strip(args.dirs, args.out, args.labels.split(",") if args.labels else None)
+        print(json.dumps({"png": str(args.out), "frames": frames}), flush=True)
+    elif args.part == "fixed":
+        print(json.dumps(fixed(args.bundle, args.method, args.final_steps, args.every, args.bin)), flush=True)
+    elif args.part == "carry":
         print(json.dumps(carry(args.bundle, args.fine_steps, args.every, args.coarse_steps)), flush=True)
     elif args.part == "summary":
         for d in args.dirs:

@@ -27,17 +27,16 @@ BASE_BYTES = 300 * 2**20  # the interpreter, torch and OpenCV
 
 @dataclass(frozen=True)
 class MemoryModel:
-    """A method's peak memory for a whole `rngcam recon` run (truth and metrics included), fitted to
-    measured runs (each method's figures and their sources sit beside its registry entry):
-    `bytes_per_element` per video element (C x K x H x W) plus `bytes_per_frame` per frame; on grids
-    of `coarse_to_fine_min_side` px and more (0: never), the larger of `coarse_level_bytes` and
-    `coarse_to_fine_bytes_per_element` per element instead."""
+    """A method's peak memory for a whole `rngcam recon` run (reading, set-up, solve, metrics and
+    outputs), fitted to measured runs (each method's figures and their sources sit beside its
+    registry entry): BASE_BYTES, plus `fixed_bytes` that do not grow with the video (learned
+    networks, a coarse level's work), `bytes_per_element` per video element (C x K x H x W) and
+    `bytes_per_pixel` per grid pixel of one frame (H x W: a step's or a network batch's working
+    set over a fixed number of frames)."""
 
     bytes_per_element: float
-    bytes_per_frame: float = 0.0
-    coarse_to_fine_min_side: int = 0
-    coarse_to_fine_bytes_per_element: float = 0.0
-    coarse_level_bytes: float = 0.0
+    fixed_bytes: float = 0.0
+    bytes_per_pixel: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -116,11 +115,8 @@ def plan_grid(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = 
 
 def method_bytes(plan: GridPlan, memory: MemoryModel) -> int:
     """Estimated peak memory of reconstructing the plan's video with a method of `memory`."""
-    if memory.coarse_to_fine_min_side and min(plan.height, plan.width) >= memory.coarse_to_fine_min_side:
-        per_run = max(memory.coarse_level_bytes, plan.elements * memory.coarse_to_fine_bytes_per_element)
-    else:
-        per_run = plan.elements * memory.bytes_per_element + plan.grid.n_frames * memory.bytes_per_frame
-    return int(BASE_BYTES + per_run)
+    return int(BASE_BYTES + memory.fixed_bytes + plan.elements * memory.bytes_per_element
+               + plan.height * plan.width * memory.bytes_per_pixel)
 
 
 def default_max_memory_bytes() -> int:

@@ -258,7 +258,7 @@ def test_the_x_step_solves_the_normal_equations_and_leaves_its_start_alone():
     z = method.estimate()
     z_before = z.clone()
     mu = 0.3
-    rhs = method.rhs_data + mu * z
+    rhs = method.data_rhs() + mu * z
 
     def misfit(v):
         return float((method._normal(v, mu) - rhs).norm() / rhs.norm())

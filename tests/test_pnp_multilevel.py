@@ -72,20 +72,6 @@ def test_key_frame_detail_is_what_the_coarse_grid_cannot_hold():
     assert with_key_frame_detail(no_gs, x0, coarse_shape) is x0
 
 
-def test_pnp_memory_estimate_follows_coarse_to_fine():
-    from types import SimpleNamespace
-
-    from rngcam.recon.registry import get
-    from rngcam.sizing import method_bytes
-
-    def plan(h, w, k):
-        return SimpleNamespace(height=h, width=w, elements=3 * k * h * w, grid=SimpleNamespace(n_frames=k))
-
-    memory = get("pnp").memory
-    assert 4.33 < method_bytes(plan(228, 342, 231), memory) / 2**30 < 5.0  # measured 4.33 GiB (bench/scale.md)
-    assert 1.3 < method_bytes(plan(128, 128, 131), memory) / 2**30 < 1.6  # measured 1.31-1.38 GiB
-
-
 def test_a_run_ended_on_a_coarse_level_keeps_the_key_frame_detail():
     from rngcam.recon.methods.multiscale import upsample
     from rngcam.recon.methods.pnp import key_frame_detail

@@ -234,21 +234,3 @@ def _scatter(x, frames, shape):
     full = torch.zeros(shape, dtype=x.dtype)
     full[:, frames] = x
     return full
-
-
-def test_stfm_memory_estimate_follows_coarse_to_fine():
-    from types import SimpleNamespace
-
-    from rngcam.recon.registry import STFM_MEMORY, get
-    from rngcam.sizing import method_bytes
-
-    assert get("stfm").memory == STFM_MEMORY
-
-    def plan(h, w, k):
-        return SimpleNamespace(height=h, width=w, elements=3 * k * h * w, grid=SimpleNamespace(n_frames=k))
-
-    paper = method_bytes(plan(228, 342, 231), STFM_MEMORY) / 2**30
-    assert 3.6 < paper < 4.2  # measured 3.61 GiB through the solve, 3.28 GiB whole-process (bench/scale.md)
-    assert 1.0 < method_bytes(plan(114, 171, 117), STFM_MEMORY) / 2**30 < 1.5  # measured 1.20 GiB
-    small = plan(64, 64, 67)  # one level: the ensemble's figure, per element and per frame
-    assert method_bytes(small, STFM_MEMORY) > STFM_MEMORY.bytes_per_element * small.elements

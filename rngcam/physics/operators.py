@@ -8,6 +8,7 @@ operator returns a tuple of measurements; `inner` and `norm_sq` handle tensors a
 from __future__ import annotations
 
 import math
+import threading
 
 import torch
 from torch import Tensor
@@ -41,6 +42,14 @@ def _next_fast_len(n: int) -> int:
             p35 *= 3
         p5 *= 5
     return best
+
+
+def compute_dtype(stored, wanted=None):
+    """The dtype to compute in for data stored as `stored`: `wanted`, else `stored`, except that
+    half precision (a storage format here, never arithmetic) computes in float32."""
+    if wanted is not None:
+        return wanted
+    return torch.float32 if stored in (torch.float16, torch.bfloat16) else stored
 
 
 class LinearOperator:
@@ -136,6 +145,22 @@ class PSFConvolution(LinearOperator):
         return z[..., :h, :w]
 
 
+SCRATCH_PER_NAME = 2  # kept scratch buffers per name and thread (RollingShutter._buffer)
+_SCRATCH = threading.local()
+
+
+def _scratch() -> dict:
+    """This thread's kept scratch buffers, by (name, shape, dtype, device, zeroed, tag)."""
+    if not hasattr(_SCRATCH, "pool"):
+        _SCRATCH.pool = {}
+    return _SCRATCH.pool
+
+
+def drop_scratch() -> None:
+    """Let go of this thread's kept scratch buffers (a run's end: the next calls make new ones)."""
+    _scratch().clear()
+
+
 class RollingShutter(LinearOperator):
     """RS measurement: convolve each frame with the PSF, weight row i of frame k by W[i, k], sum over k.
 
@@ -159,7 +184,6 @@ class RollingShutter(LinearOperator):
         self.conv = PSFConvolution(psf, (rows, width), batch_shape=(k,), channels=channels)
         self.domain_shape = self.conv.domain_shape
         self._band_cache: dict = {}
-        self._buffers: dict = {}
 
     def _w(self, like: Tensor) -> Tensor:
         return self.weights.to(dtype=like.dtype, device=like.device)
@@ -201,28 +225,39 @@ class RollingShutter(LinearOperator):
         fh, fw = self.conv.fft_shape
         return max(1, self.CHUNK_BYTES // (channels * fh * (fw // 2 + 1) * 8))
 
-    def _buffer(self, name: str, shape, dtype, device, reuse: bool, zero: bool = False) -> Tensor | None:
-        """A scratch tensor kept across calls (None under autograd: out= is not differentiable)."""
+    def _buffer(self, name: str, shape, dtype, device, reuse: bool, zero: bool = False,
+                tag: tuple = ()) -> Tensor | None:
+        """A scratch tensor kept across calls (None under autograd: out= is not differentiable).
+        Kept per thread, not per operator: a run builds many operators (every level, every
+        ensemble member, the start floor's), and each kept four 16 MiB buffers of its own. `tag`
+        tells apart buffers whose contents matter between calls (the zero padding of one image size)."""
         if not reuse:
             return None
-        key = (name, tuple(shape), dtype, str(device))
-        buf = self._buffers.get(key)
+        pool = _scratch()
+        key = (name, tuple(shape), dtype, str(device), zero, tag)
+        buf = pool.pop(key, None)
         if buf is None:
-            self._buffers = {k: b for k, b in self._buffers.items() if k[0] != name}  # one per name
             make = torch.zeros if zero else torch.empty
-            buf = self._buffers[key] = make(shape, dtype=dtype, device=device)
+            buf = make(shape, dtype=dtype, device=device)
+        pool[key] = buf  # the most recently used last
+        same = [k for k in pool if k[0] == name]
+        for k in same[:-SCRATCH_PER_NAME]:  # a few shapes per name (levels alternate with the floor's grid)
+            del pool[k]
         return buf
 
-    def A(self, v: Tensor, frame_chunk: int | None = None) -> Tensor:  # noqa: N802
+    def A(self, v: Tensor, frame_chunk: int | None = None, dtype=None) -> Tensor:  # noqa: N802
         """With `frame_chunk`, that many frames go through the FFTs at a time (default: as many
-        as fit CHUNK_BYTES); the result does not depend on it."""
+        as fit CHUNK_BYTES); the result does not depend on it. `dtype`: what to compute in
+        (default: v's; float32 for a half-precision v): each chunk is cast on its way in, so a
+        video kept in half precision, or measured in float64, needs no cast copy of itself."""
         conv = self.conv
         h, w = conv.image_shape
         ox = conv.offset[1]
         fh, fw = conv.fft_shape
         c, k = v.shape[0], v.shape[1]
-        tf = conv.transfer(v.dtype, v.device)[:, None]  # (C|1, 1, fh, fw')
-        rows_k, fwd, _ = self._band(v.dtype, v.device)
+        dt = compute_dtype(v.dtype, dtype)
+        tf = conv.transfer(dt, v.device)[:, None]  # (C|1, 1, fh, fw')
+        rows_k, fwd, _ = self._band(dt, v.device)
         n = rows_k.shape[1]
         reuse = not (torch.is_grad_enabled() and v.requires_grad)
         step = self.frames_per_chunk(c, frame_chunk)
@@ -230,12 +265,12 @@ class RollingShutter(LinearOperator):
         for start in range(0, k, step):
             m = min(step, k - start)
             if reuse:  # zero-padded frames in a kept buffer: only the top-left block is ever written
-                padded = self._buffer("padded", (c, step, fh, fw), v.dtype, v.device, reuse, zero=True)[:, :m]
+                padded = self._buffer("padded", (c, step, fh, fw), dt, v.device, reuse, zero=True, tag=(h, w))[:, :m]
                 padded[..., :h, :w] = v[:, start:start + m]
                 buf = self._buffer("spec", (c, step, fh, fw // 2 + 1), fwd.dtype, v.device, reuse)[:, :m]
                 spec = torch.fft.rfft2(padded, out=buf).mul_(tf)
             else:
-                spec = torch.fft.rfft2(v[:, start:start + m], s=conv.fft_shape) * tf
+                spec = torch.fft.rfft2(v[:, start:start + m].to(dt), s=conv.fft_shape) * tf
             # Only the rows each frame reaches, of the inverse DFT along y, weighted: (C, m, n, fw').
             part = torch.matmul(fwd[start:start + m], spec)
             idx = rows_k[start:start + m].reshape(-1)
@@ -243,7 +278,9 @@ class RollingShutter(LinearOperator):
             rows = rows.index_add_(1, idx, part) if reuse else rows.index_add(1, idx, part)
         return torch.fft.irfft(rows, n=fw, dim=-1)[..., ox:ox + w]
 
-    def A_adjoint(self, b: Tensor, frame_chunk: int | None = None) -> Tensor:  # noqa: N802
+    def A_adjoint(self, b: Tensor, frame_chunk: int | None = None, out: Tensor | None = None) -> Tensor:  # noqa: N802
+        """`out`: a (C, K, H, W) tensor to write the video into (of any floating dtype: each chunk
+        is cast on its way out), instead of a new one in b's dtype."""
         conv = self.conv
         h, w = conv.image_shape
         ox = conv.offset[1]
@@ -254,7 +291,9 @@ class RollingShutter(LinearOperator):
         reuse = not (torch.is_grad_enabled() and b.requires_grad)
         # The row weights commute with the transform along x: transform the measurement once.
         bx = torch.fft.rfft(torch.nn.functional.pad(b, (ox, fw - w - ox)), dim=-1)  # (C, H, fw')
-        out = torch.empty((c, k, h, w), dtype=b.dtype, device=b.device) if reuse else []
+        parts = []  # under autograd: the chunks, concatenated at the end
+        if reuse and out is None:
+            out = torch.empty((c, k, h, w), dtype=b.dtype, device=b.device)
         step = self.frames_per_chunk(c, frame_chunk)
         for start in range(0, k, step):
             m = min(step, k - start)
@@ -269,8 +308,10 @@ class RollingShutter(LinearOperator):
             else:
                 spec = torch.matmul(adj[start:start + m], sel) * tfc
                 col = torch.fft.ifft(spec, dim=-2)[..., :h, :]
-                out.append(torch.fft.irfft(col, n=fw, dim=-1)[..., :w])
-        return out if reuse else torch.cat(out, dim=1)
+                parts.append(torch.fft.irfft(col, n=fw, dim=-1)[..., :w])
+        if reuse:
+            return out
+        return torch.cat(parts, dim=1) if out is None else out.copy_(torch.cat(parts, dim=1))
 
     def A_rows(self, v_frames: Tensor, rows: Tensor, frames: Tensor) -> Tensor:  # noqa: N802
         """Sensor rows `rows` (R,) as seen from frames `frames` (F,) only: v_frames (C, F, H, W)

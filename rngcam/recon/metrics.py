@@ -13,10 +13,12 @@ import torch
 from torch import Tensor
 
 
-def psnr(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range: float = 1.0) -> float:
-    """PSNR in dB over all elements (or the (H, W) `mask` region) of (C, T, H, W) videos."""
+def psnr(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range: float = 1.0,
+         frames: np.ndarray | None = None) -> float:
+    """PSNR in dB over all elements (or the (H, W) `mask` region) of (C, T, H, W) videos, over
+    `frames` (default: all)."""
     total, count = 0.0, 0
-    for e, t in zip(_frame_chunks(estimate), _frame_chunks(truth)):  # bounded temporaries at any size
+    for e, t in _frame_chunks(estimate, truth, frames):  # bounded temporaries at any size
         diff = (e.double() - t.double().to(e.device)) ** 2
         if mask is not None:
             m = mask.to(diff.device).expand_as(diff)
@@ -29,9 +31,17 @@ def psnr(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range
     return 10 * math.log10(data_range ** 2 / mse)
 
 
-def _frame_chunks(video: Tensor, chunk: int = 16):
-    """(C, T, H, W) -> views of `chunk` frames at a time."""
-    return (video[:, i:i + chunk] for i in range(0, video.shape[1], chunk))
+def _frame_chunks(a: Tensor, b: Tensor, frames: np.ndarray | None = None, chunk: int = 16):
+    """Pairs of (C, n, H, W) chunks of two videos, `chunk` of `frames` (default all) at a time:
+    views where the frames are consecutive, small copies otherwise."""
+    if frames is None:
+        for i in range(0, a.shape[1], chunk):
+            yield a[:, i:i + chunk], b[:, i:i + chunk]
+        return
+    idx = torch.as_tensor(np.asarray(frames), dtype=torch.long)
+    for i in range(0, len(idx), chunk):
+        j = idx[i:i + chunk]
+        yield a.index_select(1, j.to(a.device)), b.index_select(1, j.to(b.device))
 
 
 def _gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float64, device="cpu") -> Tensor:
@@ -48,13 +58,15 @@ def _valid_filter_matrix(g: Tensor, n: int) -> Tensor:
     return m
 
 
-def ssim(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range: float = 1.0) -> float:
-    """Mean SSIM (Wang et al. 2004, Gaussian 11x11, sigma 1.5) over frames and channels.
+def ssim(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range: float = 1.0,
+         frames: np.ndarray | None = None) -> float:
+    """Mean SSIM (Wang et al. 2004, Gaussian 11x11, sigma 1.5) over `frames` (default: all) and
+    channels.
 
     Each frame of each channel is one 2-D image; windows shrink for images under 11 px.
     """
     total, count = 0.0, 0
-    for e, t in zip(_frame_chunks(estimate), _frame_chunks(truth)):  # bounded temporaries at any size
+    for e, t in _frame_chunks(estimate, truth, frames):  # bounded temporaries at any size
         s_sum, n = _ssim_sums(e, t, mask, data_range)
         total, count = total + s_sum, count + n
     return total / count if count else float("nan")
@@ -94,10 +106,8 @@ def video_metrics(estimate: Tensor, truth: Tensor, intermediate: np.ndarray,
     """PSNR/SSIM over all frames and over the intermediate frames (away from GS key frames)."""
     out = {"psnr_db": psnr(estimate, truth, mask), "ssim": ssim(estimate, truth, mask)}
     if len(intermediate):
-        idx = torch.as_tensor(intermediate, device=estimate.device)
-        e, t = estimate.index_select(1, idx), truth.index_select(1, idx.to(truth.device))
-        out["psnr_intermediate_db"] = psnr(e, t, mask)
-        out["ssim_intermediate"] = ssim(e, t, mask)
+        out["psnr_intermediate_db"] = psnr(estimate, truth, mask, frames=intermediate)
+        out["ssim_intermediate"] = ssim(estimate, truth, mask, frames=intermediate)
     return out
 
 
@@ -116,11 +126,25 @@ _CONSISTENT_NOISE_RATIO = 3.0
 
 
 def _visibility_sensors(problem, frame_chunk: int) -> dict:
-    """name -> (measurement, forward operator, 0/1 valid mask or None) for the sensors in use."""
-    sensors = {"rs": (problem.b_rs, lambda x: problem.rs_op().A(x, frame_chunk=frame_chunk),
+    """name -> (measurement, forward operator computing in float64, 0/1 valid mask or None) for the
+    sensors in use; they take a chunk of frames at a time (GS: `frame_chunk`) and copy no whole video."""
+    rs, gs = problem.rs_op(), problem.gs_op()
+    # the RS operator sizes its own chunks (its kept scratch stays small in float64 too)
+    sensors = {"rs": (problem.b_rs, lambda x: rs.A(x, dtype=torch.float64),
                       problem.rs_valid_mask()),
-               "gs": (problem.b_gs, lambda x: problem.gs_op().A(x), problem.gs_valid_mask())}
+               "gs": (problem.b_gs, lambda x: gs_forward(gs, x, frame_chunk), problem.gs_valid_mask())}
     return {name: s for name, s in sensors.items() if s[0] is not None and s[0].numel()}
+
+
+def gs_forward(op, video: Tensor, frame_chunk: int = 16, dtype=torch.float64) -> Tensor:
+    """The GS operator's A(video) computed in `dtype`, `frame_chunk` frames at a time (no cast copy
+    of the whole video)."""
+    w = op.weights.to(dtype=dtype, device=video.device)
+    out = None
+    for i in range(0, video.shape[1], frame_chunk):
+        part = torch.einsum("ckhw,gk->cghw", video[:, i:i + frame_chunk].to(dtype), w[:, i:i + frame_chunk])
+        out = part if out is None else out.add_(part)
+    return out
 
 
 def _masked(y: Tensor, mask: Tensor | None) -> Tensor:
@@ -148,18 +172,18 @@ def error_visibility(problem, estimate: Tensor, frame_chunk: int = 16) -> dict[s
     only a better prior. inf when a measurement has no noise but sees the error; nan without truth,
     and nan when the data cannot vouch for anything: the truth's prediction differs from the
     measurement by more than a few times the noise estimated from the measurement alone
-    (mis-scaled or broken data; `error_visibility_caveats` says which). The RS operator takes
-    `frame_chunk` frames at a time, so memory does not grow with K beyond the error video itself.
+    (mis-scaled or broken data; `error_visibility_caveats` says which). The operators take a
+    chunk of frames at a time (GS: `frame_chunk`), in float64, so memory does not grow with K.
     """
     sensors = _visibility_sensors(problem, frame_chunk)
     if problem.truth is None:
         return {name: math.nan for name in sensors}
     truth = problem.truth
-    error = estimate.to(truth.device, truth.dtype, copy=True).sub_(truth)  # in place: one video-sized copy
     out = {}
-    for name, (meas, forward, mask) in sensors.items():
-        signal = float(torch.linalg.vector_norm(_masked(forward(error), mask).double()))
-        noise = float(torch.linalg.vector_norm(_masked(forward(truth) - meas, mask).double()))
+    for name, (meas, forward, mask) in sensors.items():  # A is linear: A(e - t) = A(e) - A(t), in float64
+        predicted = forward(truth)
+        signal = float(torch.linalg.vector_norm(_masked(forward(estimate.to(truth.device)) - predicted, mask)))
+        noise = float(torch.linalg.vector_norm(_masked(predicted - meas.double(), mask)))
         expected = _noise_estimate_norm(name, meas, mask)
         if noise > _CONSISTENT_NOISE_RATIO * expected and noise > 0:
             out[name] = math.nan
@@ -175,7 +199,7 @@ def error_visibility_caveats(problem, frame_chunk: int = 16) -> list[str]:
         return []
     out = []
     for name, (meas, forward, mask) in _visibility_sensors(problem, frame_chunk).items():
-        noise = float(torch.linalg.vector_norm(_masked(forward(problem.truth) - meas, mask).double()))
+        noise = float(torch.linalg.vector_norm(_masked(forward(problem.truth) - meas.double(), mask)))
         expected = _noise_estimate_norm(name, meas, mask)
         if noise > _CONSISTENT_NOISE_RATIO * expected and noise > 0:
             ratio = f"{noise / expected:.3g}x" if expected > 0 else "infinitely many times"
@@ -223,11 +247,20 @@ def dynamic_region(truth: Tensor, threshold: float = DYNAMIC_THRESHOLD,
                    dilation_px: int = DYNAMIC_DILATION_PX) -> Tensor:
     """(K, H, W) boolean: where the truth (C, K, H, W) differs from its own temporal median by more
     than `threshold` in any channel, grown by `dilation_px` pixels: the moving region, per frame."""
-    t = truth.contiguous()  # median over a stride-0 (expanded) axis comes out wrong
-    background = t.median(dim=1).values.double()  # (C, H, W)
-    moving = torch.cat([(c.double() - background[:, None]).abs().amax(0) > threshold
-                        for c in _frame_chunks(t)])  # frame chunks: bounded temporaries at any size
+    background = temporal_median(truth).double()  # (C, H, W)
+    moving = torch.cat([(truth[:, i:i + 16].double() - background[:, None]).abs().amax(0) > threshold
+                        for i in range(0, truth.shape[1], 16)])  # frame chunks: bounded temporaries
     return _dilate(moving, dilation_px)
+
+
+def temporal_median(video: Tensor, rows: int = 16) -> Tensor:
+    """(C, H, W) median over time of a (C, K, H, W) video, `rows` image rows at a time (the
+    median sorts a copy of what it is given)."""
+    out = torch.empty(video.shape[0], *video.shape[2:], dtype=video.dtype, device=video.device)
+    for y in range(0, video.shape[2], rows):
+        # contiguous: a median over a stride-0 (expanded) axis comes out wrong
+        out[:, y:y + rows] = video[:, :, y:y + rows].contiguous().median(dim=1).values
+    return out
 
 
 def psnr_dynamic(estimate: Tensor, truth: Tensor, frames: np.ndarray | None = None) -> float:
@@ -276,22 +309,25 @@ def object_metrics(estimate: Tensor, truth: Tensor, frames: np.ndarray | None = 
 
     The background is the truth's temporal median. Object signal is |video - background| summed
     over channels, less OBJECT_FRACTION of the truth's peak object signal in that frame (so the
-    estimate's faint noise over the whole image does not count as object).
+    estimate's faint noise over the whole image does not count as object). Frame by frame: no
+    video-sized temporaries.
     """
-    t = truth.double().contiguous()
-    e = estimate.double().to(t.device)
-    background = t.median(dim=1).values
-    s_true, s_est = object_signal(t, background), object_signal(e, background)
-    floor = OBJECT_FRACTION * s_true.amax((1, 2), keepdim=True)
-    w_true, w_est = (s_true - floor).clamp_min(0), (s_est - floor).clamp_min(0)
-    if frames is not None:
-        idx = torch.as_tensor(np.asarray(frames), dtype=torch.long, device=t.device)
-        w_true, w_est = w_true.index_select(0, idx), w_est.index_select(0, idx)
-    region = _dilate(w_true > 0, GHOST_DILATION_PX)
-    err = (_centroids(w_est) - _centroids(w_true)).norm(dim=1).cpu().numpy()
-    total = w_est.sum((1, 2))
-    ghost = torch.where(total > 0, (w_est * ~region).sum((1, 2)) / total.clamp_min(1e-30),
-                        torch.ones_like(total)).cpu().numpy()
+    background = temporal_median(truth).double()
+    idx = torch.arange(truth.shape[1]) if frames is None else torch.as_tensor(np.asarray(frames), dtype=torch.long)
+    errs, ghosts = [], []
+    for i in range(0, len(idx), 16):
+        j = idx[i:i + 16]
+        s_true = object_signal(truth.index_select(1, j.to(truth.device)), background)
+        s_est = object_signal(estimate.index_select(1, j.to(estimate.device)).to(truth.device), background)
+        floor = OBJECT_FRACTION * s_true.amax((1, 2), keepdim=True)
+        w_true, w_est = (s_true - floor).clamp_min(0), (s_est - floor).clamp_min(0)
+        region = _dilate(w_true > 0, GHOST_DILATION_PX)
+        errs.append((_centroids(w_est) - _centroids(w_true)).norm(dim=1).cpu())
+        total = w_est.sum((1, 2))
+        ghosts.append(torch.where(total > 0, (w_est * ~region).sum((1, 2)) / total.clamp_min(1e-30),
+                                  torch.ones_like(total)).cpu())
+    err = torch.cat(errs).numpy() if errs else np.zeros(0)
+    ghost = torch.cat(ghosts).numpy() if ghosts else np.zeros(0)
     finite = err[np.isfinite(err)]
     if finite.size < err.size:  # an estimate without any object in a frame: the worst case
         finite = np.concatenate([finite, np.full(err.size - finite.size, math.inf)])

@@ -88,8 +88,10 @@ def write_recon_h5(path: Path, video: np.ndarray, frame_times_s: np.ndarray, set
                 f.attrs["rs_noise_level"] = ctx["rs_noise_level"]
             if "pixel_size_m" in ctx:
                 f.attrs["pixel_size_m"] = ctx["pixel_size_m"]
-            ds = f.create_dataset("video", data=video.astype(np.float32),
+            ds = f.create_dataset("video", shape=video.shape, dtype=np.float32,
                                   chunks=(video.shape[0], 1, *video.shape[2:]))
+            for k in range(0, video.shape[1], DISPLAY_CHUNK):  # a float32 copy of a chunk at a time
+                ds[:, k:k + DISPLAY_CHUNK] = np.asarray(video[:, k:k + DISPLAY_CHUNK], np.float32)
             channels = "R,G,B" if video.shape[0] == 3 else ",".join(f"c{i}" for i in range(video.shape[0]))
             _set_axes(ds, "C,T,Y,X", channels=channels, intensity_unit=INTENSITY_UNIT,
                       display_range=np.array([0.0, 1.0]), time_source="frame_times_s")
@@ -107,20 +109,25 @@ def write_recon_h5(path: Path, video: np.ndarray, frame_times_s: np.ndarray, set
                 _set_axes(f["rs_image"], "C,Y,X", intensity_unit="the RS measurement on the grid, "
                           "operator units (a sum over the frames each row's exposure covers)")
             for name, arr in (components or {}).items():
-                f[f"components/{name}"] = np.asarray(arr, np.float32)
+                f[f"components/{name}"] = np.asarray(arr, np.float32)  # no copy when float32 already
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
 
 
+DISPLAY_CHUNK = 16  # frames converted at a time: float temporaries of 16 frames, not of the video
+
+
 def to_display(video: np.ndarray, gamma: float = 2.2) -> np.ndarray:
     """(C, K, H, W) linear -> (K, H, W, 3) uint8 gamma-encoded (mono repeated to RGB)."""
-    v = np.clip(np.nan_to_num(video, nan=0.0), 0, 1) ** (1 / gamma)
-    v = np.moveaxis(v, 0, -1)
-    if v.shape[-1] == 1:
-        v = np.repeat(v, 3, axis=-1)
-    return (v * 255 + 0.5).astype(np.uint8)
+    c, k, h, w = video.shape
+    out = np.empty((k, h, w, 3), np.uint8)
+    for i in range(0, k, DISPLAY_CHUNK):
+        v = np.clip(np.nan_to_num(np.asarray(video[:, i:i + DISPLAY_CHUNK], np.float32), nan=0.0), 0, 1)
+        v = np.moveaxis(v ** (1 / gamma), 0, -1)
+        out[i:i + DISPLAY_CHUNK] = v * 255 + 0.5  # cast on assignment; mono broadcasts to RGB
+    return out
 
 
 def playback(capture_fps: float | None, fps: float = 30.0) -> dict:
@@ -170,15 +177,19 @@ def write_mp4(path: Path, video: np.ndarray, fps: float = 30.0, capture_fps: flo
 
     if not (math.isfinite(fps) and fps > 0):
         raise ConfigError(f"playback fps must be a positive number, got {fps}")
-    frames = to_display(video)
-    _k, h, w, _ = frames.shape
+    _c, k, h, w = video.shape
     scale = max(1, 256 // max(h, w))
-    frames = np.repeat(np.repeat(frames, scale, axis=1), scale, axis=2)
-    h2, w2 = frames.shape[1] + frames.shape[1] % 2, frames.shape[2] + frames.shape[2] % 2
-    frames = np.pad(frames, ((0, 0), (0, h2 - frames.shape[1]), (0, w2 - frames.shape[2]), (0, 0)))
-    if frame_times_s is not None:
-        dt = 1.0 / capture_fps if capture_fps else None
-        frames = stamp_frames(frames, frame_times_s, key_times_s, dt)
+    h2, w2 = h * scale + h * scale % 2, w * scale + w * scale % 2
+    dt = 1.0 / capture_fps if capture_fps else None
+
+    def display(i: int) -> np.ndarray:  # DISPLAY_CHUNK frames from i, upscaled, padded and stamped
+        frames = to_display(video[:, i:i + DISPLAY_CHUNK])
+        frames = np.repeat(np.repeat(frames, scale, axis=1), scale, axis=2)
+        frames = np.pad(frames, ((0, 0), (0, h2 - frames.shape[1]), (0, w2 - frames.shape[2]), (0, 0)))
+        if frame_times_s is not None:
+            frames = stamp_frames(frames, frame_times_s[i:i + DISPLAY_CHUNK], key_times_s, dt)
+        return frames
+
     tmp = path.with_name(f".{path.name}.partial-{os.getpid()}.mp4")
     timing = playback(capture_fps, fps)
     with av.open(str(tmp), "w") as out:
@@ -189,9 +200,10 @@ def write_mp4(path: Path, video: np.ndarray, fps: float = 30.0, capture_fps: flo
             out.metadata["comment"] = note
         stream = out.add_stream("libx264", rate=Fraction(fps).limit_denominator(1000))
         stream.width, stream.height, stream.pix_fmt = w2, h2, "yuv420p"
-        for frame in frames:
-            for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
-                out.mux(packet)
+        for i in range(0, k, DISPLAY_CHUNK):
+            for frame in display(i):
+                for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
+                    out.mux(packet)
         for packet in stream.encode():
             out.mux(packet)
     os.replace(tmp, path)
@@ -215,8 +227,10 @@ def write_tiff(path: Path, video: np.ndarray, frame_interval_s: float | None = N
         meta["unit"] = "um"
         per_um = 1.0 / (pixel_size_m * 1e6)
         resolution = (per_um, per_um)
-    tifffile.imwrite(path, np.ascontiguousarray(np.moveaxis(video.astype(np.float32, copy=False), 0, 1)),
-                     imagej=True, metadata=meta, resolution=resolution)
+    c, k, h, w = video.shape
+    planes = (np.asarray(video[ch, t], np.float32) for t in range(k) for ch in range(c))  # no (T, C) copy
+    tifffile.imwrite(path, planes, shape=(k, c, h, w), dtype=np.float32, imagej=True, metadata=meta,
+                     resolution=resolution)
 
 
 def write_errors(csv_path: Path, png_path: Path, log: list[dict], title: str = "",

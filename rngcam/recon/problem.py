@@ -40,7 +40,8 @@ from rngcam.sizing import check_frames, plan_grid
 
 @dataclass
 class Problem:
-    """Everything a method needs; tensors are float64 on the CPU until `to(dtype, device)`."""
+    """Everything a method needs; tensors are float64 on the CPU until `to(dtype, device)`, but for
+    the truth, float32 as bundles store it (metrics accumulate in float64)."""
 
     b_rs: Tensor | None  # (C, H, W)
     b_gs: Tensor | None  # (C, G, H, W)
@@ -447,12 +448,13 @@ def _grid_psf(bundle: Bundle, grid_bin: int, channels: int) -> np.ndarray:
 def _grid_truth(bundle: Bundle, grid: VideoGrid, rs_shape, notes: list[str]) -> Tensor | None:
     if bundle.truth is None:
         return None
-    video = np.asarray(bundle.truth.video, np.float64)
     expected = (rs_shape[0], grid.n_frames, rs_shape[1], rs_shape[2])
-    if video.shape != expected:
-        notes.append(f"truth video {video.shape} does not match the grid {expected}: metrics against truth skipped")
+    shape = tuple(np.shape(bundle.truth.video))
+    if shape != expected:
+        notes.append(f"truth video {shape} does not match the grid {expected}: metrics against truth skipped")
         return None
-    return torch.from_numpy(video)
+    # float32 as the bundle stores it (a float64 copy would double it); metrics accumulate in float64
+    return torch.from_numpy(np.asarray(bundle.truth.video, np.float32))
 
 
 def problem_from_video(video: Tensor, psf: Tensor, rs: RollingShutterTiming | None,

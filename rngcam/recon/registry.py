@@ -64,7 +64,7 @@ class MethodEntry:
     unavailable: Callable[[], str] | None = None  # why it cannot run here ('' when it can)
     # Peak memory of a whole run (rngcam.sizing), checked before anything is allocated; the default
     # is the most a measured method needs per element.
-    memory: MemoryModel = MemoryModel(bytes_per_element=170)
+    memory: MemoryModel = MemoryModel(bytes_per_element=40)
     fits_holdout: bool = False  # fits only the training split (Method.supports_holdout): sweeps can score it
 
     def __post_init__(self):
@@ -227,23 +227,8 @@ def _rife_unavailable() -> str:
     return ""
 
 
-# Peak memory per video element (C x K x H x W) of a whole `rngcam recon` run, measured with
-# /usr/bin/time on a 32x32x3 simulated bundle stretched to 6,531 frames (truth and metrics included;
-# 257 MB of interpreter and libraries subtracted), plus about 10 %: tv3d 137, blend and interp 140
-# bytes. STFM fast (the ensemble) also costs per frame whatever the frame's size, so its figure is
-# fitted to two runs: 412 bytes an element at 32x32x3x6,531 and 5.8 GB peak at 228x342x3x231 give 98
-# bytes an element plus 0.92 MB a frame; with about 10 %: 110 bytes and 1.0 MB. On grids of 96 px
-# and more STFM runs coarse to fine (rngcam.recon.methods.stfm.multilevel): the ensemble and RIFE run only on
-# the coarsest level (about 1.0 GB: 1.20 GiB measured for the whole run at 114x171x117), the full
-# grid holds one fit: 3.61 GiB through the solve at 228x342x231 (the whole run's end stays under it
-# since the method is freed before the final metrics: 3.28 GiB whole-process over a 600 s run), 66
-# bytes an element, with about 10 %: 73 bytes. RIFE was not measured: as interp plus its model's
-# activations. pnp on one level as STFM's single-level figure; coarse to fine (>= 96 px), from
-# whole runs (bench/scale.md): 4.33 GiB at 228x342x231 (two steps on the full grid) is 80 bytes an
-# element, with about 10 %: 88; 1.31 GiB at 128x128x131 (the coarse level, the denoiser and RIFE)
-# sets the floor.
-STFM_MEMORY = MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000, coarse_to_fine_min_side=96,
-                          coarse_to_fine_bytes_per_element=73, coarse_level_bytes=1_000_000_000)
+# Peak memory of a whole `rngcam recon` run (PROVISIONAL: refitted below from bench/scale.md).
+STFM_MEMORY = MemoryModel(bytes_per_element=20, fixed_bytes=600e6, bytes_per_pixel=8000)
 
 # The default method first. STFM's default preset is auto (prior or fast, chosen per scene from the
 # key frames, rngcam.recon.methods.stfm.auto); both stop by themselves (fast after 1-3 min at 64 px on one
@@ -254,11 +239,10 @@ register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=
                      benchmarked=("fast", "paper"), memory=STFM_MEMORY, fits_holdout=True))
 register(MethodEntry("tv3d", ITERATIVE, TV3DSettings, _make_tv3d,
                      presets={"haar": TV3DSettings(prox="haar"), "exact": TV3DSettings(prox="exact")},
-                     memory=MemoryModel(bytes_per_element=150), fits_holdout=True))
+                     memory=MemoryModel(bytes_per_element=32), fits_holdout=True))
 register(MethodEntry("pnp", ITERATIVE, PnPSettings, _make_pnp, auto_budget_s=300.0,
-                     memory=MemoryModel(bytes_per_element=110, bytes_per_frame=1_000_000, coarse_to_fine_min_side=96,
-                                        coarse_to_fine_bytes_per_element=88, coarse_level_bytes=1_200_000_000)))
-register(MethodEntry("blend", GS_ONLY, BlendSettings, _blend, memory=MemoryModel(bytes_per_element=155)))
-register(MethodEntry("interp", GS_ONLY, InterpSettings, _interp, memory=MemoryModel(bytes_per_element=155)))
+                     memory=MemoryModel(bytes_per_element=32, fixed_bytes=600e6)))
+register(MethodEntry("blend", GS_ONLY, BlendSettings, _blend, memory=MemoryModel(bytes_per_element=12)))
+register(MethodEntry("interp", GS_ONLY, InterpSettings, _interp, memory=MemoryModel(bytes_per_element=12)))
 register(MethodEntry("rife", GS_ONLY, RifeSettings, _rife, unavailable=_rife_unavailable,
-                     memory=MemoryModel(bytes_per_element=170)))
+                     memory=MemoryModel(bytes_per_element=12, fixed_bytes=200e6)))

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rngcam.memory import release_free_memory
 from rngcam.recon import outputs
 
 # What a run's `status` can be: "ok" (the method's own stop, its iterations or the budget after
@@ -42,10 +43,11 @@ class Result:
     def method(self) -> str:
         return self.metrics.get("method", "")
 
-    def save(self, folder: str | Path, echo=None) -> Path:
+    def save(self, folder: str | Path, echo=None, truth: np.ndarray | None = None) -> Path:
         """Write recon.h5, video.tif, preview.mp4, errors.csv/png, metrics.json and report.html into
         `folder` (created if needed; files of the same names are replaced); returns the folder.
-        `echo(line)` hears where the report went, or why it was not written [silent]."""
+        `echo(line)` hears where the report went, or why it was not written [silent]. `truth`: the
+        bundle's truth on the video's grid where the caller holds it (else the report reads it)."""
         from rngcam.recon.report import write_report_or_warn
 
         out = Path(folder)
@@ -61,7 +63,8 @@ class Result:
         outputs.write_errors(out / "errors.csv", out / "errors.png", self.log, self.method,
                              noise_level=ctx.get("rs_noise_level"))
         outputs.write_metrics(out / "metrics.json", self.metrics)
-        write_report_or_warn(out, echo or (lambda line: None))  # from the folder just written
+        release_free_memory(collect=False)  # the writers' freed heap pages go before the page is built
+        write_report_or_warn(out, echo or (lambda line: None), truth)  # from the folder just written
         return out
 
     def summary(self) -> str:

@@ -24,7 +24,6 @@ rngcam.recon.holdout) next to the training residuals.
 from __future__ import annotations
 
 import contextlib
-import gc
 import threading
 import time
 from collections.abc import Callable
@@ -35,14 +34,16 @@ import numpy as np
 import torch
 
 from rngcam.errors import RngcamError, SettingError
-from rngcam.formats.bundle import Bundle, bundle_checksum, read_bundle_with_warnings
-from rngcam.memory import peak_rss_bytes
+from rngcam.formats.bundle import Bundle, bundle_checksum, is_warning, open_checked
+from rngcam.memory import peak_rss_bytes, release_free_memory
+from rngcam.physics.operators import drop_scratch
 from rngcam.recon import checkpoint, outputs, registry
 from rngcam.recon.guard import BudgetCut, RunGuard
 from rngcam.recon.loop import LoopSettings, RunResult, run, stage_printer
 from rngcam.recon.metrics import (
     error_visibility,
     error_visibility_caveats,
+    gs_forward,
     motion_metrics,
     one_object_scene,
     relative_residual,
@@ -114,11 +115,12 @@ def start_video(problem: Problem) -> np.ndarray:
 
 
 def _residuals(problem: Problem, video: torch.Tensor) -> dict[str, float]:
+    """Relative RS and GS residuals of `video`, computed in float64 a chunk of frames at a time."""
     out = {}
     if problem.b_rs is not None:
-        out["rs"] = relative_residual(problem.rs_op().A(video, frame_chunk=16), problem.b_rs)
+        out["rs"] = relative_residual(problem.rs_op().A(video, dtype=torch.float64), problem.b_rs)
     if problem.b_gs is not None and problem.b_gs.shape[1]:
-        out["gs"] = relative_residual(problem.gs_op().A(video), problem.b_gs)
+        out["gs"] = relative_residual(gs_forward(problem.gs_op(), video), problem.b_gs)
     return out
 
 
@@ -252,25 +254,34 @@ def _solve(source: Source, settings: ReconSettings, out: Path | None, echo, star
         log.close()
 
 
+@contextlib.contextmanager
+def _opened(source: Source):
+    """(bundle, its warnings): the one already read, or the file opened lazily, so that frames and
+    truth stay on disk until the size check has passed and then are read one at a time."""
+    if source.bundle is not None:
+        yield source.bundle, []
+        return
+    with open_checked(source.path) as (bundle, problems, _stats):
+        yield bundle, [p for p in problems if is_warning(p)]
+
+
 def _read(source: Source, settings: ReconSettings, say, stage) -> tuple[Problem, dict]:
     """The problem on the grid of `settings` (the bundle read and checked first), and what the
     metrics need of the bundle."""
-    problem, bundle, warnings = source.problem, source.bundle, list(source.warnings)
+    problem, warnings = source.problem, list(source.warnings)
     extra: dict = {"one_object": False, "need": None}
     if problem is None:
-        if bundle is None:
-            bundle, read_warnings = read_bundle_with_warnings(source.path)
+        with _opened(source) as (bundle, read_warnings):
             warnings += read_warnings
-        for warning in warnings:
-            say(warning)
-        stage(f"read {source.name}")
-        plan = plan_grid(bundle, settings.grid_bin)
-        extra["need"] = check_size(plan, settings.method, registry.get(settings.method).memory,
-                                   max_frames=settings.max_frames, max_memory_bytes=settings.max_memory_bytes)
-        problem = build_problem(bundle, grid_bin=settings.grid_bin, max_frames=settings.max_frames)
-        extra["one_object"] = one_object_scene(bundle.rig_yaml)  # for the motion yardstick
-        extra["context"] = outputs.recon_context(source.path, bundle, problem)  # what the outputs record of it
-        del bundle  # the problem holds what the reconstruction needs; the raw frames can go
+            for warning in warnings:
+                say(warning)
+            stage(f"read {source.name}")
+            plan = plan_grid(bundle, settings.grid_bin)
+            extra["need"] = check_size(plan, settings.method, registry.get(settings.method).memory,
+                                       max_frames=settings.max_frames, max_memory_bytes=settings.max_memory_bytes)
+            problem = build_problem(bundle, grid_bin=settings.grid_bin, max_frames=settings.max_frames)
+            extra["one_object"] = one_object_scene(bundle.rig_yaml)  # for the motion yardstick
+            extra["context"] = outputs.recon_context(source.path, bundle, problem)  # what the outputs record of it
         stage("measurements binned onto the grid")
     extra["warnings"] = warnings
     if settings.holdout is not None:
@@ -324,7 +335,7 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
         return video_metrics(video.detach().cpu(), problem.truth, intermediate, problem.mask)  # float64 per chunk
 
     def one_row(video: np.ndarray, seconds: float, iteration: int) -> list[dict]:
-        vt = torch.from_numpy(video).double()
+        vt = torch.from_numpy(video)  # float32: the metrics accumulate in float64 chunk by chunk
         row = {"iteration": iteration, "wall_s": time.perf_counter() - t_start, "solve_s": seconds,
                "objective": float("nan")}
         row.update({f"residual_{key}": v for key, v in _residuals(problem, vt).items()})
@@ -345,6 +356,7 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
         left = None if budget is None else budget - (time.perf_counter() - t_start)
         with _heartbeat(settings.progress and say or log.write, settings.method, t_start, budget):
             method = make_method(problem, settings, device, stage=stage, budget_s=left)
+        release_free_memory()  # what the set-up let go of (coarse levels, learned networks' activations)
         guard.enter("solve")
     except KeyboardInterrupt as exc:  # guard.Interrupted (SIGINT, SIGTERM) or a plain Ctrl-C
         guard.enter("finish")  # the timer off, further signals held: the start video is written whole
@@ -369,6 +381,7 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
                         log_line=log.write, progress=settings.progress)
 
     def evaluate(m) -> dict:
+        release_free_memory(collect=False)  # the steps' freed heap pages go before the metrics' chunks come
         row = scorer(m.estimate().detach()) if scorer is not None else {}
         return {**row, **truth_metrics(m.estimate())}
 
@@ -381,7 +394,8 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
     # The method's state (the solve's peak) goes before the end-of-run metrics and outputs, which
     # then add to a much smaller base (bench/scale.md: whole-process peak).
     del method
-    gc.collect()
+    drop_scratch()  # the operators' kept buffers: the finish makes its own
+    release_free_memory()
     # this run's events (a resumed run's list goes on from its checkpoint's: metrics.json keeps all)
     now = max((i for i, e in enumerate(result.events) if e.startswith("resumed from ")), default=0)
     for event in result.events[now:]:
@@ -459,7 +473,7 @@ def _finish(source: Source, problem: Problem, settings: ReconSettings, extra: di
                     settings=resolved, bundle_sha256=source.checksum(), frame_interval_s=problem.grid.dt_s,
                     context=extra.get("context") or outputs.recon_context(source.path, None, problem))
     if out is not None and not fit.get("keep_folder"):
-        result.save(out, echo=say)
+        result.save(out, echo=say, truth=problem.truth)  # the report need not read the truth again
         if fit.get("cut"):
             checkpoint.save(out / checkpoint.CHECKPOINT_NAME, {
                 "method": None, "iteration": 0, "solve_s": 0.0, "wall_s": fit["wall_s"], "log": [],

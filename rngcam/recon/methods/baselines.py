@@ -106,9 +106,12 @@ def blend(gs, gs_times_s, frame_times_s) -> np.ndarray:
     if f.shape[1] == 1:
         return np.repeat(f, len(targets), axis=1)
     idx, frac = bracket(keys.times_s, targets)
-    a = frac.astype(np.float32)[None, :, None, None]
-    # (1 - a) * f0 + a * f1 is exact (bit for bit) at a = 0 and a = 1 for finite frames.
-    return ((1 - a) * f[:, idx] + a * f[:, idx + 1]).astype(np.float32, copy=False)
+    a = frac.astype(np.float32)
+    out = np.empty((f.shape[0], len(targets), *f.shape[2:]), np.float32)
+    for k in range(len(targets)):  # a frame at a time: no video-sized temporaries
+        # (1 - a) * f0 + a * f1 is exact (bit for bit) at a = 0 and a = 1 for finite frames.
+        out[:, k] = (1 - a[k]) * f[:, idx[k]] + a[k] * f[:, idx[k] + 1]
+    return out
 
 
 # ---------------------------------------------------------------- optical-flow interpolation
@@ -242,28 +245,39 @@ def interp_warps(gs, gs_times_s, frame_times_s, method: str = "dis", occlusion: 
     c, g, h, w = f.shape
     if g < 2 or min(h, w) < MIN_FLOW_SIZE_PX:
         raise BaselineInputError(f"interp_warps needs two key frames of >= {MIN_FLOW_SIZE_PX} px, got {g} of {h}x{w}")
-    engine, scale, grid = _flow_engine(method), encoding_scale(f), _pixel_grid(h, w)
-    idx, frac = bracket(keys.times_s, targets)
     k = len(targets)
+    left = np.zeros(k, np.int64)
     flow0, flow1 = np.zeros((k, h, w, 2), np.float32), np.zeros((k, h, w, 2), np.float32)
     weight0 = np.empty((k, h, w), np.float32)
+    for j, (i, f0, f1, w0) in enumerate(_frame_warps(f, keys.times_s, targets, method, occlusion)):
+        left[j], weight0[j] = i, w0
+        if f0 is not None:
+            flow0[j], flow1[j] = f0, f1
+    return KeyWarps(f, left, flow0, flow1, weight0)
+
+
+def _frame_warps(f: np.ndarray, times_s: np.ndarray, targets: np.ndarray, method: str, occlusion: bool):
+    """Per target frame: (left key index, flow to it, flow to the next key (None, None at a key
+    time), weight of the left key (H, W)), with sorted key frames `f` (G >= 2)."""
+    c, g, h, w = f.shape
+    engine, scale, grid = _flow_engine(method), encoding_scale(f), _pixel_grid(h, w)
+    idx, frac = bracket(times_s, targets)
     pairs: dict[int, _FlowPair] = {}
-    for j, (i, a) in enumerate(zip(idx, frac)):
+    for i, a in zip(idx, frac):
         a = float(a)
         if a in (0.0, 1.0):
-            weight0[j] = 1.0 - a
+            yield int(i), None, None, np.full((h, w), 1.0 - a, np.float32)
             continue
         if i not in pairs:
-            pairs[i] = _flow_pair(f[:, i], f[:, i + 1], engine, scale, grid)
+            pairs = {i: _flow_pair(f[:, i], f[:, i + 1], engine, scale, grid)}  # targets are sorted by pair
         pair = pairs[i]
-        flow0[j] = -(1 - a) * a * pair.f01 + a * a * pair.f10
-        flow1[j] = (1 - a) ** 2 * pair.f01 - a * (1 - a) * pair.f10
+        flow0 = (-(1 - a) * a * pair.f01 + a * a * pair.f10).astype(np.float32)
+        flow1 = ((1 - a) ** 2 * pair.f01 - a * (1 - a) * pair.f10).astype(np.float32)
         m0 = m1 = np.ones((h, w), np.float32)
         if occlusion:
-            m0 = _backward_warp(pair.m0, flow0[j], grid) + _MASK_FLOOR
-            m1 = _backward_warp(pair.m1, flow1[j], grid) + _MASK_FLOOR
-        weight0[j] = (1 - a) * m0 / ((1 - a) * m0 + a * m1)
-    return KeyWarps(f, idx.astype(np.int64), flow0, flow1, weight0)
+            m0 = _backward_warp(pair.m0, flow0, grid) + _MASK_FLOOR
+            m1 = _backward_warp(pair.m1, flow1, grid) + _MASK_FLOOR
+        yield int(i), flow0, flow1, ((1 - a) * m0 / ((1 - a) * m0 + a * m1)).astype(np.float32)
 
 
 def interp(gs, gs_times_s, frame_times_s, method: str = "dis", occlusion: bool = True) -> np.ndarray:
@@ -284,18 +298,18 @@ def interp(gs, gs_times_s, frame_times_s, method: str = "dis", occlusion: bool =
         log.warning("interp: %dx%d px is below %d px, optical flow skipped; using blend",
                     h, w, MIN_FLOW_SIZE_PX)
         return blend(f, keys.times_s, targets)
-    warps = interp_warps(f, keys.times_s, targets, method, occlusion)
     grid = _pixel_grid(h, w)
     out = np.empty((c, len(targets), h, w), np.float32)
-    for k, i in enumerate(warps.left):
-        w0 = warps.weight0[k]
+    # Frame by frame (the flows of every frame, as interp_warps returns them, are 5 floats a pixel
+    # and frame: more than the video itself).
+    for k, (i, flow0, flow1, w0) in enumerate(_frame_warps(f, keys.times_s, targets, method, occlusion)):
         if np.all(w0 == 1.0):
             out[:, k] = f[:, i]
         elif np.all(w0 == 0.0):
             out[:, k] = f[:, i + 1]
         else:
-            out[:, k] = (w0 * _backward_warp(f[:, i], warps.flow0[k], grid)
-                         + (1 - w0) * _backward_warp(f[:, i + 1], warps.flow1[k], grid))
+            out[:, k] = (w0 * _backward_warp(f[:, i], flow0, grid)
+                         + (1 - w0) * _backward_warp(f[:, i + 1], flow1, grid))
     return out
 
 

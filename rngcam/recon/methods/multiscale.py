@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from rngcam.memory import release_free_memory
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.timing import VideoGrid
 from rngcam.recon.loop import MethodBase
@@ -109,33 +110,71 @@ def bin_video(video: Tensor, shape: tuple[int, int, int, int], time_factor: int)
     return _bin2(torch.einsum("jk,ckhw->cjhw", mean, video), area_matrix(h2, h), area_matrix(w2, w))
 
 
-def upsample(video: Tensor, shape: tuple[int, int, int, int], time_factor: float) -> Tensor:
+def upsample(video: Tensor, shape: tuple[int, int, int, int], time_factor: float, dtype=None,
+             frames: int = 16) -> Tensor:
     """(C, K', H', W') -> (C, K, H, W) by separable linear interpolation; frame centres map by
-    `time_factor` (fine frames per coarse frame), pixels by the size ratio (area-consistent)."""
-    _, k, h, w = shape
+    `time_factor` (fine frames per coarse frame), pixels by the size ratio (area-consistent).
+    Computed in video's dtype, `frames` output frames at a time, into a tensor of `dtype`
+    (default: video's)."""
+    c, k, h, w = shape
     _, k2, h2, w2 = video.shape
     mt = linear_matrix(k, k2, time_factor).to(video)
-    out = torch.einsum("kj,cjhw->ckhw", mt, video)
-    out = linear_matrix(h, h2, h / h2).to(video) @ out
-    return out @ linear_matrix(w, w2, w / w2).to(video).T
+    my, mx = linear_matrix(h, h2, h / h2).to(video), linear_matrix(w, w2, w / w2).to(video)
+    out = torch.empty((video.shape[0], k, h, w), dtype=dtype or video.dtype, device=video.device)
+    for i in range(0, k, frames):
+        part = torch.einsum("kj,cjhw->ckhw", mt[i:i + frames], video)
+        out[:, i:i + frames] = my @ part @ mx.T
+    return out
 
 
 def power_norm(op, x0: Tensor, iters: int = 20, tol: float = 1e-3) -> tuple[float, Tensor]:
     """(||op||, the last iterate) by power iteration on A^T A from `x0`: from a coarser level's
-    vector, upsampled, it settles in a few iterations instead of twenty."""
-    x = x0 / x0.norm()
+    vector, upsampled, it settles in a few iterations instead of twenty. `x0` is consumed (scaled
+    in place where it already has the operator's dtype); the iterates live in it and one more
+    video-sized buffer."""
+    x = x0.div_(x0.norm())
     lam = 0.0
     for _ in range(iters):
         z = op.A_normal(x)
-        new, nz = float((x * z).sum()), float(z.norm())
+        new, nz = inner(x, z), float(z.norm())
         if nz == 0.0:
             return 0.0, x
-        x = z / nz
+        del x  # the previous iterate goes before the next one is needed
+        x = z.div_(nz)
         if abs(new - lam) <= tol * max(abs(new), 1e-30):
             lam = new
             break
         lam = new
     return math.sqrt(max(lam, 0.0)), x
+
+
+def inner(a: Tensor, b: Tensor, frames: int = 16) -> float:
+    """<a, b> of two videos, summed `frames` frames at a time (no video-sized product)."""
+    return sum(float((a[:, i:i + frames] * b[:, i:i + frames]).sum()) for i in range(0, a.shape[1], frames))
+
+
+class Kept:
+    """A tensor in a method's state that the method never changes in place (it replaces it): a
+    deep copy of the state (the loop keeps one as its last good state) shares the tensor instead
+    of copying a video. `kept(value)` gives the tensor back (or a value that was not wrapped)."""
+
+    __slots__ = ("tensor",)
+
+    def __init__(self, tensor: Tensor):
+        self.tensor = tensor
+
+    def __deepcopy__(self, memo) -> Kept:
+        return self
+
+
+def kept(value):
+    """The tensor inside a `Kept`, or `value` itself."""
+    return value.tensor if isinstance(value, Kept) else value
+
+
+# What a coarse-to-fine level's start (the coarser estimate, upsampled) is kept in: a storage format
+# (methods compute in float32); 3 significant digits, far below any measurement's noise.
+START_DTYPE = torch.float16
 
 
 def default_factors(shape: tuple[int, int, int, int], min_side: int = 48) -> tuple[int, ...]:
@@ -230,9 +269,14 @@ class CoarseToFine(MethodBase):
                                 "step_s": round(self.level_step_s, 2), "setup_s": round(self.level_setup_s, 2)})
         i = self.level + 1
         fine = self.problems[i].shape
-        x0 = upsample(self.method.estimate().detach(), fine, self.factors[i - 1] / self.factors[i])
+        # Half precision: the start is kept for a checkpoint's resume (the level is rebuilt from it)
+        # and a level starts from exactly what a resume would rebuild it from.
+        x0 = upsample(self.method.estimate().detach(), fine, self.factors[i - 1] / self.factors[i],
+                      dtype=START_DTYPE)
         self.method = None  # make() may keep what it needs of the coarser level; the rest can go
+        release_free_memory()
         self._start_level(i, x0)
+        release_free_memory()  # what make() let go of the coarser level
 
     @property
     def final(self) -> bool:
@@ -280,12 +324,12 @@ class CoarseToFine(MethodBase):
                 f"(the full grid last) not reached: the video is the coarse estimate upsampled")
 
     def state_dict(self) -> dict:
-        return {"level": self.level, "level_steps": self.level_steps, "x0": self._x0,
+        return {"level": self.level, "level_steps": self.level_steps, "x0": Kept(self._x0),
                 "method": self.method.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         if state["level"] != self.level:
-            self._start_level(state["level"], state["x0"])
+            self._start_level(state["level"], kept(state["x0"]))
         self.level_steps = state["level_steps"]
         self.method.load_state_dict(state["method"])
 

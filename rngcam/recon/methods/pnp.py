@@ -38,8 +38,10 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.memory import release_free_memory
 from rngcam.physics.operators import LinearOperator
 from rngcam.recon.loop import MethodBase
+from rngcam.recon.methods.multiscale import Kept, kept
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
 from rngcam.recon.options import setting
@@ -116,7 +118,7 @@ class _Masked(LinearOperator):
         return self.c * (y if self.mask is None else self.mask * y)
 
     def A_adjoint(self, y):  # noqa: N802
-        return self.c * self.op.A_adjoint(y if self.mask is None else self.mask * y)
+        return self.op.A_adjoint(y if self.mask is None else self.mask * y).mul_(self.c)
 
 
 def _srgb(x: Tensor) -> Tensor:
@@ -228,7 +230,6 @@ class PnP(MethodBase):
             if self.hard:
                 w = self.gs.weights.to(dtype=dt, device=dev)
                 self._anchor = torch.linalg.pinv(w @ w.T) @ w  # (G, K)
-        self.rhs_data = sum(op.A_adjoint(op.c * b) for op, b in self.blocks)
         self.rs_noise_level = relative_noise_level(self.b_rs_fit)
         self.denoiser = Denoiser(str(dev), self.s.frame_chunk)
         if self.denoiser.note:
@@ -313,16 +314,27 @@ class PnP(MethodBase):
         return s.sigma_start * (s.sigma_end / s.sigma_start) ** frac
 
     def _normal(self, v: Tensor, mu: float) -> Tensor:
-        out = mu * v
+        """(sum A_i^T A_i + mu I) v, accumulated in the first adjoint's own new tensor."""
+        out = None
         for op, _ in self.blocks:
-            out.add_(op.A_adjoint(op.A(v)))
+            part = op.A_adjoint(op.A(v))
+            out = part if out is None else out.add_(part)
+        return out.add_(v, alpha=mu)
+
+    def data_rhs(self) -> Tensor:
+        """sum A_i^T b_i (made again each step: a video less to keep for one adjoint per step)."""
+        out = None
+        for op, b in self.blocks:
+            part = op.A_adjoint(op.c * b)
+            out = part if out is None else out.add_(part)
         return out
 
     def _x_step(self, z: Tensor, mu: float) -> Tensor:
         """A few CG steps on (sum A_i^T A_i + mu I) v = sum A_i^T b_i + mu z, from v = z.
         In place: at 228x342x231 each video-sized temporary is 0.22 GB (bench/scale.md)."""
         v = z.clone()
-        r = self._normal(v, mu).neg_().add_(self.rhs_data).add_(z, alpha=mu)
+        r = self._normal(v, mu).neg_().add_(z, alpha=mu)
+        r.add_(self.data_rhs())
         d, rr = r.clone(), float(torch.linalg.vector_norm(r)) ** 2
         for _ in range(self.s.cg_iters):
             if rr == 0 or not math.isfinite(rr):
@@ -396,11 +408,13 @@ class PnP(MethodBase):
     def resolved_settings(self) -> dict:
         return {**asdict(self.s), "denoiser": self.denoiser.name, "init_source": getattr(self, "init_source", "zeros")}
 
+    # z is replaced by every step, never changed in place: a copy of the state (the loop's last
+    # good state) may share it (multiscale.Kept) instead of copying a video.
     def state_dict(self) -> dict:
-        return dict(self.state)
+        return {**self.state, "z": Kept(self.state["z"])}
 
     def load_state_dict(self, state: dict) -> None:
-        self.state = dict(state)
+        self.state = {**state, "z": kept(state["z"])}
 
     def reduce_step(self, factor: float) -> None:
         # A non-finite iterate: lean harder on the denoised estimate.
@@ -466,18 +480,21 @@ def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str 
             gen = torch.Generator().manual_seed(0)
             start = torch.randn(level.shape, generator=gen).to(level.b_rs)
             method = PnP(level, settings, device=device, rs_norm_start=start, coarse_level=True)
+            method.rs_norm_vector = method.rs_norm_vector.half()
         else:
             coarse = previous[-1].rs_norm_vector
-            start = None if coarse is None else upsample(coarse, level.shape, level.shape[1] / coarse.shape[1])
+            start = None if coarse is None else upsample(coarse.float(), level.shape, level.shape[1] / coarse.shape[1])
             coarse_shape = previous[-1].p.shape
             previous.clear()  # free the coarser level before building this one
+            release_free_memory()
             x0 = with_key_frame_detail(level, x0, coarse_shape)
             final = level.shape == problem.shape
             method = PnP(level, fine_level_settings(settings), device=device, x0=x0, rs_norm_start=start,
                          coarse_level=not final)
             del start
-            if final:  # no finer level needs the power-iteration vector (a video's worth of memory)
-                method.rs_norm_vector = None
+            # no finer level needs the power-iteration vector (a video's worth of memory); a warm
+            # start for one needs no more than half precision
+            method.rs_norm_vector = None if final or method.rs_norm_vector is None else method.rs_norm_vector.half()
         previous[:] = [method]
         return method
 

@@ -29,10 +29,12 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.memory import release_free_memory
 from rngcam.physics import tv_prox as tv
 from rngcam.physics.operators import LinearOperator
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.baselines import blend
+from rngcam.recon.methods.multiscale import Kept, kept
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.options import setting
 from rngcam.recon.problem import Problem
@@ -87,7 +89,10 @@ class _Scaled(LinearOperator):
         return tuple(c * op.A(v) for op, c in self.blocks)
 
     def A_adjoint(self, y):
-        return sum(c * op.A_adjoint(yi) for (op, c), yi in zip(self.blocks, y))
+        out = None  # accumulated in place: one video-sized temporary at a time
+        for (op, c), yi in zip(self.blocks, y):
+            out = op.A_adjoint(yi).mul_(c) if out is None else out.add_(op.A_adjoint(yi), alpha=c)
+        return out
 
 
 class _Masked(LinearOperator):
@@ -179,10 +184,14 @@ class TV3D(MethodBase):
         self.state = {"x": x0, "Ax": ax0, "y": x0, "Ay": ax0, "t": 1.0, "L": self.L,
                       "F": self._objective(x0, ax0), "restarts": 0}
 
+    # The state's videos are replaced by every step, never changed in place, so a copy of the state
+    # (the loop's last good state) may share them (multiscale.Kept) instead of copying videos.
+    _VIDEOS = ("x", "y")
+
     def _initial(self, dtype, device) -> Tensor:
         p = self.p
         if self._x0 is not None:
-            x = self._x0.to(dtype=dtype, device=device).clamp_min(0)
+            x = self._x0.to(dtype=dtype, device=device, copy=True).clamp_min_(0)
             self._x0 = None  # not kept: the state holds it
         elif self.s.init == "blend" and p.b_gs is not None and p.b_gs.shape[1] > 0:
             frames = p.gs_images()  # held-out GS pixels are filled from fitted ones: no leak
@@ -221,14 +230,18 @@ class TV3D(MethodBase):
     def _objective(self, x: Tensor, ax: tuple) -> float:
         """F(x) given the scaled measurements' prediction ax = op.A(x)."""
         data = 0.5 * sum(float(((a - b) ** 2).sum()) for a, b in zip(ax, self.b))
-        return data + self.s.tau * float(tv.tv3(x, self.s.beta))
+        # channel by channel (TV never couples channels): temporaries of one channel, not the video
+        return data + self.s.tau * sum(float(tv.tv3(x[c:c + 1], self.s.beta)) for c in range(x.shape[0]))
 
     def _prox_grad(self, y: Tensor, ay: tuple, L: float) -> Tensor:
-        if self.op.blocks:
-            y = y - self.op.A_adjoint(tuple(a - b for a, b in zip(ay, self.b))) / L
+        if self.op.blocks:  # y - A^T(A y - b) / L, in the adjoint's own new tensor
+            y = self.op.A_adjoint(tuple(a - b for a, b in zip(ay, self.b))).div_(-L).add_(y)
         if not bool(torch.isfinite(y).all()):
             return y  # diverged: the loop's NaN guard rolls back (the prox refuses NaN/Inf)
-        z = tv.prox_tv_nonneg(y, self.s.tau / L, self.s.beta, method=self.s.prox)
+        z = torch.empty_like(y)
+        for c in range(y.shape[0]):  # channels never interact: the prox's temporaries are one channel's
+            z[c:c + 1] = tv.prox_tv_nonneg(y[c:c + 1], self.s.tau / L, self.s.beta, method=self.s.prox)
+        del y
         return self._project(z)
 
     def _try(self, y: Tensor, ay: tuple, L: float) -> tuple[Tensor, tuple, float]:
@@ -259,7 +272,8 @@ class TV3D(MethodBase):
                 return st["F"]  # the (approximate) prox made no progress; keep x
         t_new = (1 + math.sqrt(1 + 4 * st["t"] ** 2)) / 2
         momentum = (st["t"] - 1) / t_new
-        st["y"] = z + momentum * (z - st["x"])
+        st["y"] = None  # the old extrapolated point goes before the new one is made
+        st["y"] = torch.sub(z, st["x"]).mul_(momentum).add_(z)
         st["Ay"] = tuple(a + momentum * (a - b) for a, b in zip(az, st["Ax"]))
         st["x"], st["Ax"], st["t"], st["F"] = z, az, t_new, f_z
         return f_z
@@ -275,12 +289,11 @@ class TV3D(MethodBase):
             out["gs"] = relative_residual(self.gs_fit.A(x), self.b_gs_fit)
         return out
 
-    # Tensors are never modified in place, so the state can be shared rather than cloned.
     def state_dict(self) -> dict:
-        return dict(self.state)
+        return {k: Kept(v) if k in self._VIDEOS else v for k, v in self.state.items()}
 
     def load_state_dict(self, state: dict) -> None:
-        self.state = dict(state)
+        self.state = {k: kept(v) for k, v in state.items()}
 
     def reduce_step(self, factor: float) -> None:
         self.state["L"] /= factor
@@ -323,12 +336,18 @@ def _make_tv3d(problem: Problem, settings: TV3DSettings, budget_s: float | None,
     def make(level: Problem, x0):
         start = None
         if previous and previous[-1].rs_norm_vector is not None:
-            coarse = previous[-1].rs_norm_vector
+            coarse = previous[-1].rs_norm_vector.float()
             start = upsample(coarse, level.shape, level.shape[1] / coarse.shape[1])
         elif level.b_rs is not None:  # the coarsest level: a seeded random start, kept for the next
             gen = torch.Generator().manual_seed(0)
             start = torch.randn(level.shape, generator=gen, dtype=torch.float64)
-        previous[:] = [TV3D(level, settings, x0=x0, rs_norm_start=start)]
-        return previous[0]
+        previous.clear()  # the coarser level goes before this one is built
+        release_free_memory()
+        method = TV3D(level, settings, x0=x0, rs_norm_start=start)
+        # Only a finer level needs the power iteration's vector (a warm start: half precision will do).
+        final = level.shape == problem.shape
+        method.rs_norm_vector = None if final or method.rs_norm_vector is None else method.rs_norm_vector.half()
+        previous[:] = [method]
+        return method
 
     return CoarseToFine(problem, make, factors, budget_s=budget_s, stage=stage)

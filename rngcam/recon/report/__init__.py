@@ -79,7 +79,9 @@ def _runs_sections(runs: list[Run], labels: list[str], truth, frames, factor, cu
         comps = r.components
         if not {"static", "alpha", "motion"} <= set(comps):
             continue
-        speed = np.linalg.norm(comps["motion"], axis=0)  # (K, H, W) px
+        motion = comps["motion"]  # (2, K, H, W) px, maybe read on demand: a chunk of frames at a time
+        speed = np.concatenate([np.linalg.norm(np.asarray(motion[:, i:i + figures.CHUNK]), axis=0)
+                                for i in range(0, motion.shape[1], figures.CHUNK)])  # (K, H, W) px
         data["players"].append({"name": f"{lab}: alpha (white: static background; black: moving layer)",
                                 "frames": figures.map_uris(comps["alpha"][0, frames], factor, 1.0, "gray")})
         data["players"].append({"name": f"{lab}: |motion| (0 to {float(speed.max()):.1f} px)",
@@ -122,11 +124,17 @@ def _details(runs: list[Run], labels: list[str], truth_note: str) -> str:
     return "".join(out)
 
 
-def build_report(runs: list[Run], title: str | None = None, check_hash: bool = True) -> str:
-    """The report page (HTML text) for runs of one bundle on one grid."""
+def build_report(runs: list[Run], title: str | None = None, check_hash: bool = True,
+                 truth: np.ndarray | None = None) -> str:
+    """The report page (HTML text) for runs of one bundle on one grid. `truth`: the bundle's truth
+    on that grid (an array or a host tensor), where the caller holds it already (else it is read
+    from the bundle)."""
     first = runs[0]
     labels = [_label(r, runs) for r in runs]
-    truth, truth_note = load_truth(first, check_hash)
+    if truth is None:
+        truth, truth_note = load_truth(first, check_hash)
+    else:  # a host tensor or array: a view, not a copy
+        truth, truth_note = np.asarray(truth), f"truth from {first.attrs.get('bundle_path') or 'the bundle'}"
     c, k, h, w = first.video.shape
     frames, factor, notes = figures.frame_plan(k, h, w)
     players = ([{"name": "truth", "frames": figures.video_uris(truth, frames, factor)}] if truth is not None
@@ -181,11 +189,12 @@ def _write_atomic(path: Path, text: str) -> Path:
     return path
 
 
-def write_report(folder: str | Path, check_hash: bool = True) -> Path:
-    """Write `folder`/report.html for the reconstruction in `folder`; returns its path."""
+def write_report(folder: str | Path, check_hash: bool = True, truth: np.ndarray | None = None) -> Path:
+    """Write `folder`/report.html for the reconstruction in `folder`; returns its path. `truth`: as
+    in build_report."""
     folder = Path(folder)
     runs = load_runs([folder])
-    return _write_atomic(folder / "report.html", build_report(runs, check_hash=check_hash))
+    return _write_atomic(folder / "report.html", build_report(runs, check_hash=check_hash, truth=truth))
 
 
 def write_comparison(folders: list[str | Path], out: str | Path, check_hash: bool = True) -> Path:
@@ -198,11 +207,12 @@ def write_comparison(folders: list[str | Path], out: str | Path, check_hash: boo
     return _write_atomic(out, build_report(runs, check_hash=check_hash))
 
 
-def write_report_or_warn(folder: Path, echo=print) -> Path | None:
+def write_report_or_warn(folder: Path, echo=print, truth: np.ndarray | None = None) -> Path | None:
     """write_report at the end of a reconstruction (whose bundle was just read and hashed, so it is
-    not hashed again); a failure is one warning line: the reconstruction's outputs stand."""
+    not hashed again; `truth`: the run's, on its grid, not read again); a failure is one warning
+    line: the reconstruction's outputs stand."""
     try:
-        path = write_report(folder, check_hash=False)
+        path = write_report(folder, check_hash=False, truth=truth)
     except Exception as exc:  # a page must never cost the reconstruction it shows
         echo(f"warning: report.html not written ({type(exc).__name__}: {exc}); the other outputs are complete")
         return None

@@ -62,9 +62,14 @@ def encode_images(rgb: np.ndarray, factor: float = 1.0) -> list[str]:
     return out
 
 
+CHUNK = 16  # frames read, converted and encoded at a time: no video-sized temporaries
+
+
 def video_uris(video: np.ndarray, frames: np.ndarray, factor: float, scale: float = 1.0) -> list[str]:
-    """The chosen frames of a (C, K, H, W) linear video, gamma-encoded, as data URIs."""
-    return encode_images(to_display(video[:, frames] * scale), factor)
+    """The chosen frames of a (C, K, H, W) linear video (or recon.h5's, read on demand),
+    gamma-encoded, as data URIs."""
+    return [uri for i in range(0, len(frames), CHUNK)
+            for uri in encode_images(to_display(video[:, frames[i:i + CHUNK]] * scale), factor)]
 
 
 def map_uris(maps: np.ndarray, factor: float, vmax: float | None = None, cmap: str = "magma") -> list[str]:
@@ -72,9 +77,11 @@ def map_uris(maps: np.ndarray, factor: float, vmax: float | None = None, cmap: s
     import matplotlib
 
     vmax = float(np.nanmax(maps)) if vmax is None else vmax
-    norm = np.clip(np.nan_to_num(maps) / (vmax if vmax > 0 else 1.0), 0, 1)
-    rgb = (matplotlib.colormaps[cmap](norm)[..., :3] * 255 + 0.5).astype(np.uint8)
-    return encode_images(rgb, factor)
+    out = []
+    for i in range(0, len(maps), CHUNK):  # the colour map makes float64 RGBA: a chunk at a time
+        norm = np.clip(np.nan_to_num(maps[i:i + CHUNK]) / (vmax if vmax > 0 else 1.0), 0, 1)
+        out += encode_images((matplotlib.colormaps[cmap](norm)[..., :3] * 255 + 0.5).astype(np.uint8), factor)
+    return out
 
 
 def _psnr(err2: np.ndarray) -> float:
@@ -93,27 +100,41 @@ def _centroids(w: np.ndarray) -> np.ndarray:
     return out
 
 
+def _median_over_time(video: np.ndarray, rows: int = 16) -> np.ndarray:
+    """np.median over axis 1 of (C, K, H, W), a block of rows at a time (median sorts a copy)."""
+    out = np.empty((video.shape[0], *video.shape[2:]), np.float32)
+    for y in range(0, video.shape[2], rows):
+        out[:, y:y + rows] = np.median(video[:, :, y:y + rows], axis=1)
+    return out
+
+
 def per_frame(video: np.ndarray, truth: np.ndarray, one_object: bool) -> dict[str, np.ndarray]:
     """Per frame: PSNR (dB) over the image and over the moving region (where the truth differs
     from its temporal median, as in metrics.json's psnr_dynamic_db) and, for a one-object scene,
-    the object's centroid error in pixels (as centroid_error_*_px)."""
+    the object's centroid error in pixels (as centroid_error_*_px). A frame at a time: `video`
+    may be recon.h5's, read on demand."""
     k_all = video.shape[1]
-    moving = dynamic_region(torch.from_numpy(truth)).numpy()  # (K, H, W)
+    truth_t = torch.from_numpy(np.asarray(truth))
+    moving = dynamic_region(truth_t).numpy()  # (K, H, W)
+    bg = _median_over_time(truth) if one_object else None
     psnr_all, psnr_moving = np.full(k_all, np.nan), np.full(k_all, np.nan)
+    centroid_error = np.full(k_all, np.nan)
     for k in range(k_all):  # a frame at a time: no video-sized float64 copies
-        err2 = (np.nan_to_num(video[:, k], nan=0.0).astype(np.float64) - truth[:, k]) ** 2
+        est = np.nan_to_num(np.asarray(video[:, k], np.float32), nan=0.0)
+        err2 = (est.astype(np.float64) - truth[:, k]) ** 2
         psnr_all[k] = _psnr(err2)
         if moving[k].any():
             psnr_moving[k] = _psnr(err2[:, moving[k]])
+        if one_object:
+            s_true = np.abs(truth[:, k] - bg).sum(0)  # object_signal in float32: (H, W)
+            s_est = np.abs(est - bg).sum(0)
+            floor = OBJECT_FRACTION * s_true.max()
+            c_t = _centroids(np.clip(s_true - floor, 0, None).astype(np.float64)[None])
+            c_e = _centroids(np.clip(s_est - floor, 0, None).astype(np.float64)[None])
+            centroid_error[k] = np.linalg.norm(c_e - c_t, axis=1)[0]
     out = {"psnr_db": psnr_all, "psnr_moving_db": psnr_moving}
     if one_object:
-        bg = np.median(truth, axis=1)
-        s_true = np.abs(truth - bg[:, None]).sum(0)  # object_signal in float32: (K, H, W)
-        s_est = np.abs(np.nan_to_num(video, nan=0.0) - bg[:, None]).sum(0)
-        floor = OBJECT_FRACTION * s_true.max(axis=(1, 2), keepdims=True)
-        c_t = _centroids(np.clip(s_true - floor, 0, None).astype(np.float64))
-        c_e = _centroids(np.clip(s_est - floor, 0, None).astype(np.float64))
-        out["centroid_error_px"] = np.linalg.norm(c_e - c_t, axis=1)
+        out["centroid_error_px"] = centroid_error
     return out
 
 

@@ -68,8 +68,34 @@ def is_recon_file(path: str | Path) -> bool:
         return False
 
 
-def read_recon_h5(path: str | Path, video: bool = True) -> dict:
-    """recon.h5's attributes (settings and left_out decoded) and arrays (`video` False: no video)."""
+class H5Frames:
+    """A (C, K, ...) dataset of an HDF5 file read on demand: `shape`, `ndim`, and indexing whose
+    first two entries pick channels and frames (each read opens the file and reads those frames
+    only), so a page is built a chunk of frames at a time, not from a copy of the whole video."""
+
+    def __init__(self, path: Path, name: str, shape: tuple[int, ...]):
+        self.path, self.name, self.shape = Path(path), name, tuple(shape)
+        self.ndim = len(self.shape)
+
+    def __getitem__(self, key) -> np.ndarray:
+        key = key if isinstance(key, tuple) else (key,)
+        frames = key[1] if len(key) > 1 else slice(None)
+        with h5py.File(self.path, "r") as f:
+            if isinstance(frames, (slice, int, np.integer)):
+                return f[self.name][key]
+            frames = np.asarray(frames)  # h5py reads increasing, distinct indices; others via their sort
+            order, inverse = np.unique(frames, return_inverse=True)
+            data = f[self.name][(slice(None), order)]
+        return data[(slice(None), inverse.reshape(frames.shape), *key[2:])][key[0]]
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        data = self[:]
+        return data if dtype is None else data.astype(dtype, copy=False)
+
+
+def read_recon_h5(path: str | Path, video: bool = True, lazy: bool = False) -> dict:
+    """recon.h5's attributes (settings and left_out decoded) and arrays (`video` False: no video;
+    `lazy`: the video and the components as `H5Frames`, read a chunk of frames at a time)."""
     path = Path(path)
     if not path.is_file():
         raise RngcamError(f"{path}: no such recon file")
@@ -89,18 +115,21 @@ def read_recon_h5(path: str | Path, video: bool = True) -> dict:
         for name in ("key_frame_times_s", "key_frames", "rs_image"):
             if name in f:
                 out[name] = f[name][()]
-        out["components"] = {k: f["components"][k][()] for k in f.get("components", {})}
+        comps = f.get("components", {})
+        out["components"] = {k: H5Frames(path, f"components/{k}", comps[k].shape)
+                             if lazy and comps[k].ndim == 4 else comps[k][()] for k in comps}
         if video:
-            out["video"] = f["video"][()]
+            out["video"] = H5Frames(path, "video", f["video"].shape) if lazy else f["video"][()]
     return out
 
 
-def load_run(folder: str | Path) -> Run:
-    """The recon folder's run; RngcamError (one line) when it holds no recon.h5."""
+def load_run(folder: str | Path, lazy: bool = True) -> Run:
+    """The recon folder's run; RngcamError (one line) when it holds no recon.h5. `lazy`: its video
+    and components stay in recon.h5 and are read a chunk of frames at a time (`H5Frames`)."""
     folder = Path(folder)
     if folder.is_file() and folder.name.endswith(".h5"):
         folder = folder.parent
-    h5 = read_recon_h5(folder / "recon.h5")
+    h5 = read_recon_h5(folder / "recon.h5", lazy=lazy)
     metrics = {}
     if (folder / "metrics.json").is_file():
         metrics = json.loads((folder / "metrics.json").read_text())
@@ -122,12 +151,14 @@ def _to_grid(video: np.ndarray, shape: tuple) -> np.ndarray | None:
     if video.shape[0] != c or video.shape[1] != k or video.shape[2] % h or video.shape[3] % w:
         return None
     fy, fx = video.shape[2] // h, video.shape[3] // w
+    if fy == fx == 1:
+        return np.asarray(video, np.float32)  # no copy of a float32 truth on the same grid
     return video.reshape(c, k, h, fy, w, fx).mean(axis=(3, 5)).astype(np.float32)
 
 
 def load_truth(run: Run, check_hash: bool = True) -> tuple[np.ndarray | None, str]:
     """The bundle's truth on the run's grid (None when there is none) and a line saying where it
-    came from or why it is missing."""
+    came from or why it is missing. Read into float32 directly, as the bundle stores it."""
     from rngcam.formats.bundle import bundle_checksum, open_bundle
 
     path = Path(run.attrs.get("bundle_path") or "")
@@ -141,12 +172,15 @@ def load_truth(run: Run, check_hash: bool = True) -> tuple[np.ndarray | None, st
         with open_bundle(path) as bundle:
             if bundle.truth is None:
                 return None, f"{path.name} has no ground truth (a real capture)"
-            truth = np.asarray(bundle.truth.video, np.float32)
+            if tuple(bundle.truth.video.shape[:2]) != tuple(run.video.shape[:2]):
+                on_grid = None
+            else:
+                on_grid = _to_grid(np.asarray(bundle.truth.video, np.float32), run.video.shape)
+            shape = tuple(bundle.truth.video.shape)
     except RngcamError as exc:
         return None, f"the bundle cannot be read: {exc}"
-    on_grid = _to_grid(truth, run.video.shape)
     if on_grid is None:
-        return None, (f"the truth {truth.shape} does not match this video's grid {run.video.shape} "
+        return None, (f"the truth {shape} does not match this video's grid {run.video.shape} "
                       f"(another bin?); left out")
     return on_grid, f"truth from {path}"
 

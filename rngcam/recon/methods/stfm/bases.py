@@ -26,7 +26,7 @@ class BaseVideos:
             if kind not in BASE_VIDEOS:
                 raise ConfigError(f"a given base video needs a video dynamic base ({', '.join(BASE_VIDEOS)}), "
                                   f"not {kind!r}")
-            self.base_video, self.base_source = self._given_base.to(self.device, torch.float32), "given"
+            self.base_video, self.base_source = self._given_base.to(self.device), "given"  # no cast copy
             return
         keys = p.gs_images()  # without gains: the current Lambda multiplies the base
         if kind in KEY_WARPS:

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from rngcam.memory import release_free_memory
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.metrics import relative_residual
 
@@ -25,7 +26,11 @@ class StartGuard(MethodBase):
         self._rs_op = self._problem.rs_op()
         self._checked: tuple[int, int, bool] | None = None  # (id, version of the fit's estimate, kept the start)
         self.guard_note: str | None = None
-        self.start_name, self.start_video, self.start_rs = self._best_start()
+        # Only the start's name and residual are kept: its video (as large as the output) is made
+        # again if and when it becomes the output.
+        self.start_name, self.start_rs = self._best_start()
+        self._start_video: Tensor | None = None
+        release_free_memory()
 
     def __getattr__(self, name):  # everything but the output is the method's
         if name.startswith("__") or name == "_method":
@@ -63,30 +68,45 @@ class StartGuard(MethodBase):
             pred, target = pred * valid, target * valid
         return relative_residual(pred, target)
 
-    @torch.no_grad()
-    def _best_start(self) -> tuple[str | None, Tensor | None, float]:
-        p = self._problem
-        if p.b_rs is None or p.b_gs is None or p.b_gs.shape[1] < 1:
-            return None, None, float("inf")
+    def _start(self, name: str) -> Tensor:
+        """The GS-only video `name` (blend or interp) of the key frames, on the RS scale."""
         from rngcam.recon.methods.baselines import blend, interp
 
+        p = self._problem
+        make = {"blend": blend, "interp": interp}[name]
         keys = p.gs_images(gains=True).cpu().numpy()
-        times = p.frame_times_s
-        best = (None, None, float("inf"))
-        for name, make in (("blend", blend), ("interp", interp)):
+        return torch.from_numpy(np.ascontiguousarray(make(keys, p.gs_times_s, p.frame_times_s), np.float32))
+
+    @torch.no_grad()
+    def _best_start(self) -> tuple[str | None, float]:
+        p = self._problem
+        if p.b_rs is None or p.b_gs is None or p.b_gs.shape[1] < 1:
+            return None, float("inf")
+        best = (None, float("inf"))
+        for name in ("blend", "interp"):
             try:
-                video = torch.from_numpy(np.ascontiguousarray(make(keys, p.gs_times_s, times), np.float32))
+                video = self._start(name)
             except Exception:  # noqa: BLE001 - a start that cannot be made is no floor
                 continue
             res = self._rs_residual(video)
-            if res < best[2]:
-                best = (name, video, res)
+            del video
+            if res < best[1]:
+                best = (name, res)
         return best
+
+    @property
+    def start_video(self) -> Tensor | None:
+        """The best GS-only video (None without one), made when asked for and kept while it is the output."""
+        if self.start_name is None:
+            return None
+        if self._start_video is None:
+            self._start_video = self._start(self.start_name)
+        return self._start_video
 
     @torch.no_grad()
     def estimate(self) -> Tensor:
         video = self._method.estimate()
-        if self.start_video is None:
+        if self.start_name is None:
             return video
         key = (id(video), video._version)
         if self._checked is None or self._checked[:2] != key:
@@ -95,6 +115,8 @@ class StartGuard(MethodBase):
             self._checked = (*key, keep)
             self.guard_note = (f"the fit's RS residual {res:.4f} is not below the best GS-only video's "
                                f"({self.start_name}, {self.start_rs:.4f}): the output is that video") if keep else None
+            if not keep:
+                self._start_video = None
         return self.start_video.to(video.device) if self._checked[2] else video
 
     @property

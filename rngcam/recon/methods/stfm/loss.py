@@ -25,28 +25,29 @@ class DataLoss:
         if self.parts.rs:
             start, self._rs_norm_start = self._rs_norm_start, None
             self.rs_norm, vector = self._rs_norm(start)
-            self.rs_norm_vector = vector if start is not None else None  # kept only for a next level
+            # kept only for a next level's warm start, where half precision is plenty
+            self.rs_norm_vector = vector.half() if start is not None else None
             self.c_rs = self.settings.psi / (max(self.rs_norm ** 2, 1e-12) * pixels)
 
     def _rs_norm(self, start: Tensor | None = None, iters: int = 6, tol: float = 1e-3) -> tuple[float, Tensor]:
         """(||A_R||, the last iterate) by power iteration on A_R^T A_R, applied frame chunk by frame
-        chunk. It starts at `start` (a coarser level's vector, upsampled), else near a constant
-        video (close to the top singular vector: the PSF is a low-pass filter)."""
+        chunk. It starts at `start` (a coarser level's vector, upsampled; consumed: scaled in
+        place), else near a constant video (close to the top singular vector: the PSF is a
+        low-pass filter). Two video-sized buffers: the iterate and its image, swapped."""
         if start is None:
             gen = torch.Generator(device="cpu").manual_seed(0)
             x = 1 + 0.1 * torch.randn((self.C, self.K, self.H, self.W), generator=gen).to(self.device)
         else:
             x = start.to(self.device, torch.float32)
-        x = x / x.norm().clamp_min(1e-30)
+        x.div_(x.norm().clamp_min(1e-30))
+        z = torch.empty_like(x)
         lam = 0.0
-        all_rows = torch.arange(self.H, device=self.device)
+        chunks = _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk)
         for _ in range(iters):
-            y = self.rs_op.A(x, frame_chunk=self.settings.frame_chunk)
-            z = torch.empty_like(x)
-            for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):
-                z[:, idx] = self.rs_op.A_rows_adjoint(y, all_rows, idx)
-            new = float((x * z).sum())
-            x = z / z.norm().clamp_min(1e-30)
+            # the banded operator, its chunks through kept buffers, the adjoint written into z
+            self.rs_op.A_adjoint(self.rs_op.A(x), out=z)
+            new = sum(float((x[:, idx] * z[:, idx]).sum()) for idx in chunks)  # no video-sized product
+            x, z = z.div_(z.norm().clamp_min(1e-30)), x
             if abs(new - lam) <= tol * abs(new):
                 lam = new
                 break
@@ -131,7 +132,12 @@ class DataLoss:
             windows = gs_windows.to(dev)
             win_frames = torch.nonzero(self.w_gs[windows].sum(0) > 0).flatten()
         terms = {"gs": 0.0, "rs": 0.0, "tv": 0.0, "smooth": 0.0, "matte": 0.0}
-        static = self._static() if self.parts.static else None
+        static_graph = self._static() if self.parts.static else None
+        # Every frame evaluation sees the static image as a leaf: each chunk's graph is freed by its
+        # own backward (no graph retained across chunks), and the static field gets the summed
+        # gradient once at the end.
+        static = None if static_graph is None else (
+            static_graph.detach().requires_grad_() if backward and static_graph.requires_grad else static_graph)
         graph_loss = torch.zeros((), device=dev)
         if self._has_canonical_matte:
             matte = self.matte_term()
@@ -192,12 +198,13 @@ class DataLoss:
                 graph_loss = graph_loss + (pred * grad).sum()
                 chunk_jobs = [(c, grad) for c in chunks]
         if backward:
-            last = len(chunk_jobs) - 1
             if graph_loss.requires_grad:
-                graph_loss.backward(retain_graph=bool(chunk_jobs) and static is not None)
-            for i, (c, grad) in enumerate(chunk_jobs):
+                graph_loss.backward()
+            for c, grad in chunk_jobs:
                 surrogate = (self.rs_op.A_rows(self.frames(c, static), rows, c) * grad).sum()
-                surrogate.backward(retain_graph=i < last and static is not None)
+                surrogate.backward()
+            if static is not static_graph and static.grad is not None:
+                static_graph.backward(static.grad)
         return terms
 
     def full_objective(self) -> dict:

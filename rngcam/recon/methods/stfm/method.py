@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.memory import release_free_memory
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.selfcal import report_lines
 from rngcam.recon.methods.stfm.bases import BaseVideos
@@ -35,11 +36,13 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
 
     def __init__(self, problem, settings: STFMSettings, device="cpu", static_from: STFM | None = None,
                  base_video: Tensor | None = None, fields_from: STFM | None = None,
-                 rs_norm_start: Tensor | None = None):
+                 rs_norm_start: Tensor | None = None, base_gains: Tensor | None = None):
         """`static_from`: an STFM of the same problem and preset whose initialised static field
         this one copies instead of fitting it again (ensemble members share that start).
         `base_video` (C, K, H, W), without GS gains: the base of a "video" dynamic base, instead
-        of RIFE's or the flow interpolation's (the ensemble's refinement fit).
+        of RIFE's or the flow interpolation's (the ensemble's refinement fit); kept as given (half
+        precision too: frames are cast as they are sampled), not copied. `base_gains` (C,): the
+        base is `base_video` divided by these, on the fly (no divided copy).
         `fields_from`: an STFM of the same model on a coarser grid whose fields (planes resampled)
         and gains this one starts from instead of initialising from the GS frames (coarse to fine).
         `rs_norm_start`: a start for the RS operator's power iteration (a coarser level's
@@ -51,6 +54,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         self.notes += report_lines(settings.selfcal_report)  # the end values: resolved_settings
         self._static_from = static_from
         self._given_base = base_video
+        self.base_gains = None if base_gains is None else base_gains.to(device, torch.float32)
         self._rs_norm_start, self.rs_norm_vector = rs_norm_start, None
         self.device = torch.device(device)
         self.problem = problem.to(torch.float32, self.device)
@@ -119,6 +123,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         return self.base_lr * decay
 
     def step(self) -> float:
+        self._cache = None  # the last evaluated video goes before this step's graph is built
         lr = self._lr_now()
         for g in self.optimiser.param_groups:
             g["lr"] = lr * g["lr_ratio"]
@@ -162,6 +167,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
     def estimate(self) -> Tensor:
         if self._cache is not None and self._cache[0] == self.steps:
             return self._cache[1]
+        release_free_memory(collect=False)  # the steps' freed heap pages go before a video-sized buffer comes
         video = torch.empty(self.C, self.K, self.H, self.W, device=self.device)
         with self._averaged():
             for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):

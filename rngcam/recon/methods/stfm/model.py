@@ -151,9 +151,10 @@ class FieldModel:
         n = len(idx)
         if self.base_video is not None:
             grid = torch.stack([x, y], dim=-1)  # (n, H, W, 2)
-            frames = self.base_video.index_select(1, idx).permute(1, 0, 2, 3)  # (n, C, H, W)
+            frames = self.base_video.index_select(1, idx).permute(1, 0, 2, 3).to(grid.dtype)  # (n, C, H, W)
             out = F.grid_sample(frames, grid, mode="bilinear", padding_mode="border", align_corners=True)
-            return out.permute(1, 0, 2, 3)
+            out = out.permute(1, 0, 2, 3)
+            return out if self.base_gains is None else out / self.base_gains[:, None, None, None]
         grid = torch.stack([x, y], dim=-1).reshape(1, n * self.H, self.W, 2)
         keys = F.grid_sample(self.base_keys, grid, mode="bilinear", padding_mode="border",
                              align_corners=True).view(self.C, -1, n, self.H, self.W)

@@ -28,6 +28,7 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
+from rngcam.memory import release_free_memory
 from rngcam.recon.methods.multiscale import CoarseToFine, default_factors, power_norm, upsample
 from rngcam.recon.methods.stfm.method import STFM
 from rngcam.recon.methods.stfm.settings import REFINE_LR_RATIO, STFMSettings, _preset
@@ -66,17 +67,19 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
             previous[:] = [method]
             return method
         start = None
-        if norm_vector:
-            start = upsample(norm_vector[0], level.shape, level.shape[1] / norm_vector[0].shape[1])
-            norm_vector.clear()
+        if norm_vector:  # the power iteration takes it over (and scales it in place)
+            coarse = norm_vector.pop().float()
+            start = upsample(coarse, level.shape, level.shape[1] / coarse.shape[1])
+            del coarse
         if with_base and carry == "fields":
             coarse = _fit_of(previous[-1])
-            base = upsample(coarse.base_video, level.shape, level.shape[1] / coarse.K)
+            base = upsample(coarse.base_video.float(), level.shape, level.shape[1] / coarse.K)
             method = STFM(level, replace(single_settings, dynamic_base="video", dynamic_time=True,
                                          lr=_lr(single_settings, level)), device, base_video=base,
-                          fields_from=coarse, rs_norm_start=start)
+                          base_gains=coarse.base_gains, fields_from=coarse, rs_norm_start=start)
         elif with_base:
             previous.clear()  # the coarser fit is not needed any more: free it before building
+            release_free_memory()
             method = _on_base(level, single_settings, device, x0, start)
         else:
             method = _from_fields(level, single_settings, device, _fit_of(previous[-1]), start)
@@ -104,13 +107,13 @@ def _lr(settings: STFMSettings, problem) -> float:
 
 
 def _on_base(problem, settings: STFMSettings, device, x0: Tensor, norm_start: Tensor | None = None) -> STFM:
-    """One fit on the base video x0 (C, K, H, W), the coarser level's estimate upsampled. The base
-    is divided by the gains the fit starts with, so its first video is x0 itself."""
+    """One fit on the base video x0 (C, K, H, W), the coarser level's estimate upsampled (kept as
+    it is, half precision included: no copy). The base is x0 divided by the gains the fit starts
+    with (on the fly), so its first video is x0 itself."""
     wb = problem.white_balance
-    gains = torch.ones(x0.shape[0]) if wb is None else wb.float().cpu()
-    base = x0 if bool(torch.all(gains == 1)) else x0 / gains.to(x0)[:, None, None, None]  # no copy if 1
+    gains = None if wb is None or bool(torch.all(wb == 1)) else wb.float()
     fine = replace(settings, dynamic_base="video", dynamic_time=True, lr=_lr(settings, problem))
-    return STFM(problem, fine, device, base_video=base, rs_norm_start=norm_start)
+    return STFM(problem, fine, device, base_video=x0, base_gains=gains, rs_norm_start=norm_start)
 
 
 def _from_fields(problem, settings: STFMSettings, device, coarse: STFM, norm_start: Tensor | None = None) -> STFM:

@@ -36,7 +36,7 @@ class STFMSettings:
                              choices=("soft", "hard"))
     rows_per_step: int | None = None
     tv_frames_per_step: int = 2
-    frame_chunk: int = 16  # frames evaluated with one autograd graph
+    frame_chunk: int = 4  # frames evaluated with one autograd graph (one step holds one chunk's graph at a time)
     seed: int = 0
     lr: float | None = None
     lr_half_life_steps: float | None = None  # exponential LR decay (None: preset's; inf: none)

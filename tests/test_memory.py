@@ -1,0 +1,211 @@
+"""Memory: what a run keeps and when it refuses. Video-sized buffers a method can recompute or keep
+in half precision are not held in float32 (the coarse-to-fine start, the start floor's video, the
+power-iteration vector), a copy of a method's state shares the videos it never changes, and
+--max-memory refuses before any frame or the truth is read."""
+
+from __future__ import annotations
+
+import copy
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from click.testing import CliRunner
+
+import rngcam
+from rngcam.cli import main
+from rngcam.errors import SettingError
+from rngcam.formats.bundle import read_bundle
+from rngcam.recon import registry, runner
+from rngcam.recon.loop import LoopSettings, run
+from rngcam.recon.methods.multiscale import Kept, upsample
+from rngcam.recon.methods.stfm import STFMSettings, make_stfm
+from rngcam.recon.methods.stfm.guard import StartGuard
+from rngcam.recon.methods.stfm.multilevel import make_multilevel
+from rngcam.recon.methods.tv3d import TV3D, TV3DSettings
+from rngcam.sim.scenes import render_scene
+from rngcam.sim.simulate import simulate, simulation_timing
+from rngcam.sizing import method_bytes, plan_grid
+
+
+def _toy_problem(h=32, w=48):
+    from rngcam.recon.problem import problem_from_video
+    from rngcam.sim.simulate import prepare_simulation_psf
+
+    timing = simulation_timing((h, w))
+    video = torch.from_numpy(render_scene("smoke", timing.grid, (h, w), 0)).double()
+    psf = prepare_simulation_psf(None, (h, w), (h, w), 0.25).grid
+    return problem_from_video(video, torch.from_numpy(psf), timing.rs, timing.gs).to(torch.float32)
+
+
+@pytest.fixture(scope="module")
+def small_bundle(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("mem") / "s.h5"
+    simulate("smoke", path, size=32)
+    return path
+
+
+def test_max_memory_refuses_before_the_frames_or_the_truth_are_read(small_bundle, monkeypatch):
+    def never(*args, **kwargs):
+        raise AssertionError("the problem was built before the size check refused")
+
+    monkeypatch.setattr(runner, "build_problem", never)
+    with pytest.raises(SettingError, match="max_memory_bytes") as err:
+        rngcam.reconstruct(small_bundle, method="tv3d", max_memory_bytes=2**20, progress=False)
+    assert "tv3d would need about" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_max_memory_on_the_command_line_is_one_line(small_bundle, tmp_path):
+    res = CliRunner().invoke(main, ["recon", str(small_bundle), "--method", "blend", "--max-memory", "0.001",
+                                    "-o", str(tmp_path / "o"), "--quiet"])
+    assert res.exit_code != 0
+    errors = [line for line in res.output.splitlines() if line.lower().startswith("error")]
+    assert len(errors) == 1 and "--max-memory" in errors[0] and "blend would need about" in errors[0]
+    assert not (tmp_path / "o").exists()
+
+
+def test_the_prediction_is_within_15_percent_of_a_measured_run(small_bundle, tmp_path):
+    """The child's own peak (its rusage) against rngcam.sizing's estimate, for a one-shot and an
+    iterative method."""
+    plan = plan_grid(read_bundle(small_bundle))
+    for method, extra in (("blend", []), ("tv3d", ["--iters", "3"])):
+        proc = subprocess.Popen([sys.executable, "-c", "from rngcam.cli import main; main()", "recon",
+                                 str(small_bundle), "--method", method, "-o", str(tmp_path / method), "--quiet",
+                                 *extra], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        _, status, usage = os.wait4(proc.pid, 0)  # this child's own rusage: its whole-process peak
+        assert os.waitstatus_to_exitcode(status) == 0
+        peak = usage.ru_maxrss * 1024
+        predicted = method_bytes(plan, registry.get(method).memory)
+        assert abs(predicted - peak) <= 0.15 * peak, (method, predicted / 2**20, peak / 2**20)
+
+
+def test_a_fine_stfm_level_keeps_its_start_once_in_half_precision():
+    p = _toy_problem()
+    m = make_multilevel(p, STFMSettings(rows_per_step=4, dynamic_base="video", refine=False), "cpu", (2, 1),
+                        lambda q, s: make_stfm(q, s), max_level_steps=3)
+    while not m.final:
+        m.step()
+    fine = m.method
+    assert fine.base_video.dtype == torch.float16 and fine.base_video.shape == p.shape
+    assert fine.base_video.data_ptr() == m._x0.data_ptr()  # the level's start and its base: one buffer
+    assert fine.rs_norm_vector is None  # the full grid keeps no power-iteration vector
+    state = copy.deepcopy(m.state_dict())  # what the loop keeps as its last good state
+    assert state["x0"].tensor is m._x0  # shared, not copied
+    m.step()
+    assert torch.isfinite(m.estimate()).all()
+
+
+def test_a_fine_level_divides_the_start_by_the_gains_on_the_fly():
+    p = _toy_problem()
+    p.white_balance = torch.tensor([1.1, 1.0, 0.9])
+    m = make_multilevel(p, STFMSettings(rows_per_step=4, dynamic_base="video", refine=False, init="random"),
+                        "cpu", (2, 1), lambda q, s: make_stfm(q, s), max_level_steps=2)
+    while not m.final:
+        m.step()
+    fine = m.method
+    assert fine.base_video.data_ptr() == m._x0.data_ptr()
+    idx = torch.arange(p.shape[1])
+    xs, ys = fine.xs.view(1, 1, -1).expand(len(idx), p.shape[2], -1), fine.ys.view(1, -1, 1).expand(len(idx), -1,
+                                                                                                      p.shape[3])
+    base = fine._base_at(xs, ys, idx)
+    expected = m._x0.float() / torch.tensor([1.1, 1.0, 0.9])[:, None, None, None]
+    torch.testing.assert_close(base, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_the_start_floor_keeps_no_video_until_it_is_the_output():
+    p = _toy_problem()
+    fit = make_stfm(p, STFMSettings(rows_per_step=4, dynamic_base="video", refine=False))
+    guard = StartGuard(fit, p)
+    assert guard.start_name in ("blend", "interp") and guard._start_video is None
+    guard.start_rs = float("inf")  # the fit is better: the output is the fit, no start video is made
+    assert guard.estimate() is fit.estimate() and guard._start_video is None
+    guard.start_rs, guard._checked = 0.0, None  # now the start wins: it is made again, exactly
+    out = guard.estimate()
+    from rngcam.recon.methods.baselines import blend, interp
+
+    keys = guard._problem.gs_images(gains=True).numpy()
+    make = {"blend": blend, "interp": interp}[guard.start_name]
+    torch.testing.assert_close(out, torch.from_numpy(make(keys, p.gs_times_s, p.frame_times_s)))
+
+
+def test_tv3d_state_copies_share_the_videos_and_a_rollback_still_works():
+    p = _toy_problem(16, 24)
+    m = TV3D(p, TV3DSettings())
+    m.step()
+    saved = copy.deepcopy(m.state_dict())
+    assert isinstance(saved["x"], Kept) and saved["x"].tensor is m.state["x"]
+    x_then = m.state["x"].clone()
+    m.step()
+    m.step()
+    m.load_state_dict(copy.deepcopy(saved))
+    torch.testing.assert_close(m.estimate(), x_then)  # nothing changed the kept tensors in place
+    result = run(m, LoopSettings(time_budget_s=None, max_iters=4, progress=False, log_every_s=0.0))
+    assert result.status == "ok"
+
+
+def test_upsample_in_chunks_matches_the_whole_and_casts_to_the_storage_dtype():
+    v = torch.rand(3, 7, 5, 6, generator=torch.Generator().manual_seed(0))
+    whole = upsample(v, (3, 13, 10, 12), 2.0, frames=1000)
+    torch.testing.assert_close(upsample(v, (3, 13, 10, 12), 2.0, frames=3), whole)
+    half = upsample(v, (3, 13, 10, 12), 2.0, dtype=torch.float16)
+    assert half.dtype == torch.float16
+    torch.testing.assert_close(half.float(), whole, rtol=1e-3, atol=1e-3)
+
+
+def test_rs_operators_share_their_scratch_and_keep_their_zero_padding_apart():
+    from rngcam.physics import operators
+
+    gen = torch.Generator().manual_seed(0)
+    psf = torch.rand(3, 8, 8, generator=gen)
+    big = operators.RollingShutter(psf, torch.rand(20, 6, generator=gen), width=20, channels=3)
+    small = operators.RollingShutter(psf, torch.rand(19, 6, generator=gen), width=19, channels=3)
+    assert big.conv.fft_shape == small.conv.fft_shape  # the same scratch shapes: one pool entry each
+    v_big, v_small = torch.rand(3, 6, 20, 20, generator=gen), torch.rand(3, 6, 19, 19, generator=gen)
+    big.A(v_big)
+    got = small.A(v_small)  # after the larger image filled the shared buffer's padding region
+    with torch.enable_grad():  # the same arithmetic without kept buffers
+        fresh = small.A(v_small.clone().requires_grad_()).detach()
+    torch.testing.assert_close(got, fresh)
+    assert len([k for k in operators._scratch() if k[0] == "padded"]) <= operators.SCRATCH_PER_NAME
+
+
+class _SavedBytes:
+    """Autograd's saved tensors alive at once, in bytes (the peak over a step): what a graph holds."""
+
+    def __init__(self):
+        self.alive = self.peak = 0
+
+    def pack(self, t):
+        counter = self
+
+        class Held:
+            def __init__(self):
+                self.t, self.n = t, t.numel() * t.element_size()
+                counter.alive += self.n
+                counter.peak = max(counter.peak, counter.alive)
+
+            def __del__(self):
+                counter.alive -= self.n
+
+        return Held()
+
+    @staticmethod
+    def unpack(held):
+        return held.t
+
+
+def test_an_stfm_step_holds_one_chunk_of_frames_in_its_graph_at_a_time():
+    p = _toy_problem(24, 32)
+    peaks = {}
+    for chunk in (64, 2):
+        m = make_stfm(p, STFMSettings(rows_per_step=6, dynamic_base="video", refine=False, frame_chunk=chunk,
+                                      gs_windows_per_step=1))
+        saved = _SavedBytes()
+        with torch.autograd.graph.saved_tensors_hooks(saved.pack, saved.unpack):
+            m.loss_terms(torch.arange(6, 12), torch.tensor([1, 5]), backward=True, gs_windows=torch.tensor([1]))
+        peaks[chunk] = saved.peak
+        assert saved.alive == 0  # every graph freed by the end of the step
+    assert peaks[2] < 0.6 * peaks[64], peaks  # the chunks' graphs are not kept until the last one
