@@ -128,7 +128,8 @@ def summarise_run(out_dir: Path, tol_db: float = 0.5) -> dict:
     return res
 
 
-def recon(bundles: list[str], method: str, budget: float, extra: list[str], work: Path, tag: str = "") -> list[dict]:
+def recon(bundles: list[str], method: str, budget: float, extra: list[str], work: Path, tag: str = "",
+          threads: int = 1) -> list[dict]:
     results = []
     for bundle in bundles:
         out = work / f"{Path(bundle).stem}-{method}{tag}"
@@ -139,7 +140,7 @@ def recon(bundles: list[str], method: str, budget: float, extra: list[str], work
         log = work / f"{out.name}.log"
         with open(log, "w") as f:
             proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, text=True,
-                                    env={**os.environ, "OMP_NUM_THREADS": "1"})
+                                    env={**os.environ, "OMP_NUM_THREADS": str(threads)})
             _, status, usage = os.wait4(proc.pid, 0)  # this child's own rusage: its whole-process peak
         wall = time.perf_counter() - t0
         text = log.read_text()
@@ -147,7 +148,7 @@ def recon(bundles: list[str], method: str, budget: float, extra: list[str], work
             results.append({"bundle": bundle, "method": method, "error": text[-400:]})
             continue
         res = summarise_run(out)
-        res.update(bundle=bundle, wall_s=wall, load_before=before, load_after=load(), args=" ".join(extra),
+        res.update(bundle=bundle, wall_s=wall, load_before=before, load_after=load(), args=" ".join(extra), threads=threads,
                    whole_process_peak_gib=usage.ru_maxrss / 2**20)  # ru_maxrss is in KiB on Linux
         results.append(res)
         print(json.dumps(res), flush=True)
@@ -278,6 +279,7 @@ def main():
     r.add_argument("--work", type=Path, default=Path("scale-runs"))
     r.add_argument("--json", type=Path, default=None)
     r.add_argument("--tag", default="", help="appended to each output folder's name (e.g. -single)")
+    r.add_argument("--threads", type=int, default=1, help="the child's torch threads (2: both of CI's cores)")
     c = sub.add_parser("carry", help="STFM: a finer level from the coarser estimate or from its fields")
     c.add_argument("bundle")
     c.add_argument("--fine-steps", type=int, default=300)
@@ -311,7 +313,8 @@ def main():
         print(json.dumps(ops(args.size, args.repeats)), flush=True)
     else:
         args.work.mkdir(parents=True, exist_ok=True)
-        res = recon(args.bundles, args.method, args.budget, args.extra.split(), args.work, args.tag)
+        res = recon(args.bundles, args.method, args.budget, args.extra.split(), args.work, args.tag,
+                    args.threads)
         if args.json:
             args.json.write_text(json.dumps(res, indent=2))
 
