@@ -227,8 +227,10 @@ def _rife_unavailable() -> str:
     return ""
 
 
-# Peak memory of a whole `rngcam recon` run (PROVISIONAL: refitted below from bench/scale.md).
-STFM_MEMORY = MemoryModel(bytes_per_element=20, fixed_bytes=600e6, bytes_per_pixel=8000)
+# Peak memory of a whole `rngcam recon` run, fitted to the whole-process peaks in bench/scale.md
+# ("Issue 34: 8x binning"): STFM at 228x342x231 and 456x684x459 (its graph over a block of frames
+# taken as 8,000 bytes a frame pixel).
+STFM_MEMORY = MemoryModel(bytes_per_element=12.6, fixed_bytes=790e6, bytes_per_pixel=8000)
 
 # The default method first. STFM's default preset is auto (prior or fast, chosen per scene from the
 # key frames, rngcam.recon.methods.stfm.auto); both stop by themselves (fast after 1-3 min at 64 px on one
@@ -237,12 +239,16 @@ register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=
                      presets={p: preset_settings(p)
                               for p in ("auto", "fast", *(p for p in STFM_PRESETS if p not in ("auto", "fast")))},
                      benchmarked=("fast", "paper"), memory=STFM_MEMORY, fits_holdout=True))
+# tv3d and pnp: session 10's 228x342 fits (their full level at 8x was not reached when measured)
 register(MethodEntry("tv3d", ITERATIVE, TV3DSettings, _make_tv3d,
                      presets={"haar": TV3DSettings(prox="haar"), "exact": TV3DSettings(prox="exact")},
                      memory=MemoryModel(bytes_per_element=32), fits_holdout=True))
 register(MethodEntry("pnp", ITERATIVE, PnPSettings, _make_pnp, auto_budget_s=300.0,
                      memory=MemoryModel(bytes_per_element=32, fixed_bytes=600e6)))
-register(MethodEntry("blend", GS_ONLY, BlendSettings, _blend, memory=MemoryModel(bytes_per_element=12)))
-register(MethodEntry("interp", GS_ONLY, InterpSettings, _interp, memory=MemoryModel(bytes_per_element=12)))
+# GS-only: fitted to 128x128x131 and 456x684x459 (the truth, the video and the outputs' chunks)
+register(MethodEntry("blend", GS_ONLY, BlendSettings, _blend,
+                     memory=MemoryModel(bytes_per_element=14.65, fixed_bytes=30e6)))
+register(MethodEntry("interp", GS_ONLY, InterpSettings, _interp,
+                     memory=MemoryModel(bytes_per_element=14.3, fixed_bytes=65e6)))
 register(MethodEntry("rife", GS_ONLY, RifeSettings, _rife, unavailable=_rife_unavailable,
                      memory=MemoryModel(bytes_per_element=12, fixed_bytes=200e6)))
