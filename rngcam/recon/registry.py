@@ -239,7 +239,7 @@ register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=
                      presets={p: preset_settings(p)
                               for p in ("auto", "fast", *(p for p in STFM_PRESETS if p not in ("auto", "fast")))},
                      benchmarked=("fast", "paper"), memory=STFM_MEMORY, fits_holdout=True))
-# tv3d and pnp: session 10's 228x342 fits (their full level at 8x was not reached when measured)
+# tv3d and pnp: the earlier 228x342 fits (bench/scale.md) (their full level at 8x was not reached when measured)
 register(MethodEntry("tv3d", ITERATIVE, TV3DSettings, _make_tv3d,
                      presets={"haar": TV3DSettings(prox="haar"), "exact": TV3DSettings(prox="exact")},
                      memory=MemoryModel(bytes_per_element=32), fits_holdout=True))

@@ -95,7 +95,7 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor) -> T
                 miss = miss * stfm.mask
             g_cost[:, i:i + SEARCH_CHUNK] = miss.square().sum((2, 3, 4))
         # Charged to the exposure's centre only: charged to every frame it touches (as the RS rows'
-        # misfits are) it held the layer still there, 5-10 px off (bench/stfm_motion.md, session 10).
+        # misfits are) it held the layer still there, 5-10 px off (bench/stfm_motion.md).
         cost += _normalised(centre_weights(stfm._gs_centre_frames(), k).to(dev).t() @ g_cost)
     best = _viterbi(cost.cpu().numpy().reshape(k, side, side), SEARCH_SMOOTH * step)
     return shifts.cpu()[torch.from_numpy(best)]

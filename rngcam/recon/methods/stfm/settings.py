@@ -171,11 +171,10 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
                      # depended on how many steps the time budget allowed, i.e. on the machine's load.
                      "stall_drop": 0.001, "stall_passes": 30,
                      # A nearly rigid motion (spatial TV 10x fast's, temporal the same): a motion that
-                     # varies across the object tears the canonical image (bench/stfm_motion.md, session 10).
+                     # varies across the object tears the canonical image (bench/stfm_motion.md).
                      "beta": 0.1, "tau": 1e-3,
                      # The canonical image starts from a motion-blurred key frame whose matte covers the
-                     # whole smear: without this its edge stays as a rim and shadow (bench/stfm_motion.md,
-                     # session 11).
+                     # whole smear: without this its edge stays as a rim and shadow (bench/stfm_motion.md).
                      "matte_l1": 0.02})
     return fast
 
