@@ -231,37 +231,22 @@ def strip(out_dirs: list[Path], png: Path, labels: list[str] | None = None) -> l
     """Six frames (0, K/6, ..., 5K/6) of the truth and of each recon folder's video, read frame by
     frame from recon.h5 and the bundle it names (no whole video in memory), as one PNG."""
     import h5py
-    import matplotlib
     import numpy as np
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    from rngcam.cli.demo import strip_png
     from rngcam.formats.bundle import open_bundle
-    from rngcam.recon.outputs import to_display
 
     with h5py.File(out_dirs[0] / "recon.h5") as f:
         k, bundle, times = f["video"].shape[1], f.attrs["bundle_path"], f["frame_times_s"][()]
     frames = [0, k // 6, k // 3, k // 2, 2 * k // 3, 5 * k // 6]
     with open_bundle(bundle) as b:
-        rows = {"truth": np.stack([np.asarray(b.truth.video[:, j], np.float32) for j in frames], axis=1)}
+        truth = np.stack([np.asarray(b.truth.video[:, j], np.float32) for j in frames], axis=1)
+    videos = {}
     for i, d in enumerate(out_dirs):
         with h5py.File(d / "recon.h5") as f:
-            rows[labels[i] if labels else d.name] = np.stack([f["video"][:, j] for j in frames], axis=1)
-    fig, axes = plt.subplots(len(rows), len(frames), figsize=(1.9 * len(frames), 1.45 * len(rows)), squeeze=False)
-    for r, (name, video) in enumerate(rows.items()):
-        disp = to_display(video)
-        for c, j in enumerate(frames):
-            ax = axes[r, c]
-            ax.imshow(disp[c], interpolation="nearest")
-            ax.set_xticks([]), ax.set_yticks([])
-            if c == 0:
-                ax.set_ylabel(name, fontsize=8)
-            if r == 0:
-                ax.set_title(f"frame {j} ({times[j] * 1e6:,.0f} us)", fontsize=7)
-    fig.tight_layout()
-    fig.savefig(png, dpi=90)
-    plt.close(fig)
+            videos[labels[i] if labels else d.name] = np.stack([f["video"][:, j] for j in frames], axis=1)
+    strip_png(png, truth, videos, list(range(len(frames))),
+              titles=[f"frame {j} ({times[j] * 1e6:,.0f} us)" for j in frames])
     return frames
 
 

@@ -54,8 +54,10 @@ def _capture(out: Path) -> Path:
     return bundle
 
 
-def strip_png(png: Path, truth: np.ndarray, videos: dict[str, np.ndarray], frames: list[int]) -> None:
-    """Rows: truth and each method; columns: the chosen frames (gamma-encoded)."""
+def strip_png(png: Path, truth: np.ndarray, videos: dict[str, np.ndarray], frames: list[int],
+              titles: list[str] | None = None) -> None:
+    """Rows: truth and each method; columns: the chosen frames (gamma-encoded), titled by `titles`
+    (default "frame k")."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -75,7 +77,7 @@ def strip_png(png: Path, truth: np.ndarray, videos: dict[str, np.ndarray], frame
             if c == 0:
                 ax.set_ylabel(name, fontsize=9)
             if r == 0:
-                ax.set_title(f"frame {k}", fontsize=8)
+                ax.set_title(titles[c] if titles else f"frame {k}", fontsize=8)
     fig.tight_layout()
     fig.savefig(png, dpi=100)
     plt.close(fig)
