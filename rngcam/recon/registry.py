@@ -251,4 +251,4 @@ register(MethodEntry("blend", GS_ONLY, BlendSettings, _blend,
 register(MethodEntry("interp", GS_ONLY, InterpSettings, _interp,
                      memory=MemoryModel(bytes_per_element=14.3, fixed_bytes=65e6)))
 register(MethodEntry("rife", GS_ONLY, RifeSettings, _rife, unavailable=_rife_unavailable,
-                     memory=MemoryModel(bytes_per_element=12, fixed_bytes=200e6)))
+                     memory=MemoryModel(bytes_per_element=14.75, fixed_bytes=150e6)))
