@@ -230,7 +230,7 @@ def _rife_unavailable() -> str:
 # Peak memory of a whole `rngcam recon` run, fitted to the whole-process peaks in bench/scale.md
 # ("Issue 34: 8x binning"): STFM at 228x342x231 and 456x684x459 (its graph over a block of frames
 # taken as 8,000 bytes a frame pixel).
-STFM_MEMORY = MemoryModel(bytes_per_element=12.6, fixed_bytes=790e6, bytes_per_pixel=8000)
+STFM_MEMORY = MemoryModel(bytes_per_element=13.64, fixed_bytes=333e6, bytes_per_pixel=8000)
 
 # The default method first. STFM's default preset is auto (prior or fast, chosen per scene from the
 # key frames, rngcam.recon.methods.stfm.auto); both stop by themselves (fast after 1-3 min at 64 px on one
