@@ -22,7 +22,7 @@ from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, Vid
 
 DEFAULT_MAX_FRAMES = 100_000
 MEMORY_FRACTION = 0.8  # of the machine's memory: the default --max-memory
-BASE_BYTES = 430 * 2**20  # the interpreter, torch, OpenCV, h5py, matplotlib: blend at 32 px peaks at 430 MiB
+BASE_BYTES = 430 * 2**20  # the interpreter, torch, OpenCV, h5py, matplotlib (measured: bench/scale.md)
 
 
 @dataclass(frozen=True)
