@@ -229,7 +229,7 @@ def test_recon_cli_pnp_writes_its_notes_and_settings(tmp_path, monkeypatch):
 @needs_weights
 @pytest.mark.parametrize("kind", ["xy", "xt", "yt"])
 def test_denoising_in_chunks_equals_denoising_at_once(kind):
-    from rngcam.recon.methods.pnp import Denoiser
+    from rngcam.recon.methods.pnp_denoiser import Denoiser
 
     video = torch.rand((3, 10, 12, 14), generator=torch.Generator().manual_seed(0))
     small, large = Denoiser("cpu", chunk=1)(video, 0.05, kind, 1.0), Denoiser("cpu", chunk=100)(video, 0.05, kind, 1.0)
