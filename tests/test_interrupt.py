@@ -73,7 +73,7 @@ def test_sigint_in_set_up_leaves_the_start_video_marked_interrupted_and_resume_c
     assert code == 130, text
     assert "Traceback" not in text and "interrupted: the start video" in text
     m = metrics(out)
-    assert m["status"] == "interrupted" and m["iterations"] == 0
+    assert m["status"] == "interrupted" and m["iterations"] == 0 and m["ended_by"] == "signal"
     assert any("interrupted by SIGINT in set-up" in e for e in m["events"])
     for name in ("recon.h5", "video.tif", "preview.mp4", "errors.csv", "checkpoint.pt", "recon.log"):
         assert (out / name).is_file(), name
@@ -92,7 +92,7 @@ def test_sigint_in_the_solve_keeps_the_estimate_and_resume_continues_it(mock_bun
     assert code == 130, text
     m = metrics(out)
     done = m["iterations"]
-    assert m["status"] == "interrupted" and done > 0 and m["psnr_db"] > 15, m
+    assert m["status"] == "interrupted" and m["ended_by"] == "signal" and done > 0 and m["psnr_db"] > 15, m
     assert any(e.startswith(f"interrupted by SIGINT at iteration {done}") for e in m["events"]), m["events"]
     code, text = recon([str(mock_bundle), "--method", "tv3d", "-o", str(out), "--resume", "--iters", str(done + 5),
                         "--quiet"])

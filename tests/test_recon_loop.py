@@ -135,7 +135,7 @@ def test_backtracking_recovers_from_a_far_too_long_step():
 def test_repeated_nan_stops_with_clear_message_and_last_good_state():
     m = _Poisoned(_sineball_problem(), bad_calls=set(range(4, 100)))
     result = run(m, _settings(max_iters=50, log_every_iters=1, max_failures=3))
-    assert result.status == "failed" and "non-finite" in result.message
+    assert result.status == "failed" and "non-finite" in result.message and result.ended_by == "failure"
     assert torch.isfinite(m.estimate()).all() and result.iterations == 3
 
 
@@ -170,7 +170,7 @@ class _StopsAt(TV3D):
 def test_a_converged_method_ends_the_run_early_with_its_reason():
     m = _StopsAt(_sineball_problem(), stop_after=4)
     result = run(m, _settings(max_iters=50, log_every_iters=10))
-    assert result.status == "ok" and result.iterations == 4
+    assert result.status == "ok" and result.iterations == 4 and result.ended_by == "own_stop"
     assert result.log[-1]["iteration"] == 4  # the final state is logged
     assert any("stopped at iteration 4: enough" in e for e in result.events)
     assert not any("time budget" in e for e in result.events)
@@ -179,12 +179,14 @@ def test_a_converged_method_ends_the_run_early_with_its_reason():
 def test_a_budget_that_ends_a_run_before_the_methods_own_stop_says_so():
     cut = run(_StopsAt(_sineball_problem(), stop_after=10 ** 9), LoopSettings(time_budget_s=0.3, progress=False))
     assert any(e.startswith("time budget of 0.3 s reached at iteration") and "own stop" in e for e in cut.events)
+    assert cut.status == "ok" and cut.ended_by == "budget"  # ok, but what ended it is on record
     # an iteration cap is the user's explicit choice: no budget event
     capped = run(_StopsAt(_sineball_problem(), stop_after=10 ** 9), _settings(max_iters=3))
-    assert not any("time budget" in e for e in capped.events)
+    assert not any("time budget" in e for e in capped.events) and capped.ended_by == "iterations"
     # a method without a stop of its own (tv3d) is also cut by the budget, and says so
     plain = run(TV3D(_sineball_problem(), TV3DSettings()), LoopSettings(time_budget_s=0.3, progress=False))
     assert any("time budget of 0.3 s" in e and "no stop of its own" in e for e in plain.events)
+    assert plain.ended_by == "budget"
 
 
 def test_set_up_longer_than_the_budget_runs_no_step_and_says_so():

@@ -120,6 +120,11 @@ class LoopSettings:
             raise ValueError(f"iteration count must be >= 0, got {self.max_iters}")
 
 
+# What ended a run (metrics.json's "ended_by"): the method's own stop, the time budget, the
+# iteration count, a signal, non-finite steps, or a one-shot method's single pass.
+ENDINGS = ("own_stop", "budget", "iterations", "signal", "failure", "one_shot")
+
+
 @dataclass
 class RunResult:
     log: list[dict]
@@ -129,6 +134,7 @@ class RunResult:
     events: list[str] = field(default_factory=list)
     status: str = "ok"  # "ok", "failed", "interrupted" or "budget_before_first_iteration"
     message: str = ""
+    ended_by: str = "iterations"  # one of ENDINGS: what ended the run
 
 
 def _finite_state(state) -> bool:
@@ -247,7 +253,7 @@ def run(method: Method, settings: LoopSettings,
                     save_checkpoint()
                     return RunResult(log, iteration, solve_s, wall(), events, "failed",
                                      f"{method.name}: {failures} non-finite steps in a row; "
-                                     f"kept the last good state (iteration {iteration})")
+                                     f"kept the last good state (iteration {iteration})", "failure")
                 stop_reason = None
                 if asked is None:
                     continue
@@ -263,18 +269,23 @@ def run(method: Method, settings: LoopSettings,
                 status, message = "interrupted", f"{method.name}: {asked}"
                 events.append(f"{asked} at iteration {iteration}: the state there is written (--resume continues)")
                 break
+        ended_by = "signal" if status == "interrupted" else "iterations"
         if stop_reason:
             events.append(f"stopped at iteration {iteration}: {stop_reason}")
+            ended_by = "own_stop"
         elif status == "ok" and settings.time_budget_s is not None and wall() >= settings.time_budget_s and (
                 settings.max_iters is None or iteration < settings.max_iters):
             events.append(budget_event(method, settings.time_budget_s, iteration, setup_s))
+            ended_by = "budget"
+        if status == "interrupted":
+            ended_by = "signal"
             if iteration == (saved or {}).get("iteration", 0):
                 status = "budget_before_first_iteration"
                 message = f"{method.name}: the time budget ran out before the first iteration"
         if not log or log[-1]["iteration"] != iteration:
             bar.show(record(objective), iteration, wall())
         save_checkpoint()
-    return RunResult(log, iteration, solve_s, wall(), events, status, message)
+    return RunResult(log, iteration, solve_s, wall(), events, status, message, ended_by)
 
 
 def budget_event(method, budget_s: float, iteration: int, setup_s: float) -> str:

@@ -13,7 +13,7 @@ from rngcam.recon import outputs
 # What a run's `status` can be: "ok" (the method's own stop, its iterations or the budget after
 # some iterations), "failed" (non-finite steps: the last good state), "interrupted" (SIGINT or
 # SIGTERM: the state at the signal), "budget_before_first_iteration" (the budget ran out in
-# set-up: the start video).
+# set-up: the start video). What ended an "ok" run is metrics["ended_by"] (rngcam.recon.loop.ENDINGS).
 STATUSES = ("ok", "failed", "interrupted", "budget_before_first_iteration")
 
 
@@ -70,13 +70,22 @@ class Result:
     def summary(self) -> str:
         """The one-line summary the command line prints."""
         m = self.metrics
-        line = f"{self.method}: {m['seconds']:.1f} s, {m['iterations']} iterations"
+        n = m["iterations"]
+        passes = "one pass" if m.get("ended_by") == "one_shot" else f"{n} iteration{'s' if n != 1 else ''}"
+        line = f"{self.method}: {passes}"
+        if "setup_seconds" in m and "wall_seconds" in m:
+            line += (f" in {m['seconds']:.1f} s of solving, {m['wall_seconds']:.1f} s in all "
+                     f"(set-up {m['setup_seconds']:.1f} s)")
+        else:
+            line += f" in {m['seconds']:.1f} s"
         if self.status == "budget_before_first_iteration":
             line += " (the time budget ran out in set-up: this is the start video)"
         elif self.status == "interrupted":
             line += f" (interrupted: {'the start video' if not m['iterations'] else 'the state at the signal'})"
         elif self.status == "failed":
             line += " (failed: the last good state)"
+        elif m.get("ended_by") == "budget":
+            line += " (ended by the time budget)"
         if "psnr_db" in m:
             line += f", PSNR {m['psnr_db']:.2f} dB"
             if "psnr_intermediate_db" in m:

@@ -102,7 +102,7 @@ def run_gs_only(problem: Problem, settings: ReconSettings) -> tuple[registry.GSO
                                                 settings.method_settings)
     secs = time.perf_counter() - t0
     out.video = np.asarray(out.video, np.float32)
-    return out, RunResult(log=[], iterations=1, solve_s=secs, wall_s=secs)
+    return out, RunResult(log=[], iterations=1, solve_s=secs, wall_s=secs, ended_by="one_shot")
 
 
 def start_video(problem: Problem) -> np.ndarray:
@@ -349,7 +349,7 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
             made, result = run_gs_only(problem, settings)
             fit.update(video=made.video, notes=list(made.notes), method_settings=made.resolved,
                        log=one_row(made.video, result.solve_s, 1), iterations=1, solve_s=result.solve_s,
-                       wall_s=time.perf_counter() - t_start)
+                       wall_s=time.perf_counter() - t_start, ended_by=result.ended_by)
             for note in fit["notes"]:
                 say(f"note: {note}")
             return fit
@@ -389,7 +389,7 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
     fit.update(video=method.estimate().detach().float().cpu().numpy(), components=method.components(),
                method_settings=method.resolved_settings(), log=result.log, iterations=result.iterations,
                solve_s=result.solve_s, wall_s=result.wall_s, events=result.events, status=result.status,
-               message=result.message)
+               message=result.message, ended_by=result.ended_by)
     fit["notes"] += [n for n in method.notes if n not in fit["notes"]]  # what it learns by the end (the floor)
     # The method's state (the solve's peak) goes before the end-of-run metrics and outputs, which
     # then add to a much smaller base (bench/scale.md: whole-process peak).
@@ -411,6 +411,7 @@ def _cut(fit: dict, problem: Problem, status: str, why: str, one_row, t_start: f
     keep = saved is not None and saved.get("method") is not None
     fit.update(video=video, log=one_row(video, 0.0, 0), iterations=0, solve_s=0.0,
                wall_s=wall_s, status=status, message=f"{why}",
+               ended_by="signal" if status == "interrupted" else "budget",
                events=[f"{why}: the start video (GS key frames cross-faded) is the result"
                        if not keep else f"{why}: the folder keeps its earlier result and checkpoint"],
                keep_folder=keep, cut=True)
@@ -435,7 +436,7 @@ def _finish(source: Source, problem: Problem, settings: ReconSettings, extra: di
         "iterations": fit["iterations"],
         "peak_rss_bytes": peak_rss_bytes(),  # this process only (VmHWM)
         "frames": k, "height": h, "width": w, "channels": c, "fps": 1 / problem.grid.dt_s,
-        "device": fit["device"], "status": fit["status"],
+        "device": fit["device"], "status": fit["status"], "ended_by": fit.get("ended_by", "iterations"),
         "left_out": [{"component": a, "reason": b} for a, b in left_out],
         "events": fit["events"],
         "warnings": list(extra["warnings"]),
