@@ -65,6 +65,8 @@ def test_result_save_writes_the_folder_recon_writes(shot, tmp_path):
     for name in ("recon.h5", "video.tif", "preview.mp4", "errors.csv", "errors.png", "metrics.json"):
         assert (folder / name).is_file(), name
     assert json.loads((folder / "metrics.json").read_text())["iterations"] == 3
+    logged = (folder / "recon.log").read_text()  # what the run said, though it printed nothing
+    assert "set-up: read" in logged and logged.rstrip().endswith(r.summary())
     import h5py
 
     with h5py.File(folder / "recon.h5") as f:

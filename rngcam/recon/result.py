@@ -9,6 +9,7 @@ import numpy as np
 
 from rngcam.memory import release_free_memory
 from rngcam.recon import outputs
+from rngcam.recon.checkpoint import LOG_NAME
 
 # What a run's `status` can be: "ok" (the method's own stop, its iterations or the budget after
 # some iterations), "failed" (non-finite steps: the last good state), "interrupted" (SIGINT or
@@ -38,13 +39,15 @@ class Result:
     bundle_sha256: str = ""
     frame_interval_s: float = 0.0
     context: dict = field(default_factory=dict)  # what the outputs record of the input (outputs.recon_context)
+    lines: list[str] = field(default_factory=list)  # what an in-memory run said (a folder run has recon.log)
 
     @property
     def method(self) -> str:
         return self.metrics.get("method", "")
 
     def save(self, folder: str | Path, echo=None, truth: np.ndarray | None = None) -> Path:
-        """Write recon.h5, video.tif, preview.mp4, errors.csv/png, metrics.json and report.html into
+        """Write recon.h5, video.tif, preview.mp4, errors.csv/png, metrics.json, report.html and (for a
+        run made in memory) recon.log with what it said into
         `folder` (created if needed; files of the same names are replaced); returns the folder.
         `echo(line)` hears where the report went, or why it was not written [silent]. `truth`: the
         bundle's truth on the video's grid where the caller holds it (else the report reads it)."""
@@ -63,6 +66,8 @@ class Result:
         outputs.write_errors(out / "errors.csv", out / "errors.png", self.log, self.method,
                              noise_level=ctx.get("rs_noise_level"))
         outputs.write_metrics(out / "metrics.json", self.metrics)
+        if self.lines and not (out / LOG_NAME).exists():  # a run made in memory: its lines and summary
+            (out / LOG_NAME).write_text("\n".join([*self.lines, self.summary()]) + "\n", encoding="utf-8")
         release_free_memory(collect=False)  # the writers' freed heap pages go before the page is built
         write_report_or_warn(out, echo or (lambda line: None), truth)  # from the folder just written
         return out

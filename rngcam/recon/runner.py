@@ -191,12 +191,14 @@ class _Log:
         self.fh, self.held, self.lock = None, [], threading.Lock()
 
     def open(self, out: Path | None) -> None:
+        """Write to `out`'s recon.log from here on; without a folder the lines stay in `held`
+        (a Result made in memory carries them, and its `save` writes them)."""
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)
             self.fh = open(out / checkpoint.LOG_NAME, "a", encoding="utf-8")  # noqa: SIM115 - closed by close()
             self.fh.writelines(self.held)
             self.fh.flush()
-        self.held = []
+            self.held = []
 
     def write(self, line: str) -> None:
         text = f"{time.strftime('%H:%M:%S')} {line}\n"
@@ -249,7 +251,9 @@ def _solve(source: Source, settings: ReconSettings, out: Path | None, echo, star
             guard.set_deadline(None if budget is None else t_start + budget)
             run_out = _fit(problem, settings, extra, budget, guard, stage, say, log, t_start, out, want, saved)
             guard.enter("finish")
-            return _finish(source, problem, settings, extra, run_out, out, want, saved, say)
+            result = _finish(source, problem, settings, extra, run_out, out, want, saved, say)
+            result.lines = [line.rstrip("\n") for line in log.held]  # empty where recon.log has them
+            return result
     finally:
         log.close()
 
