@@ -78,7 +78,7 @@ def run_iterative(name: str, p: Problem, budget_s: float, opts: dict | None = No
     label, base = VARIANTS.get(name, (name, {}))
     try:
         r = reconstruct(p, label, progress=False, time_budget_s=budget_s, max_iters=max_iters,
-                        log_every_s=max(budget_s / 20, 0.5), **base, **(opts or {}))
+                        log_every_s=max(budget_s / 20, 0.5), threads=torch.get_num_threads(), **base, **(opts or {}))
     except ImportError as exc:
         return {"error": f"not available: {exc}"}
     m = r.metrics
@@ -110,7 +110,8 @@ def memory_child(problem_path: str, steps: int) -> None:
     p = torch.load(problem_path, weights_only=False)
     torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # import the optimiser machinery first
     before = peak_rss_mib()
-    r = reconstruct(p, "stfm-fast", progress=False, max_iters=steps or None, time_budget_s=None if steps else 1e6)
+    r = reconstruct(p, "stfm-fast", progress=False, max_iters=steps or None, time_budget_s=None if steps else 1e6,
+                    threads=torch.get_num_threads())
     done = r.metrics["iterations"]
     peak = peak_rss_mib()
     print(json.dumps({"frames": p.grid.n_frames, "before_mib": before, "peak_mib": peak, "steps": done,

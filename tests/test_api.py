@@ -91,6 +91,8 @@ def test_settings_by_keyword_method_labels_and_an_open_bundle(shot):
     ({"time_budget_s": float("nan")}, "time_budget_s"),
     ({"max_iters": 0}, "max_iters"),
     ({"device": "gpu"}, "device"),
+    ({"threads": 0}, "threads"),
+    ({"threads": "many"}, "threads"),
     ({"checkpoint_every_s": 0}, "checkpoint_every_s"),
     ({"holdout": 2.0, "method": "tv3d"}, "holdout"),
     ({"bogus": 1}, "bogus"),

@@ -32,6 +32,19 @@ def device_option(ctx, param, value):
         raise click.BadParameter(error_line(exc).removeprefix("--device ")) from None
 
 
+def threads_option(ctx, param, value):
+    """--threads: 'auto' or a whole number >= 1 (one usage line otherwise)."""
+    if value == "auto":
+        return value
+    try:
+        n = int(value)
+    except ValueError:
+        n = 0
+    if n < 1 or str(n) != value.strip():
+        raise click.BadParameter(f"must be auto or a whole number >= 1, got {value}")
+    return n
+
+
 def budget_option(ctx, param, value):
     """--time-budget: 'auto' (or not given) or a positive number of seconds."""
     if value is None or value == "auto":
@@ -67,6 +80,9 @@ def budget_option(ctx, param, value):
               help="Seconds between checkpoints during the solve (one is always written at the end, and "
                    "on SIGINT or SIGTERM).")
 @click.option("--device", default="auto", show_default=True, callback=device_option, help="auto, cpu or cuda[:N].")
+@click.option("--threads", default="auto", show_default=True, callback=threads_option,
+              help="CPU threads for torch, or auto: torch's default less the CPUs other work keeps busy "
+                   "when the run starts (a thread on a busy CPU stalls the others).")
 @click.option("--bin", "grid_bin", type=click.IntRange(min=1), default=None,
               help="Sensor pixels per grid pixel [the rig's binning].")
 @click.option("--holdout", type=float, default=None,
@@ -74,7 +90,7 @@ def budget_option(ctx, param, value):
 @click.option("--quiet", is_flag=True,
               help="No progress (bar or lines: set-up stages, the fit's progress); events and the summary still print.")
 def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memory, resume, overwrite,
-              checkpoint_every, device, grid_bin, holdout, quiet, **opts):
+              checkpoint_every, device, threads, grid_bin, holdout, quiet, **opts):
     """Reconstruct the high-speed video in BUNDLE and report error against run time.
 
     Ctrl-C (SIGINT) or SIGTERM ends the run with the current estimate written as the result
@@ -87,7 +103,8 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memor
     result = reconstruct(bundle, method, out=out, progress=click.echo, bar=not quiet, started=started(),
                          method_settings=method_settings,
                          time_budget_s="auto" if time_budget in (None, "auto") else time_budget,
-                         max_iters=iters, device=device, grid_bin=grid_bin, resume=resume, overwrite=overwrite,
+                         max_iters=iters, device=device, threads=threads, grid_bin=grid_bin, resume=resume,
+                         overwrite=overwrite,
                          checkpoint_every_s=checkpoint_every, holdout=holdout, max_frames=max_frames,
                          max_memory_bytes=None if max_memory is None else int(max_memory * 2**30))
     log = Path(out) / "recon.log"

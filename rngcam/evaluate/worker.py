@@ -47,6 +47,7 @@ def main(job_path: str) -> int:
         result = reconstruct(job["bundle"], job["method"], out=out, progress=False, time_budget_s=job["time_budget_s"],
                              log_every_s=job["log_every_s"], checkpoint_every_s=1e9,
                              overwrite=True,  # the folder already holds this job's own files
+                             threads=int(job.get("threads", 1)),  # the comparison's count, whatever the load
                              **job.get("overrides", {}))
         if result.status == "failed":
             report["error"] = f"RngcamError: {result.message}"

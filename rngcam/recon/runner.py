@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from rngcam.cpu import choose_threads, torch_threads
 from rngcam.errors import RngcamError, SettingError
 from rngcam.formats.bundle import Bundle, bundle_checksum, is_warning, open_checked
 from rngcam.memory import peak_rss_bytes, release_free_memory
@@ -228,8 +229,11 @@ def _solve(source: Source, settings: ReconSettings, out: Path | None, echo, star
         log.write(line)
 
     stage_line = say if settings.progress else log.write
+    threads, why = choose_threads(settings.threads)  # before reading: this process is idle meanwhile
+    if why:
+        say(why)
     try:
-        with RunGuard() as guard:
+        with RunGuard() as guard, torch_threads(threads):
             stage = stage_printer(stage_line, check=guard.check)
             if saved is not None:
                 say(f"resuming {out / checkpoint.CHECKPOINT_NAME} (iteration {saved.get('iteration', 0)})")
@@ -440,7 +444,8 @@ def _finish(source: Source, problem: Problem, settings: ReconSettings, extra: di
         "iterations": fit["iterations"],
         "peak_rss_bytes": peak_rss_bytes(),  # this process only (VmHWM)
         "frames": k, "height": h, "width": w, "channels": c, "fps": 1 / problem.grid.dt_s,
-        "device": fit["device"], "status": fit["status"], "ended_by": fit.get("ended_by", "iterations"),
+        "device": fit["device"], "threads": torch.get_num_threads(),
+        "status": fit["status"], "ended_by": fit.get("ended_by", "iterations"),
         "left_out": [{"component": a, "reason": b} for a, b in left_out],
         "events": fit["events"],
         "warnings": list(extra["warnings"]),

@@ -40,6 +40,7 @@ class ReconSettings:
     time_budget_s: float | str | None = "auto"  # "auto": the method's MethodEntry.auto_budget_s, scaled
     max_iters: int | None = None  # stop at this iteration (a resumed run counts from its checkpoint's)
     device: str = "auto"  # auto, cpu, cuda or cuda:N
+    threads: int | str = "auto"  # torch CPU threads; auto: torch's count, less the CPUs other work keeps busy
     grid_bin: int | None = None
     log_every_s: float = 2.0
     checkpoint_every_s: float = 60.0
@@ -65,6 +66,7 @@ class ReconSettings:
         check_settings_figures(self.time_budget_s, self.max_iters, self.max_frames, self.max_memory_bytes)
         check_positive("checkpoint_every_s", self.checkpoint_every_s)
         check_device(self.device)
+        check_threads(self.threads)
         if self.holdout is not None:
             if not (isinstance(self.holdout, (int, float)) and 0 < self.holdout < 1):
                 raise SettingError(f"holdout must be a fraction in (0, 1), got {self.holdout}", "holdout")
@@ -93,6 +95,13 @@ def check_settings_figures(time_budget_s, max_iters, max_frames=None, max_memory
                         ("max_memory_bytes", max_memory_bytes)):
         if value is not None and not (isinstance(value, (int, float)) and value >= 1):
             raise SettingError(f"{name} must be at least 1, got {value!r}", name)
+
+
+def check_threads(value) -> int | str:
+    """`value` if it is "auto" or a whole number >= 1; else SettingError (one line)."""
+    if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+        return value
+    raise SettingError(f"threads must be auto or a whole number >= 1, got {value!r}", "threads")
 
 
 DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")

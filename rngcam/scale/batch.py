@@ -68,8 +68,9 @@ def batch_task(item: dict, shared: object = None) -> dict:
     t0 = time.perf_counter()
     try:
         settings = item["settings"]
+        asked = {"threads": item["threads"]} if item.get("threads") else {}
         result = reconstruct(item["bundle"], settings.method, out=item["out"], progress=lines.append, bar=False,
-                             **keywords(settings))
+                             **{**keywords(settings), **asked})
         if result.status == "failed":
             raise RngcamError(f"{result.message}; outputs from the last good state are in {item['out']}")
         (Path(item["out"]) / DONE_NAME).write_text(json.dumps(item["stamp"]))
