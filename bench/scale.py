@@ -134,7 +134,7 @@ def recon(bundles: list[str], method: str, budget: float, extra: list[str], work
     for bundle in bundles:
         out = work / f"{Path(bundle).stem}-{method}{tag}"
         cmd = [sys.executable, "-c", "from rngcam.cli import main; main()", "recon", bundle, "--method", method,
-               "--time-budget", str(budget), "-o", str(out), "--overwrite", *extra]
+               "--time-budget", str(budget), "-o", str(out), "--overwrite", "--threads", str(threads), *extra]
         before = load()
         t0 = time.perf_counter()
         log = work / f"{out.name}.log"
