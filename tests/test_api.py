@@ -218,3 +218,16 @@ def test_a_long_silent_set_up_still_shows_progress(shot, monkeypatch):
         registry.unregister("slowpeek")
     assert r.status == "ok"
     assert sum("set-up: slowpeek still setting up" in ln for ln in lines) >= 3, lines
+
+
+def test_large_runs_log_psnr_as_they_go_and_ssim_once_at_the_end(shot, monkeypatch):
+    from rngcam.recon import runner
+
+    every = rngcam.reconstruct(shot, method="tv3d", max_iters=4, log_every_s=1e-6, progress=False)
+    monkeypatch.setattr(runner, "SSIM_EVERY_ROW_MAX_ELEMENTS", 0)  # as if the video were large
+    once = rngcam.reconstruct(shot, method="tv3d", max_iters=4, log_every_s=1e-6, progress=False)
+    assert len(once.log) >= 3 and all("psnr_db" in row for row in once.log)
+    assert not any("ssim" in row for row in once.log[:-1]) and all("ssim" in row for row in every.log)
+    final = once.log[-1]
+    assert final["iteration"] == 4 and final["ssim"] == pytest.approx(every.log[-1]["ssim"], abs=1e-6)
+    assert once.metrics["ssim"] == final["ssim"] and "ssim_intermediate" in once.metrics

@@ -200,12 +200,12 @@ def test_a_planted_violation_is_caught(tmp_path, files, rule, needle):
 # Inside recon, floor to top: the pipeline's parts that methods stand on (the problem, the loop and
 # its checkpoint and guard, settings fields, noise, metrics, held-out scoring, output writers); the
 # learned networks; the methods; the pipeline that runs a method (registry, run settings, runner,
-# result, report page).
+# its log, result, report page).
 RECON_LAYERS = (
     ("problem", "defects", "loop", "checkpoint", "guard", "options", "noise", "metrics", "holdout", "outputs"),
     ("nets",),
     ("methods",),
-    ("registry", "settings", "runner", "result", "report"),
+    ("registry", "settings", "runner", "runlog", "result", "report"),
 )
 # Packages recon must never import, whatever their layer: a reconstruction reads bundles, not devices.
 RECON_NEVER_IMPORTS = ("rngcam.acquire", "rngcam.calibrate")

@@ -115,14 +115,18 @@ def _ssim_sums(estimate: Tensor, truth: Tensor, mask: Tensor | None,
 
 
 def video_metrics(estimate: Tensor, truth: Tensor, intermediate: np.ndarray,
-                  mask: Tensor | None = None) -> dict[str, float]:
-    """PSNR/SSIM over all frames and over the intermediate frames (away from GS key frames)."""
-    sums, counts = ssim_frame_sums(estimate, truth, mask)  # one filtering pass serves both frame sets
-    out = {"psnr_db": psnr(estimate, truth, mask), "ssim": float(sums.sum() / counts.sum())}
+                  mask: Tensor | None = None, ssim: bool = True) -> dict[str, float]:
+    """PSNR/SSIM over all frames and over the intermediate frames (away from GS key frames);
+    `ssim=False`: PSNR only (SSIM's filtering is most of an evaluation's cost)."""
+    out = {"psnr_db": psnr(estimate, truth, mask)}
     if len(intermediate):
-        j = np.asarray(intermediate)
         out["psnr_intermediate_db"] = psnr(estimate, truth, mask, frames=intermediate)
-        out["ssim_intermediate"] = float(sums[j].sum() / counts[j].sum())
+    if ssim:
+        sums, counts = ssim_frame_sums(estimate, truth, mask)  # one filtering pass serves both frame sets
+        out["ssim"] = float(sums.sum() / counts.sum())
+        if len(intermediate):
+            j = np.asarray(intermediate)
+            out["ssim_intermediate"] = float(sums[j].sum() / counts[j].sum())
     return out
 
 

@@ -52,6 +52,7 @@ from rngcam.recon.metrics import (
 )
 from rngcam.recon.problem import Problem, build_problem
 from rngcam.recon.result import Result
+from rngcam.recon.runlog import RunLog
 from rngcam.recon.settings import (  # noqa: F401 - their home before settings.py; callers import them here
     AUTO_MAX_S,
     ReconSettings,
@@ -62,6 +63,10 @@ from rngcam.recon.settings import (  # noqa: F401 - their home before settings.p
     resolve_device,
 )
 from rngcam.sizing import check_size, gib, plan_grid
+
+# Above this many video elements, the log rows during a run carry PSNR only and the final row also
+# SSIM: at 228x342x231 (55 M) SSIM was most of each 8 s truth evaluation (bench/scale.md).
+SSIM_EVERY_ROW_MAX_ELEMENTS = 20_000_000
 
 # Of a time budget, this fraction (at most FINISH_MAX_S) is kept for what follows the solve (the
 # final metrics, recon.h5, the TIFF, MP4 and plots), so a whole run ends near its budget.
@@ -184,37 +189,6 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
     return result.metrics
 
 
-class _Log:
-    """recon.log in the output folder: every line the run prints, and the progress lines. Lines are
-    held until `open` (the folder is made only once the bundle has been read and checked)."""
-
-    def __init__(self):
-        self.fh, self.held, self.lock = None, [], threading.Lock()
-
-    def open(self, out: Path | None) -> None:
-        """Write to `out`'s recon.log from here on; without a folder the lines stay in `held`
-        (a Result made in memory carries them, and its `save` writes them)."""
-        if out is not None:
-            out.mkdir(parents=True, exist_ok=True)
-            self.fh = open(out / checkpoint.LOG_NAME, "a", encoding="utf-8")  # noqa: SIM115 - closed by close()
-            self.fh.writelines(self.held)
-            self.fh.flush()
-            self.held = []
-
-    def write(self, line: str) -> None:
-        text = f"{time.strftime('%H:%M:%S')} {line}\n"
-        with self.lock:  # the set-up heartbeat writes from its thread
-            if self.fh is None:
-                self.held.append(text)
-                return
-            self.fh.write(text)
-            self.fh.flush()
-
-    def close(self) -> None:
-        if self.fh is not None:
-            self.fh.close()
-
-
 def _solve(source: Source, settings: ReconSettings, out: Path | None, echo, started: float | None) -> Result:
     t_start = time.perf_counter() if started is None else started  # the budget bounds the whole run
     entry = registry.get(settings.method)
@@ -222,7 +196,7 @@ def _solve(source: Source, settings: ReconSettings, out: Path | None, echo, star
     if out is not None:
         want = checkpoint.identity(source.checksum(), settings.method, settings.fitted())
         saved = checkpoint.prepare(out, want, settings.resume, settings.overwrite)
-    log = _Log()
+    log = RunLog()
 
     def say(line: str) -> None:
         echo(line)
@@ -337,10 +311,13 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
     scorer = HoldoutScorer(problem) if settings.holdout is not None else None
     intermediate = problem.intermediate_frames()
 
-    def truth_metrics(video: torch.Tensor) -> dict:
+    def truth_metrics(video: torch.Tensor, ssim: bool = True) -> dict:
         if problem.truth is None:
             return {}
-        return video_metrics(video.detach().cpu(), problem.truth, intermediate, problem.mask)  # float64 per chunk
+        return video_metrics(video.detach().cpu(), problem.truth, intermediate, problem.mask,  # float64 per chunk
+                             ssim=ssim)
+
+    progress_ssim = problem.truth is not None and problem.truth.numel() <= SSIM_EVERY_ROW_MAX_ELEMENTS
 
     def one_row(video: np.ndarray, seconds: float, iteration: int) -> list[dict]:
         vt = torch.from_numpy(video)  # float32: the metrics accumulate in float64 chunk by chunk
@@ -391,9 +368,11 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
     def evaluate(m) -> dict:
         release_free_memory(collect=False)  # the steps' freed heap pages go before the metrics' chunks come
         row = scorer(m.estimate().detach()) if scorer is not None else {}
-        return {**row, **truth_metrics(m.estimate())}
+        return {**row, **truth_metrics(m.estimate(), ssim=progress_ssim)}
 
     result = run(method, loop, evaluate, setup_s=setup_s)
+    if problem.truth is not None and result.log and "ssim" not in result.log[-1]:
+        result.log[-1].update(truth_metrics(method.estimate()))  # the final row's SSIM, once
     fit.update(video=method.estimate().detach().float().cpu().numpy(), components=method.components(),
                method_settings=method.resolved_settings(), log=result.log, iterations=result.iterations,
                solve_s=result.solve_s, wall_s=result.wall_s, events=result.events, status=result.status,
