@@ -1,6 +1,7 @@
 """The shared solver loop and the FISTA 3-D TV baseline."""
 
 import itertools
+import time
 
 import pytest
 import torch
@@ -201,3 +202,23 @@ def test_without_a_terminal_progress_goes_to_stderr_as_lines(capsys):
         LoopSettings(time_budget_s=None, max_iters=6, log_every_iters=2, progress_every_s=0.0))
     err = capsys.readouterr().err
     assert err.count("tv3d: ") >= 3 and "iteration 6  RS residual 0.0" in err and "GS residual" in err
+
+
+class _SlowToKeep(TV3D):
+    """Cheap steps, a state that takes a while to snapshot (as an ensemble's does)."""
+
+    def step(self):
+        time.sleep(0.005)
+        return super().step()
+
+    def state_dict(self):
+        time.sleep(0.03)
+        return super().state_dict()
+
+
+def test_log_spacing_counts_the_cost_of_keeping_the_state():
+    """Logs are spaced by their whole cost (evaluation, the state's check and copy), not by the
+    evaluation alone: 60 steps of 5 ms with a 30 ms snapshot give a handful of rows, not 60."""
+    result = run(_SlowToKeep(_sineball_problem(), TV3DSettings()),
+                 LoopSettings(time_budget_s=None, max_iters=60, log_every_s=1e-6, progress=False))
+    assert result.iterations == 60 and 2 <= len(result.log) <= 15, len(result.log)

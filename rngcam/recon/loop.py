@@ -239,6 +239,7 @@ def run(method: Method, settings: LoopSettings,
             bad, state = not math.isfinite(objective), None
             if not bad and method.stops_itself:
                 stop_reason = method.converged()
+            t_kept = time.perf_counter()
             if not bad and (due or ckpt_due or done() or stop_reason or asked):
                 state = method.state_dict()
                 bad = not _finite_state(state)
@@ -262,6 +263,7 @@ def run(method: Method, settings: LoopSettings,
                 last_log_solve = solve_s
                 bar.show(record(objective), iteration, wall())
                 last_good = (copy.deepcopy(state), iteration, solve_s)
+                eval_s = time.perf_counter() - t_kept  # a log row's whole cost: the state's check and copy too
             if ckpt_due:
                 save_checkpoint()
                 last_ckpt_t = time.perf_counter()
