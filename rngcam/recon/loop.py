@@ -120,6 +120,10 @@ class LoopSettings:
             raise ValueError(f"iteration count must be >= 0, got {self.max_iters}")
 
 
+# A log row comes after at least this many times its own cost in steps: rows take at most ~10 % of a
+# run (at 228x342 a row cost ~2 s and took ~20 % of the wall time at a ratio of 4: bench/scale.md).
+LOG_COST_RATIO = 9
+
 # What ended a run (metrics.json's "ended_by"): the method's own stop, the time budget, the
 # iteration count, a signal, non-finite steps, or a one-shot method's single pass.
 ENDINGS = ("own_stop", "budget", "iterations", "signal", "failure", "one_shot")
@@ -154,9 +158,9 @@ def run(method: Method, settings: LoopSettings,
     """Iterate `method` under `settings`; `evaluate(method)` adds truth metrics to each log row.
 
     `setup_s` is the time the method took to build (operator norms, initialisation): it counts
-    as solve time. Logs are spaced so that evaluation costs at most ~20 % of the run. A
-    KeyboardInterrupt inside a step (a second Ctrl-C, a notebook's interrupt) or a reason from
-    `stop_requested` ends the run "interrupted" with the last good state.
+    as solve time. Logs are spaced so that a row (evaluation, the state's check and copy) costs at
+    most ~10 % of the run. A KeyboardInterrupt inside a step (a second Ctrl-C, a notebook's
+    interrupt) or a reason from `stop_requested` ends the run "interrupted" with the last good state.
     """
     log: list[dict] = []
     events: list[str] = []
@@ -231,7 +235,7 @@ def run(method: Method, settings: LoopSettings,
             iteration += 1
             due = (settings.log_every_iters is not None and iteration % settings.log_every_iters == 0) or (
                 settings.log_every_iters is None
-                and solve_s - last_log_solve >= max(settings.log_every_s, 4 * eval_s))
+                and solve_s - last_log_solve >= max(settings.log_every_s, LOG_COST_RATIO * eval_s))
             ckpt_due = ckpt is not None and time.perf_counter() - last_ckpt_t >= settings.checkpoint_every_s
             asked = settings.stop_requested() if settings.stop_requested is not None else None
             # A non-finite state shows in the next objective; the whole state is checked only
