@@ -17,3 +17,16 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def shot(tmp_path_factory):
+    """A small simulated capture (16 px, with truth), made once per test module."""
+    from click.testing import CliRunner
+
+    from rngcam.cli import main
+
+    out = tmp_path_factory.mktemp("shot") / "shot.h5"
+    res = CliRunner().invoke(main, ["simulate", "sineball", "-o", str(out), "--size", "16"])
+    assert res.exit_code == 0, res.output
+    return out

@@ -24,15 +24,6 @@ from rngcam.recon.methods.tv3d import TV3DSettings
 REPO = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(scope="module")
-def shot(tmp_path_factory):
-    """A small simulated capture (16 px, with truth)."""
-    out = tmp_path_factory.mktemp("shot") / "shot.h5"
-    res = CliRunner().invoke(main, ["simulate", "sineball", "-o", str(out), "--size", "16"])
-    assert res.exit_code == 0, res.output
-    return out
-
-
 def readme_example() -> str:
     text = (REPO / "README.md").read_text()
     block = re.search(r"```python\n(import rngcam\n.*?)```", text, re.S)

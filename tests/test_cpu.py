@@ -15,14 +15,6 @@ from rngcam import cpu
 from rngcam.cli import main
 
 
-@pytest.fixture(scope="module")
-def shot(tmp_path_factory):
-    out = tmp_path_factory.mktemp("cpu") / "shot.h5"
-    res = CliRunner().invoke(main, ["simulate", "sineball", "-o", str(out), "--size", "16"])
-    assert res.exit_code == 0, res.output
-    return out
-
-
 @pytest.fixture
 def two_cpus(monkeypatch):
     monkeypatch.setattr(cpu, "usable_cpus", lambda: [0, 1])
