@@ -194,6 +194,7 @@ def test_set_up_longer_than_the_budget_runs_no_step_and_says_so():
     result = run(TV3D(_sineball_problem(), TV3DSettings()), LoopSettings(time_budget_s=0.3, progress=False),
                  setup_s=0.5)
     assert result.iterations == 0 and len(result.log) == 1
+    assert result.status == "budget_before_first_iteration" and result.ended_by == "budget"
     assert any("set-up alone took 0.5 s" in e for e in result.events)
 
 

@@ -283,11 +283,11 @@ def run(method: Method, settings: LoopSettings,
                 settings.max_iters is None or iteration < settings.max_iters):
             events.append(budget_event(method, settings.time_budget_s, iteration, setup_s))
             ended_by = "budget"
-        if status == "interrupted":
-            ended_by = "signal"
             if iteration == (saved or {}).get("iteration", 0):
                 status = "budget_before_first_iteration"
                 message = f"{method.name}: the time budget ran out before the first iteration"
+        if status == "interrupted":
+            ended_by = "signal"
         if not log or log[-1]["iteration"] != iteration:
             bar.show(record(objective), iteration, wall())
         save_checkpoint()
