@@ -1,10 +1,10 @@
 """This machine's idle CPUs, and how many torch threads a run takes on them.
 
 torch's CPU thread pool assumes its cores are free. When other processes keep them busy, its
-threads wait for each other at every parallel region behind preempted peers: on two cores beside
-two busy processes a two-thread STFM run took 4.7x its quiet time and a one-thread run 1.5x
-(bench/realistic.md, "Threads under load"). So `auto` takes no more threads than the cores other
-processes leave idle, measured over a short window when the run starts.
+threads wait for each other at every parallel region behind preempted peers, and a run slows
+several-fold where one thread would only share (bench/realistic.md, "Threads under load"). So
+`auto` takes no more threads than the cores other processes leave idle, measured over a short
+window when the run starts.
 """
 
 from __future__ import annotations

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from rngcam.cpu import torch_threads
 from rngcam.errors import RngcamError
 from rngcam.physics.operators import PSFConvolution
 from rngcam.physics.tv_prox import prox_tv_nonneg, tv3
@@ -32,14 +33,8 @@ SMALL_PIXELS = 512 * 512  # below this per channel, torch's intra-op threads onl
 def few_threads(pixels: int):
     """Run small FFT work on one torch thread (restored afterwards). On a busy 2-core machine a
     (3, 128, 128) rfft2 took 20 ms with two intra-op threads and 0.3 ms with one."""
-    before = torch.get_num_threads()
-    if pixels < SMALL_PIXELS and before > 1:
-        torch.set_num_threads(1)
-    try:
+    with torch_threads(1 if pixels < SMALL_PIXELS else torch.get_num_threads()):
         yield
-    finally:
-        if torch.get_num_threads() != before:
-            torch.set_num_threads(before)
 
 
 @dataclass

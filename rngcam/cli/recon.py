@@ -11,7 +11,7 @@ from rngcam.cli.method_options import method_command, pop_method_values
 from rngcam.cli.method_options import method_settings as settings_from_options
 from rngcam.errors import SettingError
 from rngcam.recon import registry
-from rngcam.recon.settings import check_device, default_out_dir
+from rngcam.recon.settings import check_device, check_threads, default_out_dir
 from rngcam.sizing import DEFAULT_MAX_FRAMES
 
 INTERRUPTED_EXIT = {"SIGINT": 130, "SIGTERM": 143}  # as a shell reports a command ended by the signal
@@ -34,15 +34,10 @@ def device_option(ctx, param, value):
 
 def threads_option(ctx, param, value):
     """--threads: 'auto' or a whole number >= 1 (one usage line otherwise)."""
-    if value == "auto":
-        return value
     try:
-        n = int(value)
-    except ValueError:
-        n = 0
-    if n < 1 or str(n) != value.strip():
-        raise click.BadParameter(f"must be auto or a whole number >= 1, got {value}")
-    return n
+        return check_threads(value if value == "auto" or not value.strip().isdigit() else int(value))
+    except SettingError as exc:
+        raise click.BadParameter(error_line(exc).removeprefix("--threads ")) from None
 
 
 def budget_option(ctx, param, value):

@@ -120,8 +120,8 @@ class LoopSettings:
             raise ValueError(f"iteration count must be >= 0, got {self.max_iters}")
 
 
-# A log row comes after at least this many times its own cost in steps: rows take at most ~10 % of a
-# run (at 228x342 a row cost ~2 s and took ~20 % of the wall time at a ratio of 4: bench/scale.md).
+# A log row comes after at least this many times its own cost in steps, so rows take at most ~10 %
+# of a run (at large grids a row is seconds: bench/scale.md).
 LOG_COST_RATIO = 9
 
 # What ended a run (metrics.json's "ended_by"): the method's own stop, the time budget, the

@@ -65,7 +65,7 @@ from rngcam.recon.settings import (  # noqa: F401 - their home before settings.p
 from rngcam.sizing import check_size, gib, plan_grid
 
 # Above this many video elements, the log rows during a run carry PSNR only and the final row also
-# SSIM: at 228x342x231 (55 M) SSIM was most of each 8 s truth evaluation (bench/scale.md).
+# SSIM, which is most of a truth evaluation's cost (bench/scale.md).
 SSIM_EVERY_ROW_MAX_ELEMENTS = 20_000_000
 
 # Of a time budget, this fraction (at most FINISH_MAX_S) is kept for what follows the solve (the

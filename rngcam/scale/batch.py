@@ -15,8 +15,6 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
-import torch
-
 from rngcam.api import keywords, reconstruct
 from rngcam.errors import RngcamError
 from rngcam.formats.bundle import bundle_checksum
@@ -61,14 +59,11 @@ def _destinations(bundles: list[Path], out: Path) -> list[Path]:
 
 def batch_task(item: dict, shared: object = None) -> dict:
     """Reconstruct one bundle (a Ray task or an in-process call); never raises."""
-    threads = torch.get_num_threads()
-    if item.get("threads"):
-        torch.set_num_threads(item["threads"])
     lines: list[str] = []
     t0 = time.perf_counter()
     try:
         settings = item["settings"]
-        asked = {"threads": item["threads"]} if item.get("threads") else {}
+        asked = {"threads": item["threads"]} if item.get("threads") else {}  # the run sets and restores them
         result = reconstruct(item["bundle"], settings.method, out=item["out"], progress=lines.append, bar=False,
                              **{**keywords(settings), **asked})
         if result.status == "failed":
@@ -79,8 +74,6 @@ def batch_task(item: dict, shared: object = None) -> dict:
         res = {"status": "failed", "message": str(exc)}
     except Exception as exc:  # noqa: BLE001 - one bundle must not stop the batch
         res = {"status": "failed", "message": f"{type(exc).__name__}: {exc}".splitlines()[0]}
-    finally:
-        torch.set_num_threads(threads)
     res["wall_s"] = time.perf_counter() - t0
     res["log"] = lines[-20:]
     return res

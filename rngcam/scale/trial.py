@@ -19,6 +19,7 @@ from typing import Any
 
 import torch
 
+from rngcam.cpu import torch_threads
 from rngcam.recon.holdout import HoldoutScorer
 from rngcam.recon.loop import CHECKPOINT_NAME, LoopSettings, run
 from rngcam.recon.metrics import video_metrics
@@ -68,26 +69,22 @@ def run_trial(spec: TrialSpec, problem: Problem) -> dict:
     truth, and status/message.
     """
     out = {"key": spec.key, "status": "ok", "message": ""}
-    threads = torch.get_num_threads()
-    if spec.threads:
-        torch.set_num_threads(spec.threads)
     try:
-        device = resolve_device(spec.device)
-        folds = [_fit_fold(spec, problem.with_holdout(spec.holdout_rs, spec.holdout_gs, spec.seed, fold=j,
-                                                      folds=spec.folds),
-                           Path(spec.trial_dir) / (f"fold-{j}" if spec.folds > 1 else ""), device)
-                 for j in range(spec.folds)]
-        failed = [f for f in folds if f["status"] != "ok"]
-        out.update(status="failed" if failed else "ok", message=failed[0]["message"] if failed else "")
-        numbers = [k for k in folds[0] if k not in ("status", "message") and all(k in f for f in folds)]
-        out.update({k: sum(f[k] for f in folds) / len(folds) for k in numbers})
-        out["iterations"] = folds[0]["iterations"]
-        out["seconds"] = sum(f["seconds"] for f in folds)
+        with torch_threads(spec.threads or torch.get_num_threads()):
+            device = resolve_device(spec.device)
+            folds = [_fit_fold(spec, problem.with_holdout(spec.holdout_rs, spec.holdout_gs, spec.seed, fold=j,
+                                                          folds=spec.folds),
+                               Path(spec.trial_dir) / (f"fold-{j}" if spec.folds > 1 else ""), device)
+                     for j in range(spec.folds)]
+            failed = [f for f in folds if f["status"] != "ok"]
+            out.update(status="failed" if failed else "ok", message=failed[0]["message"] if failed else "")
+            numbers = [k for k in folds[0] if k not in ("status", "message") and all(k in f for f in folds)]
+            out.update({k: sum(f[k] for f in folds) / len(folds) for k in numbers})
+            out["iterations"] = folds[0]["iterations"]
+            out["seconds"] = sum(f["seconds"] for f in folds)
     except Exception as exc:  # noqa: BLE001 - a failed trial is a row in the table, not the end of the sweep
         out.update(status="failed", message=f"{type(exc).__name__}: {exc}".splitlines()[0])
         out["traceback"] = traceback.format_exc(limit=5)
-    finally:
-        torch.set_num_threads(threads)
     return out
 
 
