@@ -143,9 +143,10 @@ def pixel_stats(bundle) -> dict[str, list[FrameStats]]:
 def unusable_frames(stats: dict[str, list[FrameStats]]) -> dict[tuple[str, int], str]:
     """(camera, frame index) -> why that frame carries nothing the reconstruction can use."""
     every = [(name, i, st) for name, frames in stats.items() for i, st in enumerate(frames)]
+    lit_frames = sum(not st.all_dark for _, _, st in every)  # counted once: linear in the frames
     out = {}
     for name, i, st in every:
-        lit = any(not o.all_dark for n2, j, o in every if (n2, j) != (name, i))
+        lit = lit_frames - (not st.all_dark) > 0  # another frame than this one sees light
         why = unusable_reason(st, lit)
         if why is not None:
             out[(name, i)] = why

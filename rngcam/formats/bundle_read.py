@@ -16,6 +16,8 @@ import numpy as np
 
 from rngcam import pixels
 from rngcam.errors import BundleError
+from rngcam.untrusted import printable
+from rngcam.formats import h5safe
 from rngcam.formats.bundle_schema import (
     FORMAT_NAME,
     SCHEMA_VERSION,
@@ -51,10 +53,28 @@ def check_bundle_path(path: str | os.PathLike) -> Path:
     return path
 
 
+MAX_STORED_FRAMES = 1_000_000  # frames of one camera (and entries of its per-frame arrays)
+_BIG = 2**62  # frames and truth: bounded by side, channel and memory limits, not a count
+# (group, dataset) -> checked_dataset's limits: max elements, dimensions, side axes, channel axis
+_LIMITS: dict[tuple[str, str], tuple[int, tuple[int, ...] | None, tuple[int, ...], int | None]] = {
+    ("cam", "frames"): (_BIG, (3, 4), (1, 2), 3),
+    ("truth", "video"): (_BIG, (4,), (2, 3), 0),
+    ("calibration", "psf"): (h5safe.MAX_CHANNELS * h5safe.MAX_SIDE**2, None, (1, 2), 0),
+    ("calibration", "field_stop"): (h5safe.MAX_SIDE**2, None, (0, 1), None),
+    ("calibration", "gs_to_rs"): (64, None, (), None),
+    ("calibration", "white_balance"): (64, None, (), None),
+}
+
+
+def _limits(group: str, name: str):
+    key = ("cam", name) if group in ("/rs", "/gs") and name == "frames" else (group.strip("/"), name)
+    return _LIMITS.get(key, (MAX_STORED_FRAMES, None, (), None))
+
+
 def _open_h5(path: Path) -> h5py.File:
     check_bundle_path(path)
     try:
-        return h5py.File(path, "r")
+        f = h5py.File(path, "r")
     except OSError as exc:
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         if "truncated" in reason.lower():
@@ -65,6 +85,22 @@ def _open_h5(path: Path) -> h5py.File:
         if "signature" in reason.lower():
             raise BundleError(f"{path} is not an HDF5 file") from None
         raise BundleError(f"cannot open {path} as HDF5: {reason}") from None
+    try:
+        h5safe.audit(f, path)
+    except BaseException as exc:
+        f.close()
+        if isinstance(exc, h5safe.UnsafeFileError):
+            raise BundleError(str(exc)) from None
+        if isinstance(exc, (OSError, RuntimeError, KeyError, ValueError, TypeError, RecursionError)):
+            raise BundleError(f"{path} is damaged or truncated ({_reason(exc)})") from None
+        raise
+    return f
+
+
+def _reason(exc: BaseException) -> str:
+    """The first line of an exception's text, printable (h5py's can quote the file's bytes)."""
+    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return printable(text, 200)
 
 
 def _attr_str(attrs: h5py.AttributeManager, name: str) -> str:
@@ -93,6 +129,7 @@ class _Reader:
             if required:
                 self.problems.append(f"missing attribute {name!r} in {where}")
             return default, not required
+        h5safe.check_attr(g, name)
         try:
             if kind is str:
                 return _attr_str(g.attrs, name), True
@@ -135,6 +172,8 @@ class _Reader:
         if obj.dtype.kind not in "uifb":
             self.problems.append(f"'{g.name}/{name}' is not numeric (dtype {obj.dtype})")
             return None, False
+        limit, ndims, sides, channel_axis = _limits(g.name, name)
+        h5safe.checked_dataset(g, name, limit, "uifb", ndims, sides, channel_axis)
         if big and self.lazy:
             return obj, True
         return obj[()], True
@@ -198,6 +237,9 @@ class _Reader:
 
     def read(self) -> Bundle:
         attrs = self.f.attrs
+        for name in ("format", "schema_version"):
+            if name in attrs:
+                h5safe.check_attr(self.f, name)
         if "format" not in attrs:
             raise _Fatal("not an rngcam bundle (no 'format' attribute; an interrupted write?)")
         try:
@@ -235,12 +277,14 @@ def _read(f: h5py.File, path: Path, lazy: bool) -> tuple[Bundle, list[str], dict
         bundle = reader.read()
     except _Fatal as exc:
         raise BundleError(f"{path}: {exc}") from None
-    except (OSError, RuntimeError, KeyError) as exc:  # h5py's errors for damaged files
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise BundleError(f"{path} is damaged or truncated ({reason})") from None
-    except (ValueError, TypeError) as exc:  # content of a shape/type nobody expects
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise BundleError(f"{path} has unreadable content ({reason})") from None
+    except h5safe.UnsafeFileError as exc:
+        raise BundleError(f"{path}: {exc}") from None
+    except (OSError, RuntimeError, KeyError, RecursionError) as exc:  # h5py's errors for damaged files
+        raise BundleError(f"{path} is damaged or truncated ({_reason(exc)})") from None
+    except (ValueError, TypeError, OverflowError) as exc:  # content of a shape/type nobody expects
+        raise BundleError(f"{path} has unreadable content ({_reason(exc)})") from None
+    except MemoryError:
+        raise BundleError(f"{path}: not enough memory to read it") from None
     return bundle, reader.problems, reader.stats
 
 

@@ -37,10 +37,14 @@ import h5py
 import numpy as np
 
 from rngcam.errors import ConfigError, RngcamError
+from rngcam.formats import h5safe
+from rngcam.untrusted import printable
 
 FORMAT_NAME = "rngcam-calibration"
 SCHEMA_VERSION = 1
 PARTS = ("psf", "line_time_s", "gs_to_rs", "white_balance")
+_PART_ELEMENTS = {"psf": h5safe.MAX_CHANNELS * h5safe.MAX_SIDE**2, "line_time_s": 1, "gs_to_rs": 9,
+                  "white_balance": h5safe.MAX_CHANNELS}
 
 
 class CalibrationFileError(RngcamError):
@@ -96,21 +100,31 @@ def read_calibration(path: str | Path) -> StoredCalibration:
     if not path.is_file():
         raise CalibrationFileError(f"{path}: calibration file not found (run `rngcam calibrate`)")
     try:
-        with h5py.File(path, "r") as f:
+        with h5safe.open_untrusted(path, "calibration file") as f:
+            for name in f.attrs:
+                h5safe.check_attr(f, name)
             if f.attrs.get("format") != FORMAT_NAME:
                 raise CalibrationFileError(f"{path}: not an rngcam calibration file")
-            if int(f.attrs.get("schema_version", -1)) != SCHEMA_VERSION:
+            version = f.attrs.get("schema_version", -1)
+            if np.ndim(version) != 0 or np.asarray(version).dtype.kind not in "ui" or int(version) != SCHEMA_VERSION:
                 raise CalibrationFileError(f"{path}: calibration schema version "
-                                           f"{f.attrs.get('schema_version')} (this rngcam reads {SCHEMA_VERSION})")
-            out = StoredCalibration(rig_name=str(f.attrs.get("rig_name", "")))
+                                           f"{printable(version, 40)} (this rngcam reads {SCHEMA_VERSION})")
+            out = StoredCalibration(rig_name=printable(f.attrs.get("rig_name", ""), 200))
             for part in PARTS:
                 if part in f:
-                    value = f[part][()]
+                    value = h5safe.read_small(f, part, _PART_ELEMENTS[part], "uif")
                     value = float(value) if part == "line_time_s" else np.asarray(value, np.float64)
                     setattr(out, part, value)
+                    for name in f[part].attrs:
+                        h5safe.check_attr(f[part], name)
                     out.provenance[part] = _read_attrs(f[part])
-    except OSError as exc:
-        raise CalibrationFileError(f"{path}: cannot read calibration file ({exc})") from None
+    except CalibrationFileError:
+        raise
+    except RngcamError as exc:
+        raise CalibrationFileError(f"{path}: {exc}" if str(path) not in str(exc) else str(exc)) from None
+    except (OSError, RuntimeError, KeyError, ValueError, TypeError, OverflowError, RecursionError) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise CalibrationFileError(f"{path}: cannot read calibration file ({printable(reason, 200)})") from None
     _validate(out, path)
     return out
 

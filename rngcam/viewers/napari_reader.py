@@ -19,10 +19,16 @@ CHANNEL_MAPS = {3: ["red", "green", "blue"], 1: ["gray"]}
 
 
 def _format(path: Path) -> str:
+    from rngcam.errors import RngcamError
+    from rngcam.formats.h5safe import check_attr
+
     try:
         with h5py.File(path, "r") as f:
-            value = f.attrs.get("format", "")
-    except (OSError, ValueError):
+            if "format" not in f.attrs:
+                return ""
+            check_attr(f, "format")
+            value = f.attrs["format"]
+    except (OSError, ValueError, TypeError, RngcamError):
         return ""
     return value.decode() if isinstance(value, bytes) else str(value)
 
@@ -81,18 +87,23 @@ def _key_layer(frames: np.ndarray, times_s: np.ndarray, all_times_s: np.ndarray 
 
 def read_recon(path: Path) -> list[LayerData]:
     """The reconstruction, its GS key frames and RS image (as recon.h5 records them)."""
-    with h5py.File(path, "r") as f:
-        video = f["video"][()]
-        times = f["frame_times_s"][()]
-        px = float(f.attrs.get("pixel_size_m", 0) or 0) * 1e6 or 1.0
-        method = json_method(f.attrs.get("settings", "{}"))
-        layers = [_video_layer(video, times, method, px)]
-        if "key_frames" in f and "key_frame_times_s" in f:
-            layers.append(_key_layer(f["key_frames"][()], f["key_frame_times_s"][()], times, px, "GS key frames"))
-        if "rs_image" in f:
-            rs = f["rs_image"][()]
-            rs = rs / max(float(np.percentile(rs, 99.5)), 1e-12)
-            layers.append(_video_layer(rs[:, None], times[:1], "RS image (coded)", px, visible=False))
+    from rngcam.recon.report.load import read_recon_h5  # checks links, shapes and sizes first
+
+    h5 = read_recon_h5(path, video=True)
+    video, times, attrs = h5["video"], h5["frame_times_s"], h5["attrs"]
+    try:
+        px = float(attrs.get("pixel_size_m", 0) or 0) * 1e6 or 1.0
+    except (TypeError, ValueError):
+        px = 1.0
+    px = px if np.isfinite(px) and px > 0 else 1.0
+    method = str(attrs["settings"].get("method", "recon"))
+    layers = [_video_layer(video, times, method, px)]
+    if "key_frames" in h5 and "key_frame_times_s" in h5:
+        layers.append(_key_layer(h5["key_frames"], h5["key_frame_times_s"], times, px, "GS key frames"))
+    if "rs_image" in h5:
+        rs = h5["rs_image"]
+        rs = rs / max(float(np.percentile(rs, 99.5)), 1e-12)
+        layers.append(_video_layer(rs[:, None], times[:1], "RS image (coded)", px, visible=False))
     return layers
 
 

@@ -13,8 +13,15 @@ import h5py
 import numpy as np
 
 from rngcam.errors import ConfigError, RngcamError
+from rngcam.formats import h5safe
+from rngcam.untrusted import printable
 
 RECON_FORMAT = "rngcam-recon"
+MAX_TEXT_BYTES = 16 * 2**20  # metrics.json, errors.csv: far above what a run writes
+MAX_FRAMES = 1_000_000
+# dataset -> (dimensions, side axes): checked before anything is read
+_SHAPES = {"video": ((4,), (2, 3)), "key_frames": ((4,), (2, 3)), "rs_image": ((3,), (1, 2)),
+           "frame_times_s": ((1,), ()), "key_frame_times_s": ((1,), ())}
 
 
 @dataclass
@@ -63,9 +70,45 @@ def is_recon_file(path: str | Path) -> bool:
     """True when `path` is an HDF5 file whose `format` attribute says rngcam-recon."""
     try:
         with h5py.File(path, "r") as f:
-            return _text(f.attrs.get("format", "")) == RECON_FORMAT
-    except (OSError, ValueError):
+            if "format" not in f.attrs:
+                return False
+            h5safe.check_attr(f, "format")
+            return _text(f.attrs["format"]) == RECON_FORMAT
+    except (OSError, ValueError, TypeError, RngcamError):
         return False
+
+
+def _dataset(f: h5py.Group, name: str) -> h5py.Dataset:
+    """recon.h5's dataset `name` after its declared shape and dtype were checked (nothing read)."""
+    if name.startswith("components/"):  # a method's named parts: any small rank, frames as the video's
+        group, leaf = f["components"], name.split("/", 1)[1]
+        ndims, sides, channel_axis = (1, 2, 3, 4), (-2, -1), None
+    else:
+        group, leaf = f, name
+        ndims, sides = _SHAPES.get(name, ((3, 4), (-2, -1)))
+        channel_axis = 0 if ndims != (1,) else None
+    limit = MAX_FRAMES if ndims == (1,) else 2**62
+    d = h5safe.checked_dataset(group, leaf, limit, "uif", ndims, sides, channel_axis)
+    if d.ndim == 4 and d.shape[1] > MAX_FRAMES:
+        raise h5safe.UnsafeFileError(f"'{name}' declares {d.shape[1]:,} frames, above {MAX_FRAMES:,}")
+    return d
+
+
+def read_json_file(path: Path, default):
+    """A JSON file of a recon folder (metrics.json), `default` when absent; RngcamError (one line)
+    when it is too large or not JSON."""
+    path = Path(path)
+    if not path.is_file():
+        return default
+    if path.stat().st_size > MAX_TEXT_BYTES:
+        raise RngcamError(f"{path} is larger than {MAX_TEXT_BYTES // 2**20} MiB; refused")
+    try:
+        value = json.loads(path.read_bytes())
+    except (ValueError, RecursionError, UnicodeDecodeError) as exc:
+        raise RngcamError(f"{path} is not valid JSON ({printable(str(exc).splitlines()[0], 200)})") from None
+    if not isinstance(value, type(default)):
+        raise RngcamError(f"{path} holds a JSON {type(value).__name__}, expected a {type(default).__name__}")
+    return value
 
 
 class H5Frames:
@@ -80,12 +123,15 @@ class H5Frames:
     def __getitem__(self, key) -> np.ndarray:
         key = key if isinstance(key, tuple) else (key,)
         frames = key[1] if len(key) > 1 else slice(None)
-        with h5py.File(self.path, "r") as f:
+        with h5safe.open_untrusted(self.path, "recon file") as f:
+            d = _dataset(f, self.name)
+            if tuple(d.shape) != self.shape:
+                raise RngcamError(f"{self.path} changed while it was being read")
             if isinstance(frames, (slice, int, np.integer)):
-                return f[self.name][key]
+                return d[key]
             frames = np.asarray(frames)  # h5py reads increasing, distinct indices; others via their sort
             order, inverse = np.unique(frames, return_inverse=True)
-            data = f[self.name][(slice(None), order)]
+            data = d[(slice(None), order)]
         return data[(slice(None), inverse.reshape(frames.shape), *key[2:])][key[0]]
 
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
@@ -99,27 +145,43 @@ def read_recon_h5(path: str | Path, video: bool = True, lazy: bool = False) -> d
     path = Path(path)
     if not path.is_file():
         raise RngcamError(f"{path}: no such recon file")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise RngcamError(f"{path} is not a readable HDF5 file ({str(exc).splitlines()[0]})") from None
-    with f:
-        if _text(f.attrs.get("format", "")) != RECON_FORMAT:
-            raise RngcamError(f"{path} is not an rngcam recon file (format attribute "
-                              f"{_text(f.attrs.get('format', ''))!r})")
-        attrs = {k: (_text(v) if isinstance(v, (bytes, str)) else v) for k, v in f.attrs.items()}
-        for key in ("settings", "left_out"):
-            attrs[key] = json.loads(attrs.get(key) or ("{}" if key == "settings" else "[]"))
-        out = {"attrs": attrs, "shape": tuple(f["video"].shape)}
-        out["frame_times_s"] = f["frame_times_s"][()]
-        for name in ("key_frame_times_s", "key_frames", "rs_image"):
-            if name in f:
-                out[name] = f[name][()]
-        comps = f.get("components", {})
-        out["components"] = {k: H5Frames(path, f"components/{k}", comps[k].shape)
-                             if lazy and comps[k].ndim == 4 else comps[k][()] for k in comps}
-        if video:
-            out["video"] = H5Frames(path, "video", f["video"].shape) if lazy else f["video"][()]
+    with h5safe.open_untrusted(path, "HDF5 file") as f:
+        try:
+            return _read_recon(f, path, video, lazy)
+        except RngcamError as exc:
+            raise RngcamError(f"{path}: {exc}" if str(path) not in str(exc) else str(exc)) from None
+        except (OSError, RuntimeError, KeyError, ValueError, TypeError, OverflowError, RecursionError) as exc:
+            reason = printable(str(exc).splitlines()[0] if str(exc) else type(exc).__name__, 200)
+            raise RngcamError(f"{path} is damaged or not an rngcam recon file ({reason})") from None
+        except MemoryError:
+            raise RngcamError(f"{path}: not enough memory to read it") from None
+
+
+def _read_recon(f: h5py.File, path: Path, video: bool, lazy: bool) -> dict:
+    for name in f.attrs:
+        h5safe.check_attr(f, name)
+    if _text(f.attrs.get("format", "")) != RECON_FORMAT:
+        raise RngcamError(f"{path} is not an rngcam recon file (format attribute "
+                          f"{printable(repr(_text(f.attrs.get('format', ''))), 100)})")
+    attrs = {k: (_text(v) if isinstance(v, (bytes, str)) else v) for k, v in f.attrs.items()}
+    for key, kind in (("settings", dict), ("left_out", list)):
+        value = json.loads(attrs.get(key) or ("{}" if key == "settings" else "[]"))
+        if not isinstance(value, kind):
+            raise RngcamError(f"attribute {key!r} is not a JSON {kind.__name__}")
+        attrs[key] = value
+    out = {"attrs": attrs, "shape": tuple(_dataset(f, "video").shape)}
+    out["frame_times_s"] = _dataset(f, "frame_times_s")[()]
+    for name in ("key_frame_times_s", "key_frames", "rs_image"):
+        if name in f:
+            out[name] = _dataset(f, name)[()]
+    comps = f["components"] if "components" in f else {}
+    if not isinstance(comps, (dict, h5py.Group)):
+        raise RngcamError("'components' is not a group")
+    checked = {k: _dataset(f, f"components/{k}") for k in comps}
+    out["components"] = {k: H5Frames(path, f"components/{k}", d.shape) if lazy and d.ndim == 4 else d[()]
+                         for k, d in checked.items()}
+    if video:
+        out["video"] = H5Frames(path, "video", out["shape"]) if lazy else _dataset(f, "video")[()]
     return out
 
 
@@ -130,13 +192,16 @@ def load_run(folder: str | Path, lazy: bool = True) -> Run:
     if folder.is_file() and folder.name.endswith(".h5"):
         folder = folder.parent
     h5 = read_recon_h5(folder / "recon.h5", lazy=lazy)
-    metrics = {}
-    if (folder / "metrics.json").is_file():
-        metrics = json.loads((folder / "metrics.json").read_text())
+    metrics = read_json_file(folder / "metrics.json", {})
     log = []
     if (folder / "errors.csv").is_file():
-        with open(folder / "errors.csv") as fh:
-            log = [_floats(r) for r in csv.DictReader(fh)]
+        if (folder / "errors.csv").stat().st_size > MAX_TEXT_BYTES:
+            raise RngcamError(f"{folder / 'errors.csv'} is larger than {MAX_TEXT_BYTES // 2**20} MiB; refused")
+        try:
+            with open(folder / "errors.csv", encoding="utf-8", errors="replace") as fh:
+                log = [_floats(r) for r in csv.DictReader(fh)]
+        except csv.Error as exc:
+            raise RngcamError(f"{folder / 'errors.csv'} is not a readable CSV ({printable(exc, 200)})") from None
     settings = h5["attrs"]["settings"]
     method = metrics.get("method") or settings.get("method") or folder.name
     return Run(folder=folder, method=method, video=h5["video"], frame_times_s=h5["frame_times_s"],

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from rngcam.recon.report.load import read_recon_h5
+from rngcam.recon.report.load import read_json_file, read_recon_h5
 
 FIGURES = (("psnr_db", "PSNR {:.2f} dB"), ("psnr_intermediate_db", "intermediate {:.2f} dB"),
            ("psnr_dynamic_db", "moving region {:.2f} dB"), ("ssim", "SSIM {:.3f}"),
@@ -24,7 +24,7 @@ def recon_summary(path: str | Path, checksum: bool = False) -> dict:
     times = np.asarray(h5["frame_times_s"], np.float64)
     c, k, hh, w = h5["shape"]
     metrics_path = path.parent / "metrics.json"
-    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+    metrics = read_json_file(metrics_path, {})
     bundle = Path(a.get("bundle_path") or "")
     out = {
         "file": str(path), "format": "rngcam-recon", "created_utc": a.get("created_utc", ""),
