@@ -59,6 +59,7 @@ class GridPlan:
     width: int
     gs_kept: np.ndarray
     gs_left_out: list[tuple[int, str]] = field(default_factory=list)
+    psf_shape: tuple[int, ...] = ()  # the bundle's PSF (C, Hp, Wp) at the sensor's resolution
 
     @property
     def elements(self) -> int:
@@ -112,14 +113,32 @@ def plan_grid(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = 
         grid = VideoGrid.covering(rs, gs, dt_s=dt)
     except (ValueError, OverflowError) as exc:
         raise BundleError(f"the bundle's timing is unusable: {exc}") from None
+    psf = bundle.calibration.psf if bundle.calibration is not None else None
     return GridPlan(rs=rs, gs=gs, grid=grid, origin_s=-shift, channels=camera_channels(cam),
-                    height=rows, width=cols, gs_kept=kept, gs_left_out=left_out)
+                    height=rows, width=cols, gs_kept=kept, gs_left_out=left_out,
+                    psf_shape=tuple(int(n) for n in np.shape(psf)) if psf is not None else ())
 
 
 def method_bytes(plan: GridPlan, memory: MemoryModel) -> int:
     """Estimated peak memory of reconstructing the plan's video with a method of `memory`."""
     return int(BASE_BYTES + memory.fixed_bytes + plan.elements * memory.bytes_per_element
-               + plan.height * plan.width * memory.bytes_per_pixel)
+               + plan.height * plan.width * memory.bytes_per_pixel + psf_bytes(plan, memory))
+
+
+def psf_bytes(plan: GridPlan, memory: MemoryModel) -> int:
+    """What the PSF adds to a method's estimate: its float64 copies at the sensor's resolution
+    while it is prepared, and the operators' larger FFTs when it is larger than the frame (the
+    fitted models hold a frame-sized PSF: FFTs of (2H - 1) x (2W - 1))."""
+    if len(plan.psf_shape) < 2:
+        return 0
+    hp, wp = plan.psf_shape[-2:]
+    c = plan.psf_shape[0] if len(plan.psf_shape) == 3 else 1
+    raw = 3 * 8 * c * hp * wp  # as_chw's float64 copy, bias subtraction, resampling
+    bin_ = plan.rs.rows_per_bin
+    gh, gw = max(1, round(hp / bin_)), max(1, round(wp / bin_))
+    h, w = plan.height, plan.width
+    grow = (h + gh - 1) * (w + gw - 1) / ((2 * h - 1) * (2 * w - 1))
+    return int(raw + max(0.0, grow - 1.0) * plan.elements * memory.bytes_per_element)
 
 
 def default_max_memory_bytes() -> int:

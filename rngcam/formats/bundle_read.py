@@ -265,6 +265,12 @@ class _Reader:
                         rngcam_version=writer)
         self.problems += check_bundle(bundle, skip=frozenset(("rs", "gs")))
         self.stats = pixels.pixel_stats(bundle)
+        for name, frames in self.stats.items():  # recon refuses them: say so here already
+            bad = [i + 1 for i, st in enumerate(frames) if not st.finite]
+            if bad:
+                which = ", ".join(map(str, bad[:5])) + (f" (+{len(bad) - 5} more)" if len(bad) > 5 else "")
+                self.problems.append(f"the {name.upper()} frames contain NaN or Inf (frame {which}); "
+                                     "recon cannot use them")
         self.problems += pixels.pixel_problems(bundle, self.stats, WARNING_PREFIX)
         return bundle
 

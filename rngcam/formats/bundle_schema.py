@@ -32,6 +32,7 @@ SCHEMA_VERSION = 1
 FORMAT_NAME = "rngcam-bundle"
 WARNING_PREFIX = "warning: "
 COMPRESSIONS = (None, "lzf", "gzip")
+PSF_SIZE_RATIO = 2  # a PSF side at most this many times the RS frame's (light spread past it never lands)
 
 
 def short(value) -> str:
@@ -235,6 +236,24 @@ def _check_gs_window(rs: CameraRecord, gs: CameraRecord) -> list[str]:
     return [message]
 
 
+def _check_gs_size(rs: CameraRecord, gs: CameraRecord, cal: Calibration | None) -> list[str]:
+    """GS frames of another size than the RS frames: a warning without a GS-to-RS homography to
+    map them (recon refuses the GS frames then), or when that homography is the identity (the
+    GS frame's edge would be repeated over the RS pixels it does not cover)."""
+    rs_hw, gs_hw = tuple(np.shape(rs.frames))[1:3], tuple(np.shape(gs.frames))[1:3]
+    if len(rs_hw) != 2 or len(gs_hw) != 2 or rs_hw == gs_hw:
+        return []
+    sizes = f"GS frames are {gs_hw[0]}x{gs_hw[1]} but RS frames are {rs_hw[0]}x{rs_hw[1]}"
+    h = None if cal is None or cal.gs_to_rs is None else np.asarray(cal.gs_to_rs)
+    if h is None or h.shape != (3, 3) or not np.all(np.isfinite(h)):
+        return [f"{WARNING_PREFIX}{sizes}, and the bundle has no GS-to-RS alignment to map one onto "
+                "the other: recon cannot use the GS frames (run `rngcam calibrate align`)"]
+    if np.allclose(h, np.eye(3)):
+        return [f"{WARNING_PREFIX}{sizes}, and the GS-to-RS alignment is the identity: "
+                "is it the alignment of these cameras?"]
+    return []
+
+
 def _check_calibration(cal: Calibration, rs: CameraRecord | None) -> list[str]:
     problems: list[str] = []
     channels = camera_channels(rs) if rs is not None else None
@@ -251,6 +270,11 @@ def _check_calibration(cal: Calibration, rs: CameraRecord | None) -> list[str]:
                 problems.append("calibration psf has no positive signal in some channel")
             if channels is not None and psf.shape[0] not in (1, channels):
                 problems.append(f"calibration psf has {psf.shape[0]} channels, RS delivers {channels}")
+            if len(rs_shape) >= 3 and (psf.shape[1] > PSF_SIZE_RATIO * rs_shape[1]
+                                       or psf.shape[2] > PSF_SIZE_RATIO * rs_shape[2]):
+                problems.append(f"calibration psf {psf.shape} is more than {PSF_SIZE_RATIO}x the RS frame "
+                                f"{rs_shape[1:3]} on a side: a PSF of another sensor or binning? "
+                                "(crop it to the frame's size)")
     if cal.psf_bias is None or not _finite(cal.psf_bias):
         problems.append(f"calibration psf_bias must be finite, got {cal.psf_bias!r}")
     if cal.gs_to_rs is not None:
@@ -343,6 +367,7 @@ def check_bundle(bundle: Bundle, skip: frozenset[str] = frozenset()) -> list[str
                         "a global shutter has none")
     if bundle.rs is not None and bundle.gs is not None:
         problems += _check_gs_window(bundle.rs, bundle.gs)
+        problems += _check_gs_size(bundle.rs, bundle.gs, bundle.calibration)
     if bundle.calibration is not None:
         problems += _check_calibration(bundle.calibration, bundle.rs)
     if bundle.trigger is not None:
