@@ -298,6 +298,29 @@ class Rig:
         p = Path(relative).expanduser()
         return p if p.is_absolute() else (self.path.parent / p).resolve()
 
+    def leaves_folder(self, path: str | Path) -> bool:
+        """True when `path` (links followed) lies outside the rig file's folder."""
+        return not Path(path).resolve().is_relative_to(self.path.parent.resolve())
+
+    def paths_outside(self) -> list[tuple[str, Path]]:
+        """(rig field, path) of each file the rig names to read that lies outside its folder
+        (`package:` names stay inside rngcam/data: rngcam.paths)."""
+        from rngcam.paths import PACKAGE_PREFIX
+
+        cal = self.config.calibration
+        named = [("calibration.file", cal.file)]
+        if cal.psf is not None and not cal.psf.path.startswith(PACKAGE_PREFIX):
+            named.append(("calibration.psf.path", cal.psf.path))
+        return [(key, self.resolve(p)) for key, p in named if p and self.leaves_folder(self.resolve(p))]
+
+    def outside_warnings(self) -> list[str]:
+        """One warning line for each file the rig reads from outside its folder (`paths_outside`)."""
+        from rngcam.untrusted import printable
+
+        return [f"warning: {printable(self.path)}: {key} reads {printable(p)}, outside the rig's folder "
+                f"{printable(self.path.parent)} (check a rig from elsewhere before using it)"
+                for key, p in self.paths_outside()]
+
 
 def _raise_all(problems: list[str], model):
     """A model validator's end: every problem it found in one ValueError, or the model."""

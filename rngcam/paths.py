@@ -28,10 +28,18 @@ def package_data(name: str) -> Path:
 
 
 def resolve_data_ref(ref: str | Path, base: Path) -> Path:
-    """`package:NAME` -> the packaged file; a relative path -> relative to `base`; else as given."""
+    """`package:NAME` -> the packaged file (ConfigError when NAME leaves rngcam/data, e.g.
+    `package:../..`); a relative path -> relative to `base`; else as given."""
     text = str(ref)
     if text.startswith(PACKAGE_PREFIX):
-        return DATA_DIR / text[len(PACKAGE_PREFIX):]
+        path = (DATA_DIR / text[len(PACKAGE_PREFIX):]).resolve()
+        if not path.is_relative_to(DATA_DIR):
+            from rngcam.errors import ConfigError
+            from rngcam.untrusted import printable
+
+            raise ConfigError(f"{printable(text)}: {PACKAGE_PREFIX}NAME names a file inside {DATA_DIR}; "
+                              "this one leaves it")
+        return path
     p = Path(text).expanduser()
     return p if p.is_absolute() else (base / p).resolve()
 

@@ -60,7 +60,7 @@ def _rig_text(calib_file: Path | None, triggers: str = "[0.0, 6.4e-3, 12.8e-3]")
 def _rig(tmp: Path, named: bool = True, **options):
     path = tmp / "calib-mock.yaml"
     path.write_text(_rig_text(tmp / "mock.calib.h5" if named else None, **options))
-    return parse_rig(path.read_text(), MOCK)  # relative paths (the PSF) resolve as for rigs/mock.yaml
+    return parse_rig(path.read_text(), path)  # the calibration file it names lies in its folder
 
 
 @pytest.fixture(scope="module")

@@ -13,9 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
+from rngcam.acquire import libraries
 from rngcam.acquire.camera import Camera, CameraInfo, CameraSettings, Configured, Frame
 from rngcam.acquire.features import FeatureMap, apply_settings, estimate_line_time_s
 from rngcam.errors import HardwareError
+from rngcam.untrusted import printable
 
 CTI_ENV = "RNGCAM_CTI"
 
@@ -23,15 +25,19 @@ _harvesters: dict[str, list] = {}  # cti path -> [Harvester, users]
 _lock = threading.Lock()
 
 
-def resolve_cti(cti: str | Path | None) -> Path:
-    """The producer file to load: the argument, else $RNGCAM_CTI; it must exist."""
+def resolve_cti(cti: str | Path | None, key: str | None = None) -> Path:
+    """The producer file to load: the argument, else $RNGCAM_CTI; it must exist. `key` names the
+    rig field it came from: a rig's producer must be in a vendor's location or named by the user
+    (rngcam.acquire.libraries)."""
     chosen = cti or os.environ.get(CTI_ENV)
     if not chosen:
         raise HardwareError(f"the genicam backend needs a GenTL producer (.cti): set 'cti' in "
                             f"the rig or the {CTI_ENV} environment variable")
     path = Path(chosen).expanduser()
+    if cti and key:
+        libraries.check(path, key, "GenTL producer")
     if not path.is_file():
-        raise HardwareError(f"GenTL producer file not found: {path}")
+        raise HardwareError(f"GenTL producer file not found: {printable(path)}")
     return path.resolve()
 
 
@@ -43,6 +49,7 @@ def _acquire_harvester(cti: Path):
     key = str(cti)
     with _lock:
         if key not in _harvesters:
+            libraries.probe(cti, "GenTL producer")  # a producer that crashes on load: one line, not our crash
             h = Harvester()
             try:
                 h.add_file(key, check_existence=True, check_validity=True)
@@ -73,9 +80,9 @@ def _info(d) -> CameraInfo:
     return CameraInfo("genicam", d.model or "", d.serial_number or "", d.tl_type or "", d.vendor or "")
 
 
-def list_genicam_cameras(cti: str | Path | None = None) -> list[CameraInfo]:
-    """Cameras the given producer (only that one) reports."""
-    path = resolve_cti(cti)
+def list_genicam_cameras(cti: str | Path | None = None, key: str | None = None) -> list[CameraInfo]:
+    """Cameras the given producer (only that one) reports; `key`: the rig field it came from."""
+    path = resolve_cti(cti, key)
     h = _acquire_harvester(path)
     try:
         return [_info(d) for d in h.device_info_list]
@@ -128,9 +135,9 @@ class HarvestersFeatures(FeatureMap):
 class GenicamCamera(Camera):
     backend = "genicam"
 
-    def __init__(self, serial: str, label: str = "camera", cti: str | Path | None = None):
+    def __init__(self, serial: str, label: str = "camera", cti: str | Path | None = None, key: str | None = None):
         super().__init__(serial, label)
-        self.cti = resolve_cti(cti)
+        self.cti = resolve_cti(cti, key)
         self._h = None
         self._ia = None
         self.pixel_format = ""
@@ -247,8 +254,22 @@ def _maybe(read):
 
 def make_camera(cfg, role: str) -> GenicamCamera:
     """The factory's entry point (rngcam.backends)."""
-    return GenicamCamera(cfg.serial, role.upper(), cti=cfg.cti)
+    return GenicamCamera(cfg.serial, role.upper(), cti=cfg.cti, key=f"cameras.{role}.cti")
 
 
-def list_cameras(cti: str | Path | None = None, **_options) -> list[CameraInfo]:
-    return list_genicam_cameras(cti)
+def list_cameras(cti: str | Path | None = None, rig=None, **_options) -> list[CameraInfo]:
+    """The cameras of `cti` (the command line's), else of the producers the rig's genicam
+    cameras name (each loaded once), else of $RNGCAM_CTI."""
+    if cti or rig is None:
+        return list_genicam_cameras(cti)
+    cams = rig.config.cameras
+    named = {}
+    for role, cfg in (("rs", cams.rs), ("gs", cams.gs)):
+        if cfg.backend == "genicam" and cfg.cti:
+            named.setdefault(str(Path(cfg.cti).expanduser().resolve()), (cfg.cti, f"cameras.{role}.cti"))
+    if not named:
+        return list_genicam_cameras(None)
+    found = []
+    for chosen, key in named.values():
+        found += [c for c in list_genicam_cameras(chosen, key) if c not in found]
+    return found

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rngcam.acquire import libraries
 from rngcam.config import CameraConfig, MockSensor, Rig
 from rngcam.errors import ConfigError
 from rngcam.formats.bundle import Calibration
@@ -158,6 +159,9 @@ def resolve_rig(rig: Rig, progress: Progress = print, psf: bool = True,
     calibration file the rig names but that does not exist yet is not an error (calibrate
     is about to write it)."""
     c = rig.config
+    libraries.check_rig(rig)  # before anything is loaded or opened
+    for line in rig.outside_warnings():
+        progress(line)
     mock = _mock_truth(rig)
     sources: dict[str, str] = {}
     stored, stored_path = rig_calibration(rig, missing_ok=calibration_missing_ok)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 
+from rngcam.acquire import libraries
 from rngcam.errors import HardwareError
 
 TERMINATOR = "\n"
@@ -127,6 +128,9 @@ class VisaTransport:
         self.timeout_s = float(timeout_s)
         if library == "sim":
             library = sim_library()
+        shared = libraries.visa_library_path(library)
+        if shared is not None and ("/" in str(shared) or shared.exists()):
+            libraries.probe(shared.expanduser().resolve(), "VISA library")  # a crash on load: one line
         try:
             if library:
                 rm = pyvisa.ResourceManager(library)
@@ -163,6 +167,7 @@ class VisaTransport:
 def open_transport(cfg, stack, progress, channels=None):
     """The factory's entry point (rngcam.backends): serial or VISA, as the rig says; (transport, None)."""
     if cfg.transport == "visa":
+        libraries.check_visa_library(cfg.visa_library)  # the rig's library: a vendor's or named by the user
         transport = VisaTransport(cfg.visa_resource, cfg.timeout_s, cfg.visa_library)
     else:
         transport = SerialTransport(cfg.port, cfg.baudrate, cfg.timeout_s)

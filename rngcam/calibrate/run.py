@@ -20,11 +20,12 @@ from rngcam.calibrate.psf import PsfEstimate, estimate_psf
 from rngcam.calibrate.shots import Bench
 from rngcam.calibrate.whitebalance import WhiteBalance, estimate_white_balance
 from rngcam.config import Rig
-from rngcam.errors import HardwareError, RngcamError
+from rngcam.errors import ConfigError, HardwareError, RngcamError
 from rngcam.formats import calibration as store
 from rngcam.physics.geometry import similarity_of, transform_error_px
 from rngcam.physics.psf import normalise, resample, spectral_support
 from rngcam.physics.sensor import BAYER_FORMATS
+from rngcam.untrusted import printable
 
 Progress = Callable[[str], None]
 Ask = Callable[[str], None] | None
@@ -53,8 +54,20 @@ def _camera_provenance(bench: Bench, role: str) -> dict:
             "gain_db": cfg.gain_db}
 
 
-def _store(rig: Rig, out, **parts) -> Path:
+def calibration_target(rig: Rig, out=None) -> Path:
+    """Where a procedure writes (`out`, else the rig's calibration.file, else beside the rig). A
+    calibration.file outside the rig's folder is refused in one line: a rig from elsewhere does
+    not choose where we write; the user can, with -o."""
     path = store.calibration_path(rig, out)
+    if out is None and rig.config.calibration.file and rig.leaves_folder(path):
+        shown = printable(path)
+        raise ConfigError(f"{printable(rig.path)}: calibration.file: refusing to write {shown}: it is outside the "
+                          f"rig's folder {printable(rig.path.parent)}; to write there, name it yourself: -o {shown}")
+    return path
+
+
+def _store(rig: Rig, out, **parts) -> Path:
+    path = calibration_target(rig, out)
     store.update_calibration(path, rig_name=rig.config.name, **parts)
     return path
 
@@ -77,6 +90,7 @@ def calibrate_psf(rig: Rig, out=None, frames: int = 16, dark_frames: int = 0, ma
                   progress: Progress = print, ask: Ask = None) -> Outcome:
     """Average `frames` point-source frames on the RS camera, subtract `dark_frames` dark frames
     (0: the black level), check saturation and SNR, store the PSF."""
+    calibration_target(rig, out)  # refused before any shot is taken
     if frames < 1 or dark_frames < 0:
         raise RngcamError("--frames must be >= 1 and --dark-frames >= 0")
     resolved = resolve_rig(rig, progress, calibration_missing_ok=True)
@@ -117,6 +131,7 @@ def calibrate_psf(rig: Rig, out=None, frames: int = 16, dark_frames: int = 0, ma
 
 def calibrate_linetime(rig: Rig, out=None, heights=None, progress: Progress = print) -> Outcome:
     """Line time = slope of SensorReadoutTime against ROI height (several heights)."""
+    calibration_target(rig, out)  # refused before any shot is taken
     resolved = resolve_rig(rig, progress, psf=False, calibration_missing_ok=True)
     with Bench(resolved, roles=("rs",), progress=progress) as bench:
         cam = bench.camera("rs")
@@ -202,6 +217,7 @@ def _matrix_lines(h: np.ndarray) -> list[str]:
 def calibrate_align(rig: Rig, out=None, frames: int = 8, model: str = "similarity", max_side: int = 256,
                     refine: bool = True, progress: Progress = print, ask: Ask = None) -> Outcome:
     """GS-to-RS transform and white balance from a static target seen by both cameras."""
+    calibration_target(rig, out)  # refused before any shot is taken
     if frames < 1:
         raise RngcamError("--frames must be >= 1")
     resolved = resolve_rig(rig, progress, calibration_missing_ok=True)
@@ -247,6 +263,7 @@ def calibrate_align(rig: Rig, out=None, frames: int = 8, model: str = "similarit
 def calibrate_whitebalance(rig: Rig, out=None, frames: int = 8, max_side: int = 256,
                            progress: Progress = print, ask: Ask = None) -> Outcome:
     """White balance alone, for the transform in the calibration file (else the rig's)."""
+    calibration_target(rig, out)  # refused before any shot is taken
     resolved = resolve_rig(rig, progress, calibration_missing_ok=True)
     psf, psf_source = resolved.psf, resolved.psf_source
     h, h_source = _initial_transform(resolved)
