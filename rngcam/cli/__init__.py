@@ -12,6 +12,7 @@ import time
 import click
 
 from rngcam.errors import RngcamError, SettingError
+from rngcam.untrusted import printable
 from rngcam.version import __version__
 
 _STARTED = [time.perf_counter()]  # when the running command started (set again by each invocation)
@@ -48,6 +49,22 @@ def error_line(exc: RngcamError) -> str:
     if isinstance(exc, SettingError):
         return exc.flagged({name: flag_of(name) for name in exc.settings})
     return str(exc)
+
+
+LINE_LIMIT = 4000  # characters of one printed line (a rig's many problems fit; a flood does not)
+
+
+def echo_line(text: object, err: bool = False) -> None:
+    """Print one line whose text may come from someone else's file (a bundle's warning, a rig's
+    name, a folder's label): control characters escaped, so it stays one line and cannot move
+    the cursor, erase what we printed or forge a line (rngcam.untrusted.printable)."""
+    click.echo(printable(text, limit=LINE_LIMIT), err=err)
+
+
+def echo_text(text: str, err: bool = False) -> None:
+    """Print our own several-line text (a table of results) line by line, each as `echo_line`."""
+    for line in str(text).split("\n"):
+        echo_line(line, err=err)
 
 
 # name -> "module:attribute" of a click command
@@ -89,7 +106,7 @@ class _Group(click.Group):
         try:
             return super().invoke(ctx)
         except RngcamError as exc:
-            click.echo(f"error: {error_line(exc)}", err=True)
+            echo_line(f"error: {error_line(exc)}", err=True)
             sys.exit(2)
 
 

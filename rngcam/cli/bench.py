@@ -7,6 +7,7 @@ from pathlib import Path
 
 import click
 
+from rngcam.cli import echo_line
 from rngcam.errors import RngcamError
 from rngcam.recon import registry
 
@@ -66,7 +67,7 @@ def _bench(out, quick, time_budget, size, clips, scene_names, methods, threads, 
     scenes = bench_scenes(data_dir, tuple(clips), tuple(scene_names))
     click.echo(f"bench: {len(scenes)} scenes x {len(settings.methods)} methods, {settings.size} px, "
                f"{settings.time_budget_s:g} s per iterative run -> {out}")
-    rows = run_bench(out, scenes, settings, echo=click.echo)
+    rows = run_bench(out, scenes, settings, echo=echo_line)
     bad = [r for r in rows if r["status"] != "ok"]
     click.echo(f"results: {out / 'results.md'} ({len(rows)} runs, {len(bad)} not ok)")
 
@@ -77,7 +78,7 @@ def _stress(out: Path) -> None:
     from rngcam.evaluate.stress import run_stress, summary_counts
 
     torch.set_num_threads(1)  # tiny tensors: extra threads only add overhead
-    rows = run_stress(out, echo=click.echo)
+    rows = run_stress(out, echo=echo_line)
     counts = summary_counts(rows)
     click.echo(f"stress: {counts['finite']} finite, {counts['rejected']} rejected, "
                f"{counts['FAILED']} FAILED -> {out / 'results.md'}")

@@ -6,6 +6,9 @@ from pathlib import Path
 
 import click
 
+from rngcam.cli import echo_line
+from rngcam.cli.capture import allow_library_option
+
 _RIG = click.option("--rig", "rig_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
                     help="Rig file (YAML), e.g. rigs/mock.yaml.")
 _OUT = click.option("-o", "--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -29,12 +32,12 @@ def _finish(rig, outcome) -> None:
     from rngcam.calibrate.run import rig_hint
 
     for line in outcome.lines:
-        click.echo(line)
+        echo_line(line)
     for w in outcome.warnings:
-        click.echo(f"warning: {w}")
+        echo_line(f"warning: {w}")
     hint = rig_hint(rig, outcome.path)
     if hint:
-        click.echo(hint)
+        echo_line(hint)
 
 
 @click.group("calibrate")
@@ -48,6 +51,7 @@ def calibrate_group():
 @calibrate_group.command("psf")
 @_RIG
 @_OUT
+@allow_library_option
 @click.option("--frames", type=click.IntRange(min=1), default=16, show_default=True,
               help="Point-source frames to average.")
 @click.option("--dark-frames", type=click.IntRange(min=0), default=0, show_default=True,
@@ -61,12 +65,13 @@ def psf_cmd(rig_path, out, frames, dark_frames, max_saturated, yes):
     from rngcam.config import load_rig
 
     rig = load_rig(rig_path)
-    _finish(rig, calibrate_psf(rig, out, frames, dark_frames, max_saturated, click.echo, _ask(yes)))
+    _finish(rig, calibrate_psf(rig, out, frames, dark_frames, max_saturated, echo_line, _ask(yes)))
 
 
 @calibrate_group.command("linetime")
 @_RIG
 @_OUT
+@allow_library_option
 @click.option("--heights", default=None,
               help="Comma-separated ROI heights to read SensorReadoutTime at (default: four from "
                    "the full height down to a quarter).")
@@ -83,12 +88,13 @@ def linetime_cmd(rig_path, out, heights):
             parsed = [int(h) for h in heights.split(",")]
         except ValueError:
             raise ConfigError(f"--heights must be comma-separated integers, got {heights!r}") from None
-    _finish(rig, calibrate_linetime(rig, out, parsed, click.echo))
+    _finish(rig, calibrate_linetime(rig, out, parsed, echo_line))
 
 
 @calibrate_group.command("align")
 @_RIG
 @_OUT
+@allow_library_option
 @click.option("--frames", type=click.IntRange(min=1), default=8, show_default=True,
               help="Frames of the static target to average on each camera.")
 @click.option("--model", type=click.Choice(["similarity", "homography"]), default="similarity",
@@ -103,12 +109,13 @@ def align_cmd(rig_path, out, frames, model, max_side, no_refine, yes):
     from rngcam.config import load_rig
 
     rig = load_rig(rig_path)
-    _finish(rig, calibrate_align(rig, out, frames, model, max_side, not no_refine, click.echo, _ask(yes)))
+    _finish(rig, calibrate_align(rig, out, frames, model, max_side, not no_refine, echo_line, _ask(yes)))
 
 
 @calibrate_group.command("whitebalance")
 @_RIG
 @_OUT
+@allow_library_option
 @click.option("--frames", type=click.IntRange(min=1), default=8, show_default=True,
               help="Frames of the static target to average on each camera.")
 @click.option("--max-side", type=click.IntRange(min=32), default=256, show_default=True,
@@ -120,4 +127,4 @@ def whitebalance_cmd(rig_path, out, frames, max_side, yes):
     from rngcam.config import load_rig
 
     rig = load_rig(rig_path)
-    _finish(rig, calibrate_whitebalance(rig, out, frames, max_side, click.echo, _ask(yes)))
+    _finish(rig, calibrate_whitebalance(rig, out, frames, max_side, echo_line, _ask(yes)))

@@ -8,6 +8,23 @@ from pathlib import Path
 
 import click
 
+from rngcam.cli import echo_line
+
+
+def _allow(ctx, param, value):
+    if value:
+        from rngcam.acquire.libraries import allow
+
+        allow(value)  # into the environment: a rerun in a private network inherits it
+    return value
+
+
+allow_library_option = click.option(
+    "--allow-library", multiple=True, type=click.Path(dir_okay=False), expose_value=False, callback=_allow,
+    help="Load this native library the rig names (a GenTL producer .cti, a VISA library) although it is "
+         "outside the vendors' install locations: it runs code in this process (repeatable; also "
+         "$RNGCAM_ALLOW_LIBRARY, ':'-separated).")
+
 
 def _rerun_in_private_network(rig, args: list[str]) -> None:
     """Simulated GigE cameras are served in a network namespace of their own (loopback only):
@@ -19,7 +36,7 @@ def _rerun_in_private_network(rig, args: list[str]) -> None:
 
     if netns.inside() or not needs_private_network(rig):
         return
-    click.echo("simulated GigE cameras: running in a private network namespace (loopback only)")
+    echo_line("simulated GigE cameras: running in a private network namespace (loopback only)")
     sys.stdout.flush()
     argv = [sys.executable, "-c", "from rngcam.cli import main; main()", *args]
     raise SystemExit(netns.run_private(argv).returncode)
@@ -32,18 +49,19 @@ def _rerun_in_private_network(rig, args: list[str]) -> None:
               help="Bundle to write (never overwritten). Default: capture-YYYYmmdd-HHMMSS.h5.")
 @click.option("--count", type=click.IntRange(min=1), default=1, show_default=True,
               help="Shots in a row; with N > 1 the names get -001, -002 ...")
+@allow_library_option
 def capture_cmd(rig_path: Path, out: Path | None, count: int):
     """Trigger the rig's cameras once (or N times) and write a capture bundle."""
     from rngcam.acquire.capture import capture
     from rngcam.config import load_rig
 
     rig = load_rig(rig_path)
-    click.echo(f"rig: {rig.config.name} ({rig_path})")
+    echo_line(f"rig: {rig.config.name} ({rig_path})")
     args = ["capture", "--rig", str(rig_path), "--count", str(count)] + (["-o", str(out)] if out else [])
     _rerun_in_private_network(rig, args)
-    results = capture(rig, out, count=count, progress=click.echo)
+    results = capture(rig, out, count=count, progress=echo_line)
     for r in results:
-        click.echo(f"done: {r.path} in {r.seconds['total_s']:.2f} s"
+        echo_line(f"done: {r.path} in {r.seconds['total_s']:.2f} s"
                    + (f" with {len(r.warnings)} warning(s)" if r.warnings else ""))
 
 
@@ -67,6 +85,7 @@ def _camera_backends() -> list[str]:
 @click.option("--rig", "rig_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="List this rig's cameras (a simulated rig's are started for it).")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
+@allow_library_option
 def devices_cmd(backend, cti, pylon_tl, addresses, rig_path, as_json):
     """List cameras (model, serial, interface) and serial ports."""
     import os
@@ -76,6 +95,10 @@ def devices_cmd(backend, cti, pylon_tl, addresses, rig_path, as_json):
     from rngcam.config import load_rig
 
     rig = load_rig(rig_path) if rig_path else None
+    if rig is not None:
+        from rngcam.acquire.libraries import check_rig
+
+        check_rig(rig)  # the rig's producer is what is listed: a vendor's or one the user named
     if rig is not None and backend in (None, rig.config.cameras.rs.backend):
         _rerun_in_private_network(rig, ["devices", "--rig", str(rig_path)] + (["--backend", backend] if backend else [])
                                   + (["--json"] if as_json else []))
@@ -93,13 +116,13 @@ def devices_cmd(backend, cti, pylon_tl, addresses, rig_path, as_json):
         click.echo(json.dumps({"cameras": [asdict(c) for c in cameras],
                                "serial_ports": [asdict(p) for p in ports]}, indent=2))
         return
-    click.echo(f"cameras ({', '.join(backends)}):")
+    echo_line(f"cameras ({', '.join(backends)}):")
     if not cameras:
-        click.echo("  none found")
-    for c in cameras:
-        click.echo(f"  {c.backend:8s} {c.model:28s} serial {c.serial:16s} {c.interface}")
-    click.echo("serial ports:")
+        echo_line("  none found")
+    for c in cameras:  # names a device or a rig reports: shown as text
+        echo_line(f"  {c.backend:8s} {c.model:28s} serial {c.serial:16s} {c.interface}")
+    echo_line("serial ports:")
     if not ports:
-        click.echo("  none found")
+        echo_line("  none found")
     for p in ports:
-        click.echo(f"  {p.device:16s} {p.description} [{p.hwid}]")
+        echo_line(f"  {p.device:16s} {p.description} [{p.hwid}]")

@@ -18,6 +18,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from rngcam.cli import echo_line
+
 REPO = Path(__file__).resolve().parents[2]
 OUT = Path("demo-out")
 
@@ -50,7 +52,7 @@ def _capture(out: Path) -> Path:
     bundle = out / "mock.h5"
     if bundle.exists():
         bundle.unlink()
-    capture(load_rig(REPO / "rigs" / "mock.yaml"), bundle, progress=click.echo)
+    capture(load_rig(REPO / "rigs" / "mock.yaml"), bundle, progress=echo_line)
     return bundle
 
 
@@ -105,10 +107,10 @@ def main(out: Path = OUT, plan: list | None = None) -> int:
         click.echo(f"== {label}" + (f" (time budget {budget:.0f} s)" if budget else ""))
         t_part = time.perf_counter()
         try:  # a fresh capture each run: overwrite
-            result = reconstruct(bundle, label, out=out / label, progress=click.echo, bar=sys.stdout.isatty(),
+            result = reconstruct(bundle, label, out=out / label, progress=echo_line, bar=sys.stdout.isatty(),
                                  time_budget_s=budget or "auto", overwrite=True, **overrides)
         except ImportError as exc:  # an optional method that is not installed
-            click.echo(f"skipped {label}: {exc}")
+            echo_line(f"skipped {label}: {exc}")
             continue
         videos[label], logs[label] = result.video, result.log
         noise = result.context.get("rs_noise_level", noise)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from rngcam.cli import echo_line, echo_text
 from rngcam.cli.method_options import method_command, method_settings, pop_method_values
 from rngcam.cli.recon import budget_option, device_option
 from rngcam.errors import RngcamError
@@ -17,7 +18,7 @@ from rngcam.scale.backend import make_backend
 def _backend_factory(address: str | None, no_ray: bool, device: str):
     gpus = 1.0 if device.startswith("cuda") else 0.0
     return lambda: make_backend(use_ray=False if no_ray else None, address=address, gpus_per_task=gpus,
-                                echo=click.echo)
+                                echo=echo_line)
 
 
 _ray_options = [
@@ -80,14 +81,14 @@ def sweep_cmd(bundle, method, time_budget, iters, holdout, holdout_gs, holdout_s
                              holdout=holdout, holdout_gs=holdout_gs, holdout_seed=holdout_seed, folds=folds,
                              eta=eta, rungs=rungs, device=device, grid_bin=grid_bin, refit=not no_refit)
     result = sweep(bundle, out_dir, settings, backend_factory=_backend_factory(address, no_ray, device),
-                   echo=click.echo)
-    click.echo((result.out_dir / "sweep.md").read_text().split("\n\n", 2)[-1].rstrip())
+                   echo=echo_line)
+    echo_text((result.out_dir / "sweep.md").read_text().split("\n\n", 2)[-1].rstrip())
     click.echo(f"{result.new_runs} fit(s) run, {result.cached_runs} reused from earlier runs")
     if result.refit is not None:
         line = f"chosen setting refitted: {result.refit['seconds']:.1f} s"
         if "psnr_db" in result.refit:
             line += f", PSNR {result.refit['psnr_db']:.2f} dB"
-        click.echo(line + f" -> {result.out_dir / 'best'}")
+        echo_line(line + f" -> {result.out_dir / 'best'}")
     click.echo(f"outputs: {result.out_dir}")
 
 
@@ -110,8 +111,8 @@ def recon_batch_cmd(bundles, method, out_dir, time_budget, iters, device, grid_b
                              max_iters=iters, device=device, grid_bin=grid_bin, progress=False,
                              method_settings=method_settings(method, pop_method_values(opts)))
     result = recon_batch(bundles, out_dir, settings, backend_factory=_backend_factory(address, no_ray, device),
-                         echo=click.echo)
-    click.echo((result.out_dir / "batch.md").read_text().split("\n\n", 1)[-1].rstrip())
+                         echo=echo_line)
+    echo_text((result.out_dir / "batch.md").read_text().split("\n\n", 1)[-1].rstrip())
     click.echo(f"{result.ran} reconstructed, {result.skipped} skipped (done before), {result.failed} failed; "
                f"summary: {result.out_dir / 'batch.md'}")
     if result.failed:

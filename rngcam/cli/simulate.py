@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from rngcam.cli import error_line
+from rngcam.cli import echo_line, error_line
 from rngcam.sim.fidelity import FIDELITIES, SPACE, TIME
 from rngcam.sim.scenes import SCENES
 from rngcam.sim.simulate import DEFAULT_PSF_CROP
@@ -69,4 +69,4 @@ def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start
                       clip=clip, span=span, start=start, bayer=bayer, overwrite=overwrite,
                       fidelity=fidelity)
     for line in summary(bundle, out):
-        click.echo(line)
+        echo_line(line)

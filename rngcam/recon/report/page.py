@@ -139,10 +139,21 @@ def table(rows: list[dict], columns: list[tuple[str, str, int]]) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
+def script_json(data) -> str:
+    """`data` as JSON that cannot end or alter the <script> element it sits in: `<`, `>` and `&`
+    are written as \\u escapes (a label's `</script>` or `<!--<script>` would otherwise end the
+    element or swallow its end tag), and so are U+2028/U+2029; JSON.parse reads them back unchanged."""
+    text = json.dumps(data, separators=(",", ":"))
+    for ch, escaped in (("<", "\\u003c"), (">", "\\u003e"), ("&", "\\u0026"),
+                        ("\u2028", "\\u2028"), ("\u2029", "\\u2029")):
+        text = text.replace(ch, escaped)
+    return text
+
+
 def page(title: str, meta_lines: list[str], warnings: list[str], sections: list[tuple[str, str]],
          data: dict) -> str:
     """The whole document; `data` (players, times, cursors) goes in as JSON for the script."""
-    blob = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
+    blob = script_json(data)
     warn = "".join(f'<p class="warn">{esc(w)}</p>' for w in warnings)
     meta = "".join(f'<div class="meta">{m}</div>' for m in meta_lines)
     body = "".join(f"<h2>{esc(h)}</h2>{content}" if h else content for h, content in sections)
