@@ -364,7 +364,7 @@ def test_failure_mid_write_removes_the_temporary_file(tmp_path, monkeypatch, fai
     def write_then_fail(f, name, *args):
         real_write_camera(f, name, *args)
         if name == "gs":
-            assert any(p.name.startswith(".b.h5.partial-") for p in tmp_path.iterdir())
+            assert any(p.name.startswith(".b.h5.") and p.name.endswith(".rngcam-tmp") for p in tmp_path.iterdir())
             raise failure
 
     monkeypatch.setattr(bundle_write, "_write_camera", write_then_fail)
@@ -400,7 +400,7 @@ def test_killed_writer_leaves_no_valid_bundle(tmp_path):
         deadline = time.monotonic() + 20
         partials: list[Path] = []
         while time.monotonic() < deadline:  # kill once frame data is landing in the file
-            partials = list(tmp_path.glob(".capture.h5.partial-*"))
+            partials = list(tmp_path.glob(".capture.h5.*.rngcam-tmp"))
             if partials and partials[0].stat().st_size > 2**20:
                 break
             assert child.poll() is None, f"writer exited ({child.returncode}) before the kill"
@@ -416,7 +416,7 @@ def test_killed_writer_leaves_no_valid_bundle(tmp_path):
     assert child.returncode == -signal.SIGKILL
     assert not target.exists()
     leftovers = list(tmp_path.iterdir())
-    assert all(p.name.startswith(".capture.h5.partial-") for p in leftovers)
+    assert all(p.name.startswith(".capture.h5.") and p.name.endswith(".rngcam-tmp") for p in leftovers)
     for partial in leftovers:
         problems = validate_bundle(partial)
         assert len(problems) == 1, problems

@@ -12,6 +12,27 @@ from rngcam.errors import ConfigError, RngcamError
 from rngcam.formats.bundle import WARNING_PREFIX, inspect_bundle, open_bundle, render_summary
 from rngcam.recon import registry
 from rngcam.sizing import DEFAULT_MAX_FRAMES, check_size, default_max_memory_bytes, method_bytes, plan_grid
+from rngcam.untrusted import printable
+
+LINE_LIMIT = 4000
+
+
+def _echo(text: str) -> None:
+    """Print our text line by line, each printable: a bundle's strings cannot move the cursor,
+    erase a line or forge one (a newline inside a value is shown escaped)."""
+    for line in str(text).split("\n"):
+        click.echo(printable(line, LINE_LIMIT))
+
+
+def _clean(value):
+    """`value` (a summary) with every string printable, so one value stays on its own line."""
+    if isinstance(value, str):
+        return printable(value, LINE_LIMIT)
+    if isinstance(value, dict):
+        return {_clean(k): _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    return value
 
 
 def recon_size(bundle_path: str) -> tuple[dict, list[str]]:
@@ -48,6 +69,21 @@ def inspect_cmd(bundle_path: str, as_json: bool, checksum: bool) -> None:
 
     Warnings (e.g. a GS trigger outside the RS exposure window) are listed but do not fail.
     """
+    try:
+        _inspect(bundle_path, as_json, checksum)
+    except RngcamError:
+        raise
+    except (MemoryError, OverflowError, RecursionError, ValueError, ZeroDivisionError) as exc:
+        # what a crafted file reaches past the checks: one line, never a traceback
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise RngcamError(f"{bundle_path}: unusable content ({printable(reason, 200)})") from None
+    except Exception as exc:
+        if type(exc).__module__.startswith("cv2"):  # cv2.error, from the PSF figure of a crafted PSF
+            raise RngcamError(f"{bundle_path}: unusable content (OpenCV: {printable(str(exc).strip(), 200)})") from None
+        raise
+
+
+def _inspect(bundle_path: str, as_json: bool, checksum: bool) -> None:
     from rngcam.recon.report import is_recon_file
 
     if Path(bundle_path).is_dir() and (Path(bundle_path) / "recon.h5").is_file():  # a reconstruction's folder
@@ -55,8 +91,8 @@ def inspect_cmd(bundle_path: str, as_json: bool, checksum: bool) -> None:
     if is_recon_file(bundle_path):
         from rngcam.recon.report.summary import recon_summary, render_recon_summary
 
-        s = recon_summary(bundle_path, checksum=checksum)
-        click.echo(json.dumps(s, indent=2) if as_json else render_recon_summary(s))
+        s = _clean(recon_summary(bundle_path, checksum=checksum))
+        _echo(json.dumps(s, indent=2) if as_json else render_recon_summary(s))
         return
     # A missing/bad file raises BundleError; the cli group prints it as one line.
     summary = inspect_bundle(bundle_path, checksum=checksum)
@@ -64,8 +100,9 @@ def inspect_cmd(bundle_path: str, as_json: bool, checksum: bool) -> None:
     if recon:
         summary["recon"] = recon
     summary["problems"] += warnings
-    click.echo(json.dumps(summary, indent=2) if as_json else render_summary(summary))
+    summary = _clean(summary)
+    _echo(json.dumps(summary, indent=2) if as_json else render_summary(summary))
     if not as_json:
         from rngcam.calibrate.psf import bundle_psf_figure  # the PSF against this RS image's noise floor
 
-        click.echo(bundle_psf_figure(bundle_path))
+        _echo(bundle_psf_figure(bundle_path))

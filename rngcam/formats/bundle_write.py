@@ -6,7 +6,8 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import uuid
+import re
+import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -25,6 +26,7 @@ from rngcam.formats.bundle_schema import (
     check_bundle,
     is_warning,
 )
+from rngcam.untrusted import TEMP_SUFFIX
 from rngcam.version import __version__
 
 _WRITE_BLOCK_BYTES = 16 * 2**20  # frames are copied in blocks of about this size
@@ -168,7 +170,8 @@ def write_bundle(bundle: Bundle, path: str | os.PathLike, overwrite: bool = Fals
                  compression: str | None = None) -> Path:
     """Write `bundle` to `path` atomically and return the path.
 
-    The file is written as `.NAME.partial-PID-RANDOM` in the target directory, fsynced, then renamed.
+    The file is written as `.NAME.PID-RANDOM.rngcam-tmp` in the target directory, fsynced, then
+    renamed; such files a killed writer left for this name are removed first (`clean_stale_temps`).
     Refuses (BundleError) an inconsistent bundle, an existing target unless `overwrite`, and
     leaves no file behind on failure. `compression`: None (fastest), "lzf" or "gzip" (both with
     byte shuffle; on noisy 12-bit frames about -27 % / -44 % size at 5x / 15x the write time).
@@ -193,8 +196,8 @@ def write_bundle(bundle: Bundle, path: str | os.PathLike, overwrite: bool = Fals
         "errors": _to_json(list(bundle.trigger.errors) if bundle.trigger else [], "trigger errors"),
     }
     created = bundle.created_utc or datetime.now(timezone.utc).isoformat(timespec="seconds")
-    # pid for humans finding a leftover; random part so two writers never share a file
-    tmp = path.parent / f".{path.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    clean_stale_temps(path)
+    tmp = _temp_for(path)
     try:
         with h5py.File(tmp, "w", libver=("v110", "latest")) as f:
             _write_contents(f, bundle, texts, created, compression)
@@ -210,6 +213,48 @@ def write_bundle(bundle: Bundle, path: str | os.PathLike, overwrite: bool = Fals
             raise BundleError(f"writing {path} failed: {exc}") from None
         raise
     return path
+
+
+def _temp_for(path: Path) -> Path:
+    """A fresh temporary file beside `path` (O_EXCL), named for its writer: `.NAME.PID-RANDOM.rngcam-tmp`."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}-", suffix=TEMP_SUFFIX, dir=path.parent)
+    os.close(fd)
+    return Path(tmp)
+
+
+def clean_stale_temps(path: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files of writes of `path` whose writer process is gone (killed with
+    kill -9, say): only regular files or links named `.NAME.PID-RANDOM.rngcam-tmp`, never
+    followed; a live writer's file stays."""
+    path = Path(path)
+    pattern = re.compile(rf"\.{re.escape(path.name)}\.(\d+)-[A-Za-z0-9_]+{re.escape(TEMP_SUFFIX)}")
+    gone = []
+    try:
+        names = os.listdir(path.parent)
+    except OSError:
+        return gone
+    for name in names:
+        m = pattern.fullmatch(name)
+        if m is None or _alive(int(m.group(1))):
+            continue
+        p = path.parent / name
+        if p.is_symlink() or p.is_file():
+            with contextlib.suppress(OSError):
+                p.unlink()
+                gone.append(p)
+    return gone
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return pid < 2**22  # another user's process (or not a pid at all)
+    return True
 
 
 def _publish(tmp: Path, path: Path, overwrite: bool) -> None:

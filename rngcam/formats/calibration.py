@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import json
 import os
-import uuid
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -38,7 +37,7 @@ import numpy as np
 
 from rngcam.errors import ConfigError, RngcamError
 from rngcam.formats import h5safe
-from rngcam.untrusted import printable
+from rngcam.untrusted import printable, temp_beside
 
 FORMAT_NAME = "rngcam-calibration"
 SCHEMA_VERSION = 1
@@ -161,7 +160,7 @@ def update_calibration(path: str | Path, rig_name: str = "", **parts) -> StoredC
     _validate(current, path)
     if not path.parent.is_dir():
         raise CalibrationFileError(f"cannot write {path}: directory {path.parent} does not exist")
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+    tmp = temp_beside(path)  # unique, created O_EXCL: a planted link at a fixed name is never followed
     try:
         with h5py.File(tmp, "w") as f:
             for name in current.parts():

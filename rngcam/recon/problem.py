@@ -36,6 +36,7 @@ from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.sensor import BAYER_FORMATS, frame_to_measurement
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 from rngcam.sizing import check_frames, plan_grid
+from rngcam.untrusted import printable
 
 
 @dataclass
@@ -313,7 +314,21 @@ def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | Non
     pixel, flat, or dark while the others see light) and a GS frame whose exposure misses the
     RS window are left out, each with its reason in `left_out`. BundleError when nothing is left;
     ConfigError when the grid would have more than `max_frames` (default: sizing's) frames.
+    Content a crafted bundle carries past the reader's checks (a homography OpenCV refuses,
+    numbers that overflow) is a BundleError too, one line, never a traceback.
     """
+    try:
+        return _build_problem(bundle, grid_bin, dt_s, use_rs, use_gs, max_frames)
+    except (OverflowError, ZeroDivisionError, np.linalg.LinAlgError, cv2.error) as exc:
+        reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+        raise BundleError(f"the bundle's content is unusable ({printable(reason, 200)})") from None
+    except MemoryError:
+        raise BundleError("the bundle needs more memory than this machine has "
+                          "(see `rngcam inspect` for its size)") from None
+
+
+def _build_problem(bundle: Bundle, grid_bin: int | None, dt_s: float | None, use_rs: bool, use_gs: bool,
+                   max_frames: int | None) -> Problem:
     plan = plan_grid(bundle, grid_bin, dt_s)
     check_frames(plan, max_frames)  # before allocating anything frame-sized
     grid_bin = plan.rs.rows_per_bin

@@ -138,6 +138,14 @@ def per_frame(video: np.ndarray, truth: np.ndarray, one_object: bool) -> dict[st
     return out
 
 
+def plain(text: object) -> str:
+    """A label from a file as matplotlib text: `$` escaped (no mathtext parse of someone else's
+    string) and control characters shown escaped."""
+    from rngcam.untrusted import printable
+
+    return printable(text, 200).replace("$", r"\$")
+
+
 def _png(fig) -> str:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
@@ -162,7 +170,7 @@ def time_plot(times_us: np.ndarray, series: dict[str, dict[str, np.ndarray]], ke
     for ax, (key, label) in zip(axes[:, 0], panels):
         for i, (name, s) in enumerate(series.items()):
             if key in s:
-                ax.plot(times_us, s[key], "-", lw=1.2, color=f"C{i % 10}", label=name)
+                ax.plot(times_us, s[key], "-", lw=1.2, color=f"C{i % 10}", label=plain(name))
         for t in key_us:
             ax.axvspan(t - dt_us / 2, t + dt_us / 2, color="0.85", zorder=0)
         ax.set(ylabel=label, xlim=(lo, hi))
@@ -194,10 +202,10 @@ def image_figure(images: dict[str, np.ndarray], title: str = "") -> str:
     fig, axes = plt.subplots(1, len(images), figsize=(2.6 * len(images), 2.9), squeeze=False)
     for ax, (name, img) in zip(axes[0], images.items()):
         ax.imshow(to_display(img[:, None])[0], interpolation="nearest")
-        ax.set_title(name, fontsize=8)
+        ax.set_title(plain(name), fontsize=8)
         ax.set_xticks([]), ax.set_yticks([])
     if title:
-        fig.suptitle(title, fontsize=9)
+        fig.suptitle(plain(title), fontsize=9)
     fig.tight_layout()
     uri = _png(fig)
     plt.close(fig)
