@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -24,8 +25,9 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
+from rngcam.errors import RngcamError
 from rngcam.recon import checkpoint
-from rngcam.recon.checkpoint import CHECKPOINT_NAME
+from rngcam.recon.checkpoint import CHECKPOINT_NAME, RESUME_HINT
 
 
 class Method(Protocol):
@@ -167,8 +169,11 @@ def run(method: Method, settings: LoopSettings,
     iteration, solve_s, wall_offset = 0, float(setup_s), 0.0
     ckpt = None if settings.checkpoint_dir is None else Path(settings.checkpoint_dir) / CHECKPOINT_NAME
     saved = settings.resume_from
-    if saved is None and settings.resume and ckpt is not None and ckpt.is_file():
-        saved = checkpoint.load(ckpt)
+    if saved is None and settings.resume and ckpt is not None and os.path.lexists(ckpt):
+        saved = checkpoint.load(ckpt, hint=RESUME_HINT)  # data only; its identity before its state
+        why = checkpoint.mismatch(saved, settings.checkpoint_meta) if settings.checkpoint_meta else ""
+        if why:
+            raise RngcamError(f"cannot resume from {ckpt}: {why}; {RESUME_HINT}")
         wall_offset = saved["wall_s"]  # a sweep's rung: the budget is the fit's total
     if saved is not None and saved.get("method") is not None:
         method.load_state_dict(saved["method"])

@@ -195,7 +195,8 @@ def _solve(source: Source, settings: ReconSettings, out: Path | None, echo, star
     want = saved = None
     if out is not None:
         want = checkpoint.identity(source.checksum(), settings.method, settings.fitted())
-        saved = checkpoint.prepare(out, want, settings.resume, settings.overwrite)
+        inputs = (source.path,) if source.path else ()
+        saved = checkpoint.prepare(out, want, settings.resume, settings.overwrite, inputs=inputs)
     log = RunLog()
 
     def say(line: str) -> None:

@@ -11,6 +11,7 @@ Ray task. Each fold keeps a checkpoint in the trial's folder and resumes from it
 from __future__ import annotations
 
 import math
+import os
 import time
 import traceback
 from dataclasses import dataclass
@@ -20,6 +21,8 @@ from typing import Any
 import torch
 
 from rngcam.cpu import torch_threads
+from rngcam.errors import RngcamError
+from rngcam.recon import checkpoint
 from rngcam.recon.holdout import HoldoutScorer
 from rngcam.recon.loop import CHECKPOINT_NAME, LoopSettings, run
 from rngcam.recon.metrics import video_metrics
@@ -47,17 +50,17 @@ class TrialSpec:
     threads: int | None = None  # torch threads inside the trial (None: leave as is)
 
 
-def _drop_checkpoint_past_budget(path: Path, spec: TrialSpec) -> None:
-    """A checkpoint from a longer run than this budget (an earlier sweep) cannot be resumed."""
-    if not path.is_file():
+def _drop_checkpoint_past_budget(path: Path, spec: TrialSpec, want: dict) -> None:
+    """A checkpoint from a longer run than this budget (an earlier sweep) cannot be resumed. One that
+    is not data only, or not this trial's, is refused in one line (the trial fails, nothing runs)."""
+    if not os.path.lexists(path):
         return
-    try:
-        saved = torch.load(path, weights_only=False, map_location="cpu")
-        past = (spec.max_iters is not None and saved["iteration"] > spec.max_iters) or (
-            spec.time_budget_s is not None and saved["wall_s"] > spec.time_budget_s)
-    except Exception:  # noqa: BLE001 - an unreadable checkpoint is no use either
-        past = True
-    if past:
+    saved = checkpoint.load(path, map_location="cpu", hint=checkpoint.RESUME_HINT)
+    why = checkpoint.mismatch(saved, want)
+    if why:
+        raise RngcamError(f"cannot resume from {path}: {why}; {checkpoint.RESUME_HINT}")
+    if (spec.max_iters is not None and saved["iteration"] > spec.max_iters) or (
+            spec.time_budget_s is not None and saved["wall_s"] > spec.time_budget_s):
         path.unlink(missing_ok=True)
 
 
@@ -95,9 +98,11 @@ def _fit_fold(spec: TrialSpec, problem: Problem, folder: Path, device: str) -> d
     method = make_method(problem, settings, device)
     setup_s = time.perf_counter() - t0
     folder.mkdir(parents=True, exist_ok=True)
-    _drop_checkpoint_past_budget(folder / CHECKPOINT_NAME, spec)
+    want = checkpoint.identity(None, spec.method, {"trial": spec.key, "fold": folder.name})
+    _drop_checkpoint_past_budget(folder / CHECKPOINT_NAME, spec, want)
     loop = LoopSettings(time_budget_s=spec.time_budget_s, max_iters=spec.max_iters, log_every_s=math.inf,
-                        checkpoint_dir=folder, checkpoint_every_s=10.0, resume=True, progress=False)
+                        checkpoint_dir=folder, checkpoint_every_s=10.0, resume=True, progress=False,
+                        checkpoint_meta=want)
     result = run(method, loop, setup_s=setup_s)
     final = result.log[-1] if result.log else {}
     out = {"iterations": result.iterations, "seconds": result.solve_s, "status": result.status,
