@@ -1,19 +1,23 @@
-"""`rngcam recon-batch`: one task per bundle, skip-if-done, failures reported, same on Ray."""
+"""`rngcam recon-batch`: one task per bundle, skip-if-done, failures reported, same on Ray.
+
+Ray runs in a private network namespace of its own (ray_private), loopback only."""
 
 import csv
 import json
-import os
 import shutil
+from pathlib import Path
 
 import pytest
+import ray_private
 from click.testing import CliRunner
 
 from rngcam.cli import main
 from rngcam.evaluate.synthetic import CaptureSpec, make_bundle
 from rngcam.recon.runner import ReconSettings
-from rngcam.scale.backend import SequentialBackend, ray_available
+from rngcam.scale.backend import SequentialBackend
 from rngcam.scale.batch import DONE_NAME, recon_batch
 
+RAY_WHY_NOT = ray_private.why_not()
 SETTINGS = ReconSettings(method="tv3d", time_budget_s=None, max_iters=3, progress=False)
 
 
@@ -83,26 +87,25 @@ def test_cli_prints_summary_and_fails_with_one_line_when_a_bundle_fails(bundles,
     assert bad.exit_code != 0 and "does not apply" in bad.output
 
 
-@pytest.mark.skipif(not ray_available(), reason="Ray is not installed (pip install 'rngcam[cluster]')")
-def test_ray_batch_gives_the_same_table_as_in_process(bundles, tmp_path):
-    import ray
+KEYS = ("status", "iterations", "psnr_db", "residual_rs", "residual_gs")
 
+
+def ray_batch(bundles: list[str], out: str) -> dict:
+    """Runs in a private network namespace (ray_private): the batch through RayBackend's own local Ray."""
     from rngcam.scale.ray_backend import RayBackend
 
+    on_ray = recon_batch([Path(b) for b in bundles], Path(out), SETTINGS, backend_factory=RayBackend,
+                         echo=lambda s: None)
+    return {"backend": on_ray.backend, "rows": [[r[k] for k in KEYS] for r in on_ray.rows]}
+
+
+@pytest.mark.skipif(RAY_WHY_NOT is not None, reason=str(RAY_WHY_NOT))
+def test_ray_batch_gives_the_same_table_as_in_process(bundles, tmp_path):
     a, _, junk = bundles
-    started = not ray.is_initialized()
-    if started:
-        os.environ.setdefault("RAY_worker_niceness", "0")  # as RayBackend: workers not starved at nice 15
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        on_ray = recon_batch([junk, a], tmp_path / "ray", SETTINGS, backend_factory=RayBackend, echo=lambda s: None)
-    finally:
-        if started:
-            ray.shutdown()
+    on_ray = ray_private.call("test_batch", "ray_batch", bundles=[str(junk), str(a)], out=str(tmp_path / "ray"))
     here = recon_batch([junk, a], tmp_path / "seq", SETTINGS, backend_factory=SequentialBackend, echo=lambda s: None)
-    assert on_ray.backend.startswith("Ray (local")
-    keys = ("status", "iterations", "psnr_db", "residual_rs", "residual_gs")
-    assert [[r[k] for k in keys] for r in on_ray.rows] == [[r[k] for k in keys] for r in here.rows]
+    assert on_ray["backend"].startswith("Ray (local")
+    assert on_ray["rows"] == [[r[k] for k in KEYS] for r in here.rows]
 
 
 def test_without_ray_everything_runs_in_process_and_says_so(monkeypatch):

@@ -1,4 +1,6 @@
-"""`rngcam sweep`: held-out choice vs truth, successive halving, Ray = in-process, retries, caching."""
+"""`rngcam sweep`: held-out choice vs truth, successive halving, Ray = in-process, retries, caching.
+
+Ray runs in a private network namespace of its own (ray_private), loopback only."""
 
 import csv
 import json
@@ -9,20 +11,22 @@ import sys
 from pathlib import Path
 
 import pytest
+import ray_private
 from click.testing import CliRunner
 from scipy.stats import spearmanr
 
 from rngcam.cli import main
 from rngcam.errors import ConfigError
 from rngcam.evaluate.synthetic import CaptureSpec, make_psf, moving_square, timings, write_capture
-from rngcam.scale.backend import SequentialBackend, ray_available
+from rngcam.scale.backend import SequentialBackend
 from rngcam.scale.sweep import SweepSettings, default_rungs, rung_budgets, setting_grid, sweep
 from rngcam.scale.trial import run_trial
 
 SIZE = 16
 GRID = {"beta": [0.1, 1.0, 10.0, 100.0], "tau": [1e-4, 1e-3, 1e-2]}
 QUIET = {"echo": lambda s: None}
-needs_ray = pytest.mark.skipif(not ray_available(), reason="Ray is not installed (pip install 'rngcam[cluster]')")
+RAY_WHY_NOT = ray_private.why_not()
+needs_private_ray = pytest.mark.skipif(RAY_WHY_NOT is not None, reason=str(RAY_WHY_NOT))
 
 
 @pytest.fixture(scope="module")
@@ -122,41 +126,42 @@ def _dying_trial(spec, problem):
     return run_trial(spec, problem)
 
 
-@pytest.fixture(scope="module")
-def ray_session():
-    if not ray_available():
-        pytest.skip("Ray is not installed (pip install 'rngcam[cluster]')")
-    import ray
-
-    started = not ray.is_initialized()
-    if started:
-        os.environ.setdefault("RAY_worker_niceness", "0")  # as RayBackend: workers not starved at nice 15
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # ship _dying_trial by value
-    yield ray
-    if started:
-        ray.shutdown()
-
-
 def _table(path):
     with open(path) as fh:
         return [{k: v for k, v in row.items() if k != "seconds"} for row in csv.DictReader(fh)]
 
 
-@needs_ray
-def test_ray_and_in_process_give_identical_tables_and_a_killed_worker_is_retried(bundle, tmp_path, ray_session):
-    from rngcam.scale.ray_backend import RayBackend
-
-    settings = SweepSettings(method="tv3d", grid={"beta": [0.1, 1.0, 10.0], "tau": [1e-3]}, max_iters=30,
+RAY_SETTINGS = SweepSettings(method="tv3d", grid={"beta": [0.1, 1.0, 10.0], "tau": [1e-3]}, max_iters=30,
                              holdout=0.2, folds=1, refit=False)
-    sweep(bundle, tmp_path / "seq", settings, backend_factory=SequentialBackend, **QUIET)
-    on_ray = sweep(bundle, tmp_path / "ray", settings, backend_factory=RayBackend, **QUIET)
-    assert on_ray.backend.startswith("Ray (local")
+
+
+def ray_sweeps(bundle: str, out: str) -> dict:
+    """Runs in a private network namespace (ray_private): the sweep on a local Ray, then again with
+    every trial's worker killed half way through its first attempt."""
+    import ray
+
+    from rngcam.scale.ray_backend import LocalRay, RayBackend
+
+    local = LocalRay(num_cpus=2)
+    try:
+        ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # ship _dying_trial by value
+        on_ray = sweep(Path(bundle), Path(out) / "ray", RAY_SETTINGS, backend_factory=RayBackend, **QUIET)
+        killed = sweep(Path(bundle), Path(out) / "killed", RAY_SETTINGS, backend_factory=RayBackend,
+                       trial_fn=_dying_trial, **QUIET)
+    finally:
+        local.stop()
+    return {"backend": on_ray.backend, "killed": [[r["key"], r["status"]] for r in killed.rows]}
+
+
+@needs_private_ray
+def test_ray_and_in_process_give_identical_tables_and_a_killed_worker_is_retried(bundle, tmp_path):
+    sweep(bundle, tmp_path / "seq", RAY_SETTINGS, backend_factory=SequentialBackend, **QUIET)
+    on_ray = ray_private.call("test_sweep", "ray_sweeps", bundle=str(bundle), out=str(tmp_path))
+    assert on_ray["backend"].startswith("Ray (local")
     assert _table(tmp_path / "ray" / "sweep.csv") == _table(tmp_path / "seq" / "sweep.csv")
-    # Every trial's worker dies half way through its first attempt; Ray retries, the sweep completes.
-    killed = sweep(bundle, tmp_path / "killed", settings, backend_factory=RayBackend, trial_fn=_dying_trial, **QUIET)
-    assert all(r["status"] == "ok" for r in killed.rows)
-    assert all((tmp_path / "killed" / "trials" / r["key"] / "killed-once").exists() for r in killed.rows)
+    # Every trial's worker died half way through its first attempt; Ray retried, the sweep completed.
+    assert [status for _, status in on_ray["killed"]] == ["ok"] * 3
+    assert all((tmp_path / "killed" / "trials" / key / "killed-once").exists() for key, _ in on_ray["killed"])
     assert _table(tmp_path / "killed" / "sweep.csv") == _table(tmp_path / "seq" / "sweep.csv")
 
 
