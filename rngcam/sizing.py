@@ -19,6 +19,7 @@ from rngcam.formats.bundle import Bundle, camera_channels
 from rngcam.memory import total_memory_bytes
 from rngcam.physics.sensor import BAYER_FORMATS
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+from rngcam.untrusted import printable
 
 DEFAULT_MAX_FRAMES = 100_000
 MEMORY_FRACTION = 0.8  # of the machine's memory: the default --max-memory
@@ -77,7 +78,11 @@ def plan_grid(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = 
         raise BundleError("the bundle has no rolling-shutter camera; the video grid is defined by it")
     mosaic = 2 if cam.pixel_format in BAYER_FORMATS else 1
     if grid_bin is None:
-        grid_bin = int(bundle.meta.get("grid_bin", mosaic))
+        grid_bin = bundle.meta.get("grid_bin", mosaic)
+        if not isinstance(grid_bin, (int, float)) or not (1 <= grid_bin <= 1024) or grid_bin != int(grid_bin):
+            raise BundleError(f"the bundle's meta grid_bin must be a whole number from 1 to 1024, "
+                              f"got {printable(repr(grid_bin), 60)}")
+        grid_bin = int(grid_bin)
     if int(grid_bin) != grid_bin or grid_bin < 1:
         raise SettingError(f"grid_bin must be a positive integer, got {grid_bin!r}", "grid_bin")
     if grid_bin % mosaic:

@@ -152,7 +152,7 @@ class _Reader:
         where = f"'{g.name}'" if g.name != "/" else "root"
         try:
             value = json.loads(text)
-        except ValueError:
+        except (ValueError, RecursionError):  # RecursionError: nested deeper than Python's stack
             self.problems.append(f"attribute {name!r} in {where} is not valid JSON")
             return default, False
         if not isinstance(value, kind):
