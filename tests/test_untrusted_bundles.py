@@ -337,6 +337,10 @@ def test_a_dollar_in_a_label_is_plotted_as_text():
     assert plain("cost $5 $\\alpha$") == "cost \\$5 \\$\\alpha\\$"
     uri = image_figure({"run $x^{$": np.zeros((3, 4, 4), np.float32)}, title="a$b$$")
     assert uri.startswith("data:image/png")
+    from rngcam.recon.report.figures import time_plot
+
+    plot = time_plot(np.arange(4.0), {"r$x^{$": {"m": np.ones(4)}}, np.zeros(0), [("m", "|motion|")], 1.0)
+    assert plot["uri"].startswith("data:image/png")
 
 
 def test_h5safe_limits_are_checked_before_reading(tmp_path):

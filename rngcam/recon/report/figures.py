@@ -188,7 +188,7 @@ def errors_plot(logs: dict[str, list[dict]], noise_level: float | None) -> str:
     """outputs.plot_errors (error against run time, the noise level drawn) as a data URI."""
     with tempfile.TemporaryDirectory() as tmp:
         png = Path(tmp) / "errors.png"
-        plot_errors(png, logs, noise_level=noise_level)
+        plot_errors(png, {plain(name): log for name, log in logs.items()}, noise_level=noise_level)
         return data_uri(png.read_bytes(), "image/png")
 
 
