@@ -6,6 +6,7 @@ without following a link someone planted there (`write_new`, `open_own`).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import tempfile
@@ -103,3 +104,26 @@ def _regular(st: os.stat_result) -> bool:
     import stat
 
     return stat.S_ISREG(st.st_mode)
+
+
+@contextlib.contextmanager
+def replacing(path: Path, *, replace: bool = True):
+    """Yield a fresh temporary path beside `path` for a writer that opens files by name (h5py,
+    tifffile, PyAV, matplotlib); once it is written it is renamed onto `path` (a planted link is
+    replaced, never followed), and on failure removed. Without `replace` an existing `path` is
+    refused in one line, before and (atomically, by a hard link) after the write."""
+    path = Path(path)
+    if not replace and os.path.lexists(path):
+        raise RngcamError(f"refusing to replace {path}: it exists (pass --overwrite to replace it)")
+    tmp = temp_beside(path)
+    try:
+        yield tmp
+        if replace:
+            os.replace(tmp, path)
+        else:
+            try:
+                os.link(tmp, path, follow_symlinks=False)
+            except FileExistsError:
+                raise RngcamError(f"refusing to replace {path}: it exists (pass --overwrite to replace it)") from None
+    finally:
+        tmp.unlink(missing_ok=True)

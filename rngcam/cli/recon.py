@@ -92,6 +92,7 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memor
     ("status": "interrupted") and a checkpoint that --resume continues.
     """
     from rngcam.api import reconstruct
+    from rngcam.recon.runlog import append_lines
 
     method_settings = settings_from_options(method, pop_method_values(opts))
     out = out_dir or default_out_dir(bundle, method)
@@ -106,9 +107,7 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memor
 
     def say(line: str, err: bool = False) -> None:  # the run's last lines go to its recon.log too
         click.echo(line, err=err)
-        if log.is_file():
-            with log.open("a") as fh:
-                fh.write(line + "\n")
+        append_lines(log, [line])
 
     say(result.summary())
     for caveat in result.metrics.get("error_visibility_caveats", []):

@@ -23,6 +23,24 @@ def _folders(dirs: tuple[str, ...]) -> list[Path]:
     return out
 
 
+def _refuse_an_input(target: Path, folders: list[Path]) -> None:
+    """One line when `target` is (or leads to) a file these commands read: a folder's recon.h5,
+    metrics.json or errors.csv; even --overwrite never replaces those."""
+    for folder in folders:
+        for name in ("recon.h5", "metrics.json", "errors.csv"):
+            if _same(target, folder / name):
+                raise ConfigError(f"refusing to write {target}: it is {folder / name}, which this command reads")
+
+
+def _same(a: Path, b: Path) -> bool:
+    if os.path.abspath(a) == os.path.abspath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
 @click.command("report")
 @click.argument("dirs", nargs=-1, required=True, metavar="DIR...")
 @click.option("-o", "--output", type=click.Path(dir_okay=True), default=None,
@@ -30,7 +48,9 @@ def _folders(dirs: tuple[str, ...]) -> list[Path]:
                    "common parent folder].")
 @click.option("--no-hash-check", is_flag=True,
               help="Show the bundle's truth without checking its sha256 against recon.h5 (faster on big bundles).")
-def report_cmd(dirs: tuple[str, ...], output: str | None, no_hash_check: bool) -> None:
+@click.option("--overwrite", is_flag=True,
+              help="Replace the file -o names if it exists (without it, an existing file is refused).")
+def report_cmd(dirs: tuple[str, ...], output: str | None, no_hash_check: bool, overwrite: bool) -> None:
     """Write report.html for the reconstructions in DIR...: one page, one frame slider, every
     method's video beside the truth (when the bundle has one), figures, settings and notes.
 
@@ -41,9 +61,12 @@ def report_cmd(dirs: tuple[str, ...], output: str | None, no_hash_check: bool) -
     if output is None and len(folders) == 1:
         path = write_report(folders[0], check_hash=not no_hash_check)
     else:
+        replace = output is None or overwrite  # the default page is the folders' own; -o's file may be anything
         if output is None:
             output = Path(os.path.commonpath([str(f.resolve()) for f in folders])) / "report.html"
-        path = write_comparison(folders, output, check_hash=not no_hash_check)
+        target = Path(output) / "report.html" if Path(output).is_dir() else Path(output)
+        _refuse_an_input(target, folders)
+        path = write_comparison(folders, target, check_hash=not no_hash_check, replace=replace)
     click.echo(f"report: {path}")
 
 
@@ -53,9 +76,12 @@ def report_cmd(dirs: tuple[str, ...], output: str | None, no_hash_check: bool) -
 @click.option("--slowdown", type=float, default=None,
               help="Play this many times slower than captured (sets --fps from the capture rate).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
-              help="The MP4 to write [DIR/preview.mp4, replaced].")
+              help="The MP4 to write [DIR/preview.mp4, replaced]; with a capture rate, <name>.json beside it too.")
+@click.option("--overwrite", is_flag=True,
+              help="Replace the MP4 -o names and its <name>.json if they exist (without it, they are refused).")
 @click.option("--no-stamp", is_flag=True, help="Leave the frames without their time stamp.")
-def preview_cmd(folder: str, fps: float | None, slowdown: float | None, output: str | None, no_stamp: bool) -> None:
+def preview_cmd(folder: str, fps: float | None, slowdown: float | None, output: str | None, overwrite: bool,
+                no_stamp: bool) -> None:
     """Re-encode DIR's preview.mp4 from recon.h5 at a chosen playback rate, each frame stamped
     with its time in µs (and GS where a key frame sits)."""
     from rngcam.recon.outputs import write_mp4
@@ -67,14 +93,16 @@ def preview_cmd(folder: str, fps: float | None, slowdown: float | None, output: 
     for name, value in (("--fps", fps), ("--slowdown", slowdown)):
         if value is not None and not value > 0:
             raise ConfigError(f"{name} must be positive, got {value:g}")
+    out = Path(output) if output else path / "preview.mp4"
+    _refuse_an_input(out, [path])
+    _refuse_an_input(out.with_suffix(".json"), [path])
     h5 = read_recon_h5(path / "recon.h5")
     capture_fps = float(h5["attrs"].get("fps") or 0) or None
     if slowdown is not None:
         if capture_fps is None:
             raise ConfigError("recon.h5 does not record its frame rate; give --fps")
         fps = capture_fps / slowdown
-    out = Path(output) if output else path / "preview.mp4"
-    write_mp4(out, h5["video"], fps=fps or 30.0, capture_fps=capture_fps,
+    write_mp4(out, h5["video"], fps=fps or 30.0, capture_fps=capture_fps, replace=output is None or overwrite,
               frame_times_s=None if no_stamp else h5["frame_times_s"], key_times_s=h5.get("key_frame_times_s"))
     rate = fps or 30.0
     slower = f" ({capture_fps / rate:,.0f}x slower than captured)" if capture_fps else ""

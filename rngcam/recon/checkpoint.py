@@ -29,9 +29,9 @@ from rngcam.untrusted import clean_temps, open_own, printable, temp_beside
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_NAME = "recon.log"
 # Every file a reconstruction writes into its folder (report.html: the report of the folder);
-# checkpoint.pt.partial: an older rngcam's temporary name.
+# checkpoint.pt.partial and .metrics.json.partial: an older rngcam's temporary names.
 OUTPUT_NAMES = ("recon.h5", "video.tif", "preview.mp4", "preview.json", "errors.csv", "errors.png", "metrics.json",
-                CHECKPOINT_NAME, CHECKPOINT_NAME + ".partial", LOG_NAME, "report.html")
+                CHECKPOINT_NAME, CHECKPOINT_NAME + ".partial", ".metrics.json.partial", LOG_NAME, "report.html")
 # 1: no identity (before resume was checked); 2: pickled objects (read with weights_only=False);
 # 3: data only (tensors and plain values).
 CHECKPOINT_FORMAT = 3

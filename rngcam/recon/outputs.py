@@ -16,14 +16,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from rngcam.errors import ConfigError
+from rngcam.errors import ConfigError, RngcamError
+from rngcam.untrusted import replacing, write_new
 from rngcam.version import __version__
-
-
-def _atomic_h5(path: Path):
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
-    return tmp, h5py.File(tmp, "w")
-
 
 # What the numbers in recon.h5 mean, for tools that read its attributes (napari, h5py, Fiji's HDF5).
 INTENSITY_UNIT = ("linear; 1.0 = a static scene that fills the sensor's full scale (above the black level) "
@@ -69,51 +64,46 @@ def write_recon_h5(path: Path, video: np.ndarray, frame_times_s: np.ndarray, set
     Every dataset says its axes and units in attributes; `context` (recon_context) adds the
     bundle's path and capture time, the key frames and their times, and the RS image."""
     ctx = context or {}
-    tmp, f = _atomic_h5(path)
-    try:
-        with f:
-            f.attrs["format"] = "rngcam-recon"
-            f.attrs["rngcam_version"] = __version__
-            f.attrs["created_utc"] = datetime.now(timezone.utc).isoformat()
-            f.attrs["bundle_sha256"] = bundle_checksum
-            f.attrs["bundle_path"] = ctx.get("bundle_path", "")
-            f.attrs["capture_utc"] = ctx.get("capture_utc", "")
-            f.attrs["settings"] = json.dumps(settings, default=str)
-            f.attrs["left_out"] = json.dumps(left_out or [])
-            times = np.asarray(frame_times_s, np.float64)
-            dt = ctx.get("dt_s", float(np.median(np.diff(times))) if times.size > 1 else float("nan"))
-            f.attrs["frame_interval_s"] = dt
-            f.attrs["fps"] = 1.0 / dt if dt > 0 else float("nan")
-            if "rs_noise_level" in ctx:
-                f.attrs["rs_noise_level"] = ctx["rs_noise_level"]
-            if "pixel_size_m" in ctx:
-                f.attrs["pixel_size_m"] = ctx["pixel_size_m"]
-            ds = f.create_dataset("video", shape=video.shape, dtype=np.float32,
-                                  chunks=(video.shape[0], 1, *video.shape[2:]))
-            for k in range(0, video.shape[1], DISPLAY_CHUNK):  # a float32 copy of a chunk at a time
-                ds[:, k:k + DISPLAY_CHUNK] = np.asarray(video[:, k:k + DISPLAY_CHUNK], np.float32)
-            channels = "R,G,B" if video.shape[0] == 3 else ",".join(f"c{i}" for i in range(video.shape[0]))
-            _set_axes(ds, "C,T,Y,X", channels=channels, intensity_unit=INTENSITY_UNIT,
-                      display_range=np.array([0.0, 1.0]), time_source="frame_times_s")
-            f["frame_times_s"] = times
-            _set_axes(f["frame_times_s"], "T", units="s", meaning=FRAME_TIMES_NOTE)
-            if "key_frame_times_s" in ctx:
-                f["key_frame_times_s"] = np.asarray(ctx["key_frame_times_s"], np.float64)
-                _set_axes(f["key_frame_times_s"], "G", units="s",
-                          meaning="mid-exposure time of each GS key frame, seconds from T0")
-            if "key_frames" in ctx:
-                f["key_frames"] = np.asarray(ctx["key_frames"], np.float32)
-                _set_axes(f["key_frames"], "C,G,Y,X", intensity_unit=INTENSITY_UNIT)
-            if "rs_image" in ctx:
-                f["rs_image"] = np.asarray(ctx["rs_image"], np.float32)
-                _set_axes(f["rs_image"], "C,Y,X", intensity_unit="the RS measurement on the grid, "
-                          "operator units (a sum over the frames each row's exposure covers)")
-            for name, arr in (components or {}).items():
-                f[f"components/{name}"] = np.asarray(arr, np.float32)  # no copy when float32 already
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    # h5py follows a link at the name it creates: it writes a fresh temporary file, renamed onto `path`
+    with replacing(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["format"] = "rngcam-recon"
+        f.attrs["rngcam_version"] = __version__
+        f.attrs["created_utc"] = datetime.now(timezone.utc).isoformat()
+        f.attrs["bundle_sha256"] = bundle_checksum
+        f.attrs["bundle_path"] = ctx.get("bundle_path", "")
+        f.attrs["capture_utc"] = ctx.get("capture_utc", "")
+        f.attrs["settings"] = json.dumps(settings, default=str)
+        f.attrs["left_out"] = json.dumps(left_out or [])
+        times = np.asarray(frame_times_s, np.float64)
+        dt = ctx.get("dt_s", float(np.median(np.diff(times))) if times.size > 1 else float("nan"))
+        f.attrs["frame_interval_s"] = dt
+        f.attrs["fps"] = 1.0 / dt if dt > 0 else float("nan")
+        if "rs_noise_level" in ctx:
+            f.attrs["rs_noise_level"] = ctx["rs_noise_level"]
+        if "pixel_size_m" in ctx:
+            f.attrs["pixel_size_m"] = ctx["pixel_size_m"]
+        ds = f.create_dataset("video", shape=video.shape, dtype=np.float32,
+                              chunks=(video.shape[0], 1, *video.shape[2:]))
+        for k in range(0, video.shape[1], DISPLAY_CHUNK):  # a float32 copy of a chunk at a time
+            ds[:, k:k + DISPLAY_CHUNK] = np.asarray(video[:, k:k + DISPLAY_CHUNK], np.float32)
+        channels = "R,G,B" if video.shape[0] == 3 else ",".join(f"c{i}" for i in range(video.shape[0]))
+        _set_axes(ds, "C,T,Y,X", channels=channels, intensity_unit=INTENSITY_UNIT,
+                  display_range=np.array([0.0, 1.0]), time_source="frame_times_s")
+        f["frame_times_s"] = times
+        _set_axes(f["frame_times_s"], "T", units="s", meaning=FRAME_TIMES_NOTE)
+        if "key_frame_times_s" in ctx:
+            f["key_frame_times_s"] = np.asarray(ctx["key_frame_times_s"], np.float64)
+            _set_axes(f["key_frame_times_s"], "G", units="s",
+                      meaning="mid-exposure time of each GS key frame, seconds from T0")
+        if "key_frames" in ctx:
+            f["key_frames"] = np.asarray(ctx["key_frames"], np.float32)
+            _set_axes(f["key_frames"], "C,G,Y,X", intensity_unit=INTENSITY_UNIT)
+        if "rs_image" in ctx:
+            f["rs_image"] = np.asarray(ctx["rs_image"], np.float32)
+            _set_axes(f["rs_image"], "C,Y,X", intensity_unit="the RS measurement on the grid, "
+                      "operator units (a sum over the frames each row's exposure covers)")
+        for name, arr in (components or {}).items():
+            f[f"components/{name}"] = np.asarray(arr, np.float32)  # no copy when float32 already
 
 
 DISPLAY_CHUNK = 16  # frames converted at a time: float temporaries of 16 frames, not of the video
@@ -162,14 +152,16 @@ def stamp_frames(frames: np.ndarray, times_s: np.ndarray, key_times_s: np.ndarra
 
 
 def write_mp4(path: Path, video: np.ndarray, fps: float = 30.0, capture_fps: float | None = None,
-              frame_times_s: np.ndarray | None = None, key_times_s: np.ndarray | None = None) -> None:
+              frame_times_s: np.ndarray | None = None, key_times_s: np.ndarray | None = None,
+              replace: bool = True) -> None:
     """H.264 preview via PyAV played at `fps`; sides are padded to even sizes and small videos
     upscaled. With `frame_times_s`, each frame is stamped with its time in µs (and "GS" where a
     key frame sits: `key_times_s`).
 
     With `capture_fps`, the container's metadata (title, comment) state the capture frame rate
     and the slow-down, and a sidecar `<name>.json` beside it repeats them for tools that do not
-    read MP4 metadata.
+    read MP4 metadata. Both are written beside and renamed into place; without `replace` an
+    existing file of either name is refused in one line (before anything is written).
     """
     from fractions import Fraction
 
@@ -190,9 +182,15 @@ def write_mp4(path: Path, video: np.ndarray, fps: float = 30.0, capture_fps: flo
             frames = stamp_frames(frames, frame_times_s[i:i + DISPLAY_CHUNK], key_times_s, dt)
         return frames
 
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}.mp4")
     timing = playback(capture_fps, fps)
-    with av.open(str(tmp), "w") as out:
+    sidecar = path.with_suffix(".json")
+    if sidecar == path:
+        raise ConfigError(f"a preview's name must not end in .json (its sidecar is <name>.json): {path}")
+    written = (path, sidecar) if "capture_fps" in timing else (path,)
+    for p in written if not replace else ():
+        if os.path.lexists(p):
+            raise RngcamError(f"refusing to replace {p}: it exists (pass --overwrite to replace it)")
+    with replacing(path, replace=replace) as tmp, av.open(str(tmp), "w", format="mp4") as out:
         if "capture_fps" in timing:
             note = (f"captured at {timing['capture_fps']:,.1f} fps, played at {fps:g} fps: "
                     f"{timing['slowdown']:,.1f}x slow motion")
@@ -206,10 +204,9 @@ def write_mp4(path: Path, video: np.ndarray, fps: float = 30.0, capture_fps: flo
                     out.mux(packet)
         for packet in stream.encode():
             out.mux(packet)
-    os.replace(tmp, path)
     if "capture_fps" in timing:
-        sidecar = path.with_suffix(".json")
-        sidecar.write_text(json.dumps({"file": path.name, "frames": int(video.shape[1]), **timing}, indent=2))
+        write_new(sidecar, json.dumps({"file": path.name, "frames": int(video.shape[1]), **timing}, indent=2),
+                  replace=replace)
 
 
 def write_tiff(path: Path, video: np.ndarray, frame_interval_s: float | None = None,
@@ -229,8 +226,9 @@ def write_tiff(path: Path, video: np.ndarray, frame_interval_s: float | None = N
         resolution = (per_um, per_um)
     c, k, h, w = video.shape
     planes = (np.asarray(video[ch, t], np.float32) for t in range(k) for ch in range(c))  # no (T, C) copy
-    tifffile.imwrite(path, planes, shape=(k, c, h, w), dtype=np.float32, imagej=True, metadata=meta,
-                     resolution=resolution)
+    with replacing(path) as tmp:
+        tifffile.imwrite(tmp, planes, shape=(k, c, h, w), dtype=np.float32, imagej=True, metadata=meta,
+                         resolution=resolution)
 
 
 def write_errors(csv_path: Path, png_path: Path, log: list[dict], title: str = "",
@@ -240,7 +238,7 @@ def write_errors(csv_path: Path, png_path: Path, log: list[dict], title: str = "
     keys: list[str] = []
     for row in log:
         keys += [k for k in row if k not in keys]
-    with open(csv_path, "w", newline="") as fh:
+    with replacing(csv_path) as tmp, open(tmp, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=keys)
         w.writeheader()
         w.writerows(log)
@@ -319,11 +317,14 @@ def plot_errors(png_path: Path, runs: dict[str, list[dict]], noise_level: float 
         fig.text(0.01, 0.01, f"{', '.join(one_shot)}: {ONE_SHOT_NOTE}; dotted bars: end of each fit's set-up",
                  fontsize=7, color="0.3")
     fig.tight_layout(rect=(0, 0.04 if one_shot else 0, 1, 1))
-    fig.savefig(png_path, dpi=110)
+    if isinstance(png_path, str | os.PathLike):  # a file by name: written beside, renamed into place
+        with replacing(Path(png_path)) as tmp:
+            fig.savefig(tmp, dpi=110, format="png")
+    else:
+        fig.savefig(png_path, dpi=110, format="png")
     plt.close(fig)
 
 
 def write_metrics(path: Path, metrics: dict) -> None:
-    tmp = path.with_name(f".{path.name}.partial")
-    tmp.write_text(json.dumps(metrics, indent=2, default=float))
-    os.replace(tmp, path)
+    """metrics.json, written beside and renamed into place."""
+    write_new(path, json.dumps(metrics, indent=2, default=float))

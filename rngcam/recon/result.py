@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -10,6 +11,8 @@ import numpy as np
 from rngcam.memory import release_free_memory
 from rngcam.recon import outputs
 from rngcam.recon.checkpoint import LOG_NAME
+from rngcam.recon.runlog import LINE_LIMIT
+from rngcam.untrusted import printable, write_new
 
 # What a run's `status` can be: "ok" (the method's own stop, its iterations or the budget after
 # some iterations), "failed" (non-finite steps: the last good state), "interrupted" (SIGINT or
@@ -66,8 +69,9 @@ class Result:
         outputs.write_errors(out / "errors.csv", out / "errors.png", self.log, self.method,
                              noise_level=ctx.get("rs_noise_level"))
         outputs.write_metrics(out / "metrics.json", self.metrics)
-        if self.lines and not (out / LOG_NAME).exists():  # a run made in memory: its lines and summary
-            (out / LOG_NAME).write_text("\n".join([*self.lines, self.summary()]) + "\n", encoding="utf-8")
+        if self.lines and not os.path.lexists(out / LOG_NAME):  # a run made in memory: its lines and summary
+            said = [*self.lines, self.summary()]
+            write_new(out / LOG_NAME, "".join(printable(line, LINE_LIMIT) + "\n" for line in said))
         release_free_memory(collect=False)  # the writers' freed heap pages go before the page is built
         write_report_or_warn(out, echo or (lambda line: None), truth)  # from the folder just written
         return out

@@ -10,8 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
+from rngcam.errors import RngcamError
 from rngcam.recon.report import figures, page
 from rngcam.recon.report.load import Run, is_recon_file, load_runs, load_truth, read_recon_h5
+from rngcam.untrusted import write_new
 
 __all__ = ["is_recon_file", "read_recon_h5", "write_comparison", "write_report", "write_report_or_warn"]
 
@@ -182,10 +184,10 @@ def build_report(runs: list[Run], title: str | None = None, check_hash: bool = T
     return page.page(title, meta, warnings, sections, data)
 
 
-def _write_atomic(path: Path, text: str) -> Path:
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
+def _write_atomic(path: Path, text: str, replace: bool = True) -> Path:
+    """`text` to `path` through a fresh temporary file and a rename (never through a link planted
+    at `path`); without `replace` an existing `path` is one line."""
+    write_new(path, text, replace=replace)
     return path
 
 
@@ -197,14 +199,19 @@ def write_report(folder: str | Path, check_hash: bool = True, truth: np.ndarray 
     return _write_atomic(folder / "report.html", build_report(runs, check_hash=check_hash, truth=truth))
 
 
-def write_comparison(folders: list[str | Path], out: str | Path, check_hash: bool = True) -> Path:
-    """One page with several reconstructions of one bundle side by side, written to `out`."""
+def write_comparison(folders: list[str | Path], out: str | Path, check_hash: bool = True,
+                     replace: bool = True) -> Path:
+    """One page with several reconstructions of one bundle side by side, written to `out` (a
+    folder: its report.html); without `replace` an existing page there is refused in one line,
+    before the page is built."""
     runs = load_runs(list(folders))
     out = Path(out)
     if out.is_dir():
         out = out / "report.html"
+    if not replace and os.path.lexists(out):
+        raise RngcamError(f"refusing to replace {out}: it exists (pass --overwrite to replace it)")
     out.parent.mkdir(parents=True, exist_ok=True)
-    return _write_atomic(out, build_report(runs, check_hash=check_hash))
+    return _write_atomic(out, build_report(runs, check_hash=check_hash), replace=replace)
 
 
 def write_report_or_warn(folder: Path, echo=print, truth: np.ndarray | None = None) -> Path | None:
