@@ -36,6 +36,7 @@ import torch
 
 from rngcam.evaluate.scenes import scene_problem as simulated_problem
 from rngcam.recon import registry
+from rngcam.recon.checkpoint import plain
 from rngcam.recon.metrics import motion_metrics, video_metrics
 from rngcam.recon.runner import method_view
 
@@ -66,7 +67,7 @@ def run_scene(scene: str, size: int, work: Path, deadline: float, log_every: flo
     ckpt, log_path = folder / "checkpoint.pt", folder / "log.jsonl"
     fit_s, cpu_s = 0.0, 0.0
     if ckpt.is_file():
-        saved = torch.load(ckpt, weights_only=False)
+        saved = torch.load(ckpt, weights_only=True)  # data only (checkpoint.plain on save)
         method.load_state_dict(saved["method"])
         fit_s, cpu_s = saved["fit_s"], saved.get("cpu_s", math.nan)
         torch.set_rng_state(saved["rng"])
@@ -95,8 +96,10 @@ def run_scene(scene: str, size: int, work: Path, deadline: float, log_every: flo
                   f"dynamic {row['psnr_dynamic_db']:.2f} dB", flush=True)
             next_log = clock + log_every
         if clock >= next_save or time.time() >= deadline:
-            torch.save({"method": method.state_dict(), "fit_s": fit_s, "cpu_s": cpu_s, "rng": torch.get_rng_state()},
-                       ckpt)
+            tmp = ckpt.with_name(f".{ckpt.name}.{os.getpid()}.partial")
+            torch.save(plain({"method": method.state_dict(), "fit_s": fit_s, "cpu_s": cpu_s,
+                              "rng": torch.get_rng_state()}), tmp)
+            os.replace(tmp, ckpt)
             np.save(folder / f"estimate_{method.steps:08d}.npy",
                     method.estimate().detach().cpu().numpy().astype(np.float16))
             next_save = clock + save_every

@@ -104,10 +104,25 @@ def peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def problem_globals() -> list:
+    """What a pickled Problem (measure_memory's, made by this script) holds besides tensors: the
+    explicit allow-list that lets it load with weights_only=True."""
+    from numpy._core.multiarray import _reconstruct
+
+    from rngcam.physics.timing import VideoGrid
+    from rngcam.recon.problem import Problem
+
+    dtypes = [getattr(np.dtypes, f"{kind}DType") for kind in (
+        "Float64", "Float32", "Float16", "Int64", "Int32", "Int16", "Int8", "UInt64", "UInt32", "UInt16", "UInt8",
+        "Bool")]
+    return [Problem, VideoGrid, _reconstruct, np.ndarray, np.dtype, *dtypes]
+
+
 def memory_child(problem_path: str, steps: int) -> None:
     """Run in a fresh process: print JSON with RSS before the fit and the peak RSS (MiB) over
     `steps` steps, or (steps 0) the whole fit to its own stop (the ensemble's refinement included)."""
-    p = torch.load(problem_path, weights_only=False)
+    with torch.serialization.safe_globals(problem_globals()):
+        p = torch.load(problem_path, weights_only=True)
     torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # import the optimiser machinery first
     before = peak_rss_mib()
     r = reconstruct(p, "stfm-fast", progress=False, max_iters=steps or None, time_budget_s=None if steps else 1e6,
