@@ -266,3 +266,39 @@ def test_the_x_step_solves_the_normal_equations_and_leaves_its_start_alone():
     v = method._x_step(z, mu)
     assert torch.equal(z, z_before)  # the CG works in place on its own copies only
     assert misfit(v) < 1e-4 < misfit(z)
+
+
+@pytest.mark.parametrize("curvature", [0.0, float("nan"), 1e-9])
+def test_a_cg_breakdown_ends_the_x_step_instead_of_dividing(monkeypatch, curvature):
+    """d.q at or below a tiny multiple of r.r (zero, NaN, or under float32's eps) is the end of the
+    solve: the x-step returns its start instead of stepping by r.r / d.q."""
+    p = _problem(size=16)
+    method = PnP(p, PnPSettings(init="blend", cg_iters=10))
+    z = method.estimate()
+    normal = method._normal
+    calls = []
+
+    def flat(v, mu):
+        calls.append(1)
+        return normal(v, mu) if len(calls) == 1 else v * curvature  # the first call makes r from the start
+
+    monkeypatch.setattr(method, "_normal", flat)
+    v = method._x_step(z, 0.3)
+    assert len(calls) == 2 and torch.equal(v, z)  # one product seen to break down, no step taken
+
+
+def test_the_x_step_stops_at_rounding_on_a_problem_scaled_towards_underflow():
+    """Right-hand side and start scaled by 1e-15: within a few steps d.q, a float32 sum of squares,
+    underflows while r.r does not; the solve ends finite, and as accurate for its scale as at
+    scale 1 (norms taken in float64 here, where they cannot underflow)."""
+    scale = 1e-15
+    p = _problem(size=16)
+    method = PnP(p, PnPSettings(init="blend", cg_iters=60))
+    z, mu = method.estimate(), 0.3
+    rhs = (method.data_rhs() + mu * z).double()
+    at_one = method._x_step(z, mu).double()
+    method.blocks = [(op, b * scale) for op, b in method.blocks]
+    tiny = method._x_step(z * scale, mu)
+    assert bool(torch.isfinite(tiny).all())
+    misfit = float((method._normal(tiny, mu).double() - rhs * scale).norm() / (rhs * scale).norm())
+    assert misfit < 1e-4 and float((at_one * scale - tiny.double()).norm() / (at_one * scale).norm()) < 1e-4

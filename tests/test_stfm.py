@@ -526,6 +526,15 @@ def test_short_fit_improves_psnr_on_average():
     assert start < mid < end, (start, mid, end)
 
 
+def _reordering_tolerance(m, video: torch.Tensor) -> float:
+    """How far two evaluations of a fit that differ only in batch shape may differ: the order of
+    float32 sums changes, by at most about eps per term of each dot product along the way (the
+    fields' Linear layers, chained), at the output's scale; x4 for the grids' interpolation."""
+    terms = sum(layer.in_features for field in m.fields.values() for layer in field.modules()
+                if isinstance(layer, torch.nn.Linear))
+    return 4 * terms * torch.finfo(video.dtype).eps * max(float(video.abs().max()), 1.0)
+
+
 def test_outputs_use_the_moving_average_and_training_keeps_its_weights(sineball16):
     m = make_stfm(sineball16, small_settings(ema_decay=0.9))
     for _ in range(5):
@@ -539,8 +548,12 @@ def test_outputs_use_the_moving_average_and_training_keeps_its_weights(sineball1
     raw = make_stfm(sineball16, small_settings(ema_decay=0.0))
     for _ in range(5):
         raw.step()
-    assert raw._ema is None and torch.equal(raw.estimate(), raw.frames(torch.arange(raw.K)))
-    assert not torch.equal(averaged, raw.estimate())
+    # estimate() evaluates the fields chunk by chunk, frames() all at once: the same sums in
+    # other orders, so equal only to rounding (bitwise on some CPUs, not on others).
+    video = raw.estimate()
+    tol = _reordering_tolerance(raw, video)
+    assert raw._ema is None and float((video - raw.frames(torch.arange(raw.K)).detach()).abs().max()) <= tol
+    assert float((averaged - video).abs().max()) > 10 * tol  # the average is another video, beyond rounding
     with pytest.raises(ConfigError, match="ema_decay"):
         STFMSettings(ema_decay=1.0)
 

@@ -269,16 +269,29 @@ class PnP(MethodBase):
 
     def _x_step(self, z: Tensor, mu: float) -> Tensor:
         """A few CG steps on (sum A_i^T A_i + mu I) v = sum A_i^T b_i + mu z, from v = z.
-        In place: at 228x342x231 each video-sized temporary is 0.22 GB (bench/scale.md)."""
+        In place: at 228x342x231 each video-sized temporary is 0.22 GB (bench/scale.md).
+
+        It stops early where the residual is at the rounding of the right-hand side, and where
+        d.q is at or below a tiny multiple of r.r: the matrix is positive (semi)definite, so
+        such a d.q is the product's rounding (a breakdown, which the step 1/d.q would turn into
+        a division by zero or a huge step): the solve has gone as far as the dtype allows."""
+        eps = torch.finfo(z.dtype).eps
         v = z.clone()
         r = self._normal(v, mu).neg_().add_(z, alpha=mu)
-        r.add_(self.data_rhs())
+        rhs = self.data_rhs()
+        done_at = (eps * (float(torch.linalg.vector_norm(rhs)) + mu * float(torch.linalg.vector_norm(z)))) ** 2
+        r.add_(rhs)
+        del rhs
         d, rr = r.clone(), float(torch.linalg.vector_norm(r)) ** 2
         for _ in range(self.s.cg_iters):
-            if rr == 0 or not math.isfinite(rr):
+            if not (math.isfinite(rr) and rr > done_at):
                 break
             q = self._normal(d, mu)
-            alpha = rr / float(torch.linalg.vecdot(d.flatten(), q.flatten()))
+            dq = float(torch.linalg.vecdot(d.flatten(), q.flatten()))
+            # The data terms are scaled to unit norm: a curvature below eps is rounding.
+            if not dq > eps * rr:  # also NaN
+                break
+            alpha = rr / dq
             v.add_(d, alpha=alpha)
             r.sub_(q, alpha=alpha)
             del q
