@@ -151,3 +151,18 @@ def test_save_stores_method_state_as_plain_tensors(tmp_path):
     with pytest.raises(TypeError, match="data only"):
         checkpoint.save(path, {"method": {"f": object()}})
     assert [p.name for p in tmp_path.iterdir()] == [checkpoint.CHECKPOINT_NAME]  # no temporary file left
+
+
+def test_a_sweep_trial_resumes_its_own_checkpoint_and_refuses_another_trials(shot, tmp_path):
+    problem = build_problem(read_bundle(shot))
+    folder = tmp_path / "trials" / "a"
+    folder.mkdir(parents=True)
+    left = folder / ".checkpoint.pt.x1y2.rngcam-tmp"  # a killed worker's half-written checkpoint
+    left.write_bytes(b"half")
+    first = run_trial(TrialSpec(key="a", method="tv3d", max_iters=2, trial_dir=str(folder)), problem)
+    assert first["status"] == "ok" and first["iterations"] == 2 and not left.exists(), first
+    again = run_trial(TrialSpec(key="a", method="tv3d", max_iters=3, trial_dir=str(folder)), problem)
+    assert again["status"] == "ok" and again["iterations"] == 3, again
+    assert checkpoint.load(folder / checkpoint.CHECKPOINT_NAME)["iteration"] == 3
+    other = run_trial(TrialSpec(key="b", method="tv3d", max_iters=4, trial_dir=str(folder)), problem)
+    assert other["status"] == "failed" and "its settings differ: trial 'a' there, 'b' now" in other["message"]

@@ -28,6 +28,7 @@ from rngcam.recon.loop import CHECKPOINT_NAME, LoopSettings, run
 from rngcam.recon.metrics import video_metrics
 from rngcam.recon.problem import Problem
 from rngcam.recon.runner import ReconSettings, make_method, resolve_device
+from rngcam.untrusted import clean_temps
 
 TRUTH_KEYS = ("psnr_db", "ssim", "psnr_intermediate_db", "ssim_intermediate")
 
@@ -98,6 +99,7 @@ def _fit_fold(spec: TrialSpec, problem: Problem, folder: Path, device: str) -> d
     method = make_method(problem, settings, device)
     setup_s = time.perf_counter() - t0
     folder.mkdir(parents=True, exist_ok=True)
+    clean_temps(folder)  # a killed worker's half-written checkpoint
     want = checkpoint.identity(None, spec.method, {"trial": spec.key, "fold": folder.name})
     _drop_checkpoint_past_budget(folder / CHECKPOINT_NAME, spec, want)
     loop = LoopSettings(time_budget_s=spec.time_budget_s, max_iters=spec.max_iters, log_every_s=math.inf,
