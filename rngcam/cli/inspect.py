@@ -73,7 +73,8 @@ def inspect_cmd(bundle_path: str, as_json: bool, checksum: bool) -> None:
         _inspect(bundle_path, as_json, checksum)
     except RngcamError:
         raise
-    except (MemoryError, OverflowError, RecursionError, ValueError, ZeroDivisionError) as exc:
+    except (MemoryError, OverflowError, RecursionError, ValueError, ZeroDivisionError, KeyError,
+            RuntimeError, TypeError, OSError) as exc:
         # what a crafted file reaches past the checks: one line, never a traceback
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise RngcamError(f"{bundle_path}: unusable content ({printable(reason, 200)})") from None

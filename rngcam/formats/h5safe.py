@@ -112,6 +112,8 @@ def checked_dataset(group: h5py.Group, name: str, max_elements: int, dtypes: str
     most MAX_CHANNELS."""
     where = printable(f"{group.name.rstrip('/')}/{name}", 200)
     link = group.get(name, getlink=True)
+    if link is None:
+        raise UnsafeFileError(f"missing dataset '{where}'")
     if not isinstance(link, h5py.HardLink):
         raise UnsafeFileError(f"'{where}' is not a plain (hard-linked) object; refused")
     d = group[name]

@@ -90,11 +90,11 @@ class Problem:
 
     def key_frames(self) -> np.ndarray:
         """Indices of the frames any GS exposure touches."""
-        return np.flatnonzero(self.gs_weights.sum(0).numpy() > 0)
+        return np.flatnonzero(self.gs_weights.sum(0).cpu().numpy() > 0)
 
     def intermediate_frames(self) -> np.ndarray:
         """Frames away from the GS key frames (not touched by a GS exposure, nor next to one)."""
-        touched = self.gs_weights.sum(0).numpy() > 0
+        touched = self.gs_weights.sum(0).cpu().numpy() > 0
         near = touched | np.roll(touched, 1) | np.roll(touched, -1)
         return np.flatnonzero(~near)
 
@@ -322,6 +322,9 @@ def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | Non
     except (OverflowError, ZeroDivisionError, np.linalg.LinAlgError, cv2.error) as exc:
         reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
         raise BundleError(f"the bundle's content is unusable ({printable(reason, 200)})") from None
+    except (OSError, RuntimeError, KeyError) as exc:  # h5py, reading frames or truth of a damaged file
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise BundleError(f"the bundle is damaged: its data cannot be read ({printable(reason, 200)})") from None
     except MemoryError:
         raise BundleError("the bundle needs more memory than this machine has "
                           "(see `rngcam inspect` for its size)") from None
@@ -469,7 +472,11 @@ def _grid_truth(bundle: Bundle, grid: VideoGrid, rs_shape, notes: list[str]) -> 
         notes.append(f"truth video {shape} does not match the grid {expected}: metrics against truth skipped")
         return None
     # float32 as the bundle stores it (a float64 copy would double it); metrics accumulate in float64
-    return torch.from_numpy(np.asarray(bundle.truth.video, np.float32))
+    video = np.asarray(bundle.truth.video, np.float32)
+    if not np.isfinite(video).all():
+        notes.append("the truth video has NaN or Inf values: metrics against truth skipped")
+        return None
+    return torch.from_numpy(video)
 
 
 def problem_from_video(video: Tensor, psf: Tensor, rs: RollingShutterTiming | None,

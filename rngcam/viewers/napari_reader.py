@@ -28,7 +28,7 @@ def _format(path: Path) -> str:
                 return ""
             check_attr(f, "format")
             value = f.attrs["format"]
-    except (OSError, ValueError, TypeError, RngcamError):
+    except (OSError, ValueError, TypeError, KeyError, RuntimeError, RngcamError):
         return ""
     return value.decode() if isinstance(value, bytes) else str(value)
 

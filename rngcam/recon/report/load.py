@@ -19,6 +19,9 @@ from rngcam.untrusted import printable
 RECON_FORMAT = "rngcam-recon"
 MAX_TEXT_BYTES = 16 * 2**20  # metrics.json, errors.csv: far above what a run writes
 MAX_FRAMES = 1_000_000
+TEXT_ATTRS = ("format", "rngcam_version", "created_utc", "bundle_sha256", "bundle_path", "capture_utc",
+              "settings", "left_out")
+NUMBER_ATTRS = ("frame_interval_s", "fps", "rs_noise_level", "pixel_size_m")
 # dataset -> (dimensions, side axes): checked before anything is read
 _SHAPES = {"video": ((4,), (2, 3)), "key_frames": ((4,), (2, 3)), "rs_image": ((3,), (1, 2)),
            "frame_times_s": ((1,), ()), "key_frame_times_s": ((1,), ())}
@@ -74,7 +77,7 @@ def is_recon_file(path: str | Path) -> bool:
                 return False
             h5safe.check_attr(f, "format")
             return _text(f.attrs["format"]) == RECON_FORMAT
-    except (OSError, ValueError, TypeError, RngcamError):
+    except (OSError, ValueError, TypeError, KeyError, RuntimeError, RngcamError):  # damaged: not ours to say
         return False
 
 
@@ -164,6 +167,12 @@ def _read_recon(f: h5py.File, path: Path, video: bool, lazy: bool) -> dict:
         raise RngcamError(f"{path} is not an rngcam recon file (format attribute "
                           f"{printable(repr(_text(f.attrs.get('format', ''))), 100)})")
     attrs = {k: (_text(v) if isinstance(v, (bytes, str)) else v) for k, v in f.attrs.items()}
+    for key in TEXT_ATTRS:
+        if key in attrs and not isinstance(attrs[key], str):
+            raise RngcamError(f"attribute {key!r} is not text")
+    for key in NUMBER_ATTRS:
+        if key in attrs and not (np.ndim(attrs[key]) == 0 and np.asarray(attrs[key]).dtype.kind in "uif"):
+            raise RngcamError(f"attribute {key!r} is not a number")
     for key, kind in (("settings", dict), ("left_out", list)):
         value = json.loads(attrs.get(key) or ("{}" if key == "settings" else "[]"))
         if not isinstance(value, kind):
