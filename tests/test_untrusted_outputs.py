@@ -196,3 +196,14 @@ def test_a_newline_in_a_bundles_warning_is_one_escaped_line_in_recon_log(shot, t
     assert not [line for line in log if line.startswith(forged)], log
     hit = [line for line in log if "loose cable" in line]
     assert len(hit) == 1 and "\\n" + forged in hit[0] and "\\x1b" in hit[0] and "\x1b" not in hit[0], hit
+
+
+def test_a_folder_at_an_output_name_is_refused_before_anything_is_touched(shot, folder, tmp_path):
+    out = _copy(folder, tmp_path)
+    (out / "video.tif").unlink()
+    (out / "video.tif").mkdir()
+    before = {p.name: _sha(p) for p in out.iterdir() if p.is_file()}
+    for flag in ("--overwrite", "--resume"):
+        code, text = _recon(shot, out, flag, "--iters", "3")
+        assert code == 2 and len(text.strip().splitlines()) == 1 and "video.tif is not a file" in text, text
+        assert {p.name: _sha(p) for p in out.iterdir() if p.is_file()} == before

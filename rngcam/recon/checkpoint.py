@@ -182,6 +182,7 @@ def prepare(out: Path, want: dict, resume: bool, overwrite: bool, inputs: tuple[
     full = out.is_dir() and any(out.iterdir())
     if full:
         _refuse_inputs(out, inputs)
+        _refuse_odd_entries(out)
     saved = _resumable(out, want, full) if resume else None
     if not resume and full and not overwrite:
         hint = " (or --resume to continue from its checkpoint)" if (out / CHECKPOINT_NAME).is_file() else ""
@@ -224,6 +225,18 @@ def _refuse_inputs(out: Path, inputs: tuple[Path, ...]) -> None:
             if _same(p, Path(given)):
                 raise RngcamError(f"{p} is the bundle this run reads; it would be replaced by an output: "
                                   f"move the bundle or use another output folder")
+
+
+def _refuse_odd_entries(out: Path) -> None:
+    """One RngcamError line when an output name in `out` is neither a file nor a link (a folder, a
+    pipe): the run could neither replace nor remove it."""
+    for name in OUTPUT_NAMES:
+        try:
+            mode = os.lstat(out / name).st_mode
+        except FileNotFoundError:
+            continue
+        if not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
+            raise RngcamError(f"{out / name} is not a file; move it, or use another output folder")
 
 
 def _same(a: Path, b: Path) -> bool:
