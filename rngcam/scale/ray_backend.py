@@ -94,7 +94,7 @@ class LocalRay:
             self._ray.shutdown()
         if self._cluster_switch is not None:
             self._ray._private.ray_constants.ENABLE_RAY_CLUSTER = self._cluster_switch
-        self._ray = None
+        self._ray, self._cluster_switch = None, None
         for name, value in self._saved.items():
             if value is None:
                 os.environ.pop(name, None)
