@@ -345,8 +345,8 @@ def object_metrics(estimate: Tensor, truth: Tensor, frames: np.ndarray | None = 
         total = w_est.sum((1, 2))
         ghosts.append(torch.where(total > 0, (w_est * ~region).sum((1, 2)) / total.clamp_min(1e-30),
                                   torch.ones_like(total)).cpu())
-    err = torch.cat(errs).numpy() if errs else np.zeros(0)
-    ghost = torch.cat(ghosts).numpy() if ghosts else np.zeros(0)
+    err = torch.cat(errs).cpu().numpy() if errs else np.zeros(0)
+    ghost = torch.cat(ghosts).cpu().numpy() if ghosts else np.zeros(0)
     finite = err[np.isfinite(err)]
     if finite.size < err.size:  # an estimate without any object in a frame: the worst case
         finite = np.concatenate([finite, np.full(err.size - finite.size, math.inf)])

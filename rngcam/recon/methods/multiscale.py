@@ -79,9 +79,8 @@ def coarsen(problem: Problem, factor: int, time_factor: int | None = None) -> Pr
     h2, w2, k2 = max(1, round(h / s)), max(1, round(w / s)), math.ceil(k / t)
     r, x = area_matrix(h2, h), area_matrix(w2, w)
     frames = block_matrix(k2, k, t)
-    dt = problem.rs_weights.dtype
-    rs_w = r.to(dt) @ problem.rs_weights @ frames.to(dt).T
-    gs_w = problem.gs_weights @ frames.to(problem.gs_weights.dtype).T
+    rs_w = r.to(problem.rs_weights) @ problem.rs_weights @ frames.to(problem.rs_weights).T
+    gs_w = problem.gs_weights @ frames.to(problem.gs_weights).T
     hp, wp = problem.psf.shape[-2:]
     psf_shape = (max(1, round(hp * h2 / h)), max(1, round(wp * w2 / w)))
     psf = torch.from_numpy(psf_mod.prepare_psf(problem.psf.double().cpu().numpy(), psf_shape, bias=None)[0])
@@ -359,7 +358,7 @@ class CoarseToFine(MethodBase):
             x = torch.as_tensor(a, dtype=torch.float32)
             x = x[:, None] if x.ndim == 3 else x  # a still image: one frame
             x = upsample(x, (x.shape[0], k if x.shape[1] > 1 else 1, h, w), f)
-            full[name] = (x[:, 0] if np.ndim(a) == 3 else x * (f if name == "motion" else 1)).numpy()
+            full[name] = (x[:, 0] if np.ndim(a) == 3 else x * (f if name == "motion" else 1)).cpu().numpy()
         return full
 
     @property

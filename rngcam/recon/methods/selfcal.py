@@ -86,7 +86,7 @@ def key_rows(rs_weights: Tensor, gs_weights: Tensor, overlap: float = KEY_ROW_OV
     for g in range(gs_w.shape[0]):
         shared = torch.minimum(rs_w, gs_w[g][None]).sum(1)
         denom = torch.maximum(rs_w.sum(1), gs_w[g].sum()).clamp_min(1e-12)
-        rows = torch.nonzero(shared / denom >= overlap).flatten().numpy()
+        rows = torch.nonzero(shared / denom >= overlap).flatten().cpu().numpy()
         if len(rows):
             out.append((g, rows))
     return out
@@ -126,13 +126,14 @@ def register_key_rows(problem, iters: int = 30, free: int = 4) -> dict | None:
     sel = [(g, torch.from_numpy(rows)) for g, rows in pairs]
     targets = [p.b_rs[:, rows] * (1 if valid is None else valid[:, rows]) for _, rows in sel]
     norm = float(sum(t.square().sum() for t in targets).clamp_min(1e-30))
-    gain0 = torch.ones(c, dtype=torch.float64) if p.white_balance is None else p.white_balance.double()
-    params = torch.zeros(free, dtype=torch.float64, requires_grad=True)
+    dev = images.device
+    gain0 = (torch.ones(c, dtype=torch.float64) if p.white_balance is None else p.white_balance.double()).to(dev)
+    params = torch.zeros(free, dtype=torch.float64, device=dev, requires_grad=True)
     log_gain = torch.log(gain0.clone()).requires_grad_(True)
 
     def misses(prm: Tensor, lg: Tensor) -> Tensor:
         """The weighted residual vector over the key rows, / sqrt(norm)."""
-        m = _matrix_t(torch.cat([prm, torch.zeros(4 - free, dtype=prm.dtype)]))
+        m = _matrix_t(torch.cat([prm, torch.zeros(4 - free, dtype=prm.dtype, device=prm.device)]))
         out = []
         for (g, rows), target in zip(sel, targets, strict=True):
             img = warp(images[:, g:g + 1], m)[:, 0] * torch.exp(lg)[:, None, None]
@@ -162,10 +163,10 @@ def register_key_rows(problem, iters: int = 30, free: int = 4) -> dict | None:
     sigma = _uncertainty(misses, params.detach(), log_gain.detach())
     rows_used = int(sum(len(r) for _, r in sel))
     if not (math.isfinite(end) and end < start):
-        return {"matrix": np.eye(3), "gains": gain0.numpy(), "rs_residual_before": math.sqrt(start),
+        return {"matrix": np.eye(3), "gains": gain0.cpu().numpy(), "rs_residual_before": math.sqrt(start),
                 "rs_residual_after": math.sqrt(start), "rows": rows_used, "sigma": sigma}
-    inv = _matrix_t(torch.cat([params.detach(), torch.zeros(4 - free, dtype=params.dtype)])).numpy()
-    return {"matrix": np.linalg.inv(inv), "gains": torch.exp(log_gain.detach()).numpy(),
+    inv = _matrix_t(torch.cat([params.detach(), torch.zeros(4 - free, dtype=params.dtype, device=params.device)])).cpu().numpy()
+    return {"matrix": np.linalg.inv(inv), "gains": torch.exp(log_gain.detach()).cpu().numpy(),
             "rs_residual_before": math.sqrt(start), "rs_residual_after": math.sqrt(end), "rows": rows_used,
             "sigma": sigma}
 
@@ -186,7 +187,7 @@ def _uncertainty(misses, params: Tensor, log_gain: Tensor) -> dict:
         jac = torch.stack(cols, dim=1)
     dof = max(len(r) - len(x0), 1)
     cov = torch.linalg.pinv(jac.T @ jac) * float(r.square().sum()) / dof
-    std = cov.diagonal().clamp_min(0).sqrt().numpy()
+    std = cov.diagonal().clamp_min(0).sqrt().cpu().numpy()
     names = ["shift_x_px", "shift_y_px", "rotation_rad", "log_scale"][:n]
     out = {k: float(v) for k, v in zip(names, std[:n], strict=True)}
     out["gains_rel"] = [float(v) for v in std[n:]]

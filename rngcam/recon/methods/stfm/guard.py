@@ -62,7 +62,7 @@ class StartGuard(MethodBase):
     def _rs_residual(self, video: Tensor) -> float:
         p = self._problem
         valid = p.rs_valid_mask()
-        pred = self._rs_op.A(video.to(p.b_rs.dtype))
+        pred = self._rs_op.A(video.to(p.b_rs))
         target = p.b_rs
         if valid is not None:
             pred, target = pred * valid, target * valid

@@ -1,0 +1,184 @@
+"""The GPU check in one call: device tests, the default at 64 px, the paper grid and 8x, one table.
+
+    python -m bench.gpu_check -o OUT                 # on a lent GPU (about 8 minutes)
+    python -m bench.gpu_check -o OUT --device cpu --quick   # its CPU half: tiny sizes, a few steps
+
+Each reconstruction runs `rngcam recon` in a child process of its own (`run` below), so the peak
+GPU memory it reports is that run's alone. Every step has its own time limit; a step that fails
+or runs out is a row that says so, and the rest still run. Writes OUT/gpu_check.json and
+OUT/gpu_check.md (the table) and prints the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+# (label, scene, size, recon arguments, child's time limit in s): the issue's list of runs.
+FULL = [
+    ("sineball 64 default", "sineball", "64", ["--time-budget", "50"], 90),
+    ("smoke 64 default", "smoke", "64", ["--time-budget", "50"], 90),
+    ("smoke 228x342 budget 120", "smoke", "228x342", ["--time-budget", "120"], 170),
+    ("smoke 456x684 budget 150", "smoke", "456x684", ["--time-budget", "150"], 210),
+]
+QUICK = [
+    ("sineball 32 quick", "sineball", "32", ["--iters", "10"], 120),
+    ("smoke 32 quick", "smoke", "32", ["--iters", "10"], 120),
+]
+KEYS = ("device", "wall_s", "setup_s", "iterations", "psnr_db", "psnr_intermediate_db",
+        "centroid_error_median_px", "centroid_error_p90_px", "peak_gpu_gib", "peak_rss_gib", "status", "ended_by")
+
+
+def child(bundle: str, out: str, device: str, extra: list[str]) -> None:
+    """Run `rngcam recon` in this process and print one JSON line of its figures."""
+    import torch
+
+    from rngcam.cli import main
+
+    t0 = time.perf_counter()
+    try:
+        main(["recon", bundle, "-o", out, "--overwrite", "--quiet", "--device", device, *extra],
+             standalone_mode=False)
+    except SystemExit:
+        pass
+    wall = time.perf_counter() - t0
+    m = json.loads((Path(out) / "metrics.json").read_text())
+    row = {k: m.get(k) for k in KEYS}
+    row.update(wall_s=wall, setup_s=m.get("setup_seconds"), peak_rss_gib=(m.get("peak_rss_bytes") or 0) / 2**30,
+               peak_gpu_gib=(torch.cuda.max_memory_allocated() / 2**30) if torch.cuda.is_available() else None)
+    print("ROW " + json.dumps(row), flush=True)
+
+
+def _load() -> str:
+    return " ".join(f"{x:.1f}" for x in os.getloadavg())
+
+
+def _sh(cmd: list[str], limit: float, log: Path) -> tuple[int, str]:
+    """Run `cmd` with a time limit, its output appended to `log`; (exit code, output)."""
+    try:
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=limit)
+        text, rc = done.stdout + done.stderr, done.returncode
+    except subprocess.TimeoutExpired as exc:
+        text, rc = f"{exc.stdout or ''}{exc.stderr or ''}\n(timed out after {limit:.0f} s)", 124
+    with open(log, "a") as f:
+        f.write(f"$ {' '.join(cmd)}\n{text}\n")
+    return rc, text
+
+
+def simulate_all(out: Path, runs: list[tuple], limit: float) -> None:
+    """Simulate every run's bundle at once, in parallel children (the CPUs are otherwise idle)."""
+    procs = []
+    for _label, scene, size, _extra, _limit in runs:
+        bundle = out / f"{scene}-{size}.h5"
+        if not bundle.exists():
+            cmd = [sys.executable, "-c", "from rngcam.cli import main; main()", "simulate", scene, "--size", size,
+                   "-o", str(bundle)]
+            procs.append((cmd, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)))
+    t0 = time.perf_counter()
+    with open(out / "gpu_check.log", "a") as log:
+        for cmd, proc in procs:
+            try:
+                text = proc.communicate(timeout=max(1.0, limit - (time.perf_counter() - t0)))[0]
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                text = proc.communicate()[0] + "\n(timed out)"
+            log.write(f"$ {' '.join(cmd)}\n{text}\n")
+    print(f"simulated {len(procs)} bundles in {time.perf_counter() - t0:.0f} s", flush=True)
+
+
+def device_tests(out: Path, limit: float) -> dict:
+    """The device-parametrised tests (operators' adjoints on every device torch has)."""
+    t0 = time.perf_counter()
+    rc, text = _sh([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "tests/test_operators.py"],
+                   limit, out / "gpu_check.log")
+    last = [ln for ln in text.splitlines() if ln.strip()][-1:] or ["(no output)"]
+    return {"label": "device tests (tests/test_operators.py)", "status": "ok" if rc == 0 else f"exit {rc}",
+            "wall_s": time.perf_counter() - t0, "summary": last[0]}
+
+
+def reconstruction(out: Path, label: str, scene: str, size: str, extra: list[str], limit: float,
+                   device: str) -> dict:
+    """Simulate the scene and reconstruct it in a child; the row of figures."""
+    stem = out / f"{scene}-{size}"
+    bundle = stem.with_suffix(".h5")
+    row = {"label": label, "load_before": _load()}
+    if not bundle.exists():
+        return {**row, "status": "no bundle (simulate failed: see gpu_check.log)"}
+    rc, text = _sh([sys.executable, "-m", "bench.gpu_check", "child", str(bundle), str(stem) + "-recon",
+                    device, *extra], limit, out / "gpu_check.log")
+    rows = [ln[4:] for ln in text.splitlines() if ln.startswith("ROW ")]
+    if not rows:
+        return {**row, "status": f"recon failed ({rc})", "detail": text.strip().splitlines()[-3:]}
+    return {**row, **json.loads(rows[-1]), "load_after": _load()}
+
+
+def table(rows: list[dict], device: str) -> str:
+    """The rows as one markdown table."""
+    head = ["run", "device", "wall s", "set-up s", "steps", "PSNR dB", "interm. dB", "ball px (med/p90)",
+            "GPU GiB", "RSS GiB", "status", "load"]
+    lines = [f"Device: {device}", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+
+    def f(x, fmt="{:.1f}"):
+        return "" if x is None else fmt.format(x)
+
+    for r in rows:
+        ball = "" if r.get("centroid_error_median_px") is None else \
+            f"{r['centroid_error_median_px']:.2f} / {r['centroid_error_p90_px']:.2f}"
+        status = r.get("status", "") + (f" ({r['ended_by']})" if r.get("ended_by") else "")
+        if r.get("summary"):
+            status += f": {r['summary']}"
+        lines.append("| " + " | ".join([r["label"], str(r.get("device") or ""), f(r.get("wall_s")),
+                                         f(r.get("setup_s")), str(r.get("iterations") or ""),
+                                         f(r.get("psnr_db"), "{:.2f}"), f(r.get("psnr_intermediate_db"), "{:.2f}"),
+                                         ball, f(r.get("peak_gpu_gib"), "{:.2f}"), f(r.get("peak_rss_gib"), "{:.2f}"),
+                                         status, r.get("load_before", "")]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def describe_device(device: str) -> str:
+    import torch
+
+    if device.startswith("cuda") and torch.cuda.is_available():
+        p = torch.cuda.get_device_properties(0)
+        return f"{p.name}, {p.total_memory / 2**30:.0f} GiB, torch {torch.__version__}"
+    return f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["child"]:
+        child(argv[1], argv[2], argv[3], argv[4:])
+        return 0
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("-o", "--out", type=Path, required=True, help="folder for bundles, runs, the log and the table")
+    p.add_argument("--device", default="cuda", help="cuda (default) or cpu")
+    p.add_argument("--quick", action="store_true", help="tiny sizes and a few steps (the CPU half, for CI)")
+    p.add_argument("--skip-tests", action="store_true", help="leave out the device-parametrised tests")
+    p.add_argument("--only", default="", help="comma-separated run labels' first words to keep (e.g. sineball)")
+    a = p.parse_args(argv)
+    a.out.mkdir(parents=True, exist_ok=True)
+    runs = QUICK if a.quick else FULL
+    if a.only:
+        runs = [r for r in runs if any(r[0].startswith(w) for w in a.only.split(","))]
+    device = describe_device(a.device)
+    print(f"gpu check: {device}; {len(runs)} runs", flush=True)
+    simulate_all(a.out, runs, 240)
+    rows = [] if a.skip_tests else [device_tests(a.out, 120)]
+    for label, scene, size, extra, limit in runs:
+        rows.append(reconstruction(a.out, label, scene, size, extra, limit, a.device))
+        print(json.dumps(rows[-1]), flush=True)
+        (a.out / "gpu_check.json").write_text(json.dumps({"device": device, "rows": rows}, indent=1))
+    text = table(rows, device)
+    (a.out / "gpu_check.md").write_text(text)
+    (a.out / "gpu_check.json").write_text(json.dumps({"device": device, "rows": rows}, indent=1))
+    print(text)
+    return 0 if all(str(r.get("status", "")).startswith("ok") for r in rows) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
