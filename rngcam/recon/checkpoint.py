@@ -189,10 +189,8 @@ def prepare(out: Path, want: dict, resume: bool, overwrite: bool, inputs: tuple[
         raise RngcamError(f"output folder {out} is not empty; pass --overwrite to replace what is in it{hint}")
     if full:
         clean_temps(out)  # an interrupted write's leftovers
-        for name in OUTPUT_NAMES if not resume else ():
-            _remove(out / name)
-        for name in OUTPUT_NAMES if resume else ():  # a link planted at an output name goes (not what it names)
-            if (out / name).is_symlink():
+        for name in OUTPUT_NAMES:  # a resumed run keeps its files; a link planted at their names goes
+            if not resume or (out / name).is_symlink():
                 _remove(out / name)
     return saved
 
