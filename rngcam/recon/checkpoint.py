@@ -61,11 +61,28 @@ def save(path: Path, payload: dict) -> None:
         raise
 
 
+class Kept:
+    """A tensor in a method's state that the method never changes in place (it replaces it): a
+    deep copy of the state (the loop keeps one as its last good state) shares the tensor instead
+    of copying a video. `kept(value)` gives the tensor back (or a value that was not wrapped)."""
+
+    __slots__ = ("tensor",)
+
+    def __init__(self, tensor: torch.Tensor):
+        self.tensor = tensor
+
+    def __deepcopy__(self, memo) -> Kept:
+        return self
+
+
+def kept(value):
+    """The tensor inside a `Kept`, or `value` itself."""
+    return value.tensor if isinstance(value, Kept) else value
+
+
 def plain(obj):
     """`obj` as what weights_only loading reads back: a method state's `Kept` wrappers unwrapped,
     numpy arrays as tensors and numpy scalars as Python numbers, containers rebuilt."""
-    from rngcam.recon.methods.multiscale import Kept  # here: multiscale imports the loop, which imports us
-
     if isinstance(obj, Kept):
         return obj.tensor
     if isinstance(obj, np.generic):  # before the Python types: numpy's float64 is a float

@@ -27,6 +27,7 @@ from torch import Tensor
 from rngcam.memory import release_free_memory
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.timing import VideoGrid
+from rngcam.recon.checkpoint import Kept, kept  # noqa: F401 - pnp and tv3d import them from here
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.problem import Problem
 
@@ -150,25 +151,6 @@ def power_norm(op, x0: Tensor, iters: int = 20, tol: float = 1e-3) -> tuple[floa
 def inner(a: Tensor, b: Tensor, frames: int = 16) -> float:
     """<a, b> of two videos, summed `frames` frames at a time (no video-sized product)."""
     return sum(float((a[:, i:i + frames] * b[:, i:i + frames]).sum()) for i in range(0, a.shape[1], frames))
-
-
-class Kept:
-    """A tensor in a method's state that the method never changes in place (it replaces it): a
-    deep copy of the state (the loop keeps one as its last good state) shares the tensor instead
-    of copying a video. `kept(value)` gives the tensor back (or a value that was not wrapped)."""
-
-    __slots__ = ("tensor",)
-
-    def __init__(self, tensor: Tensor):
-        self.tensor = tensor
-
-    def __deepcopy__(self, memo) -> Kept:
-        return self
-
-
-def kept(value):
-    """The tensor inside a `Kept`, or `value` itself."""
-    return value.tensor if isinstance(value, Kept) else value
 
 
 # What a coarse-to-fine level's start (the coarser estimate, upsampled) is kept in: a storage format
