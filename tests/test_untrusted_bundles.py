@@ -298,6 +298,12 @@ def test_terminal_control_sequences_in_a_bundle_are_printed_escaped(bundle):
     assert "\x1b" not in res.output
     assert not any(ln.startswith(("error: forged", "warning: nothing")) for ln in res.output.splitlines())
     assert "\\x1b[2K" in res.output
+    out = bundle.parent / "out"
+    res = run("recon", str(bundle), "--method", "blend", "--iters", "1", "-o", str(out), "--quiet")
+    assert res.exit_code == 0, res.output
+    for text in (res.output, (out / "recon.log").read_text(), (out / "metrics.json").read_text()):
+        assert "\x1b" not in text
+        assert not any(ln.startswith(("error: forged", "warning: nothing")) for ln in text.splitlines())
 
 
 @pytest.mark.parametrize("edit, words", [

@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from rngcam.untrusted import printable
+
 SCHEMA_VERSION = 1
 FORMAT_NAME = "rngcam-bundle"
 WARNING_PREFIX = "warning: "
@@ -173,9 +175,10 @@ def _check_camera(name: str, rec: CameraRecord) -> list[str]:
     if not fmt:
         problems.append(f"{label} pixel_format is empty")
     elif fmt.startswith(("bayer", "mono")) and len(shape) != 3:
-        problems.append(f"{label} pixel format {rec.pixel_format} needs (N, H, W) frames, got {shape}")
+        problems.append(f"{label} pixel format {printable(rec.pixel_format, 40)} needs (N, H, W) frames, got {shape}")
     elif fmt.startswith(("rgb", "bgr")) and (len(shape) != 4 or shape[-1] != 3):
-        problems.append(f"{label} pixel format {rec.pixel_format} needs (N, H, W, 3) frames, got {shape}")
+        problems.append(f"{label} pixel format {printable(rec.pixel_format, 40)} needs (N, H, W, 3) frames, "
+                        f"got {shape}")
     if not isinstance(rec.bit_depth, (int, np.integer)) or rec.bit_depth < 1:
         problems.append(f"{label} bit_depth must be a positive integer, got {rec.bit_depth!r}")
     elif dtype is not None and dtype.kind in "ui" and rec.bit_depth > 8 * dtype.itemsize:
@@ -342,7 +345,7 @@ def _check_trigger(trig: TriggerRecord) -> list[str]:
         real = trigger_faults(trig.errors)
         if real:
             problems.append(f"{WARNING_PREFIX}trigger generator reported {len(real)} error(s): "
-                            + "; ".join(real[:3]))
+                            + "; ".join(printable(e, 200) for e in real[:3]))
     return problems
 
 
@@ -377,7 +380,8 @@ def check_bundle(bundle: Bundle, skip: frozenset[str] = frozenset()) -> list[str
     if not isinstance(bundle.meta, dict):
         problems.append(f"meta must be a dict, got {type(bundle.meta).__name__}")
     elif isinstance(bundle.meta.get("warnings"), list):  # what the capture warned about
-        problems += [f"{WARNING_PREFIX}capture: {w}" for w in bundle.meta["warnings"]]
+        # text from the file: one printable line each, so a newline cannot forge a line of ours
+        problems += [f"{WARNING_PREFIX}capture: {printable(w)}" for w in bundle.meta["warnings"]]
     if not isinstance(bundle.rig_yaml, str):
         problems.append(f"rig_yaml must be a string, got {type(bundle.rig_yaml).__name__}")
     return problems
