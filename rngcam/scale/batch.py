@@ -21,6 +21,7 @@ from rngcam.formats.bundle import bundle_checksum
 from rngcam.recon.settings import ReconSettings
 from rngcam.scale import tables
 from rngcam.scale.backend import Backend, make_backend
+from rngcam.untrusted import write_new
 
 DONE_NAME = "batch-done.json"
 SKIPPED_NOTE = "done before (skipped)"
@@ -68,7 +69,7 @@ def batch_task(item: dict, shared: object = None) -> dict:
                              **{**keywords(settings), **asked})
         if result.status == "failed":
             raise RngcamError(f"{result.message}; outputs from the last good state are in {item['out']}")
-        (Path(item["out"]) / DONE_NAME).write_text(json.dumps(item["stamp"]))
+        write_new(Path(item["out"]) / DONE_NAME, json.dumps(item["stamp"]))
         res = {"status": "ok", "message": "", **{k: result.metrics.get(k) for k in METRIC_KEYS}}
     except RngcamError as exc:
         res = {"status": "failed", "message": str(exc)}

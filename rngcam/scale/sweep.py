@@ -22,7 +22,6 @@ import hashlib
 import itertools
 import json
 import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -36,6 +35,7 @@ from rngcam.recon.problem import build_problem
 from rngcam.scale import tables
 from rngcam.scale.backend import Backend, make_backend
 from rngcam.scale.trial import TRUTH_KEYS, TrialSpec, run_trial
+from rngcam.untrusted import replacing, write_new
 
 SCORE_KEYS = ("heldout", "heldout_rs", "heldout_gs", "residual_rs", "residual_gs")
 DEFAULT_TIME_BUDGET_S = 30.0
@@ -263,17 +263,19 @@ def _summary(res: dict) -> str:
 
 
 def _load_cached(path: Path) -> dict | None:
+    """A trial's cached result, or None (missing, unreadable, not a dict, or a link someone planted)."""
     try:
-        return json.loads(path.read_text())
+        if path.is_symlink() or path.stat().st_size > 1 << 20:
+            return None
+        data = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
+    return data if isinstance(data, dict) else None
 
 
 def _save_cached(path: Path, res: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
-    tmp.write_text(json.dumps({k: v for k, v in res.items() if k != "traceback"}, default=float))
-    os.replace(tmp, path)
+    write_new(path, json.dumps({k: v for k, v in res.items() if k != "traceback"}, default=float))
 
 
 def _swept(rows: list[dict]) -> list[str]:
@@ -361,7 +363,8 @@ def plot_sweep(png_path: Path, rows: list[dict], has_truth: bool, title: str = "
     if best:
         ax.legend(loc="lower left", fontsize=7, framealpha=0.6)
     fig.tight_layout()
-    fig.savefig(png_path, dpi=110)
+    with replacing(png_path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
 
 

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import csv
+import io
 import math
-import os
 from pathlib import Path
+
+from rngcam.untrusted import write_new
 
 
 def format_value(value) -> str:
@@ -24,14 +26,13 @@ def format_value(value) -> str:
 
 
 def write_csv(path: Path, rows: list[dict], columns: list[str]) -> None:
-    """Full-precision CSV (atomic)."""
-    tmp = path.with_name(f".{path.name}.partial")
-    with open(tmp, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
-        w.writeheader()
-        for row in rows:
-            w.writerow({c: ("" if row.get(c) is None else row.get(c)) for c in columns})
-    os.replace(tmp, path)
+    """Full-precision CSV, written atomically (never through a link planted at `path`)."""
+    buf = io.StringIO(newline="")
+    w = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore")
+    w.writeheader()
+    for row in rows:
+        w.writerow({c: ("" if row.get(c) is None else row.get(c)) for c in columns})
+    write_new(path, buf.getvalue())
 
 
 def markdown(rows: list[dict], columns: list[str], formats: dict | None = None) -> str:
@@ -45,7 +46,5 @@ def markdown(rows: list[dict], columns: list[str], formats: dict | None = None) 
 
 
 def write_text(path: Path, text: str) -> None:
-    """Write a text file atomically (Markdown, JSON)."""
-    tmp = path.with_name(f".{path.name}.partial")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    """Write a text file atomically (Markdown, JSON), never through a link planted at `path`."""
+    write_new(path, text)
