@@ -118,3 +118,17 @@ def test_rs_norm_start_is_used_and_its_last_iterate_kept():
     assert warm.rs_norm == pytest.approx(cold.rs_norm, rel=0.01)
     worse = STFM(p, s, rs_norm_start=torch.randn(p.shape, generator=torch.Generator().manual_seed(1)))
     assert worse.rs_norm < warm.rs_norm  # six iterations from noise fall short: the start was used
+
+
+def test_power_norm_from_a_zero_or_nan_start_is_the_operators_norm():
+    import torch
+
+    from rngcam.recon.methods.multiscale import power_norm
+
+    class Diagonal:
+        def A_normal(self, x):
+            return x * torch.linspace(0.5, 4.0, x.numel(), dtype=x.dtype).reshape(x.shape)
+
+    for start in (torch.zeros(2, 3, 4, 4), torch.full((2, 3, 4, 4), float("nan"))):
+        norm, x = power_norm(Diagonal(), start.double(), iters=200, tol=1e-12)
+        assert abs(norm - 2.0) < 1e-3 and torch.isfinite(x).all()

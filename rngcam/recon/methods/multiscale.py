@@ -132,7 +132,11 @@ def power_norm(op, x0: Tensor, iters: int = 20, tol: float = 1e-3) -> tuple[floa
     vector, upsampled, it settles in a few iterations instead of twenty. `x0` is consumed (scaled
     in place where it already has the operator's dtype); the iterates live in it and one more
     video-sized buffer."""
-    x = x0.div_(x0.norm())
+    n0 = float(x0.norm())
+    if not (math.isfinite(n0) and n0 > 0):  # a zero or non-finite start has no direction: start anew
+        x0 = torch.ones_like(x0)
+        n0 = float(x0.norm())
+    x = x0.div_(n0)
     lam = 0.0
     for _ in range(iters):
         z = op.A_normal(x)
