@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1] / "rngcam"
 # its own layer or below; "rngcam" is the package's own __init__ (the Python API's names, loaded
 # from `api` on first use, and `version`'s __version__).
 LAYERS = (
-    ("version", "errors", "untrusted", "paths", "memory", "cpu", "pixels", "backends"),
+    ("version", "errors", "untrusted", "h5safe", "paths", "memory", "cpu", "pixels", "backends"),
     ("physics", "config"),
     ("formats", "sizing"),
     ("sim",),

@@ -161,3 +161,22 @@ def test_resolvable_fraction_follows_the_noise_floor():
     figures = [P.resolvable_fraction(psf, snr) for snr in (1, 5, 25, 125)]
     assert figures == sorted(figures) and figures[0] < figures[-1]
     assert P.snr_of_mean_signal(100.0, 0.0) == pytest.approx(10.0)
+
+
+def test_a_psf_file_keeping_its_data_in_another_file_is_refused(tmp_path):
+    """A rig's .h5 PSF may come from elsewhere: external storage (the bytes of a file of the reader's)
+    is refused in one line and nothing of that file comes back."""
+    import h5py
+
+    from rngcam.errors import RngcamError
+    from rngcam.physics.psf import load_psf
+
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(np.arange(64 * 64, dtype=np.float64).tobytes())
+    with h5py.File(tmp_path / "ext.h5", "w") as f:
+        f.create_dataset("psf", shape=(64, 64), dtype="f8", external=[(str(secret), 0, 64 * 64 * 8)])
+    with pytest.raises(RngcamError, match="external file"):
+        load_psf(tmp_path / "ext.h5")
+    with h5py.File(tmp_path / "ok.h5", "w") as f:
+        f.create_dataset("calibration/psf", data=np.ones((3, 16, 16)))
+    assert load_psf(tmp_path / "ok.h5").shape == (3, 16, 16)

@@ -16,10 +16,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rngcam import pixels
+from rngcam import h5safe, pixels
 from rngcam.cli import main
 from rngcam.errors import BundleError, RngcamError
-from rngcam.formats import h5safe
 from rngcam.formats.bundle import read_bundle, validate_bundle, write_bundle
 from rngcam.formats.bundle_write import clean_stale_temps
 from rngcam.formats.calibration import CalibrationFileError, read_calibration
@@ -289,7 +288,7 @@ def test_a_killed_writers_temporary_files_are_cleaned_on_the_next_write(tmp_path
 
 def test_terminal_control_sequences_in_a_bundle_are_printed_escaped(bundle):
     with h5py.File(bundle, "r+") as f:
-        f["rs"].attrs["model"] = np.bytes_("cam\x1b[2K\rerror: forged line".encode())
+        f["rs"].attrs["model"] = np.bytes_(b"cam\x1b[2K\rerror: forged line")
         meta = json.loads(f.attrs["meta"].decode())
         meta["warnings"] = ["all good\x1b[1A\x1b[2K\nwarning: nothing to see"]
         f.attrs["meta"] = np.bytes_(json.dumps(meta).encode())

@@ -14,10 +14,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from rngcam import pixels
+from rngcam import h5safe, pixels
 from rngcam.errors import BundleError
-from rngcam.untrusted import printable
-from rngcam.formats import h5safe
 from rngcam.formats.bundle_schema import (
     FORMAT_NAME,
     SCHEMA_VERSION,
@@ -30,6 +28,7 @@ from rngcam.formats.bundle_schema import (
     check_bundle,
     is_warning,
 )
+from rngcam.untrusted import printable
 
 
 class _Fatal(Exception):

@@ -35,8 +35,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from rngcam import h5safe
 from rngcam.errors import ConfigError, RngcamError
-from rngcam.formats import h5safe
 from rngcam.untrusted import printable, temp_beside
 
 FORMAT_NAME = "rngcam-calibration"

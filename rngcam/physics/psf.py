@@ -34,12 +34,13 @@ def load_psf(path: str | Path) -> np.ndarray:
     elif suffix == ".npy":
         arr = np.load(path)
     elif suffix in (".h5", ".hdf5"):
-        import h5py
+        from rngcam import h5safe  # a rig's PSF file may come from elsewhere: no links, sizes checked
 
-        with h5py.File(path, "r") as f:
-            for name in ("psf", "calibration/psf"):
-                if name in f:
-                    arr = f[name][()]
+        with h5safe.open_untrusted(path, "PSF file") as f:
+            for group, name in ((f, "psf"), (f.get("calibration"), "psf")):
+                if group is not None and name in group:
+                    arr = h5safe.checked_dataset(group, name, h5safe.MAX_SIDE ** 2 * h5safe.MAX_CHANNELS,
+                                                 dtypes="uif", ndims=(2, 3))[()]
                     break
             else:
                 raise ValueError(f"no 'psf' or 'calibration/psf' dataset in {path}")

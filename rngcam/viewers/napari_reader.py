@@ -20,7 +20,7 @@ CHANNEL_MAPS = {3: ["red", "green", "blue"], 1: ["gray"]}
 
 def _format(path: Path) -> str:
     from rngcam.errors import RngcamError
-    from rngcam.formats.h5safe import check_attr
+    from rngcam.h5safe import check_attr
 
     try:
         with h5py.File(path, "r") as f:
