@@ -165,7 +165,8 @@ def register_key_rows(problem, iters: int = 30, free: int = 4) -> dict | None:
     if not (math.isfinite(end) and end < start):
         return {"matrix": np.eye(3), "gains": gain0.cpu().numpy(), "rs_residual_before": math.sqrt(start),
                 "rs_residual_after": math.sqrt(start), "rows": rows_used, "sigma": sigma}
-    inv = _matrix_t(torch.cat([params.detach(), torch.zeros(4 - free, dtype=params.dtype, device=params.device)])).cpu().numpy()
+    fixed = torch.zeros(4 - free, dtype=params.dtype, device=params.device)
+    inv = _matrix_t(torch.cat([params.detach(), fixed])).cpu().numpy()
     return {"matrix": np.linalg.inv(inv), "gains": torch.exp(log_gain.detach()).cpu().numpy(),
             "rs_residual_before": math.sqrt(start), "rs_residual_after": math.sqrt(end), "rows": rows_used,
             "sigma": sigma}

@@ -3,7 +3,6 @@ figures and notes, from recon.h5 and the metrics.json beside it."""
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
