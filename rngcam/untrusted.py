@@ -127,3 +127,13 @@ def replacing(path: Path, *, replace: bool = True):
                 raise RngcamError(f"refusing to replace {path}: it exists (pass --overwrite to replace it)") from None
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def same_file(a: Path, b: Path) -> bool:
+    """True when `a` and `b` name the same file: the same path, or (through links) the same inode."""
+    if os.path.abspath(a) == os.path.abspath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False

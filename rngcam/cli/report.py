@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from rngcam.errors import ConfigError
+from rngcam.untrusted import same_file
 
 
 def _folders(dirs: tuple[str, ...]) -> list[Path]:
@@ -28,17 +29,8 @@ def _refuse_an_input(target: Path, folders: list[Path]) -> None:
     metrics.json or errors.csv; even --overwrite never replaces those."""
     for folder in folders:
         for name in ("recon.h5", "metrics.json", "errors.csv"):
-            if _same(target, folder / name):
+            if same_file(target, folder / name):
                 raise ConfigError(f"refusing to write {target}: it is {folder / name}, which this command reads")
-
-
-def _same(a: Path, b: Path) -> bool:
-    if os.path.abspath(a) == os.path.abspath(b):
-        return True
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False
 
 
 @click.command("report")

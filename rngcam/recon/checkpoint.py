@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from rngcam.errors import RngcamError
-from rngcam.untrusted import clean_temps, open_own, printable, temp_beside
+from rngcam.untrusted import clean_temps, open_own, printable, same_file, temp_beside
 
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_NAME = "recon.log"
@@ -237,7 +237,7 @@ def _refuse_inputs(out: Path, inputs: tuple[Path, ...]) -> None:
         if not os.path.lexists(p):
             continue
         for given in inputs:
-            if _same(p, Path(given)):
+            if same_file(p, Path(given)):
                 raise RngcamError(f"{p} is the bundle this run reads; it would be replaced by an output: "
                                   f"move the bundle or use another output folder")
 
@@ -252,15 +252,6 @@ def _refuse_odd_entries(out: Path) -> None:
             continue
         if not (stat.S_ISREG(mode) or stat.S_ISLNK(mode)):
             raise RngcamError(f"{out / name} is not a file; move it, or use another output folder")
-
-
-def _same(a: Path, b: Path) -> bool:
-    if os.path.abspath(a) == os.path.abspath(b):
-        return True
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False
 
 
 def _remove(p: Path) -> None:
