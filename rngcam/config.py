@@ -231,11 +231,21 @@ class ReconConfig(_Model):
 
 class MockSceneConfig(_Model):
     """The scene mock cameras look at (rngcam.sim.scenes), rendered on the reconstruction grid
-    (the RS sensor size / recon.grid_bin) and repeated to sensor-size frames."""
+    (the RS sensor size / recon.grid_bin) and repeated to sensor-size frames, and how the mock
+    RS sensor's timing differs from what the rig says, as a real one's does:
+
+    true_line_time_s: the sensor's actual line time (default: cameras.rs.mock.line_time_s, else
+    the rig's cameras.rs.line_time_s). readout_time_bias: the mock's SensorReadoutTime grows by
+    (1 + bias) x the true line time per row (plus a constant), a rough figure as the vendor warns.
+    led_level: the brightness (fraction of full scale) of the LED a generator channel drives
+    steady at 5 V through the diffuser (rngcam calibrate linetime --flicker)."""
 
     scene: str = "sineball"
     seed: int = 0
     options: dict[str, Any] = Field(default_factory=dict)
+    true_line_time_s: float | None = Field(default=None, gt=0, le=1e-2)
+    readout_time_bias: float = Field(default=0.015, gt=-0.5, lt=0.5)
+    led_level: float = Field(default=0.5, ge=0, le=100)
 
 
 class RigConfig(_Model):

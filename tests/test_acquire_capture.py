@@ -157,20 +157,22 @@ def test_existing_output_is_never_overwritten(tmp_path):
 
 
 def test_line_time_mismatch_is_warned_and_recorded(tmp_path):
-    # the camera's 200 us still holds every GS exposure (the last ends at 12.65 ms < 13.25 ms)
+    # the camera's 200 us still holds every GS exposure (the last ends at 12.65 ms < 13.25 ms); its
+    # SensorReadoutTime, rough like a real camera's, makes it 203 us (the mock's +1.5 % bias)
     rig = _rig(lt=("read_noise_e: 3.0}\n  gs", "read_noise_e: 3.0, line_time_s: 200.0e-6}\n  gs"),
                g=("gs_trigger_s: [0.0, 6.5e-3, 13.0e-3]", "gs_trigger_s: [0.0, 6.0e-3, 12.0e-3]"))
     lines = []
     [r] = capture(rig, tmp_path / "w.h5", progress=lines.append)
-    assert any(line.startswith("warning: RS camera line time is 200 us") for line in lines)
+    assert any(line.startswith("warning: RS camera line time is 203 us") for line in lines)
     assert any("line time" in w for w in read_bundle(r.path).meta["warnings"])
 
 
 def test_an_rs_window_the_cameras_line_time_cannot_fit_is_refused_before_arming(tmp_path, spy):
-    """At the camera's 200 us (not the rig's 208 us) the RS window ends at 13.250 ms, before the
-    third GS exposure (13.0 + 0.65 ms): refused, nothing armed."""
+    """At the camera's 200 us (not the rig's 208 us), reported as 203 us by its rough
+    SensorReadoutTime, the RS window ends at 13.439 ms, before the third GS exposure (13.0 + 0.65 ms):
+    refused, nothing armed."""
     rig = _rig(lt=("read_noise_e: 3.0}\n  gs", "read_noise_e: 3.0, line_time_s: 200.0e-6}\n  gs"))
-    with pytest.raises(ConfigError, match=r"reports a 200 us line time, so its exposure window ends at 13.250 ms, "
+    with pytest.raises(ConfigError, match=r"reports a 203 us line time, so its exposure window ends at 13.439 ms, "
                                           r"before GS exposure 3 ends \(13.650 ms\)"):
         capture(rig, tmp_path / "w.h5", progress=lambda s: None)
     assert not any(c.endswith(" ON") for c in spy["received"]) and os.listdir(tmp_path) == []

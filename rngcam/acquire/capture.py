@@ -32,6 +32,7 @@ from rngcam.errors import ConfigError, HardwareError, RngcamError
 from rngcam.formats.bundle import Bundle, CameraRecord, TriggerRecord, write_bundle
 
 Progress = Callable[[str], None]
+ROUGH_LINE_TIME_RTOL = 0.05  # SensorReadoutTime's figure against a flicker-measured line time
 LINE_TIME_RTOL = 0.01  # warn when the camera's line time differs from the resolved one by more
 TIMESTAMP_TOL_S = 20e-6  # GS timestamp spacing may differ from the burst period by this much
 
@@ -106,8 +107,12 @@ def verify_timing(resolved: ResolvedRig, rs_exposure_s: float, gs_exposure_s: fl
     if rs_exposure_s > readout:
         warnings.append(f"RS exposure ({rs_exposure_s * 1e3:.3f} ms) is longer than its readout "
                         f"({readout * 1e3:.3f} ms): rows overlap in time and the RS image codes little motion")
+    measured = resolved.extra.get("line_time", {}).get("method") == "flicker"
     if reported_line_time_s is None:
         lines.append(f"line time: camera does not report it; using {source}'s {line * 1e6:g} us")
+    elif measured and math.isclose(reported_line_time_s, line, rel_tol=ROUGH_LINE_TIME_RTOL):
+        lines.append(f"line time: the camera's SensorReadoutTime suggests {reported_line_time_s * 1e6:.4g} us, a rough "
+                     f"estimate; using the {line * 1e6:.4f} us measured from an LED's flicker ({source})")
     elif not math.isclose(reported_line_time_s, line, rel_tol=LINE_TIME_RTOL):
         real_end = (rows - 1) * reported_line_time_s + rs_exposure_s
         late = [i for i, t in enumerate(c.timing.gs_trigger_s) if t - t0 + gs_exposure_s > real_end * (1 + 1e-9)]

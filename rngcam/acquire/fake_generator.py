@@ -8,7 +8,9 @@ a command outside the manual lands in the error queue as on the instrument. It k
 channel's properties, answers the definition's queries, and on a trigger (the dialect's: a bus
 `*TRG`, or a channel's manual trigger, which also starts a channel cabled to its trigger output:
 `links`) computes each armed channel's pulses and hands them to the listeners connected to that
-channel (the simulated cameras' trigger inputs).
+channel (the simulated cameras' trigger inputs). A channel whose output is on with a continuous
+square wave or a DC level (no burst) drives a light: `light(channel)` tells what it emits, which the
+mock world shows to its cameras (the line-time LED, rngcam.calibrate.linetime).
 
 Faults for tests: "silent" (never answers), "garbage" (answers bytes that are not text),
 "scpi_error" (queues a -222 'Data out of range' when the burst count is set).
@@ -68,6 +70,17 @@ class ChannelState:
                 and v.get("burst_mode") in ("TRIG", "NCYC") and v.get("trigger_source") == source)
 
 
+@dataclass(frozen=True)
+class Light:
+    """What a channel drives continuously: "square" (50 % duty, starting high at t = 0 of the
+    generator's clock) between high_v and low_v at frequency_hz, or "dc" at high_v."""
+
+    waveform: str
+    frequency_hz: float
+    high_v: float
+    low_v: float
+
+
 Listener = Callable[[list[Pulse]], None]
 
 
@@ -124,6 +137,19 @@ class FakeGenerator:
     def connect(self, channel: int, listener: Listener) -> None:
         """Wire a trigger input to an output channel: it receives that channel's pulses."""
         self._listeners.setdefault(channel, []).append(listener)
+
+    def light(self, channel: int) -> Light | None:
+        """The continuous waveform on `channel` (output on, no burst), or None."""
+        with self._lock:
+            ch = self.channels.get(channel)
+            if ch is None or not ch.output or ch.values.get("burst") == "ON":
+                return None
+            v = ch.values
+            if v.get("function") in ("SQU", "SQUARE"):
+                return Light("square", float(v["frequency_hz"]), float(v["high_v"]), float(v["low_v"]))
+            if v.get("function") == "DC":
+                return Light("dc", 0.0, float(v["offset_v"]), float(v["offset_v"]))
+            return None
 
     # --- serving ---
     def _serve(self) -> None:

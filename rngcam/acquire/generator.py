@@ -11,6 +11,10 @@ Dialects: Keysight 33500B, Rigol DG1000Z/DG800 and Siglent SDG. Their commands a
 (rngcam/acquire/instruments/generators.yaml holds each command set; the tests drive this driver
 through pyvisa-sim and the pty fake, both of which refuse anything outside it).
 
+For the line-time calibration (rngcam.calibrate.linetime) one channel drives an LED instead
+of a camera input: `drive_light` sets a continuous square wave (levels high/low, 50 % duty) or a
+steady DC level, with each dialect's waveform, frequency, level and output commands.
+
 How the two trains start (`fire_plan`, recorded in the bundle):
 - keysight_33500b: `*TRG`, one bus trigger that starts every channel whose source is BUS: one event.
 - rigol_dg with `link: trigger_out` (the RS channel's rear Sync/Ext Trig output cabled into the
@@ -84,6 +88,14 @@ class Dialect:
     def output(self, channel: int, on: bool) -> list[str]:
         raise NotImplementedError
 
+    def square(self, channel: int, frequency_hz: float, high_v: float, low_v: float) -> list[str]:
+        """A continuous square wave (50 % duty) between the two levels."""
+        raise NotImplementedError
+
+    def dc(self, channel: int, level_v: float) -> list[str]:
+        """A steady output at `level_v`."""
+        raise NotImplementedError
+
     def fire(self, channels: list[int]) -> list[str]:
         return ["*TRG"]
 
@@ -111,6 +123,14 @@ class Keysight33500B(Dialect):
 
     def output(self, channel, on):
         return [f"OUTP{channel} {'ON' if on else 'OFF'}"]
+
+    def square(self, channel, frequency_hz, high_v, low_v):
+        n = channel
+        return [f"OUTP{n}:LOAD INF", f"SOUR{n}:FUNC SQU", f"SOUR{n}:FREQ {_num(frequency_hz)}",
+                f"SOUR{n}:VOLT:HIGH {_num(high_v)}", f"SOUR{n}:VOLT:LOW {_num(low_v)}"]
+
+    def dc(self, channel, level_v):
+        return [f"OUTP{channel}:LOAD INF", f"SOUR{channel}:FUNC DC", f"SOUR{channel}:VOLT:OFFS {_num(level_v)}"]
 
 
 class RigolDG(Dialect):
@@ -144,6 +164,14 @@ class RigolDG(Dialect):
     def output(self, channel, on):
         return [f":OUTP{channel} {'ON' if on else 'OFF'}"]
 
+    def square(self, channel, frequency_hz, high_v, low_v):
+        n = channel
+        return [f":OUTP{n}:LOAD INF", f":SOUR{n}:FUNC SQU", f":SOUR{n}:FREQ {_num(frequency_hz)}",
+                f":SOUR{n}:VOLT:HIGH {_num(high_v)}", f":SOUR{n}:VOLT:LOW {_num(low_v)}"]
+
+    def dc(self, channel, level_v):
+        return [f":OUTP{channel}:LOAD INF", f":SOUR{channel}:FUNC DC", f":SOUR{channel}:VOLT:OFFS {_num(level_v)}"]
+
     def fire(self, channels):
         return [f":SOUR{n}:BURS:TRIG:IMM" for n in channels]
 
@@ -171,6 +199,14 @@ class SiglentSDG(Dialect):
 
     def output(self, channel, on):
         return [f"C{channel}:OUTP {'ON' if on else 'OFF'}"]
+
+    def square(self, channel, frequency_hz, high_v, low_v):
+        n = channel
+        return [f"C{n}:OUTP LOAD,HZ", f"C{n}:BSWV WVTP,SQUARE", f"C{n}:BSWV FRQ,{_num(frequency_hz)}",
+                f"C{n}:BSWV HLEV,{_num(high_v)}", f"C{n}:BSWV LLEV,{_num(low_v)}"]
+
+    def dc(self, channel, level_v):
+        return [f"C{channel}:OUTP LOAD,HZ", f"C{channel}:BSWV WVTP,DC", f"C{channel}:BSWV OFST,{_num(level_v)}"]
 
     def fire(self, channels):
         return [f"C{n}:BTWV MTRIG" for n in channels]
@@ -268,6 +304,26 @@ class FunctionGenerator:
             "fire": self.fire_plan(),
         }
         self.check("configuration")
+
+    def drive_light(self, channel: int, frequency_hz: float | None, high_v: float = 5.0,
+                    low_v: float = 0.0) -> None:
+        """Drive an LED on `channel`: a square wave at `frequency_hz` between the levels, or (None)
+        steady at `high_v`. The output is off while it changes and on after; then checked. The
+        first call resets the instrument; `close` switches the channel off."""
+        if not self.channels:
+            self._send(self.dialect.reset())
+        if channel not in self.channels:
+            self.channels.append(channel)
+        self._send(self.dialect.output(channel, False))
+        if frequency_hz is None:
+            self._send(self.dialect.dc(channel, high_v))
+        else:
+            self._send(self.dialect.square(channel, frequency_hz, high_v, low_v))
+        self._send(self.dialect.output(channel, True))
+        self.settings.setdefault("light", []).append(
+            {"channel": channel, "waveform": "dc" if frequency_hz is None else "square",
+             "frequency_hz": frequency_hz, "high_v": high_v, "low_v": low_v})
+        self.check("the LED's waveform")
 
     def arm(self) -> None:
         """Switch the outputs on (they idle low until the trigger) and check."""

@@ -48,6 +48,8 @@ class MockDevices:
                                        noise=m.noise, seed=m.seed,
                                        line_time_s=truth.line_time_s if role == "rs" else None,
                                        readout_s=m.readout_s,
+                                       readout_bias=truth.readout_bias if role == "rs" else 0.0,
+                                       led_level=truth.led_level,
                                        gs_to_rs=tuple(map(tuple, truth.gs_to_rs)) if misaligned else None))
 
     def camera(self, role: str) -> Camera:
@@ -56,6 +58,11 @@ class MockDevices:
 
     def show(self, target: str) -> bool:
         self.world.target = target
+        return True
+
+    def drive_light(self, source) -> bool:
+        """Show the cameras a light whose waveform `source()` tells (None: no light)."""
+        self.world.light = source
         return True
 
     def begin_shot(self) -> None:

@@ -23,14 +23,23 @@ the reconstruction grid (sensor size / bin, the RS rows binned exactly as the re
 models them) and makes sensor-size frames by repeating each grid pixel bin x bin, noise added
 per sensor pixel a strip of rows at a time: a lab-size frame (3648x5472) then costs tens of MB of
 scratch, not the tens of GB a sensor-resolution scene would, and the truth is on the grid. The
-RS device has a small feature map (Height, SensorReadoutTime = overhead + Height x line time) so
-its line time is measured as on a real camera.
+RS device has a small feature map (Height, SensorReadoutTime) so its line time is measured as on a
+real camera, and as roughly: like the vendor's figure, the mock's SensorReadoutTime is
+overhead + (1 + readout_bias) x Height x the true line time, so its slope is off by `readout_bias`
+(the rig's mock.readout_time_bias).
+
+During calibration the world can also show a light a generator channel drives (`light`, e.g.
+FakeGenerator.light for one channel: the line-time LED facing the diffuser): a glow (a smooth
+spot times the diffuser's caustic, the PSF) whose brightness follows the channel's voltage in
+time; each RS row sees it integrated over its own exposure, which starts one true line time
+after the previous row's.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -49,6 +58,8 @@ EXPOSURE_STEP_S = 1e-6  # exposure is set in whole microseconds, like a Basler a
 READOUT_OVERHEAD_S = 12.5e-6  # constant part of the mock RS SensorReadoutTime
 STATIC_TARGETS = ("point", "chart", "dark")
 CHART_BRIGHTNESS = 0.7  # the chart's brightest point, in units of full scale at unit gain
+LED_FORWARD_V = 1.8  # the mock LED lights above this voltage, its brightness linear in the excess
+LED_REFERENCE_V = 5.0  # the voltage at which the LED shows led_level
 
 
 @dataclass(frozen=True)
@@ -64,6 +75,8 @@ class MockDevice:
     line_time_s: float | None = None  # RS only: the sensor's true line time
     readout_s: float = 1e-3
     gs_to_rs: tuple[tuple[float, ...], ...] | None = None  # GS only: true GS pixel -> RS pixel map
+    readout_bias: float = 0.0  # RS only: SensorReadoutTime's slope is (1 + bias) x line_time_s
+    led_level: float = 0.0  # brightness of a generator-driven LED at LED_REFERENCE_V (full scale)
 
 
 class MockWorld:
@@ -84,6 +97,7 @@ class MockWorld:
         self.devices: dict[str, MockDevice] = {}
         self.t0_s: float | None = None  # generator-clock time of the RS trigger
         self.target: str | None = None  # a static calibration target shown instead of the scene
+        self.light: Callable | None = None  # () -> FakeGenerator.Light or None: the LED's waveform now
         self._video: np.ndarray | None = None
         self._grid_psf: np.ndarray | None = None
         self._lock = threading.Lock()
@@ -161,11 +175,30 @@ def warp_seen(img: np.ndarray, gs_to_rs: np.ndarray) -> np.ndarray:
                                          borderMode=cv2.BORDER_CONSTANT, borderValue=0.0) for c in img])
 
 
-class MockFeatures(FeatureMap):
-    """The mock RS sensor's feature map: a writable Height and its SensorReadoutTime (us)."""
+def led_brightness(volts: float, level: float) -> float:
+    """The mock LED's brightness (full-scale units) at `volts` across LED and resistor."""
+    return level * max(0.0, volts - LED_FORWARD_V) / (LED_REFERENCE_V - LED_FORWARD_V)
 
-    def __init__(self, rows: int, line_time_s: float):
+
+def square_on_fraction(starts_s: np.ndarray, exposure_s: float, frequency_hz: float) -> np.ndarray:
+    """Fraction of [start, start + exposure] during which a 50 % square wave (high during the
+    first half of each period from t = 0) is high."""
+    def high_time(t):  # time spent high in [0, t], in periods
+        u = t * frequency_hz
+        k = np.floor(u)
+        return 0.5 * k + np.minimum(u - k, 0.5)
+
+    s = np.asarray(starts_s, np.float64)
+    return (high_time(s + exposure_s) - high_time(s)) / (exposure_s * frequency_hz)
+
+
+class MockFeatures(FeatureMap):
+    """The mock RS sensor's feature map: a writable Height and its SensorReadoutTime (us),
+    whose slope is (1 + bias) x the true line time (module doc)."""
+
+    def __init__(self, rows: int, line_time_s: float, bias: float = 0.0):
         self.rows, self.line_time_s, self.height = int(rows), float(line_time_s), int(rows)
+        self.bias = float(bias)
 
     def readable(self, name: str) -> bool:
         return name in ("Height", "SensorReadoutTime")
@@ -177,7 +210,7 @@ class MockFeatures(FeatureMap):
         if name == "Height":
             return self.height
         if name == "SensorReadoutTime":  # reported to 0.01 us, like a camera's float feature
-            return round((READOUT_OVERHEAD_S + self.height * self.line_time_s) * 1e6, 2)
+            return round((READOUT_OVERHEAD_S + self.height * self.line_time_s * (1 + self.bias)) * 1e6, 2)
         raise HardwareError(f"mock RS camera has no feature {name!r}")
 
     def set(self, name: str, value) -> None:
@@ -216,7 +249,7 @@ class MockCamera(Camera):
         self.device = dev
         self._opened_at = time.monotonic()
         if dev.kind == "rs":
-            self.features = MockFeatures(self.world.size, dev.line_time_s)
+            self.features = MockFeatures(self.world.size, dev.line_time_s, dev.readout_bias)
         self.info = CameraInfo("mock", dev.model, dev.serial, "simulated", "rngcam")
         return self.info
 
@@ -345,6 +378,8 @@ class MockCamera(Camera):
         n = world.size
         if world.target is not None:
             y = self._render_static(dev)
+            if dev.kind == "rs" and world.light is not None:
+                y = y + self._render_led(dev, t_s)
         elif world.bin > 1:
             return self._render_binned(dev, t_s, index)
         elif dev.kind == "rs":
@@ -420,6 +455,36 @@ class MockCamera(Camera):
             raise HardwareError(f"{self.label}: the mock RS camera needs a PSF")
         conv = PSFConvolution(torch.from_numpy(world.psf), (world.rows, world.cols), channels=3)
         return scale * conv.A(torch.from_numpy(img)).numpy()
+
+    def _render_led(self, dev: MockDevice, t_s: float) -> np.ndarray:
+        """Operator units (3, H, W) of the generator-driven LED's glow: each row integrates the
+        LED's brightness over its own exposure, row r starting r true line times after t_s."""
+        world = self.world
+        light = world.light()
+        if light is None or dev.led_level <= 0:
+            return np.zeros((3, world.rows, world.cols))
+        high = led_brightness(light.high_v, dev.led_level)
+        if light.waveform == "square":
+            low = led_brightness(light.low_v, dev.led_level)
+            starts = t_s + np.arange(world.rows) * dev.line_time_s
+            on = square_on_fraction(starts, self.exposure_s, light.frequency_hz)
+            rows = low + (high - low) * on
+        else:
+            rows = np.full(world.rows, high)
+        scale = self.exposure_s / world.grid.dt_s
+        return scale * self._led_pattern() * rows[None, :, None]
+
+    def _led_pattern(self) -> np.ndarray:
+        """(3, H, W), peak 1: a broad spot through the diffuser, half of it the caustic (the PSF)."""
+        world = self.world
+        y, x = np.mgrid[0:world.rows, 0:world.cols]
+        r2 = ((y - (world.rows - 1) / 2) / world.rows) ** 2 + ((x - (world.cols - 1) / 2) / world.cols) ** 2
+        spot = np.exp(-r2 / (2 * 0.5 ** 2))
+        caustic = np.ones((3, world.rows, world.cols))
+        if world.psf is not None and world.psf.shape[-2:] == (world.rows, world.cols):
+            p = world.psf if world.psf.shape[0] == 3 else np.repeat(world.psf[:1], 3, axis=0)
+            caustic = p / np.maximum(p.max(axis=(1, 2), keepdims=True), 1e-30)
+        return spot[None] * (0.5 + 0.5 * caustic)
 
     def disarm(self) -> None:
         with self._cv:

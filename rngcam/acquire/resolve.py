@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from rngcam.acquire import libraries
-from rngcam.config import CameraConfig, MockSensor, Rig
+from rngcam.config import CameraConfig, MockSceneConfig, MockSensor, Rig
 from rngcam.errors import ConfigError
 from rngcam.formats.bundle import Calibration
 from rngcam.formats.calibration import StoredCalibration, rig_calibration
@@ -43,12 +43,16 @@ SOURCE_NAMES = {"rig": "the rig file", "calibration": "the calibration file", "m
 class MockTruth:
     """What a mock rig really is, hidden from the bundle: calibration on it reports its error
     against these. `line_time_s` is the mock RS sensor's, `gs_to_rs` (3x3) how the mock GS
-    camera sees the scene, `white_balance` (C,) the RS/GS channel gain ratio."""
+    camera sees the scene, `white_balance` (C,) the RS/GS channel gain ratio; `readout_bias` how
+    rough the mock's SensorReadoutTime is, `led_level` how bright a generator-driven LED looks
+    (the rig's mock section)."""
 
     line_time_s: float
     gs_to_rs: np.ndarray
     white_balance: np.ndarray
     sensors: dict[str, MockSensor]
+    readout_bias: float = 0.0
+    led_level: float = 0.0
 
 
 @dataclass
@@ -149,7 +153,22 @@ def _mock_truth(rig: Rig) -> MockTruth | None:
         h = similarity_matrix(a.shift_px, a.rotation_deg, a.scale, centre)
     g_gs = np.asarray(gs_m.channel_gain or [1.0] * 3, np.float64)
     g_rs = np.asarray(rs_m.channel_gain or [1.0] * 3, np.float64)
-    return MockTruth(rs_m.line_time_s or cams.rs.line_time_s, h, g_rs / g_gs, sensors)
+    scene = rig.config.mock or MockSceneConfig()
+    true_line = rs_m.line_time_s or scene.true_line_time_s or cams.rs.line_time_s
+    return MockTruth(true_line, h, g_rs / g_gs, sensors, scene.readout_time_bias, scene.led_level)
+
+
+def _line_time_note(stored, path, line_time_s, nominal_s, sources, progress) -> dict | None:
+    """A calibrated line time replaces the rig's nominal one: say so, with how it was found."""
+    if sources.get("line_time_s") != "calibration":
+        return None
+    method, u = stored.line_time_method, stored.line_time_uncertainty_s
+    how = {"flicker": "measured from an LED's flicker", "readout": "SensorReadoutTime slope, a rough estimate",
+           None: "method not recorded"}[method]
+    shown = f"{line_time_s * 1e6:.4f} us" + (f" +- {u * 1e6:.4f}" if u is not None else "")
+    progress(f"line time: {shown} from {Path(path).name} ({how}) replaces the rig's nominal "
+             f"{nominal_s * 1e6:.4g} us")
+    return {"method": method, "uncertainty_s": u, "nominal_s": nominal_s}
 
 
 def resolve_rig(rig: Rig, progress: Progress = print, psf: bool = True,
@@ -179,6 +198,7 @@ def resolve_rig(rig: Rig, progress: Progress = print, psf: bool = True,
         return default
 
     line_time_s = float(pick("line_time_s", stored and stored.line_time_s, c.cameras.rs.line_time_s, math.nan))
+    line_note = _line_time_note(stored, stored_path, line_time_s, c.cameras.rs.line_time_s, sources, progress)
     gs_to_rs = np.array(pick("gs_to_rs", stored and stored.gs_to_rs, c.calibration.gs_to_rs, np.eye(3)), np.float64)
     black = {}
     for role in ROLES:
@@ -218,4 +238,6 @@ def resolve_rig(rig: Rig, progress: Progress = print, psf: bool = True,
         out.extra = {"calibration_file": str(stored_path), "calibration_found": found,
                      "calibration_parts": stored.parts(),
                      "calibration_provenance": {k: v for k, v in stored.provenance.items() if k in stored.parts()}}
+    if line_note:
+        out.extra["line_time"] = line_note
     return out

@@ -7,15 +7,30 @@ estimates (`mock_truth`) so a run on it shows how well calibration recovers them
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from rngcam.acquire.datasheets import row_time_warning
+from rngcam.acquire.factory import open_generator
 from rngcam.acquire.resolve import ResolvedRig, resolve_rig
 from rngcam.calibrate.align import Alignment, align_pair, working_pair
-from rngcam.calibrate.linetime import LineTimeFit, default_heights, fit_line_time, readout_samples
+from rngcam.calibrate.linetime import (
+    MAX_SATURATED,
+    FlickerPlan,
+    FlickerResult,
+    LineTimeFit,
+    default_heights,
+    fit_bands,
+    fit_line_time,
+    flicker_line_time,
+    plan_flicker,
+    readout_samples,
+    row_ratio,
+)
 from rngcam.calibrate.psf import PsfEstimate, estimate_psf
 from rngcam.calibrate.shots import Bench
 from rngcam.calibrate.whitebalance import WhiteBalance, estimate_white_balance
@@ -33,6 +48,8 @@ Ask = Callable[[str], None] | None
 POINT_INSTRUCTION = ("Put a point source (pinhole or LED, far away) on the RS camera's axis and "
                      "darken the room")
 DARK_INSTRUCTION = "Switch the point source off (or cover it); keep everything else as it was"
+LED_INSTRUCTION = ("Cable the generator's LED channel (series resistor, LED facing the diffuser) and "
+                   "darken the room")
 CHART_INSTRUCTION = ("Put a textured, static target on a dark background, inside both cameras' "
                      "fields of view")
 
@@ -147,12 +164,15 @@ def calibrate_linetime(rig: Rig, out=None, heights=None, progress: Progress = pr
     fit: LineTimeFit = fit_line_time([h for h, _ in samples], [r for _, r in samples])
     rig_value = rig.config.cameras.rs.line_time_s
     provenance = {"method": "least-squares slope of SensorReadoutTime against ROI height",
-                  "heights": list(fit.heights), "readout_s": list(fit.readout_s),
+                  "method_key": "readout", "uncertainty_s": None, "heights": list(fit.heights),
+                  "readout_s": list(fit.readout_s),
                   "overhead_s": fit.overhead_s, "residual_s": fit.residual_s, **provenance_cam}
     path = _store(rig, out, line_time_s=(fit.line_time_s, provenance))
     lines = [(f"line time: {fit.line_time_s * 1e6:.4f} us (overhead {fit.overhead_s * 1e6:.2f} us, "
               f"fit residual {fit.residual_s * 1e6:.3f} us over {len(fit.heights)} heights); "
-              f"the rig says {rig_value * 1e6:.4g} us ({(fit.line_time_s / rig_value - 1):+.2%})")]
+              f"the rig says {rig_value * 1e6:.4g} us ({(fit.line_time_s / rig_value - 1):+.2%})"),
+             ("note: a rough estimate: the vendor calls SensorReadoutTime a rough figure; for a measured line "
+              "time use `rngcam calibrate linetime --flicker` (an LED on the generator)")]
     if resolved.mock is not None:
         true = resolved.mock.line_time_s
         lines.append(f"mock truth: line time {true * 1e6:.4f} us (error {(fit.line_time_s / true - 1):+.3%})")
@@ -161,7 +181,95 @@ def calibrate_linetime(rig: Rig, out=None, heights=None, progress: Progress = pr
     if abs(fit.line_time_s / rig_value - 1) > 0.01:
         warnings.append(f"the measured line time differs from the rig's cameras.rs.line_time_s by more than 1 %; "
                         f"captures with this calibration file record the measured {fit.line_time_s:.6g} s")
+    sheet = row_time_warning(provenance_cam["camera_model"] or "", provenance_cam["pixel_format"], fit.line_time_s)
+    if sheet:
+        warnings.append(sheet)
     return Outcome(path, lines, warnings, fit)
+
+
+def _flicker_shots(resolved: ResolvedRig, channel: int, rows_per_period, frames: int, progress: Progress,
+                   ask: Ask):
+    """(plan, steady-on frames, [(LED Hz, frame)], camera provenance, generator settings)."""
+    rig = resolved.rig
+    g = rig.config.generator
+    with contextlib.ExitStack() as stack:
+        bench = stack.enter_context(Bench(resolved, roles=("rs",), progress=progress, ask=ask))
+        rows = bench.config("rs").roi.height
+        plan = plan_flicker(resolved.line_time_s, rows, bench.exposure_s("rs"), rows_per_period)
+        gen, fake = open_generator(rig, stack, progress)
+        if fake is not None and hasattr(bench.devices, "drive_light"):
+            bench.devices.drive_light(lambda: fake.light(channel))
+            stack.callback(bench.devices.drive_light, None)
+        bench.show("dark", LED_INSTRUCTION)
+        gen.drive_light(channel, None, g.high_v, g.low_v)
+        steady = bench.grab("rs", frames)
+        progress(f"linetime: {frames} frame(s) with the LED steady at {g.high_v:g} V (generator channel {channel})")
+        shots = []
+        for nu, period in zip(plan.frequencies_hz, plan.rows_per_period):
+            gen.drive_light(channel, nu, g.high_v, g.low_v)
+            shots += [(nu, f) for f in bench.grab("rs", frames)]
+            progress(f"linetime: {frames} frame(s) with the LED flickering at {nu:.6g} Hz (about {period:.1f} rows "
+                     "per period at the rig's line time)")
+        settings = dict(gen.settings)
+        cam = _camera_provenance(bench, "rs")
+    return plan, np.mean(steady, axis=0), shots, cam, settings
+
+
+def calibrate_linetime_flicker(rig: Rig, out=None, rows_per_period: float | None = None, frames: int = 2,
+                               led_channel: int | None = None, progress: Progress = print,
+                               ask: Ask = None) -> Outcome:
+    """Line time from the bands an LED, square-wave driven by a generator channel, lays along
+    the RS rows (rngcam.calibrate.linetime): two frequencies, `frames` frames each."""
+    calibration_target(rig, out)  # refused before any shot is taken
+    c = rig.config
+    channel = led_channel or c.cameras.gs.trigger.channel
+    if frames < 1:
+        raise RngcamError("--frames must be >= 1")
+    resolved = resolve_rig(rig, progress, psf=c.cameras.rs.backend == "mock", calibration_missing_ok=True)
+    resolved.line_time_s = float(c.cameras.rs.line_time_s)  # plan from the nominal value, not an old calibration
+    plan, steady, shots, cam, gen_settings = _flicker_shots(resolved, channel, rows_per_period, frames, progress, ask)
+    cfg = c.cameras.rs
+    max_dn, black = 2 ** cfg.bit_depth - 1, resolved.black_level_dn["rs"]
+    fits, saturated = [], 0.0
+    for nu, frame in shots:
+        ratio, sat = row_ratio(frame, steady, black, max_dn)
+        saturated = max(saturated, sat)
+        if sat <= MAX_SATURATED:
+            fits.append((nu, fit_bands(ratio)))
+    result: FlickerResult = flicker_line_time(fits, plan, saturated)
+    return _flicker_outcome(rig, out, resolved, plan, result, cam, gen_settings, channel)
+
+
+def _flicker_outcome(rig, out, resolved, plan: FlickerPlan, result: FlickerResult, cam, gen_settings,
+                     channel) -> Outcome:
+    lt, u = result.line_time_s, result.uncertainty_s
+    nominal = plan.nominal_line_time_s
+    provenance = {"method": "LED flicker: band frequency along the RS rows (steady-on frame divided out, "
+                            "periodogram + least-squares Fourier fit) over the generator's LED frequency",
+                  "method_key": "flicker", "uncertainty_s": u, "statistical_s": result.statistical_s,
+                  "disagreement_s": result.disagreement_s, "frequencies_hz": list(plan.frequencies_hz),
+                  "rows_per_period": list(plan.rows_per_period), "per_frequency_s": list(result.per_frequency_s),
+                  "band_fits": [{"frequency_hz": nu, "cycles_per_row": f.frequency, "sigma": f.sigma,
+                                 "modulation": f.modulation, "snr": f.snr} for nu, f in result.fits],
+                  "nominal_line_time_s": nominal, "led_channel": channel,
+                  "generator_dialect": gen_settings.get("dialect", rig.config.generator.dialect), **cam}
+    path = _store(rig, out, line_time_s=(lt, provenance))
+    lines = [f"line time: {lt * 1e6:.4f} us +- {u * 1e6:.4f}",
+             (f"  from {len(result.fits)} frame(s) at " + ", ".join(f"{nu:.6g} Hz" for nu in plan.frequencies_hz)
+              + " (" + ", ".join(f"{v * 1e6:.4f} us" for v in result.per_frequency_s) + "); the rig says "
+              f"{nominal * 1e6:.4g} us ({lt / nominal - 1:+.2%})")]
+    if resolved.mock is not None:
+        true = resolved.mock.line_time_s
+        lines.append(f"mock truth: line time {true * 1e6:.4f} us (error {lt / true - 1:+.3%})")
+    lines.append(f"stored line_time_s in {path}")
+    warnings = []
+    if abs(lt / nominal - 1) > 0.01:
+        warnings.append(f"the measured line time differs from the rig's cameras.rs.line_time_s by more than 1 %; "
+                        f"captures with this calibration file use the measured {lt:.6g} s")
+    sheet = row_time_warning(cam["camera_model"] or "", cam["pixel_format"], lt)
+    if sheet:
+        warnings.append(sheet)
+    return Outcome(path, lines, warnings, result)
 
 
 # --------------------------------------------------------------------------- static pair

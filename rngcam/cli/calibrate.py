@@ -72,16 +72,36 @@ def psf_cmd(rig_path, out, frames, dark_frames, max_saturated, yes):
 @_RIG
 @_OUT
 @allow_library_option
+@click.option("--flicker", is_flag=True,
+              help="Measure it: the generator's LED channel flickers an LED facing the diffuser and the "
+                   "bands along the RS rows give the line time (see the README's hardware section). "
+                   "Without it: the slope of SensorReadoutTime against ROI height, a rough estimate.")
 @click.option("--heights", default=None,
               help="Comma-separated ROI heights to read SensorReadoutTime at (default: four from "
                    "the full height down to a quarter).")
-def linetime_cmd(rig_path, out, heights):
-    """RS line time: slope of SensorReadoutTime against ROI height."""
-    from rngcam.calibrate.run import calibrate_linetime
+@click.option("--rows-per-period", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="--flicker: LED period in RS rows at the rig's line time (default: about 40, longer "
+                   "than three exposures, at least five periods across the frame).")
+@click.option("--frames", type=click.IntRange(min=1), default=2, show_default=True,
+              help="--flicker: frames per LED setting (steady, and each of the two frequencies).")
+@click.option("--led-channel", type=click.IntRange(min=1), default=None,
+              help="--flicker: the generator channel driving the LED (default: the GS camera's channel; "
+                   "no GS triggers are sent during calibration).")
+@_YES
+def linetime_cmd(rig_path, out, flicker, heights, rows_per_period, frames, led_channel, yes):
+    """RS line time: measured from an LED's flicker (--flicker), or estimated from SensorReadoutTime."""
+    from rngcam.calibrate.run import calibrate_linetime, calibrate_linetime_flicker
     from rngcam.config import load_rig
     from rngcam.errors import ConfigError
 
     rig = load_rig(rig_path)
+    if flicker:
+        if heights:
+            raise ConfigError("--heights belongs to the SensorReadoutTime method; leave it out with --flicker")
+        _finish(rig, calibrate_linetime_flicker(rig, out, rows_per_period, frames, led_channel, echo_line, _ask(yes)))
+        return
+    if rows_per_period is not None or led_channel is not None:
+        raise ConfigError("--rows-per-period and --led-channel need --flicker")
     parsed = None
     if heights:
         try:

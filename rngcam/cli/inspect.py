@@ -95,6 +95,12 @@ def _inspect(bundle_path: str, as_json: bool, checksum: bool) -> None:
         s = _clean(recon_summary(bundle_path, checksum=checksum))
         _echo(json.dumps(s, indent=2) if as_json else render_recon_summary(s))
         return
+    from rngcam.formats.calibration import calibration_summary, is_calibration_file
+
+    if is_calibration_file(bundle_path):  # rngcam calibrate's file: its parts, line time and provenance
+        s = _clean(calibration_summary(bundle_path))
+        _echo(json.dumps(s, indent=2) if as_json else _calibration_text(s))
+        return
     # A missing/bad file raises BundleError; the cli group prints it as one line.
     summary = inspect_bundle(bundle_path, checksum=checksum)
     recon, warnings = recon_size(bundle_path)
@@ -107,3 +113,12 @@ def _inspect(bundle_path: str, as_json: bool, checksum: bool) -> None:
         from rngcam.calibrate.psf import bundle_psf_figure  # the PSF against this RS image's noise floor
 
         _echo(bundle_psf_figure(bundle_path))
+
+
+def _calibration_text(s: dict) -> str:
+    lines = [f"calibration file {s['file']} (rig {s['rig_name'] or '?'}): {', '.join(s['parts']) or 'empty'}"]
+    if s["line_time_s"] is not None:
+        u = s["line_time_uncertainty_s"]
+        lines.append(f"line_time_s: {s['line_time_s'] * 1e6:.4f} us" + (f" +- {u * 1e6:.4f}" if u is not None else "")
+                     + f" ({s['line_time_method'] or 'method not recorded'})")
+    return "\n".join(lines)

@@ -13,7 +13,8 @@ Layout (every part optional; each subcommand replaces only its own part, the oth
 - ``psf`` (C, H, W) float32, sums to 1 per channel, on the RS sensor grid (Bayer sensors: after
   2x2 binning per colour). rngcam.physics.psf.load_psf reads it, so a rig's
   ``calibration.psf.path`` may point straight at this file.
-- ``line_time_s`` scalar float64.
+- ``line_time_s`` scalar float64; its attrs ``method_key`` ("flicker": measured from an LED,
+  "readout": the rough SensorReadoutTime slope) and ``uncertainty_s`` (1 sigma, flicker only).
 - ``gs_to_rs`` (3, 3) float64: raw GS pixel -> raw RS sensor pixel.
 - ``white_balance`` (C,) float64: multiplies GS measurements to the RS scale (recon's Lambda).
 
@@ -42,6 +43,7 @@ from rngcam.untrusted import printable, temp_beside
 FORMAT_NAME = "rngcam-calibration"
 SCHEMA_VERSION = 1
 PARTS = ("psf", "line_time_s", "gs_to_rs", "white_balance")
+LINE_TIME_METHODS = ("flicker", "readout")
 _PART_ELEMENTS = {"psf": h5safe.MAX_CHANNELS * h5safe.MAX_SIDE**2, "line_time_s": 1, "gs_to_rs": 9,
                   "white_balance": h5safe.MAX_CHANNELS}
 
@@ -63,6 +65,19 @@ class StoredCalibration:
 
     def parts(self) -> list[str]:
         return [p for p in PARTS if getattr(self, p) is not None]
+
+    @property
+    def line_time_method(self) -> str | None:
+        """"flicker" or "readout" (how line_time_s was found), None when not recorded."""
+        v = self.provenance.get("line_time_s", {}).get("method_key")
+        return v if v in LINE_TIME_METHODS else None
+
+    @property
+    def line_time_uncertainty_s(self) -> float | None:
+        """The line time's 1-sigma uncertainty (s), when recorded and sane."""
+        v = self.provenance.get("line_time_s", {}).get("uncertainty_s")
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v >= 0
+        return float(v) if ok else None
 
 
 def now_utc() -> str:
@@ -215,3 +230,30 @@ def rig_calibration(rig, missing_ok: bool = False) -> tuple[StoredCalibration | 
         raise ConfigError(f"{rig.path}: calibration.file: {path} not found (run `rngcam calibrate "
                           f"... --rig {rig.path}` first, or remove the entry)")
     return read_calibration(path), path
+
+
+def is_calibration_file(path: str | Path) -> bool:
+    """True when `path` is an HDF5 file whose `format` attribute says rngcam-calibration."""
+    try:
+        with h5safe.open_untrusted(path, "calibration file") as f:
+            if "format" not in f.attrs:
+                return False
+            h5safe.check_attr(f, "format")
+            v = f.attrs["format"]
+            return (v.decode() if isinstance(v, bytes) else v) == FORMAT_NAME
+    except (OSError, ValueError, TypeError, KeyError, RuntimeError, RngcamError):
+        return False
+
+
+def calibration_summary(path: str | Path) -> dict:
+    """What `rngcam inspect CAL.h5` shows: the parts, the line time with its method and
+    uncertainty, the other parts' shapes, and each part's provenance."""
+    cal = read_calibration(path)
+    out = {"file": str(path), "format": FORMAT_NAME, "rig_name": cal.rig_name, "parts": cal.parts(),
+           "line_time_s": cal.line_time_s, "line_time_uncertainty_s": cal.line_time_uncertainty_s,
+           "line_time_method": cal.line_time_method}
+    for name in ("psf", "gs_to_rs", "white_balance"):
+        value = getattr(cal, name)
+        out[name] = None if value is None else (list(value.shape) if name == "psf" else value.tolist())
+    out["provenance"] = {k: cal.provenance[k] for k in cal.parts() if k in cal.provenance}
+    return out
