@@ -140,13 +140,14 @@ def plan_flicker(nominal_line_time_s: float, rows: int, exposure_s: float,
 def row_ratio(flicker: np.ndarray, steady: np.ndarray, black_dn: float, max_dn: float) -> tuple[np.ndarray, float]:
     """(per-row light of `flicker` / light of `steady` (NaN for unusable rows), fraction of the
     pixels saturated in either). Rows first; any further axes (columns, colours) are pooled;
-    saturated pixels and those under 5 % of the steady frame's range are left out."""
+    saturated pixels and those under 5 % of the steady frame's brightest are left out."""
     f = np.asarray(flicker, np.float64).reshape(len(flicker), -1)
     s = np.asarray(steady, np.float64).reshape(len(steady), -1)
     if f.shape != s.shape:
         raise RngcamError(f"the flicker frame {flicker.shape} and the steady frame {steady.shape} differ in shape")
     saturated = (f >= max_dn) | (s >= max_dn)
-    lit = (s - black_dn) > 0.05 * (max_dn - black_dn)
+    level = np.percentile(s - black_dn, 99)
+    lit = (s - black_dn) > 0.05 * level if level > 0 else np.zeros_like(saturated)
     use = lit & ~saturated
     num = np.where(use, f - black_dn, 0.0).sum(axis=1)
     den = np.where(use, s - black_dn, 0.0).sum(axis=1)
