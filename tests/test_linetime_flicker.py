@@ -98,6 +98,13 @@ def test_readout_time_is_as_far_off_as_its_bias_and_says_it_is_rough(tmp_path):
     assert store.read_calibration(tmp_path / "readout.h5").line_time_method == "readout"
 
 
+def test_a_few_saturated_pixels_of_the_caustic_are_left_out(tmp_path):
+    outcome = calibrate_linetime_flicker(_rig(tmp_path, led_level=1.6), tmp_path / "cal.h5", frames=1,
+                                         progress=lambda s: None)
+    assert 0 < outcome.value.saturated <= 0.02
+    assert outcome.value.line_time_s == pytest.approx(TRUE_S, rel=1e-3)
+
+
 def test_a_capture_uses_the_flicker_line_time_with_a_note(tmp_path):
     rig = _rig(tmp_path)
     calibrate_linetime_flicker(rig, store.beside_rig(rig), progress=lambda s: None)  # where captures find it

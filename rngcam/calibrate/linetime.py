@@ -230,6 +230,7 @@ class FlickerResult:
     disagreement_s: float
     per_frequency_s: tuple[float, ...]
     fits: tuple[tuple[float, BandFit], ...]
+    saturated: float = 0.0  # fraction of the pixels saturated (left out of the rows' light)
 
 
 def _weak(fit: BandFit, plan: FlickerPlan) -> str | None:
@@ -276,4 +277,4 @@ def flicker_line_time(fits, plan: FlickerPlan, saturated: float = 0.0) -> Flicke
                           f"({', '.join(f'{lt * 1e6:.4f}' for lt, _ in per)} us): aliased bands or an LED that "
                           "does not follow the generator; check the wiring and use a larger --rows-per-period")
     return FlickerResult(mean, float(np.hypot(stat, spread / 2)), stat, spread, tuple(lt for lt, _ in per),
-                         tuple(fits))
+                         tuple(fits), saturated)

@@ -251,13 +251,14 @@ def _flicker_outcome(rig, out, resolved, plan: FlickerPlan, result: FlickerResul
                   "rows_per_period": list(plan.rows_per_period), "per_frequency_s": list(result.per_frequency_s),
                   "band_fits": [{"frequency_hz": nu, "cycles_per_row": f.frequency, "sigma": f.sigma,
                                  "modulation": f.modulation, "snr": f.snr} for nu, f in result.fits],
-                  "nominal_line_time_s": nominal, "led_channel": channel,
+                  "nominal_line_time_s": nominal, "led_channel": channel, "saturated_fraction": result.saturated,
                   "generator_dialect": gen_settings.get("dialect", rig.config.generator.dialect), **cam}
     path = _store(rig, out, line_time_s=(lt, provenance))
     lines = [f"line time: {lt * 1e6:.4f} us +- {u * 1e6:.4f}",
              (f"  from {len(result.fits)} frame(s) at " + ", ".join(f"{nu:.6g} Hz" for nu in plan.frequencies_hz)
               + " (" + ", ".join(f"{v * 1e6:.4f} us" for v in result.per_frequency_s) + "); the rig says "
-              f"{nominal * 1e6:.4g} us ({lt / nominal - 1:+.2%})")]
+              f"{nominal * 1e6:.4g} us ({lt / nominal - 1:+.2%}); {result.saturated:.2%} of the pixels saturated "
+              "(left out)")]
     if resolved.mock is not None:
         true = resolved.mock.line_time_s
         lines.append(f"mock truth: line time {true * 1e6:.4f} us (error {lt / true - 1:+.3%})")
