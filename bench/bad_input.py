@@ -14,10 +14,10 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 import time
 from pathlib import Path
 
+from bench.program import RNGCAM
 from rngcam.evaluate import stress_cases as edits
 
 ROWS = {
@@ -33,8 +33,7 @@ ROWS = {
 
 
 def rngcam(*args: str) -> subprocess.CompletedProcess:
-    code = "from rngcam.cli import main; main()"
-    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True)
+    return subprocess.run([*RNGCAM, *args], capture_output=True, text=True)
 
 
 def main() -> None:

@@ -23,7 +23,9 @@ import tempfile
 import time
 from pathlib import Path
 
-CLI = [sys.executable, "-c", "import sys; from rngcam.cli import main; sys.argv[0] = 'rngcam'; main()"]
+from bench.program import RNGCAM
+
+CLI = RNGCAM
 KEYS = ("status", "threads", "iterations", "psnr_intermediate_db", "psnr_dynamic_db", "centroid_error_median_px",
         "centroid_error_p90_px", "ghost_median")
 

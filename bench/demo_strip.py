@@ -5,7 +5,7 @@
 
 Rows: the truth, then each `label=config` whose `sineball<size>_<config>.npy` is in `--runs`;
 columns: the frames the demo shows (0, K/6, K/3, K/2, 2K/3, 5K/6), or `--frames`. Uses
-rngcam.cli.demo's strip function, so the picture reads like the demo's.
+the demo's strip function (rngcam.evaluate.strips), so the picture reads like the demo's.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rngcam.cli.demo import strip_png
 from rngcam.evaluate.scenes import scene_problem as simulated_problem
+from rngcam.evaluate.strips import strip_png
 
 
 def main() -> None:

@@ -8,7 +8,8 @@ before each case through /proc/self/clear_refs) under MEMORY_LIMIT_BYTES.
 
     python -m bench.fuzz OUT_DIR --cases 1200 --seed 0
 
-Cases run in this process (a subprocess per case would spend its time importing torch). Prints
+Cases run in this process, the `rngcam` command loaded as its script loads it (bench.program: a
+subprocess per case would spend its time importing torch). Prints
 the counts by mutation and outcome and the timings; the figures go in bench/fuzz.md.
 """
 
@@ -182,16 +183,16 @@ def make_seeds(work: Path) -> tuple[Path, Path]:
     """A 16 px simulated bundle and a recon folder of it (blend, one iteration)."""
     from click.testing import CliRunner
 
-    from rngcam.cli import main
+    from bench.program import program
 
     work.mkdir(parents=True, exist_ok=True)
     bundle, folder = work / "seed.h5", work / "seed_recon"
     if not bundle.is_file():
-        res = CliRunner().invoke(main, ["simulate", "sineball", "-o", str(bundle), "--size", "16"])
+        res = CliRunner().invoke(program(), ["simulate", "sineball", "-o", str(bundle), "--size", "16"])
         assert res.exit_code == 0, res.output
     if not (folder / "recon.h5").is_file():
         shutil.rmtree(folder, ignore_errors=True)
-        res = CliRunner().invoke(main, ["recon", str(bundle), "--method", "blend", "--iters", "1", "-o",
+        res = CliRunner().invoke(program(), ["recon", str(bundle), "--method", "blend", "--iters", "1", "-o",
                                         str(folder), "--quiet"])
         assert res.exit_code == 0, res.output
     return bundle, folder
@@ -242,7 +243,7 @@ def run_case(case: Case, seeds: tuple[Path, Path], work: Path, measure_memory: b
     where other tests' peaks are not this case's)."""
     from click.testing import CliRunner
 
-    from rngcam.cli import main
+    from bench.program import program
     from rngcam.memory import peak_rss_bytes
 
     bundle, folder = seeds
@@ -270,7 +271,7 @@ def run_case(case: Case, seeds: tuple[Path, Path], work: Path, measure_memory: b
     signal.setitimer(signal.ITIMER_REAL, TIME_LIMIT_S)
     try:
         for args in commands:
-            outcomes.append(_outcome(CliRunner().invoke(main, args)))
+            outcomes.append(_outcome(CliRunner().invoke(program(), args)))
         if case.kind == "recon":
             outcomes.append(_load_outcome(target))
     except _Timeout:

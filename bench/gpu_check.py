@@ -3,7 +3,7 @@
     python -m bench.gpu_check -o OUT                 # on a lent GPU (about 8 minutes)
     python -m bench.gpu_check -o OUT --device cpu --quick   # its CPU half: tiny sizes, a few steps
 
-Each reconstruction runs `rngcam recon` in a child process of its own (`run` below), so the peak
+Each reconstruction runs rngcam.reconstruct in a child process of its own (`run` below), so the peak
 GPU memory it reports is that run's alone. Every step has its own time limit; a step that fails
 or runs out is a row that says so, and the rest still run. Writes OUT/gpu_check.json and
 OUT/gpu_check.md (the table) and prints the table.
@@ -19,34 +19,33 @@ import sys
 import time
 from pathlib import Path
 
-# (label, scene, size, recon arguments, child's time limit in s): the issue's list of runs.
+from bench.program import RNGCAM
+
+# (label, scene, size, rngcam.reconstruct's settings, child's time limit in s): the issue's list of runs.
 FULL = [
-    ("sineball 64 default", "sineball", "64", ["--time-budget", "60"], 100),
-    ("smoke 64 default", "smoke", "64", ["--time-budget", "60"], 100),
-    ("smoke 228x342 budget 120", "smoke", "228x342", ["--time-budget", "120"], 180),
+    ("sineball 64 default", "sineball", "64", {"time_budget_s": 60}, 100),
+    ("smoke 64 default", "smoke", "64", {"time_budget_s": 60}, 100),
+    ("smoke 228x342 budget 120", "smoke", "228x342", {"time_budget_s": 120}, 180),
     # at 8x the final truth evaluation (SSIM of 429 M elements) runs past the budget: give it room
-    ("smoke 456x684 budget 150", "smoke", "456x684", ["--time-budget", "150"], 300),
+    ("smoke 456x684 budget 150", "smoke", "456x684", {"time_budget_s": 150}, 300),
 ]
 QUICK = [
-    ("sineball 32 quick", "sineball", "32", ["--iters", "10"], 120),
-    ("smoke 32 quick", "smoke", "32", ["--iters", "10"], 120),
+    ("sineball 32 quick", "sineball", "32", {"max_iters": 10}, 120),
+    ("smoke 32 quick", "smoke", "32", {"max_iters": 10}, 120),
 ]
 KEYS = ("device", "wall_s", "setup_s", "iterations", "psnr_db", "psnr_intermediate_db",
         "centroid_error_median_px", "centroid_error_p90_px", "peak_gpu_gib", "peak_rss_gib", "status", "ended_by")
 
 
-def child(bundle: str, out: str, device: str, extra: list[str]) -> None:
-    """Run `rngcam recon` in this process and print one JSON line of its figures."""
+def child(bundle: str, out: str, device: str, settings: str) -> None:
+    """Reconstruct with STFM in this process (`settings`: JSON of rngcam.reconstruct's keywords) and
+    print one JSON line of its figures."""
     import torch
 
-    from rngcam.cli import main
+    from rngcam import reconstruct
 
     t0 = time.perf_counter()
-    try:
-        main(["recon", bundle, "-o", out, "--overwrite", "--quiet", "--device", device, *extra],
-             standalone_mode=False)
-    except SystemExit:
-        pass
+    reconstruct(bundle, "stfm", out=out, overwrite=True, progress=False, device=device, **json.loads(settings))
     wall = time.perf_counter() - t0
     m = json.loads((Path(out) / "metrics.json").read_text())
     row = {k: m.get(k) for k in KEYS}
@@ -77,7 +76,7 @@ def simulate_all(out: Path, runs: list[tuple], limit: float) -> None:
     for _label, scene, size, _extra, _limit in runs:
         bundle = out / f"{scene}-{size}.h5"
         if not bundle.exists():
-            cmd = [sys.executable, "-c", "from rngcam.cli import main; main()", "simulate", scene, "--size", size,
+            cmd = [*RNGCAM, "simulate", scene, "--size", size,
                    "-o", str(bundle)]
             procs.append((cmd, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)))
     t0 = time.perf_counter()
@@ -102,7 +101,7 @@ def device_tests(out: Path, limit: float) -> dict:
             "wall_s": time.perf_counter() - t0, "summary": last[0]}
 
 
-def reconstruction(out: Path, label: str, scene: str, size: str, extra: list[str], limit: float,
+def reconstruction(out: Path, label: str, scene: str, size: str, settings: dict, limit: float,
                    device: str) -> dict:
     """Simulate the scene and reconstruct it in a child; the row of figures."""
     stem = out / f"{scene}-{size}"
@@ -111,7 +110,7 @@ def reconstruction(out: Path, label: str, scene: str, size: str, extra: list[str
     if not bundle.exists():
         return {**row, "status": "no bundle (simulate failed: see gpu_check.log)"}
     rc, text = _sh([sys.executable, "-m", "bench.gpu_check", "child", str(bundle), str(stem) + "-recon",
-                    device, *extra], limit, out / "gpu_check.log")
+                    device, json.dumps(settings)], limit, out / "gpu_check.log")
     rows = [ln[4:] for ln in text.splitlines() if ln.startswith("ROW ")]
     if not rows:
         return {**row, "status": f"recon failed ({rc})", "detail": text.strip().splitlines()[-3:]}
@@ -153,7 +152,7 @@ def describe_device(device: str) -> str:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["child"]:
-        child(argv[1], argv[2], argv[3], argv[4:])
+        child(*argv[1:5])
         return 0
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("-o", "--out", type=Path, required=True, help="folder for bundles, runs, the log and the table")
@@ -170,8 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"gpu check: {device}; {len(runs)} runs", flush=True)
     simulate_all(a.out, runs, 240)
     rows = [] if a.skip_tests else [device_tests(a.out, 120)]
-    for label, scene, size, extra, limit in runs:
-        rows.append(reconstruction(a.out, label, scene, size, extra, limit, a.device))
+    for label, scene, size, settings, limit in runs:
+        rows.append(reconstruction(a.out, label, scene, size, settings, limit, a.device))
         print(json.dumps(rows[-1]), flush=True)
         (a.out / "gpu_check.json").write_text(json.dumps({"device": device, "rows": rows}, indent=1))
     text = table(rows, device)

@@ -14,15 +14,15 @@ import argparse
 import json
 import os
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
+from bench.program import RNGCAM
 from rngcam.recon import registry
 
 ROOT = Path(__file__).resolve().parents[1]
-CLI = [sys.executable, "-c", "import sys; from rngcam.cli import main; sys.argv[0] = 'rngcam'; main()"]
+CLI = RNGCAM
 
 
 def load() -> str:

@@ -22,11 +22,12 @@ import csv
 import json
 import os
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import torch
+
+from bench.program import RNGCAM
 
 
 def load() -> str:
@@ -133,7 +134,7 @@ def recon(bundles: list[str], method: str, budget: float, extra: list[str], work
     results = []
     for bundle in bundles:
         out = work / f"{Path(bundle).stem}-{method}{tag}"
-        cmd = [sys.executable, "-c", "from rngcam.cli import main; main()", "recon", bundle, "--method", method,
+        cmd = [*RNGCAM, "recon", bundle, "--method", method,
                "--time-budget", str(budget), "-o", str(out), "--overwrite", "--threads", str(threads), *extra]
         before = load()
         t0 = time.perf_counter()
@@ -233,7 +234,7 @@ def strip(out_dirs: list[Path], png: Path, labels: list[str] | None = None) -> l
     import h5py
     import numpy as np
 
-    from rngcam.cli.demo import strip_png
+    from rngcam.evaluate.strips import strip_png
     from rngcam.formats.bundle import open_bundle
 
     with h5py.File(out_dirs[0] / "recon.h5") as f:

@@ -27,7 +27,7 @@ LAYERS = (
     ("recon",),
     ("api",),
     ("scale", "evaluate"),
-    ("cli", "rngcam", "viewers"),
+    ("cli", "rngcam", "__main__", "viewers"),
 )
 
 

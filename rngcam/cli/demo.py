@@ -16,9 +16,9 @@ import time
 from pathlib import Path
 
 import click
-import numpy as np
 
 from rngcam.cli import echo_line
+from rngcam.evaluate.strips import strip_png
 
 REPO = Path(__file__).resolve().parents[2]
 OUT = Path("demo-out")
@@ -54,35 +54,6 @@ def _capture(out: Path) -> Path:
         bundle.unlink()
     capture(load_rig(REPO / "rigs" / "mock.yaml"), bundle, progress=echo_line)
     return bundle
-
-
-def strip_png(png: Path, truth: np.ndarray, videos: dict[str, np.ndarray], frames: list[int],
-              titles: list[str] | None = None) -> None:
-    """Rows: truth and each method; columns: the chosen frames (gamma-encoded), titled by `titles`
-    (default "frame k")."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from rngcam.recon.outputs import to_display
-
-    rows = {"truth": truth, **videos}
-    fig, axes = plt.subplots(len(rows), len(frames), figsize=(1.6 * len(frames), 1.7 * len(rows)),
-                             squeeze=False)
-    for r, (name, video) in enumerate(rows.items()):
-        disp = to_display(video)
-        for c, k in enumerate(frames):
-            ax = axes[r, c]
-            ax.imshow(disp[k], interpolation="nearest")
-            ax.set_xticks([]), ax.set_yticks([])
-            if c == 0:
-                ax.set_ylabel(name, fontsize=9)
-            if r == 0:
-                ax.set_title(titles[c] if titles else f"frame {k}", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(png, dpi=100)
-    plt.close(fig)
 
 
 def main(out: Path = OUT, plan: list | None = None) -> int:
