@@ -232,6 +232,63 @@ def rig_yaml(scene: str, seed: int, size, timing: SimTiming, sensor: SensorModel
     return header + yaml.safe_dump(rig, sort_keys=False)
 
 
+def _check_options(scene: str, out: Path, size, clip, start, bayer: bool, overwrite: bool,
+                   fidelity: str) -> tuple[int, int]:
+    """The grid's (H, W), or one line for options that cannot go together, before anything is rendered."""
+    if fidelity not in fidelity_mod.FIDELITIES:
+        raise SimulationError(f"--fidelity must be one of {', '.join(fidelity_mod.FIDELITIES)}, got {fidelity!r}")
+    if fidelity != "grid" and bayer:
+        raise SimulationError(f"--fidelity {fidelity} renders RGB sensors only (leave out --bayer)")
+    if scene not in SCENES:
+        raise SimulationError(f"unknown scene {scene!r} (choose from {', '.join(SCENES)})")
+    size = grid_shape(size)
+    if out.exists() and not overwrite:
+        raise SimulationError(f"{out} already exists (use --overwrite to replace it)")
+    if scene != "clip" and (clip is not None or start is not None):
+        raise SimulationError("--clip and the clip start only apply to the clip scene")
+    return size
+
+
+def _scene_options(scene: str, timing: SimTiming, clip, span: int, start) -> tuple[dict, dict, dict]:
+    """(the scene's options as the rig file records them, render_scene's keywords, the clip's meta)."""
+    if scene != "clip":
+        scene_options = {"key_times_s": [float(t) for t in timing.gs.centres_s()]}
+        return scene_options, dict(scene_options), {}
+    clip_path = Path(clip) if clip is not None else default_clip_path()
+    frames = load_clip(clip_path)
+    if start is None:
+        start = choose_clip_start(frames, span) if len(frames) >= span else 0
+    scene_options = {"span": int(span), "start": int(start)}
+    render_opts = {"frames": frames, **scene_options}
+    scene_options["path"] = str(clip_path.resolve())
+    return scene_options, render_opts, {"clip": str(clip_path.resolve()), "clip_start": int(start)}
+
+
+def _camera(sensor: SensorModel, frames, triggers, serial: str, model: str, line_time_s=None) -> CameraRecord:
+    """A simulated camera's record: its frames as `sensor` delivers them, triggered at `triggers`."""
+    triggers = np.asarray(triggers, np.float64)
+    return CameraRecord(frames=frames, pixel_format=sensor.pixel_format, bit_depth=sensor.bit_depth,
+                        black_level_dn=sensor.black_level_dn, exposure_s=EXPOSURE_S,
+                        trigger_times_s=triggers, line_time_s=line_time_s, gain_db=0.0,
+                        model=model, serial=serial, timestamps_s=triggers.copy(),
+                        frame_ids=np.arange(len(triggers), dtype=np.int64),
+                        features={"simulated": True, "full_well_e": sensor.full_well_e,
+                                  "read_noise_e": sensor.read_noise_e})
+
+
+def _sensor_frames(sensor: SensorModel, rs_y, gs_y, timing: SimTiming, errors: fidelity_mod.LabErrors,
+                   seed: int, noise: bool):
+    """(RS frames, GS frames, RS defects, GS defects): the measurements through the sensors."""
+    dt = timing.grid.dt_s
+    rng = np.random.default_rng([seed, 101])
+    rs_frames = sensor.capture(rs_y, EXPOSURE_S, dt, rng, noise)[None]
+    gs_frames = np.stack([sensor.capture(gs_y[:, g], EXPOSURE_S, dt, rng, noise)
+                          for g in range(gs_y.shape[1])])
+    rs_frames, rs_defects = fidelity_mod.pixel_defects(rs_frames, errors, sensor.max_dn, sensor.black_level_dn, seed, 0)
+    gs_frames, gs_defects = fidelity_mod.pixel_defects(gs_frames, errors, sensor.max_dn, sensor.black_level_dn, seed, 1)
+    return rs_frames, gs_frames, rs_defects, gs_defects
+
+
 def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
              psf: str | Path | None = None, psf_crop: float = DEFAULT_PSF_CROP, noise: bool = True,
              clip: str | Path | None = None, span: int = 8, start: int | None = None,
@@ -246,35 +303,11 @@ def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
     grid and binned as the rig bins) or 'lab' (fine plus calibration errors), rngcam.sim.fidelity.
     lab_errors: with 'lab', these errors instead of the seed's draw (one error family alone).
     """
-    if fidelity not in fidelity_mod.FIDELITIES:
-        raise SimulationError(f"--fidelity must be one of {', '.join(fidelity_mod.FIDELITIES)}, got {fidelity!r}")
-    if fidelity != "grid" and bayer:
-        raise SimulationError(f"--fidelity {fidelity} renders RGB sensors only (leave out --bayer)")
-    if scene not in SCENES:
-        raise SimulationError(f"unknown scene {scene!r} (choose from {', '.join(SCENES)})")
-    size = grid_shape(size)
     out = Path(out)
-    if out.exists() and not overwrite:
-        raise SimulationError(f"{out} already exists (use --overwrite to replace it)")
-    if scene != "clip" and (clip is not None or start is not None):
-        raise SimulationError("--clip and the clip start only apply to the clip scene")
-
+    size = _check_options(scene, out, size, clip, start, bayer, overwrite, fidelity)
     timing = simulation_timing(size, bayer, grid_bin=None if fidelity == "grid" else fidelity_mod.SPACE)
     sensor = default_sensor(bayer)
-    scene_options: dict = {}
-    meta_clip: dict = {}
-    if scene == "clip":
-        clip_path = Path(clip) if clip is not None else default_clip_path()
-        frames = load_clip(clip_path)
-        if start is None:
-            start = choose_clip_start(frames, span) if len(frames) >= span else 0
-        scene_options = {"span": int(span), "start": int(start)}
-        meta_clip = {"clip": str(clip_path.resolve()), "clip_start": int(start)}
-        render_opts = {"frames": frames, **scene_options}
-        scene_options["path"] = str(clip_path.resolve())
-    else:
-        scene_options = {"key_times_s": [float(t) for t in timing.gs.centres_s()]}
-        render_opts = dict(scene_options)
+    scene_options, render_opts, meta_clip = _scene_options(scene, timing, clip, span, start)
 
     errors = fidelity_mod.LabErrors()
     if fidelity == "lab":
@@ -285,24 +318,9 @@ def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
         rs_y, gs_y = measure(video, prepared.grid, timing)
     else:
         video, prepared, rs_y, gs_y = _fine_capture(scene, size, seed, timing, psf, psf_crop, errors, render_opts)
+    rs_frames, gs_frames, rs_defects, gs_defects = _sensor_frames(sensor, rs_y, gs_y, timing, errors, seed, noise)
+
     dt = timing.grid.dt_s
-    rng = np.random.default_rng([seed, 101])
-    rs_frames = sensor.capture(rs_y, EXPOSURE_S, dt, rng, noise)[None]
-    gs_frames = np.stack([sensor.capture(gs_y[:, g], EXPOSURE_S, dt, rng, noise)
-                          for g in range(gs_y.shape[1])])
-    rs_frames, rs_defects = fidelity_mod.pixel_defects(rs_frames, errors, sensor.max_dn, sensor.black_level_dn, seed, 0)
-    gs_frames, gs_defects = fidelity_mod.pixel_defects(gs_frames, errors, sensor.max_dn, sensor.black_level_dn, seed, 1)
-
-    def camera(frames, triggers, serial, model, line_time_s=None) -> CameraRecord:
-        triggers = np.asarray(triggers, np.float64)
-        return CameraRecord(frames=frames, pixel_format=sensor.pixel_format, bit_depth=sensor.bit_depth,
-                            black_level_dn=sensor.black_level_dn, exposure_s=EXPOSURE_S,
-                            trigger_times_s=triggers, line_time_s=line_time_s, gain_db=0.0,
-                            model=model, serial=serial, timestamps_s=triggers.copy(),
-                            frame_ids=np.arange(len(triggers), dtype=np.int64),
-                            features={"simulated": True, "full_well_e": sensor.full_well_e,
-                                      "read_noise_e": sensor.read_noise_e})
-
     support = psf_mod.spectral_support(prepared.grid)
     snr_px = psf_mod.snr_of_mean_signal(float(sensor.expected_electrons(rs_y, EXPOSURE_S, dt).mean()),
                                         sensor.read_noise_e)  # the rig's noise floor, also with --no-noise
@@ -324,8 +342,8 @@ def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
         meta["truth_calibration"] = {**errors.as_dict(), "rs_defects": rs_defects, "gs_defects": gs_defects,
                                      "line_time_s": timing.rs.line_time_s * errors.line_time_scale}
     bundle = Bundle(
-        rs=camera(rs_frames, [0.0], "SIM-RS", "rngcam simulated RS", timing.rs.line_time_s),
-        gs=camera(gs_frames, timing.gs.trigger_s, "SIM-GS", "rngcam simulated GS"),
+        rs=_camera(sensor, rs_frames, [0.0], "SIM-RS", "rngcam simulated RS", timing.rs.line_time_s),
+        gs=_camera(sensor, gs_frames, timing.gs.trigger_s, "SIM-GS", "rngcam simulated GS"),
         calibration=Calibration(psf=prepared.sensor, psf_source=prepared.source, psf_bias=prepared.bias,
                                 gs_to_rs=np.eye(3), white_balance=np.ones(3),
                                 extra={"psf_crop": float(psf_crop), "psf_spectral_support": support}),
