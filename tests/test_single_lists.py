@@ -144,6 +144,7 @@ def test_every_method_option_of_the_command_line_is_the_registry(toy):
                 kinds = cmd.kinds
                 assert list(choices) == [n for n in registry.names() if registry.get(n).kind in kinds], name
                 assert "toy" in choices or registry.ITERATIVE not in kinds
+                assert param.default == choices[0], name  # the registry's default method
             else:
                 known = {*registry.labels(), *registry.names()} - {"toy"}
                 assert set(choices) - {"toy"} == known, name  # "toy" too when imported with it registered

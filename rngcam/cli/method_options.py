@@ -99,9 +99,10 @@ def _preset_option(kinds: tuple[str, ...]) -> click.Option | None:
                         help=f"Named settings of the method, which the options below adjust. {text}.")
 
 
-def method_option(kinds: tuple[str, ...], default: str = "stfm") -> click.Option:
+def method_option(kinds: tuple[str, ...], default: str | None = None) -> click.Option:
+    """--method: the registry's methods of `kinds`; the default is the registry's first (its default)."""
     names = [e.name for e in _entries(kinds)]
-    return click.Option(["--method"], type=click.Choice(names), default=default, show_default=True,
+    return click.Option(["--method"], type=click.Choice(names), default=default or names[0], show_default=True,
                         help="The reconstruction method (rngcam.recon.registry).")
 
 
