@@ -159,15 +159,15 @@ def test_binned_psf_is_centred_like_the_binned_frames():
     # the left/top half of grid pixel h // 2, whose centre is half a sensor pixel further on. The
     # grid PSF puts the point's light in the grid pixel the binned frames put the point in.
     from rngcam.formats.bundle import Bundle, Calibration
-    from rngcam.recon.problem import _grid_psf
+    from rngcam.recon.gridding import grid_psf
 
     raw = np.zeros((1, 32, 32))
     raw[0, 16, 16] = 1.0
     b = Bundle(rs=None, gs=None, calibration=Calibration(psf=raw))
-    psf = _grid_psf(b, 2, 1)
+    psf = grid_psf(b, 2, 1)
     assert psf.shape[-2:] == (16, 16)
     assert np.unravel_index(np.argmax(psf[0]), psf.shape[-2:]) == (8, 8) and psf[0, 8, 8] > 0.99
     # Light one raw pixel left of the centre is half a grid pixel left: split evenly.
     raw[0, 16, 16], raw[0, 16, 15] = 0.0, 1.0
-    psf = _grid_psf(Bundle(rs=None, gs=None, calibration=Calibration(psf=raw)), 2, 1)
+    psf = grid_psf(Bundle(rs=None, gs=None, calibration=Calibration(psf=raw)), 2, 1)
     assert psf[0, 8, 7] == pytest.approx(psf[0, 8, 8], rel=1e-6)

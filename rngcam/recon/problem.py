@@ -30,11 +30,20 @@ from torch import Tensor
 
 from rngcam import pixels
 from rngcam.errors import BundleError, ConfigError
-from rngcam.formats.bundle import Bundle, CameraRecord
-from rngcam.physics import psf as psf_mod
+from rngcam.formats.bundle import Bundle
 from rngcam.physics.operators import GlobalShutter, RollingShutter
-from rngcam.physics.sensor import BAYER_FORMATS, frame_to_measurement
+from rngcam.physics.sensor import BAYER_FORMATS
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+from rngcam.recon.gridding import (
+    bin_frames,
+    camera_frames,
+    grid_psf,
+    grid_truth,
+    gs_on_rs_grid,
+    masked_note,
+    sensor_defects,
+    valid_or_none,
+)
 from rngcam.sizing import check_frames, plan_grid
 from rngcam.untrusted import printable
 
@@ -246,66 +255,6 @@ def _train_rows(n: int, fraction: float, block: int, rng: np.random.Generator, f
     return flags
 
 
-def _camera_frames(cam: CameraRecord, dt_s: float, keep=None) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Each raw frame (of `keep`, default all) -> ((C, h, w) float32 operator units, (C, h, w)
-    bool invalid pixels: saturated or clipped at 0 DN), Bayer binned 2x2 (invalid if any site is)."""
-    which = "RS" if cam.line_time_s is not None else "GS"
-    indices = range(int(cam.frames.shape[0])) if keep is None else [int(i) for i in keep]
-    out = []
-    try:
-        for i in indices:
-            f = np.asarray(cam.frames[i])
-            meas = frame_to_measurement(f, cam.pixel_format, cam.black_level_dn, cam.bit_depth,
-                                        cam.exposure_s, dt_s)
-            bad = pixels.invalid_pixels(f, cam.bit_depth, cam.black_level_dn).astype(np.float32)
-            bad = frame_to_measurement(bad, cam.pixel_format, 0.0, 1, 1.0, 1.0) > 0
-            out.append((meas, bad))
-    except ValueError as exc:  # NaN/Inf or misshapen frames: a bad bundle, not a crash
-        raise BundleError(f"the {which} frames are unusable: {exc}") from None
-    return out
-
-
-def _bin(img: np.ndarray, factor: int) -> np.ndarray:
-    """Box-average (C, H, W) by `factor` (cropping a remainder at the bottom/right)."""
-    if factor == 1:
-        return img
-    c, h, w = img.shape
-    h2, w2 = h // factor, w // factor
-    if h2 == 0 or w2 == 0:
-        raise BundleError(f"cannot bin a {h}x{w} frame by {factor}")
-    return img[:, :h2 * factor, :w2 * factor].reshape(c, h2, factor, w2, factor).mean(axis=(2, 4))
-
-
-def _binned_pixels(factor: int) -> np.ndarray:
-    """Homography from raw pixel coordinates to coordinates after binning by `factor` (pixel centres)."""
-    a = 1.0 / factor
-    return np.array([[a, 0, 0.5 * a - 0.5], [0, a, 0.5 * a - 0.5], [0, 0, 1.0]])
-
-
-def _warp_to(img: np.ndarray, homography: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
-    """Resample a (C, h, w) GS frame onto the RS sensor grid of `shape` with a GS->RS homography."""
-    same = img.shape[-2:] == tuple(shape)
-    if homography is None or (same and np.allclose(homography, np.eye(3))):
-        if not same:
-            raise BundleError(f"GS frames are {img.shape[-2:]} but RS is {shape}, and the bundle "
-                              "has no GS-to-RS alignment (run `rngcam calibrate align`)")
-        return img
-    out = [cv2.warpPerspective(ch, np.asarray(homography, np.float64), (shape[1], shape[0]),
-                               flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE) for ch in img]
-    return np.stack(out)
-
-
-def _valid_or_none(invalid: np.ndarray) -> Tensor | None:
-    return None if not invalid.any() else torch.from_numpy(np.ascontiguousarray(~invalid))
-
-
-def _masked_note(name: str, invalid: np.ndarray) -> str | None:
-    if not invalid.any():
-        return None
-    return (f"{100 * invalid.mean():.2f} % of the {name} pixels left out of the data term "
-            "(saturated or clipped at 0 DN: no linear information)")
-
-
 def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = None,
                   use_rs: bool = True, use_gs: bool = True, max_frames: int | None = None) -> Problem:
     """Turn a bundle into a Problem on the reconstruction grid (see module docstring).
@@ -330,6 +279,20 @@ def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | Non
                           "(see `rngcam inspect` for its size)") from None
 
 
+def _usable_gs(bundle: Bundle, plan, unusable: dict, left_out: list) -> tuple[list[int], GlobalShutterTiming | None]:
+    """(the GS frames to use, their timing): the plan's less those beyond use, each left out with its reason."""
+    for i, why in plan.gs_left_out:
+        left_out.append((f"GS frame {i + 1}", why))
+    usable = []
+    for j, i in enumerate(plan.gs_kept):
+        if ("gs", i) in unusable:
+            left_out.append((f"GS frame {i + 1}", unusable[("gs", i)]))
+        else:
+            usable.append(j)
+    kept = [plan.gs_kept[j] for j in usable]
+    return kept, plan.gs.subset(usable) if plan.gs is not None and usable else None
+
+
 def _build_problem(bundle: Bundle, grid_bin: int | None, dt_s: float | None, use_rs: bool, use_gs: bool,
                    max_frames: int | None) -> Problem:
     plan = plan_grid(bundle, grid_bin, dt_s)
@@ -345,46 +308,19 @@ def _build_problem(bundle: Bundle, grid_bin: int | None, dt_s: float | None, use
     if any(pixels.value_problems(n.upper(), st, int(getattr(bundle, n).bit_depth)) for n, st in stats.items()):
         raise BundleError("pixel values above the declared bit depth's full scale (see `rngcam inspect`)")
 
-    rs_img, rs_bad = _camera_frames(cam, grid.dt_s, keep=[0])[0]  # one RS frame per capture
+    rs_img, rs_bad = camera_frames(cam, grid.dt_s, keep=[0])[0]  # one RS frame per capture
     sensor_shape = rs_img.shape[-2:]
     factor = grid_bin // mosaic
-    rs_bad |= _defects("RS", rs_img[:, None], factor, notes)
-    b_rs = _bin(rs_img, factor)
-    rs_invalid = _bin(rs_bad.astype(np.float32), factor) > 0
+    rs_bad |= sensor_defects("RS", rs_img[:, None], factor, notes)
+    b_rs = bin_frames(rs_img, factor)
+    rs_invalid = bin_frames(rs_bad.astype(np.float32), factor) > 0
     if use_rs and ("rs", 0) in unusable:
         left_out.append(("RS image", unusable[("rs", 0)]))
         use_rs = False
     b_gs, gs_invalid = None, None
-    gs_timing = plan.gs
-    kept = list(plan.gs_kept)
-    if bundle.gs is not None and use_gs:
-        for i, why in plan.gs_left_out:
-            left_out.append((f"GS frame {i + 1}", why))
-        usable = []
-        for j, i in enumerate(kept):
-            if ("gs", i) in unusable:
-                left_out.append((f"GS frame {i + 1}", unusable[("gs", i)]))
-            else:
-                usable.append(j)
-        kept = [kept[j] for j in usable]
-        gs_timing = plan.gs.subset(usable) if plan.gs is not None and usable else None
-    if bundle.gs is not None and use_gs and kept:
-        calib = bundle.calibration
-        h = None
-        if calib.gs_to_rs is not None:  # raw GS pixels -> raw RS pixels; re-express after Bayer binning
-            gs_mosaic = 2 if bundle.gs.pixel_format in BAYER_FORMATS else 1
-            h = np.asarray(calib.gs_to_rs, np.float64)
-            h = _binned_pixels(mosaic) @ h @ np.linalg.inv(_binned_pixels(gs_mosaic))
-        frames, bad = [], []
-        raw = _camera_frames(bundle.gs, grid.dt_s, keep=kept)
-        stack = np.stack([m for m, _ in raw], axis=1)  # (C, G, h, w): defects are the same in every frame
-        gs_defects = _defects("GS", stack, factor, notes)
-        for j, (_, invalid) in enumerate(raw):
-            invalid |= gs_defects
-            frames.append(_bin(_warp_to(stack[:, j], h, sensor_shape), factor))
-            bad.append(_bin(_warp_to(invalid.astype(np.float32), h, sensor_shape), factor) > 0)
-        b_gs = np.stack(frames, axis=1)
-        gs_invalid = np.stack(bad, axis=1)
+    kept, gs_timing = _usable_gs(bundle, plan, unusable, left_out) if bundle.gs is not None and use_gs else ([], None)
+    if kept:
+        b_gs, gs_invalid = gs_on_rs_grid(bundle, kept, grid.dt_s, mosaic, factor, sensor_shape, notes)
     else:
         gs_timing = None
     if b_gs is not None and b_gs.shape[0] != b_rs.shape[0]:
@@ -395,18 +331,18 @@ def _build_problem(bundle: Bundle, grid_bin: int | None, dt_s: float | None, use
     gs_w = gs_timing.weights(grid) if gs_timing is not None else np.zeros((0, grid.n_frames))
     gs_times = gs_timing.centres_s() + plan.origin_s if gs_timing is not None else np.zeros(0)
 
-    psf = _grid_psf(bundle, grid_bin, b_rs.shape[0])
-    truth = _grid_truth(bundle, grid, b_rs.shape, notes)
+    psf = grid_psf(bundle, grid_bin, b_rs.shape[0])
+    truth = grid_truth(bundle, grid, b_rs.shape, notes)
     mask = None
     if bundle.calibration.field_stop is not None:
-        m = _bin(np.asarray(bundle.calibration.field_stop, np.float32)[None], grid_bin)[0]
+        m = bin_frames(np.asarray(bundle.calibration.field_stop, np.float32)[None], grid_bin)[0]
         mask = torch.from_numpy(m > 0.5)
     wb = bundle.calibration.white_balance
     for name, arr in (("RS", b_rs), ("GS", b_gs)):
         if arr is not None and not np.all(np.isfinite(arr)):
             raise BundleError(f"the {name} frames contain NaN or Inf")
     for name, inv, used in (("RS", rs_invalid, use_rs), ("GS", gs_invalid, b_gs is not None)):
-        note = _masked_note(name, inv) if used else None
+        note = masked_note(name, inv) if used else None
         if note:
             notes.append(note)
     return Problem(
@@ -421,62 +357,11 @@ def _build_problem(bundle: Bundle, grid_bin: int | None, dt_s: float | None, use
         mask=mask,
         white_balance=None if wb is None else torch.as_tensor(np.asarray(wb, np.float64)),
         notes=notes,
-        rs_valid=_valid_or_none(rs_invalid) if use_rs else None,
-        gs_valid=_valid_or_none(gs_invalid) if b_gs is not None else None,
+        rs_valid=valid_or_none(rs_invalid) if use_rs else None,
+        gs_valid=valid_or_none(gs_invalid) if b_gs is not None else None,
         time_origin_s=plan.origin_s,
         left_out=left_out,
     )
-
-
-def _defects(name: str, frames: np.ndarray, factor: int, notes: list[str]) -> np.ndarray:
-    """Hot and dead pixels of a camera's frames (C, F, h, w) at the sensor's resolution
-    (rngcam.recon.defects). Binned (factor > 1), each is replaced by its neighbours' median in place
-    and the returned mask is empty; unbinned, the mask (h, w) marks them invalid. A note either way."""
-    from rngcam.recon.defects import fill, outliers
-
-    bad = outliers(frames)
-    if not bad.any():
-        return bad
-    n = int(bad.sum())
-    if factor > 1:
-        fill(frames, bad)
-        notes.append(f"{n} {name} sensor pixels read far from their neighbours in every frame (hot or dead): "
-                     "replaced by their neighbours' median before binning")
-        return np.zeros_like(bad)
-    notes.append(f"{n} {name} pixels read far from their neighbours in every frame (hot or dead): "
-                 "left out of the data term")
-    return bad
-
-
-def _grid_psf(bundle: Bundle, grid_bin: int, channels: int) -> np.ndarray:
-    raw = bundle.calibration.psf
-    if raw is None:
-        raise BundleError("the bundle has no PSF (calibration/psf); run `rngcam calibrate psf`")
-    raw = psf_mod.as_chw(np.asarray(raw, np.float64))
-    shape = (max(1, round(raw.shape[-2] / grid_bin)), max(1, round(raw.shape[-1] / grid_bin)))
-    raw = psf_mod.centre_for_binning(raw, shape)
-    try:
-        psf, _ = psf_mod.prepare_psf(raw, shape, crop=1.0, bias=None,
-                                     channels=channels if raw.shape[0] == 1 else None)
-    except ValueError as exc:
-        raise BundleError(f"the bundle's PSF is unusable: {exc}") from None
-    return psf
-
-
-def _grid_truth(bundle: Bundle, grid: VideoGrid, rs_shape, notes: list[str]) -> Tensor | None:
-    if bundle.truth is None:
-        return None
-    expected = (rs_shape[0], grid.n_frames, rs_shape[1], rs_shape[2])
-    shape = tuple(np.shape(bundle.truth.video))
-    if shape != expected:
-        notes.append(f"truth video {shape} does not match the grid {expected}: metrics against truth skipped")
-        return None
-    # float32 as the bundle stores it (a float64 copy would double it); metrics accumulate in float64
-    video = np.asarray(bundle.truth.video, np.float32)
-    if not np.isfinite(video).all():
-        notes.append("the truth video has NaN or Inf values: metrics against truth skipped")
-        return None
-    return torch.from_numpy(video)
 
 
 def problem_from_video(video: Tensor, psf: Tensor, rs: RollingShutterTiming | None,
