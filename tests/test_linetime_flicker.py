@@ -201,3 +201,14 @@ def test_a_line_time_far_from_the_datasheet_is_warned(tmp_path):
                for w in outcome.warnings)
     plain = calibrate_linetime_flicker(_rig(tmp_path), tmp_path / "cal2.h5", frames=1, progress=lambda s: None)
     assert not any("manual gives" in w for w in plain.warnings)
+
+
+def test_a_mock_sensor_slower_than_its_rig_says_still_captures_on_the_rigs_grid(tmp_path):
+    """Without calibration the RS rows really end later than the rig's line time says: the mock's
+    scene lasts that long, and the bundle's truth stays on the grid the bundle describes."""
+    rig = _rig(tmp_path, true_s=NOMINAL_S * 1.03)
+    [r] = capture(rig, tmp_path / "shot.h5", progress=lambda s: None)
+    b = read_bundle(r.path)
+    assert b.rs.line_time_s == pytest.approx(NOMINAL_S)
+    frames = int(np.ceil((63 * NOMINAL_S + b.rs.exposure_s) / NOMINAL_S - 1e-9))
+    assert b.truth.video.shape[1] == frames and len(b.truth.frame_times_s) == frames

@@ -11,6 +11,7 @@ from rngcam.acquire.resolve import ROLES, ResolvedRig
 from rngcam.errors import ConfigError
 from rngcam.formats.bundle import Truth
 from rngcam.physics.sensor import SensorModel
+from rngcam.physics.timing import RollingShutterTiming, VideoGrid
 from rngcam.sizing import default_max_memory_bytes
 
 
@@ -30,7 +31,7 @@ class MockDevices:
             raise ConfigError(f"{rig.path}: the mock scene would need about {need / 2**30:,.1f} GiB "
                               f"({self.grid.n_frames} frames of {h}x{w}x3), more than this machine can "
                               "spare: use a smaller cameras.rs.roi or a larger recon.grid_bin for the mock rig")
-        self.world = MockWorld(c.mock.scene, (rs_roi.height, rs_roi.width), self.grid, resolved.rig_psf,
+        self.world = MockWorld(c.mock.scene, (rs_roi.height, rs_roi.width), self._world_grid(), resolved.rig_psf,
                                seed=c.mock.seed, key_times_s=list(gs_timing.centres_s()), options=c.mock.options,
                                bin=grid_bin)
         truth = resolved.mock
@@ -52,6 +53,16 @@ class MockDevices:
                                        led_level=truth.led_level,
                                        gs_to_rs=tuple(map(tuple, truth.gs_to_rs)) if misaligned else None))
 
+    def _world_grid(self) -> VideoGrid:
+        """The bundle's grid, lengthened (same dt) when the sensor's true line time ends its
+        window later than the resolved one says: the scene then lasts as long as the real
+        exposure; the truth in the bundle is the bundle's grid (`truth`)."""
+        c, truth = self.resolved.rig.config, self.resolved.mock
+        rs, gs, grid = self.resolved.timing()
+        real = RollingShutterTiming(truth.line_time_s, c.cameras.rs.exposure_s, rows=c.cameras.rs.roi.height)
+        longer = VideoGrid.covering(real, gs, dt_s=grid.dt_s)
+        return longer if longer.n_frames > grid.n_frames else grid
+
     def camera(self, role: str) -> Camera:
         cfg = getattr(self.resolved.rig.config.cameras, role)
         return MockCamera(cfg.serial, role.upper(), self.world)
@@ -69,7 +80,8 @@ class MockDevices:
         self.world.t0_s = None
 
     def truth(self) -> Truth:
-        return Truth(video=self.world.video(), frame_times_s=self.grid.edges_s()[:-1], dt_s=self.grid.dt_s)
+        video = self.world.video()[:, :self.grid.n_frames]
+        return Truth(video=video, frame_times_s=self.grid.edges_s()[:-1], dt_s=self.grid.dt_s)
 
 
 def make_devices(resolved: ResolvedRig) -> MockDevices:
