@@ -194,6 +194,91 @@ def _check_gs_timestamps(frames: list[Frame], period_s: float | None) -> list[st
             "camera such as Aravis's fake has about a millisecond of it)"]
 
 
+def _open_cameras(rig: Rig, devices, fake, stack: contextlib.ExitStack, progress: Progress) -> dict[str, Camera]:
+    """Each role's camera, opened (closed by `stack`) and wired to the fake generator if any."""
+    cams: dict[str, Camera] = {}
+    for role in ("rs", "gs"):
+        cfg = getattr(rig.config.cameras, role)
+        cam = stack.enter_context(devices.camera(role))
+        cams[role] = cam
+        progress(f"{role} camera: {cam.info.model} serial {cam.info.serial} ({cfg.backend})")
+        if fake is not None:
+            fake.connect(cfg.trigger.channel, cam.hardware_input)
+    return cams
+
+
+def _configure_cameras(rig: Rig, cams: dict[str, Camera], progress: Progress) -> list[str]:
+    """Configure each camera from the rig (its features read back); the warnings."""
+    warnings: list[str] = []
+    for role, cam in cams.items():
+        cfg = getattr(rig.config.cameras, role)
+        configured = cam.configure(CameraSettings.from_config(cfg, role))
+        warnings += configured.warnings
+        progress(f"{role} camera configured: {cfg.pixel_format}, {cfg.roi.width}x{cfg.roi.height}, "
+                 f"exposure {configured.exposure_s * 1e6:g} us, trigger {cfg.trigger.source} "
+                 f"{cfg.trigger.activation} <- generator channel {cfg.trigger.channel}")
+    return warnings
+
+
+def _check_timing(rig: Rig, resolved: ResolvedRig, cams: dict[str, Camera], progress: Progress) -> list[str]:
+    """Verify the timing against the configured cameras (ConfigError when impossible), print it;
+    the warnings."""
+    c = rig.config
+    rs, gs = cams["rs"], cams["gs"]
+    summary, warnings = verify_timing(resolved, rs.configured.exposure_s, gs.configured.exposure_s, rs.line_time_s())
+    readout_s, readout_source = gs_readout(c.cameras.gs, gs.configured.features, gs.info.model if gs.info else "")
+    rs_window_s = ((c.cameras.rs.roi.height - 1) * resolved.line_time_s + rs.configured.exposure_s)
+    summary += refuse_impossible(rig, rs_window_s, gs.configured.exposure_s, readout_s, readout_source)
+    if readout_s is None:
+        warnings.append(f"GS readout time {readout_source}: trigger spacing checked against the exposure only")
+    for line in summary:
+        progress(f"timing: {line}")
+    return warnings
+
+
+def _shoot(rig: Rig, cams: dict[str, Camera], gen, devices, shot: str, stage: list[str], progress: Progress):
+    """One shot (`shot`: "k/n"): arm, fire, fetch, disarm; (RS frames, GS frames, truth, warnings)."""
+    c = rig.config
+    t_shot = time.perf_counter()
+    devices.begin_shot()
+    for cam in cams.values():
+        cam.arm()
+    for cam in cams.values():
+        cam.wait_ready(1.0)
+    progress(f"shot {shot}: cameras armed and ready")
+    gen.fire()
+    stage[0] = f"after firing shot {shot}"
+    progress(f"shot {shot}: fired")
+    n_gs = len(c.timing.gs_trigger_s)
+    rs_frames = [cams["rs"].fetch(c.cameras.rs.fetch_timeout_s, "RS frame 1 of 1")]
+    gs_frames = [cams["gs"].fetch(c.cameras.gs.fetch_timeout_s, f"GS frame {i + 1} of {n_gs}") for i in range(n_gs)]
+    for cam in cams.values():
+        cam.disarm()
+    shot_warnings = _check_gs_timestamps(gs_frames, c.timing.gs_period_s)
+    for w in shot_warnings:
+        progress(f"warning: {w}")
+    progress(f"shot {shot}: fetched 1 RS + {n_gs} GS frames ({time.perf_counter() - t_shot:.2f} s)")
+    return rs_frames, gs_frames, devices.truth(), shot_warnings
+
+
+def _bundle(rig: Rig, resolved: ResolvedRig, cams: dict[str, Camera], trigger: TriggerRecord, shot,
+            warnings: list[str]) -> Bundle:
+    """One shot's bundle: its frames, the resolved calibration, the trigger record and the rig."""
+    c = rig.config
+    rs_frames, gs_frames, truth, _ = shot
+    t0 = c.timing.rs_trigger_s
+    black = resolved.black_level_dn
+    return Bundle(
+        rs=_record(c.cameras.rs, cams["rs"], rs_frames, [0.0], black["rs"], resolved.line_time_s),
+        gs=_record(c.cameras.gs, cams["gs"], gs_frames, [t - t0 for t in c.timing.gs_trigger_s],
+                   black["gs"], None),
+        calibration=resolved.bundle_calibration(), trigger=trigger, truth=truth, rig_yaml=rig.text,
+        meta={"source": "capture", "rig_name": c.name, "rig_path": str(rig.path),
+              "backend": c.cameras.rs.backend, "grid_bin": c.recon.grid_bin,
+              "grid_frames": resolved.timing()[2].n_frames,
+              "scene": c.mock.model_dump() if c.mock else None, "warnings": warnings})
+
+
 def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
             progress: Progress = print) -> list[CaptureResult]:
     """Run `count` shots on the rig; each shot's bundle is written atomically. See module doc."""
@@ -201,44 +286,16 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
     paths = output_paths(Path(out) if out is not None else None, count)
     t_start = time.perf_counter()
     resolved = resolve_rig(rig, progress)  # rig file + calibration file + mock sections, once
-    _, _, grid = resolved.timing()
-    warnings: list[str] = []
-    results: list[CaptureResult] = []
+    resolved.timing()  # the rig's timing checked before any device opens
     shots = []
     stage = ["while setting up"]  # what was under way when something failed
     try:
         with contextlib.ExitStack() as stack:
             devices = open_devices(resolved)
             gen, fake = open_generator(rig, stack, progress)
-            cams: dict[str, Camera] = {}
-            for role in ("rs", "gs"):
-                cfg = getattr(c.cameras, role)
-                cam = stack.enter_context(devices.camera(role))
-                cams[role] = cam
-                progress(f"{role} camera: {cam.info.model} serial {cam.info.serial} ({cfg.backend})")
-                if fake is not None:
-                    fake.connect(cfg.trigger.channel, cam.hardware_input)
-            for role, cam in cams.items():
-                cfg = getattr(c.cameras, role)
-                configured = cam.configure(CameraSettings.from_config(cfg, role))
-                warnings += configured.warnings
-                progress(f"{role} camera configured: {cfg.pixel_format}, {cfg.roi.width}x{cfg.roi.height}, "
-                         f"exposure {configured.exposure_s * 1e6:g} us, trigger {cfg.trigger.source} "
-                         f"{cfg.trigger.activation} <- generator channel {cfg.trigger.channel}")
-            summary, timing_warnings = verify_timing(resolved, cams["rs"].configured.exposure_s,
-                                                     cams["gs"].configured.exposure_s,
-                                                     cams["rs"].line_time_s())
-            warnings += timing_warnings
-            gs_info = cams["gs"].info
-            readout_s, readout_source = gs_readout(c.cameras.gs, cams["gs"].configured.features,
-                                                   gs_info.model if gs_info else "")
-            rs_window_s = ((c.cameras.rs.roi.height - 1) * resolved.line_time_s + cams["rs"].configured.exposure_s)
-            summary += refuse_impossible(rig, rs_window_s, cams["gs"].configured.exposure_s, readout_s,
-                                         readout_source)
-            if readout_s is None:
-                warnings.append(f"GS readout time {readout_source}: trigger spacing checked against the exposure only")
-            for line in summary:
-                progress(f"timing: {line}")
+            cams = _open_cameras(rig, devices, fake, stack, progress)
+            warnings = _configure_cameras(rig, cams, progress)
+            warnings += _check_timing(rig, resolved, cams, progress)
             gen.configure(pulse_trains(rig), c.generator.high_v, c.generator.low_v)
             progress(f"generator configured: {c.generator.high_v:g}-{c.generator.low_v:g} V TTL pulses, "
                      f"high-Z load; *OPC? ok, error queue empty")
@@ -248,28 +305,7 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
             for w in warnings:
                 progress(f"warning: {w}")
             for shot in range(count):
-                t_shot = time.perf_counter()
-                devices.begin_shot()
-                for cam in cams.values():
-                    cam.arm()
-                for cam in cams.values():
-                    cam.wait_ready(1.0)
-                progress(f"shot {shot + 1}/{count}: cameras armed and ready")
-                gen.fire()
-                stage[0] = f"after firing shot {shot + 1}/{count}"
-                progress(f"shot {shot + 1}/{count}: fired")
-                n_gs = len(c.timing.gs_trigger_s)
-                rs_frames = [cams["rs"].fetch(c.cameras.rs.fetch_timeout_s, "RS frame 1 of 1")]
-                gs_frames = [cams["gs"].fetch(c.cameras.gs.fetch_timeout_s, f"GS frame {i + 1} of {n_gs}")
-                             for i in range(n_gs)]
-                for cam in cams.values():
-                    cam.disarm()
-                shot_warnings = _check_gs_timestamps(gs_frames, c.timing.gs_period_s)
-                for w in shot_warnings:
-                    progress(f"warning: {w}")
-                progress(f"shot {shot + 1}/{count}: fetched 1 RS + {n_gs} GS frames "
-                         f"({time.perf_counter() - t_shot:.2f} s)")
-                shots.append((rs_frames, gs_frames, devices.truth(), shot_warnings))
+                shots.append(_shoot(rig, cams, gen, devices, f"{shot + 1}/{count}", stage, progress))
             gen.outputs_off()
             progress("hardware safe: cameras disarmed, generator outputs off")
             trigger = TriggerRecord(generator=gen.identity,
@@ -284,18 +320,10 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
                         "no bundle written") from None
     except BaseException as exc:  # noqa: BLE001 - MemoryError, KeyboardInterrupt, any bug: one line
         raise _failure(stage[0], exc) from None
-    t0 = c.timing.rs_trigger_s
-    for path, (rs_frames, gs_frames, truth, shot_warnings) in zip(paths, shots):
-        black = resolved.black_level_dn
-        bundle = Bundle(
-            rs=_record(c.cameras.rs, cams["rs"], rs_frames, [0.0], black["rs"], resolved.line_time_s),
-            gs=_record(c.cameras.gs, cams["gs"], gs_frames, [t - t0 for t in c.timing.gs_trigger_s],
-                       black["gs"], None),
-            calibration=resolved.bundle_calibration(), trigger=trigger, truth=truth, rig_yaml=rig.text,
-            meta={"source": "capture", "rig_name": c.name, "rig_path": str(rig.path),
-                  "backend": c.cameras.rs.backend, "grid_bin": c.recon.grid_bin, "grid_frames": grid.n_frames,
-                  "scene": c.mock.model_dump() if c.mock else None,
-                  "warnings": warnings + shot_warnings})
+    results: list[CaptureResult] = []
+    for path, shot in zip(paths, shots):
+        shot_warnings = warnings + shot[3]
+        bundle = _bundle(rig, resolved, cams, trigger, shot, shot_warnings)
         t_write = time.perf_counter()
         try:
             write_bundle(bundle, path)
@@ -305,6 +333,6 @@ def capture(rig: Rig, out: Path | str | None = None, count: int = 1,
             raise _failure(f"writing {path}", exc) from None
         write_s = time.perf_counter() - t_write
         progress(f"wrote {path} ({write_s:.2f} s)")
-        results.append(CaptureResult(path, warnings + shot_warnings,
+        results.append(CaptureResult(path, shot_warnings,
                                      {"write_s": write_s, "total_s": time.perf_counter() - t_start}))
     return results
