@@ -232,8 +232,7 @@ def rig_yaml(scene: str, seed: int, size, timing: SimTiming, sensor: SensorModel
     return header + yaml.safe_dump(rig, sort_keys=False)
 
 
-def _check_options(scene: str, out: Path, size, clip, start, bayer: bool, overwrite: bool,
-                   fidelity: str) -> tuple[int, int]:
+def _check_options(scene: str, out: Path, size, bayer: bool, overwrite: bool, fidelity: str) -> tuple[int, int]:
     """The grid's (H, W), or one line for options that cannot go together, before anything is rendered."""
     if fidelity not in fidelity_mod.FIDELITIES:
         raise SimulationError(f"--fidelity must be one of {', '.join(fidelity_mod.FIDELITIES)}, got {fidelity!r}")
@@ -244,13 +243,13 @@ def _check_options(scene: str, out: Path, size, clip, start, bayer: bool, overwr
     size = grid_shape(size)
     if out.exists() and not overwrite:
         raise SimulationError(f"{out} already exists (use --overwrite to replace it)")
-    if scene != "clip" and (clip is not None or start is not None):
-        raise SimulationError("--clip and the clip start only apply to the clip scene")
     return size
 
 
 def _scene_options(scene: str, timing: SimTiming, clip, span: int, start) -> tuple[dict, dict, dict]:
     """(the scene's options as the rig file records them, render_scene's keywords, the clip's meta)."""
+    if scene != "clip" and (clip is not None or start is not None):
+        raise SimulationError("--clip and the clip start only apply to the clip scene")
     if scene != "clip":
         scene_options = {"key_times_s": [float(t) for t in timing.gs.centres_s()]}
         return scene_options, dict(scene_options), {}
@@ -304,7 +303,7 @@ def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
     lab_errors: with 'lab', these errors instead of the seed's draw (one error family alone).
     """
     out = Path(out)
-    size = _check_options(scene, out, size, clip, start, bayer, overwrite, fidelity)
+    size = _check_options(scene, out, size, bayer, overwrite, fidelity)
     timing = simulation_timing(size, bayer, grid_bin=None if fidelity == "grid" else fidelity_mod.SPACE)
     sensor = default_sensor(bayer)
     scene_options, render_opts, meta_clip = _scene_options(scene, timing, clip, span, start)
