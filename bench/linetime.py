@@ -4,7 +4,7 @@ costs the reconstruction: a capture with each calibration file, `rngcam recon` (
 method) on it, the ball's centroid error. Results: bench/linetime.md.
 
     python -m bench.linetime                       # the line-time table (seconds)
-    python -m bench.linetime --recon --offsets -2,2      # + reconstructions (minutes each, one at a time)
+    python -m bench.linetime --recon --offsets=-2,0,2    # + reconstructions (minutes each, one at a time)
 """
 
 from __future__ import annotations

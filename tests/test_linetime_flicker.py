@@ -212,3 +212,10 @@ def test_a_mock_sensor_slower_than_its_rig_says_still_captures_on_the_rigs_grid(
     assert b.rs.line_time_s == pytest.approx(NOMINAL_S)
     frames = int(np.ceil((63 * NOMINAL_S + b.rs.exposure_s) / NOMINAL_S - 1e-9))
     assert b.truth.video.shape[1] == frames and len(b.truth.frame_times_s) == frames
+
+
+def test_two_true_line_times_for_one_mock_sensor_are_refused(tmp_path):
+    text = _rig(tmp_path).path.read_text().replace("read_noise_e: 3.0}\n  gs", "read_noise_e: 3.0, line_time_s: 2.0e-4}\n  gs")
+    with pytest.raises(RngcamError, match=r"mock.true_line_time_s .* and cameras.rs.mock.line_time_s .* disagree"):
+        calibrate_linetime(parse_rig(text, tmp_path / "two.yaml"), tmp_path / "cal.h5", progress=lambda s: None)
+    assert not (tmp_path / "cal.h5").exists()

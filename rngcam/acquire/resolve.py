@@ -154,6 +154,9 @@ def _mock_truth(rig: Rig) -> MockTruth | None:
     g_gs = np.asarray(gs_m.channel_gain or [1.0] * 3, np.float64)
     g_rs = np.asarray(rs_m.channel_gain or [1.0] * 3, np.float64)
     scene = rig.config.mock or MockSceneConfig()
+    if rs_m.line_time_s and scene.true_line_time_s and not math.isclose(rs_m.line_time_s, scene.true_line_time_s):
+        raise ConfigError(f"{rig.path}: mock.true_line_time_s ({scene.true_line_time_s:g} s) and "
+                          f"cameras.rs.mock.line_time_s ({rs_m.line_time_s:g} s) disagree: keep one")
     true_line = rs_m.line_time_s or scene.true_line_time_s or cams.rs.line_time_s
     return MockTruth(true_line, h, g_rs / g_gs, sensors, scene.readout_time_bias, scene.led_level)
 
