@@ -104,25 +104,33 @@ def peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def problem_globals() -> list:
-    """What a pickled Problem (measure_memory's, made by this script) holds besides tensors: the
-    explicit allow-list that lets it load with weights_only=True."""
-    from numpy._core.multiarray import _reconstruct
+def problem_data(p) -> dict:
+    """A Problem as tensors and plain values (what torch.load(weights_only=True) reads back)."""
+    import dataclasses
 
+    out = {}
+    for f in dataclasses.fields(p):
+        v = getattr(p, f.name)
+        if f.name == "grid":
+            v = {"dt_s": v.dt_s, "n_frames": v.n_frames}
+        elif isinstance(v, np.ndarray):
+            v = torch.from_numpy(v)
+        out[f.name] = v
+    return out
+
+
+def problem_from_data(d: dict):
+    """The Problem `problem_data` stored."""
     from rngcam.physics.timing import VideoGrid
     from rngcam.recon.problem import Problem
 
-    dtypes = [getattr(np.dtypes, f"{kind}DType") for kind in (
-        "Float64", "Float32", "Float16", "Int64", "Int32", "Int16", "Int8", "UInt64", "UInt32", "UInt16", "UInt8",
-        "Bool")]
-    return [Problem, VideoGrid, _reconstruct, np.ndarray, np.dtype, *dtypes]
+    return Problem(**{**d, "grid": VideoGrid(**d["grid"]), "gs_times_s": d["gs_times_s"].numpy()})
 
 
 def memory_child(problem_path: str, steps: int) -> None:
     """Run in a fresh process: print JSON with RSS before the fit and the peak RSS (MiB) over
     `steps` steps, or (steps 0) the whole fit to its own stop (the ensemble's refinement included)."""
-    with torch.serialization.safe_globals(problem_globals()):
-        p = torch.load(problem_path, weights_only=True)
+    p = problem_from_data(torch.load(problem_path, weights_only=True))
     torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # import the optimiser machinery first
     before = peak_rss_mib()
     r = reconstruct(p, "stfm-fast", progress=False, max_iters=steps or None, time_budget_s=None if steps else 1e6,
@@ -130,7 +138,7 @@ def memory_child(problem_path: str, steps: int) -> None:
     done = r.metrics["iterations"]
     peak = peak_rss_mib()
     print(json.dumps({"frames": p.grid.n_frames, "before_mib": before, "peak_mib": peak, "steps": done,
-                      "refined": r.metrics.get("method_settings", {}).get("refine_steps") is not None}))
+                      "refined": r.metrics.get("method_results", {}).get("refine_steps") is not None}))
 
 
 def measure_memory(scene: str, size: int, steps: int) -> list[dict]:
@@ -140,7 +148,7 @@ def measure_memory(scene: str, size: int, steps: int) -> list[dict]:
     with tempfile.TemporaryDirectory() as tmp:
         for factor in (1, 2):
             path = Path(tmp) / f"problem{factor}.pt"
-            torch.save(inline_problem(scene, size, dt_factor=factor), path)
+            torch.save(problem_data(inline_problem(scene, size, dt_factor=factor)), path)
             cmd = [sys.executable, __file__, "--memory-child", str(path), str(steps)]
             out = subprocess.run(cmd, capture_output=True, text=True, check=True)
             rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
