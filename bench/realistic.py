@@ -123,7 +123,7 @@ def run_default(p, scene: str, max_steps: int, truth_cal: dict | None) -> dict:
     """`rngcam recon BUNDLE`'s STFM (the registry's default preset and options) to its own stop,
     or `max_steps`."""
     name, settings = registry.settings_for("stfm")
-    method = registry.get(name).factory(p.to(torch.float32), settings, device="cpu", budget_s=None, stage=None)
+    method = registry.get(name).factory(p.to(torch.float32), settings, device="cpu", clock=None, stage=None)
     result = run(method, LoopSettings(time_budget_s=None, max_iters=max_steps, log_every_iters=max_steps,
                                       progress=False))
     rs = method.resolved_settings()
@@ -143,7 +143,7 @@ def run_linear(name: str, p, scene: str, steps: int) -> dict:
     settings = entry.settings(preset)
     if mode:
         settings = replace(settings, self_calibrate=mode)
-    method = entry.factory(p.to(torch.float32), settings, device="cpu", budget_s=None, stage=None)
+    method = entry.factory(p.to(torch.float32), settings, device="cpu", clock=None, stage=None)
     result = run(method, LoopSettings(time_budget_s=None, max_iters=steps, log_every_iters=steps, progress=False))
     return {**metrics(method.estimate(), p, scene), "steps": result.iterations, "solve_s": result.solve_s}
 

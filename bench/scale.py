@@ -23,6 +23,7 @@ import json
 import os
 import subprocess
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -111,7 +112,7 @@ def summarise_run(out_dir: Path, tol_db: float = 0.5) -> dict:
            "setup_s": setup, "seconds": m["seconds"], "iterations": m["iterations"],
            "per_iter_s": (m["seconds"] - setup) / max(m["iterations"], 1),
            "peak_rss_gib": m["peak_rss_bytes"] / 2**30, "events": m.get("events", []),
-           "levels": (m.get("method_settings") or {}).get("levels"),
+           "levels": (m.get("method_results") or {}).get("levels"),
            "psnr_db": m.get("psnr_db"), "start_psnr_db": float(rows[0]["psnr_db"]) if rows and rows[0].get("psnr_db") else None}
     if res["levels"]:  # coarse to fine: the final level's own time per step (evaluations excluded)
         last = res["levels"][-1]
@@ -201,12 +202,13 @@ def fixed(bundle: str, label: str, final_steps: int, every: int, grid_bin: int |
     from rngcam.recon.metrics import video_metrics
     from rngcam.recon.problem import build_problem
     from rngcam.recon.runner import make_method
+    from rngcam.recon.settings import Clock, resolve
 
     with open_checked(bundle) as (b, _, _):
         problem = build_problem(b, grid_bin=grid_bin)
     settings = run_settings(label, progress=False, time_budget_s=None, grid_bin=grid_bin)
     t0 = time.perf_counter()
-    m = make_method(problem, settings, "cpu", budget_s=None)
+    m = make_method(problem, resolve(replace(settings, device="cpu"), problem.shape, Clock()))
     out = {"bundle": bundle, "label": label, "setup_s": time.perf_counter() - t0, "curve": [], "load_start": load()}
     steps = 0
     while not getattr(m, "final", True):

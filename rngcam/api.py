@@ -81,10 +81,7 @@ def run_settings(method: str = "stfm", progress: bool = True, **settings: Any) -
 
 def keywords(settings: ReconSettings) -> dict[str, Any]:
     """`reconstruct`'s keyword settings that give `settings` again (its method aside)."""
-    out = {name: getattr(settings, name) for name in RUN_SETTINGS}
-    if settings.budget_auto:
-        out["time_budget_s"] = "auto"  # scaled to each problem, not the 64 px figure it became
-    return out
+    return {name: getattr(settings, name) for name in RUN_SETTINGS}
 
 
 def _echo(progress) -> Callable[[str], None]:

@@ -95,8 +95,14 @@ def test_stfm_base_and_stop_options_reach_the_method(mock_bundle, tmp_path):
     with h5py.File(out / "recon.h5") as f:
         settings = json.loads(f.attrs["settings"])
     used = settings["method_settings"]
-    assert used["base_video"] == "interp" and used["stop_at_noise"] is False and used["rs_noise_level"] > 0
-    assert json.loads((out / "metrics.json").read_text())["method_settings"]["base_video"] == "interp"
+    assert used["base_video"] == "interp" and used["stop_at_noise"] is False and "rs_noise_level" not in used
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["method_settings"]["base_video"] == "interp"
+    assert metrics["method_results"]["rs_noise_level"] > 0  # found by the run: a result, not a setting
+    # the self-calibration report once, with the results (it was in method_settings twice)
+    assert not {"selfcal_report", "self_calibration"} & set(metrics["method_settings"])
+    assert "refined" in metrics["method_results"]["self_calibration"]
+    assert not {"selfcal_report", "self_calibration"} & set(used)
 
 
 def test_stfm_base_list_runs_an_ensemble_and_a_bad_base_is_a_clear_error(mock_bundle, tmp_path):
@@ -104,18 +110,20 @@ def test_stfm_base_list_runs_an_ensemble_and_a_bad_base_is_a_clear_error(mock_bu
     res = CliRunner().invoke(main, ["recon", str(mock_bundle), "-o", str(out), "--quiet", "--iters", "4",
                                     "--preset", "fast", "--base", "interp,keys_interp"])
     assert res.exit_code == 0, res.output
-    used = json.loads((out / "metrics.json").read_text())["method_settings"]
-    assert used["base_video"] == ["interp", "keys_interp"] and used["member_steps"] == [2, 2]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["method_settings"]["base_video"] == ["interp", "keys_interp"]
+    assert metrics["method_results"]["member_steps"] == [2, 2]  # what the run did, apart from the settings
     bad = CliRunner().invoke(main, ["recon", str(mock_bundle), "-o", str(tmp_path / "b"), "--quiet", "--iters", "1",
                                     "--base", "interp,warp"])
     assert bad.exit_code == 2 and "--base must be one of" in bad.output and "Traceback" not in bad.output
 
 
-@pytest.mark.parametrize("method,args,budget", [("stfm", [], 600.0), ("tv3d", [], 60.0), ("stfm", ["--time-budget", "7"], 7.0)])
+@pytest.mark.parametrize("method,args,budget", [("stfm", [], "auto"), ("tv3d", [], "auto"),
+                                                ("stfm", ["--time-budget", "7"], 7.0)])
 def test_recon_time_budget_defaults_by_method(mock_bundle, tmp_path, monkeypatch, method, args, budget):
     import numpy as np
 
-    from rngcam import api
+    from rngcam.recon import runner
     from rngcam.recon.result import Result
 
     seen = {}
@@ -125,19 +133,33 @@ def test_recon_time_budget_defaults_by_method(mock_bundle, tmp_path, monkeypatch
         return Result(np.zeros((1, 1, 1, 1), np.float32), np.zeros(1), {"method": method, "seconds": 0.0,
                                                                         "iterations": 0})
 
-    monkeypatch.setattr(api, "solve", fake_solve)
+    monkeypatch.setattr(runner, "solve", fake_solve)
     res = CliRunner().invoke(main, ["recon", str(mock_bundle), "--method", method, "-o", str(tmp_path / "o"),
                                     "--quiet", *args])
     assert res.exit_code == 0, res.output
-    assert seen["budget"] == budget  # STFM stops itself: its default only caps a fit that never settles
+    assert seen["budget"] == budget  # "auto" is resolved once the problem's size is known
 
 
-def test_recon_settings_budget_auto_is_the_methods_default():
-    from rngcam.recon.runner import ReconSettings
+def test_recon_settings_budget_auto_is_the_methods_default_and_stays_auto():
+    from dataclasses import asdict, replace
 
-    assert ReconSettings().time_budget_s == 600.0  # stfm, the default method
-    assert ReconSettings(method="tv3d").time_budget_s == 60.0
-    assert ReconSettings(method="tv3d", time_budget_s=None, max_iters=3).time_budget_s is None
+    from rngcam.recon.settings import Clock, ReconSettings, resolve
+
+    shape = (3, 67, 64, 64)  # the size the registry's figures are set at
+    run = resolve(ReconSettings(), shape, Clock(), finish=False)
+    assert run.budget_s == 600.0 and run.clock.seconds == pytest.approx(600.0)  # stfm, the default method
+    assert "auto: stfm 600 s at 64 px" in run.budget_how
+    assert resolve(ReconSettings(method="tv3d"), shape, Clock(), finish=False).budget_s == 60.0
+    # a copy keeps it auto (replace and asdict keep every field): the budget is resolved per problem
+    copy = replace(ReconSettings(method="tv3d"), progress=False)
+    assert copy.time_budget_s == "auto" and asdict(copy)["time_budget_s"] == "auto"
+    big = resolve(copy, (3, 98, 96, 96), Clock())
+    assert big.budget_s > 60.0 and big.record()["time_budget_s"] == big.budget_s  # what is recorded is what ran
+    assert big.clock.seconds == pytest.approx(big.budget_s - big.finish_s) and big.finish_s > 0
+    none = resolve(ReconSettings(method="tv3d", time_budget_s=None, max_iters=3), shape, Clock())
+    assert none.budget_s is None and none.clock.seconds is None and not none.clock.expired()
+    with pytest.raises(RuntimeError):
+        big.clock.limit(5.0)  # one deadline per clock
 
 
 def test_recon_refuses_a_non_empty_output_folder_unless_told_to_overwrite(mock_bundle, tmp_path):
@@ -152,3 +174,25 @@ def test_recon_refuses_a_non_empty_output_folder_unless_told_to_overwrite(mock_b
     assert (out / "metrics.json").stat().st_mtime_ns == first  # nothing was touched
     assert CliRunner().invoke(main, [*args, "--overwrite"]).exit_code == 0
     assert (out / "metrics.json").stat().st_mtime_ns != first
+
+
+def test_an_auto_budget_is_recorded_as_the_seconds_the_run_used(tmp_path):
+    """On a 96 px bundle "auto" scales the registry's 64 px figure: recon.h5, metrics.json and the report's
+    settings say the seconds recon.log says the run used, and how they were derived (issue 38)."""
+    from rngcam.evaluate.synthetic import CaptureSpec, make_psf, moving_square, timings, write_capture
+
+    spec = CaptureSpec(height=96, width=96, exposure_lines=3, gs_frames=3, gs_exposure_lines=3)
+    rs, gs, grid = timings(spec)
+    bundle = write_capture(moving_square(3, grid.n_frames, 96, 96), make_psf("caustic", 96, 96), rs, gs, grid,
+                           tmp_path / "b96.h5", noise=True, seed=0)
+    out = tmp_path / "o"
+    res = CliRunner().invoke(main, ["recon", str(bundle), "--method", "tv3d", "--iters", "2", "--quiet", "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    with h5py.File(out / "recon.h5") as f:
+        recorded = json.loads(f.attrs["settings"])
+    metrics = json.loads((out / "metrics.json").read_text())
+    budget = recorded["time_budget_s"]
+    assert budget > 60.0 and metrics["settings"]["time_budget_s"] == budget  # scaled, not tv3d's 64 px 60 s
+    assert recorded["time_budget_asked"] == "auto" and recorded["time_budget_how"].startswith("auto: tv3d 60 s at 64 px")
+    assert f"time budget {budget:.0f} s" in (out / "recon.log").read_text()
+    assert "time_budget_how" in (out / "report.html").read_text()  # the report's "settings as resolved"

@@ -203,7 +203,7 @@ def test_every_iterative_method_implements_the_whole_protocol(name):
 
     entry = registry.get(name)
     problem = tiny_sineball_problem(16).to(torch.float32)
-    method = entry.factory(problem, entry.settings(), device="cpu", budget_s=None, stage=None)
+    method = entry.factory(problem, entry.settings(), device="cpu", clock=None, stage=None)
     assert isinstance(method, MethodBase) and method.name == name
     assert np.isfinite(method.step()) and tuple(method.estimate().shape) == tuple(problem.shape)
     assert isinstance(method.supports_holdout, bool) and isinstance(method.stops_itself, bool)

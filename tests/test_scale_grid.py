@@ -198,7 +198,9 @@ def test_a_finer_level_that_cannot_fit_the_budget_is_not_started():
 
     p = _toy_problem().to(torch.float32)
     stages = []
-    m = CoarseToFine(p, lambda q, x0: TV3D(q, TV3DSettings(), x0=x0), (2, 1), budget_s=1e-6,
+    from rngcam.recon.settings import Clock
+
+    m = CoarseToFine(p, lambda q, x0: TV3D(q, TV3DSettings(), x0=x0), (2, 1), clock=Clock(seconds=1e-6),
                      stage=stages.append)
     for _ in range(3):
         m.step()

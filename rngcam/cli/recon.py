@@ -11,7 +11,7 @@ from rngcam.cli.method_options import method_command, pop_method_values
 from rngcam.cli.method_options import method_settings as settings_from_options
 from rngcam.errors import SettingError
 from rngcam.recon import registry
-from rngcam.recon.settings import check_device, check_threads, default_out_dir
+from rngcam.recon.settings import ReconSettings, check_device, check_threads, default_out_dir
 from rngcam.sizing import DEFAULT_MAX_FRAMES
 
 INTERRUPTED_EXIT = {"SIGINT": 130, "SIGTERM": 143}  # as a shell reports a command ended by the signal
@@ -91,18 +91,17 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memor
     Ctrl-C (SIGINT) or SIGTERM ends the run with the current estimate written as the result
     ("status": "interrupted") and a checkpoint that --resume continues.
     """
-    from rngcam.api import reconstruct
     from rngcam.recon.runlog import append_lines
+    from rngcam.recon.runner import Source, solve
 
-    method_settings = settings_from_options(method, pop_method_values(opts))
     out = out_dir or default_out_dir(bundle, method)
-    result = reconstruct(bundle, method, out=out, progress=click.echo, bar=not quiet, started=started(),
-                         method_settings=method_settings,
-                         time_budget_s="auto" if time_budget in (None, "auto") else time_budget,
-                         max_iters=iters, device=device, threads=threads, grid_bin=grid_bin, resume=resume,
-                         overwrite=overwrite,
-                         checkpoint_every_s=checkpoint_every, holdout=holdout, max_frames=max_frames,
-                         max_memory_bytes=None if max_memory is None else int(max_memory * 2**30))
+    settings = ReconSettings(method=method, method_settings=settings_from_options(method, pop_method_values(opts)),
+                             time_budget_s="auto" if time_budget in (None, "auto") else time_budget,
+                             max_iters=iters, device=device, threads=threads, grid_bin=grid_bin, resume=resume,
+                             overwrite=overwrite, checkpoint_every_s=checkpoint_every, holdout=holdout,
+                             max_frames=max_frames, progress=not quiet,
+                             max_memory_bytes=None if max_memory is None else int(max_memory * 2**30))
+    result = solve(Source(path=Path(bundle)), settings, out, click.echo, started())  # the clock: the command's
     log = Path(out) / "recon.log"
 
     def say(line: str, err: bool = False) -> None:  # the run's last lines go to its recon.log too

@@ -5,7 +5,8 @@ KeyboardInterrupt is caught the same way) and the time budget end it according t
 
 - ``read`` (bundle and problem): a signal is held until the problem is built, since without
   the problem there is nothing to write;
-- ``setup`` (the method's set-up): a signal raises `Interrupted` at once, the deadline raises
+- ``setup`` (the method's set-up): a signal raises `Interrupted` at once, the run's clock
+  (rngcam.recon.settings.Clock) past its deadline raises
   `BudgetCut` at once (a timer, so even a long set-up stage is cut), and the runner writes
   the start video as the result;
 - ``solve``: a signal asks the loop to stop after the current step (`stop_reason`); a second
@@ -17,7 +18,8 @@ from __future__ import annotations
 
 import signal
 import threading
-import time
+
+from rngcam.recon.settings import Clock
 
 
 class Interrupted(KeyboardInterrupt):
@@ -34,12 +36,12 @@ class BudgetCut(BaseException):
 
 
 class RunGuard:
-    """Signal handlers, the set-up deadline and the run's phase; a context manager."""
+    """Signal handlers, the run's phase, and its clock (set-up is cut at its deadline); a context manager."""
 
-    def __init__(self):
+    def __init__(self, clock: Clock):
         self.phase = "read"
         self.signame: str | None = None  # the first signal received
-        self.deadline: float | None = None  # time.perf_counter() at which set-up is cut
+        self.clock = clock
         self._old: dict = {}
         self._main = threading.current_thread() is threading.main_thread()
 
@@ -68,17 +70,12 @@ class RunGuard:
         else:
             self._disarm()
 
-    def set_deadline(self, deadline: float | None) -> None:
-        self.deadline = deadline
-        if self.phase == "setup":
-            self._arm()
-
     def check(self) -> None:
         """Raise what is due now in set-up (called at every stage line, so a run in a thread without
         signal handlers is cut too); nothing in the other phases."""
         if self.signame is not None and self.phase == "setup":
             raise Interrupted(self.signame)
-        if self.phase == "setup" and self.deadline is not None and time.perf_counter() >= self.deadline:
+        if self.phase == "setup" and self.clock.expired():
             raise BudgetCut()
 
     def stop_reason(self) -> str | None:
@@ -99,9 +96,9 @@ class RunGuard:
             raise BudgetCut()
 
     def _arm(self) -> None:
-        if not (self._main and hasattr(signal, "setitimer")) or self.deadline is None:
+        left = self.clock.left()
+        if not (self._main and hasattr(signal, "setitimer")) or left is None:
             return
-        left = self.deadline - time.perf_counter()
         signal.setitimer(signal.ITIMER_REAL, max(left, 1e-3))
 
     def _disarm(self) -> None:

@@ -1,6 +1,7 @@
 """The one solver loop every iterative method uses.
 
-It runs `method.step()` until a wall-clock budget and/or an iteration count is reached; logs
+It runs `method.step()` until the run's clock (rngcam.recon.settings.Clock) passes its deadline and/or
+an iteration count is reached; logs
 time, objective, per-sensor relative residuals and, with truth, PSNR/SSIM (all frames and
 intermediate frames) at regular intervals; shows a progress bar; checkpoints and resumes; and
 guards against NaN/Inf by rolling back to the last good state with a smaller step.
@@ -28,6 +29,7 @@ from torch import Tensor
 from rngcam.errors import RngcamError
 from rngcam.recon import checkpoint
 from rngcam.recon.checkpoint import CHECKPOINT_NAME, RESUME_HINT
+from rngcam.recon.settings import Clock
 
 
 class Method(Protocol):
@@ -94,19 +96,20 @@ class MethodBase:
 
 @dataclass
 class LoopSettings:
-    time_budget_s: float | None = 60.0
+    # The run's clock (rngcam.recon.settings.Clock): the loop stops at its deadline. None: a clock made
+    # when the loop starts, set-up included, with `time_budget_s` (a loop run on its own: tests, bench).
+    clock: Clock | None = None
+    time_budget_s: float | None = None
     max_iters: int | None = None  # the iteration to stop at (a resumed run counts from its checkpoint's)
     log_every_s: float = 2.0
     log_every_iters: int | None = None
     checkpoint_dir: Path | None = None
     checkpoint_every_s: float = 60.0
-    # resume: continue from checkpoint_dir's checkpoint if there is one, its wall time counted in the
-    # budget (a sweep's rung extends a fit to a larger total). resume_from: continue from this
-    # checkpoint payload with a budget of the run's own (a user's --resume; rngcam.recon.runner).
+    # resume: continue from checkpoint_dir's checkpoint if there is one (without a clock, its wall
+    # time counts in the budget). resume_from: continue from this checkpoint payload (the runner's).
     resume: bool = False
     resume_from: dict | None = None
     checkpoint_meta: dict = field(default_factory=dict)  # stored with every checkpoint (its identity)
-    start_time: float | None = None  # time.perf_counter() the budget counts from [now less setup_s]
     stop_requested: Callable[[], str | None] | None = None  # asked after every step: a reason stops the run
     log_line: Callable[[str], None] | None = None  # also gets every plain progress line (a log file)
     max_failures: int = 5
@@ -114,7 +117,8 @@ class LoopSettings:
     progress_every_s: float = 10.0  # without a terminal: one progress line this often (stderr)
 
     def __post_init__(self):
-        if self.time_budget_s is None and self.max_iters is None:
+        seconds = self.time_budget_s if self.clock is None else self.clock.seconds
+        if seconds is None and self.max_iters is None:
             raise ValueError("set a time budget, an iteration count, or both")
         if self.time_budget_s is not None and not (self.time_budget_s > 0 and math.isfinite(self.time_budget_s)):
             raise ValueError(f"time budget must be a positive number of seconds, got {self.time_budget_s}")
@@ -164,139 +168,166 @@ def run(method: Method, settings: LoopSettings,
     most ~10 % of the run. A KeyboardInterrupt inside a step (a second Ctrl-C, a notebook's
     interrupt) or a reason from `stop_requested` ends the run "interrupted" with the last good state.
     """
-    log: list[dict] = []
-    events: list[str] = []
-    iteration, solve_s, wall_offset = 0, float(setup_s), 0.0
-    ckpt = None if settings.checkpoint_dir is None else Path(settings.checkpoint_dir) / CHECKPOINT_NAME
-    saved = settings.resume_from
-    if saved is None and settings.resume and ckpt is not None and os.path.lexists(ckpt):
-        saved = checkpoint.load(ckpt, hint=RESUME_HINT)  # data only; its identity before its state
-        why = checkpoint.mismatch(saved, settings.checkpoint_meta) if settings.checkpoint_meta else ""
-        if why:
-            raise RngcamError(f"cannot resume from {ckpt}: {why}; {RESUME_HINT}")
-        wall_offset = saved["wall_s"]  # a sweep's rung: the budget is the fit's total
-    if saved is not None and saved.get("method") is not None:
-        method.load_state_dict(saved["method"])
-        iteration, solve_s = saved["iteration"], saved["solve_s"] + (setup_s if settings.resume_from else 0.0)
-        log = saved["log"]
-        events = [e for e in saved["events"] if not e.startswith("resumed from ")]
-        events.append(f"resumed from {CHECKPOINT_NAME} at iteration {iteration}")
-        torch.set_rng_state(saved["rng"])
+    loop = _Loop(method, settings, evaluate, setup_s)
+    with _progress(settings, method.name, loop.clock) as bar:
+        loop.bar = bar
+        if not loop.log:
+            loop.record(float("nan"), show=False)
+        while loop.stop is None and not loop.done():
+            loop.step()
+        return loop.end()
 
-    if settings.start_time is not None:
-        start = settings.start_time - wall_offset
-    else:
-        start = time.perf_counter() - wall_offset - (setup_s if not log else 0.0)
-    last_good = (copy.deepcopy(method.state_dict()), iteration, solve_s)
-    failures, objective = 0, float("nan")
-    last_log_solve, eval_s, last_ckpt_t = -math.inf, 0.0, time.perf_counter()
-    status, message = "ok", ""
 
-    def wall() -> float:
-        return time.perf_counter() - start
+class _Loop:
+    """One run of the loop: its state, a step with its checks, and `end`, where how it ended is decided."""
 
-    def done() -> bool:
-        if settings.max_iters is not None and iteration >= settings.max_iters:
+    def __init__(self, method: Method, settings: LoopSettings, evaluate, setup_s: float):
+        self.method, self.settings, self.evaluate, self.setup_s = method, settings, evaluate, setup_s
+        self.log: list[dict] = []
+        self.events: list[str] = []
+        self.iteration, self.solve_s = 0, float(setup_s)
+        self.ckpt = None if settings.checkpoint_dir is None else Path(settings.checkpoint_dir) / CHECKPOINT_NAME
+        wall_offset = self._resume()
+        self.first_iteration = self.iteration
+        self.clock = settings.clock or Clock(
+            time.perf_counter() - wall_offset - (setup_s if not self.log else 0.0), settings.time_budget_s)
+        self.last_good = (copy.deepcopy(method.state_dict()), self.iteration, self.solve_s)
+        self.failures, self.objective = 0, float("nan")
+        self.last_log_solve, self.eval_s, self.last_ckpt_t = -math.inf, 0.0, time.perf_counter()
+        self.stop: tuple[str, str] | None = None  # (one of ENDINGS, why): set where the loop must end
+        self.bar = None
+
+    def _resume(self) -> float:
+        """Load the checkpoint to continue from, if any; the wall time it counts in the budget."""
+        settings, saved, wall_offset = self.settings, self.settings.resume_from, 0.0
+        if saved is None and settings.resume and self.ckpt is not None and os.path.lexists(self.ckpt):
+            saved = checkpoint.load(self.ckpt, hint=RESUME_HINT)  # data only; its identity before its state
+            why = checkpoint.mismatch(saved, settings.checkpoint_meta) if settings.checkpoint_meta else ""
+            if why:
+                raise RngcamError(f"cannot resume from {self.ckpt}: {why}; {RESUME_HINT}")
+            wall_offset = saved["wall_s"]  # a sweep's rung: the budget is the fit's total
+        if saved is not None and saved.get("method") is not None:
+            self.method.load_state_dict(saved["method"])
+            self.iteration = saved["iteration"]
+            self.solve_s = saved["solve_s"] + (self.setup_s if settings.resume_from else 0.0)
+            self.log = saved["log"]
+            self.events = [e for e in saved["events"] if not e.startswith("resumed from ")]
+            self.events.append(f"resumed from {CHECKPOINT_NAME} at iteration {self.iteration}")
+            torch.set_rng_state(saved["rng"])
+        return wall_offset
+
+    def wall(self) -> float:
+        return self.clock.elapsed()
+
+    def done(self) -> bool:
+        if self.settings.max_iters is not None and self.iteration >= self.settings.max_iters:
             return True
-        return settings.time_budget_s is not None and wall() >= settings.time_budget_s
+        return self.clock.expired()
 
-    def record(obj: float) -> dict:
-        nonlocal eval_s
+    def record(self, objective: float, show: bool = True) -> dict:
         t0 = time.perf_counter()
-        row = {"iteration": iteration, "wall_s": wall(), "solve_s": solve_s, "objective": obj}
-        row.update({f"residual_{k}": v for k, v in method.residuals().items()})
-        if evaluate is not None:
-            row.update(evaluate(method))
-        log.append(row)
-        eval_s = time.perf_counter() - t0
+        row = {"iteration": self.iteration, "wall_s": self.wall(), "solve_s": self.solve_s, "objective": objective}
+        row.update({f"residual_{k}": v for k, v in self.method.residuals().items()})
+        if self.evaluate is not None:
+            row.update(self.evaluate(self.method))
+        self.log.append(row)
+        self.eval_s = time.perf_counter() - t0
+        if show and self.bar is not None:
+            self.bar.show(row, self.iteration, row["wall_s"])
         return row
 
-    def save_checkpoint() -> None:
-        if ckpt is not None:
-            checkpoint.save(ckpt, {"method": method.state_dict(), "iteration": iteration, "solve_s": solve_s,
-                                   "wall_s": wall(), "log": log, "events": events, "rng": torch.get_rng_state(),
-                                   "identity": settings.checkpoint_meta or None})
+    def save_checkpoint(self) -> None:
+        if self.ckpt is not None:
+            checkpoint.save(self.ckpt, {
+                "method": self.method.state_dict(), "iteration": self.iteration, "solve_s": self.solve_s,
+                "wall_s": self.wall(), "log": self.log, "events": self.events, "rng": torch.get_rng_state(),
+                "identity": self.settings.checkpoint_meta or None})
 
-    def roll_back() -> None:
-        nonlocal iteration, solve_s
-        good, iteration, solve_s = last_good
-        method.load_state_dict(copy.deepcopy(good))
+    def roll_back(self) -> None:
+        good, self.iteration, self.solve_s = self.last_good
+        self.method.load_state_dict(copy.deepcopy(good))
 
-    stop_reason = None
-    with _progress(settings, method.name) as bar:
-        if not log:
-            record(float("nan"))
-        while not done() and stop_reason is None:
-            t0 = time.perf_counter()
-            try:
-                objective = float(method.step())
-            except KeyboardInterrupt as exc:  # mid-step: the state may be half updated
-                roll_back()
-                status, message = "interrupted", f"{method.name}: interrupted ({exc or 'KeyboardInterrupt'})"
-                events.append(f"interrupted by {exc or 'KeyboardInterrupt'} in iteration {iteration + 1}: "
-                              f"kept the state of iteration {iteration}")
-                break
-            solve_s += time.perf_counter() - t0
-            iteration += 1
-            due = (settings.log_every_iters is not None and iteration % settings.log_every_iters == 0) or (
-                settings.log_every_iters is None
-                and solve_s - last_log_solve >= max(settings.log_every_s, LOG_COST_RATIO * eval_s))
-            ckpt_due = ckpt is not None and time.perf_counter() - last_ckpt_t >= settings.checkpoint_every_s
-            asked = settings.stop_requested() if settings.stop_requested is not None else None
-            # A non-finite state shows in the next objective; the whole state is checked only
-            # where it is kept (log snapshot, checkpoint, the end), not after every step.
-            bad, state = not math.isfinite(objective), None
-            if not bad and method.stops_itself:
-                stop_reason = method.converged()
-            t_kept = time.perf_counter()
-            if not bad and (due or ckpt_due or done() or stop_reason or asked):
-                state = method.state_dict()
-                bad = not _finite_state(state)
-            if bad:
-                failures += 1
-                roll_back()
-                method.reduce_step(0.5)
-                events.append(f"non-finite state at iteration {iteration + 1}: rolled back, step halved "
-                              f"(failure {failures} of {settings.max_failures})")
-                if failures >= settings.max_failures:
-                    record(float("nan"))
-                    save_checkpoint()
-                    return RunResult(log, iteration, solve_s, wall(), events, "failed",
-                                     f"{method.name}: {failures} non-finite steps in a row; "
-                                     f"kept the last good state (iteration {iteration})", "failure")
-                stop_reason = None
-                if asked is None:
-                    continue
-            failures = 0
+    def step(self) -> None:
+        """One step and its checks: a log row, a checkpoint, a roll-back, or a reason to stop."""
+        settings, method = self.settings, self.method
+        t0 = time.perf_counter()
+        try:
+            self.objective = float(method.step())
+        except KeyboardInterrupt as exc:  # mid-step: the state may be half updated
+            self.roll_back()
+            self.stop = ("signal", f"interrupted ({exc or 'KeyboardInterrupt'})")
+            self.events.append(f"interrupted by {exc or 'KeyboardInterrupt'} in iteration {self.iteration + 1}: "
+                               f"kept the state of iteration {self.iteration}")
+            return
+        self.solve_s += time.perf_counter() - t0
+        self.iteration += 1
+        due = (settings.log_every_iters is not None and self.iteration % settings.log_every_iters == 0) or (
+            settings.log_every_iters is None
+            and self.solve_s - self.last_log_solve >= max(settings.log_every_s, LOG_COST_RATIO * self.eval_s))
+        ckpt_due = self.ckpt is not None and time.perf_counter() - self.last_ckpt_t >= settings.checkpoint_every_s
+        asked = settings.stop_requested() if settings.stop_requested is not None else None
+        # A non-finite state shows in the next objective; the whole state is checked only where it
+        # is kept (log snapshot, checkpoint, the end), not after every step.
+        bad, state = not math.isfinite(self.objective), None
+        own = method.converged() if not bad and method.stops_itself else None
+        t_kept = time.perf_counter()
+        if not bad and (due or ckpt_due or self.done() or own or asked):
+            state = method.state_dict()
+            bad = not _finite_state(state)
+        if bad:
+            self._failed_step()
+            if asked is None or self.stop is not None:
+                return
+        else:
+            self.failures = 0
             if due:
-                last_log_solve = solve_s
-                bar.show(record(objective), iteration, wall())
-                last_good = (copy.deepcopy(state), iteration, solve_s)
-                eval_s = time.perf_counter() - t_kept  # a log row's whole cost: the state's check and copy too
+                self.last_log_solve = self.solve_s
+                self.record(self.objective)
+                self.last_good = (copy.deepcopy(state), self.iteration, self.solve_s)
+                self.eval_s = time.perf_counter() - t_kept  # a row's whole cost: the state's check and copy too
             if ckpt_due:
-                save_checkpoint()
-                last_ckpt_t = time.perf_counter()
-            if asked:
-                status, message = "interrupted", f"{method.name}: {asked}"
-                events.append(f"{asked} at iteration {iteration}: the state there is written (--resume continues)")
-                break
-        ended_by = "signal" if status == "interrupted" else "iterations"
-        if stop_reason:
-            events.append(f"stopped at iteration {iteration}: {stop_reason}")
+                self.save_checkpoint()
+                self.last_ckpt_t = time.perf_counter()
+            if own:
+                self.stop = ("own_stop", own)
+        if asked:
+            self.stop = ("signal", asked)
+            self.events.append(f"{asked} at iteration {self.iteration}: the state there is written "
+                               "(--resume continues)")
+
+    def _failed_step(self) -> None:
+        self.failures += 1
+        self.roll_back()
+        self.method.reduce_step(0.5)
+        self.events.append(f"non-finite state at iteration {self.iteration + 1}: rolled back, step halved "
+                           f"(failure {self.failures} of {self.settings.max_failures})")
+        if self.failures >= self.settings.max_failures:
+            self.stop = ("failure", f"{self.failures} non-finite steps in a row; kept the last good state "
+                                    f"(iteration {self.iteration})")
+
+    def end(self) -> RunResult:
+        """How the run ended (ended_by, status, message), decided here only; the last row and checkpoint."""
+        name, (kind, why) = self.method.name, self.stop or ("", "")
+        status, message = "ok", ""
+        if kind == "failure":
+            ended_by, status, message = "failure", "failed", f"{name}: {why}"
+        elif kind == "signal":
+            ended_by, status, message = "signal", "interrupted", f"{name}: {why}"
+        elif kind == "own_stop":
             ended_by = "own_stop"
-        elif status == "ok" and settings.time_budget_s is not None and wall() >= settings.time_budget_s and (
-                settings.max_iters is None or iteration < settings.max_iters):
-            events.append(budget_event(method, settings.time_budget_s, iteration, setup_s))
+            self.events.append(f"stopped at iteration {self.iteration}: {why}")
+        elif self.clock.expired() and (self.settings.max_iters is None or self.iteration < self.settings.max_iters):
             ended_by = "budget"
-            if iteration == (saved or {}).get("iteration", 0):
-                status = "budget_before_first_iteration"
-                message = f"{method.name}: the time budget ran out before the first iteration"
-        if status == "interrupted":
-            ended_by = "signal"
-        if not log or log[-1]["iteration"] != iteration:
-            bar.show(record(objective), iteration, wall())
-        save_checkpoint()
-    return RunResult(log, iteration, solve_s, wall(), events, status, message, ended_by)
+            self.events.append(budget_event(self.method, self.clock.seconds, self.iteration, self.setup_s))
+            if self.iteration == self.first_iteration:
+                status, message = "budget_before_first_iteration", f"{name}: the time budget ran out before the " \
+                                                                    "first iteration"
+        else:
+            ended_by = "iterations"
+        if kind == "failure" or not self.log or self.log[-1]["iteration"] != self.iteration:
+            self.record(float("nan") if kind == "failure" else self.objective)
+        self.save_checkpoint()
+        return RunResult(self.log, self.iteration, self.solve_s, self.wall(), self.events, status, message, ended_by)
 
 
 def budget_event(method, budget_s: float, iteration: int, setup_s: float) -> str:
@@ -340,8 +371,9 @@ class _progress:
     every `progress_every_s` seconds on stderr (so a log file shows the run as it goes); silent
     when progress=False."""
 
-    def __init__(self, settings: LoopSettings, name: str):
+    def __init__(self, settings: LoopSettings, name: str, clock: Clock):
         self.settings, self.name, self._bar, self._task = settings, name, None, None
+        self.budget_s = clock.seconds
         self._lines = settings.progress and not is_terminal()
         self._last_line = -math.inf
 
@@ -351,7 +383,7 @@ class _progress:
 
             self._bar = Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
                                  TextColumn("{task.fields[figures]}"), transient=False)
-            total = self.settings.time_budget_s or self.settings.max_iters
+            total = self.budget_s or self.settings.max_iters
             self._task = self._bar.add_task(self.name, total=total, figures="")
             self._bar.start()
         return self
@@ -367,7 +399,7 @@ class _progress:
         log_line = self.settings.log_line
         if (self._lines or log_line) and wall_s - self._last_line >= self.settings.progress_every_s:
             self._last_line = wall_s
-            budget = f" of {self.settings.time_budget_s:g} s" if self.settings.time_budget_s else ""
+            budget = f" of {self.budget_s:g} s" if self.budget_s else ""
             line = f"{self.name}: {wall_s:.0f} s{budget}  {figs}"
             if log_line:
                 log_line(line)
@@ -377,7 +409,7 @@ class _progress:
             return
         if self._bar is None:
             return
-        done = wall_s if self.settings.time_budget_s else iteration
+        done = wall_s if self.budget_s else iteration
         self._bar.update(self._task, completed=done, figures=figs)
 
     def __exit__(self, *exc):

@@ -45,7 +45,7 @@ class GSOnlyVideo:
 class MethodEntry:
     """One method. `factory` builds it:
 
-    - iterative: `factory(problem, settings, device=..., budget_s=..., stage=...)` -> a
+    - iterative: `factory(problem, settings, device=..., clock=..., stage=...)` -> a
       rngcam.recon.loop.Method on `problem` (float32 on `device`; `stage(message)` reports set-up);
     - GS-only: `factory(key_frames, gs_times_s, frame_times_s, settings)` -> GSOnlyVideo.
 
@@ -180,22 +180,22 @@ def settings_for(label: str, **overrides) -> tuple[str, Any]:
 # ----------------------------------------------------------------------------- the methods
 
 
-def _make_stfm(problem, settings, device="cpu", budget_s=None, stage=None):
+def _make_stfm(problem, settings, device="cpu", clock=None, stage=None):
     from rngcam.recon.methods.stfm import make_stfm
 
-    return make_stfm(problem, settings, device=device, budget_s=budget_s, stage=stage)
+    return make_stfm(problem, settings, device=device, clock=clock, stage=stage)
 
 
-def _make_tv3d(problem, settings, device="cpu", budget_s=None, stage=None):
+def _make_tv3d(problem, settings, device="cpu", clock=None, stage=None):
     from rngcam.recon.methods.tv3d import make_tv3d
 
-    return make_tv3d(problem, settings, budget_s=budget_s, stage=stage)
+    return make_tv3d(problem, settings, clock=clock, stage=stage)
 
 
-def _make_pnp(problem, settings, device="cpu", budget_s=None, stage=None):
+def _make_pnp(problem, settings, device="cpu", clock=None, stage=None):
     from rngcam.recon.methods.pnp import make_pnp
 
-    return make_pnp(problem, settings, device=device, budget_s=budget_s, stage=stage)
+    return make_pnp(problem, settings, device=device, clock=clock, stage=stage)
 
 
 def _blend(key, gs_times_s, frame_times_s, settings: BlendSettings) -> GSOnlyVideo:

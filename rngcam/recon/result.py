@@ -20,6 +20,24 @@ from rngcam.untrusted import printable, write_new
 # set-up: the start video). What ended an "ok" run is metrics["ended_by"] (rngcam.recon.loop.ENDINGS).
 STATUSES = ("ok", "failed", "interrupted", "budget_before_first_iteration")
 
+# What a method's resolved_settings() holds that the run found rather than was asked (self-calibration,
+# auto's preset choice, the noise floor, the ensemble's and the levels' steps, the start floor's check):
+# kept apart from the settings, in metrics.json's "method_results".
+RESULT_KEYS = ("self_calibration", "preset_choice", "rs_noise_level", "member_steps", "refine_steps",
+               "start_floor", "levels", "left_out")
+# Internal settings fields that only carry a result to where it is reported (STFMSettings.selfcal_report
+# is "self_calibration" above): dropped from both.
+CARRIERS = ("selfcal_report",)
+
+
+def split_results(resolved: dict | None) -> tuple[dict | None, dict]:
+    """A method's resolved_settings() as (its settings, what its run found); (None, {}) for none."""
+    if not resolved:
+        return None, {}
+    results = {k: resolved[k] for k in RESULT_KEYS if resolved.get(k) is not None}
+    settings = {k: v for k, v in resolved.items() if k not in RESULT_KEYS and k not in CARRIERS}
+    return settings, results
+
 
 @dataclass
 class Result:

@@ -8,8 +8,10 @@ tv3d, pnp) go through the shared loop; GS-only baselines (blend, interp, rife) a
 give a single point of error against time. The bundle is only read, and the truth never
 reaches a method (`method_view`).
 
-The time budget counts from the start: reading, set-up and solve. Set-up is cut where the budget
-ends (rngcam.recon.guard), the result then being the start video with status
+The settings are resolved once the problem is read (rngcam.recon.settings.resolve: a frozen
+`Run`, the budget in seconds and how it was derived); the run's one clock starts with the
+command (`started`) and counts reading, set-up and solve. Set-up is cut at its deadline
+(rngcam.recon.guard), the result then being the start video with status
 "budget_before_first_iteration"; SIGINT or SIGTERM end the run "interrupted" with the current
 estimate and a checkpoint. `resume` continues a checkpoint of the same bundle, method and
 settings (rngcam.recon.checkpoint), with a budget of its own.
@@ -40,7 +42,7 @@ from rngcam.memory import peak_rss_bytes, release_free_memory
 from rngcam.physics.operators import drop_scratch
 from rngcam.recon import checkpoint, outputs, registry
 from rngcam.recon.guard import BudgetCut, RunGuard
-from rngcam.recon.loop import LoopSettings, RunResult, run, stage_printer
+from rngcam.recon.loop import LoopSettings, Method, RunResult, run, stage_printer
 from rngcam.recon.metrics import (
     error_visibility,
     error_visibility_caveats,
@@ -51,15 +53,18 @@ from rngcam.recon.metrics import (
     video_metrics,
 )
 from rngcam.recon.problem import Problem, build_problem
-from rngcam.recon.result import Result
+from rngcam.recon.result import Result, split_results
 from rngcam.recon.runlog import RunLog
 from rngcam.recon.settings import (  # noqa: F401 - their home before settings.py; callers import them here
     AUTO_MAX_S,
+    Clock,
     ReconSettings,
+    Run,
     auto_time_budget,
     check_device,
     check_settings_figures,
     default_out_dir,
+    resolve,
     resolve_device,
 )
 from rngcam.sizing import check_size, gib, plan_grid
@@ -68,27 +73,35 @@ from rngcam.sizing import check_size, gib, plan_grid
 # SSIM, which is most of a truth evaluation's cost (bench/scale.md).
 SSIM_EVERY_ROW_MAX_ELEMENTS = 20_000_000
 
-# Of a time budget, this fraction (at most FINISH_MAX_S) is kept for what follows the solve (the
-# final metrics, recon.h5, the TIFF, MP4 and plots), so a whole run ends near its budget.
-FINISH_FRACTION = 0.1
-FINISH_MAX_S = 60.0
-
 
 def method_view(problem: Problem) -> Problem:
     """What a method may see of `problem`: everything but the truth (the one place it is stripped)."""
     return replace(problem, truth=None)
 
 
-def make_method(problem: Problem, settings: ReconSettings, device: str, stage=None, budget_s: float | None = None):
-    """The iterative method of `settings` on `problem` (float32 on `device`, without the truth);
-    `stage(message)` reports set-up stages; `budget_s` is what is left of the budget [all of it]."""
-    entry = registry.get(settings.method)
+def make_method(problem: Problem, run_: Run, stage=None) -> Method:
+    """The iterative method of `run_` on `problem` (float32 on its device, without the truth),
+    reading the run's clock; `stage(message)` reports set-up stages."""
+    entry = registry.get(run_.method)
     seen = method_view(problem)  # a float32 copy is 4 bytes a voxel
-    method = entry.factory(seen.to(torch.float32, device), settings.method_settings, device=device,
-                           budget_s=settings.time_budget_s if budget_s is None else budget_s, stage=stage)
+    method = entry.factory(seen.to(torch.float32, run_.device), run_.settings.method_settings, device=run_.device,
+                           clock=run_.clock, stage=stage)
     if problem.has_holdout and not method.supports_holdout:
-        raise SettingError(f"{settings.method} does not fit a held-out split yet (holdout)", "holdout")
+        raise SettingError(f"{run_.method} does not fit a held-out split yet (holdout)", "holdout")
     return method
+
+
+def fit_checkpointed(problem: Problem, run_: Run, folder: Path, meta: dict,
+                     saved: dict | None) -> tuple[torch.Tensor, RunResult]:
+    """`run_`'s method on `problem`, iterated with checkpoints in `folder` (identity `meta`), resumed
+    from `saved` (a checkpoint payload, or None): a sweep trial's fit, with no outputs. Its estimate
+    and how the run went."""
+    method = make_method(problem, run_)
+    loop = LoopSettings(clock=run_.clock, max_iters=run_.settings.max_iters, log_every_s=run_.settings.log_every_s,
+                        checkpoint_dir=folder, checkpoint_every_s=run_.settings.checkpoint_every_s,
+                        resume_from=saved, checkpoint_meta=meta, progress=False)
+    result = run(method, loop, setup_s=run_.clock.elapsed() - (saved or {}).get("wall_s", 0.0))
+    return method.estimate().detach(), result
 
 
 def gs_key_frames(problem: Problem) -> np.ndarray:
@@ -189,9 +202,27 @@ def reconstruct(bundle_path: str | Path, out_dir: str | Path | None = None,
     return result.metrics
 
 
+@dataclass
+class _Job:
+    """What a run's stages share besides the problem and the Run: the guard, the set-up stage
+    printer, the output lines (`say`: printed and in recon.log; `log`: recon.log only) and the
+    folder with its checkpoint identity and the checkpoint resumed."""
+
+    guard: RunGuard
+    stage: Callable[[str], None]
+    say: Callable[[str], None]
+    log: RunLog
+    out: Path | None
+    want: dict | None
+    saved: dict | None
+
+    def quiet(self, progress: bool) -> Callable[[str], None]:
+        """Where a progress-only line goes: printed and logged, or (without progress) logged only."""
+        return self.say if progress else self.log.write
+
+
 def _solve(source: Source, settings: ReconSettings, out: Path | None, echo, started: float | None) -> Result:
-    t_start = time.perf_counter() if started is None else started  # the budget bounds the whole run
-    entry = registry.get(settings.method)
+    clock = Clock(started)  # the run's one clock: the budget bounds the whole run
     want = saved = None
     if out is not None:
         want = checkpoint.identity(source.checksum(), settings.method, settings.fitted())
@@ -203,34 +234,27 @@ def _solve(source: Source, settings: ReconSettings, out: Path | None, echo, star
         echo(line)
         log.write(line)
 
-    stage_line = say if settings.progress else log.write
     threads, why = choose_threads(settings.threads)  # before reading: this process is idle meanwhile
     if why:
         say(why)
     try:
-        with RunGuard() as guard, torch_threads(threads):
-            stage = stage_printer(stage_line, check=guard.check)
+        with RunGuard(clock) as guard, torch_threads(threads):
+            job = _Job(guard, stage_printer(say if settings.progress else log.write, check=guard.check), say, log,
+                       out, want, saved)
             if saved is not None:
                 say(f"resuming {out / checkpoint.CHECKPOINT_NAME} (iteration {saved.get('iteration', 0)})")
             elif settings.resume:
                 say(f"nothing to resume in {out} (no checkpoint yet): a new run")
-            problem, extra = _read(source, settings, say, stage)
+            problem, extra = _read(source, settings, say, job.stage)
             log.open(out)
-            budget = None if settings.time_budget_s is None else float(settings.time_budget_s)
-            if settings.budget_auto and entry.iterative:
-                budget, why = auto_time_budget(settings.method, problem.shape)
-                say(why)
-            elif settings.budget_auto:  # a one-shot method runs to its end unless given a budget
-                budget = None
-            if budget is not None:  # set-up and solve stop early enough for the metrics and outputs
-                keep = min(FINISH_FRACTION * budget, FINISH_MAX_S)
-                stage_line(f"time budget {budget:g} s: {budget - keep:.1f} s for set-up and solve, "
-                           f"{keep:.1f} s kept for the metrics and outputs")
-                budget -= keep
-            guard.set_deadline(None if budget is None else t_start + budget)
-            run_out = _fit(problem, settings, extra, budget, guard, stage, say, log, t_start, out, want, saved)
+            run_ = resolve(settings, problem.shape, clock)
+            if run_.budget_s is not None:  # set-up and solve stop early enough for the metrics and outputs
+                (say if settings.time_budget_s == "auto" else job.quiet(settings.progress))(
+                    f"time budget {run_.budget_s:.0f} s ({run_.budget_how}): {clock.seconds:.1f} s for set-up "
+                    f"and solve, {run_.finish_s:.1f} s kept for the metrics and outputs")
+            made = _fit(problem, run_, extra, job)
             guard.enter("finish")
-            result = _finish(source, problem, settings, extra, run_out, out, want, saved, say)
+            result = _finish(source, problem, run_, extra, made, job)
             result.lines = [line.rstrip("\n") for line in log.held]  # empty where recon.log has them
             return result
     finally:
@@ -280,15 +304,15 @@ HEARTBEAT_S = 10.0  # a set-up stage that says nothing for this long gets a "sti
 
 
 @contextlib.contextmanager
-def _heartbeat(line: Callable[[str], None], name: str, t_start: float, budget: float | None):
+def _heartbeat(line: Callable[[str], None], name: str, clock: Clock):
     """While the body runs, a line every HEARTBEAT_S seconds: every set-up shows progress, in a
     terminal and in recon.log, even through a long stage of a method that reports none."""
     done = threading.Event()
 
     def beat() -> None:
         while not done.wait(HEARTBEAT_S):
-            of = f" of the {budget:.0f} s" if budget is not None else ""
-            line(f"set-up: {name} still setting up ({time.perf_counter() - t_start:.0f} s{of})")
+            of = f" of the {clock.seconds:.0f} s" if clock.seconds is not None else ""
+            line(f"set-up: {name} still setting up ({clock.elapsed():.0f} s{of})")
 
     thread = threading.Thread(target=beat, daemon=True)
     thread.start()
@@ -299,86 +323,93 @@ def _heartbeat(line: Callable[[str], None], name: str, t_start: float, budget: f
         thread.join()
 
 
-def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float | None, guard: RunGuard, stage,
-         say, log, t_start: float, out: Path | None, want: dict | None, saved: dict | None) -> dict:
-    """Set up and run the method; what it gave (video, log, status, ...) as a dict for _finish."""
-    from rngcam.recon.holdout import HoldoutScorer
+class _Rows:
+    """Log rows of a video on `problem`: its truth metrics (with truth) and a one-point log."""
 
-    entry = registry.get(settings.method)
-    device = resolve_device(settings.device)
+    def __init__(self, problem: Problem, clock: Clock):
+        self.problem, self.clock = problem, clock
+        self.intermediate = problem.intermediate_frames()
+        self.progress_ssim = problem.truth is not None and problem.truth.numel() <= SSIM_EVERY_ROW_MAX_ELEMENTS
+
+    def truth(self, video: torch.Tensor, ssim: bool = True) -> dict:
+        p = self.problem
+        if p.truth is None:
+            return {}
+        return video_metrics(video.detach().cpu(), p.truth, self.intermediate, p.mask, ssim=ssim)  # float64 chunks
+
+    def one(self, video: np.ndarray, seconds: float, iteration: int) -> list[dict]:
+        vt = torch.from_numpy(video)  # float32: the metrics accumulate in float64 chunk by chunk
+        row = {"iteration": iteration, "wall_s": self.clock.elapsed(), "solve_s": seconds, "objective": float("nan")}
+        row.update({f"residual_{key}": v for key, v in _residuals(self.problem, vt).items()})
+        return [{**row, **self.truth(vt)}]
+
+
+def _fit(problem: Problem, run_: Run, extra: dict, job: _Job) -> dict:
+    """Set up and run the method; what it gave (video, log, status, ...) as a dict for _finish."""
+    clock, entry = run_.clock, registry.get(run_.method)
     c, k, h, w = problem.shape
     need = f" (about {gib(extra['need'])} estimated)" if extra.get("need") else ""
-    say(f"{settings.method}: {k} frames of {h}x{w}x{c} at {1 / problem.grid.dt_s:,.0f} fps on {device}{need}")
-    scorer = HoldoutScorer(problem) if settings.holdout is not None else None
-    intermediate = problem.intermediate_frames()
-
-    def truth_metrics(video: torch.Tensor, ssim: bool = True) -> dict:
-        if problem.truth is None:
-            return {}
-        return video_metrics(video.detach().cpu(), problem.truth, intermediate, problem.mask,  # float64 per chunk
-                             ssim=ssim)
-
-    progress_ssim = problem.truth is not None and problem.truth.numel() <= SSIM_EVERY_ROW_MAX_ELEMENTS
-
-    def one_row(video: np.ndarray, seconds: float, iteration: int) -> list[dict]:
-        vt = torch.from_numpy(video)  # float32: the metrics accumulate in float64 chunk by chunk
-        row = {"iteration": iteration, "wall_s": time.perf_counter() - t_start, "solve_s": seconds,
-               "objective": float("nan")}
-        row.update({f"residual_{key}": v for key, v in _residuals(problem, vt).items()})
-        return [{**row, **truth_metrics(vt)}]
-
-    fit = {"device": device, "components": {}, "left_out": [], "notes": [], "method_settings": None,
-           "events": [], "status": "ok", "message": "", "truth_metrics": truth_metrics}
+    job.say(f"{run_.method}: {k} frames of {h}x{w}x{c} at {1 / problem.grid.dt_s:,.0f} fps on {run_.device}{need}")
+    rows = _Rows(problem, clock)
+    made = {"device": run_.device, "components": {}, "left_out": [], "notes": [], "method_settings": None,
+            "events": [], "status": "ok", "message": ""}
     try:
-        guard.enter("setup")  # raises a signal held while reading
+        job.guard.enter("setup")  # raises a signal held while reading
         if not entry.iterative:
-            made, result = run_gs_only(problem, settings)
-            fit.update(video=made.video, notes=list(made.notes), method_settings=made.resolved,
-                       log=one_row(made.video, result.solve_s, 1), iterations=1, solve_s=result.solve_s,
-                       wall_s=time.perf_counter() - t_start, ended_by=result.ended_by)
-            for note in fit["notes"]:
-                say(f"note: {note}")
-            return fit
-        left = None if budget is None else budget - (time.perf_counter() - t_start)
-        with _heartbeat(settings.progress and say or log.write, settings.method, t_start, budget):
-            method = make_method(problem, settings, device, stage=stage, budget_s=left)
+            gs_only, result = run_gs_only(problem, run_.settings)
+            made.update(video=gs_only.video, notes=list(gs_only.notes), method_settings=gs_only.resolved,
+                        log=rows.one(gs_only.video, result.solve_s, 1), iterations=1, solve_s=result.solve_s,
+                        wall_s=clock.elapsed(), ended_by=result.ended_by)
+            for note in made["notes"]:
+                job.say(f"note: {note}")
+            return made
+        with _heartbeat(job.quiet(run_.settings.progress), run_.method, clock):
+            method = make_method(problem, run_, stage=job.stage)
         release_free_memory()  # what the set-up let go of (coarse levels, learned networks' activations)
-        guard.enter("solve")
+        job.guard.enter("solve")
     except KeyboardInterrupt as exc:  # guard.Interrupted (SIGINT, SIGTERM) or a plain Ctrl-C
-        guard.enter("finish")  # the timer off, further signals held: the start video is written whole
+        job.guard.enter("finish")  # the timer off, further signals held: the start video is written whole
         why = f"interrupted by {getattr(exc, 'signame', 'KeyboardInterrupt')} in set-up"
-        return _cut(fit, problem, "interrupted", why, one_row, t_start, saved)
+        return _cut(made, problem, "interrupted", why, rows, job.saved)
     except BudgetCut:
-        guard.enter("finish")
-        why = (f"time budget of {budget:g} s reached in set-up ({time.perf_counter() - t_start:.1f} s), "
+        job.guard.enter("finish")
+        why = (f"time budget of {clock.seconds:g} s reached in set-up ({clock.elapsed():.1f} s), "
                f"before the first iteration")
-        return _cut(fit, problem, "budget_before_first_iteration", why, one_row, t_start, saved)
-    setup_s = fit["setup_s"] = time.perf_counter() - t_start
-    stage_line = say if settings.progress else log.write
-    stage_line(f"set-up: {settings.method} ready ({setup_s:.1f} s)")
-    fit["left_out"], fit["notes"] = list(method.left_out), list(method.notes)
-    for note in fit["notes"]:
-        say(f"note: {note}")
-    for comp, why in fit["left_out"]:
-        say(f"left out: {comp} ({why})")
-    loop = LoopSettings(time_budget_s=budget, max_iters=settings.max_iters, log_every_s=settings.log_every_s,
-                        checkpoint_dir=out, checkpoint_every_s=settings.checkpoint_every_s, resume_from=saved,
-                        checkpoint_meta=want or {}, start_time=t_start, stop_requested=guard.stop_reason,
-                        log_line=log.write, progress=settings.progress)
+        return _cut(made, problem, "budget_before_first_iteration", why, rows, job.saved)
+    return _iterate(problem, run_, method, made, rows, job)
+
+
+def _iterate(problem: Problem, run_: Run, method: Method, made: dict, rows: _Rows, job: _Job) -> dict:
+    """The loop on the method just built, under the run's clock; `made` with what it gave."""
+    from rngcam.recon.holdout import HoldoutScorer
+
+    settings = run_.settings
+    setup_s = made["setup_s"] = run_.clock.elapsed()
+    job.quiet(settings.progress)(f"set-up: {run_.method} ready ({setup_s:.1f} s)")
+    made["left_out"], made["notes"] = list(method.left_out), list(method.notes)
+    for note in made["notes"]:
+        job.say(f"note: {note}")
+    for comp, why in made["left_out"]:
+        job.say(f"left out: {comp} ({why})")
+    loop = LoopSettings(clock=run_.clock, max_iters=settings.max_iters, log_every_s=settings.log_every_s,
+                        checkpoint_dir=job.out, checkpoint_every_s=settings.checkpoint_every_s, resume_from=job.saved,
+                        checkpoint_meta=job.want or {}, stop_requested=job.guard.stop_reason,
+                        log_line=job.log.write, progress=settings.progress)
+    scorer = HoldoutScorer(problem) if settings.holdout is not None else None
 
     def evaluate(m) -> dict:
         release_free_memory(collect=False)  # the steps' freed heap pages go before the metrics' chunks come
         row = scorer(m.estimate().detach()) if scorer is not None else {}
-        return {**row, **truth_metrics(m.estimate(), ssim=progress_ssim)}
+        return {**row, **rows.truth(m.estimate(), ssim=rows.progress_ssim)}
 
     result = run(method, loop, evaluate, setup_s=setup_s)
     if problem.truth is not None and result.log and "ssim" not in result.log[-1]:
-        result.log[-1].update(truth_metrics(method.estimate()))  # the final row's SSIM, once
-    fit.update(video=method.estimate().detach().float().cpu().numpy(), components=method.components(),
-               method_settings=method.resolved_settings(), log=result.log, iterations=result.iterations,
-               solve_s=result.solve_s, wall_s=result.wall_s, events=result.events, status=result.status,
-               message=result.message, ended_by=result.ended_by)
-    fit["notes"] += [n for n in method.notes if n not in fit["notes"]]  # what it learns by the end (the floor)
+        result.log[-1].update(rows.truth(method.estimate()))  # the final row's SSIM, once
+    made.update(video=method.estimate().detach().float().cpu().numpy(), components=method.components(),
+                method_settings=method.resolved_settings(), log=result.log, iterations=result.iterations,
+                solve_s=result.solve_s, wall_s=result.wall_s, events=result.events, status=result.status,
+                message=result.message, ended_by=result.ended_by)
+    made["notes"] += [n for n in method.notes if n not in made["notes"]]  # what it learns by the end (the floor)
     # The method's state (the solve's peak) goes before the end-of-run metrics and outputs, which
     # then add to a much smaller base (bench/scale.md: whole-process peak).
     del method
@@ -387,31 +418,32 @@ def _fit(problem: Problem, settings: ReconSettings, extra: dict, budget: float |
     # this run's events (a resumed run's list goes on from its checkpoint's: metrics.json keeps all)
     now = max((i for i, e in enumerate(result.events) if e.startswith("resumed from ")), default=0)
     for event in result.events[now:]:
-        say(f"event: {event}")
-    return fit
+        job.say(f"event: {event}")
+    return made
 
 
-def _cut(fit: dict, problem: Problem, status: str, why: str, one_row, t_start: float, saved: dict | None) -> dict:
+def _cut(made: dict, problem: Problem, status: str, why: str, rows: _Rows, saved: dict | None) -> dict:
     """A run ended in set-up: the start video as its result (the checkpoint, if one is resumed, is better:
     the folder then keeps what it has)."""
-    wall_s = time.perf_counter() - t_start  # when it was cut; the start video and its scores come after
+    wall_s = rows.clock.elapsed()  # when it was cut; the start video and its scores come after
     video = start_video(problem)
     keep = saved is not None and saved.get("method") is not None
-    fit.update(video=video, log=one_row(video, 0.0, 0), iterations=0, solve_s=0.0,
-               wall_s=wall_s, status=status, message=f"{why}",
-               ended_by="signal" if status == "interrupted" else "budget",
-               events=[f"{why}: the start video (GS key frames cross-faded) is the result"
-                       if not keep else f"{why}: the folder keeps its earlier result and checkpoint"],
-               keep_folder=keep, cut=True)
-    return fit
+    made.update(video=video, log=rows.one(video, 0.0, 0), iterations=0, solve_s=0.0,
+                wall_s=wall_s, status=status, message=f"{why}",
+                ended_by="signal" if status == "interrupted" else "budget",
+                events=[f"{why}: the start video (GS key frames cross-faded) is the result"
+                        if not keep else f"{why}: the folder keeps its earlier result and checkpoint"],
+                keep_folder=keep, cut=True)
+    return made
 
 
-def _finish(source: Source, problem: Problem, settings: ReconSettings, extra: dict, fit: dict,
-            out: Path | None, want: dict | None, saved: dict | None, say) -> Result:
-    """The metrics and the Result; with `out`, its files (and, for a run cut in set-up, a checkpoint
-    that `resume` continues)."""
+def _finish(source: Source, problem: Problem, run_: Run, extra: dict, fit: dict, job: _Job) -> Result:
+    """The metrics and the Result; with `job.out`, its files (and, for a run cut in set-up, a checkpoint
+    that `resume` continues). The settings as they ran (`Run.record`: recon.h5, metrics.json's
+    "settings", the report) are kept apart from what the run found (metrics.json's "method_results")."""
     from rngcam.recon.holdout import HELDOUT_KEYS
 
+    settings, out = run_.settings, job.out
     c, k, h, w = problem.shape
     video = fit["video"]
     final = fit["log"][-1] if fit["log"] else {}
@@ -451,23 +483,24 @@ def _finish(source: Source, problem: Problem, settings: ReconSettings, extra: di
             metrics["error_visibility_caveats"] = caveats
         metrics.update(motion_metrics(vt, problem.truth, problem.intermediate_frames(),
                                       one_object=extra["one_object"]))
-    method_settings = fit["method_settings"] or asdict(settings.method_settings) or None
+    method_settings, method_results = split_results(fit["method_settings"] or asdict(settings.method_settings))
+    resolved = run_.record()
     if method_settings is not None:
-        metrics["method_settings"] = method_settings  # the preset's values filled in
-    resolved = {**asdict(settings), "device": fit["device"], "grid_bin": settings.grid_bin}
-    if method_settings is not None:
-        resolved["method_settings"] = method_settings
+        metrics["method_settings"] = resolved["method_settings"] = method_settings  # the preset's values filled in
+    if method_results:
+        metrics["method_results"] = method_results
+    metrics["settings"] = {k: v for k, v in resolved.items() if k != "method_settings"}  # that one is above
     result = Result(video=video, frame_times_s=np.asarray(problem.frame_times_s), metrics=metrics,
                     components=fit["components"], notes=fit["notes"], warnings=list(extra["warnings"]),
                     left_out=left_out, status=fit["status"], log=fit["log"], message=fit["message"],
                     settings=resolved, bundle_sha256=source.checksum(), frame_interval_s=problem.grid.dt_s,
                     context=extra.get("context") or outputs.recon_context(source.path, None, problem))
     if out is not None and not fit.get("keep_folder"):
-        result.save(out, echo=say, truth=problem.truth)  # the report need not read the truth again
+        result.save(out, echo=job.say, truth=problem.truth)  # the report need not read the truth again
         if fit.get("cut"):
             checkpoint.save(out / checkpoint.CHECKPOINT_NAME, {
                 "method": None, "iteration": 0, "solve_s": 0.0, "wall_s": fit["wall_s"], "log": [],
-                "events": [], "rng": torch.get_rng_state(), "identity": want})
+                "events": [], "rng": torch.get_rng_state(), "identity": job.want})
     for event in fit["events"] if fit.get("cut") else ():
-        say(f"event: {event}")
+        job.say(f"event: {event}")
     return result

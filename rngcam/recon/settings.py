@@ -1,4 +1,13 @@
-"""What a reconstruction is asked to do (`ReconSettings`), each setting checked where it is set.
+"""What a reconstruction is asked to do (`ReconSettings`), each setting checked where it is set,
+and what that resolves to once the problem's size is known (`Run`, frozen) with the run's one
+clock (`Clock`).
+
+`time_budget_s` may be "auto"; `resolve` turns it into seconds (the registry's figure scaled to
+the problem) with a line saying how it was derived. The clock is made where the command starts
+(`Clock(started)`) and gets its deadline once, in `resolve`; the guard (set-up), each set-up
+stage, each coarse-to-fine level and the loop read it. A stage asks for a share of what is left
+(`Clock.share`); the clock says what is left (`Clock.left`). What is recorded (recon.h5,
+metrics.json, the report) is `Run.record()`: what ran.
 
 Errors are SettingError lines that name the setting as the Python API spells it
 (`time_budget_s`, `device`, ...); the command line replaces the names with its flags.
@@ -8,36 +17,23 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import asdict, dataclass
+import time
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from rngcam.errors import SettingError
-from rngcam.recon import registry
-
-# "auto" scales the registry's budgets (MethodEntry.auto_budget_s, set at 64x64 px, 67 frames, 3
-# channels) with the square root of the problem's size, capped at half an hour: 64 px keeps its
-# figure, 228x342x232 gets 8.1x it.
-AUTO_REFERENCE_VOXELS = 3 * 67 * 64 * 64
-AUTO_MAX_S = 1800.0
-
-
-def auto_time_budget(method: str, shape: tuple[int, int, int, int]) -> tuple[float, str]:
-    """The `auto` budget for `method` on a video of `shape` (C, K, H, W), and a line saying why."""
-    base = registry.get(method).auto_budget_s
-    scale = max(1.0, math.sqrt(math.prod(shape) / AUTO_REFERENCE_VOXELS))
-    budget = min(AUTO_MAX_S, base * scale)
-    return budget, (f"time budget auto: {budget:.0f} s ({method}'s {base:g} s at 64 px x "
-                    f"{scale:.1f} for {math.prod(shape) / 1e6:.1f} M voxels, at most {AUTO_MAX_S:g} s)")
 
 
 @dataclass
 class ReconSettings:
     method: str = "stfm"  # a registry name
     method_settings: Any = None  # an instance of the method's settings dataclass (None: its default preset)
-    time_budget_s: float | str | None = "auto"  # "auto": the method's MethodEntry.auto_budget_s, scaled
+    # seconds for the whole run, None (max_iters only) or "auto": the method's MethodEntry.auto_budget_s
+    # scaled to the problem, resolved with it (resolve, below)
+    time_budget_s: float | str | None = "auto"
     max_iters: int | None = None  # stop at this iteration (a resumed run counts from its checkpoint's)
     device: str = "auto"  # auto, cpu, cuda or cuda:N
     threads: int | str = "auto"  # torch CPU threads; auto: torch's count, less the CPUs other work keeps busy
@@ -54,15 +50,14 @@ class ReconSettings:
     max_memory_bytes: int | None = None  # refuse a larger estimate (None: a fraction of the machine's)
 
     def __post_init__(self):
+        from rngcam.recon import registry  # the registry imports the methods, which import the clock
+
         entry = registry.get(self.method)
         if self.method_settings is None:
             self.method_settings = entry.settings()
         elif not isinstance(self.method_settings, entry.settings_type):
             raise SettingError(f"{self.method} takes {entry.settings_type.__name__}, not "
                                f"{type(self.method_settings).__name__} (method_settings)", "method_settings")
-        self.budget_auto = self.time_budget_s == "auto"  # rescaled to the problem in solve()
-        if self.time_budget_s == "auto":
-            self.time_budget_s = entry.auto_budget_s
         check_settings_figures(self.time_budget_s, self.max_iters, self.max_frames, self.max_memory_bytes)
         check_positive("checkpoint_every_s", self.checkpoint_every_s)
         check_device(self.device)
@@ -88,8 +83,8 @@ def check_positive(name: str, value) -> None:
 
 
 def check_settings_figures(time_budget_s, max_iters, max_frames=None, max_memory_bytes=None) -> None:
-    """SettingError (one line) for a budget, iteration count or limit that cannot be meant."""
-    if time_budget_s is not None:
+    """SettingError (one line) for a budget (seconds, "auto" or None), iteration count or limit that cannot be meant."""
+    if time_budget_s is not None and time_budget_s != "auto":
         check_positive("time_budget_s", time_budget_s)
     for name, value in (("max_iters", max_iters), ("max_frames", max_frames),
                         ("max_memory_bytes", max_memory_bytes)):
@@ -133,3 +128,110 @@ def resolve_device(name: str) -> str:
 def default_out_dir(bundle_path: Path, method: str) -> Path:
     """A sibling folder of the bundle: <stem>-recon-<method>/."""
     return bundle_path.with_name(f"{bundle_path.stem}-recon-{method}")
+
+
+# "auto" scales the registry's budgets (MethodEntry.auto_budget_s, set at 64x64 px, 67 frames, 3
+# channels) with the square root of the problem's size, capped at half an hour: 64 px keeps its
+# figure, 228x342x232 gets 8.1x it.
+AUTO_REFERENCE_VOXELS = 3 * 67 * 64 * 64
+AUTO_MAX_S = 1800.0
+
+# Of a time budget, this fraction (at most FINISH_MAX_S) is kept for what follows the solve (the
+# final metrics, recon.h5, the TIFF, MP4 and plots), so a whole run ends near its budget.
+FINISH_FRACTION = 0.1
+FINISH_MAX_S = 60.0
+
+
+class Clock:
+    """When a run started (a time.perf_counter()) and, once its budget is resolved, when its
+    set-up and solve must end. One per run: everything that checks the time reads this one."""
+
+    def __init__(self, start: float | None = None, seconds: float | None = None):
+        self.start = time.perf_counter() if start is None else float(start)
+        self.deadline: float | None = None
+        if seconds is not None:
+            self.limit(seconds)
+
+    def limit(self, seconds: float | None) -> Clock:
+        """Set the deadline `seconds` after the start (None: no deadline); once only."""
+        if self.deadline is not None:
+            raise RuntimeError("a run's clock gets its deadline once")
+        self.deadline = None if seconds is None else self.start + float(seconds)
+        return self
+
+    @property
+    def seconds(self) -> float | None:
+        """The seconds from the start to the deadline (None: no deadline)."""
+        return None if self.deadline is None else self.deadline - self.start
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
+
+    def left(self) -> float | None:
+        """Seconds left before the deadline (negative past it; None: no deadline)."""
+        return None if self.deadline is None else self.deadline - time.perf_counter()
+
+    def expired(self) -> bool:
+        return self.deadline is not None and time.perf_counter() >= self.deadline
+
+    def share(self, fraction: float) -> float | None:
+        """`fraction` of what is left now: the seconds a stage that wants that share may take."""
+        left = self.left()
+        return None if left is None else max(0.0, fraction * left)
+
+    def __repr__(self) -> str:
+        return f"Clock(elapsed={self.elapsed():.1f} s, seconds={self.seconds})"
+
+
+def auto_time_budget(method: str, shape: tuple[int, int, int, int]) -> tuple[float, str]:
+    """The `auto` budget for `method` on a video of `shape` (C, K, H, W), and how it was derived."""
+    from rngcam.recon import registry
+
+    base = registry.get(method).auto_budget_s
+    scale = max(1.0, math.sqrt(math.prod(shape) / AUTO_REFERENCE_VOXELS))
+    budget = min(AUTO_MAX_S, base * scale)
+    return budget, (f"auto: {method} {base:g} s at 64 px, scaled by sqrt(size) x{scale:.2f} "
+                    f"({math.prod(shape) / 1e6:.1f} M voxels, at most {AUTO_MAX_S:g} s) to {budget:.0f} s")
+
+
+@dataclass(frozen=True)
+class Run:
+    """What a run does, resolved once: `settings` as asked, the budget in seconds (None: none) and
+    how it was derived, the seconds kept for the outputs, the device, and the clock."""
+
+    settings: ReconSettings
+    budget_s: float | None
+    budget_how: str
+    device: str
+    clock: Clock = field(compare=False)
+    finish_s: float = 0.0  # of budget_s, kept for the metrics and outputs (the clock ends before)
+
+    @property
+    def method(self) -> str:
+        return self.settings.method
+
+    def record(self) -> dict:
+        """The settings as they ran, for recon.h5, metrics.json and the report."""
+        out = asdict(replace(self.settings, time_budget_s=self.budget_s, device=self.device))
+        out["time_budget_how"] = self.budget_how
+        out["time_budget_asked"] = self.settings.time_budget_s
+        return out
+
+
+def resolve(settings: ReconSettings, shape: tuple[int, int, int, int], clock: Clock,
+            finish: bool = True) -> Run:
+    """`settings` on a problem of `shape`: the budget in seconds (auto scaled to it; a one-shot
+    method's auto is none), less the outputs' share when `finish`; sets `clock`'s deadline."""
+    from rngcam.recon import registry
+
+    entry = registry.get(settings.method)
+    asked = settings.time_budget_s
+    if asked == "auto" and entry.iterative:
+        budget, how = auto_time_budget(settings.method, shape)
+    elif asked == "auto" or asked is None:
+        budget, how = None, ("auto: a one-shot method runs to its end" if asked == "auto" else "none given")
+    else:
+        budget, how = float(asked), "given"
+    keep = min(FINISH_FRACTION * budget, FINISH_MAX_S) if finish and budget is not None else 0.0
+    clock.limit(None if budget is None else budget - keep)
+    return Run(settings, budget, how, resolve_device(settings.device), clock, keep)

@@ -86,10 +86,7 @@ def recon_batch(bundles: list[str | Path], out_dir: str | Path, settings: ReconS
     """Reconstruct every bundle with `settings` (see the module docstring)."""
     # A bundle not done with these settings is redone from scratch, over whatever an earlier run left.
     given = settings or ReconSettings()
-    settings = replace(given, progress=False, resume=False, overwrite=True)
-    # replace() re-runs __post_init__, which sees the 64 px figure "auto" already became: keep it auto,
-    # so each bundle's budget is scaled to its own problem
-    settings.budget_auto = given.budget_auto
+    settings = replace(given, progress=False, resume=False, overwrite=True)  # "auto" stays auto: per bundle
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = [Path(b) for b in bundles]

@@ -23,11 +23,12 @@ import torch
 from rngcam.cpu import torch_threads
 from rngcam.errors import RngcamError
 from rngcam.recon import checkpoint
+from rngcam.recon.checkpoint import CHECKPOINT_NAME
 from rngcam.recon.holdout import HoldoutScorer
-from rngcam.recon.loop import CHECKPOINT_NAME, LoopSettings, run
 from rngcam.recon.metrics import video_metrics
 from rngcam.recon.problem import Problem
-from rngcam.recon.runner import ReconSettings, make_method, resolve_device
+from rngcam.recon.runner import fit_checkpointed, resolve_device
+from rngcam.recon.settings import Clock, ReconSettings, resolve
 from rngcam.untrusted import clean_temps
 
 TRUTH_KEYS = ("psnr_db", "ssim", "psnr_intermediate_db", "ssim_intermediate")
@@ -51,18 +52,21 @@ class TrialSpec:
     threads: int | None = None  # torch threads inside the trial (None: leave as is)
 
 
-def _drop_checkpoint_past_budget(path: Path, spec: TrialSpec, want: dict) -> None:
-    """A checkpoint from a longer run than this budget (an earlier sweep) cannot be resumed. One that
-    is not data only, or not this trial's, is refused in one line (the trial fails, nothing runs)."""
+def _resumable(path: Path, spec: TrialSpec, want: dict) -> dict | None:
+    """The checkpoint a trial continues (a later rung), or None. One from a longer run than this
+    budget (an earlier sweep) cannot be resumed and is dropped. One that is not data only, or not
+    this trial's, is refused in one line (the trial fails, nothing runs)."""
     if not os.path.lexists(path):
-        return
-    saved = checkpoint.load(path, map_location="cpu", hint=checkpoint.RESUME_HINT)
+        return None
+    saved = checkpoint.load(path, hint=checkpoint.RESUME_HINT)
     why = checkpoint.mismatch(saved, want)
     if why:
         raise RngcamError(f"cannot resume from {path}: {why}; {checkpoint.RESUME_HINT}")
     if (spec.max_iters is not None and saved["iteration"] > spec.max_iters) or (
             spec.time_budget_s is not None and saved["wall_s"] > spec.time_budget_s):
         path.unlink(missing_ok=True)
+        return None
+    return saved
 
 
 def run_trial(spec: TrialSpec, problem: Problem) -> dict:
@@ -93,23 +97,23 @@ def run_trial(spec: TrialSpec, problem: Problem) -> dict:
 
 
 def _fit_fold(spec: TrialSpec, problem: Problem, folder: Path, device: str) -> dict:
-    """One fit on `problem`'s training split, resumed from `folder`; its figures."""
-    settings = ReconSettings(method=spec.method, method_settings=spec.settings, device=device)
-    t0 = time.perf_counter()
-    method = make_method(problem, settings, device)
-    setup_s = time.perf_counter() - t0
+    """One fit on `problem`'s training split, resumed from `folder`; its figures. It runs as any
+    run does (rngcam.recon.runner): its settings resolved, its method built on its own clock."""
     folder.mkdir(parents=True, exist_ok=True)
     clean_temps(folder)  # a killed worker's half-written checkpoint
     want = checkpoint.identity(None, spec.method, {"trial": spec.key, "fold": folder.name})
-    _drop_checkpoint_past_budget(folder / CHECKPOINT_NAME, spec, want)
-    loop = LoopSettings(time_budget_s=spec.time_budget_s, max_iters=spec.max_iters, log_every_s=math.inf,
-                        checkpoint_dir=folder, checkpoint_every_s=10.0, resume=True, progress=False,
-                        checkpoint_meta=want)
-    result = run(method, loop, setup_s=setup_s)
+    saved = _resumable(folder / CHECKPOINT_NAME, spec, want)
+    # A later rung extends the fit: its budget is the fit's total, so the clock counts the earlier rungs.
+    clock = Clock(time.perf_counter() - (saved["wall_s"] if saved else 0.0))
+    settings = ReconSettings(method=spec.method, method_settings=spec.settings, device=device,
+                             time_budget_s=spec.time_budget_s, max_iters=spec.max_iters, log_every_s=math.inf,
+                             checkpoint_every_s=10.0, progress=False)
+    video, result = fit_checkpointed(problem, resolve(settings, problem.shape, clock, finish=False), folder, want,
+                                     saved)
     final = result.log[-1] if result.log else {}
     out = {"iterations": result.iterations, "seconds": result.solve_s, "status": result.status,
            "message": result.message, **{k: v for k, v in final.items() if k.startswith("residual_")}}
-    video = method.estimate().detach().double().cpu()
+    video = video.double().cpu()
     reference = problem.to(torch.float64, "cpu")
     out.update(HoldoutScorer(reference)(video))
     if reference.truth is not None:

@@ -30,6 +30,7 @@ from rngcam.physics.timing import VideoGrid
 from rngcam.recon.checkpoint import Kept, kept  # noqa: F401 - pnp and tv3d import them from here
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.problem import Problem
+from rngcam.recon.settings import Clock
 
 
 def area_matrix(n_out: int, n_in: int, dtype=torch.float64) -> Tensor:
@@ -178,17 +179,18 @@ class CoarseToFine(MethodBase):
     A coarse level ends when its objective has fallen by less than `level_rtol` over its last
     `window` steps (`level_stop="objective"`; with "method": when the level's own `converged()`
     gives a reason, for methods with a stochastic objective), after `max_level_steps` steps, or
-    when its steps have used their share of `budget_s` (`level_share`; only time inside step()
+    when its steps have used their share (`level_share`) of what the run's `clock`
+    (rngcam.recon.settings.Clock) had left when the level started (only time inside step()
     counts, not the loop's evaluations); the final level runs for as long as the loop lets it.
-    A finer level is not started when what is left of `budget_s` (counted from construction)
-    looks too short for its set-up and `fine_steps` steps (8x the current level's, per halving): the run
-    then ends on the current level, upsampled (plus `detail(full_problem, coarse_shape)`, the
-    full grid's detail that level cannot hold, when given), and `budget_cut()` says so. `estimate()`
-    is always on the full grid. `stage(message)` reports each level's set-up.
+    A finer level is not started when what the clock has left looks too short for its set-up
+    and `fine_steps` steps (8x the current level's, per halving): the run then ends on the
+    current level, upsampled (plus `detail(full_problem, coarse_shape)`, the full grid's detail
+    that level cannot hold, when given), and `budget_cut()` says so. `estimate()` is always on
+    the full grid. `stage(message)` reports each level's set-up.
     """
 
     def __init__(self, problem: Problem, make: Callable[[Problem, Tensor | None], object],
-                 factors: tuple[int, ...] | None = None, budget_s: float | None = None,
+                 factors: tuple[int, ...] | None = None, clock: Clock | None = None,
                  level_share: float = 0.15, level_rtol: float = 2e-3, window: int = 10,
                  max_level_steps: int = 300, stage: Callable[[str], None] | None = None,
                  level_stop: str = "objective", fine_steps: int = 5,
@@ -198,12 +200,11 @@ class CoarseToFine(MethodBase):
         if self.factors[-1] != 1:
             self.factors = (*self.factors, 1)
         self.problems = [coarsen(problem, f) if f > 1 else problem for f in self.factors]
-        self.make, self.budget_s, self.level_share = make, budget_s, level_share
+        self.make, self.clock, self.level_share = make, clock, level_share
         self.level_rtol, self.window, self.max_level_steps = level_rtol, window, max_level_steps
         self.level_stop, self.level_ends, self.fine_steps = level_stop, [], fine_steps
         self.detail, self._detail = detail, (None, None)  # (level, the full grid's detail for it)
         self.stage = stage or (lambda message: None)
-        self.t0 = time.perf_counter()
         self.level, self._x0, self.held_back = 0, None, False
         self._start_level(0, None)
         self.name, self.stops_itself = self.method.name, self.method.stops_itself
@@ -220,13 +221,14 @@ class CoarseToFine(MethodBase):
         self.method = self.make(self.problems[i], x0)
         self.level_steps, self.level_step_s, self._history = 0, 0.0, []
         self.level_setup_s = time.perf_counter() - t0
+        self.level_share_s = None if self.clock is None else self.clock.share(self.level_share)  # its steps' time
         self.stage(f"{self._describe(i)}: ready")
 
     def _level_done(self, objective: float) -> bool:
         self._history.append(objective)
         if self.level_steps >= self.max_level_steps:
             return True
-        if self.budget_s is not None and self.level_step_s >= self.level_share * self.budget_s:
+        if self.level_share_s is not None and self.level_step_s >= self.level_share_s:
             return True
         if self.level_stop == "method":
             reason = self.method.converged()
@@ -239,7 +241,8 @@ class CoarseToFine(MethodBase):
         return False
 
     def _next_level_fits(self) -> bool:
-        if self.budget_s is None:
+        left = None if self.clock is None else self.clock.left()
+        if left is None:
             return True
         growth = (self.factors[self.level] / self.factors[self.level + 1]) ** 3
         per_step = self.level_step_s / max(self.level_steps, 1)
@@ -247,7 +250,7 @@ class CoarseToFine(MethodBase):
         # ensemble) is guessed from its steps alone.
         setup = self.level_setup_s if self.level_stop == "objective" else 0.0
         needed = growth * (setup + self.fine_steps * per_step)
-        return time.perf_counter() - self.t0 + needed <= self.budget_s
+        return needed <= left
 
     def _next_level(self) -> None:
         self.level_ends.append({"level": self._describe(self.level), "steps": self.level_steps,

@@ -406,7 +406,7 @@ def with_key_frame_detail(problem: Problem, x0: Tensor, coarse_shape: tuple[int,
 
 
 def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str = "cpu",
-             budget_s: float | None = None, stage=None, factors: tuple[int, ...] | None = None):
+             clock=None, stage=None, factors: tuple[int, ...] | None = None):
     """PnP on `problem`, coarse to fine (rngcam.recon.methods.multiscale) on grids of 96 px and more with
     `coarse_to_fine` on: the start (RIFE, the operator norm from a random vector) is made on the
     coarsest level only; each finer level starts from the coarser estimate, upsampled, plus the key
@@ -456,5 +456,5 @@ def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str 
         d = key_frame_detail(full, coarse_shape)
         return torch.zeros(()) if d is None else d
 
-    return CoarseToFine(problem, make, factors, budget_s=budget_s, stage=stage, level_stop="method", fine_steps=1,
+    return CoarseToFine(problem, make, factors, clock=clock, stage=stage, level_stop="method", fine_steps=1,
                         detail=detail)

@@ -300,19 +300,19 @@ class TV3D(MethodBase):
         self.state["t"], self.state["y"], self.state["Ay"] = 1.0, self.state["x"], self.state["Ax"]
 
 
-def make_tv3d(problem: Problem, settings: TV3DSettings | None = None, budget_s: float | None = None,
+def make_tv3d(problem: Problem, settings: TV3DSettings | None = None, clock=None,
               stage=None):
     """TV3D on `problem`, coarse-to-fine (rngcam.recon.methods.multiscale) when the grid is large enough,
     the setting is on and no held-out split is fitted; `stage(message)` reports set-up stages.
     With `self_calibrate`, the problem's GS frames are first corrected (rngcam.recon.methods.selfcal) and
     the refined values are in the method's notes and `selfcal_report`."""
     settings = settings or TV3DSettings()
-    method = _make_tv3d(problem, settings, budget_s, stage) if settings.self_calibrate == "off" else None
+    method = _make_tv3d(problem, settings, clock, stage) if settings.self_calibrate == "off" else None
     if method is None:
         from rngcam.recon.methods.selfcal import calibrate_problem, report_lines
 
         problem, report = calibrate_problem(problem, settings.self_calibrate)
-        method = _make_tv3d(problem, settings, budget_s, stage)
+        method = _make_tv3d(problem, settings, clock, stage)
         method.selfcal_report = report
         try:
             method.notes = list(method.notes) + report_lines(report)
@@ -321,7 +321,7 @@ def make_tv3d(problem: Problem, settings: TV3DSettings | None = None, budget_s: 
     return method
 
 
-def _make_tv3d(problem: Problem, settings: TV3DSettings, budget_s: float | None, stage):
+def _make_tv3d(problem: Problem, settings: TV3DSettings, clock, stage):
     from rngcam.recon.methods.multiscale import CoarseToFine, default_factors
 
     factors = default_factors(problem.shape)
@@ -350,4 +350,4 @@ def _make_tv3d(problem: Problem, settings: TV3DSettings, budget_s: float | None,
         previous[:] = [method]
         return method
 
-    return CoarseToFine(problem, make, factors, budget_s=budget_s, stage=stage)
+    return CoarseToFine(problem, make, factors, clock=clock, stage=stage)

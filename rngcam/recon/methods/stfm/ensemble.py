@@ -194,7 +194,7 @@ class STFMEnsemble(MethodBase):
 
 
 def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
-              initial_video: Tensor | None = None, budget_s: float | None = None, stage=None):
+              initial_video: Tensor | None = None, clock=None, stage=None):
     """The STFM method for `problem` (see STFM and STFMSettings): an STFMEnsemble when the
     dynamic base (the setting, else the preset's) lists several bases and the problem uses them.
 
@@ -202,7 +202,8 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
     estimate, upsampled): one fit whose dynamic base is that video (dynamic_base "video"), so the
     fit starts from it instead of from a GS-only interpolation.
     On grids of 96 px and more (`coarse_to_fine`), a coarse-to-fine run of these
-    (rngcam.recon.methods.stfm.multilevel); `budget_s` and `stage(message)` as in make_tv3d.
+    (rngcam.recon.methods.stfm.multilevel); `clock` (the run's: rngcam.recon.settings.Clock) and `stage(message)`
+    as in make_tv3d.
 
     Preset "auto" is resolved here, on the whole problem (rngcam.recon.methods.stfm.auto.choose_preset);
     the method's `notes` and `preset_choice` (in its resolved settings) say which preset it chose
@@ -219,7 +220,7 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
         choice = choose_preset(problem)
         settings = replace(settings, preset=choice.preset, preset_choice=choice.as_dict())
     guard = initial_video is None and settings.start_floor
-    method = _make_stfm(problem, replace(settings, start_floor=False), device, initial_video, budget_s, stage)
+    method = _make_stfm(problem, replace(settings, start_floor=False), device, initial_video, clock, stage)
     if guard:  # once, around the whole run (not around its levels or members)
         from rngcam.recon.methods.stfm.guard import StartGuard
 
@@ -227,14 +228,14 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
     return method
 
 
-def _make_stfm(problem, settings: STFMSettings, device, initial_video: Tensor | None, budget_s=None, stage=None):
+def _make_stfm(problem, settings: STFMSettings, device, initial_video: Tensor | None, clock=None, stage=None):
     if initial_video is None:
         from rngcam.recon.methods.stfm.multilevel import make_multilevel, stfm_levels
 
         factors = stfm_levels(problem, settings)
         if len(factors) > 1:
             return make_multilevel(problem, settings, device, factors,
-                                   lambda level, s: make_stfm(level, s, device), budget_s, stage)
+                                   lambda level, s: make_stfm(level, s, device), clock, stage)
     if initial_video is not None:
         if tuple(initial_video.shape) != tuple(problem.shape):
             raise ConfigError(f"initial_video has shape {tuple(initial_video.shape)}, the problem's video "

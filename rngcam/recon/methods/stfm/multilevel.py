@@ -44,7 +44,7 @@ def stfm_levels(problem, settings: STFMSettings) -> tuple[int, ...]:
 
 
 def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int, ...], single,
-                    budget_s: float | None = None, stage=None,
+                    clock=None, stage=None,
                     max_level_steps: int = MAX_LEVEL_STEPS, carry: str = "auto") -> CoarseToFine:
     """STFM coarse to fine over `factors` (see the module docstring). `single(problem, settings)`
     builds the ordinary STFM of the coarsest level; `stage(message)` reports each level's set-up.
@@ -89,7 +89,7 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
         previous[:] = [method]
         return method
 
-    return CoarseToFine(problem, make, factors, budget_s=budget_s, stage=stage, level_stop="method",
+    return CoarseToFine(problem, make, factors, clock=clock, stage=stage, level_stop="method",
                         max_level_steps=max_level_steps)
 
 
