@@ -232,3 +232,33 @@ def test_time_budget_per_trial(bundle, tmp_path):
     res = sweep(bundle, tmp_path, settings, backend_factory=SequentialBackend, **QUIET)
     assert all(r["status"] == "ok" and r["iterations"] >= 1 for r in res.rows)
     assert "s0.5" in (tmp_path / "sweep.md").read_text()  # the budget is part of the cache key
+
+
+def test_a_trial_builds_its_method_on_its_own_clock_and_is_scored_on_the_fine_level(monkeypatch, tmp_path):
+    """Issue 38: a trial runs as any run does. Its method is built on the trial's clock (a 20 s rung),
+    not on the registry's auto budget (tv3d's 60 s, STFM's 600 s) while the loop stopped at 20 s; and a
+    trial on a 96 px grid fits a held-out split, so it runs (and is scored) on the fine grid."""
+    from dataclasses import replace
+
+    from tiny_scenes import tiny_sineball_problem
+
+    from rngcam.recon import registry
+    from rngcam.recon.methods.multiscale import CoarseToFine
+    from rngcam.scale.trial import TrialSpec
+
+    entry, built = registry.get("tv3d"), []
+
+    def spy(problem, settings, device="cpu", clock=None, stage=None):
+        method = entry.factory(problem, settings, device=device, clock=clock, stage=stage)
+        built.append((clock, method, problem.shape))
+        return method
+
+    monkeypatch.setitem(registry.REGISTRY, "tv3d", replace(entry, factory=spy))
+    problem = tiny_sineball_problem(96)
+    out = run_trial(TrialSpec(key="k", method="tv3d", time_budget_s=20.0, max_iters=2, trial_dir=str(tmp_path)),
+                    problem)
+    assert out["status"] == "ok" and out["iterations"] == 2, out
+    (clock, method, shape), = built
+    assert clock is not None and clock.seconds == pytest.approx(20.0)  # the rung's budget, all of it (no outputs)
+    assert shape == problem.shape and not isinstance(method, CoarseToFine)  # the fine grid, one level
+    assert 0 <= out["heldout"] < 1  # scored on the held-out split of that fine fit

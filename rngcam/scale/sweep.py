@@ -141,6 +141,21 @@ class SweepResult:
     refit_skipped: bool = False
 
 
+def _plan_trials(settings: SweepSettings, out: Path, checksum: str) -> list[dict]:
+    """Every setting of the grid as a trial: its number, values, options, key and folder (keyed by
+    what it fits on, not by budget, so a later rung continues it)."""
+    base = {"bundle_sha256": checksum, "method": settings.method, "holdout": settings.holdout,
+            "holdout_gs": settings.holdout_gs, "holdout_seed": settings.holdout_seed, "folds": settings.folds,
+            "grid_bin": settings.grid_bin}
+    trials = []
+    for i, values in enumerate(setting_grid(settings.grid)):
+        options = dict(values) if settings.preset is None else {**values, "preset": settings.preset}
+        key = _key({**base, "options": options})
+        trials.append({"trial": i + 1, "values": values, "options": options, "key": key,
+                       "dir": out / "trials" / key})
+    return trials
+
+
 def sweep(bundle_path: str | Path, out_dir: str | Path | None = None, settings: SweepSettings | None = None,
           backend_factory: Callable[[], Backend] | None = None, trial_fn=run_trial,
           echo: Callable[[str], None] = print) -> SweepResult:
@@ -153,15 +168,7 @@ def sweep(bundle_path: str | Path, out_dir: str | Path | None = None, settings: 
     bundle_path = Path(bundle_path)
     out = Path(out_dir) if out_dir is not None else default_out_dir(bundle_path, settings.method)
     checksum = bundle_checksum(bundle_path)
-    base = {"bundle_sha256": checksum, "method": settings.method, "holdout": settings.holdout,
-            "holdout_gs": settings.holdout_gs, "holdout_seed": settings.holdout_seed, "folds": settings.folds,
-            "grid_bin": settings.grid_bin}
-    trials = []
-    for i, values in enumerate(setting_grid(settings.grid)):
-        options = dict(values) if settings.preset is None else {**values, "preset": settings.preset}
-        key = _key({**base, "options": options})
-        trials.append({"trial": i + 1, "values": values, "options": options, "key": key,
-                       "dir": out / "trials" / key})
+    trials = _plan_trials(settings, out, checksum)
     rungs = settings.rungs or default_rungs(len(trials), settings.eta)
     budgets = rung_budgets(settings, rungs)
     out.mkdir(parents=True, exist_ok=True)
