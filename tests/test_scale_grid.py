@@ -198,7 +198,7 @@ def test_a_finer_level_that_cannot_fit_the_budget_is_not_started():
 
     p = _toy_problem().to(torch.float32)
     stages = []
-    from rngcam.recon.settings import Clock
+    from rngcam.recon.loop import Clock
 
     m = CoarseToFine(p, lambda q, x0: TV3D(q, TV3DSettings(), x0=x0), (2, 1), clock=Clock(seconds=1e-6),
                      stage=stages.append)

@@ -6,7 +6,7 @@ KeyboardInterrupt is caught the same way) and the time budget end it according t
 - ``read`` (bundle and problem): a signal is held until the problem is built, since without
   the problem there is nothing to write;
 - ``setup`` (the method's set-up): a signal raises `Interrupted` at once, the run's clock
-  (rngcam.recon.settings.Clock) past its deadline raises
+  (rngcam.recon.loop.Clock) past its deadline raises
   `BudgetCut` at once (a timer, so even a long set-up stage is cut), and the runner writes
   the start video as the result;
 - ``solve``: a signal asks the loop to stop after the current step (`stop_reason`); a second
@@ -19,7 +19,7 @@ from __future__ import annotations
 import signal
 import threading
 
-from rngcam.recon.settings import Clock
+from rngcam.recon.loop import Clock
 
 
 class Interrupted(KeyboardInterrupt):

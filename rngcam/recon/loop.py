@@ -1,6 +1,6 @@
 """The one solver loop every iterative method uses.
 
-It runs `method.step()` until the run's clock (rngcam.recon.settings.Clock) passes its deadline and/or
+It runs `method.step()` until the run's clock (rngcam.recon.loop.Clock) passes its deadline and/or
 an iteration count is reached; logs
 time, objective, per-sensor relative residuals and, with truth, PSNR/SSIM (all frames and
 intermediate frames) at regular intervals; shows a progress bar; checkpoints and resumes; and
@@ -29,7 +29,47 @@ from torch import Tensor
 from rngcam.errors import RngcamError
 from rngcam.recon import checkpoint
 from rngcam.recon.checkpoint import CHECKPOINT_NAME, RESUME_HINT
-from rngcam.recon.settings import Clock
+
+
+class Clock:
+    """When a run started (a time.perf_counter()) and, once its budget is resolved, when its
+    set-up and solve must end. One per run: everything that checks the time reads this one."""
+
+    def __init__(self, start: float | None = None, seconds: float | None = None):
+        self.start = time.perf_counter() if start is None else float(start)
+        self.deadline: float | None = None
+        if seconds is not None:
+            self.limit(seconds)
+
+    def limit(self, seconds: float | None) -> Clock:
+        """Set the deadline `seconds` after the start (None: no deadline); once only."""
+        if self.deadline is not None:
+            raise RuntimeError("a run's clock gets its deadline once")
+        self.deadline = None if seconds is None else self.start + float(seconds)
+        return self
+
+    @property
+    def seconds(self) -> float | None:
+        """The seconds from the start to the deadline (None: no deadline)."""
+        return None if self.deadline is None else self.deadline - self.start
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
+
+    def left(self) -> float | None:
+        """Seconds left before the deadline (negative past it; None: no deadline)."""
+        return None if self.deadline is None else self.deadline - time.perf_counter()
+
+    def expired(self) -> bool:
+        return self.deadline is not None and time.perf_counter() >= self.deadline
+
+    def share(self, fraction: float) -> float | None:
+        """`fraction` of what is left now: the seconds a stage that wants that share may take."""
+        left = self.left()
+        return None if left is None else max(0.0, fraction * left)
+
+    def __repr__(self) -> str:
+        return f"Clock(elapsed={self.elapsed():.1f} s, seconds={self.seconds})"
 
 
 class Method(Protocol):
@@ -96,7 +136,7 @@ class MethodBase:
 
 @dataclass
 class LoopSettings:
-    # The run's clock (rngcam.recon.settings.Clock): the loop stops at its deadline. None: a clock made
+    # The run's clock (rngcam.recon.loop.Clock): the loop stops at its deadline. None: a clock made
     # when the loop starts, set-up included, with `time_budget_s` (a loop run on its own: tests, bench).
     clock: Clock | None = None
     time_budget_s: float | None = None

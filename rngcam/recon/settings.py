@@ -1,6 +1,6 @@
 """What a reconstruction is asked to do (`ReconSettings`), each setting checked where it is set,
 and what that resolves to once the problem's size is known (`Run`, frozen) with the run's one
-clock (`Clock`).
+clock (`Clock`, rngcam.recon.loop: the lowest module that every reader of the time imports).
 
 `time_budget_s` may be "auto"; `resolve` turns it into seconds (the registry's figure scaled to
 the problem) with a line saying how it was derived. The clock is made where the command starts
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import math
 import re
-import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -25,6 +24,8 @@ from typing import Any
 import torch
 
 from rngcam.errors import SettingError
+from rngcam.recon import registry
+from rngcam.recon.loop import Clock
 
 
 @dataclass
@@ -50,8 +51,6 @@ class ReconSettings:
     max_memory_bytes: int | None = None  # refuse a larger estimate (None: a fraction of the machine's)
 
     def __post_init__(self):
-        from rngcam.recon import registry  # the registry imports the methods, which import the clock
-
         entry = registry.get(self.method)
         if self.method_settings is None:
             self.method_settings = entry.settings()
@@ -142,51 +141,8 @@ FINISH_FRACTION = 0.1
 FINISH_MAX_S = 60.0
 
 
-class Clock:
-    """When a run started (a time.perf_counter()) and, once its budget is resolved, when its
-    set-up and solve must end. One per run: everything that checks the time reads this one."""
-
-    def __init__(self, start: float | None = None, seconds: float | None = None):
-        self.start = time.perf_counter() if start is None else float(start)
-        self.deadline: float | None = None
-        if seconds is not None:
-            self.limit(seconds)
-
-    def limit(self, seconds: float | None) -> Clock:
-        """Set the deadline `seconds` after the start (None: no deadline); once only."""
-        if self.deadline is not None:
-            raise RuntimeError("a run's clock gets its deadline once")
-        self.deadline = None if seconds is None else self.start + float(seconds)
-        return self
-
-    @property
-    def seconds(self) -> float | None:
-        """The seconds from the start to the deadline (None: no deadline)."""
-        return None if self.deadline is None else self.deadline - self.start
-
-    def elapsed(self) -> float:
-        return time.perf_counter() - self.start
-
-    def left(self) -> float | None:
-        """Seconds left before the deadline (negative past it; None: no deadline)."""
-        return None if self.deadline is None else self.deadline - time.perf_counter()
-
-    def expired(self) -> bool:
-        return self.deadline is not None and time.perf_counter() >= self.deadline
-
-    def share(self, fraction: float) -> float | None:
-        """`fraction` of what is left now: the seconds a stage that wants that share may take."""
-        left = self.left()
-        return None if left is None else max(0.0, fraction * left)
-
-    def __repr__(self) -> str:
-        return f"Clock(elapsed={self.elapsed():.1f} s, seconds={self.seconds})"
-
-
 def auto_time_budget(method: str, shape: tuple[int, int, int, int]) -> tuple[float, str]:
     """The `auto` budget for `method` on a video of `shape` (C, K, H, W), and how it was derived."""
-    from rngcam.recon import registry
-
     base = registry.get(method).auto_budget_s
     scale = max(1.0, math.sqrt(math.prod(shape) / AUTO_REFERENCE_VOXELS))
     budget = min(AUTO_MAX_S, base * scale)
@@ -222,8 +178,6 @@ def resolve(settings: ReconSettings, shape: tuple[int, int, int, int], clock: Cl
             finish: bool = True) -> Run:
     """`settings` on a problem of `shape`: the budget in seconds (auto scaled to it; a one-shot
     method's auto is none), less the outputs' share when `finish`; sets `clock`'s deadline."""
-    from rngcam.recon import registry
-
     entry = registry.get(settings.method)
     asked = settings.time_budget_s
     if asked == "auto" and entry.iterative:

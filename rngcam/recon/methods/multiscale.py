@@ -28,9 +28,8 @@ from rngcam.memory import release_free_memory
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.timing import VideoGrid
 from rngcam.recon.checkpoint import Kept, kept  # noqa: F401 - pnp and tv3d import them from here
-from rngcam.recon.loop import MethodBase
+from rngcam.recon.loop import Clock, MethodBase
 from rngcam.recon.problem import Problem
-from rngcam.recon.settings import Clock
 
 
 def area_matrix(n_out: int, n_in: int, dtype=torch.float64) -> Tensor:
@@ -180,7 +179,7 @@ class CoarseToFine(MethodBase):
     `window` steps (`level_stop="objective"`; with "method": when the level's own `converged()`
     gives a reason, for methods with a stochastic objective), after `max_level_steps` steps, or
     when its steps have used their share (`level_share`) of what the run's `clock`
-    (rngcam.recon.settings.Clock) had left when the level started (only time inside step()
+    (rngcam.recon.loop.Clock) had left when the level started (only time inside step()
     counts, not the loop's evaluations); the final level runs for as long as the loop lets it.
     A finer level is not started when what the clock has left looks too short for its set-up
     and `fine_steps` steps (8x the current level's, per halving): the run then ends on the

@@ -202,7 +202,7 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
     estimate, upsampled): one fit whose dynamic base is that video (dynamic_base "video"), so the
     fit starts from it instead of from a GS-only interpolation.
     On grids of 96 px and more (`coarse_to_fine`), a coarse-to-fine run of these
-    (rngcam.recon.methods.stfm.multilevel); `clock` (the run's: rngcam.recon.settings.Clock) and `stage(message)`
+    (rngcam.recon.methods.stfm.multilevel); `clock` (the run's: rngcam.recon.loop.Clock) and `stage(message)`
     as in make_tv3d.
 
     Preset "auto" is resolved here, on the whole problem (rngcam.recon.methods.stfm.auto.choose_preset);
