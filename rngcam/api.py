@@ -5,9 +5,10 @@
     r = rngcam.reconstruct(b, method="stfm", time_budget_s=300)   # r.video: (C, T, H, W)
 
 Nothing touches the disk unless `out` names a folder (then the run checkpoints there and writes
-every output, as `rngcam recon` does; `Result.save(folder)` writes them later). The command line,
+every output, as `rngcam recon` does; `Result.save(folder)` writes them later). `recon-batch`,
 `rngcam bench`, the stress suite, the demo and the bench/ scripts all run methods through
-`reconstruct`. Bad settings raise SettingError naming the setting (e.g. `time_budget_s`).
+`reconstruct`, which builds the settings and runs them through rngcam.recon.runner.solve (as
+`rngcam recon` does directly). Bad settings raise SettingError naming the setting (e.g. `time_budget_s`).
 """
 
 from __future__ import annotations

@@ -149,6 +149,30 @@ def test_time_budget_stops_the_loop():
 def test_loop_needs_a_stopping_rule():
     with pytest.raises(ValueError):
         LoopSettings(time_budget_s=None, max_iters=None)
+    from rngcam.recon.loop import Clock
+
+    with pytest.raises(ValueError):
+        LoopSettings(clock=Clock())  # a clock without a deadline and no iteration count
+
+
+def test_the_loop_reads_the_runs_clock_and_says_once_how_it_ended():
+    """The loop stops at the deadline of the clock it is given (the run's, started before it: set-up
+    counts), and `ended_by` says what ended it: the budget, the iteration count, or both reached."""
+    from rngcam.recon.loop import Clock
+
+    clock = Clock(seconds=0.6)
+    m = TV3D(_sineball_problem(), TV3DSettings())
+    spent = clock.elapsed()  # the method's set-up, on the same clock
+    result = run(m, LoopSettings(clock=clock, progress=False), setup_s=spent)
+    assert result.ended_by == "budget" and result.status == "ok" and result.iterations >= 1
+    assert 0.6 <= result.wall_s < 5 and clock.expired() and clock.left() <= 0
+    assert any("time budget of 0.6 s reached" in e for e in result.events)
+    by_count = run(TV3D(_sineball_problem(), TV3DSettings()), LoopSettings(clock=Clock(seconds=60), max_iters=2,
+                                                                           progress=False))
+    assert by_count.ended_by == "iterations" and by_count.iterations == 2
+    late = Clock(start=0.0, seconds=1e-3)  # already past its deadline: nothing iterates
+    cut = run(TV3D(_sineball_problem(), TV3DSettings()), LoopSettings(clock=late, progress=False))
+    assert cut.ended_by == "budget" and cut.status == "budget_before_first_iteration" and cut.iterations == 0
 
 
 class _StopsAt(TV3D):
