@@ -17,7 +17,7 @@ from rngcam.evaluate.scenes import inline_problem
 
 WATCHED = {"loop.py", "runner.py", "checkpoint.py", "guard.py", "result.py"}
 # runner.py's transfers, each where a figure or an output is made
-ALLOWED = {("runner.py", "truth_metrics"), ("runner.py", "_fit"), ("runner.py", "gs_key_frames")}
+ALLOWED = {("runner.py", "truth"), ("runner.py", "_iterate"), ("runner.py", "gs_key_frames")}
 
 
 @pytest.fixture
@@ -44,5 +44,5 @@ def test_the_loop_checkpoint_and_guard_never_move_a_tensor_to_the_host(transfers
                            log_every_s=0.0, checkpoint_every_s=1e-9)
     assert r.status == "ok" and (tmp_path / "o" / "checkpoint.pt").is_file()
     assert set(transfers) <= ALLOWED, transfers
-    assert transfers[("runner.py", "truth_metrics")] == len(r.log)  # one per log row (the truth lives on the host)
-    assert transfers[("runner.py", "_fit")] == 2  # the final video: .cpu().numpy(), once
+    assert transfers[("runner.py", "truth")] == len(r.log)  # one per log row (the truth lives on the host)
+    assert transfers[("runner.py", "_iterate")] == 2  # the final video: .cpu().numpy(), once

@@ -3,24 +3,15 @@
 `solve(source, settings, out)` takes a bundle (on disk or read) or a Problem, runs the method
 of `settings` (rngcam.recon.registry) and returns a `Result` (rngcam.recon.result); with `out`
 it also checkpoints there and writes every output (recon.h5, video.tif, preview.mp4,
-errors.csv/png, metrics.json, and recon.log: every line it printed). Iterative methods (stfm,
-tv3d, pnp) go through the shared loop; GS-only baselines (blend, interp, rife) are one shot and
-give a single point of error against time. The bundle is only read, and the truth never
-reaches a method (`method_view`).
+errors.csv/png, metrics.json, recon.log). Iterative methods go through the shared loop; GS-only
+baselines are one shot. The bundle is only read; the truth never reaches a method (`method_view`).
 
 The settings are resolved once the problem is read (rngcam.recon.settings.resolve: a frozen
-`Run`, the budget in seconds and how it was derived); the run's one clock starts with the
-command (`started`) and counts reading, set-up and solve. Set-up is cut at its deadline
-(rngcam.recon.guard), the result then being the start video with status
-"budget_before_first_iteration"; SIGINT or SIGTERM end the run "interrupted" with the current
-estimate and a checkpoint. `resume` continues a checkpoint of the same bundle, method and
-settings (rngcam.recon.checkpoint), with a budget of its own.
-
-With `holdout` set (a fraction of RS row bins; `holdout_gs`, a fraction of GS pixels, is 0 by
-default), iterative methods fit only a seeded training split of the measurements
-(Problem.with_holdout) and every log row, errors.csv and metrics.json carry the
-relative residual on the held-out part (`heldout_rs`, `heldout_gs`, `heldout`; see
-rngcam.recon.holdout) next to the training residuals.
+`Run`); the run's one clock starts with the command (`started`). Set-up is cut at its deadline
+(rngcam.recon.guard: the start video, "budget_before_first_iteration"); SIGINT or SIGTERM end
+the run "interrupted" with the current estimate and a checkpoint that `resume` continues.
+With `holdout`, iterative methods fit a seeded training split (Problem.with_holdout) and the
+log rows, errors.csv and metrics.json carry the residual on the held-out part (rngcam.recon.holdout).
 """
 
 from __future__ import annotations
