@@ -18,6 +18,7 @@ from rngcam.errors import RngcamError
 from rngcam.formats.bundle_read import read_bundle
 from rngcam.recon import checkpoint
 from rngcam.recon.problem import build_problem
+from rngcam.recon.runner import Source
 from rngcam.scale.trial import TrialSpec, run_trial
 
 
@@ -72,7 +73,7 @@ def test_the_api_refuses_it_too_and_a_matching_identity_does_not_help(shot, tmp_
     marker = tmp_path / "MARKER"
     out = tmp_path / "folder"
     # the identity a real run would write: the check of the data comes first regardless
-    want = checkpoint.identity(rngcam.api.Source(path=Path(shot)).checksum(), "tv3d", {})
+    want = checkpoint.identity(Source(path=Path(shot)).checksum(), "tv3d", {})
     _plant(out, marker, identity=want)
     with pytest.raises(RngcamError, match="cannot resume from .*older rngcam") as err:
         rngcam.reconstruct(shot, "tv3d", out=out, resume=True, max_iters=2, progress=False)
