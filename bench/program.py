@@ -22,3 +22,16 @@ def program():
 
     (script,) = entry_points(group="console_scripts", name="rngcam")
     return script.load()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m bench.program ARGS...`: the `rngcam` command with ARGS, in this process."""
+    try:
+        program()(args=sys.argv[1:] if argv is None else argv, prog_name="rngcam")
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
