@@ -34,7 +34,7 @@ def peak_rss_bytes() -> int:
 def mapped_file_bytes() -> int:
     """This process's resident file-backed pages now (RssFile: mostly its shared libraries; 0 where
     /proc is missing). How many of a library's pages the kernel maps on a fault depends on the page
-    cache, not on the program (more right after the libraries were installed: bench/scale.md), so a
+    cache, not on the program (more right after the libraries were installed: bench/large_grids.md), so a
     peak compared with a prediction subtracts them."""
     return (_status_kib("RssFile") or 0) * 1024
 

@@ -14,8 +14,8 @@ from click.testing import CliRunner
 from rngcam.cli import main
 from rngcam.evaluate.synthetic import CaptureSpec, make_bundle
 from rngcam.recon.runner import ReconSettings
-from rngcam.scale.backend import SequentialBackend
-from rngcam.scale.batch import DONE_NAME, recon_batch
+from rngcam.sweeps.backend import SequentialBackend
+from rngcam.sweeps.batch import DONE_NAME, recon_batch
 
 RAY_WHY_NOT = ray_private.why_not()
 SETTINGS = ReconSettings(method="tv3d", time_budget_s=None, max_iters=3, progress=False)
@@ -92,7 +92,7 @@ KEYS = ("status", "iterations", "psnr_db", "residual_rs", "residual_gs")
 
 def ray_batch(bundles: list[str], out: str) -> dict:
     """Runs in a private network namespace (ray_private): the batch through RayBackend's own local Ray."""
-    from rngcam.scale.ray_backend import RayBackend
+    from rngcam.sweeps.ray_backend import RayBackend
 
     on_ray = recon_batch([Path(b) for b in bundles], Path(out), SETTINGS, backend_factory=RayBackend,
                          echo=lambda s: None)
@@ -110,7 +110,7 @@ def test_ray_batch_gives_the_same_table_as_in_process(bundles, tmp_path):
 
 def test_without_ray_everything_runs_in_process_and_says_so(monkeypatch):
     from rngcam.errors import RngcamError
-    from rngcam.scale import backend
+    from rngcam.sweeps import backend
 
     monkeypatch.setattr(backend, "ray_available", lambda: False)
     said = []

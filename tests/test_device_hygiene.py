@@ -15,7 +15,7 @@ import torch
 import rngcam
 from rngcam.evaluate.scenes import inline_problem
 
-WATCHED = {"loop.py", "runner.py", "checkpoint.py", "guard.py", "result.py"}
+WATCHED = {"loop.py", "runner.py", "checkpoint.py", "phases.py", "result.py"}
 # runner.py's transfers, each where a figure or an output is made
 ALLOWED = {("runner.py", "truth"), ("runner.py", "_iterate"), ("runner.py", "gs_key_frames")}
 

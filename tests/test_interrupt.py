@@ -193,25 +193,25 @@ def test_a_copy_of_the_folder_resumes_after_the_bundle_moves(mock_bundle, tmp_pa
 
 
 def test_the_guard_holds_a_signal_while_reading_and_cuts_a_set_up_at_its_deadline():
-    from rngcam.recon.guard import BudgetCut, Interrupted, RunGuard
+    from rngcam.recon.phases import BudgetCut, Interrupted, RunPhases
     from rngcam.recon.loop import Clock
 
     before = signal.getsignal(signal.SIGTERM)  # not always SIG_DFL: Ray's init, in an earlier test, sets one
-    with RunGuard(Clock()) as guard:
+    with RunPhases(Clock()) as guard:
         os.kill(os.getpid(), signal.SIGINT)  # while reading: held
         time.sleep(0.05)
         assert guard.signame == "SIGINT"
         guard.check()  # a stage line while reading does not raise it either
         with pytest.raises(Interrupted):
             guard.enter("setup")
-    with RunGuard(Clock(seconds=0.2)) as guard:  # the run's clock: 0.2 s from now
+    with RunPhases(Clock(seconds=0.2)) as guard:  # the run's clock: 0.2 s from now
         guard.enter("setup")
         t0 = time.perf_counter()
         with pytest.raises(BudgetCut):
             while time.perf_counter() - t0 < 5:  # a long set-up stage that never reports
                 sum(range(1000))
         assert time.perf_counter() - t0 < 1.0
-    with RunGuard(Clock()) as guard:
+    with RunPhases(Clock()) as guard:
         guard.enter("solve")
         os.kill(os.getpid(), signal.SIGTERM)  # in the solve: the loop is asked to stop
         time.sleep(0.05)

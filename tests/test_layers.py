@@ -20,13 +20,13 @@ ROOT = Path(__file__).resolve().parents[1] / "rngcam"
 LAYERS = (
     ("version", "errors", "untrusted", "h5safe", "paths", "memory", "cpu", "pixels", "backends"),
     ("physics", "config"),
-    ("formats", "sizing"),
+    ("formats", "video_plan"),
     ("sim",),
     ("acquire",),
     ("calibrate",),
     ("recon",),
     ("api",),
-    ("scale", "evaluate"),
+    ("sweeps", "evaluate"),
     ("cli", "rngcam", "__main__", "viewers"),
 )
 
@@ -202,7 +202,7 @@ def test_a_planted_violation_is_caught(tmp_path, files, rule, needle):
 # learned networks; the methods; the pipeline that runs a method (registry, run settings, runner,
 # its log, result, report page).
 RECON_LAYERS = (
-    ("problem", "gridding", "defects", "loop", "checkpoint", "guard", "options", "noise", "metrics", "holdout", "outputs"),
+    ("problem", "gridding", "defects", "loop", "checkpoint", "phases", "options", "noise", "metrics", "holdout", "outputs"),
     ("nets",),
     ("methods",),
     ("registry", "settings", "runner", "runlog", "result", "report"),

@@ -20,14 +20,14 @@ from rngcam.errors import SettingError
 from rngcam.formats.bundle import read_bundle
 from rngcam.recon import registry, runner
 from rngcam.recon.loop import LoopSettings, run
-from rngcam.recon.methods.multiscale import Kept, upsample
+from rngcam.recon.methods.coarse_to_fine import Kept, upsample
 from rngcam.recon.methods.stfm import STFMSettings, make_stfm
-from rngcam.recon.methods.stfm.guard import StartGuard
+from rngcam.recon.methods.stfm.floor import StartFloor
 from rngcam.recon.methods.stfm.multilevel import make_multilevel
 from rngcam.recon.methods.tv3d import TV3D, TV3DSettings
 from rngcam.sim.scenes import render_scene
 from rngcam.sim.simulate import simulate, simulation_timing
-from rngcam.sizing import LIBRARY_BYTES, method_bytes, plan_grid
+from rngcam.video_plan import LIBRARY_BYTES, method_bytes, plan_grid
 
 
 def _toy_problem(h=32, w=48):
@@ -67,7 +67,7 @@ def test_max_memory_on_the_command_line_is_one_line(small_bundle, tmp_path):
 
 
 def test_the_prediction_is_within_15_percent_of_a_measured_run(small_bundle, tmp_path):
-    """The child's own peak (VmHWM at its exit) against rngcam.sizing's estimate, for a one-shot and
+    """The child's own peak (VmHWM at its exit) against rngcam.video_plan's estimate, for a one-shot and
     an iterative method. Not the child's rusage: Linux counts the forking parent's peak (pytest's,
     over a GiB late in a full run) in a child's ru_maxrss. The libraries' resident file pages are
     taken as the model's nominal LIBRARY_BYTES: how many the kernel maps depends on the page cache
@@ -125,7 +125,7 @@ def test_a_fine_level_divides_the_start_by_the_gains_on_the_fly():
 def test_the_start_floor_keeps_no_video_until_it_is_the_output():
     p = _toy_problem()
     fit = make_stfm(p, STFMSettings(rows_per_step=4, dynamic_base="video", refine=False))
-    guard = StartGuard(fit, p)
+    guard = StartFloor(fit, p)
     assert guard.start_name in ("blend", "interp") and guard._start_video is None
     guard.start_rs = float("inf")  # the fit is better: the output is the fit, no start video is made
     assert guard.estimate() is fit.estimate() and guard._start_video is None

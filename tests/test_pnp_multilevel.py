@@ -1,4 +1,4 @@
-"""pnp coarse to fine (rngcam.recon.methods.pnp.make_pnp through rngcam.recon.methods.multiscale.CoarseToFine)."""
+"""pnp coarse to fine (rngcam.recon.methods.pnp.make_pnp through rngcam.recon.methods.coarse_to_fine.CoarseToFine)."""
 
 import math
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from rngcam.recon.loop import LoopSettings, run
-from rngcam.recon.methods.multiscale import CoarseToFine
+from rngcam.recon.methods.coarse_to_fine import CoarseToFine
 from rngcam.recon.methods.pnp import PnP, PnPSettings, fine_level_settings, make_pnp
 from tests.test_pnp import _problem, _psnr
 
@@ -55,7 +55,7 @@ def test_fine_level_settings_take_up_the_schedule_half_way():
 
 
 def test_key_frame_detail_is_what_the_coarse_grid_cannot_hold():
-    from rngcam.recon.methods.multiscale import bin_video
+    from rngcam.recon.methods.coarse_to_fine import bin_video
     from rngcam.recon.methods.pnp import with_key_frame_detail
 
     p = _problem(size=32)
@@ -73,7 +73,7 @@ def test_key_frame_detail_is_what_the_coarse_grid_cannot_hold():
 
 
 def test_a_run_ended_on_a_coarse_level_keeps_the_key_frame_detail():
-    from rngcam.recon.methods.multiscale import upsample
+    from rngcam.recon.methods.coarse_to_fine import upsample
     from rngcam.recon.methods.pnp import key_frame_detail
 
     p = _problem(size=32)
@@ -83,4 +83,4 @@ def test_a_run_ended_on_a_coarse_level_keeps_the_key_frame_detail():
     plain = upsample(coarse, p.shape, 2)
     expect = (plain + key_frame_detail(p, tuple(coarse.shape))).clamp_min(0)
     torch.testing.assert_close(m.estimate(), expect)
-    assert float((m.estimate() - plain).abs().max()) > 0.05  # (its gain is measured on smoke: bench/scale.md)
+    assert float((m.estimate() - plain).abs().max()) > 0.05  # (its gain is measured on smoke: bench/large_grids.md)

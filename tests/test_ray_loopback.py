@@ -23,9 +23,9 @@ def tiny_sweep_and_batch(folder: str) -> dict:
     """Runs in the namespace: one local Ray, a two-trial sweep and a one-bundle batch on it."""
     from rngcam.evaluate.synthetic import CaptureSpec, make_bundle
     from rngcam.recon.runner import ReconSettings
-    from rngcam.scale.batch import recon_batch
-    from rngcam.scale.ray_backend import LocalRay, RayBackend
-    from rngcam.scale.sweep import SweepSettings, sweep
+    from rngcam.sweeps.batch import recon_batch
+    from rngcam.sweeps.ray_backend import LocalRay, RayBackend
+    from rngcam.sweeps.sweep import SweepSettings, sweep
 
     work = Path(folder)
     bundle = make_bundle(CaptureSpec(height=12, width=12, seed=0), work / "a.h5")
@@ -68,7 +68,7 @@ def cloud_probe() -> dict:
     """Runs in the namespace: Ray's cloud-provider probe in a local Ray's environment."""
     import socket
 
-    from rngcam.scale import ray_backend
+    from rngcam.sweeps import ray_backend
 
     refuser = socket.socket()
     refuser.bind((ray_backend.LOOPBACK, 0))

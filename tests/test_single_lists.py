@@ -26,7 +26,7 @@ PACKAGE = REPO / "rngcam"
 ALLOWED = {
     ("rngcam/recon/methods/pnp.py", ("blend", "interp", "rife")):
         "pnp's `init` values: the GS-only functions its start calls directly, plus `video`",
-    ("rngcam/recon/methods/stfm/guard.py", ("blend", "interp")):
+    ("rngcam/recon/methods/stfm/floor.py", ("blend", "interp")):
         "the start floor's candidate videos, made by calling the baselines' functions directly",
     ("rngcam/recon/methods/stfm/settings.py", ("interp", "rife")):
         "STFM's base videos (`dynamic_base` values), not method names",

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from rngcam.recon.loop import LoopSettings, run
-from rngcam.recon.methods.multiscale import upsample
+from rngcam.recon.methods.coarse_to_fine import upsample
 from rngcam.recon.methods.stfm import STFM, STFMSettings, make_stfm
 from rngcam.recon.methods.stfm.fields import field_on_grid, make_field, transfer_fields
 from rngcam.recon.methods.stfm.multilevel import make_multilevel, stfm_levels
@@ -123,7 +123,7 @@ def test_rs_norm_start_is_used_and_its_last_iterate_kept():
 def test_power_norm_from_a_zero_or_nan_start_is_the_operators_norm():
     import torch
 
-    from rngcam.recon.methods.multiscale import power_norm
+    from rngcam.recon.methods.coarse_to_fine import power_norm
 
     class Diagonal:
         def A_normal(self, x):

@@ -18,9 +18,9 @@ from scipy.stats import spearmanr
 from rngcam.cli import main
 from rngcam.errors import ConfigError
 from rngcam.evaluate.synthetic import CaptureSpec, make_psf, moving_square, timings, write_capture
-from rngcam.scale.backend import SequentialBackend
-from rngcam.scale.sweep import SweepSettings, default_rungs, rung_budgets, setting_grid, sweep
-from rngcam.scale.trial import run_trial
+from rngcam.sweeps.backend import SequentialBackend
+from rngcam.sweeps.sweep import SweepSettings, default_rungs, rung_budgets, setting_grid, sweep
+from rngcam.sweeps.trial import run_trial
 
 SIZE = 16
 GRID = {"beta": [0.1, 1.0, 10.0, 100.0], "tau": [1e-4, 1e-3, 1e-2]}
@@ -140,7 +140,7 @@ def ray_sweeps(bundle: str, out: str) -> dict:
     every trial's worker killed half way through its first attempt."""
     import ray
 
-    from rngcam.scale.ray_backend import LocalRay, RayBackend
+    from rngcam.sweeps.ray_backend import LocalRay, RayBackend
 
     local = LocalRay(num_cpus=2)
     try:
@@ -243,8 +243,8 @@ def test_a_trial_builds_its_method_on_its_own_clock_and_is_scored_on_the_fine_le
     from tiny_scenes import tiny_sineball_problem
 
     from rngcam.recon import registry
-    from rngcam.recon.methods.multiscale import CoarseToFine
-    from rngcam.scale.trial import TrialSpec
+    from rngcam.recon.methods.coarse_to_fine import CoarseToFine
+    from rngcam.sweeps.trial import TrialSpec
 
     entry, built = registry.get("tv3d"), []
 

@@ -200,7 +200,7 @@ def test_a_declared_psf_beyond_the_limits_is_refused_unread(bundle, tmp_path):
 
 def test_the_psf_is_in_the_memory_estimate(shot):
     from rngcam.recon import registry
-    from rngcam.sizing import method_bytes, plan_grid, psf_bytes
+    from rngcam.video_plan import method_bytes, plan_grid, psf_bytes
 
     b = read_bundle(shot)
     memory = registry.get("stfm").memory

@@ -19,7 +19,7 @@ from rngcam.formats.bundle_read import read_bundle
 from rngcam.recon import checkpoint
 from rngcam.recon.problem import build_problem
 from rngcam.recon.runner import Source
-from rngcam.scale.trial import TrialSpec, run_trial
+from rngcam.sweeps.trial import TrialSpec, run_trial
 
 
 class _Runs:
@@ -139,7 +139,7 @@ def test_a_checkpoint_of_data_in_the_wrong_shape_is_one_line(tmp_path, bad, why)
 def test_save_stores_method_state_as_plain_tensors(tmp_path):
     import numpy as np
 
-    from rngcam.recon.methods.multiscale import Kept
+    from rngcam.recon.methods.coarse_to_fine import Kept
 
     path = tmp_path / checkpoint.CHECKPOINT_NAME
     x = torch.arange(6.0).reshape(2, 3)

@@ -207,8 +207,17 @@ def _set_gain(fm: FeatureMap, a: _Applier, gain_db: float) -> None:
         a.out.warnings.append(f"{a.label}: no gain feature; gain left as is")
 
 
+# Chunk timestamps, newest naming first: ace 2 / dart pick the event with
+# BslChunkTimestampSelector and report BslChunkTimestampValue; ace classic has one ChunkTimestamp
+# (the frame-start trigger's time).
+TIMESTAMP_EVENTS = ("ExposureStart", "FrameStart")
+# Timestamp latches: (command, value) per generation: ace 2 / USB, then GigE.
+LATCHES = (("TimestampLatch", "TimestampLatchValue"), ("GevTimestampControlLatch", "GevTimestampValue"))
+
+
 def _enable_chunk_timestamps(fm: FeatureMap, a: _Applier) -> None:
-    """Per-frame device timestamps as chunk data when the camera supports it."""
+    """Per-frame exposure-start timestamps as chunk data when the camera supports it; records
+    ChunkTimestampEvent (ExposureStart, FrameStart) so a frame says what its ticks mark."""
     if not fm.writable("ChunkModeActive"):
         a.out.warnings.append(f"{a.label}: no chunk mode; frame timestamps from the transport layer")
         return
@@ -219,12 +228,41 @@ def _enable_chunk_timestamps(fm: FeatureMap, a: _Applier) -> None:
             fm.set("ChunkSelector", "Timestamp")
             fm.set("ChunkEnable", True)
             a.out.features["ChunkTimestamp"] = True
+            a.out.features["ChunkTimestampEvent"] = _select_timestamp_event(fm)
     except Exception:  # noqa: BLE001
         ok = False
     if not ok:
         fm.set("ChunkModeActive", False)
         a.out.features["ChunkModeActive"] = False
         a.out.warnings.append(f"{a.label}: chunk timestamps unavailable; using transport-layer timestamps")
+
+
+def _select_timestamp_event(fm: FeatureMap) -> str:
+    """ExposureStart (else FrameStart) under BslChunkTimestampSelector where the camera has it;
+    an ace classic's ChunkTimestamp marks the frame start."""
+    if not fm.writable("BslChunkTimestampSelector"):
+        return "FrameStart"
+    offered = fm.entries("BslChunkTimestampSelector")
+    for event in TIMESTAMP_EVENTS:
+        if offered is None or event in offered:
+            try:
+                fm.set("BslChunkTimestampSelector", event)
+                return event
+            except Exception:  # noqa: BLE001 - an entry not selectable now
+                continue
+    return str(fm.get_or_none("BslChunkTimestampSelector") or "FrameStart")
+
+
+def latch_ticks(fm: FeatureMap) -> int | None:
+    """The camera's timestamp counter latched now (either generation's names), or None."""
+    for command, value in LATCHES:
+        if fm.writable(command) and fm.readable(value):
+            try:
+                fm.execute(command)
+                return int(fm.get(value))
+            except Exception:  # noqa: BLE001 - a latch that fails is no latch
+                return None
+    return None
 
 
 def estimate_line_time_s(fm: FeatureMap) -> float | None:

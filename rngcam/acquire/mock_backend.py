@@ -12,7 +12,7 @@ from rngcam.errors import ConfigError
 from rngcam.formats.bundle import Truth
 from rngcam.physics.sensor import SensorModel
 from rngcam.physics.timing import RollingShutterTiming, VideoGrid
-from rngcam.sizing import default_max_memory_bytes
+from rngcam.video_plan import default_max_memory_bytes
 
 
 class MockDevices:

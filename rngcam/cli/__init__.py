@@ -77,8 +77,8 @@ COMMANDS = {
     "recon": "rngcam.cli.recon:recon_cmd",
     "report": "rngcam.cli.report:report_cmd",
     "preview": "rngcam.cli.report:preview_cmd",
-    "sweep": "rngcam.cli.scale:sweep_cmd",
-    "recon-batch": "rngcam.cli.scale:recon_batch_cmd",
+    "sweep": "rngcam.cli.sweeps:sweep_cmd",
+    "recon-batch": "rngcam.cli.sweeps:recon_batch_cmd",
     "bench": "rngcam.cli.bench:bench_cmd",
     "doctor": "rngcam.cli.doctor:doctor_cmd",
 }

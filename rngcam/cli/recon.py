@@ -12,7 +12,7 @@ from rngcam.cli.method_options import method_settings as settings_from_options
 from rngcam.errors import SettingError
 from rngcam.recon import registry
 from rngcam.recon.settings import ReconSettings, check_device, check_threads, default_out_dir
-from rngcam.sizing import DEFAULT_MAX_FRAMES
+from rngcam.video_plan import DEFAULT_MAX_FRAMES
 
 INTERRUPTED_EXIT = {"SIGINT": 130, "SIGTERM": 143}  # as a shell reports a command ended by the signal
 

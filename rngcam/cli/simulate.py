@@ -48,13 +48,13 @@ def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start
     """Simulate SCENE (sineball, smoke or clip) through the RS+GS physics into a bundle."""
     from rngcam.errors import SettingError
     from rngcam.sim.simulate import SimulationError, grid_shape, simulate, simulation_timing, summary
-    from rngcam.sizing import BASE_BYTES, DEFAULT_MAX_FRAMES, check_memory
+    from rngcam.video_plan import BASE_BYTES, DEFAULT_MAX_FRAMES, check_memory
 
     try:
         size = grid_shape(size)
     except SimulationError as exc:
         raise click.BadParameter(str(exc), param_hint="--size") from None
-    # Refused before anything video-sized is allocated, as recon refuses (rngcam.sizing).
+    # Refused before anything video-sized is allocated, as recon refuses (rngcam.video_plan).
     frames = simulation_timing(size, bayer).grid.n_frames
     try:
         if frames > DEFAULT_MAX_FRAMES:

@@ -167,7 +167,7 @@ class LoopSettings:
 
 
 # A log row comes after at least this many times its own cost in steps, so rows take at most ~10 %
-# of a run (at large grids a row is seconds: bench/scale.md).
+# of a run (at large grids a row is seconds: bench/large_grids.md).
 LOG_COST_RATIO = 9
 
 # What ended a run (metrics.json's "ended_by"): the method's own stop, the time budget, the
@@ -394,7 +394,7 @@ def is_terminal(stream=None) -> bool:
 def stage_printer(echo=None, enabled: bool = True, check: Callable[[], None] | None = None):
     """A callable `stage(message)` that prints 'set-up: message (t s)' with the time since it was made,
     so every set-up stage shows progress in a terminal and in a log alike; `check()` runs first (it
-    raises what ends the set-up: rngcam.recon.guard)."""
+    raises what ends the set-up: rngcam.recon.phases)."""
     t0 = time.perf_counter()
     echo = echo or (lambda line: print(line, file=sys.stderr, flush=True))
 

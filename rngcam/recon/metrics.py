@@ -72,7 +72,7 @@ def ssim(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range
 def ssim_frame_sums(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range: float = 1.0,
                     frames: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per frame of `frames` (default: all), the sum of the SSIM map over channels and its number of
-    values, so several frame sets' means come from one filtering pass (the costly part; bench/scale.md)."""
+    values, so several frame sets' means come from one filtering pass (the costly part; bench/large_grids.md)."""
     sums, counts = [], []
     for e, t in _frame_chunks(estimate, truth, frames):  # bounded temporaries at any size
         s_sum, n = _ssim_sums(e, t, mask, data_range)

@@ -44,7 +44,7 @@ from rngcam.recon.gridding import (
     sensor_defects,
     valid_or_none,
 )
-from rngcam.sizing import check_frames, plan_grid
+from rngcam.video_plan import check_frames, plan_grid
 from rngcam.untrusted import printable
 
 
@@ -262,7 +262,7 @@ def build_problem(bundle: Bundle, grid_bin: int | None = None, dt_s: float | Non
     Saturated and clipped pixels become rs_valid / gs_valid; a frame beyond use (almost no valid
     pixel, flat, or dark while the others see light) and a GS frame whose exposure misses the
     RS window are left out, each with its reason in `left_out`. BundleError when nothing is left;
-    ConfigError when the grid would have more than `max_frames` (default: sizing's) frames.
+    ConfigError when the grid would have more than `max_frames` (default: video_plan's) frames.
     Content a crafted bundle carries past the reader's checks (a homography OpenCV refuses,
     numbers that overflow) is a BundleError too, one line, never a traceback.
     """

@@ -25,7 +25,7 @@ from rngcam.recon.methods.stfm.settings import PRESETS as STFM_PRESETS
 from rngcam.recon.methods.stfm.settings import STFMSettings, preset_settings
 from rngcam.recon.methods.tv3d import TV3DSettings
 from rngcam.recon.options import documented_fields
-from rngcam.sizing import MemoryModel
+from rngcam.video_plan import MemoryModel
 
 ITERATIVE = "iterative"  # fitted by rngcam.recon.loop to the RS (and GS) measurements
 GS_ONLY = "gs-only"  # one shot from the GS key frames alone
@@ -52,7 +52,7 @@ class MethodEntry:
     `presets` maps preset names to settings instances, the default first (none: one unnamed
     preset, the dataclass's defaults). `auto_budget_s` is the `--time-budget auto` figure at 64 px.
     `benchmarked`: the presets `rngcam bench` compares (empty: the default one). `memory`: the
-    figures `rngcam.sizing` estimates its peak memory from."""
+    figures `rngcam.video_plan` estimates its peak memory from."""
 
     name: str
     kind: str
@@ -62,7 +62,7 @@ class MethodEntry:
     auto_budget_s: float = 60.0
     benchmarked: tuple[str, ...] = ()
     unavailable: Callable[[], str] | None = None  # why it cannot run here ('' when it can)
-    # Peak memory of a whole run (rngcam.sizing), checked before anything is allocated; the default
+    # Peak memory of a whole run (rngcam.video_plan), checked before anything is allocated; the default
     # is the most a measured method needs per element.
     memory: MemoryModel = MemoryModel(bytes_per_element=40)
     fits_holdout: bool = False  # fits only the training split (Method.supports_holdout): sweeps can score it
@@ -227,7 +227,7 @@ def _rife_unavailable() -> str:
     return ""
 
 
-# Peak memory of a whole `rngcam recon` run, fitted to the whole-process peaks in bench/scale.md
+# Peak memory of a whole `rngcam recon` run, fitted to the whole-process peaks in bench/large_grids.md
 # ("Issue 34: 8x binning"): STFM at 228x342x231 and 456x684x459 (its graph over a block of frames
 # taken as 8,000 bytes a frame pixel).
 STFM_MEMORY = MemoryModel(bytes_per_element=13.64, fixed_bytes=333e6, bytes_per_pixel=8000)
@@ -239,7 +239,7 @@ register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=
                      presets={p: preset_settings(p)
                               for p in ("auto", "fast", *(p for p in STFM_PRESETS if p not in ("auto", "fast")))},
                      benchmarked=("fast", "paper"), memory=STFM_MEMORY, fits_holdout=True))
-# tv3d and pnp: the earlier 228x342 fits (bench/scale.md) (their full level at 8x was not reached when measured)
+# tv3d and pnp: the earlier 228x342 fits (bench/large_grids.md) (their full level at 8x was not reached when measured)
 register(MethodEntry("tv3d", ITERATIVE, TV3DSettings, _make_tv3d,
                      presets={"haar": TV3DSettings(prox="haar"), "exact": TV3DSettings(prox="exact")},
                      memory=MemoryModel(bytes_per_element=32), fits_holdout=True))

@@ -8,7 +8,7 @@ baselines are one shot. The bundle is only read; the truth never reaches a metho
 
 The settings are resolved once the problem is read (rngcam.recon.settings.resolve: a frozen
 `Run`); the run's one clock starts with the command (`started`). Set-up is cut at its deadline
-(rngcam.recon.guard: the start video, "budget_before_first_iteration"); SIGINT or SIGTERM end
+(rngcam.recon.phases: the start video, "budget_before_first_iteration"); SIGINT or SIGTERM end
 the run "interrupted" with the current estimate and a checkpoint that `resume` continues.
 With `holdout`, iterative methods fit a seeded training split (Problem.with_holdout) and the
 log rows, errors.csv and metrics.json carry the residual on the held-out part (rngcam.recon.holdout).
@@ -32,7 +32,7 @@ from rngcam.formats.bundle import Bundle, bundle_checksum, is_warning, open_chec
 from rngcam.memory import peak_rss_bytes, release_free_memory
 from rngcam.physics.operators import drop_scratch
 from rngcam.recon import checkpoint, outputs, registry
-from rngcam.recon.guard import BudgetCut, RunGuard
+from rngcam.recon.phases import BudgetCut, RunPhases
 from rngcam.recon.loop import LoopSettings, Method, RunResult, run, stage_printer
 from rngcam.recon.metrics import (
     error_visibility,
@@ -58,10 +58,10 @@ from rngcam.recon.settings import (  # noqa: F401 - their home before settings.p
     resolve,
     resolve_device,
 )
-from rngcam.sizing import check_size, gib, plan_grid
+from rngcam.video_plan import check_size, gib, plan_grid
 
 # Above this many video elements, the log rows during a run carry PSNR only and the final row also
-# SSIM, which is most of a truth evaluation's cost (bench/scale.md).
+# SSIM, which is most of a truth evaluation's cost (bench/large_grids.md).
 SSIM_EVERY_ROW_MAX_ELEMENTS = 20_000_000
 
 
@@ -199,7 +199,7 @@ class _Job:
     printer, the output lines (`say`: printed and in recon.log; `log`: recon.log only) and the
     folder with its checkpoint identity and the checkpoint resumed."""
 
-    guard: RunGuard
+    guard: RunPhases
     stage: Callable[[str], None]
     say: Callable[[str], None]
     log: RunLog
@@ -229,7 +229,7 @@ def _solve(source: Source, settings: ReconSettings, out: Path | None, echo, star
     if why:
         say(why)
     try:
-        with RunGuard(clock) as guard, torch_threads(threads):
+        with RunPhases(clock) as guard, torch_threads(threads):
             job = _Job(guard, stage_printer(say if settings.progress else log.write, check=guard.check), say, log,
                        out, want, saved)
             if saved is not None:
@@ -402,7 +402,7 @@ def _iterate(problem: Problem, run_: Run, method: Method, made: dict, rows: _Row
                 message=result.message, ended_by=result.ended_by)
     made["notes"] += [n for n in method.notes if n not in made["notes"]]  # what it learns by the end (the floor)
     # The method's state (the solve's peak) goes before the end-of-run metrics and outputs, which
-    # then add to a much smaller base (bench/scale.md: whole-process peak).
+    # then add to a much smaller base (bench/large_grids.md: whole-process peak).
     del method
     drop_scratch()  # the operators' kept buffers: the finish makes its own
     release_free_memory()

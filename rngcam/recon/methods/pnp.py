@@ -41,7 +41,7 @@ from rngcam.errors import ConfigError
 from rngcam.memory import release_free_memory
 from rngcam.physics.operators import LinearOperator
 from rngcam.recon.loop import MethodBase
-from rngcam.recon.methods.multiscale import Kept, kept
+from rngcam.recon.methods.coarse_to_fine import Kept, kept
 from rngcam.recon.methods.pnp_denoiser import Denoiser
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
@@ -152,7 +152,7 @@ class PnP(MethodBase):
         if rs_norm_start is None:
             n_r = 1.02 * self.rs.norm(iters=20, tol=1e-3, dtype=dt, device=dev) ** 2
         else:
-            from rngcam.recon.methods.multiscale import power_norm
+            from rngcam.recon.methods.coarse_to_fine import power_norm
 
             norm, self.rs_norm_vector = power_norm(self.rs, rs_norm_start.to(dtype=dt, device=dev))
             n_r = 1.02 * norm ** 2
@@ -269,7 +269,7 @@ class PnP(MethodBase):
 
     def _x_step(self, z: Tensor, mu: float) -> Tensor:
         """A few CG steps on (sum A_i^T A_i + mu I) v = sum A_i^T b_i + mu z, from v = z.
-        In place: at 228x342x231 each video-sized temporary is 0.22 GB (bench/scale.md).
+        In place: at 228x342x231 each video-sized temporary is 0.22 GB (bench/large_grids.md).
 
         It stops early where the residual is at the rounding of the right-hand side, and where
         d.q is at or below a tiny multiple of r.r: the matrix is positive (semi)definite, so
@@ -360,7 +360,7 @@ class PnP(MethodBase):
         return {**asdict(self.s), "denoiser": self.denoiser.name, "init_source": getattr(self, "init_source", "zeros")}
 
     # z is replaced by every step, never changed in place: a copy of the state (the loop's last
-    # good state) may share it (multiscale.Kept) instead of copying a video.
+    # good state) may share it (coarse_to_fine.Kept) instead of copying a video.
     def state_dict(self) -> dict:
         return {**self.state, "z": Kept(self.state["z"])}
 
@@ -386,7 +386,7 @@ def key_frame_detail(problem: Problem, coarse_shape: tuple[int, int, int, int]) 
     """The detail of the GS key frames' cross-fade B on `problem`'s grid that a grid of
     `coarse_shape` cannot hold: B - up(bin(B)) (None without GS frames)."""
     from rngcam.recon.methods.baselines import blend
-    from rngcam.recon.methods.multiscale import bin_video, upsample
+    from rngcam.recon.methods.coarse_to_fine import bin_video, upsample
 
     if problem.b_gs is None or problem.b_gs.shape[1] == 0:
         return None
@@ -399,7 +399,7 @@ def key_frame_detail(problem: Problem, coarse_shape: tuple[int, int, int, int]) 
 def with_key_frame_detail(problem: Problem, x0: Tensor, coarse_shape: tuple[int, int, int, int]) -> Tensor:
     """A coarser estimate upsampled (x0, on `problem`'s grid) plus `key_frame_detail`, the detail
     its grid could not hold. The upsampled estimate alone is blurred (at 128 px it started 1.3 dB
-    below this, bench/scale.md); where the cross-fade's detail is wrong (moving edges) the data
+    below this, bench/large_grids.md); where the cross-fade's detail is wrong (moving edges) the data
     and the denoiser remove it. Without GS frames: x0."""
     detail = key_frame_detail(problem, coarse_shape)
     return x0 if detail is None else detail.add_(x0).clamp_min_(0)
@@ -407,7 +407,7 @@ def with_key_frame_detail(problem: Problem, x0: Tensor, coarse_shape: tuple[int,
 
 def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str = "cpu",
              clock=None, stage=None, factors: tuple[int, ...] | None = None):
-    """PnP on `problem`, coarse to fine (rngcam.recon.methods.multiscale) on grids of 96 px and more with
+    """PnP on `problem`, coarse to fine (rngcam.recon.methods.coarse_to_fine) on grids of 96 px and more with
     `coarse_to_fine` on: the start (RIFE, the operator norm from a random vector) is made on the
     coarsest level only; each finer level starts from the coarser estimate, upsampled, plus the key
     frames' detail the coarser grid could not hold (`with_key_frame_detail`), with the
@@ -415,8 +415,8 @@ def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str 
     second half of the noise-level schedule (`fine_level_settings`). A coarse level ends at pnp's
     own stop (noise level or stall), at the end of its schedule, or at its share of the budget.
     `stage(message)` reports set-up; `factors`: the levels' spatial factors (default:
-    multiscale.default_factors)."""
-    from rngcam.recon.methods.multiscale import CoarseToFine, default_factors, upsample
+    coarse_to_fine.default_factors)."""
+    from rngcam.recon.methods.coarse_to_fine import CoarseToFine, default_factors, upsample
 
     settings = settings or PnPSettings()
     factors = tuple(factors or default_factors(problem.shape))

@@ -34,7 +34,7 @@ from rngcam.physics import tv_prox as tv
 from rngcam.physics.operators import LinearOperator
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.baselines import blend
-from rngcam.recon.methods.multiscale import Kept, kept
+from rngcam.recon.methods.coarse_to_fine import Kept, kept
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.options import setting
 from rngcam.recon.problem import Problem
@@ -156,7 +156,7 @@ class TV3D(MethodBase):
             if rs_norm_start is None:
                 n_r = 1.02 * self.rs.norm(iters=20, tol=1e-3, dtype=dt, device=dev) ** 2
             else:
-                from rngcam.recon.methods.multiscale import power_norm
+                from rngcam.recon.methods.coarse_to_fine import power_norm
 
                 norm, self.rs_norm_vector = power_norm(self.rs, rs_norm_start.to(dtype=dt, device=dev))
                 n_r = 1.02 * norm ** 2
@@ -185,7 +185,7 @@ class TV3D(MethodBase):
                       "F": self._objective(x0, ax0), "restarts": 0}
 
     # The state's videos are replaced by every step, never changed in place, so a copy of the state
-    # (the loop's last good state) may share them (multiscale.Kept) instead of copying videos.
+    # (the loop's last good state) may share them (coarse_to_fine.Kept) instead of copying videos.
     _VIDEOS = ("x", "y")
 
     def _initial(self, dtype, device) -> Tensor:
@@ -302,7 +302,7 @@ class TV3D(MethodBase):
 
 def make_tv3d(problem: Problem, settings: TV3DSettings | None = None, clock=None,
               stage=None):
-    """TV3D on `problem`, coarse-to-fine (rngcam.recon.methods.multiscale) when the grid is large enough,
+    """TV3D on `problem`, coarse-to-fine (rngcam.recon.methods.coarse_to_fine) when the grid is large enough,
     the setting is on and no held-out split is fitted; `stage(message)` reports set-up stages.
     With `self_calibrate`, the problem's GS frames are first corrected (rngcam.recon.methods.selfcal) and
     the refined values are in the method's notes and `selfcal_report`."""
@@ -322,14 +322,14 @@ def make_tv3d(problem: Problem, settings: TV3DSettings | None = None, clock=None
 
 
 def _make_tv3d(problem: Problem, settings: TV3DSettings, clock, stage):
-    from rngcam.recon.methods.multiscale import CoarseToFine, default_factors
+    from rngcam.recon.methods.coarse_to_fine import CoarseToFine, default_factors
 
     factors = default_factors(problem.shape)
     if not settings.coarse_to_fine or len(factors) == 1 or problem.has_holdout:
         if stage:
             stage(f"tv3d on {problem.shape[-2]}x{problem.shape[-1]}x{problem.shape[1]}: operator norms")
         return TV3D(problem, settings)
-    from rngcam.recon.methods.multiscale import upsample
+    from rngcam.recon.methods.coarse_to_fine import upsample
 
     previous: list[TV3D] = []
 

@@ -222,9 +222,9 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
     guard = initial_video is None and settings.start_floor
     method = _make_stfm(problem, replace(settings, start_floor=False), device, initial_video, clock, stage)
     if guard:  # once, around the whole run (not around its levels or members)
-        from rngcam.recon.methods.stfm.guard import StartGuard
+        from rngcam.recon.methods.stfm.floor import StartFloor
 
-        method = StartGuard(method, problem)
+        method = StartFloor(method, problem)
     return method
 
 

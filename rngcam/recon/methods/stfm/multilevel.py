@@ -1,6 +1,6 @@
 """STFM coarse to fine: the normal STFM build on a coarse grid, then finer grids that start from it.
 
-Levels come from rngcam.recon.methods.multiscale (`coarsen`: the problem binned in space and time,
+Levels come from rngcam.recon.methods.coarse_to_fine (`coarsen`: the problem binned in space and time,
 e.g. 1/4, 1/2 and the full grid at 228x342). The coarsest level is the ordinary STFM of the
 settings (`make_stfm`: RIFE or flow bases, the fast preset's ensemble, the prior preset's motion
 search), so the set-up work that does not scale with the grid (RIFE, optical flow, the motion
@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from rngcam.memory import release_free_memory
-from rngcam.recon.methods.multiscale import CoarseToFine, default_factors, power_norm, upsample
+from rngcam.recon.methods.coarse_to_fine import CoarseToFine, default_factors, power_norm, upsample
 from rngcam.recon.methods.stfm.method import STFM
 from rngcam.recon.methods.stfm.settings import REFINE_LR_RATIO, STFMSettings, _preset
 
@@ -49,7 +49,7 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
     """STFM coarse to fine over `factors` (see the module docstring). `single(problem, settings)`
     builds the ordinary STFM of the coarsest level; `stage(message)` reports each level's set-up.
     `carry`: "auto" (the preset's way, above), or "fields" for a base-video model too (its base
-    upsampled, its fields resampled: bench/scale.py `carry` compares the two)."""
+    upsampled, its fields resampled: bench/large_grids.py `carry` compares the two)."""
     single_settings = replace(settings, coarse_to_fine=False)
     c, k, h, w = problem.shape
     with_base = _preset(settings.preset, h, w, k)["dynamic_time"] if settings.dynamic_time is None \

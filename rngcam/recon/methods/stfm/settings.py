@@ -226,7 +226,7 @@ def resolve(settings: STFMSettings, h: int, w: int, k: int) -> tuple[_Resolved, 
 
 # What the registry's presets (the command line, the Python API by label) add to the dataclass's
 # defaults: the gains refined from the data before the fit and the GS-only start as the floor of the
-# output (rngcam.recon.methods.selfcal, rngcam.recon.methods.stfm.guard). The dataclass keeps both off, so that a
+# output (rngcam.recon.methods.selfcal, rngcam.recon.methods.stfm.floor). The dataclass keeps both off, so that a
 # fit built from STFMSettings directly is exactly the model and nothing around it.
 USER_DEFAULTS = {"self_calibrate": "gains", "start_floor": True}
 

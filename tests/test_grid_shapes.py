@@ -114,7 +114,7 @@ def _toy_problem(h=32, w=48):
 
 
 def test_coarse_problem_is_the_binned_fine_problem_for_a_video_constant_in_blocks():
-    from rngcam.recon.methods.multiscale import block_matrix, coarsen
+    from rngcam.recon.methods.coarse_to_fine import block_matrix, coarsen
 
     p = _toy_problem()
     coarse = coarsen(p, 2)
@@ -136,7 +136,7 @@ def test_coarse_problem_is_the_binned_fine_problem_for_a_video_constant_in_block
 
 
 def test_upsample_keeps_constants_and_linear_ramps_in_time():
-    from rngcam.recon.methods.multiscale import upsample
+    from rngcam.recon.methods.coarse_to_fine import upsample
 
     const = torch.full((3, 5, 6, 8), 0.25, dtype=torch.float64)
     torch.testing.assert_close(upsample(const, (3, 10, 12, 16), 2), torch.full((3, 10, 12, 16), 0.25,
@@ -150,7 +150,7 @@ def test_upsample_keeps_constants_and_linear_ramps_in_time():
 
 def test_tv3d_coarse_to_fine_reaches_the_full_grid_and_improves_on_its_start():
     from rngcam.recon.loop import LoopSettings, run
-    from rngcam.recon.methods.multiscale import CoarseToFine
+    from rngcam.recon.methods.coarse_to_fine import CoarseToFine
     from rngcam.recon.methods.tv3d import TV3D, TV3DSettings
     from rngcam.recon.metrics import video_metrics
 
@@ -169,7 +169,7 @@ def test_tv3d_coarse_to_fine_reaches_the_full_grid_and_improves_on_its_start():
 
 def test_a_budget_that_ends_a_coarse_level_says_what_was_cut():
     from rngcam.recon.loop import LoopSettings, run
-    from rngcam.recon.methods.multiscale import CoarseToFine
+    from rngcam.recon.methods.coarse_to_fine import CoarseToFine
     from rngcam.recon.methods.tv3d import TV3D, TV3DSettings
 
     p = _toy_problem().to(torch.float32)
@@ -181,7 +181,7 @@ def test_a_budget_that_ends_a_coarse_level_says_what_was_cut():
 
 
 def test_power_norm_from_a_coarse_vector_matches_the_cold_norm():
-    from rngcam.recon.methods.multiscale import coarsen, power_norm, upsample
+    from rngcam.recon.methods.coarse_to_fine import coarsen, power_norm, upsample
 
     p = _toy_problem()
     coarse = coarsen(p, 2)
@@ -193,7 +193,7 @@ def test_power_norm_from_a_coarse_vector_matches_the_cold_norm():
 
 
 def test_a_finer_level_that_cannot_fit_the_budget_is_not_started():
-    from rngcam.recon.methods.multiscale import CoarseToFine
+    from rngcam.recon.methods.coarse_to_fine import CoarseToFine
     from rngcam.recon.methods.tv3d import TV3D, TV3DSettings
 
     p = _toy_problem().to(torch.float32)

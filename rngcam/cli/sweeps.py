@@ -12,7 +12,7 @@ from rngcam.cli.recon import budget_option, device_option
 from rngcam.errors import RngcamError
 from rngcam.recon import registry
 from rngcam.recon.settings import ReconSettings
-from rngcam.scale.backend import make_backend
+from rngcam.sweeps.backend import make_backend
 
 
 def _backend_factory(address: str | None, no_ray: bool, device: str):
@@ -60,7 +60,7 @@ def _with(options):
 def sweep_cmd(bundle, method, time_budget, iters, holdout, holdout_gs, holdout_seed, folds,
               eta, rungs, device, grid_bin, no_refit, out_dir, address, no_ray, **lists):
     """Fit a grid of settings (e.g. beta/tau/psi) on BUNDLE, choose by held-out residual, refit the best."""
-    from rngcam.scale.sweep import SweepSettings, sweep
+    from rngcam.sweeps.sweep import SweepSettings, sweep
 
     given = pop_method_values(lists)
     if not registry.get(method).fits_holdout:
@@ -105,7 +105,7 @@ def sweep_cmd(bundle, method, time_budget, iters, holdout, holdout_gs, holdout_s
 @_with(_ray_options)
 def recon_batch_cmd(bundles, method, out_dir, time_budget, iters, device, grid_bin, address, no_ray, **opts):
     """Reconstruct every bundle in BUNDLES (one task each); finished ones are skipped on a re-run."""
-    from rngcam.scale.batch import recon_batch
+    from rngcam.sweeps.batch import recon_batch
 
     settings = ReconSettings(method=method, time_budget_s="auto" if time_budget in (None, "auto") else time_budget,
                              max_iters=iters, device=device, grid_bin=grid_bin, progress=False,

@@ -1,9 +1,9 @@
 """Paper scale (issue 21): operators and reconstructions at 64, 128 and 228x342 (the lab's grid).
 
 Usage (one at a time on the machine: run it under the bench lock):
-    flock /tmp/rngcam-bench.lock python -m bench.scale ops --size 228x342
-    flock /tmp/rngcam-bench.lock python -m bench.scale recon BUNDLE... --method tv3d --budget 240
-    nice -n 10 python -m bench.scale fixed BUNDLE --method stfm --final-steps 60
+    flock /tmp/rngcam-bench.lock python -m bench.large_grids ops --size 228x342
+    flock /tmp/rngcam-bench.lock python -m bench.large_grids recon BUNDLE... --method tv3d --budget 240
+    nice -n 10 python -m bench.large_grids fixed BUNDLE --method stfm --final-steps 60
 
 `ops`: the RS operator's forward and adjoint against the bare batched rfft2 + irfft2 pair it needs,
 side by side, wall and system time (system time is where allocation churn shows), one thread.

@@ -23,7 +23,7 @@ from rngcam.untrusted import printable
 
 DEFAULT_MAX_FRAMES = 100_000
 MEMORY_FRACTION = 0.8  # of the machine's memory: the default --max-memory
-BASE_BYTES = 430 * 2**20  # the interpreter, torch, OpenCV, h5py, matplotlib (measured: bench/scale.md)
+BASE_BYTES = 430 * 2**20  # the interpreter, torch, OpenCV, h5py, matplotlib (measured: bench/large_grids.md)
 # Of BASE_BYTES, the libraries' resident file pages as measured on a settled machine: page cache,
 # reclaimable, and larger right after an install (rngcam.memory.mapped_file_bytes).
 LIBRARY_BYTES = 165 * 2**20

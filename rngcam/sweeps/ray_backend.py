@@ -23,7 +23,7 @@ import socket
 import tempfile
 
 from rngcam.errors import RngcamError
-from rngcam.scale.tasks import OnResult, TaskFn, failed
+from rngcam.sweeps.tasks import OnResult, TaskFn, failed
 
 LOOPBACK = "127.0.0.1"
 _NO_PROXY = "127.0.0.1,localhost,::1"

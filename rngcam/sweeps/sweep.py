@@ -32,9 +32,9 @@ from rngcam.errors import ConfigError, RngcamError
 from rngcam.formats.bundle import bundle_checksum, read_bundle
 from rngcam.recon import registry
 from rngcam.recon.problem import build_problem
-from rngcam.scale import tables
-from rngcam.scale.backend import Backend, make_backend
-from rngcam.scale.trial import TRUTH_KEYS, TrialSpec, run_trial
+from rngcam.sweeps import tables
+from rngcam.sweeps.backend import Backend, make_backend
+from rngcam.sweeps.trial import TRUTH_KEYS, TrialSpec, run_trial
 from rngcam.untrusted import replacing, write_new
 
 SCORE_KEYS = ("heldout", "heldout_rs", "heldout_gs", "residual_rs", "residual_gs")

@@ -2,7 +2,7 @@
 
 A fit that a budget cut short, or that went wrong, can explain the RS image worse than a plain
 GS-only interpolation. The RS image is the one measurement of the in-between frames, so it
-judges: StartGuard wraps a method; its `estimate()` is the fit's unless the fit's relative RS
+judges: StartFloor wraps a method; its `estimate()` is the fit's unless the fit's relative RS
 residual is not below the best GS-only video's (cross-fade or optical-flow interpolation of the
 key frames), and then that video, with a note saying so. Everything else is the method's."""
 
@@ -17,7 +17,7 @@ from rngcam.recon.loop import MethodBase
 from rngcam.recon.metrics import relative_residual
 
 
-class StartGuard(MethodBase):
+class StartFloor(MethodBase):
     """`method` (an STFM, ensemble or coarse-to-fine run) with the start as the floor of its output."""
 
     def __init__(self, method, problem):

@@ -1,6 +1,6 @@
 """What ends a reconstruction early, turned into a result rather than lost work.
 
-`RunGuard` wraps one run. SIGINT and SIGTERM (main thread only; elsewhere SIGINT's usual
+`RunPhases` wraps one run. SIGINT and SIGTERM (main thread only; elsewhere SIGINT's usual
 KeyboardInterrupt is caught the same way) and the time budget end it according to its phase:
 
 - ``read`` (bundle and problem): a signal is held until the problem is built, since without
@@ -35,7 +35,7 @@ class BudgetCut(BaseException):
     method's `except Exception` swallows it)."""
 
 
-class RunGuard:
+class RunPhases:
     """Signal handlers, the run's phase, and its clock (set-up is cut at its deadline); a context manager."""
 
     def __init__(self, clock: Clock):
@@ -45,7 +45,7 @@ class RunGuard:
         self._old: dict = {}
         self._main = threading.current_thread() is threading.main_thread()
 
-    def __enter__(self) -> RunGuard:
+    def __enter__(self) -> RunPhases:
         if self._main:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 self._old[sig] = signal.signal(sig, self._on_signal)

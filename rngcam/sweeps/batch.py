@@ -19,8 +19,8 @@ from rngcam.api import keywords, reconstruct
 from rngcam.errors import RngcamError
 from rngcam.formats.bundle import bundle_checksum
 from rngcam.recon.settings import ReconSettings
-from rngcam.scale import tables
-from rngcam.scale.backend import Backend, make_backend
+from rngcam.sweeps import tables
+from rngcam.sweeps.backend import Backend, make_backend
 from rngcam.untrusted import write_new
 
 DONE_NAME = "batch-done.json"

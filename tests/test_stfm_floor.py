@@ -9,7 +9,7 @@ from rngcam.recon import registry
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.stfm import STFMSettings
 from rngcam.recon.methods.stfm.ensemble import make_stfm
-from rngcam.recon.methods.stfm.guard import StartGuard
+from rngcam.recon.methods.stfm.floor import StartFloor
 
 
 class _Fixed(MethodBase):
@@ -28,7 +28,7 @@ class _Fixed(MethodBase):
 
 def test_a_fit_worse_than_the_start_gives_the_start():
     p = tiny_sineball_problem(16).to(torch.float32)
-    guard = StartGuard(_Fixed(torch.zeros(p.shape)), p)
+    guard = StartFloor(_Fixed(torch.zeros(p.shape)), p)
     assert guard.start_name in ("blend", "interp") and np.isfinite(guard.start_rs)
     out = guard.estimate()
     assert torch.equal(out, guard.start_video) and out.abs().sum() > 0
@@ -40,7 +40,7 @@ def test_a_fit_worse_than_the_start_gives_the_start():
 
 def test_a_fit_better_than_the_start_is_kept():
     p = tiny_sineball_problem(16).to(torch.float32)
-    guard = StartGuard(_Fixed(p.truth.clone()), p)
+    guard = StartFloor(_Fixed(p.truth.clone()), p)
     assert torch.equal(guard.estimate(), p.truth) and guard.notes == ["inner note"]
     assert guard.resolved_settings()["start_floor"]["output_is_start"] is False
 
@@ -51,7 +51,7 @@ def test_the_default_stfm_is_auto_guarded_and_reports_self_calibration():
     assert settings.preset == "auto" and settings.start_floor and settings.self_calibrate == "gains"
     assert not STFMSettings().start_floor and STFMSettings().self_calibrate == "off"  # the bare model
     m = make_stfm(p, settings)
-    assert isinstance(m, StartGuard)
+    assert isinstance(m, StartFloor)
     assert any(n.startswith("preset auto chose") for n in m.notes)
     for _ in range(3):
         m.step()
@@ -61,4 +61,4 @@ def test_the_default_stfm_is_auto_guarded_and_reports_self_calibration():
     assert "not converged" in m.budget_cut() or "first convergence check" in m.budget_cut()
     # Off, nothing wraps the method.
     plain = make_stfm(p, STFMSettings(preset="fast", start_floor=False, self_calibrate="off", dynamic_base="interp"))
-    assert not isinstance(plain, StartGuard) and not hasattr(plain.settings, "nothing")
+    assert not isinstance(plain, StartFloor) and not hasattr(plain.settings, "nothing")

@@ -1,5 +1,5 @@
 """What a sweep or batch task is to a backend: `fn(item, shared) -> dict`, and the result of one
-that failed. Both backends (rngcam.scale.backend, rngcam.scale.ray_backend) stand on this."""
+that failed. Both backends (rngcam.sweeps.backend, rngcam.sweeps.ray_backend) stand on this."""
 
 from __future__ import annotations
 
