@@ -190,8 +190,11 @@ def test_an_auto_budget_is_recorded_as_the_seconds_the_run_used(tmp_path):
     assert res.exit_code == 0, res.output
     with h5py.File(out / "recon.h5") as f:
         recorded = json.loads(f.attrs["settings"])
+        found = json.loads(f.attrs["results"])
     metrics = json.loads((out / "metrics.json").read_text())
     budget = recorded["time_budget_s"]
+    # what the run found is beside the settings, not in them
+    assert found["status"] == "ok" and found["ended_by"] == "iterations" and "status" not in recorded
     assert budget > 60.0 and metrics["settings"]["time_budget_s"] == budget  # scaled, not tv3d's 64 px 60 s
     assert recorded["time_budget_asked"] == "auto" and recorded["time_budget_how"].startswith("auto: tv3d 60 s at 64 px")
     assert f"time budget {budget:.0f} s" in (out / "recon.log").read_text()

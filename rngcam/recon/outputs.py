@@ -58,8 +58,10 @@ def _set_axes(ds, labels: str, **attrs) -> None:
 
 def write_recon_h5(path: Path, video: np.ndarray, frame_times_s: np.ndarray, settings: dict,
                    bundle_checksum: str, components: dict[str, np.ndarray] | None = None,
-                   left_out: list | None = None, context: dict | None = None) -> None:
-    """recon.h5: video, frame times, components, resolved settings, input checksum (atomic).
+                   left_out: list | None = None, context: dict | None = None,
+                   results: dict | None = None) -> None:
+    """recon.h5: video, frame times, components, resolved settings and, apart from them, what the
+    run found (`results`: status, how it ended, the method's results, events), input checksum (atomic).
 
     Every dataset says its axes and units in attributes; `context` (recon_context) adds the
     bundle's path and capture time, the key frames and their times, and the RS image."""
@@ -74,6 +76,7 @@ def write_recon_h5(path: Path, video: np.ndarray, frame_times_s: np.ndarray, set
         f.attrs["capture_utc"] = ctx.get("capture_utc", "")
         f.attrs["settings"] = json.dumps(settings, default=str)
         f.attrs["left_out"] = json.dumps(left_out or [])
+        f.attrs["results"] = json.dumps(results or {}, default=str)
         times = np.asarray(frame_times_s, np.float64)
         dt = ctx.get("dt_s", float(np.median(np.diff(times))) if times.size > 1 else float("nan"))
         f.attrs["frame_interval_s"] = dt

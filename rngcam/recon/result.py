@@ -78,8 +78,9 @@ class Result:
         out.mkdir(parents=True, exist_ok=True)
         fps = 1 / self.frame_interval_s if self.frame_interval_s else None
         ctx = self.context
+        found = {k: self.metrics[k] for k in ("status", "ended_by", "method_results", "events") if k in self.metrics}
         outputs.write_recon_h5(out / "recon.h5", self.video, self.frame_times_s, self.settings,
-                               self.bundle_sha256, self.components, self.left_out, context=ctx)
+                               self.bundle_sha256, self.components, self.left_out, context=ctx, results=found)
         outputs.write_tiff(out / "video.tif", self.video, frame_interval_s=self.frame_interval_s or None,
                            pixel_size_m=ctx.get("pixel_size_m"))
         outputs.write_mp4(out / "preview.mp4", self.video, capture_fps=fps, frame_times_s=self.frame_times_s,
