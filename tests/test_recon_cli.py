@@ -103,6 +103,9 @@ def test_stfm_base_and_stop_options_reach_the_method(mock_bundle, tmp_path):
     assert not {"selfcal_report", "self_calibration"} & set(metrics["method_settings"])
     assert "refined" in metrics["method_results"]["self_calibration"]
     assert not {"selfcal_report", "self_calibration"} & set(used)
+    with h5py.File(out / "recon.h5") as f:  # recon.h5 and the report carry the results too, apart
+        assert "self_calibration" in json.loads(f.attrs["results"])["method_results"]
+    assert "what the run found" in (out / "report.html").read_text()
 
 
 def test_stfm_base_list_runs_an_ensemble_and_a_bad_base_is_a_clear_error(mock_bundle, tmp_path):

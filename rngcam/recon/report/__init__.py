@@ -120,6 +120,9 @@ def _details(runs: list[Run], labels: list[str], truth_note: str) -> str:
         out.append(f"<h3>{page.esc(lab)}</h3><div class='meta'>folder {page.esc(r.folder.resolve())}</div>"
                    + ("".join(items) or "<p class='meta'>no warnings, events, notes or left-out parts</p>")
                    + f"<details><summary>settings as resolved</summary><pre>{page.esc(settings)}</pre></details>"
+                   + (f"<details><summary>what the run found</summary><pre>"
+                      f"{page.esc(json.dumps(m['method_results'], indent=2, default=str))}</pre></details>"
+                      if m.get("method_results") else "")
                    + (f"<details><summary>metrics.json</summary><pre>{page.esc(json.dumps(m, indent=2))}</pre>"
                       f"</details>" if m else ""))
     out.append(f"<p class='meta'>{page.esc(truth_note)}</p>")
