@@ -238,7 +238,13 @@ class MockSceneConfig(_Model):
     the rig's cameras.rs.line_time_s). readout_time_bias: the mock's SensorReadoutTime grows by
     (1 + bias) x the true line time per row (plus a constant), a rough figure as the vendor warns.
     led_level: the brightness (fraction of full scale) of the LED a generator channel drives
-    steady at 5 V through the diffuser (rngcam calibrate linetime --flicker)."""
+    steady at 5 V through the diffuser (rngcam calibrate linetime --flicker).
+    Clocks and exposure starts (rngcam.acquire.mock_clock): each mock camera's timestamp counter
+    (1 ns ticks) runs at (1 + drift) x host time + offset, the RS camera's at clock_offset_s and
+    clock_drift_ppm, the GS camera's at their negatives; timestamp_latch: whether the cameras
+    have a timestamp latch (else capture fits ticks against host times). gs_start_offset_s: every
+    GS exposure starts this long after its trigger (a debouncer and model delay), plus a
+    per-frame gaussian jitter of start_jitter_s (seeded)."""
 
     scene: str = "sineball"
     seed: int = 0
@@ -246,6 +252,11 @@ class MockSceneConfig(_Model):
     true_line_time_s: float | None = Field(default=None, gt=0, le=1e-2)
     readout_time_bias: float = Field(default=0.015, gt=-0.5, lt=0.5)
     led_level: float = Field(default=0.5, ge=0, le=100)
+    clock_offset_s: float = Field(default=12.5, ge=-1e6, le=1e6)
+    clock_drift_ppm: float = Field(default=20.0, ge=-1000, le=1000)
+    timestamp_latch: bool = True
+    gs_start_offset_s: float = Field(default=0.0, ge=-1.0, le=1.0)
+    start_jitter_s: float = Field(default=0.0, ge=0.0, le=1.0)
 
 
 class RigConfig(_Model):

@@ -218,8 +218,11 @@ class AravisCamera(Camera):
                 break
             self._stream.push_buffer(buffer)  # an incomplete frame (missing packets): not a frame
             raise HardwareError(f"{self.label}: {what} arrived incomplete ({status.value_nick})")
+        host_s = self.host_time()
         try:
-            return self._frame(buffer)
+            frame = self._frame(buffer)
+            frame.host_s = host_s
+            return frame
         finally:
             self._stream.push_buffer(buffer)
 
@@ -234,6 +237,8 @@ class AravisCamera(Camera):
         stamp = buffer.get_timestamp()
         return Frame(data=data, pixel_format=self.pixel_format, frame_id=int(buffer.get_frame_id()),
                      timestamp_s=stamp * 1e-9 if stamp else None,
+                     start_ticks=int(stamp) if stamp else None,
+                     start_source="transport timestamp" if stamp else None,
                      exposure_s=self.configured.exposure_s if self.configured else None)
 
     def _stop(self) -> None:

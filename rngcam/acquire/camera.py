@@ -8,6 +8,7 @@ closes them whatever happened, so a failed capture leaves them safe.
 
 from __future__ import annotations
 
+import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
@@ -60,6 +61,10 @@ class Frame:
     """One fetched frame: raw data in its native dtype plus what the camera said about it.
 
     trigger_time_s is only known to simulated cameras (seconds after the generator fired).
+    start_ticks: the camera's clock when this exposure started, from chunk data (start_source
+    says which: "ExposureStart chunk", "FrameStart chunk", "Timestamp chunk") or, as a last
+    resort, the transport layer's frame timestamp ("transport timestamp"); None when unknown.
+    host_s: the host clock (Camera.host_time) read right after the grab.
     """
 
     data: np.ndarray
@@ -68,6 +73,9 @@ class Frame:
     timestamp_s: float | None = None
     exposure_s: float | None = None
     trigger_time_s: float | None = None
+    start_ticks: int | None = None
+    start_source: str | None = None
+    host_s: float | None = None
 
 
 @dataclass
@@ -86,6 +94,7 @@ class Camera(ABC):
     """Base class of the backends (genicam, pylon, mock)."""
 
     backend = "abstract"
+    tick_s = 1e-9  # seconds per tick of the camera's timestamp counter (nominal)
 
     def __init__(self, serial: str, label: str = "camera"):
         self.serial = str(serial)
@@ -128,6 +137,23 @@ class Camera(ABC):
     def line_time_s(self) -> float | None:
         """The RS line time the camera reports or that can be measured, else None."""
         return None
+
+    def host_time(self) -> float:
+        """The host clock exposure starts are mapped to (monotonic seconds)."""
+        return time.monotonic()
+
+    def latch_clock(self) -> tuple[float, int] | None:
+        """(host time, camera ticks) at one instant, from the camera's timestamp latch
+        (rngcam.acquire.features.latch_ticks), or None where the camera has none."""
+        from rngcam.acquire.features import latch_ticks
+
+        fm = getattr(self, "features", None)
+        if fm is None:
+            return None
+        before = self.host_time()
+        ticks = latch_ticks(fm)
+        after = self.host_time()
+        return None if ticks is None else (0.5 * (before + after), ticks)
 
     def __enter__(self) -> Camera:
         self.open()

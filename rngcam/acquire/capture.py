@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from rngcam.acquire.camera import Camera, CameraSettings, Frame
+from rngcam.acquire.exposure_clock import MeasuredStarts, measure_starts
 from rngcam.acquire.factory import open_devices, open_generator
 from rngcam.acquire.feasibility import gs_readout, refuse_impossible
 from rngcam.acquire.generator import PulseTrain
@@ -161,7 +162,7 @@ def _stack(frames: list[Frame]) -> np.ndarray:
 
 
 def _record(cfg: CameraConfig, cam: Camera, frames: list[Frame], trigger_times_s, black_level_dn: float,
-            line_time_s: float | None):
+            line_time_s: float | None, starts: MeasuredStarts | None = None, role: str = ""):
     features = dict(cam.configured.features) if cam.configured else {}
     stamps = [f.timestamp_s for f in frames]
     ids = [f.frame_id for f in frames]
@@ -175,7 +176,29 @@ def _record(cfg: CameraConfig, cam: Camera, frames: list[Frame], trigger_times_s
         model=info.model if info else cfg.model, serial=cfg.serial,
         timestamps_s=None if any(s is None for s in stamps) else np.asarray(stamps, np.float64),
         frame_ids=None if any(i is None for i in ids) else np.asarray(ids, np.int64),
-        features=features)
+        features=features,
+        exposure_start_s=None if starts is None else starts.starts.get(role),
+        exposure_start_method="" if starts is None else starts.methods.get(role, ""))
+
+
+def _latch(cams: dict[str, Camera], latches: dict[str, list]) -> None:
+    """Each camera's timestamp latch read now (where it has one) with the host clock."""
+    for role, cam in cams.items():
+        pair = cam.latch_clock()
+        if pair is not None:
+            latches.setdefault(role, []).append(pair)
+
+
+def _measured_starts(cams: dict[str, Camera], rs_frames, gs_frames, latches, progress: Progress) -> MeasuredStarts:
+    """The shot's measured exposure starts on the RS trigger's timeline (rngcam.acquire.exposure_clock)."""
+    frames = {"rs": rs_frames, "gs": gs_frames}
+    exposure = {r: float(c.configured.exposure_s or 0.0) if c.configured else 0.0 for r, c in cams.items()}
+    starts = measure_starts(frames, latches, {r: c.tick_s for r, c in cams.items()}, exposure)
+    gs = starts.starts.get("gs")
+    if gs is not None:
+        progress("exposure starts measured (" + starts.methods["gs"] + "): GS at "
+                 + ", ".join(f"{t * 1e3:.3f}" for t in gs) + " ms after the RS exposure start")
+    return starts
 
 
 def _check_gs_timestamps(frames: list[Frame], period_s: float | None) -> list[str]:
@@ -241,6 +264,8 @@ def _shoot(rig: Rig, cams: dict[str, Camera], gen, devices, shot: str, stage: li
     c = rig.config
     t_shot = time.perf_counter()
     devices.begin_shot()
+    latches: dict[str, list] = {}
+    _latch(cams, latches)
     for cam in cams.values():
         cam.arm()
     for cam in cams.values():
@@ -254,24 +279,26 @@ def _shoot(rig: Rig, cams: dict[str, Camera], gen, devices, shot: str, stage: li
     gs_frames = [cams["gs"].fetch(c.cameras.gs.fetch_timeout_s, f"GS frame {i + 1} of {n_gs}") for i in range(n_gs)]
     for cam in cams.values():
         cam.disarm()
-    shot_warnings = _check_gs_timestamps(gs_frames, c.timing.gs_period_s)
+    _latch(cams, latches)
+    starts = _measured_starts(cams, rs_frames, gs_frames, latches, progress)
+    shot_warnings = _check_gs_timestamps(gs_frames, c.timing.gs_period_s) + starts.warnings
     for w in shot_warnings:
         progress(f"warning: {w}")
     progress(f"shot {shot}: fetched 1 RS + {n_gs} GS frames ({time.perf_counter() - t_shot:.2f} s)")
-    return rs_frames, gs_frames, devices.truth(), shot_warnings
+    return rs_frames, gs_frames, devices.truth(), shot_warnings, starts
 
 
 def _bundle(rig: Rig, resolved: ResolvedRig, cams: dict[str, Camera], trigger: TriggerRecord, shot,
             warnings: list[str]) -> Bundle:
     """One shot's bundle: its frames, the resolved calibration, the trigger record and the rig."""
     c = rig.config
-    rs_frames, gs_frames, truth, _ = shot
+    rs_frames, gs_frames, truth, _, starts = shot
     t0 = c.timing.rs_trigger_s
     black = resolved.black_level_dn
     return Bundle(
-        rs=_record(c.cameras.rs, cams["rs"], rs_frames, [0.0], black["rs"], resolved.line_time_s),
+        rs=_record(c.cameras.rs, cams["rs"], rs_frames, [0.0], black["rs"], resolved.line_time_s, starts, "rs"),
         gs=_record(c.cameras.gs, cams["gs"], gs_frames, [t - t0 for t in c.timing.gs_trigger_s],
-                   black["gs"], None),
+                   black["gs"], None, starts, "gs"),
         calibration=resolved.bundle_calibration(), trigger=trigger, truth=truth, rig_yaml=rig.text,
         meta={"source": "capture", "rig_name": c.name, "rig_path": str(rig.path),
               "backend": c.cameras.rs.backend, "grid_bin": c.recon.grid_bin,

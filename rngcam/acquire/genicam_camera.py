@@ -209,6 +209,7 @@ class GenicamCamera(Camera):
         if not ia.is_acquiring():
             raise HardwareError(f"{self.label}: fetch of {what} while not armed")
         buffer = ia.try_fetch(timeout=timeout_s)
+        host_s = self.host_time()
         if buffer is None:
             raise HardwareError(f"{self.label}: no {what} within {timeout_s:g} s (no trigger arrived?)")
         try:
@@ -218,11 +219,29 @@ class GenicamCamera(Camera):
             data = np.array(c.data, copy=True).reshape(shape)
             frame_id = _maybe(lambda: int(buffer.module.frame_id))
             stamp_ns = _maybe(lambda: int(buffer.timestamp_ns))
+            ticks, source = self._start_ticks(stamp_ns)
             return Frame(data=data, pixel_format=str(c.data_format), frame_id=frame_id,
                          timestamp_s=None if stamp_ns is None else stamp_ns * 1e-9,
+                         start_ticks=ticks, start_source=source, host_s=host_s,
                          exposure_s=self.configured.exposure_s if self.configured else None)
         finally:
             buffer.queue()
+
+    def _start_ticks(self, transport_ns: int | None) -> tuple[int | None, str | None]:
+        """The exposure-start ticks of the frame just fetched: its chunk data (harvesters
+        attaches it to the node map) where enabled, else the transport timestamp (ns)."""
+        if self.configured and self.configured.features.get("ChunkTimestamp"):
+            for name in ("BslChunkTimestampValue", "ChunkTimestamp"):
+                value = self.features.get_or_none(name)
+                if value is not None:
+                    freq = self.features.get_or_none("GevTimestampTickFrequency")
+                    self.tick_s = 1.0 / float(freq) if freq else 1e-9
+                    event = self.configured.features.get("ChunkTimestampEvent") or "Timestamp"
+                    return int(value), f"{event} chunk"
+        if transport_ns:
+            self.tick_s = 1e-9
+            return int(transport_ns), "transport timestamp"
+        return None, None
 
     def disarm(self) -> None:
         self.armed = False

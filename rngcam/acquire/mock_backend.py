@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from rngcam.acquire.camera import Camera
 from rngcam.acquire.mock_camera import MockCamera, MockDevice, MockWorld
+from rngcam.acquire.mock_clock import MockTiming
 from rngcam.acquire.resolve import ROLES, ResolvedRig
 from rngcam.errors import ConfigError
 from rngcam.formats.bundle import Truth
@@ -34,6 +35,7 @@ class MockDevices:
         self.world = MockWorld(c.mock.scene, (rs_roi.height, rs_roi.width), self._world_grid(), resolved.rig_psf,
                                seed=c.mock.seed, key_times_s=list(gs_timing.centres_s()), options=c.mock.options,
                                bin=grid_bin)
+        self.world.timing = MockTiming.from_config(c.mock)
         truth = resolved.mock
         for role in ROLES:
             cam = getattr(c.cameras, role)
@@ -55,12 +57,13 @@ class MockDevices:
 
     def _world_grid(self) -> VideoGrid:
         """The bundle's grid, lengthened (same dt) when the sensor's true line time ends its
-        window later than the resolved one says: the scene then lasts as long as the real
-        exposure; the truth in the bundle is the bundle's grid (`truth`)."""
+        window later than the resolved one says, or a GS exposure starts late (mock.gs_start_offset_s):
+        the scene then lasts as long as the real exposures; the truth in the bundle is the
+        bundle's grid (`truth`)."""
         c, truth = self.resolved.rig.config, self.resolved.mock
         rs, gs, grid = self.resolved.timing()
         real = RollingShutterTiming(truth.line_time_s, c.cameras.rs.exposure_s, rows=c.cameras.rs.roi.height)
-        longer = VideoGrid.covering(real, gs, dt_s=grid.dt_s)
+        longer = VideoGrid.covering(real, gs.shifted(MockTiming.from_config(c.mock).latest_delay_s()), dt_s=grid.dt_s)
         return longer if longer.n_frames > grid.n_frames else grid
 
     def camera(self, role: str) -> Camera:

@@ -47,7 +47,9 @@ import numpy as np
 import torch
 
 from rngcam.acquire.camera import Camera, CameraInfo, CameraSettings, Configured, Frame
-from rngcam.acquire.features import FeatureMap, estimate_line_time_s
+from rngcam.acquire.features import estimate_line_time_s
+from rngcam.acquire.mock_clock import TICK_S, MockTiming
+from rngcam.acquire.mock_features import MockFeatures
 from rngcam.errors import HardwareError
 from rngcam.physics.operators import GlobalShutter, PSFConvolution, RollingShutter
 from rngcam.physics.sensor import SensorModel
@@ -55,7 +57,6 @@ from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, Vid
 
 TRIGGER_LINES = ("Line1", "Line2", "Line3", "Line4")
 EXPOSURE_STEP_S = 1e-6  # exposure is set in whole microseconds, like a Basler ace
-READOUT_OVERHEAD_S = 12.5e-6  # constant part of the mock RS SensorReadoutTime
 STATIC_TARGETS = ("point", "chart", "dark")
 CHART_BRIGHTNESS = 0.7  # the chart's brightest point, in units of full scale at unit gain
 LED_FORWARD_V = 1.8  # the mock LED lights above this voltage, its brightness linear in the excess
@@ -98,6 +99,8 @@ class MockWorld:
         self.t0_s: float | None = None  # generator-clock time of the RS trigger
         self.target: str | None = None  # a static calibration target shown instead of the scene
         self.light: Callable | None = None  # () -> FakeGenerator.Light or None: the LED's waveform now
+        self.timing = MockTiming()  # the cameras' clocks and exposure-start delays (mock_clock)
+        self.epoch_s = time.monotonic()  # the world's (host) clock starts here
         self._video: np.ndarray | None = None
         self._grid_psf: np.ndarray | None = None
         self._lock = threading.Lock()
@@ -192,36 +195,6 @@ def square_on_fraction(starts_s: np.ndarray, exposure_s: float, frequency_hz: fl
     return (high_time(s + exposure_s) - high_time(s)) / (exposure_s * frequency_hz)
 
 
-class MockFeatures(FeatureMap):
-    """The mock RS sensor's feature map: a writable Height and its SensorReadoutTime (us),
-    whose slope is (1 + bias) x the true line time (module doc)."""
-
-    def __init__(self, rows: int, line_time_s: float, bias: float = 0.0):
-        self.rows, self.line_time_s, self.height = int(rows), float(line_time_s), int(rows)
-        self.bias = float(bias)
-
-    def readable(self, name: str) -> bool:
-        return name in ("Height", "SensorReadoutTime")
-
-    def writable(self, name: str) -> bool:
-        return name == "Height"
-
-    def get(self, name: str):
-        if name == "Height":
-            return self.height
-        if name == "SensorReadoutTime":  # reported to 0.01 us, like a camera's float feature
-            return round((READOUT_OVERHEAD_S + self.height * self.line_time_s * (1 + self.bias)) * 1e6, 2)
-        raise HardwareError(f"mock RS camera has no feature {name!r}")
-
-    def set(self, name: str, value) -> None:
-        if name != "Height" or not 2 <= int(value) <= self.rows:
-            raise HardwareError(f"mock RS camera: cannot set {name} to {value!r}")
-        self.height = int(value)
-
-    def execute(self, name: str) -> None:
-        raise HardwareError(f"mock RS camera has no command {name!r}")
-
-
 class MockCamera(Camera):
     backend = "mock"
 
@@ -293,6 +266,8 @@ class MockCamera(Camera):
             out.features["SensorReadoutTime"] = round(dev.readout_s * 1e6, 2)
         if dev.kind == "rs":
             out.features["SensorReadoutTime"] = self.features.get("SensorReadoutTime")
+        if settings.chunk_timestamps:  # ExposureStart chunk ticks, as on an ace 2
+            out.features |= {"ChunkModeActive": True, "ChunkTimestamp": True, "ChunkTimestampEvent": "ExposureStart"}
         if settings.exposure_s is not None and abs(self.exposure_s - settings.exposure_s) > 1e-12:
             out.warnings.append(f"{self.label}: ExposureTime is {self.exposure_s * 1e6:g} us "
                                 f"(asked for {settings.exposure_s * 1e6:g})")
@@ -302,6 +277,18 @@ class MockCamera(Camera):
     def line_time_s(self) -> float | None:
         dev = self._dev()
         return estimate_line_time_s(self.features) if dev.kind == "rs" else None
+
+    tick_s = TICK_S
+
+    def host_time(self) -> float:
+        return time.monotonic() - self.world.epoch_s
+
+    def latch_clock(self) -> tuple[float, int] | None:
+        """The mock latch: exact (the world's clock and this camera's counter at one instant)."""
+        if not self.world.timing.latch:
+            return None
+        now = self.host_time()
+        return now, self.world.timing.clocks[self._dev().kind].ticks(now)
 
     def arm(self) -> None:
         if self.settings is None:
@@ -368,9 +355,15 @@ class MockCamera(Camera):
             self._frame_count += 1
             self._frames_rendered += 1
             noise_index = self._frames_rendered
-        data = self.render(t_s, noise_index)
-        return Frame(data=data, pixel_format=self._dev().sensor.pixel_format, frame_id=index,
-                     timestamp_s=self._opened_at + t_s, exposure_s=self.exposure_s, trigger_time_s=t_s)
+        dev, timing = self._dev(), self.world.timing
+        start = t_s + timing.start_delay_s(dev.kind, index)  # the exposure starts after its trigger
+        data = self.render(start, noise_index)
+        chunks = self.settings is not None and self.settings.chunk_timestamps
+        return Frame(data=data, pixel_format=dev.sensor.pixel_format, frame_id=index,
+                     timestamp_s=self._opened_at + t_s, exposure_s=self.exposure_s, trigger_time_s=t_s,
+                     start_ticks=timing.clocks[dev.kind].ticks(start) if chunks else None,
+                     start_source="ExposureStart chunk" if chunks else None,
+                     host_s=start + self.exposure_s + dev.readout_s)
 
     def render(self, t_s: float, index: int) -> np.ndarray:
         """The raw frame for an exposure triggered at generator time t_s (index seeds the noise)."""

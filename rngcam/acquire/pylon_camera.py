@@ -123,6 +123,7 @@ class PylonCamera(Camera):
         self.features = PylonFeatures(self._cam.GetNodeMap())
         if self.features.readable("GevTimestampTickFrequency"):
             self._tick_s = 1.0 / float(self.features.get("GevTimestampTickFrequency"))
+        self.tick_s = self._tick_s
         self.info = CameraInfo("pylon", d.GetModelName(), d.GetSerialNumber(), d.GetDeviceClass(),
                                d.GetVendorName())
         return self.info
@@ -173,6 +174,7 @@ class PylonCamera(Camera):
         if not cam.IsGrabbing():
             raise HardwareError(f"{self.label}: fetch of {what} while not armed")
         result = cam.RetrieveResult(max(1, int(timeout_s * 1000)), pylon.TimeoutHandling_Return)
+        host_s = self.host_time()
         if result is None or not result.IsValid():
             raise HardwareError(f"{self.label}: no {what} within {timeout_s:g} s (no trigger arrived?)")
         try:
@@ -181,11 +183,17 @@ class PylonCamera(Camera):
                                     f"(code {result.GetErrorCode():#x})")
             data = result.GetArray().copy()
             stamp = _chunk_timestamp(result)
-            if stamp is None:
+            source = None
+            if stamp is not None:
+                event = (self.configured.features.get("ChunkTimestampEvent") if self.configured else None)
+                source = f"{event or 'Timestamp'} chunk"
+            else:
                 stamp = result.GetTimeStamp() or None  # the emulator reports 0: no timestamp
+                source = None if stamp is None else "transport timestamp"
             exposure_us = _chunk_value(result, "ChunkExposureTime")
             return Frame(data=data, pixel_format=self.pixel_format, frame_id=int(result.GetBlockID()),
                          timestamp_s=None if stamp is None else stamp * self._tick_s,
+                         start_ticks=stamp, start_source=source, host_s=host_s,
                          exposure_s=(exposure_us * 1e-6 if exposure_us is not None
                                      else (self.configured.exposure_s if self.configured else None)))
         finally:
@@ -218,8 +226,12 @@ def _chunk_value(result, name: str):
 
 
 def _chunk_timestamp(result):
-    value = _chunk_value(result, "ChunkTimestamp")
-    return None if value is None else int(value)
+    """The exposure-start ticks a result's chunk data carries (ace 2 / dart, then ace classic)."""
+    for name in ("BslChunkTimestampValue", "ChunkTimestamp"):
+        value = _chunk_value(result, name)
+        if value is not None:
+            return int(value)
+    return None
 
 
 def emulator_serve_images(camera: PylonCamera, path) -> None:

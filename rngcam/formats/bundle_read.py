@@ -199,7 +199,11 @@ class _Reader:
             "timestamps_s": self.dataset(g, "timestamps_s", False),
             "frame_ids": self.dataset(g, "frame_ids", False),
             "features": self.json_attr(g, "features", dict, {}),
+            "exposure_start_s": self.dataset(g, "exposure_start_s", False),  # optional: older bundles lack it
         }
+        results["exposure_start_method"] = ("", True)
+        if results["exposure_start_s"][0] is not None:
+            results["exposure_start_method"] = self.attr(g["exposure_start_s"], "method", str, "", required=False)
         if not all(ok for _, ok in results.values()):
             return None
         return CameraRecord(**{k: v for k, (v, _) in results.items()})

@@ -5,7 +5,8 @@ A bundle is the contract between acquisition, simulation and reconstruction. Lay
 - root attrs: ``format``, ``schema_version``, ``created_utc``, ``rngcam_version``,
   ``rig_yaml`` (verbatim), ``meta`` (JSON).
 - ``rs`` / ``gs`` groups (both required): dataset ``frames`` (native dtype, one chunk per
-  frame), ``trigger_times_s`` and optional ``timestamps_s`` (float64), ``frame_ids`` (int64);
+  frame), ``trigger_times_s`` and optional ``timestamps_s`` (float64), ``frame_ids`` (int64),
+  ``exposure_start_s`` (float64, measured exposure starts, attr ``method``);
   attrs ``pixel_format``, ``bit_depth``, ``black_level_dn``, ``exposure_s``, ``gain_db``,
   ``model``, ``serial``, optional ``line_time_s`` (RS), ``features`` (JSON).
 - ``calibration`` group: optional datasets ``psf`` (C, Hp, Wp) float32, ``gs_to_rs`` (3, 3),
@@ -64,6 +65,9 @@ class CameraRecord(ShortRepr):
     trigger_times_s: (N,) trigger time of each frame relative to T0 (the RS trigger, 0).
     line_time_s: RS row-to-row delay (required for the RS camera, None for GS).
     timestamps_s / frame_ids: (N,) device timestamps (s) and frame counters, when known.
+    exposure_start_s: (N,) measured exposure starts, seconds on the RS trigger's timeline (the
+    planned ones are trigger_times_s), when the cameras report them (rngcam.acquire.exposure_clock);
+    exposure_start_method says how they were measured.
     features: every feature read back from the camera (JSON-able).
     """
 
@@ -80,6 +84,8 @@ class CameraRecord(ShortRepr):
     timestamps_s: np.ndarray | None = None
     frame_ids: np.ndarray | None = None
     features: dict = field(default_factory=dict)
+    exposure_start_s: np.ndarray | None = None
+    exposure_start_method: str = ""
 
 
 @dataclass(repr=False)
@@ -199,14 +205,20 @@ def _check_camera(name: str, rec: CameraRecord) -> list[str]:
     elif name == "rs" and trig.size and trig[0] != 0:
         problems.append(f"RS trigger_times_s is {trig[0]:.6g} s; times are relative to T0, the RS "
                         "trigger, so it must be 0 (subtract it from every trigger time)")
-    for opt in ("timestamps_s", "frame_ids"):
+    for opt in ("timestamps_s", "frame_ids", "exposure_start_s"):
         arr = getattr(rec, opt)
         if arr is not None and np.shape(arr) != (n,):
             problems.append(f"{label} {opt} has shape {np.shape(arr)}, expected ({n},)")
-    if rec.timestamps_s is not None and not np.all(np.isfinite(np.asarray(rec.timestamps_s, float))):
-        problems.append(f"{label} timestamps_s has non-finite values")
+    for opt in ("timestamps_s", "exposure_start_s"):
+        arr = getattr(rec, opt)
+        bad = arr is not None and (np.asarray(arr).dtype.kind not in "uif"
+                                   or not np.all(np.isfinite(np.asarray(arr, float))))
+        if bad:
+            problems.append(f"{label} {opt} has non-finite values")
     if rec.frame_ids is not None and np.asarray(rec.frame_ids).dtype.kind not in "ui":
         problems.append(f"{label} frame_ids must be integers, got dtype {np.asarray(rec.frame_ids).dtype}")
+    if not isinstance(rec.exposure_start_method, str):
+        problems.append(f"{label} exposure_start_method must be text")
     if not isinstance(rec.features, dict):
         problems.append(f"{label} features must be a dict, got {type(rec.features).__name__}")
     return problems
@@ -237,6 +249,41 @@ def _check_gs_window(rs: CameraRecord, gs: CameraRecord) -> list[str]:
                f"[{start * 1e3:.3f}, {end * 1e3:.3f}] ms after T0 (frame, ms): {frames}; "
                "a frame that misses the window entirely is left out of the reconstruction")
     return [message]
+
+
+START_TOLERANCE = 0.1  # of a GS frame interval: a measured exposure start further from its plan is a warning
+
+
+def gs_start_offsets(gs: CameraRecord | None) -> tuple[np.ndarray, float] | None:
+    """(each GS frame's measured exposure start less its planned trigger time, the tolerance in
+    seconds: a tenth of the planned frame interval, or of the exposure for one frame), or None
+    when the bundle has no usable measured starts."""
+    if gs is None or gs.exposure_start_s is None:
+        return None
+    measured = np.asarray(gs.exposure_start_s, np.float64)
+    planned = np.asarray(gs.trigger_times_s, np.float64)
+    if measured.shape != planned.shape or measured.ndim != 1 or not (np.all(np.isfinite(measured))
+                                                                     and np.all(np.isfinite(planned))):
+        return None
+    interval = float(np.median(np.diff(planned))) if planned.size > 1 else float(gs.exposure_s)
+    if not _finite(interval) or interval <= 0:
+        interval = float(gs.exposure_s) if _finite(gs.exposure_s) else 0.0
+    return measured - planned, START_TOLERANCE * interval
+
+
+def _check_gs_starts(gs: CameraRecord) -> list[str]:
+    """Warn when a GS exposure started more than a tenth of a frame interval from its plan."""
+    found = gs_start_offsets(gs)
+    if found is None:
+        return []
+    offsets, tol = found
+    late = np.flatnonzero(np.abs(offsets) > tol)
+    if late.size == 0:
+        return []
+    frames = ", ".join(f"{i + 1} {offsets[i] * 1e6:+.1f}" for i in late[:5])
+    return [f"{WARNING_PREFIX}{late.size} GS frame(s) started more than a tenth of a frame interval "
+            f"({tol * 1e6:.1f} us) away from the plan (frame, us): {frames}; the reconstruction uses "
+            "the measured exposure starts"]
 
 
 def _check_gs_size(rs: CameraRecord, gs: CameraRecord, cal: Calibration | None) -> list[str]:
@@ -371,6 +418,8 @@ def check_bundle(bundle: Bundle, skip: frozenset[str] = frozenset()) -> list[str
     if bundle.rs is not None and bundle.gs is not None:
         problems += _check_gs_window(bundle.rs, bundle.gs)
         problems += _check_gs_size(bundle.rs, bundle.gs, bundle.calibration)
+    if bundle.gs is not None:
+        problems += _check_gs_starts(bundle.gs)
     if bundle.calibration is not None:
         problems += _check_calibration(bundle.calibration, bundle.rs)
     if bundle.trigger is not None:

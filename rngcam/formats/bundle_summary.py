@@ -10,7 +10,15 @@ import numpy as np
 
 from rngcam import pixels
 from rngcam.formats.bundle_read import bundle_checksum, open_checked
-from rngcam.formats.bundle_schema import SCHEMA_VERSION, Bundle, Calibration, CameraRecord, check_bundle, trigger_faults
+from rngcam.formats.bundle_schema import (
+    SCHEMA_VERSION,
+    Bundle,
+    Calibration,
+    CameraRecord,
+    check_bundle,
+    gs_start_offsets,
+    trigger_faults,
+)
 
 
 def _camera_summary(rec: CameraRecord) -> dict:
@@ -31,7 +39,20 @@ def _camera_summary(rec: CameraRecord) -> dict:
     }
     if rec.line_time_s is not None:
         out["line_time_us"] = float(rec.line_time_s) * 1e6
+    if rec.exposure_start_s is not None:
+        out["exposure_start_ms"] = [float(t) * 1e3 for t in np.asarray(rec.exposure_start_s, np.float64)]
+        out["exposure_start_method"] = rec.exposure_start_method
     return out
+
+
+def _start_offsets(gs: CameraRecord | None) -> dict | None:
+    """The GS frames' measured exposure starts against the plan (us), and the tolerance."""
+    found = gs_start_offsets(gs)
+    if found is None:
+        return None
+    offsets, tol = found
+    return {"offsets_us": [float(o) * 1e6 for o in offsets], "tolerance_us": tol * 1e6,
+            "beyond_tolerance": [int(i) + 1 for i in np.flatnonzero(np.abs(offsets) > tol)]}
 
 
 def summary_dict(bundle: Bundle, path: str | os.PathLike | None = None,
@@ -53,6 +74,7 @@ def summary_dict(bundle: Bundle, path: str | os.PathLike | None = None,
     for name in ("rs", "gs"):
         rec = getattr(bundle, name)
         out[name] = _camera_summary(rec) if rec is not None else None
+    out["gs_start_offsets"] = _start_offsets(bundle.gs)
     cal = bundle.calibration or Calibration()
     psf = None
     if cal.psf is not None:
@@ -122,6 +144,15 @@ def render_summary(s: dict) -> str:
         if "line_time_us" in cam:
             timing += f"  line time {cam['line_time_us']:.3f} us"
         row("", timing + f"  trigger times {_fmt_ms(cam['trigger_times_ms'])} ms")
+        if "exposure_start_ms" in cam:
+            row("", f"measured exposure starts {_fmt_ms(cam['exposure_start_ms'])} ms "
+                f"({cam['exposure_start_method'] or 'method not recorded'})")
+    starts = s.get("gs_start_offsets")
+    if starts:
+        shown = ", ".join(f"{o:+.1f}" for o in starts["offsets_us"][:8])
+        beyond = starts["beyond_tolerance"]
+        row("GS starts", f"{shown} us against the plan (tolerance +-{starts['tolerance_us']:.1f} us): "
+            + (f"frame(s) {', '.join(map(str, beyond))} beyond it" if beyond else "all within"))
     cal = s["calibration"]
     psf = cal["psf"]
     if psf:

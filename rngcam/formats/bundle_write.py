@@ -124,6 +124,9 @@ def _write_camera(f: h5py.File, name: str, rec: CameraRecord, features_json: str
         _small_dataset(g, "timestamps_s", np.asarray(rec.timestamps_s, dtype=np.float64))
     if rec.frame_ids is not None:
         _small_dataset(g, "frame_ids", np.asarray(rec.frame_ids, dtype=np.int64))
+    if rec.exposure_start_s is not None:
+        _small_dataset(g, "exposure_start_s", np.asarray(rec.exposure_start_s, dtype=np.float64))
+        _set_text(g["exposure_start_s"], "method", rec.exposure_start_method)
     _write_frames(g, "frames", rec.frames, compression)
 
 

@@ -5,6 +5,8 @@ binning, the GS-to-RS warp.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import torch
@@ -16,6 +18,38 @@ from rngcam.formats.bundle import Bundle, CameraRecord
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.sensor import BAYER_FORMATS, frame_to_measurement
 from rngcam.physics.timing import VideoGrid
+
+START_RESOLUTION_S = 1e-7  # a measured start this close to its plan is the plan (clock rounding)
+
+
+def _usable_starts(cam: CameraRecord | None) -> np.ndarray | None:
+    """The camera's measured exposure starts, each within START_RESOLUTION_S of its plan snapped
+    to it (so rounding never adds a grid frame before T0), or None."""
+    if cam is None or cam.exposure_start_s is None:
+        return None
+    starts = np.asarray(cam.exposure_start_s, np.float64)
+    planned = np.asarray(cam.trigger_times_s, np.float64)
+    if starts.shape != planned.shape or not np.all(np.isfinite(starts)):
+        return None
+    return np.where(np.abs(starts - planned) <= START_RESOLUTION_S, planned, starts)
+
+
+def measured_timing(bundle: Bundle, notes: list[str]) -> Bundle:
+    """`bundle` with the GS exposure windows (and the RS trigger offset) at the measured exposure
+    starts where the bundle records them (exposure durations as planned), with a note; the
+    bundle itself when it records none (an older bundle, a camera without timestamps)."""
+    gs = _usable_starts(bundle.gs)
+    if gs is None:
+        return bundle
+    rs = _usable_starts(bundle.rs)
+    if np.array_equal(gs, np.asarray(bundle.gs.trigger_times_s, np.float64)) and (
+            rs is None or rs[0] == float(np.asarray(bundle.rs.trigger_times_s)[0])):
+        return bundle  # measured where planned
+    rs_record = bundle.rs if rs is None else replace(bundle.rs, trigger_times_s=rs[:1].copy())
+    shift = np.abs(gs - np.asarray(bundle.gs.trigger_times_s, np.float64))
+    notes.append(f"GS exposures at their measured starts ({bundle.gs.exposure_start_method or 'method not recorded'}; "
+                 f"up to {shift.max() * 1e6:.1f} us from the plan)")
+    return replace(bundle, rs=rs_record, gs=replace(bundle.gs, trigger_times_s=gs))
 
 
 def camera_frames(cam: CameraRecord, dt_s: float, keep=None) -> list[tuple[np.ndarray, np.ndarray]]:

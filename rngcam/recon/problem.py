@@ -6,6 +6,8 @@ colour, which counts towards the bin). Grid row i then averages `rows_per_bin` s
 the RS timing uses that bin exactly (a trapezoid). With a Bayer mosaic, R and B come from half of
 the bin's rows: the timing of those channels is off by at most half a line time, which we accept.
 GS frames are warped onto the RS sensor with the calibration's GS-to-RS homography, then binned.
+Timing: where the bundle records measured exposure starts (rs/gs exposure_start_s), the GS
+exposure windows start there, not at the planned trigger times (gridding.measured_timing).
 
 Held-out split (for choosing settings without truth, rngcam.recon.holdout): `with_holdout` sets
 `rs_train_rows` (H,) and `gs_train_mask` (G, H, W) (or (H, W) for every key frame), both bool
@@ -41,11 +43,12 @@ from rngcam.recon.gridding import (
     grid_truth,
     gs_on_rs_grid,
     masked_note,
+    measured_timing,
     sensor_defects,
     valid_or_none,
 )
-from rngcam.video_plan import check_frames, plan_grid
 from rngcam.untrusted import printable
+from rngcam.video_plan import check_frames, plan_grid
 
 
 @dataclass
@@ -295,11 +298,12 @@ def _usable_gs(bundle: Bundle, plan, unusable: dict, left_out: list) -> tuple[li
 
 def _build_problem(bundle: Bundle, grid_bin: int | None, dt_s: float | None, use_rs: bool, use_gs: bool,
                    max_frames: int | None) -> Problem:
+    notes: list[str] = []
+    bundle = measured_timing(bundle, notes)  # the exposures where the cameras say they started
     plan = plan_grid(bundle, grid_bin, dt_s)
     check_frames(plan, max_frames)  # before allocating anything frame-sized
     grid_bin = plan.rs.rows_per_bin
     grid = plan.grid
-    notes: list[str] = []
     left_out: list[tuple[str, str]] = []
     cam = bundle.rs
     mosaic = 2 if cam.pixel_format in BAYER_FORMATS else 1
