@@ -244,7 +244,8 @@ class MockSceneConfig(_Model):
     clock_drift_ppm, the GS camera's at their negatives; timestamp_latch: whether the cameras
     have a timestamp latch (else capture fits ticks against host times). gs_start_offset_s: every
     GS exposure starts this long after its trigger (a debouncer and model delay), plus a
-    per-frame gaussian jitter of start_jitter_s (seeded)."""
+    per-frame gaussian jitter of start_jitter_s (seeded, clipped at 4 sigmas; the mock refuses an
+    exposure before T0, so with a GS trigger at T0 keep the offset >= 4 x the jitter)."""
 
     scene: str = "sineball"
     seed: int = 0

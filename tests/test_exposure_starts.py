@@ -294,3 +294,18 @@ def test_aravis_fake_has_transport_timestamps_only_so_its_clock_is_fitted_to_hos
     assert out["sources"] == ["transport timestamp"] * 3 and all(out["host"])
     assert "host fit" in out["methods"]["gs"]
     assert len(out["gs"]) == 2 and 0 < out["gs"][0] < out["gs"][1] < 1.0  # after the RS frame, in order
+
+
+def test_per_frame_jitter_is_what_the_mock_cameras_clocks_report(tmp_path):
+    from rngcam.acquire.mock_clock import MockTiming
+
+    rig = _small_rig(start_jitter_s=20e-6, gs_start_offset_s=80e-6)  # never before T0 (4 sigmas)
+    out = tmp_path / "jitter.h5"
+    capture(rig, out, progress=lambda _line: None)
+    b = read_bundle(out)
+    timing = MockTiming.from_config(rig.config.mock)
+    delays = np.array([timing.start_delay_s("gs", i) for i in range(3)])
+    assert np.ptp(delays) > 1e-6  # the frames do jitter
+    assert np.allclose(b.gs.exposure_start_s - b.gs.trigger_times_s, delays, atol=10e-9)
+    s = json.loads(CliRunner().invoke(main, ["inspect", str(out), "--json"]).output)
+    assert s["gs_start_offsets"]["beyond_tolerance"] == []  # all within 200 us
