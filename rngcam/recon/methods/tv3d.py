@@ -32,6 +32,7 @@ from rngcam.errors import ConfigError
 from rngcam.memory import release_free_memory
 from rngcam.physics import tv_prox as tv
 from rngcam.physics.operators import LinearOperator
+from rngcam.recon import ablation
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.baselines import blend
 from rngcam.recon.methods.coarse_to_fine import Kept, kept
@@ -125,6 +126,8 @@ class TV3D(MethodBase):
         `rs_norm_start`: a start for the RS operator's power iteration (a coarser level's
         `rs_norm_vector`, upsampled)."""
         self.p, self.s, self._x0 = problem, settings or TV3DSettings(), x0
+        self.p = problem = ablation.for_method(problem, self.s)  # no_rs / no_gs: that camera is never read
+        self.notes = ablation.selfcal_note(self.s)
         self.rs_norm_vector = None
         use_rs = not self.s.no_rs and problem.b_rs is not None
         use_gs = not self.s.no_gs and problem.b_gs is not None and problem.b_gs.shape[1] > 0
@@ -305,9 +308,12 @@ def make_tv3d(problem: Problem, settings: TV3DSettings | None = None, clock=None
     """TV3D on `problem`, coarse-to-fine (rngcam.recon.methods.coarse_to_fine) when the grid is large enough,
     the setting is on and no held-out split is fitted; `stage(message)` reports set-up stages.
     With `self_calibrate`, the problem's GS frames are first corrected (rngcam.recon.methods.selfcal) and
-    the refined values are in the method's notes and `selfcal_report`."""
+    the refined values are in the method's notes and `selfcal_report`. With `no_rs` / `no_gs` the
+    method sees the problem without that camera (rngcam.recon.ablation) and self-calibration is off."""
     settings = settings or TV3DSettings()
-    method = _make_tv3d(problem, settings, clock, stage) if settings.self_calibrate == "off" else None
+    problem = ablation.for_method(problem, settings)
+    calibrate = settings.self_calibrate != "off" and not ablation.removed(settings)
+    method = _make_tv3d(problem, settings, clock, stage) if not calibrate else None
     if method is None:
         from rngcam.recon.methods.selfcal import calibrate_problem, report_lines
 

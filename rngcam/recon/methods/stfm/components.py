@@ -114,11 +114,11 @@ def choose_components(problem, auto: bool = True, no_static: bool = False,
     has_gs = problem.b_gs is not None and problem.b_gs.shape[1] > 0
     rs = has_rs and not no_rs
     gs = has_gs and not no_gs
-    if no_rs and has_rs:
+    if no_rs:  # (an ablated problem has no RS image left: rngcam.recon.ablation)
         left.append(("rs", "switched off (no_rs): GS-only fit"))
     elif not has_rs:
         left.append(("rs", "no RS measurement: GS-only fit"))
-    if no_gs and has_gs:
+    if no_gs:
         left.append(("gs", "switched off (no_gs): RS-only fit"))
     elif not has_gs:
         left.append(("gs", "no GS frames: RS-only fit"))
@@ -129,12 +129,12 @@ def choose_components(problem, auto: bool = True, no_static: bool = False,
     if no_static:
         static = False
         left.append(("static", "switched off (no_static)"))
-    elif auto and has_gs:
+    elif auto and gs:
         dark, why = dark_background(problem)
         if dark:
             static = False
             left.append(("static", f"dark background: {why}"))
-    if auto and has_gs and not no_static:  # (a static video with no static field is a contradiction)
+    if auto and gs and not no_static:  # (a static video with no static field is a contradiction)
         still, why = static_scene(problem, rs_on=rs)
         if still:
             motion = False

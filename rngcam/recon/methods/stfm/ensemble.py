@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.recon import ablation
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.stfm.method import STFM
 from rngcam.recon.methods.stfm.model import _chunks
@@ -207,9 +208,11 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
 
     Preset "auto" is resolved here, on the whole problem (rngcam.recon.methods.stfm.auto.choose_preset);
     the method's `notes` and `preset_choice` (in its resolved settings) say which preset it chose
-    and why."""
+    and why. With `no_gs` / `no_rs` all of this sees the problem without that camera
+    (rngcam.recon.ablation), and self-calibration, which needs both, is off."""
     settings = settings or STFMSettings()
-    if settings.selfcal_report is None and settings.self_calibrate != "off":
+    problem = ablation.for_method(problem, settings)  # --no-gs / --no-rs: the camera is gone, not just unfitted
+    if settings.selfcal_report is None and settings.self_calibrate != "off" and not ablation.removed(settings):
         from rngcam.recon.methods.selfcal import calibrate_problem
 
         problem, report = calibrate_problem(problem, settings.self_calibrate)

@@ -12,6 +12,7 @@ from torch import Tensor
 
 from rngcam.errors import ConfigError
 from rngcam.memory import release_free_memory
+from rngcam.recon import ablation
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.selfcal import report_lines
 from rngcam.recon.methods.stfm.bases import BaseVideos
@@ -52,11 +53,13 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         choice = settings.preset_choice  # preset "auto" (make_stfm): what it chose and why
         self.notes = [f"preset auto chose {choice['preset']}: {choice['reason']}"] if choice else []
         self.notes += report_lines(settings.selfcal_report)  # the end values: resolved_settings
+        self.notes += ablation.selfcal_note(settings)  # --no-gs / --no-rs: nothing to calibrate against
         self._static_from = static_from
         self._given_base = base_video
         self.base_gains = None if base_gains is None else base_gains.to(device, torch.float32)
         self._rs_norm_start, self.rs_norm_vector = rs_norm_start, None
         self.device = torch.device(device)
+        problem = ablation.for_method(problem, settings)  # the camera an ablation removes is never read
         self.problem = problem.to(torch.float32, self.device)
         p = self.problem
         p.check_finite("stfm")
@@ -267,6 +270,8 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}
         out["left_out"] = [list(x) for x in self.left_out]
         report = self.settings.selfcal_report
+        if ablation.selfcal_note(self.settings):
+            out["self_calibration"] = {"mode": "off", "why": ablation.selfcal_off(self.settings)}
         if report:
             out["self_calibration"] = dict(report)
             if report.get("applied"):  # the fit learns the gains further (Lambda, on the refined scale)
