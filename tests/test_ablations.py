@@ -112,3 +112,21 @@ def test_the_ablated_problem_keeps_the_grid_and_drops_the_camera(bundles):
     assert r.b_rs is None and r.b_gs is p.b_gs and r.shape == p.shape
     with pytest.raises(ConfigError, match="nothing to fit"):
         ablation.without(p, rs=True, gs=True)
+
+
+def test_a_run_cut_in_set_up_under_no_gs_does_not_fall_back_on_the_gs_frames(bundles, monkeypatch):
+    from rngcam.recon import runner
+    from rngcam.recon.phases import BudgetCut
+
+    def cut(*_args, **_kwargs):
+        raise BudgetCut
+
+    monkeypatch.setattr(runner, "make_method", cut)
+    clean, bad_gs, _ = bundles
+    full = _run(clean)  # without the ablation the start video is the GS cross-fade
+    assert full.status == "budget_before_first_iteration" and float(np.abs(full.video).max()) > 0
+    for path in (clean, bad_gs):
+        r = _run(path, no_gs=True)
+        assert r.status == "budget_before_first_iteration"
+        assert float(np.abs(r.video).max()) == 0.0
+        assert any("start video (zeros: no GS frames)" in e for e in r.metrics["events"])

@@ -31,7 +31,7 @@ from rngcam.errors import RngcamError, SettingError
 from rngcam.formats.bundle import Bundle, bundle_checksum, is_warning, open_checked
 from rngcam.memory import peak_rss_bytes, release_free_memory
 from rngcam.physics.operators import drop_scratch
-from rngcam.recon import checkpoint, outputs, registry
+from rngcam.recon import ablation, checkpoint, outputs, registry
 from rngcam.recon.phases import BudgetCut, RunPhases
 from rngcam.recon.loop import LoopSettings, Method, RunResult, run, stage_printer
 from rngcam.recon.metrics import (
@@ -361,12 +361,14 @@ def _fit(problem: Problem, run_: Run, extra: dict, job: _Job) -> dict:
     except KeyboardInterrupt as exc:  # guard.Interrupted (SIGINT, SIGTERM) or a plain Ctrl-C
         job.guard.enter("finish")  # the timer off, further signals held: the start video is written whole
         why = f"interrupted by {getattr(exc, 'signame', 'KeyboardInterrupt')} in set-up"
-        return _cut(made, problem, "interrupted", why, rows, job.saved)
+        return _cut(made, ablation.for_method(problem, run_.settings.method_settings), "interrupted", why, rows,
+                    job.saved)
     except BudgetCut:
         job.guard.enter("finish")
         why = (f"time budget of {clock.seconds:g} s reached in set-up ({clock.elapsed():.1f} s), "
                f"before the first iteration")
-        return _cut(made, problem, "budget_before_first_iteration", why, rows, job.saved)
+        return _cut(made, ablation.for_method(problem, run_.settings.method_settings),
+                    "budget_before_first_iteration", why, rows, job.saved)
     return _iterate(problem, run_, method, made, rows, job)
 
 
@@ -413,16 +415,20 @@ def _iterate(problem: Problem, run_: Run, method: Method, made: dict, rows: _Row
     return made
 
 
+def _start_name(problem: Problem) -> str:
+    return "GS key frames cross-faded" if problem.b_gs is not None and problem.b_gs.shape[1] else "zeros: no GS frames"
+
+
 def _cut(made: dict, problem: Problem, status: str, why: str, rows: _Rows, saved: dict | None) -> dict:
     """A run ended in set-up: the start video as its result (the checkpoint, if one is resumed, is better:
-    the folder then keeps what it has)."""
+    the folder then keeps what it has). `problem`: what the method may see (an ablation's camera gone)."""
     wall_s = rows.clock.elapsed()  # when it was cut; the start video and its scores come after
     video = start_video(problem)
     keep = saved is not None and saved.get("method") is not None
     made.update(video=video, log=rows.one(video, 0.0, 0), iterations=0, solve_s=0.0,
                 wall_s=wall_s, status=status, message=f"{why}",
                 ended_by="signal" if status == "interrupted" else "budget",
-                events=[f"{why}: the start video (GS key frames cross-faded) is the result"
+                events=[f"{why}: the start video ({_start_name(problem)}) is the result"
                         if not keep else f"{why}: the folder keeps its earlier result and checkpoint"],
                 keep_folder=keep, cut=True)
     return made
