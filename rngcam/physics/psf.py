@@ -7,6 +7,7 @@ RS measurement of a static scene is I * exposure_s / dt, the same scale as the G
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import cv2
@@ -258,3 +259,46 @@ def centre_for_binning(raw: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     m = np.array([[1.0, 0.0, sx], [0.0, 1.0, sy]])
     return np.stack([cv2.warpAffine(ch, m, (wp, hp), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
                      for ch in raw])
+
+
+def magnify_matrix(n: int, factor: float, centre: float | None = None) -> np.ndarray:
+    """(n, n) area-resampling matrix along one axis: pixel k (spanning [k, k + 1)) magnified by
+    `factor` about `centre` (default the centre of pixel n // 2, a PSF's own point) spans
+    [c + (k - c) f, c + (k + 1 - c) f); output pixel i receives the share of it that falls in
+    [i, i + 1). Columns sum to 1 where nothing falls off the edge (energy kept)."""
+    if not (math.isfinite(factor) and factor > 0):
+        raise ValueError(f"magnification must be positive, got {factor}")
+    c = n // 2 + 0.5 if centre is None else float(centre)
+    edges = c + (np.arange(n + 1, dtype=np.float64) - c) * factor  # input pixel k spans edges[k:k + 2]
+    lo = np.maximum(np.arange(n)[:, None], edges[None, :-1])
+    hi = np.minimum(np.arange(n)[:, None] + 1.0, edges[None, 1:])
+    return np.clip(hi - lo, 0.0, None) / factor
+
+
+def even_blur(matrix: np.ndarray, variance: float) -> np.ndarray:
+    """`matrix` (a resampling matrix, rows = output pixels) followed by a 3-tap blur per output
+    pixel that brings each row's spread (its weights' variance, in pixels^2) up to `variance`:
+    resampled versions then share one blur, whatever their sub-pixel phases (an exact copy has
+    none, a magnified one mixes neighbours by their phase)."""
+    n = matrix.shape[0]
+    k = np.arange(matrix.shape[1]) + 0.5
+    w = matrix.sum(1).clip(1e-12)
+    mean = (matrix * k).sum(1) / w
+    spread = (matrix * (k[None] - mean[:, None]) ** 2).sum(1) / w
+    a = np.clip(variance - spread, 0.0, 2.0 / 3.0)
+    blur = np.diag(1 - a) + np.diag(a[:-1] / 2, 1) + np.diag(a[1:] / 2, -1)
+    return blur[:n, :n] @ matrix
+
+
+def magnify(psf: np.ndarray, factor: float, blur: float | None = None) -> np.ndarray:
+    """(C, H, W) PSF magnified by `factor` about its centre pixel (H // 2, W // 2), pixels treated as
+    uniform squares (exact area resampling), then normalised to sum 1 per channel: the PSF of a
+    scene at another distance than the calibration's point source. With `blur` (pixels^2 per
+    axis), every output pixel blurred to that spread (even_blur): candidates of a search compared
+    on equal terms."""
+    psf = np.asarray(psf, np.float64)
+    h, w = psf.shape[-2:]
+    my, mx = magnify_matrix(h, factor), magnify_matrix(w, factor)
+    if blur is not None:
+        my, mx = even_blur(my, blur), even_blur(mx, blur)
+    return normalise(np.einsum("ik,...kl,jl->...ij", my, psf, mx))

@@ -66,6 +66,12 @@ class Result:
     def method(self) -> str:
         return self.metrics.get("method", "")
 
+    @property
+    def misfit(self) -> dict | None:
+        """The misfit verdict (rngcam.recon.misfit): the RS residual clearly above the noise level,
+        its likely causes; None when the model explains the data or the method has no noise level."""
+        return self.metrics.get("misfit")
+
     def save(self, folder: str | Path, echo=None, truth: np.ndarray | None = None) -> Path:
         """Write recon.h5, video.tif, preview.mp4, errors.csv/png, metrics.json, report.html and (for a
         run made in memory) recon.log with what it said into
@@ -126,4 +132,6 @@ class Result:
             line += ", error seen at " + " / ".join(f"{v:.2f}x the {k.upper()} noise" for k, v in seen.items())
         if "heldout" in m:
             line += f", held-out residual {m['heldout']:.4g}"
+        if self.misfit:
+            line += f"; {self.misfit['line']}"
         return line

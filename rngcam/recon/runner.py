@@ -32,7 +32,6 @@ from rngcam.formats.bundle import Bundle, bundle_checksum, is_warning, open_chec
 from rngcam.memory import peak_rss_bytes, release_free_memory
 from rngcam.physics.operators import drop_scratch
 from rngcam.recon import ablation, checkpoint, outputs, registry
-from rngcam.recon.phases import BudgetCut, RunPhases
 from rngcam.recon.loop import LoopSettings, Method, RunResult, run, stage_printer
 from rngcam.recon.metrics import (
     error_visibility,
@@ -43,6 +42,8 @@ from rngcam.recon.metrics import (
     relative_residual,
     video_metrics,
 )
+from rngcam.recon.misfit import for_metrics
+from rngcam.recon.phases import BudgetCut, RunPhases
 from rngcam.recon.problem import Problem, build_problem
 from rngcam.recon.result import Result, split_results
 from rngcam.recon.runlog import RunLog
@@ -486,6 +487,9 @@ def _finish(source: Source, problem: Problem, run_: Run, extra: dict, fit: dict,
         metrics["method_settings"] = resolved["method_settings"] = method_settings  # the preset's values filled in
     if method_results:
         metrics["method_results"] = method_results
+    misfit = for_metrics(metrics)  # the RS residual clearly above the noise level: said, with its likely causes
+    if misfit:
+        metrics["misfit"] = misfit
     metrics["settings"] = {k: v for k, v in resolved.items() if k != "method_settings"}  # that one is above
     result = Result(video=video, frame_times_s=np.asarray(problem.frame_times_s), metrics=metrics,
                     components=fit["components"], notes=fit["notes"], warnings=list(extra["warnings"]),

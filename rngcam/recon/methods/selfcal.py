@@ -202,11 +202,12 @@ MAX_SIGMA_PX = 0.1  # a transform whose shift is less certain than this is not a
 MAX_ROTATION_DEG, MAX_SCALE = 2.0, 0.03  # beyond these the key rows fitted something else
 
 
-def calibrate_problem(problem, mode: str = "gains"):
+def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True):
     """(problem with its GS frames on the RS scale and in RS coordinates, report) from the key
     rows (register_key_rows): b_gs becomes gains x b_gs sampled at S^-1 (white balance then 1).
     The report has the start values (identity, the bundle's white balance), the refined ones,
-    their standard errors, and why a transform was not applied. mode "off": (problem, None)."""
+    their standard errors, and why a transform was not applied; with `psf_scale`, then the PSF's
+    magnification (calibrate_psf_scale: report["scales"]["psf"]). mode "off": (problem, None)."""
     if mode not in MODES:
         from rngcam.errors import ConfigError
 
@@ -239,7 +240,12 @@ def calibrate_problem(problem, mode: str = "gains"):
         report["transform_not_applied"] = why
         report["transform_rejected"] = report["refined"]
         report["refined"] = {**describe(np.eye(3)), "gains": gains.tolist()}
-    return _apply(problem, np.eye(3) if why is not None else result["matrix"], gains), report
+    problem = _apply(problem, np.eye(3) if why is not None else result["matrix"], gains)
+    if psf_scale:
+        problem, scale = calibrate_psf_scale(problem)
+        if scale is not None:
+            report["scales"] = {"psf": scale}
+    return problem, report
 
 
 def _apply(problem, matrix: np.ndarray, gains: np.ndarray):
@@ -277,8 +283,130 @@ def report_lines(report: dict | None, end_gains=None) -> list[str]:
         lines.append(f"GS-to-RS transform kept ({report['transform_not_applied']}); the key rows suggested shift "
                      f"({x['shift_px'][0]:+.3f}, {x['shift_px'][1]:+.3f}) px, rotation {x['rotation_deg']:+.3f} deg, "
                      f"scale {x['scale']:.4f}")
+    psf = (report.get("scales") or {}).get("psf")
+    if psf:
+        outcome = "applied" if psf["applied"] else f"not applied, {psf['why']}"
+        lines.append(f"PSF scale {psf['estimate']:.4f} estimated from the key rows (residual "
+                     f"{psf['residual_before']:.4f} -> {psf['residual_after']:.4f}): {outcome}")
     gains = "/".join(f"{g:.3f}" for g in s["gains"]) + " -> " + "/".join(f"{g:.3f}" for g in r["gains"])
     if end_gains is not None:
         gains += " -> " + "/".join(f"{g * r0:.3f}" for g, r0 in zip(end_gains, r["gains"], strict=True)) + " (fit)"
     lines.append(f"GS/RS gains {gains}")
     return lines
+
+
+# ----------------------------------------------------------------------------- PSF scale
+
+PSF_SCALE_RANGE = (0.90, 1.10)  # the magnifications searched (a scene nearer or further than the calibration's)
+MIN_DROP = 0.03  # a scale is applied when it lowers the key rows' residual by at least this share
+_COARSE, _FINE = 0.02, 0.005  # search steps
+# Magnifying the grid PSF resamples a caustic that is sharp at the grid's pixels: each candidate
+# mixes neighbouring pixels by its sub-pixel phases, the unmagnified one not at all, and that
+# blur alone would pull the search to 1. The search compares candidates all blurred to this
+# spread (pixels^2 per axis; rngcam.physics.psf.even_blur).
+EVEN_BLUR = 0.25
+
+
+def key_row_misfit(problem, matrix=None):
+    """A function psf (C or 1, Hp, Wp) -> (the key rows' relative residual, the GS/RS gains (C,))
+    with that PSF, the gains fitted in closed form, the GS frames taken to RS coordinates by
+    `matrix` (3x3, GS-to-RS; identity by default); None without key rows."""
+    from dataclasses import replace
+
+    if problem.b_rs is None or problem.b_gs is None:
+        return None
+    pairs = key_rows(problem.rs_weights, problem.gs_weights)
+    if not pairs:
+        return None
+    p = problem.to(torch.float64)
+    images = _filled(p.gs_images(), p.gs_valid)
+    if matrix is not None and not is_identity(matrix):
+        images = warp(images, np.linalg.inv(np.asarray(matrix, np.float64)))
+    valid = p.rs_valid_mask()
+    rowsum = p.rs_weights.sum(1)
+    sel = [(g, torch.from_numpy(rows)) for g, rows in pairs]
+    targets = [p.b_rs[:, rows] * (1 if valid is None else valid[:, rows]) for _, rows in sel]
+    norm = float(sum(t.square().sum() for t in targets).clamp_min(1e-30))
+
+    def misfit(psf) -> tuple[float, np.ndarray]:
+        conv = replace(p, psf=torch.as_tensor(psf, dtype=torch.float64)).rs_op().conv
+        num = torch.zeros(images.shape[0], dtype=torch.float64)
+        den = torch.zeros_like(num)
+        for (g, rows), target in zip(sel, targets, strict=True):
+            pred = conv.A(images[:, g])[:, rows] * rowsum[rows][None, :, None]
+            if valid is not None:
+                pred = pred * valid[:, rows]
+            num += (pred * target).sum((1, 2)).cpu()
+            den += pred.square().sum((1, 2)).cpu()
+        den = den.clamp_min(1e-30)
+        left = max(norm - float((num.square() / den).sum()), 0.0)
+        return math.sqrt(left / norm), (num / den).numpy()
+
+    return misfit
+
+
+def _parabola(xs: np.ndarray, ys: np.ndarray) -> float:
+    """The vertex of the parabola through the lowest point and its neighbours (the lowest point
+    itself at an end of the range or where the three do not curve upwards)."""
+    i = int(np.argmin(ys))
+    if i == 0 or i == len(xs) - 1:
+        return float(xs[i])
+    (x0, x1, x2), (y0, y1, y2) = xs[i - 1:i + 2], ys[i - 1:i + 2]
+    denom = (x0 - x1) * (x0 - x2) * (x1 - x2)
+    a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / denom
+    b = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / denom
+    return float(xs[i]) if a <= 0 else float(np.clip(-b / (2 * a), x0, x2))
+
+
+def estimate_psf_scale(problem, matrix=None, scales: tuple[float, float] = PSF_SCALE_RANGE) -> dict | None:
+    """The magnification s of the problem's PSF (about its centre: rngcam.physics.psf.magnify) that
+    best explains the key rows: a coarse search over `scales`, a finer one around the best, and a
+    parabola through the lowest three, candidates compared at one blur (EVEN_BLUR). Returns
+    {"estimate", "residual_before" (the PSF as it is), "residual_after" (magnified by the
+    estimate), "at_bound"} or None without key rows."""
+    from rngcam.physics.psf import magnify
+
+    misfit = key_row_misfit(problem, matrix)
+    if misfit is None:
+        return None
+    psf = problem.psf.double().cpu().numpy()
+
+    def at(s: float) -> float:  # every candidate blurred alike, the unmagnified one too
+        return misfit(magnify(psf, s, blur=EVEN_BLUR))[0]
+
+    lo, hi = scales
+    coarse = np.unique(np.append(np.arange(lo, hi + 1e-9, _COARSE), 1.0))
+    ys = np.array([at(s) for s in coarse])
+    best = float(coarse[int(np.argmin(ys))])
+    fine = np.arange(max(lo, best - 2 * _COARSE), min(hi, best + 2 * _COARSE) + 1e-9, _FINE)
+    yf = np.array([at(s) for s in fine])
+    estimate = _parabola(fine, yf)
+    if at(estimate) > float(yf.min()):  # the parabola missed: the best point sampled
+        estimate = float(fine[int(np.argmin(yf))])
+    return {"estimate": estimate, "residual_before": misfit(psf)[0],
+            "residual_after": misfit(magnify(psf, estimate))[0],
+            "at_bound": bool(min(estimate - lo, hi - estimate) < _FINE / 2)}
+
+
+def calibrate_psf_scale(problem, matrix=None, min_drop: float = MIN_DROP):
+    """(problem, report): the PSF magnified by estimate_psf_scale's estimate where that lowers the
+    key rows' residual by at least `min_drop` (and is not at the search's bound); report
+    {"start": 1, "estimate", "residual_before", "residual_after", "applied", "why"} (None without key rows)."""
+    from dataclasses import replace
+
+    from rngcam.physics.psf import magnify
+
+    found = estimate_psf_scale(problem, matrix)
+    if found is None:
+        return problem, None
+    drop = 1 - found["residual_after"] / max(found["residual_before"], 1e-30)
+    report = {"start": 1.0, **found, "applied": False}
+    if found["at_bound"]:
+        report["why"] = f"at the search's bound ({PSF_SCALE_RANGE[0]:g}-{PSF_SCALE_RANGE[1]:g})"
+    elif drop < min_drop:
+        report["why"] = f"the key rows' residual fell by {100 * drop:.1f} % (< {100 * min_drop:g} %)"
+    else:
+        report["applied"] = True
+        psf = torch.from_numpy(magnify(problem.psf.double().cpu().numpy(), found["estimate"]))
+        problem = replace(problem, psf=psf.to(problem.psf.dtype), notes=list(problem.notes))
+    return problem, report

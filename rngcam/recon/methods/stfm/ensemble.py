@@ -215,7 +215,7 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
     if settings.selfcal_report is None and settings.self_calibrate != "off" and not ablation.removed(settings):
         from rngcam.recon.methods.selfcal import calibrate_problem
 
-        problem, report = calibrate_problem(problem, settings.self_calibrate)
+        problem, report = calibrate_problem(problem, settings.self_calibrate, settings.self_calibrate_psf_scale)
         settings = replace(settings, selfcal_report=report or {})
     if settings.preset == "auto":
         from rngcam.recon.methods.stfm.auto import choose_preset

@@ -1,0 +1,79 @@
+"""The misfit verdict: does the model explain the data the run fitted?
+
+An iterative fit whose forward model is right ends with its RS residual near the noise level it
+estimated from the RS image (STFM and pnp stop there). One that stops clearly above it is fitting
+data the model does not explain: a PSF at another magnification than the calibration's (a scene at
+another depth), a GS-to-RS transform off, a line time off. `verdict` says so in one line and names
+the causes the run did not correct (from what self-calibration estimated and applied); a run
+whose residual reached the noise level gets None. The threshold is set above what the fine
+simulation family ends on (the model right up to sub-grid detail; bench/realistic.md).
+"""
+
+from __future__ import annotations
+
+import math
+
+# RS residual / noise level above which the data are not explained. The fine family ends below
+# it (bench/realistic.md, "Misfit verdict"); a PSF a few percent too large ends above it.
+MISFIT_RATIO = 1.15
+
+NOT_EXPLAINED = "model does not explain the data"
+NOT_FITTED = "data not fitted yet"
+
+
+def _causes(selfcal: dict | None) -> list[str]:
+    """What the run could not correct: the calibration values self-calibration did not apply, the
+    ones its key rows pointed at first (a PSF scale off by more than 1 %, a transform it did not
+    apply that moves the GS frames by more than a quarter pixel or degree, a line time off)."""
+    report = selfcal or {}
+    scales = report.get("scales") or {}
+    first, later = [], []
+
+    def add(name: str, flagged: bool) -> None:
+        (first if flagged else later).append(name)
+
+    psf = scales.get("psf")
+    if not (psf and psf.get("applied")):
+        add("PSF scale", bool(psf and abs(psf.get("estimate", 1.0) - 1) > 0.01))
+    if not report.get("applied") or "transform_not_applied" in report:
+        rejected = report.get("transform_rejected") or {}
+        add("geometry", bool(rejected) and (math.hypot(*rejected.get("shift_px", (0, 0))) > 0.25
+                                            or abs(rejected.get("rotation_deg", 0)) > 0.25))
+    line = scales.get("line_time")
+    if not (line and line.get("applied")):
+        add("line time", bool(line and abs(line.get("estimate", 1.0) - 1) > 0.002))
+    return first + later or ["a model error self-calibration does not cover (scene outside the model, "
+                             "a sensor effect)"]
+
+
+def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str = "own_stop",
+            status: str = "ok", ratio_limit: float = MISFIT_RATIO) -> dict | None:
+    """None when the RS residual is within `ratio_limit` x the noise level (or either is unknown,
+    or the run did not finish cleanly); else {"verdict", "rs_residual", "noise_level", "ratio",
+    "likely_causes", "line"}. `selfcal`: STFM's self-calibration report (method_results)."""
+    try:
+        residual, noise = float(rs_residual), float(noise_level)
+    except (TypeError, ValueError):
+        return None
+    if status != "ok" or ended_by == "one_shot" or not (math.isfinite(residual) and math.isfinite(noise) and noise > 0):
+        return None
+    ratio = residual / noise
+    if ratio <= ratio_limit:
+        return None
+    causes = _causes(selfcal)
+    finished = ended_by == "own_stop"
+    what = NOT_EXPLAINED if finished else NOT_FITTED
+    line = (f"misfit: {what}: RS residual {residual:.4f} is {ratio:.2f}x the noise level {noise:.4f}")
+    if finished:
+        line += f"; likely causes not corrected: {', '.join(causes)}"
+    else:
+        line += f" (ended by {ended_by} before its own stop: more iterations, or {', '.join(causes)})"
+    return {"verdict": what, "rs_residual": residual, "noise_level": noise, "ratio": ratio,
+            "threshold": ratio_limit, "likely_causes": causes, "line": line}
+
+
+def for_metrics(metrics: dict) -> dict | None:
+    """The verdict for a run's metrics (residual_rs, method_results' noise level and self-calibration)."""
+    found = metrics.get("method_results") or {}
+    return verdict(metrics.get("residual_rs"), found.get("rs_noise_level"), found.get("self_calibration"),
+                   metrics.get("ended_by", "own_stop"), metrics.get("status", "ok"))

@@ -1,0 +1,131 @@
+"""Self-calibration of the PSF's scale and the misfit verdict (issue 39, parts 2 and 3).
+
+A scene at another distance than the calibration's point source sees the PSF magnified: the
+bundles here are simulated with one PSF crop and given the PSF of a smaller crop (the same
+caustic magnified, rendered from the source image, not resampled from the bundle's pixels)."""
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+import rngcam
+from rngcam.formats.bundle import read_bundle
+from rngcam.physics.psf import magnify, magnify_matrix
+from rngcam.recon import misfit
+from rngcam.recon.methods.selfcal import calibrate_problem, estimate_psf_scale, report_lines
+from rngcam.recon.noise import relative_noise_level
+from rngcam.recon.problem import build_problem
+from rngcam.sim.simulate import DEFAULT_PSF_CROP, simulate
+
+
+@pytest.fixture(scope="module")
+def bundles(tmp_path_factory):
+    """{magnification of the bundle's PSF against the data's: path}, 32 px, fine fidelity."""
+    folder = tmp_path_factory.mktemp("scale")
+    data = folder / "matched.h5"
+    simulate("sineball", data, size=32, fidelity="fine")
+    out = {1.0: data}
+    for m in (1.04, 1.08):
+        other = folder / f"psf{m}.h5"
+        simulate("sineball", other, size=32, fidelity="fine", psf_crop=DEFAULT_PSF_CROP / m)
+        with h5py.File(other, "r") as f:
+            psf = f["calibration/psf"][()]
+        wrong = folder / f"wrong{m}.h5"
+        wrong.write_bytes(data.read_bytes())
+        with h5py.File(wrong, "r+") as f:
+            f["calibration/psf"][...] = psf
+        out[m] = wrong
+    return out
+
+
+def test_magnify_keeps_energy_and_is_the_identity_at_one():
+    rng = np.random.default_rng(0)
+    psf = rng.random((2, 9, 11))
+    psf /= psf.sum(axis=(-2, -1), keepdims=True)
+    assert np.allclose(magnify(psf, 1.0), psf, atol=1e-12)
+    m = magnify_matrix(16, 0.9)  # shrinking: nothing falls off the edge
+    assert np.allclose(m.sum(0), 1.0, atol=1e-12)
+    point = np.zeros((1, 9, 9))
+    point[0, 4, 8] = 1.0  # 4 px right of the centre pixel: at 1.5x it lands 6 px right (off the edge)
+    point[0, 4, 6] = 1.0  # 2 px right: lands 3 px right
+    big = magnify(point, 1.5)
+    assert big[0, 4].argmax() == 7 and np.isclose(big.sum(), 1.0)
+
+
+def test_a_known_psf_scale_is_recovered_from_the_key_rows(bundles):
+    problem = build_problem(read_bundle(bundles[1.04]))
+    found = estimate_psf_scale(problem)
+    assert found["estimate"] == pytest.approx(1 / 1.04, rel=0.01)
+    assert found["residual_before"] > 1.5 * estimate_psf_scale(build_problem(read_bundle(bundles[1.0])))[
+        "residual_before"]  # the wrong PSF shows on the key rows
+
+
+def test_a_matched_psf_is_left_as_it_is(bundles):
+    problem = build_problem(read_bundle(bundles[1.0]))
+    calibrated, report = calibrate_problem(problem, "gains")
+    psf = report["scales"]["psf"]
+    assert psf["estimate"] == pytest.approx(1.0, abs=0.005)
+    assert not psf["applied"]
+    assert torch.equal(calibrated.psf, problem.psf)
+    assert any(line.startswith("PSF scale") for line in report_lines(report))
+    _, off = calibrate_problem(problem, "gains", psf_scale=False)
+    assert "scales" not in off
+
+
+def _truth_residual(problem) -> float:
+    """The RS residual of the true video under the problem's model: the least any fit can reach."""
+    p = problem.to(torch.float64)
+    truth = p.truth.double()
+    pred = p.rs_op().A(truth)
+    num, den = (pred * p.b_rs).sum((1, 2)), pred.square().sum((1, 2))
+    left = p.b_rs.square().sum() - (num.square() / den).sum()
+    return float((left / p.b_rs.square().sum()).sqrt())
+
+
+@pytest.mark.parametrize("scale_search", [True, False])
+def test_the_verdict_names_the_psf_scale_the_run_could_not_correct(bundles, scale_search):
+    problem = build_problem(read_bundle(bundles[1.08]))
+    calibrated, report = calibrate_problem(problem, "gains", psf_scale=scale_search)
+    noise = relative_noise_level(problem.b_rs)
+    said = misfit.verdict(_truth_residual(calibrated), noise, report)
+    assert said is not None and said["ratio"] > misfit.MISFIT_RATIO
+    assert said["verdict"] == misfit.NOT_EXPLAINED
+    assert "PSF scale" in said["likely_causes"] and "PSF scale" in said["line"]
+    if scale_search:  # the key rows pointed at it: named first
+        assert report["scales"]["psf"]["estimate"] < 0.97
+        assert said["likely_causes"][0] == "PSF scale"
+
+
+def test_no_verdict_where_the_model_explains_the_data(bundles):
+    problem = build_problem(read_bundle(bundles[1.0]))
+    calibrated, report = calibrate_problem(problem, "gains")
+    noise = relative_noise_level(problem.b_rs)
+    assert misfit.verdict(_truth_residual(calibrated), noise, report) is None
+
+
+def test_the_verdict_needs_a_noise_level_and_a_finished_run():
+    assert misfit.verdict(0.03, None) is None  # blend, interp, rife: no noise level
+    assert misfit.verdict(0.03, 0.0245, ended_by="one_shot") is None
+    assert misfit.verdict(0.03, 0.0245, status="interrupted") is None
+    assert misfit.verdict(0.0250, 0.0245) is None
+    said = misfit.verdict(0.0300, 0.0245)  # the issue's example: 22 % above the noise level
+    assert said["verdict"] == misfit.NOT_EXPLAINED and said["ratio"] == pytest.approx(0.03 / 0.0245)
+    assert said["likely_causes"] == ["PSF scale", "geometry", "line time"]
+    cut = misfit.verdict(0.0300, 0.0245, ended_by="budget")
+    assert cut["verdict"] == misfit.NOT_FITTED and "before its own stop" in cut["line"]
+    fixed = misfit.verdict(0.03, 0.0245, {"applied": True, "scales": {"psf": {"applied": True, "estimate": 0.96}}})
+    assert fixed["likely_causes"] == ["line time"]  # gains and transform applied ("all"), the scale too
+
+
+def test_the_run_says_it_in_metrics_the_summary_and_the_report(bundles, tmp_path):
+    r = rngcam.reconstruct(bundles[1.08], method="stfm-fast", max_iters=2, progress=False,
+                           self_calibrate_psf_scale=False, start_floor=False)
+    said = r.misfit
+    assert said is not None and said is r.metrics["misfit"] and said["ratio"] > misfit.MISFIT_RATIO
+    assert "misfit:" in r.summary() and "PSF scale" in said["line"]
+    folder = r.save(tmp_path / "out")
+    assert json.loads((folder / "metrics.json").read_text())["misfit"]["verdict"] == said["verdict"]
+    assert "misfit: " in (folder / "report.html").read_text()
