@@ -77,7 +77,7 @@ def test_no_rs_never_reads_the_rs_image(bundles, method):
 
 
 def test_no_gs_is_a_capture_without_gs_frames(bundles):
-    """Was 1.3 dB apart at 64 px: the preset, the gains and the floor came from the GS frames."""
+    """Before, `--no-gs` took its preset, its gains and its floor from the GS frames it left out."""
     clean = bundles[0]
     ablated = _run(clean, no_gs=True)
     with open_bundle(clean) as b:
