@@ -12,6 +12,7 @@ import click
 import numpy as np
 import pytest
 import torch
+from cli_tree import leaf_commands
 from click.testing import CliRunner
 
 from rngcam.cli import main
@@ -123,19 +124,9 @@ def test_a_toy_method_runs_through_the_command_line_with_generated_options(toy, 
     assert wrong.exit_code == 2 and "--pull does not apply to --method tv3d" in wrong.output
 
 
-def _commands(group, path=()):
-    ctx = click.Context(group)
-    for name in group.list_commands(ctx):
-        cmd = group.get_command(ctx, name)
-        if isinstance(cmd, click.Group):
-            yield from _commands(cmd, (*path, name))
-        else:
-            yield " ".join((*path, name)), cmd
-
-
 def test_every_option_of_every_command_has_help():
     seen = 0
-    for name, cmd in _commands(main):
+    for name, cmd in leaf_commands(main):
         ctx = click.Context(cmd, info_name=name)
         for param in cmd.get_params(ctx):
             if isinstance(param, click.Option):

@@ -15,6 +15,7 @@ from pathlib import Path
 import click
 import pytest
 import yaml
+from cli_tree import leaf_commands
 
 from rngcam.recon import registry
 
@@ -107,16 +108,6 @@ def test_the_chosen_lineups_name_registered_labels():
         registry.parse_label(label)  # a SettingError names a label the registry does not have
 
 
-def _commands(group, path=()):
-    ctx = click.Context(group)
-    for name in group.list_commands(ctx):
-        cmd = group.get_command(ctx, name)
-        if isinstance(cmd, click.Group):
-            yield from _commands(cmd, (*path, name))
-        else:
-            yield " ".join((*path, name)), cmd
-
-
 @pytest.fixture
 def toy():
     toy_settings = dataclasses.make_dataclass("ToySettings", [])
@@ -133,7 +124,7 @@ def test_every_method_option_of_the_command_line_is_the_registry(toy):
     from rngcam.cli.method_options import MethodCommand
 
     seen = []
-    for name, cmd in _commands(main):
+    for name, cmd in leaf_commands(main):
         ctx = click.Context(cmd)
         for param in cmd.get_params(ctx):
             choices = getattr(param.type, "choices", None)
