@@ -91,7 +91,7 @@ def test_the_verdict_names_the_psf_scale_the_run_could_not_correct(bundles, scal
     calibrated, report = calibrate_problem(problem, "gains", psf_scale=scale_search)
     noise = relative_noise_level(problem.b_rs)
     said = misfit.verdict(_truth_residual(calibrated), noise, report)
-    assert said is not None and said["ratio"] > misfit.MISFIT_RATIO
+    assert said is not None and said["ratio"] > said["threshold"]
     assert said["verdict"] == misfit.NOT_EXPLAINED
     assert "PSF scale" in said["likely_causes"] and "PSF scale" in said["line"]
     if scale_search:  # the key rows pointed at it: named first
@@ -111,20 +111,26 @@ def test_the_verdict_needs_a_noise_level_and_a_finished_run():
     assert misfit.verdict(0.03, 0.0245, ended_by="one_shot") is None
     assert misfit.verdict(0.03, 0.0245, status="interrupted") is None
     assert misfit.verdict(0.0250, 0.0245) is None
-    said = misfit.verdict(0.0300, 0.0245)  # the issue's example: 22 % above the noise level
+    # the issue's example, 22 % above the noise level: as much as the lab family ends on, unless
+    # the key rows found a PSF scale the run did not apply
+    assert misfit.verdict(0.0300, 0.0245) is None
+    found = {"applied": True, "transform_not_applied": "self_calibrate=gains",
+             "scales": {"psf": {"applied": False, "estimate": 0.96}}}
+    said = misfit.verdict(0.0300, 0.0245, found)
     assert said["verdict"] == misfit.NOT_EXPLAINED and said["ratio"] == pytest.approx(0.03 / 0.0245)
     assert said["likely_causes"] == ["PSF scale", "geometry", "line time"]
-    cut = misfit.verdict(0.0300, 0.0245, ended_by="budget")
+    assert misfit.verdict(0.0350, 0.0245)["likely_causes"] == ["PSF scale", "geometry", "line time"]
+    cut = misfit.verdict(0.0350, 0.0245, ended_by="budget")
     assert cut["verdict"] == misfit.NOT_FITTED and "before its own stop" in cut["line"]
-    fixed = misfit.verdict(0.03, 0.0245, {"applied": True, "scales": {"psf": {"applied": True, "estimate": 0.96}}})
+    fixed = misfit.verdict(0.035, 0.0245, {"applied": True, "scales": {"psf": {"applied": True, "estimate": 0.96}}})
     assert fixed["likely_causes"] == ["line time"]  # gains and transform applied ("all"), the scale too
 
 
 def test_the_run_says_it_in_metrics_the_summary_and_the_report(bundles, tmp_path):
-    r = rngcam.reconstruct(bundles[1.08], method="stfm-fast", max_iters=2, progress=False,
-                           self_calibrate_psf_scale=False, start_floor=False)
+    r = rngcam.reconstruct(bundles[1.08], method="stfm-fast", max_iters=1, progress=False, start_floor=False,
+                           self_calibrate="off")
     said = r.misfit
-    assert said is not None and said is r.metrics["misfit"] and said["ratio"] > misfit.MISFIT_RATIO
+    assert said is not None and said is r.metrics["misfit"] and said["ratio"] > said["threshold"]
     assert "misfit:" in r.summary() and "PSF scale" in said["line"]
     folder = r.save(tmp_path / "out")
     assert json.loads((folder / "metrics.json").read_text())["misfit"]["verdict"] == said["verdict"]

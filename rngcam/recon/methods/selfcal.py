@@ -9,6 +9,9 @@ and the gains to those rows gives the gains to about a percent; the similarity i
 biased by what the rows and the key frame do not share (motion within the part of the exposures
 they do not overlap, the binned forward model's own error), so it is applied only where its
 standard error says it is pinned (`calibrate_problem`, mode "all"; bench/realistic.md).
+The same rows then give the PSF's magnification (a scene at another distance than the
+calibration's point source): a one-dimensional search, applied where it lowers their residual
+(`calibrate_psf_scale`).
 
 Transforms are 3x3 matrices acting on pixel coordinates (x, y) measured from the grid's centre
 (pixel centres at i + 0.5 - W / 2), the convention of rngcam.sim.fidelity's truth values.
@@ -404,7 +407,8 @@ def calibrate_psf_scale(problem, matrix=None, min_drop: float = MIN_DROP):
     if found["at_bound"]:
         report["why"] = f"at the search's bound ({PSF_SCALE_RANGE[0]:g}-{PSF_SCALE_RANGE[1]:g})"
     elif drop < min_drop:
-        report["why"] = f"the key rows' residual fell by {100 * drop:.1f} % (< {100 * min_drop:g} %)"
+        report["why"] = (f"the key rows' residual fell by {100 * drop:.1f} % (< {100 * min_drop:g} %)" if drop > 0 else
+                         "the magnified PSF (resampled on the grid) does not lower the key rows' residual")
     else:
         report["applied"] = True
         psf = torch.from_numpy(magnify(problem.psf.double().cpu().numpy(), found["estimate"]))
