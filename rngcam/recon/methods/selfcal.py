@@ -244,8 +244,8 @@ def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True):
         report["transform_rejected"] = report["refined"]
         report["refined"] = {**describe(np.eye(3)), "gains": gains.tolist()}
     problem = _apply(problem, np.eye(3) if why is not None else result["matrix"], gains)
-    if psf_scale:
-        problem, scale = calibrate_psf_scale(problem)
+    if psf_scale:  # the key rows' transform where it was not applied to the GS frames (it steadies the search)
+        problem, scale = calibrate_psf_scale(problem, None if why is None else result["matrix"])
         if scale is not None:
             report["scales"] = {"psf": scale}
     return problem, report
