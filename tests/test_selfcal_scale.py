@@ -134,3 +134,13 @@ def test_the_run_says_it_in_metrics_the_summary_and_the_report(bundles, tmp_path
     folder = r.save(tmp_path / "out")
     assert json.loads((folder / "metrics.json").read_text())["misfit"]["verdict"] == said["verdict"]
     assert "misfit: " in (folder / "report.html").read_text()
+    # a folder from elsewhere: its misfit line is text to show, escaped, and anything else is skipped
+    from rngcam.recon.report import write_report
+
+    metrics = json.loads((folder / "metrics.json").read_text())
+    for line, shown in (("<script>alert(1)</script>", "&lt;script&gt;alert(1)&lt;/script&gt;"), (["x"], None)):
+        metrics["misfit"] = {"line": line}
+        (folder / "metrics.json").write_text(json.dumps(metrics))
+        page = write_report(folder).read_text()
+        assert "<script>alert(1)" not in page
+        assert (shown in page) if shown else "<b>misfit</b>" not in page
