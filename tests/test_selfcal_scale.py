@@ -118,7 +118,9 @@ def test_the_verdict_needs_a_noise_level_and_a_finished_run():
     assert misfit.verdict(0.0290, 0.0245) is None
     found = {"applied": True, "transform_not_applied": "self_calibrate=gains",
              "scales": {"psf": {"applied": False, "estimate": 0.96}}}
-    assert misfit.verdict(0.0290, 0.0245, found)["likely_causes"] == ["PSF scale", "geometry", "line time"]
+    pointed = misfit.verdict(0.0290, 0.0245, found)
+    assert pointed["likely_causes"] == ["PSF scale", "geometry", "line time"]
+    assert "suggest a PSF scale of 0.960" in pointed["line"]
     cut = misfit.verdict(0.0350, 0.0245, ended_by="budget")
     assert cut["verdict"] == misfit.NOT_FITTED and "before its own stop" in cut["line"]
     fixed = misfit.verdict(0.035, 0.0245, {"applied": True, "scales": {"psf": {"applied": True, "estimate": 0.96}}})

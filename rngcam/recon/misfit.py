@@ -43,13 +43,14 @@ def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str
             status: str = "ok", ratio_limit: float = MISFIT_RATIO) -> dict | None:
     """None when the RS residual is within `ratio_limit` x the noise level (POINTED_RATIO where the
     key rows found a PSF scale not applied), or either is unknown, or the run did not finish
-    cleanly; else {"verdict", "rs_residual", "noise_level", "ratio",
-    "likely_causes", "line"}. `selfcal`: STFM's self-calibration report (method_results)."""
+    cleanly; else {"verdict", "rs_residual", "noise_level", "ratio", "threshold", "likely_causes",
+    "line"}. `selfcal`: STFM's self-calibration report (method_results' self_calibration)."""
     try:
         residual, noise = float(rs_residual), float(noise_level)
     except (TypeError, ValueError):
         return None
-    if status != "ok" or ended_by == "one_shot" or not (math.isfinite(residual) and math.isfinite(noise) and noise > 0):
+    if status != "ok" or ended_by == "one_shot" or not (math.isfinite(residual) and math.isfinite(noise)
+                                                         and noise > 0):
         return None
     ratio = residual / noise
     causes, pointed = _causes(selfcal)
@@ -61,6 +62,8 @@ def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str
     line = (f"misfit: {what}: RS residual {residual:.4f} is {ratio:.2f}x the noise level {noise:.4f}")
     if finished:
         line += f"; likely causes not corrected: {', '.join(causes)}"
+        if pointed:
+            line += f" (the key rows suggest a PSF scale of {selfcal['scales']['psf']['estimate']:.3f}, not applied)"
     else:
         line += f" (ended by {ended_by} before its own stop: more iterations, or {', '.join(causes)})"
     return {"verdict": what, "rs_residual": residual, "noise_level": noise, "ratio": ratio,
