@@ -65,6 +65,11 @@ def run_settings(method: str = "stfm", progress: bool = True, **settings: Any) -
     of the method's settings) or the method's own fields (e.g. beta=3.0)."""
     entry, preset = registry.parse_label(method)
     own = {k: settings.pop(k) for k in list(settings) if k not in RUN_SETTINGS}
+    if "preset" in own:  # preset="fast" names a preset, as "stfm-fast" does
+        asked = own.pop("preset")
+        if "-" in method and asked != preset:
+            raise SettingError(f"method {method!r} names preset {preset!r}, and preset={asked!r} another", "preset")
+        preset = asked
     if own:
         fields = {f.name for f in dataclasses.fields(entry.settings_type) if not f.metadata.get("internal")}
         unknown = sorted(set(own) - fields)

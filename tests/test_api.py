@@ -72,6 +72,12 @@ def test_settings_by_keyword_method_labels_and_an_open_bundle(shot):
     assert len(shown) < 3000 and f"truth=Truth(video=array({tuple(b.truth.video.shape)}, float32)" in shown
     r = rngcam.reconstruct(b, method="tv3d-exact", max_iters=1, beta=3.0, progress=False)
     assert r.metrics["method_settings"]["prox"] == "exact" and r.metrics["method_settings"]["beta"] == 3.0
+    from rngcam.api import run_settings
+
+    by_keyword = run_settings("tv3d", preset="exact", beta=3.0)  # preset= names a preset, as "tv3d-exact" does
+    assert by_keyword.method_settings == run_settings("tv3d-exact", beta=3.0).method_settings
+    with pytest.raises(SettingError, match="preset"):
+        run_settings("tv3d-haar", preset="exact")
     lines: list[str] = []
     r = rngcam.reconstruct(b, method="blend", progress=lines.append)
     assert r.metrics["iterations"] == 1 and any("blend:" in ln for ln in lines)

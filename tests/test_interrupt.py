@@ -193,8 +193,8 @@ def test_a_copy_of_the_folder_resumes_after_the_bundle_moves(mock_bundle, tmp_pa
 
 
 def test_the_guard_holds_a_signal_while_reading_and_cuts_a_set_up_at_its_deadline():
-    from rngcam.recon.phases import BudgetCut, Interrupted, RunPhases
     from rngcam.recon.loop import Clock
+    from rngcam.recon.phases import BudgetCut, Interrupted, RunPhases
 
     before = signal.getsignal(signal.SIGTERM)  # not always SIG_DFL: Ray's init, in an earlier test, sets one
     with RunPhases(Clock()) as guard:

@@ -11,8 +11,8 @@ from rngcam.cli import error_line
 from rngcam.errors import ConfigError, RngcamError
 from rngcam.formats.bundle import WARNING_PREFIX, inspect_bundle, open_bundle, render_summary
 from rngcam.recon import registry
-from rngcam.video_plan import DEFAULT_MAX_FRAMES, check_size, default_max_memory_bytes, method_bytes, plan_grid
 from rngcam.untrusted import printable
+from rngcam.video_plan import DEFAULT_MAX_FRAMES, check_size, default_max_memory_bytes, method_bytes, plan_grid
 
 LINE_LIMIT = 4000
 
