@@ -379,10 +379,10 @@ def estimate_psf_scale(problem, matrix=None, scales: tuple[float, float] = PSF_S
 
     lo, hi = scales
     coarse = np.unique(np.append(np.arange(lo, hi + 1e-9, _COARSE), 1.0))
-    ys = np.array([at(s) for s in coarse])
+    ys = np.nan_to_num(np.array([at(s) for s in coarse]), nan=np.inf)
     best = float(coarse[int(np.argmin(ys))])
     fine = np.arange(max(lo, best - 2 * _COARSE), min(hi, best + 2 * _COARSE) + 1e-9, _FINE)
-    yf = np.array([at(s) for s in fine])
+    yf = np.nan_to_num(np.array([at(s) for s in fine]), nan=np.inf)
     estimate = _parabola(fine, yf)
     if at(estimate) > float(yf.min()):  # the parabola missed: the best point sampled
         estimate = float(fine[int(np.argmin(yf))])
@@ -394,7 +394,8 @@ def estimate_psf_scale(problem, matrix=None, scales: tuple[float, float] = PSF_S
 def calibrate_psf_scale(problem, matrix=None, min_drop: float = MIN_DROP):
     """(problem, report): the PSF magnified by estimate_psf_scale's estimate where that lowers the
     key rows' residual by at least `min_drop` (and is not at the search's bound); report
-    {"start": 1, "estimate", "residual_before", "residual_after", "applied", "why"} (None without key rows)."""
+    {"start": 1, "estimate", "residual_before", "residual_after", "applied", "end" (the scale the fit
+    uses), "why" (where not applied)} (None without key rows)."""
     from dataclasses import replace
 
     from rngcam.physics.psf import magnify
@@ -403,14 +404,16 @@ def calibrate_psf_scale(problem, matrix=None, min_drop: float = MIN_DROP):
     if found is None:
         return problem, None
     drop = 1 - found["residual_after"] / max(found["residual_before"], 1e-30)
-    report = {"start": 1.0, **found, "applied": False}
-    if found["at_bound"]:
+    report = {"start": 1.0, **found, "applied": False, "end": 1.0}
+    if not (math.isfinite(drop) and math.isfinite(found["estimate"])):
+        report["why"] = "the key rows' residual is not finite"
+    elif found["at_bound"]:
         report["why"] = f"at the search's bound ({PSF_SCALE_RANGE[0]:g}-{PSF_SCALE_RANGE[1]:g})"
     elif drop < min_drop:
         report["why"] = (f"the key rows' residual fell by {100 * drop:.1f} % (< {100 * min_drop:g} %)" if drop > 0 else
                          "the magnified PSF (resampled on the grid) does not lower the key rows' residual")
     else:
-        report["applied"] = True
+        report["applied"], report["end"] = True, found["estimate"]
         psf = torch.from_numpy(magnify(problem.psf.double().cpu().numpy(), found["estimate"]))
         problem = replace(problem, psf=psf.to(problem.psf.dtype), notes=list(problem.notes))
     return problem, report
