@@ -106,6 +106,24 @@ def _filled(images: Tensor, valid: Tensor | None) -> Tensor:
     return torch.where(valid.expand_as(images), images, med)
 
 
+def _key_row_data(problem):
+    """What a fit on the key rows needs, in float64: (problem, GS images (C, G, H, W) with their
+    invalid pixels filled, the RS valid mask, each row's total weight, [(GS frame, its rows)], each
+    pair's measured rows); None without both cameras or without key rows."""
+    if problem.b_rs is None or problem.b_gs is None:
+        return None
+    pairs = key_rows(problem.rs_weights, problem.gs_weights)
+    if not pairs:
+        return None
+    p = problem.to(torch.float64)
+    images = _filled(p.gs_images(), p.gs_valid)  # video intensity, GS scale
+    valid = p.rs_valid_mask()
+    rowsum = p.rs_weights.sum(1)  # a constant video's row r is scaled by its total weight
+    sel = [(g, torch.from_numpy(rows)) for g, rows in pairs]
+    targets = [p.b_rs[:, rows] * (1 if valid is None else valid[:, rows]) for _, rows in sel]
+    return p, images, valid, rowsum, sel, targets
+
+
 def register_key_rows(problem, iters: int = 30, free: int = 4) -> dict | None:
     """GS-to-RS similarity S and GS/RS gains from the RS rows exposed with a GS frame.
 
@@ -115,19 +133,12 @@ def register_key_rows(problem, iters: int = 30, free: int = 4) -> dict | None:
     is a small least-squares problem, independent of how anything moves between key frames.
     Returns {"matrix": S (3x3), "gains": (C,), "rs_residual_before"/"after": relative, "rows": n}
     or None without such rows."""
-    if problem.b_rs is None or problem.b_gs is None:
+    data = _key_row_data(problem)
+    if data is None:
         return None
-    pairs = key_rows(problem.rs_weights, problem.gs_weights)
-    if not pairs:
-        return None
-    p = problem.to(torch.float64)
-    images = _filled(p.gs_images(), p.gs_valid)  # (C, G, H, W) video intensity, GS scale
+    p, images, valid, rowsum, sel, targets = data
     c = images.shape[0]
     conv = p.rs_op().conv
-    valid = p.rs_valid_mask()
-    rowsum = p.rs_weights.sum(1)  # a constant video's row r is scaled by its total weight
-    sel = [(g, torch.from_numpy(rows)) for g, rows in pairs]
-    targets = [p.b_rs[:, rows] * (1 if valid is None else valid[:, rows]) for _, rows in sel]
     norm = float(sum(t.square().sum() for t in targets).clamp_min(1e-30))
     dev = images.device
     gain0 = (torch.ones(c, dtype=torch.float64) if p.white_balance is None else p.white_balance.double()).to(dev)
@@ -316,19 +327,12 @@ def key_row_misfit(problem, matrix=None):
     `matrix` (3x3, GS-to-RS; identity by default); None without key rows."""
     from dataclasses import replace
 
-    if problem.b_rs is None or problem.b_gs is None:
+    data = _key_row_data(problem)
+    if data is None:
         return None
-    pairs = key_rows(problem.rs_weights, problem.gs_weights)
-    if not pairs:
-        return None
-    p = problem.to(torch.float64)
-    images = _filled(p.gs_images(), p.gs_valid)
+    p, images, valid, rowsum, sel, targets = data
     if matrix is not None and not is_identity(matrix):
         images = warp(images, np.linalg.inv(np.asarray(matrix, np.float64)))
-    valid = p.rs_valid_mask()
-    rowsum = p.rs_weights.sum(1)
-    sel = [(g, torch.from_numpy(rows)) for g, rows in pairs]
-    targets = [p.b_rs[:, rows] * (1 if valid is None else valid[:, rows]) for _, rows in sel]
     norm = float(sum(t.square().sum() for t in targets).clamp_min(1e-30))
 
     def misfit(psf) -> tuple[float, np.ndarray]:
