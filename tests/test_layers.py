@@ -202,7 +202,8 @@ def test_a_planted_violation_is_caught(tmp_path, files, rule, needle):
 # learned networks; the methods; the pipeline that runs a method (registry, run settings, runner,
 # its log, result, report page).
 RECON_LAYERS = (
-    ("problem", "gridding", "defects", "loop", "checkpoint", "phases", "options", "noise", "metrics", "holdout", "outputs"),
+    ("problem", "gridding", "ablation", "defects", "loop", "checkpoint", "phases", "options", "noise", "metrics",
+     "misfit", "holdout", "outputs"),
     ("nets",),
     ("methods",),
     ("registry", "settings", "runner", "runlog", "result", "report"),

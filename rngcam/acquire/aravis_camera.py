@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from rngcam.acquire.camera import Camera, CameraInfo, CameraSettings, Configured, Frame
-from rngcam.acquire.features import FeatureMap, apply_settings, estimate_line_time_s
+from rngcam.acquire.features import FeatureMap, apply_settings, estimate_line_time_s, latch_ticks
 from rngcam.errors import HardwareError
 
 N_BUFFERS = 16
@@ -184,6 +184,10 @@ class AravisCamera(Camera):
     def line_time_s(self) -> float | None:
         self._require_open()
         return None if self._acquiring else estimate_line_time_s(self.features)
+
+    def latch_ticks(self) -> int | None:
+        fm = getattr(self, "features", None)
+        return None if fm is None else latch_ticks(fm)
 
     def arm(self) -> None:
         cam = self._require_open()

@@ -142,16 +142,16 @@ class Camera(ABC):
         """The host clock exposure starts are mapped to (monotonic seconds)."""
         return time.monotonic()
 
-    def latch_clock(self) -> tuple[float, int] | None:
-        """(host time, camera ticks) at one instant, from the camera's timestamp latch
-        (rngcam.acquire.features.latch_ticks), or None where the camera has none."""
-        from rngcam.acquire.features import latch_ticks
+    def latch_ticks(self) -> int | None:
+        """The camera's timestamp counter latched now, or None where it has no latch (a GenICam
+        camera reads it through rngcam.acquire.features.latch_ticks)."""
+        return None
 
-        fm = getattr(self, "features", None)
-        if fm is None:
-            return None
+    def latch_clock(self) -> tuple[float, int] | None:
+        """(host time, camera ticks) at one instant, from the camera's timestamp latch, or None
+        where the camera has none."""
         before = self.host_time()
-        ticks = latch_ticks(fm)
+        ticks = self.latch_ticks()
         after = self.host_time()
         return None if ticks is None else (0.5 * (before + after), ticks)
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from rngcam.acquire import libraries
 from rngcam.acquire.camera import Camera, CameraInfo, CameraSettings, Configured, Frame
-from rngcam.acquire.features import FeatureMap, apply_settings, estimate_line_time_s
+from rngcam.acquire.features import FeatureMap, apply_settings, estimate_line_time_s, latch_ticks
 from rngcam.errors import HardwareError
 from rngcam.untrusted import printable
 
@@ -176,6 +176,10 @@ class GenicamCamera(Camera):
     def line_time_s(self) -> float | None:
         ia = self._require_open()
         return None if ia.is_acquiring() else estimate_line_time_s(self.features)
+
+    def latch_ticks(self) -> int | None:
+        fm = getattr(self, "features", None)
+        return None if fm is None else latch_ticks(fm)
 
     def arm(self) -> None:
         ia = self._require_open()

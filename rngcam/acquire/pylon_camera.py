@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 
 from rngcam.acquire.camera import Camera, CameraInfo, CameraSettings, Configured, Frame
-from rngcam.acquire.features import FeatureMap, apply_settings, estimate_line_time_s
+from rngcam.acquire.features import FeatureMap, apply_settings, estimate_line_time_s, latch_ticks
 from rngcam.errors import HardwareError
 
 EMULATOR_TL = "BaslerCamEmu"
@@ -144,6 +144,10 @@ class PylonCamera(Camera):
     def line_time_s(self) -> float | None:
         cam = self._require_open()
         return None if cam.IsGrabbing() else estimate_line_time_s(self.features)
+
+    def latch_ticks(self) -> int | None:
+        fm = getattr(self, "features", None)
+        return None if fm is None else latch_ticks(fm)
 
     def arm(self) -> None:
         pylon, _ = _pylon()
