@@ -157,3 +157,16 @@ def test_the_run_says_it_in_metrics_the_summary_and_the_report(bundles, tmp_path
         page = write_report(folder).read_text()
         assert "<script>alert(1)" not in page
         assert (shown in page) if shown else "<b>misfit</b>" not in page
+
+
+def test_without_gs_frames_the_verdict_does_not_blame_the_geometry():
+    """Under --no-gs the GS-to-RS transform plays no part, so it is not a likely cause."""
+    from rngcam.recon.misfit import for_metrics
+
+    off = {"mode": "off", "why": "--no-gs removes the GS frames it needs"}
+    base = {"residual_rs": 0.04, "status": "ok", "ended_by": "own_stop",
+            "method_results": {"rs_noise_level": 0.02, "self_calibration": off}}
+    ablated = for_metrics({**base, "method_settings": {"no_gs": True}})
+    full = for_metrics({**base, "method_settings": {"no_gs": False}})
+    assert "geometry" not in ablated["likely_causes"] and "geometry" in full["likely_causes"]
+    assert ablated["likely_causes"][0] == "PSF scale"

@@ -23,28 +23,30 @@ NOT_EXPLAINED = "model does not explain the data"
 NOT_FITTED = "data not fitted yet"
 
 
-def _causes(selfcal: dict | None) -> tuple[list[str], bool]:
+def _causes(selfcal: dict | None, gs_fitted: bool = True) -> tuple[list[str], bool]:
     """(what the run could not correct, whether the key rows pointed at one of them): the
     calibration values self-calibration did not apply, a PSF scale it found off by more than 1 %
-    and did not apply first. (The key rows' GS-to-RS transform is too loosely pinned to point.)"""
+    and did not apply first; the GS-to-RS transform only where GS frames were fitted. (The key
+    rows' GS-to-RS transform is too loosely pinned to point.)"""
     report = selfcal or {}
     psf = (report.get("scales") or {}).get("psf")
     causes = []
     pointed = bool(psf and not psf.get("applied") and abs(psf.get("estimate", 1.0) - 1) > 0.01)
     if not (psf and psf.get("applied")):
         causes.append("PSF scale")
-    if not report.get("applied") or "transform_not_applied" in report:
+    if gs_fitted and (not report.get("applied") or "transform_not_applied" in report):
         causes.append("geometry")
     causes.append("line time")  # never estimated (the key rows do not carry it)
     return causes, pointed
 
 
 def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str = "own_stop",
-            status: str = "ok", ratio_limit: float = MISFIT_RATIO) -> dict | None:
+            status: str = "ok", ratio_limit: float = MISFIT_RATIO, gs_fitted: bool = True) -> dict | None:
     """None when the RS residual is within `ratio_limit` x the noise level (POINTED_RATIO where the
     key rows found a PSF scale not applied), or either is unknown, or the run did not finish
     cleanly; else {"verdict", "rs_residual", "noise_level", "ratio", "threshold", "likely_causes",
-    "line"}. `selfcal`: STFM's self-calibration report (method_results' self_calibration)."""
+    "line"}. `selfcal`: STFM's self-calibration report (method_results' self_calibration);
+    `gs_fitted`: False under --no-gs, where the GS-to-RS transform plays no part."""
     try:
         residual, noise = float(rs_residual), float(noise_level)
     except (TypeError, ValueError):
@@ -53,7 +55,7 @@ def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str
                                                          and noise > 0):
         return None
     ratio = residual / noise
-    causes, pointed = _causes(selfcal)
+    causes, pointed = _causes(selfcal, gs_fitted)
     limit = min(ratio_limit, POINTED_RATIO) if pointed else ratio_limit
     if ratio <= limit:
         return None
@@ -73,5 +75,6 @@ def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str
 def for_metrics(metrics: dict) -> dict | None:
     """The verdict for a run's metrics (residual_rs, method_results' noise level and self-calibration)."""
     found = metrics.get("method_results") or {}
+    gs_fitted = not (metrics.get("method_settings") or {}).get("no_gs")
     return verdict(metrics.get("residual_rs"), found.get("rs_noise_level"), found.get("self_calibration"),
-                   metrics.get("ended_by", "own_stop"), metrics.get("status", "ok"))
+                   metrics.get("ended_by", "own_stop"), metrics.get("status", "ok"), gs_fitted=gs_fitted)
