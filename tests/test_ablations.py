@@ -130,3 +130,9 @@ def test_a_run_cut_in_set_up_under_no_gs_does_not_fall_back_on_the_gs_frames(bun
         assert r.status == "budget_before_first_iteration"
         assert float(np.abs(r.video).max()) == 0.0
         assert any("start video (zeros: no GS frames)" in e for e in r.metrics["events"])
+
+
+def test_the_auto_presets_choice_names_the_ablation(bundles):
+    r = _run(bundles[0], "stfm", max_iters=1, no_gs=True, **ONE_FIT)
+    choice = r.metrics["method_results"]["preset_choice"]
+    assert choice["reason"].startswith("--no-gs: fewer than two GS key frames")

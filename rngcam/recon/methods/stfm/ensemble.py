@@ -221,6 +221,8 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
         from rngcam.recon.methods.stfm.auto import choose_preset
 
         choice = choose_preset(problem)
+        if settings.no_gs:  # say why there are no key frames to test
+            choice = replace(choice, reason=f"--no-gs: {choice.reason}")
         settings = replace(settings, preset=choice.preset, preset_choice=choice.as_dict())
     guard = initial_video is None and settings.start_floor
     method = _make_stfm(problem, replace(settings, start_floor=False), device, initial_video, clock, stage)
