@@ -32,7 +32,7 @@ LOG_NAME = "recon.log"
 # checkpoint.pt.partial and .metrics.json.partial: an older rngcam's temporary names.
 OUTPUT_NAMES = ("recon.h5", "video.tif", "preview.mp4", "preview.json", "errors.csv", "errors.png", "metrics.json",
                 CHECKPOINT_NAME, CHECKPOINT_NAME + ".partial", ".metrics.json.partial", LOG_NAME, "report.html")
-# 1: no identity (before resume was checked); 2: pickled objects (read with weights_only=False);
+# 1: no identity (before resume was checked); 2: arbitrary pickled objects (never read now);
 # 3: data only (tensors and plain values).
 CHECKPOINT_FORMAT = 3
 # What a refused checkpoint outside `recon` (a sweep trial's, the loop's own resume) says to do.

@@ -73,7 +73,7 @@ class LocalRay:
         self._ray = ray
         try:
             # Ray makes its temporary folder writable by all: a subfolder of our own 0700 one.
-            ray.init(num_cpus=num_cpus, include_dashboard=False, _node_ip_address=LOOPBACK,
+            ray.init(num_cpus=num_cpus, include_dashboard=False, _node_ip_address="127.0.0.1",  # LOOPBACK
                      _temp_dir=os.path.join(self.folder, "ray"), **_QUIET)
             address = ray.util.get_node_ip_address()
         except Exception as exc:  # noqa: BLE001 - start-up failures vary by version
