@@ -192,3 +192,17 @@ def check_attr(obj, name: str) -> None:
     if n > MAX_ATTR_ELEMENTS or size > 16 * MAX_ATTR_ELEMENTS:
         where = printable(f"{obj.name}@{name}", 200)
         raise UnsafeFileError(f"attribute '{where}' declares {n:,} elements ({size:,} bytes); refused")
+
+
+def file_format(path: str | Path) -> str:
+    """An HDF5 file's `format` attribute (rngcam-bundle, rngcam-recon, rngcam-calibration), or ''
+    where the file is not HDF5, is damaged or has none; only that attribute is read, checked first."""
+    try:
+        with h5py.File(path, "r") as f:
+            if "format" not in f.attrs:
+                return ""
+            check_attr(f, "format")
+            value = f.attrs["format"]
+    except (OSError, ValueError, TypeError, KeyError, RuntimeError, RngcamError):  # damaged: not ours to say
+        return ""
+    return value.decode() if isinstance(value, bytes) else str(value)

@@ -67,6 +67,17 @@ def _num(x: float) -> str:
     return f"{x:.9g}"
 
 
+def _scpi_square(root: str, n: int, frequency_hz: float, high_v: float, low_v: float) -> list[str]:
+    """The SCPI square wave both Keysight's and Rigol's manuals give (Rigol roots it at ':')."""
+    return [f"{root}OUTP{n}:LOAD INF", f"{root}SOUR{n}:FUNC SQU", f"{root}SOUR{n}:FREQ {_num(frequency_hz)}",
+            f"{root}SOUR{n}:VOLT:HIGH {_num(high_v)}", f"{root}SOUR{n}:VOLT:LOW {_num(low_v)}"]
+
+
+def _scpi_dc(root: str, n: int, level_v: float) -> list[str]:
+    """The SCPI DC level both Keysight's and Rigol's manuals give (Rigol roots it at ':')."""
+    return [f"{root}OUTP{n}:LOAD INF", f"{root}SOUR{n}:FUNC DC", f"{root}SOUR{n}:VOLT:OFFS {_num(level_v)}"]
+
+
 class Dialect:
     """A generator family's SCPI commands. Subclasses fill in the command text.
 
@@ -125,12 +136,10 @@ class Keysight33500B(Dialect):
         return [f"OUTP{channel} {'ON' if on else 'OFF'}"]
 
     def square(self, channel, frequency_hz, high_v, low_v):
-        n = channel
-        return [f"OUTP{n}:LOAD INF", f"SOUR{n}:FUNC SQU", f"SOUR{n}:FREQ {_num(frequency_hz)}",
-                f"SOUR{n}:VOLT:HIGH {_num(high_v)}", f"SOUR{n}:VOLT:LOW {_num(low_v)}"]
+        return _scpi_square("", channel, frequency_hz, high_v, low_v)
 
     def dc(self, channel, level_v):
-        return [f"OUTP{channel}:LOAD INF", f"SOUR{channel}:FUNC DC", f"SOUR{channel}:VOLT:OFFS {_num(level_v)}"]
+        return _scpi_dc("", channel, level_v)
 
 
 class RigolDG(Dialect):
@@ -165,12 +174,10 @@ class RigolDG(Dialect):
         return [f":OUTP{channel} {'ON' if on else 'OFF'}"]
 
     def square(self, channel, frequency_hz, high_v, low_v):
-        n = channel
-        return [f":OUTP{n}:LOAD INF", f":SOUR{n}:FUNC SQU", f":SOUR{n}:FREQ {_num(frequency_hz)}",
-                f":SOUR{n}:VOLT:HIGH {_num(high_v)}", f":SOUR{n}:VOLT:LOW {_num(low_v)}"]
+        return _scpi_square(":", channel, frequency_hz, high_v, low_v)
 
     def dc(self, channel, level_v):
-        return [f":OUTP{channel}:LOAD INF", f":SOUR{channel}:FUNC DC", f":SOUR{channel}:VOLT:OFFS {_num(level_v)}"]
+        return _scpi_dc(":", channel, level_v)
 
     def fire(self, channels):
         return [f":SOUR{n}:BURS:TRIG:IMM" for n in channels]

@@ -10,7 +10,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 LayerData = tuple[np.ndarray, dict, str]
@@ -19,18 +18,9 @@ CHANNEL_MAPS = {3: ["red", "green", "blue"], 1: ["gray"]}
 
 
 def _format(path: Path) -> str:
-    from rngcam.errors import RngcamError
-    from rngcam.h5safe import check_attr
+    from rngcam.h5safe import file_format
 
-    try:
-        with h5py.File(path, "r") as f:
-            if "format" not in f.attrs:
-                return ""
-            check_attr(f, "format")
-            value = f.attrs["format"]
-    except (OSError, ValueError, TypeError, KeyError, RuntimeError, RngcamError):
-        return ""
-    return value.decode() if isinstance(value, bytes) else str(value)
+    return file_format(path)
 
 
 def _resolve(path) -> Path | None:

@@ -71,14 +71,7 @@ def _floats(row: dict) -> dict:
 
 def is_recon_file(path: str | Path) -> bool:
     """True when `path` is an HDF5 file whose `format` attribute says rngcam-recon."""
-    try:
-        with h5py.File(path, "r") as f:
-            if "format" not in f.attrs:
-                return False
-            h5safe.check_attr(f, "format")
-            return _text(f.attrs["format"]) == RECON_FORMAT
-    except (OSError, ValueError, TypeError, KeyError, RuntimeError, RngcamError):  # damaged: not ours to say
-        return False
+    return h5safe.file_format(path) == RECON_FORMAT
 
 
 def _dataset(f: h5py.Group, name: str) -> h5py.Dataset:
