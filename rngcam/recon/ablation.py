@@ -1,7 +1,8 @@
 """Ablations (`--no-gs`, `--no-rs`): the camera a method leaves out is removed before it sees the problem.
 
 A method whose settings say `no_gs` (or `no_rs`) is built on a view of the problem without that
-camera's measurement: no GS frames and no GS exposures (b_gs None, gs_weights empty), or no RS
+camera's measurement (`for_method`, applied where the runner decides what a method sees,
+`rngcam.recon.runner.method_view`): no GS frames and no GS exposures (b_gs None, gs_weights empty), or no RS
 image (b_rs None). Nothing the method does around its fit (a preset chosen from the key frames,
 self-calibration of the GS/RS gains, a GS-only start or floor, key-frame warps) can then read the
 frames the ablation removes: `--no-gs` is the same fit as a capture without GS frames. The grid

@@ -66,16 +66,18 @@ from rngcam.video_plan import check_size, gib, plan_grid
 SSIM_EVERY_ROW_MAX_ELEMENTS = 20_000_000
 
 
-def method_view(problem: Problem) -> Problem:
-    """What a method may see of `problem`: everything but the truth (the one place it is stripped)."""
-    return replace(problem, truth=None)
+def method_view(problem: Problem, method_settings=None) -> Problem:
+    """What a method may see of `problem`, decided in this one place: everything but the truth, and
+    without the camera its settings' ablation removes (`no_gs` / `no_rs`: rngcam.recon.ablation)."""
+    seen = replace(problem, truth=None)
+    return seen if method_settings is None else ablation.for_method(seen, method_settings)
 
 
 def make_method(problem: Problem, run_: Run, stage=None) -> Method:
     """The iterative method of `run_` on `problem` (float32 on its device, without the truth),
     reading the run's clock; `stage(message)` reports set-up stages."""
     entry = registry.get(run_.method)
-    seen = method_view(problem)  # a float32 copy is 4 bytes a voxel
+    seen = method_view(problem, run_.settings.method_settings)  # a float32 copy is 4 bytes a voxel
     method = entry.factory(seen.to(torch.float32, run_.device), run_.settings.method_settings, device=run_.device,
                            clock=run_.clock, stage=stage)
     if problem.has_holdout and not method.supports_holdout:

@@ -126,7 +126,6 @@ class TV3D(MethodBase):
         `rs_norm_start`: a start for the RS operator's power iteration (a coarser level's
         `rs_norm_vector`, upsampled)."""
         self.p, self.s, self._x0 = problem, settings or TV3DSettings(), x0
-        self.p = problem = ablation.for_method(problem, self.s)  # no_rs / no_gs: that camera is never read
         self.notes = ablation.selfcal_note(self.s)
         self.rs_norm_vector = None
         use_rs = not self.s.no_rs and problem.b_rs is not None
@@ -309,9 +308,8 @@ def make_tv3d(problem: Problem, settings: TV3DSettings | None = None, clock=None
     the setting is on and no held-out split is fitted; `stage(message)` reports set-up stages.
     With `self_calibrate`, the problem's GS frames are first corrected (rngcam.recon.methods.selfcal) and
     the refined values are in the method's notes and `selfcal_report`. With `no_rs` / `no_gs` the
-    method sees the problem without that camera (rngcam.recon.ablation) and self-calibration is off."""
+    runner hands it the problem without that camera (rngcam.recon.runner.method_view) and self-calibration is off."""
     settings = settings or TV3DSettings()
-    problem = ablation.for_method(problem, settings)
     calibrate = settings.self_calibrate != "off" and not ablation.removed(settings)
     method = _make_tv3d(problem, settings, clock, stage) if not calibrate else None
     if method is None:

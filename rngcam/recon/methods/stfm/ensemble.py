@@ -208,10 +208,9 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
 
     Preset "auto" is resolved here, on the whole problem (rngcam.recon.methods.stfm.auto.choose_preset);
     the method's `notes` and `preset_choice` (in its resolved settings) say which preset it chose
-    and why. With `no_gs` / `no_rs` all of this sees the problem without that camera
-    (rngcam.recon.ablation), and self-calibration, which needs both, is off."""
+    and why. With `no_gs` / `no_rs` the runner hands it the problem without that camera
+    (rngcam.recon.runner.method_view), and self-calibration, which needs both, is off."""
     settings = settings or STFMSettings()
-    problem = ablation.for_method(problem, settings)  # --no-gs / --no-rs: the camera is gone, not just unfitted
     if settings.selfcal_report is None and settings.self_calibrate != "off" and not ablation.removed(settings):
         from rngcam.recon.methods.selfcal import calibrate_problem
 

@@ -59,7 +59,6 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         self.base_gains = None if base_gains is None else base_gains.to(device, torch.float32)
         self._rs_norm_start, self.rs_norm_vector = rs_norm_start, None
         self.device = torch.device(device)
-        problem = ablation.for_method(problem, settings)  # the camera an ablation removes is never read
         self.problem = problem.to(torch.float32, self.device)
         p = self.problem
         p.check_finite("stfm")
