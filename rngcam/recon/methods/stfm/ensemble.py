@@ -11,6 +11,7 @@ from torch import Tensor
 from rngcam.errors import ConfigError
 from rngcam.recon import ablation
 from rngcam.recon.loop import MethodBase
+from rngcam.recon.methods.stfm.lanes import Lanes, lane_count
 from rngcam.recon.methods.stfm.method import STFM
 from rngcam.recon.methods.stfm.model import _chunks
 from rngcam.recon.methods.stfm.settings import REFINE_LR_RATIO, STFMSettings, _base_list, _setting_or_preset
@@ -24,8 +25,9 @@ class STFMEnsemble(MethodBase):
     RIFE's or DIS's flows) and the RS image corrects what it sees; what it cannot see (its null
     space) keeps each start's error, and those errors differ, so averaging shrinks them. The
     average stays consistent with the data: the operators are linear, so its residual is at most
-    the members' mean residual. Steps go to the member with the fewest so far (members that have
-    reached the noise level are done).
+    the members' mean residual. Steps go to the members with the fewest so far (members that have
+    reached the noise level are done), as many side by side as the run has torch threads
+    (rngcam.recon.methods.stfm.lanes): an iteration is one round, `member_steps` counts each fit's.
 
     Refinement (`refine`, fast preset): once every member has stopped, one more fit takes their
     average as its base video, with REFINE_LR_RATIO of the learning rate, until its own stop test
@@ -62,6 +64,7 @@ class STFMEnsemble(MethodBase):
         self.refined: STFM | None = None
         self._refine_done: str | None = None
         self._cache: tuple[int, Tensor] | None = None
+        self._lanes = Lanes()
 
     @property
     def left_out(self) -> list[tuple[str, str]]:
@@ -81,12 +84,15 @@ class STFMEnsemble(MethodBase):
             value = self.refined.step()
             self._refine_done = self.refined.converged()
         else:
-            i = min((j for j, done in enumerate(self._done) if done is None),
-                    key=lambda j: self.members[j].steps, default=0)
-            member = self.members[i]
-            value = member.step()
-            self._done[i] = member.converged()
-            member._cache = None  # the stop test's video: do not keep one per member
+            active = sorted((j for j, done in enumerate(self._done) if done is None),
+                            key=lambda j: self.members[j].steps) or [0]
+            chosen = [self.members[j] for j in active[:lane_count(len(active))]]
+            outcomes = self._lanes.run([member.fit_step for member in chosen])
+            for j, (_, done) in zip(active, outcomes, strict=False):
+                self._done[j] = done
+            value = sum(v for v, _ in outcomes) / len(outcomes)
+            if self._members_done():
+                self._lanes.close()
         self.steps += 1
         return value
 
@@ -114,7 +120,7 @@ class STFMEnsemble(MethodBase):
         video = torch.zeros(m0.C, m0.K, m0.H, m0.W, device=self.device)
         for member in self.members:
             with member._averaged():
-                for idx in _chunks(torch.arange(m0.K, device=self.device), self.settings.frame_chunk):
+                for idx in _chunks(torch.arange(m0.K, device=self.device), m0.frame_chunk):
                     video[:, idx] += member._video_frames(idx)
         return video / len(self.members)
 

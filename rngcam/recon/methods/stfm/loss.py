@@ -42,7 +42,7 @@ class DataLoss:
         x.div_(x.norm().clamp_min(1e-30))
         z = torch.empty_like(x)
         lam = 0.0
-        chunks = _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk)
+        chunks = _chunks(torch.arange(self.K, device=self.device), self.frame_chunk)
         for _ in range(iters):
             # the banded operator, its chunks through kept buffers, the adjoint written into z
             self.rs_op.A_adjoint(self.rs_op.A(x), out=z)
@@ -59,7 +59,7 @@ class DataLoss:
         if frames is None:
             frames = torch.nonzero(self.w_rs[rows].sum(0) > 0).flatten()
         out = torch.zeros(self.C, len(rows), self.W, device=self.device)
-        for idx in _chunks(frames, self.settings.frame_chunk):
+        for idx in _chunks(frames, self.frame_chunk):
             out += self.rs_op.A_rows(frames_fn(idx), rows, idx)
         return out
 
@@ -156,7 +156,7 @@ class DataLoss:
             w = self.w_rs[rows]
             touched = torch.nonzero(w.sum(0) > 0).flatten()
             rest = touched[~torch.isin(touched, win_frames)]
-        chunks = _chunks(rest, self.settings.frame_chunk)
+        chunks = _chunks(rest, self.frame_chunk)
         single = len(chunks) <= 1
         # One evaluation for the GS windows and (when it fits in one chunk) the RS frames.
         n_gs = len(win_frames)

@@ -21,7 +21,7 @@ from rngcam.recon.methods.stfm.fields import transfer_fields
 from rngcam.recon.methods.stfm.init import GSInit
 from rngcam.recon.methods.stfm.loss import DataLoss
 from rngcam.recon.methods.stfm.model import FieldModel, _chunks
-from rngcam.recon.methods.stfm.settings import _FROM_PRESET, STFMSettings, resolve
+from rngcam.recon.methods.stfm.settings import _FROM_PRESET, STFMSettings, chunk_frames, resolve
 from rngcam.recon.methods.stfm.stopping import NoiseStop
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
@@ -64,6 +64,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         p.check_finite("stfm")
         self.C, self.K, self.H, self.W = p.shape
         self.resolved, preset = resolve(settings, self.H, self.W, self.K)
+        self.frame_chunk = chunk_frames(settings, self.H, self.W)
         self.parts: Components = choose_components(
             problem, auto=settings.components == "auto", no_static=settings.no_static,
             no_motion_reg=settings.no_motion_reg, no_rs=settings.no_rs, no_gs=settings.no_gs, tau=self.resolved.tau)
@@ -147,6 +148,14 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         self._cache = None
         return sum(terms.values())
 
+    def fit_step(self) -> tuple[float, str | None]:
+        """One step and the stop test after it (an ensemble's member, in its lane), without
+        keeping the stop test's video."""
+        value = self.step()
+        done = self.converged()
+        self._cache = None
+        return value, done
+
     @contextmanager
     def _averaged(self):
         """Inside: the weights are their moving average (outputs, residuals, the stop test)."""
@@ -172,7 +181,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         release_free_memory(collect=False)  # the steps' freed heap pages go before a video-sized buffer comes
         video = torch.empty(self.C, self.K, self.H, self.W, device=self.device)
         with self._averaged():
-            for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):
+            for idx in _chunks(torch.arange(self.K, device=self.device), self.frame_chunk):
                 video[:, idx] = self._video_frames(idx)
         self._cache = (self.steps, video)
         return video
@@ -186,7 +195,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         """Relative RS and GS residuals of a video (C, K, H, W) with GS/RS gains (C,)."""
         out = {}
         if self.problem.b_rs is not None:
-            pred = self.rs_op.A(video, frame_chunk=self.settings.frame_chunk)
+            pred = self.rs_op.A(video, frame_chunk=self.frame_chunk)
             target = self.problem.b_rs
             if self.rs_valid is not None:
                 pred, target = pred * self.rs_valid, target * self.rs_valid
@@ -213,7 +222,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
             torch.zeros(1, self.K, self.H, self.W, device=self.device)
         motion = torch.zeros(2, self.K, self.H, self.W, device=self.device)
         if self.parts.motion:
-            for idx in _chunks(torch.arange(self.K, device=self.device), self.settings.frame_chunk):
+            for idx in _chunks(torch.arange(self.K, device=self.device), self.frame_chunk):
                 u = self._motion(idx)
                 total = u[..., :2] + (self.key_flow[idx][..., :2] if self._key_warps else 0)
                 motion[:, idx] = (total * self.px_per_unit).permute(3, 0, 1, 2)
@@ -264,6 +273,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         """The settings as used (preset values filled in), for the outputs."""
         out = asdict(self.resolved.settings)
         out.update({k: getattr(self.resolved, k) for k in (*_FROM_PRESET, "rows_per_step")})
+        out["frame_chunk"] = self.frame_chunk
         out["base_video"] = self.base_source
         out["rs_noise_level"] = self.rs_noise_level
         out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}

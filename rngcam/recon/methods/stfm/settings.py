@@ -13,6 +13,11 @@ INIT_STEPS = 100
 NOISE_CHECK_STEPS = 20  # steps between discrepancy-principle checks (one full RS forward each)
 STALL_PASSES = 15  # the stall test compares the RS residual with its value this many passes over the rows ago (fast)
 MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow is skipped
+# A step holds one chunk of frames' autograd graph at a time. Small grids take more frames per chunk:
+# a step's RS frames then fit in one graph, evaluated once instead of a pass without a graph and a pass
+# with one (64 px, fast: 58 -> 48 ms a step; bench/convergence.md); large grids keep 4 frames.
+CHUNK_POINTS = 65_536
+MIN_FRAME_CHUNK = 4
 
 
 @dataclass
@@ -36,7 +41,7 @@ class STFMSettings:
                              choices=("soft", "hard"))
     rows_per_step: int | None = None
     tv_frames_per_step: int = 2
-    frame_chunk: int = 4  # frames evaluated with one autograd graph (one step holds one chunk's graph at a time)
+    frame_chunk: int | None = None  # frames evaluated with one autograd graph (None: chunk_frames(H, W))
     seed: int = 0
     lr: float | None = None
     lr_half_life_steps: float | None = None  # exponential LR decay (None: preset's; inf: none)
@@ -107,7 +112,7 @@ class STFMSettings:
             raise ConfigError(f"stfm: rows_per_step must be >= 1, got {self.rows_per_step}")
         if self.gs_windows_per_step is not None and self.gs_windows_per_step < 0:
             raise ConfigError(f"stfm: gs_windows_per_step must be >= 0, got {self.gs_windows_per_step}")
-        if self.tv_frames_per_step < 1 or self.frame_chunk < 1:
+        if self.tv_frames_per_step < 1 or (self.frame_chunk is not None and self.frame_chunk < 1):
             raise ConfigError("tv_frames_per_step and frame_chunk must be >= 1")
 
 
@@ -215,6 +220,11 @@ class _Resolved:
 _FROM_PRESET = ("beta", "tau", "lr", "lr_half_life_steps", "init", "dynamic_time", "dynamic_base", "time_smoothness",
                 "gs_windows_per_step", "stop_at_noise", "stall_drop", "stall_passes", "ema_decay", "motion_init",
                 "matte_l1")
+
+
+def chunk_frames(settings: STFMSettings, h: int, w: int) -> int:
+    """Frames per autograd graph: the setting, else as many as hold CHUNK_POINTS pixels (at least 4)."""
+    return settings.frame_chunk or max(MIN_FRAME_CHUNK, CHUNK_POINTS // max(1, h * w))
 
 
 def resolve(settings: STFMSettings, h: int, w: int, k: int) -> tuple[_Resolved, dict]:
