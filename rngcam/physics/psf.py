@@ -301,4 +301,4 @@ def magnify(psf: np.ndarray, factor: float, blur: float | None = None) -> np.nda
     my, mx = magnify_matrix(h, factor), magnify_matrix(w, factor)
     if blur is not None:
         my, mx = even_blur(my, blur), even_blur(mx, blur)
-    return normalise(np.einsum("ik,...kl,jl->...ij", my, psf, mx))
+    return normalise(my @ psf @ mx.T)  # two matrix products (a three-operand einsum loops over all four axes)
