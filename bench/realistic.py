@@ -32,6 +32,7 @@ from rngcam.recon.methods.stfm import STFMSettings
 from rngcam.recon.methods.stfm.auto import choose_preset
 from rngcam.recon.methods.stfm.ensemble import make_stfm
 from rngcam.recon.metrics import motion_metrics, video_metrics
+from rngcam.recon.misfit import verdict
 from rngcam.recon.problem import build_problem
 from rngcam.sim.fidelity import LabErrors
 from rngcam.sim.simulate import simulate
@@ -39,10 +40,21 @@ from rngcam.sim.simulate import simulate
 ROOT = Path(__file__).resolve().parents[1]
 
 FAMILIES = ("fine", "geometry", "distortion", "psf", "linetime", "gains", "vignetting", "defects", "all")
+# Issue 39's robustness variants: one error at a time at the sizes the issue names, and together
+# (a shift of 1 px at 45 degrees; the PSF handed over 5 % too large or too small; line time 2 % long).
+VARIANTS = {
+    "shift1": dict(shift_px=(0.7071, 0.7071)), "shift2": dict(shift_px=(1.4142, 1.4142)),
+    "rotation05": dict(rotation_deg=0.5), "rotation1": dict(rotation_deg=1.0),
+    "psf+5": dict(psf_scale=1.05), "psf-5": dict(psf_scale=0.95), "psf+3": dict(psf_scale=1.03),
+    "linetime+2": dict(line_time_scale=1.02), "linetime-3": dict(line_time_scale=0.97),
+    "together": dict(shift_px=(0.7071, 0.7071), rotation_deg=0.5, psf_scale=1.05, line_time_scale=1.02),
+}
 
 
 def family_errors(name: str, seed: int) -> LabErrors | None:
-    """The lab errors of one family (None: --fidelity fine)."""
+    """The lab errors of one family or robustness variant (None: --fidelity fine)."""
+    if name in VARIANTS:
+        return LabErrors(**VARIANTS[name])
     full = LabErrors.draw(seed)
     pick = {
         "fine": None, "all": full,
@@ -129,6 +141,10 @@ def run_default(p, scene: str, max_steps: int, truth_cal: dict | None) -> dict:
     rs = method.resolved_settings()
     out = metrics(method.estimate(), p, scene)
     cal = rs.get("self_calibration") or {}
+    found = verdict(method.residuals().get("rs"), rs.get("rs_noise_level"), cal, result.ended_by, result.status)
+    psf = (cal.get("scales") or {}).get("psf") or {}
+    out.update(misfit=found["line"] if found else None, psf_scale_estimate=psf.get("estimate"),
+               psf_scale_applied=psf.get("applied"), true_psf_scale=(truth_cal or {}).get("psf_scale", 1.0))
     out.update(steps=result.iterations, events=result.events, notes=list(method.notes),
                preset=(rs.get("preset_choice") or {}).get("preset"),
                output_is_start=rs.get("start_floor", {}).get("output_is_start"),
@@ -207,12 +223,26 @@ def report(results: dict, size: int = 64) -> str:
     return "\n".join(lines)
 
 
+def _psf_cell(r: dict) -> str:
+    if r.get("psf_scale_estimate") is None:
+        return "-"
+    return (f"{r['psf_scale_estimate']:.3f}{' applied' if r.get('psf_scale_applied') else ''} "
+            f"({1 / r.get('true_psf_scale', 1.0):.3f})")
+
+
+def _misfit_cell(r: dict) -> str:
+    line = r.get("misfit")
+    if "misfit" not in r:
+        return "-"
+    return "ok" if not line else line.split(": ")[1] + " (" + line.split(" is ")[1].split(" the")[0] + ")"
+
+
 def report_default(results: dict, size: int = 64) -> str:
     """The table of `--methods default` runs (rngcam recon's STFM to its own stop) against the
     GS-only videos, per scene and family, with the lab families' cost against `fine`."""
     lines = ["| scene | family | steps (why it stopped) | intermediate PSNR | vs fine | moving-region PSNR | "
-             "best GS-only | lead | centroid med / p90 px | gains error | load |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "best GS-only | lead | centroid med / p90 px | gains error | PSF scale found (true) | misfit | load |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for key, r in results.items():
         scene, family, method = key.split("|")[:3]
         if method != "default" or not key.endswith(f"|{size}"):
@@ -228,7 +258,7 @@ def report_default(results: dict, size: int = 64) -> str:
         gain = f"{100 * cal['gain_error_end']:.1f} %" if "gain_error_end" in cal else "-"
         lines.append(f"| {scene} | {family} | {r['steps']:,} ({why}) | {r['psnr_intermediate_db']:.2f} | {vs} | "
                      f"{r['psnr_dynamic_db']:.2f} | {best[0]:.2f} ({best[1]}) | {r['psnr_intermediate_db'] - best[0]:+.2f} | "
-                     f"{ball} | {gain} | {r['load_before']:.1f} |")
+                     f"{ball} | {gain} | {_psf_cell(r)} | {_misfit_cell(r)} | {r['load_before']:.1f} |")
     return "\n".join(lines)
 
 

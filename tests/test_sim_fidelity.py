@@ -8,6 +8,7 @@ from click.testing import CliRunner
 from rngcam.cli import main
 from rngcam.errors import RngcamError
 from rngcam.formats.bundle import read_bundle
+from rngcam.physics.psf import magnify, normalise
 from rngcam.physics.sensor import frame_to_measurement
 from rngcam.physics.timing import RollingShutterTiming, VideoGrid
 from rngcam.sim import fidelity as fm
@@ -171,3 +172,15 @@ def test_binned_psf_is_centred_like_the_binned_frames():
     raw[0, 16, 16], raw[0, 16, 15] = 0.0, 1.0
     psf = grid_psf(Bundle(rs=None, gs=None, calibration=Calibration(psf=raw)), 2, 1)
     assert psf[0, 8, 7] == pytest.approx(psf[0, 8, 8], rel=1e-6)
+
+
+def test_a_psf_handed_over_at_another_scale_is_the_true_one_magnified(tmp_path):
+    fine = simulate("sineball", tmp_path / "f.h5", size=SIZE, seed=0, fidelity="fine")
+    large = simulate("sineball", tmp_path / "l.h5", size=SIZE, seed=0, fidelity="lab",
+                     lab_errors=fm.LabErrors(psf_scale=1.05))
+    assert read_bundle(tmp_path / "l.h5").meta["truth_calibration"]["psf_scale"] == 1.05
+    true, stored = (np.asarray(b.calibration.psf, np.float64) for b in (fine, large))
+
+    np.testing.assert_allclose(normalise(stored), magnify(true, 1.05), rtol=1e-4, atol=1e-7 * true.max())
+    assert np.abs(normalise(stored) - normalise(true)).max() > 0.05 * normalise(true).max()  # a real change
+    np.testing.assert_array_equal(large.rs.frames, fine.rs.frames)  # the capture itself is unchanged

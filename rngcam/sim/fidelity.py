@@ -60,6 +60,7 @@ class LabErrors:
     distortion_k1: float = 0.0  # r' = r (1 + k1 r^2), r relative to the half diagonal
     psf_noise: float = 0.0
     psf_background: float = 0.0
+    psf_scale: float = 1.0  # the handed-over PSF's size / the true one's (a scene at another depth)
     line_time_scale: float = 1.0  # true line time / recorded line time
     gs_gains: tuple[float, float, float] = (1.0, 1.0, 1.0)  # GS signal / RS signal, per channel
     vignetting: float = 0.0
@@ -162,7 +163,12 @@ def fine_measure(video: np.ndarray, psf_fine: np.ndarray, grid: VideoGrid, fgrid
 
 
 def psf_measured(psf_sensor: np.ndarray, errors: LabErrors, seed: int) -> np.ndarray:
-    """The PSF as calibration hands it over: noise and a background relative to the peak (float32)."""
+    """The PSF as calibration hands it over: magnified by `psf_scale` (rngcam.physics.psf.magnify),
+    noise and a background relative to the peak (float32)."""
+    if errors.psf_scale != 1:
+        from rngcam.physics.psf import magnify
+
+        psf_sensor = magnify(psf_sensor, errors.psf_scale).astype(np.float32)
     if errors.psf_noise == 0 and errors.psf_background == 0:
         return psf_sensor
     rng = np.random.default_rng([seed, 31])
