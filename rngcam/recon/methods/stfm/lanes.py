@@ -1,8 +1,8 @@
 """Independent fits stepped side by side: one Python thread each, one torch thread per operation.
 
-At 64 px a fit's step is thousands of small operations; torch's second thread buys little on them
-(one fit: 69 -> 67 ms a step from one thread to two), while two fits in two threads, each
-single-threaded, share the cores well (43 ms a member-step; bench/convergence.md). The fits must
+At 64 px a fit's step is thousands of small operations; torch's second thread buys little on them,
+while two fits in two threads, each single-threaded, share the cores well (bench/convergence.md
+has the figures). The fits must
 share no mutable state: each has its own fields, optimiser and random generator, so a fit's
 trajectory is the same whether it steps alone or beside another.
 """

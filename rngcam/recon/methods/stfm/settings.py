@@ -15,7 +15,7 @@ STALL_PASSES = 15  # the stall test compares the RS residual with its value this
 MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow is skipped
 # A step holds one chunk of frames' autograd graph at a time. Small grids take more frames per chunk:
 # a step's RS frames then fit in one graph, evaluated once instead of a pass without a graph and a pass
-# with one (64 px, fast: 58 -> 48 ms a step; bench/convergence.md); large grids keep 4 frames.
+# with one (bench/convergence.md); large grids keep 4 frames.
 CHUNK_POINTS = 65_536
 MIN_FRAME_CHUNK = 4
 
