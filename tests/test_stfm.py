@@ -776,3 +776,17 @@ def test_a_fit_can_start_from_a_given_video(sineball16):
     assert torch.equal(m.base_video, start)
     with pytest.raises(ConfigError, match="initial_video"):
         make_stfm(sineball16, STFMSettings(), initial_video=start[:, :3])
+
+
+def test_key_warps_below_the_flow_size_run_no_network(monkeypatch):
+    """Key frames under MIN_FLOW_SIZE_PX get no flow of either kind (RIFE on 8 px frames padded to its
+    64 px working size cost the stress matrix's 4x4 case its whole budget): the fit uses the video base."""
+    import rngcam.recon.methods.rife as rife_module
+
+    def no_network(*args, **kwargs):
+        raise AssertionError("RIFE ran on frames under the flow size")
+
+    monkeypatch.setattr(rife_module, "rife_warps", no_network)
+    m = make_stfm(scene_problem("sineball", 8), small_settings(preset="fast", dynamic_base="keys"))
+    assert m.base_source == "interp"
+    m.step()

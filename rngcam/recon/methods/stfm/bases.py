@@ -57,6 +57,8 @@ class BaseVideos:
 
         args = (keys.detach().float().cpu().numpy(), self.problem.gs_times_s, self.problem.frame_times_s)
         warps = None
+        if min(keys.shape[-2:]) < MIN_FLOW_SIZE_PX:  # as _base_video: no flow of either kind that small
+            return False
         if kind != "keys_interp" and keys.shape[0] in (1, 3):
             try:
                 with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
