@@ -204,3 +204,16 @@ def test_every_iterative_method_implements_the_whole_protocol(name):
     assert isinstance(method.budget_cut(), str) and isinstance(method.components(), dict)
     resolved = method.resolved_settings()
     assert resolved is None or isinstance(resolved, dict)
+
+
+def test_rife_below_the_flow_size_is_the_cross_fade_and_says_so():
+    """As interp: key frames too small for any flow (RIFE would pad 4 px to its 64 px working size and
+    spend minutes guessing) give the cross-fade, with a note saying why."""
+    from rngcam.recon.methods.baselines import blend
+
+    rng = np.random.default_rng(0)
+    keys = rng.random((3, 3, 4, 4)).astype(np.float32)
+    gs_t, frame_t = np.array([0.0, 1.0, 2.0]), np.linspace(0, 2, 40)
+    made = registry.get("rife").factory(keys, gs_t, frame_t, registry.get("rife").settings_type())
+    np.testing.assert_allclose(made.video, blend(keys, gs_t, frame_t), rtol=1e-6, atol=1e-7)
+    assert any("4x4 px" in n and "cross-fade" in n for n in made.notes)

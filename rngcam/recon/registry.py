@@ -211,8 +211,14 @@ def _interp(key, gs_times_s, frame_times_s, settings: InterpSettings) -> GSOnlyV
 
 
 def _rife(key, gs_times_s, frame_times_s, settings: RifeSettings) -> GSOnlyVideo:
+    from rngcam.recon.methods.baselines import MIN_FLOW_SIZE_PX, blend
     from rngcam.recon.methods.rife import resolve_model, rife
 
+    h, w = np.shape(key)[-2:]
+    if min(h, w) < MIN_FLOW_SIZE_PX:  # as interp: no flow that small (RIFE would pad it to 64 px and guess)
+        return GSOnlyVideo(blend(key, gs_times_s, frame_times_s),
+                           [f"rife: key frames of {h}x{w} px are under the {MIN_FLOW_SIZE_PX} px a flow needs: "
+                            "the cross-fade of the key frames instead"], {"model": None})
     model, note = resolve_model(settings.model)  # 4.x, or HDv3 on request or as the fallback
     return GSOnlyVideo(rife(key, gs_times_s, frame_times_s, model=model), [note] if note else [], {"model": model})
 
