@@ -131,10 +131,12 @@ def run_stfm(p, scene: str, steps: int, mode: str, truth_cal: dict | None) -> di
     return out
 
 
-def run_default(p, scene: str, max_steps: int, truth_cal: dict | None) -> dict:
+def run_default(p, scene: str, max_steps: int, truth_cal: dict | None, fixed_geometry: bool = False) -> dict:
     """`rngcam recon BUNDLE`'s STFM (the registry's default preset and options) to its own stop,
-    or `max_steps`."""
+    or `max_steps`; `fixed_geometry`: with `--learn-geometry off` (the transform as handed over)."""
     name, settings = registry.settings_for("stfm")
+    if fixed_geometry:
+        settings = replace(settings, learn_geometry="off")
     method = registry.get(name).factory(p.to(torch.float32), settings, device="cpu", clock=None, stage=None)
     result = run(method, LoopSettings(time_budget_s=None, max_iters=max_steps, log_every_iters=max_steps,
                                       progress=False))
@@ -149,6 +151,11 @@ def run_default(p, scene: str, max_steps: int, truth_cal: dict | None) -> dict:
                preset=(rs.get("preset_choice") or {}).get("preset"),
                output_is_start=rs.get("start_floor", {}).get("output_is_start"),
                calibration=calibration_vs_truth(cal, truth_cal, cal.get("end")))
+    learned = (rs.get("gs_geometry") or {}).get("end")
+    if learned:  # the GS-to-RS transform learned with the fields (learn_geometry) against the truth
+        t = (truth_cal or {}).get("shift_px", [0.0, 0.0])
+        out.update(learned_geometry=learned, learned_shift_error_px=float(
+            np.hypot(learned["shift_px"][0] - t[0], learned["shift_px"][1] - t[1])))
     return out
 
 
@@ -268,7 +275,7 @@ def main() -> None:
     ap.add_argument("--families", default=",".join(FAMILIES))
     ap.add_argument("--methods", default="stfm,blend,interp",
                     help="stfm (one fit, --steps), default (rngcam recon's STFM to its own stop, at most "
-                         "--max-steps), tv3d, pnp, tv3d:gains, blend, interp")
+                         "--max-steps), default-fixed (the same with --learn-geometry off), tv3d, pnp, tv3d:gains, blend, interp")
     ap.add_argument("--max-steps", type=int, default=3500, help="the default's cap")
     ap.add_argument("--selfcal", default="off,gains,all", help="STFM's self_calibrate modes to compare")
     ap.add_argument("--steps", type=int, default=400, help="steps per iterative method (fixed: load-independent)")
@@ -299,8 +306,8 @@ def main() -> None:
                         t0 = time.perf_counter()
                         if method == "stfm":
                             r = run_stfm(p, scene, args.steps, mode, truth_cal)
-                        elif method == "default":
-                            r = run_default(p, scene, args.max_steps, truth_cal)
+                        elif method in ("default", "default-fixed"):
+                            r = run_default(p, scene, args.max_steps, truth_cal, method == "default-fixed")
                         elif method in ("blend", "interp"):
                             r = run_gs_only(method, p, scene)
                         else:
@@ -313,7 +320,10 @@ def main() -> None:
                               + (f", centroid {r['centroid_error_median_px']:.2f}/{r['centroid_error_p90_px']:.2f} px"
                                  if "centroid_error_median_px" in r else "")
                               + (f", shift err {cal['shift_error_px']:.3f} px, gain err {cal['gain_error_refined']:.3f}"
-                                 if cal else "") + f" (load {load:.1f}, {r['wall_s']:.0f} s)", flush=True)
+                                 if cal else "")
+                              + (f", learned shift err {r['learned_shift_error_px']:.3f} px"
+                                 if "learned_shift_error_px" in r else "") + f" (load {load:.1f}, {r['wall_s']:.0f} s)",
+                              flush=True)
 
 
 if __name__ == "__main__":

@@ -71,6 +71,18 @@ def warp(images: Tensor, matrix: Tensor | np.ndarray) -> Tensor:
     return out.transpose(0, 1)
 
 
+def inside(matrix: Tensor, h: int, w: int) -> Tensor:
+    """(H, W): 1 where M p lies within the grid's outer pixel centres (warp samples no border value there), else 0."""
+    g = sample_grid(matrix.detach(), h, w)[0]
+    return ((g[..., 0].abs() <= 1 - 1 / w + 1e-4) & (g[..., 1].abs() <= 1 - 1 / h + 1e-4)).to(matrix.dtype)
+
+
+def pose_matrix(pose: Tensor, radius: float) -> Tensor:
+    """3x3 (differentiable) of a pose (dx, dy px; rotation, log scale, each times `radius` px):
+    all four in pixels of displacement at `radius` from the centre, so one step size suits them."""
+    return _matrix_t(torch.stack([pose[0], pose[1], pose[2] / radius, pose[3] / radius]))
+
+
 def is_identity(matrix, tol: float = 1e-9) -> bool:
     return bool(np.allclose(np.asarray(matrix), np.eye(3), atol=tol))
 

@@ -12,7 +12,7 @@ from rngcam.errors import ConfigError
 from rngcam.recon import ablation
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.stfm.lanes import Lanes, lane_count
-from rngcam.recon.methods.stfm.method import STFM
+from rngcam.recon.methods.stfm.method import STFM, geometry_lines, geometry_report
 from rngcam.recon.methods.stfm.model import _chunks
 from rngcam.recon.methods.stfm.settings import REFINE_LR_RATIO, STFMSettings, _base_list, _setting_or_preset
 
@@ -99,9 +99,13 @@ class STFMEnsemble(MethodBase):
     def _start_refinement(self) -> None:
         first = self.members[0]
         lr = REFINE_LR_RATIO * first.resolved.lr
-        base = self.estimate() / torch.as_tensor(self._mean_gains(), device=self.device)[:, None, None, None]
+        pose = self.mean_pose()
+        video = self.estimate() if pose is None else self.average(native=True)  # the refinement's fields are native
+        base = video / torch.as_tensor(self._mean_gains(), device=self.device)[:, None, None, None]
         settings = replace(self.settings, dynamic_base="video", seed=self.settings.seed + len(self.members), lr=lr)
         self.refined = STFM(self.problem, settings, self.device, static_from=first, base_video=base)
+        if pose is not None and self.refined.learn_pose:  # the members' transform, refined further
+            self.refined.start_pose(pose)
 
     def converged(self) -> str | None:
         if not self._members_done():
@@ -114,14 +118,15 @@ class STFMEnsemble(MethodBase):
         return f"{done}; refinement: {self._refine_done}"
 
     @torch.no_grad()
-    def average(self) -> Tensor:
-        """The members' average video (C, K, H, W)."""
+    def average(self, native: bool = False) -> Tensor:
+        """The members' average video (C, K, H, W) in RS coordinates (`native`: in the fields' own,
+        the GS camera's, which the GS frames pin alike for every member)."""
         m0 = self.members[0]
         video = torch.zeros(m0.C, m0.K, m0.H, m0.W, device=self.device)
         for member in self.members:
             with member._averaged():
                 for idx in _chunks(torch.arange(m0.K, device=self.device), m0.frame_chunk):
-                    video[:, idx] += member._video_frames(idx)
+                    video[:, idx] += member._video_frames(idx, native)
         return video / len(self.members)
 
     @torch.no_grad()
@@ -138,9 +143,19 @@ class STFMEnsemble(MethodBase):
     def gains(self) -> np.ndarray:
         return self.refined.gains() if self.refined is not None else self._mean_gains()
 
+    def mean_pose(self) -> Tensor | None:
+        poses = [m.pose() for m in self.members]
+        return None if any(p is None for p in poses) else torch.stack(poses).mean(0)
+
+    def learned_geometry(self) -> dict | None:
+        if self.refined is not None:
+            return self.refined.learned_geometry()
+        m0 = self.members[0]
+        return geometry_report(self.mean_pose(), m0.pose_radius, m0.settings.selfcal_report)
+
     @torch.no_grad()
     def residuals(self) -> dict[str, float]:
-        return self.members[0].residuals_of(self.estimate(), self.gains())
+        return (self.refined or self.members[0]).residuals_of(self.estimate(), self.gains())
 
     @torch.no_grad()
     def components(self) -> dict[str, np.ndarray]:
@@ -193,11 +208,16 @@ class STFMEnsemble(MethodBase):
         out["member_steps"] = [m.steps for m in self.members]
         out["refine"] = self.use_refine
         out["refine_steps"] = None if self.refined is None else self.refined.steps
+        geometry = self.learned_geometry()
+        if geometry is not None:
+            out["gs_geometry"] = geometry
+            if out.get("self_calibration", {}).get("end"):
+                out["self_calibration"]["end"].update(geometry["end"])
         return out
 
     @property
     def notes(self) -> list[str]:
-        return self.members[0].notes
+        return self.members[0]._notes + geometry_lines(self.learned_geometry(), self.steps)
 
 
 def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",

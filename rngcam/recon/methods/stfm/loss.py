@@ -182,16 +182,16 @@ class DataLoss:
             pred = torch.zeros(self.C, len(rows), self.W, device=dev)
             if len(shared):
                 pos = torch.searchsorted(win_frames, shared)
-                pred = pred + self.rs_op.A_rows(v_gs[:, pos], rows, shared)
+                pred = pred + self.rs_op.A_rows(self._rs_view(v_gs[:, pos]), rows, shared)
             if single:
                 if chunks:
-                    pred = pred + self.rs_op.A_rows(v_first[:, n_gs:], rows, chunks[0])
+                    pred = pred + self.rs_op.A_rows(self._rs_view(v_first[:, n_gs:]), rows, chunks[0])
                 rs = scale * self.rs_miss(pred, rows).square().sum()
                 terms["rs"] = float(rs.detach())
                 graph_loss = graph_loss + rs
             else:  # two passes: residual without a graph, then chunk-wise back-propagation
                 with torch.no_grad():
-                    pred_rest = sum(self.rs_op.A_rows(self.frames(c, static), rows, c) for c in chunks)
+                    pred_rest = sum(self.rs_op.A_rows(self._rs_view(self.frames(c, static)), rows, c) for c in chunks)
                 residual = self.rs_miss(pred.detach() + pred_rest, rows)  # 0/1 mask: also d(loss)/d(pred) / 2
                 terms["rs"] = scale * float(residual.square().sum())
                 grad = 2 * scale * residual
@@ -201,7 +201,7 @@ class DataLoss:
             if graph_loss.requires_grad:
                 graph_loss.backward()
             for c, grad in chunk_jobs:
-                surrogate = (self.rs_op.A_rows(self.frames(c, static), rows, c) * grad).sum()
+                surrogate = (self.rs_op.A_rows(self._rs_view(self.frames(c, static)), rows, c) * grad).sum()
                 surrogate.backward()
             if static is not static_graph and static.grad is not None:
                 static_graph.backward(static.grad)

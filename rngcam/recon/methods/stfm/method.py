@@ -14,14 +14,14 @@ from rngcam.errors import ConfigError
 from rngcam.memory import release_free_memory
 from rngcam.recon import ablation
 from rngcam.recon.loop import MethodBase
-from rngcam.recon.methods.selfcal import report_lines
+from rngcam.recon.methods.selfcal import describe, report_lines
 from rngcam.recon.methods.stfm.bases import BaseVideos
 from rngcam.recon.methods.stfm.components import Components, choose_components
 from rngcam.recon.methods.stfm.fields import transfer_fields
 from rngcam.recon.methods.stfm.init import GSInit
 from rngcam.recon.methods.stfm.loss import DataLoss
 from rngcam.recon.methods.stfm.model import FieldModel, _chunks
-from rngcam.recon.methods.stfm.settings import _FROM_PRESET, STFMSettings, chunk_frames, resolve
+from rngcam.recon.methods.stfm.settings import _FROM_PRESET, POSE_LR_RATIO, STFMSettings, chunk_frames, resolve
 from rngcam.recon.methods.stfm.stopping import NoiseStop
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
@@ -51,9 +51,9 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         for the next level (a video-sized buffer the caller frees), else `rs_norm_vector` is None."""
         self.settings = settings
         choice = settings.preset_choice  # preset "auto" (make_stfm): what it chose and why
-        self.notes = [f"preset auto chose {choice['preset']}: {choice['reason']}"] if choice else []
-        self.notes += report_lines(settings.selfcal_report)  # the end values: resolved_settings
-        self.notes += ablation.selfcal_note(settings)  # --no-gs / --no-rs: nothing to calibrate against
+        self._notes = [f"preset auto chose {choice['preset']}: {choice['reason']}"] if choice else []
+        self._notes += report_lines(settings.selfcal_report)  # the end values: resolved_settings
+        self._notes += ablation.selfcal_note(settings)  # --no-gs / --no-rs: nothing to calibrate against
         self._static_from = static_from
         self._given_base = base_video
         self.base_gains = None if base_gains is None else base_gains.to(device, torch.float32)
@@ -80,10 +80,11 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
             transfer_fields(self.fields, fields_from.fields)
             with torch.no_grad():
                 self.log_gain.copy_(fields_from.log_gain.detach().to(self.log_gain))
+                self.gs_pose.copy_(fields_from.gs_pose.detach().to(self.gs_pose) * (self.W / fields_from.W))
         elif self.resolved.init == "gs" and self.parts.gs:
             self._init_from_gs()
         self._build_optimiser(preset)
-        self._params = [*self.fields.parameters(), self.log_gain]
+        self._params = [*self.fields.parameters(), self.log_gain, self.gs_pose]
         self._ema = [q.detach().clone() for q in self._params] if self.resolved.ema_decay > 0 else None
         self.steps = 0
         self._cache: tuple[int, Tensor] | None = None
@@ -92,6 +93,10 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
                                if self.parts.rs else None)
 
     # ------------------------------------------------------------------ setup
+
+    @property
+    def notes(self) -> list[str]:
+        return self._notes + geometry_lines(self.learned_geometry(), self.steps)
 
     @property
     def left_out(self) -> list[tuple[str, str]]:
@@ -112,6 +117,12 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         self.learn_gain = self.parts.rs and self.parts.gs
         if self.learn_gain:
             groups.append({"params": [self.log_gain], "lr_ratio": preset["gain_lr_ratio"]})
+        mode = self.settings.learn_geometry
+        self.learn_pose = self.learn_gain and mode != "off" and self.settings.gs_anchor == "soft"
+        if mode == "shift":  # rotation and scale held at zero (no gradient reaches them)
+            self.pose_free[2:] = 0
+        if self.learn_pose:
+            groups.append({"params": [self.gs_pose], "lr_ratio": POSE_LR_RATIO})
         for g in groups:
             g["lr"] = lr * g["lr_ratio"]
         self.optimiser = torch.optim.Adam(groups, lr=lr)
@@ -201,8 +212,10 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
                 pred, target = pred * self.rs_valid, target * self.rs_valid
             out["rs"] = relative_residual(pred, target)
         if self.problem.b_gs is not None and self.problem.b_gs.shape[1] > 0:
-            pred = self.gs_op.A(video)
+            pred, seen = self._gs_view(self.gs_op.A(video))
             target = torch.from_numpy(gains).to(self.device)[:, None, None, None] * self.problem.b_gs
+            if seen is not None:
+                pred, target = pred * seen, target * seen
             if self.mask is not None:
                 pred, target = pred * self.mask, target * self.mask
             if self.gs_valid is not None:
@@ -234,8 +247,26 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         with self._averaged():
             return self._gain().detach().cpu().numpy()
 
+    def pose(self) -> Tensor | None:
+        """The learned GS-to-RS pose (4,) (averaged weights), None where the fit does not learn it."""
+        if not self.learn_pose:
+            return None
+        with self._averaged():
+            return (self.gs_pose * self.pose_free).detach().clone()
+
+    def start_pose(self, pose: Tensor) -> None:
+        """Start the learned pose (and its moving average) at `pose` (another fit's, same grid)."""
+        with torch.no_grad():
+            self.gs_pose.copy_(pose.to(self.gs_pose))
+            if self._ema is not None:
+                self._ema[-1].copy_(self.gs_pose)  # _params ends with the pose
+
+    def learned_geometry(self) -> dict | None:
+        return geometry_report(self.pose(), self.pose_radius, self.settings.selfcal_report)
+
     def state_dict(self) -> dict:
         return {"fields": self.fields.state_dict(), "log_gain": self.log_gain.detach().clone(),
+                "gs_pose": self.gs_pose.detach().clone(),
                 "optimiser": self.optimiser.state_dict(), "steps": self.steps, "base_lr": self.base_lr,
                 "generator": self.generator.get_state(), "rs_history": dict(self._rs_history),
                 "ema": None if self._ema is None else [a.clone() for a in self._ema]}
@@ -244,6 +275,8 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         self.fields.load_state_dict(state["fields"])
         with torch.no_grad():
             self.log_gain.copy_(state["log_gain"])
+            if "gs_pose" in state:
+                self.gs_pose.copy_(state["gs_pose"])
         self.optimiser.load_state_dict(state["optimiser"])
         self.steps = int(state["steps"])
         self.base_lr = float(state["base_lr"])
@@ -279,6 +312,9 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}
         out["left_out"] = [list(x) for x in self.left_out]
         report = self.settings.selfcal_report
+        geometry = self.learned_geometry()
+        if geometry is not None:
+            out["gs_geometry"] = geometry
         if ablation.selfcal_note(self.settings):
             out["self_calibration"] = {"mode": "off", "why": ablation.selfcal_off(self.settings)}
         if report:
@@ -286,6 +322,31 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
             if report.get("applied"):  # the fit learns the gains further (Lambda, on the refined scale)
                 learned = self.gains() if self.learn_gain else np.ones(self.C)
                 end = [float(g) * r for g, r in zip(learned, report["refined"]["gains"], strict=True)]
-                out["self_calibration"]["end"] = {**report["refined"], "gains": end}
+                out["self_calibration"]["end"] = {**report["refined"], "gains": end,
+                                                  **({} if geometry is None else geometry["end"])}
         return out
+
+
+def geometry_report(pose: Tensor | None, radius: float, selfcal: dict | None) -> dict | None:
+    """{"start" (the transform the GS frames were taken to RS coordinates by before the fit),
+    "learned" (the fit's on top of it), "end" (both: what the rig has)} as shift / rotation / scale."""
+    if pose is None:
+        return None
+    from rngcam.recon.methods.selfcal import pose_matrix, similarity
+
+    start = similarity()
+    if selfcal and selfcal.get("applied") and "transform_not_applied" not in selfcal:
+        r = selfcal["refined"]
+        start = similarity(*r["shift_px"], np.radians(r["rotation_deg"]), r["scale"])
+    learned = pose_matrix(pose.double().cpu(), radius).numpy()
+    return {"start": describe(start), "learned": describe(learned), "end": describe(learned @ start)}
+
+
+def geometry_lines(geometry: dict | None, steps: int) -> list[str]:
+    """The note on the learned GS-to-RS transform (none before the first step)."""
+    if geometry is None or steps == 0:
+        return []
+    e = geometry["end"]
+    return [f"GS-to-RS transform learned with the fields: shift ({e['shift_px'][0]:+.3f}, {e['shift_px'][1]:+.3f}) px, "
+            f"rotation {e['rotation_deg']:+.3f} deg, scale {e['scale']:.4f}"]
 

@@ -8,6 +8,7 @@ from torch import Tensor, nn
 
 from rngcam.errors import ConfigError
 from rngcam.physics.operators import GlobalShutter, RollingShutter
+from rngcam.recon.methods.selfcal import inside, pose_matrix, warp
 from rngcam.recon.methods.stfm.fields import field_on_grid, make_field
 
 
@@ -84,6 +85,15 @@ class FieldModel:
         if not torch.all(start > 0):
             raise ConfigError(f"white balance gains must be > 0, got {start.tolist()}")
         self.log_gain = nn.Parameter(start.log())
+        # The GS-to-RS transform S (the GS camera's pixel p sees the scene at S p), learned with the
+        # fields where `learn_pose` (set with the optimiser): pose_matrix's parameters. The fields
+        # live in the GS camera's coordinates, so that the GS term does not depend on S (else the
+        # fields and S trade a shift along a flat valley that only the RS term tilts); the RS term
+        # and the output video see the frames in RS coordinates, sampled at S^-1 q (_rs_view).
+        self.gs_pose = nn.Parameter(torch.zeros(4, device=self.device))
+        self.pose_free = torch.ones(4, device=self.device)  # 0: that value held at zero
+        self.pose_radius = max(self.H, self.W) / 2
+        self.learn_pose = False
 
 
     # ------------------------------------------------------------------ the model
@@ -163,6 +173,25 @@ class FieldModel:
     def _gain(self) -> Tensor:
         return self.log_gain.exp()
 
+    def gs_matrix(self) -> Tensor:
+        """The learned GS-to-RS transform, 3x3 on pixel coordinates from the grid's centre."""
+        return pose_matrix(self.gs_pose * self.pose_free, self.pose_radius)
+
+    def _gs_view(self, pred: Tensor) -> tuple[Tensor, Tensor | None]:
+        """GS predictions (C, G, H, W) of a video in RS coordinates as the GS camera sees them
+        (sampled at S p) and the pixels where that needs no value from outside the grid (None:
+        no pose learned). For residuals of an output video; the fit's GS term needs no warp."""
+        if not self.learn_pose:
+            return pred, None
+        m = self.gs_matrix()
+        return warp(pred, m), inside(m, self.H, self.W)
+
+    def _rs_view(self, frames: Tensor) -> Tensor:
+        """Frames (C, n, H, W) of the fields (GS coordinates) in RS coordinates: sampled at S^-1 q."""
+        if not self.learn_pose:
+            return frames
+        return warp(frames, torch.linalg.inv(self.gs_matrix()))
+
     def frames(self, idx: Tensor, static: Tensor | None = None) -> Tensor:
         """Video frames idx (C, n, H, W), before any hard GS anchoring (zero outside the mask).
 
@@ -194,8 +223,11 @@ class FieldModel:
         v = self.frames(self.gs_frames)
         return self._anchored(v) if self.settings.gs_anchor == "hard" else v
 
-    def _video_frames(self, idx: Tensor) -> Tensor:
-        """Frames idx of the video as output (with hard anchoring where it applies)."""
+    def _video_frames(self, idx: Tensor, native: bool = False) -> Tensor:
+        """Frames idx of the video as output, in RS coordinates (`native`: the fields' own, the GS
+        camera's), with hard anchoring where it applies."""
+        if not native and self.learn_pose:
+            return self._rs_view(self.frames(idx))  # learn_pose: soft anchoring
         if self.settings.gs_anchor != "hard" or not self.parts.gs:
             return self.frames(idx)
         inside = torch.isin(idx, self.gs_frames)

@@ -18,6 +18,10 @@ MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow 
 # with one (bench/convergence.md); large grids keep 4 frames.
 CHUNK_POINTS = 65_536
 MIN_FRAME_CHUNK = 4
+# What learn_geometry learns of the GS-to-RS transform. "shift" by default: rotation and scale
+# learned alongside drifted where the truth had none (sineball 64 px: scale 1.024, 0.14 deg;
+# bench/realistic.md), as a scale trades against the PSF's magnification.
+GEOMETRY_MODES = ("off", "shift", "similarity")
 
 
 @dataclass
@@ -76,6 +80,9 @@ class STFMSettings:
         True, "with self_calibrate, also search the PSF's magnification (0.9-1.1) on those rows; applied where it "
               "lowers their residual by 3 % or more (else reported)")
     selfcal_report: dict | None = field(default=None, metadata={"internal": True})  # what self-calibration refined
+    learn_geometry: str = setting(
+        "off", "learn the GS-to-RS transform with the fields: its shift, or shift, rotation and scale "
+               "(similarity); needs both cameras and soft GS anchoring", choices=GEOMETRY_MODES)
     start_floor: bool = setting(False, "output the best GS-only video (cross-fade or flow interpolation) "
                                       "instead of the fit when the fit's RS residual is not below its own")
 
@@ -88,6 +95,9 @@ class STFMSettings:
             raise ConfigError(f"stfm: gs_anchor must be 'soft' or 'hard', got {self.gs_anchor!r}")
         if self.self_calibrate not in ("off", "gains", "all"):
             raise ConfigError(f"stfm: self_calibrate must be off, gains or all, got {self.self_calibrate!r}")
+        if self.learn_geometry not in GEOMETRY_MODES:
+            raise ConfigError(f"stfm: learn_geometry must be one of {', '.join(GEOMETRY_MODES)}, "
+                              f"got {self.learn_geometry!r}")
         if self.motion_init not in (None, "flow", "search"):
             raise ConfigError(f"stfm: motion_init must be 'flow' or 'search', got {self.motion_init!r}")
         if self.init not in (None, "gs", "random"):
@@ -125,6 +135,10 @@ ALL_BASES = (*BASE_VIDEOS, *KEY_WARPS, "blend", "none", "video" + HDV3_SUFFIX, "
 # One pair per RIFE model (4.x and HDv3): smoke +0.55 dB over "video,keys"; with keys_interp (DIS flows)
 # too: clips 0.35-0.66 dB lower (bench/stfm_motion.md, bench/stfm_compare.md)
 ENSEMBLE_BASES = "video,keys,video_hdv3,keys_hdv3"
+# The learned GS-to-RS pose's step (Adam, pixels of displacement at the grid's edge) per unit of the
+# fields' learning rate: 0.02 px a step at the fast preset's start, decaying with it (0.5: smoke's x
+# shift not reached in 1,500 steps; a step that does not decay: sineball 480 steps more, no better)
+POSE_LR_RATIO = 2.0
 REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
 DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
 
@@ -239,9 +253,10 @@ def resolve(settings: STFMSettings, h: int, w: int, k: int) -> tuple[_Resolved, 
 
 # What the registry's presets (the command line, the Python API by label) add to the dataclass's
 # defaults: the gains refined from the data before the fit and the GS-only start as the floor of the
-# output (rngcam.recon.methods.selfcal, rngcam.recon.methods.stfm.floor). The dataclass keeps both off, so that a
+# output (rngcam.recon.methods.selfcal, rngcam.recon.methods.stfm.floor), and the GS-to-RS transform learned
+# with the fields (rngcam.recon.methods.stfm.model.FieldModel.gs_matrix). The dataclass keeps them off, so that a
 # fit built from STFMSettings directly is exactly the model and nothing around it.
-USER_DEFAULTS = {"self_calibrate": "gains", "start_floor": True}
+USER_DEFAULTS = {"self_calibrate": "gains", "start_floor": True, "learn_geometry": "shift"}
 
 
 def preset_settings(name: str) -> STFMSettings:
