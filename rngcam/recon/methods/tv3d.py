@@ -76,8 +76,6 @@ class TV3DSettings:
             raise ConfigError(f"tv3d: gs_anchor must be 'soft' or 'hard', got {self.gs_anchor!r}")
         if self.self_calibrate not in ("off", "gains", "all"):
             raise ConfigError(f"tv3d: self_calibrate must be off, gains or all, got {self.self_calibrate!r}")
-        if self.self_calibrate not in ("off", "gains", "all"):
-            raise ConfigError(f"tv3d: self_calibrate must be off, gains or all, got {self.self_calibrate!r}")
 
 
 class _Scaled(LinearOperator):
