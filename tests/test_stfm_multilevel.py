@@ -132,3 +132,24 @@ def test_power_norm_from_a_zero_or_nan_start_is_the_operators_norm():
     for start in (torch.zeros(2, 3, 4, 4), torch.full((2, 3, 4, 4), float("nan"))):
         norm, x = power_norm(Diagonal(), start.double(), iters=200, tol=1e-12)
         assert abs(norm - 2.0) < 1e-3 and torch.isfinite(x).all()
+
+
+@pytest.mark.parametrize("preset", ["fast", "prior"])  # fast: a base video from the coarse estimate; prior: fields
+def test_the_learned_gs_to_rs_shift_goes_to_the_finer_level_in_its_pixels(preset):
+    from rngcam.recon.methods import selfcal
+
+    p = _toy_problem()
+    settings = STFMSettings(preset=preset, rows_per_step=4, learn_geometry="shift")
+    m = make_multilevel(p, settings, "cpu", (2, 1), lambda q, s: make_stfm(q, s), max_level_steps=20)
+    run(m, LoopSettings(time_budget_s=None, max_iters=10, progress=False))  # the coarse level only
+    coarse = m.method
+    assert getattr(coarse, "members", [coarse])[0].H == p.shape[2] // 2 and coarse.pose() is not None
+    for fit in getattr(coarse, "members", [coarse]):  # a known shift at the coarse level, in its pixels
+        fit.start_pose(torch.tensor([0.3, -0.2, 0.0, 0.0]))
+    assert torch.allclose(coarse.pose(), torch.tensor([0.3, -0.2, 0.0, 0.0]), atol=1e-6)
+    run(m, LoopSettings(time_budget_s=None, max_iters=11, progress=False))  # the coarse level's end, one fine step
+    fine = m.method
+    assert fine.H == p.shape[2] and fine.learn_pose and fine.steps == 1
+    np.testing.assert_allclose(fine.learned_geometry()["end"]["shift_px"], [0.6, -0.4], atol=0.05)  # 2x the pixels
+    assert torch.isfinite(fine.estimate()).all()
+    assert selfcal.describe(fine.gs_matrix().detach().double().numpy())["scale"] == pytest.approx(1.0)

@@ -55,10 +55,10 @@ class BaseVideos:
         from rngcam.recon.methods.baselines import BaselineInputError, interp_warps
         from rngcam.recon.methods.rife import RifeUnavailableError, rife_warps
 
-        args = (keys.detach().float().cpu().numpy(), self.problem.gs_times_s, self.problem.frame_times_s)
-        warps = None
         if min(keys.shape[-2:]) < MIN_FLOW_SIZE_PX:  # as _base_video: no flow of either kind that small
             return False
+        args = (keys.detach().float().cpu().numpy(), self.problem.gs_times_s, self.problem.frame_times_s)
+        warps = None
         if kind != "keys_interp" and keys.shape[0] in (1, 3):
             try:
                 with torch.random.fork_rng(devices=[]):  # building the network draws random numbers

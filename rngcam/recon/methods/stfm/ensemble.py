@@ -99,7 +99,7 @@ class STFMEnsemble(MethodBase):
     def _start_refinement(self) -> None:
         first = self.members[0]
         lr = REFINE_LR_RATIO * first.resolved.lr
-        pose = self.mean_pose()
+        pose = self._mean_pose()
         video = self.estimate() if pose is None else self.average(native=True)  # the refinement's fields are native
         base = video / torch.as_tensor(self._mean_gains(), device=self.device)[:, None, None, None]
         settings = replace(self.settings, dynamic_base="video", seed=self.settings.seed + len(self.members), lr=lr)
@@ -143,15 +143,17 @@ class STFMEnsemble(MethodBase):
     def gains(self) -> np.ndarray:
         return self.refined.gains() if self.refined is not None else self._mean_gains()
 
-    def mean_pose(self) -> Tensor | None:
+    def _mean_pose(self) -> Tensor | None:
         poses = [m.pose() for m in self.members]
         return None if any(p is None for p in poses) else torch.stack(poses).mean(0)
 
+    def pose(self) -> Tensor | None:
+        """The learned GS-to-RS pose: the refinement's, else the members' mean (None: not learned)."""
+        return self.refined.pose() if self.refined is not None else self._mean_pose()
+
     def learned_geometry(self) -> dict | None:
-        if self.refined is not None:
-            return self.refined.learned_geometry()
         m0 = self.members[0]
-        return geometry_report(self.mean_pose(), m0.pose_radius, m0.settings.selfcal_report)
+        return geometry_report(self.pose(), m0.pose_radius, m0.settings.selfcal_report)
 
     @torch.no_grad()
     def residuals(self) -> dict[str, float]:

@@ -14,7 +14,7 @@ from rngcam.errors import ConfigError
 from rngcam.memory import release_free_memory
 from rngcam.recon import ablation
 from rngcam.recon.loop import MethodBase
-from rngcam.recon.methods.selfcal import describe, report_lines
+from rngcam.recon.methods.selfcal import describe, pose_matrix, report_lines, similarity
 from rngcam.recon.methods.stfm.bases import BaseVideos
 from rngcam.recon.methods.stfm.components import Components, choose_components
 from rngcam.recon.methods.stfm.fields import transfer_fields
@@ -332,8 +332,6 @@ def geometry_report(pose: Tensor | None, radius: float, selfcal: dict | None) ->
     "learned" (the fit's on top of it), "end" (both: what the rig has)} as shift / rotation / scale."""
     if pose is None:
         return None
-    from rngcam.recon.methods.selfcal import pose_matrix, similarity
-
     start = similarity()
     if selfcal and selfcal.get("applied") and "transform_not_applied" not in selfcal:
         r = selfcal["refined"]
@@ -349,4 +347,3 @@ def geometry_lines(geometry: dict | None, steps: int) -> list[str]:
     e = geometry["end"]
     return [f"GS-to-RS transform learned with the fields: shift ({e['shift_px'][0]:+.3f}, {e['shift_px'][1]:+.3f}) px, "
             f"rotation {e['rotation_deg']:+.3f} deg, scale {e['scale']:.4f}"]
-

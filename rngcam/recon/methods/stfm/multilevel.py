@@ -67,7 +67,7 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
             previous[:] = [method]
             return method
         start = None
-        pose, ratio = _pose_of(previous[-1]), level.shape[-1] / _fit_of(previous[-1]).W
+        pose, ratio = previous[-1].pose(), level.shape[-1] / _fit_of(previous[-1]).W
         if norm_vector:  # the power iteration takes it over (and scales it in place)
             coarse = norm_vector.pop().float()
             start = upsample(coarse, level.shape, level.shape[1] / coarse.shape[1])
@@ -84,10 +84,10 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
             if pose is not None:  # the estimate is in RS coordinates; the fields' base in the GS camera's
                 x0 = _to_native(x0, pose * ratio, max(level.shape[-2:]) / 2)
             method = _on_base(level, single_settings, device, x0, start)
+            if pose is not None and method.learn_pose:  # (fields_from carries it in the other two ways)
+                method.start_pose(pose * ratio)
         else:
             method = _from_fields(level, single_settings, device, _fit_of(previous[-1]), start)
-        if pose is not None and method.learn_pose:  # the coarser level's GS-to-RS transform, in this grid's pixels
-            method.start_pose(pose * ratio)
         if level.shape != problem.shape and method.rs_norm_vector is not None:
             norm_vector[:] = [method.rs_norm_vector]  # for the next level (the full grid keeps none)
         method.rs_norm_vector = None
@@ -115,13 +115,6 @@ def _to_native(video: Tensor, pose: Tensor, radius: float) -> Tensor:
     for i in range(0, video.shape[1], 8):
         video[:, i:i + 8] = warp(video[:, i:i + 8].float(), m).to(video.dtype)
     return video
-
-
-def _pose_of(method) -> Tensor | None:
-    """The learned GS-to-RS pose of a level's fit (an ensemble's: its refinement's, else its members' mean)."""
-    if isinstance(method, STFM):
-        return method.pose()
-    return method.refined.pose() if method.refined is not None else method.mean_pose()
 
 
 def _lr(settings: STFMSettings, problem) -> float:
