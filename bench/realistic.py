@@ -131,12 +131,14 @@ def run_stfm(p, scene: str, steps: int, mode: str, truth_cal: dict | None) -> di
     return out
 
 
-def run_default(p, scene: str, max_steps: int, truth_cal: dict | None, fixed_geometry: bool = False) -> dict:
+def run_default(p, scene: str, max_steps: int, truth_cal: dict | None, variant: str = "default") -> dict:
     """`rngcam recon BUNDLE`'s STFM (the registry's default preset and options) to its own stop,
-    or `max_steps`; `fixed_geometry`: with `--learn-geometry off` (the transform as handed over)."""
+    or `max_steps`; variant "default-fixed": with `--learn-geometry off` (the transform as handed
+    over), "default-line" / "default-noline": with `--learn-line-time on` / `off`."""
     name, settings = registry.settings_for("stfm")
-    if fixed_geometry:
-        settings = replace(settings, learn_geometry="off")
+    changes = {"default-fixed": dict(learn_geometry="off"), "default-line": dict(learn_line_time="on"),
+               "default-noline": dict(learn_line_time="off")}.get(variant, {})
+    settings = replace(settings, **changes)
     method = registry.get(name).factory(p.to(torch.float32), settings, device="cpu", clock=None, stage=None)
     result = run(method, LoopSettings(time_budget_s=None, max_iters=max_steps, log_every_iters=max_steps,
                                       progress=False))
@@ -151,6 +153,11 @@ def run_default(p, scene: str, max_steps: int, truth_cal: dict | None, fixed_geo
                preset=(rs.get("preset_choice") or {}).get("preset"),
                output_is_start=rs.get("start_floor", {}).get("output_is_start"),
                calibration=calibration_vs_truth(cal, truth_cal, cal.get("end")))
+    line = rs.get("line_time")
+    if line:  # the line-time factor learned with the fields against the truth
+        true_factor = (truth_cal or {}).get("line_time_scale", 1.0)
+        out.update(line_time_factor=line["factor"], true_line_time_factor=true_factor,
+                   line_time_error=line["factor"] / true_factor - 1)
     learned = (rs.get("gs_geometry") or {}).get("end")
     if learned:  # the GS-to-RS transform learned with the fields (learn_geometry) against the truth
         t = (truth_cal or {}).get("shift_px", [0.0, 0.0])
@@ -244,6 +251,25 @@ def _misfit_cell(r: dict) -> str:
     return "ok" if not line else line.split(": ")[1] + " (" + line.split(" is ")[1].split(" the")[0] + ")"
 
 
+def report_line_time(results: dict, size: int = 64) -> str:
+    """The table of `--methods default,default-noline` runs: the line time learned with the fields
+    (`learn_line_time`) against the recorded one kept, per scene and family."""
+    lines = ["| scene | family | learned factor (true) | error | interm. dB: learned / kept | ball med / p90 px: "
+             "learned / kept | steps: learned / kept |", "|---|---|---|---|---|---|---|"]
+    for key, r in results.items():
+        scene, family, method = key.split("|")[:3]
+        kept = results.get(f"{scene}|{family}|default-noline|{size}")
+        if method != "default" or not kept or not key.endswith(f"|{size}"):
+            continue
+        factor = (f"{r['line_time_factor']:.4f} ({r['true_line_time_factor']:.3f}) | {100 * r['line_time_error']:+.2f} %"
+                  if "line_time_factor" in r else "not learned | -")
+        ball = " / ".join(f"{x['centroid_error_median_px']:.2f} / {x['centroid_error_p90_px']:.2f}" for x in (r, kept)) \
+            if "centroid_error_median_px" in r else "-"
+        lines.append(f"| {scene} | {family} | {factor} | {r['psnr_intermediate_db']:.2f} / "
+                     f"{kept['psnr_intermediate_db']:.2f} | {ball} | {r['steps']:,} / {kept['steps']:,} |")
+    return "\n".join(lines)
+
+
 def report_default(results: dict, size: int = 64) -> str:
     """The table of `--methods default` runs (rngcam recon's STFM to its own stop) against the
     GS-only videos, per scene and family, with the lab families' cost against `fine`."""
@@ -275,7 +301,8 @@ def main() -> None:
     ap.add_argument("--families", default=",".join(FAMILIES))
     ap.add_argument("--methods", default="stfm,blend,interp",
                     help="stfm (one fit, --steps), default (rngcam recon's STFM to its own stop, at most "
-                         "--max-steps), default-fixed (the same with --learn-geometry off), tv3d, pnp, tv3d:gains, blend, interp")
+                         "--max-steps), default-fixed (the same with --learn-geometry off), default-line / default-noline (with "
+                         "--learn-line-time on / off), tv3d, pnp, tv3d:gains, blend, interp")
     ap.add_argument("--max-steps", type=int, default=3500, help="the default's cap")
     ap.add_argument("--selfcal", default="off,gains,all", help="STFM's self_calibrate modes to compare")
     ap.add_argument("--steps", type=int, default=400, help="steps per iterative method (fixed: load-independent)")
@@ -288,8 +315,12 @@ def main() -> None:
     torch.set_num_threads(1)
     results = json.loads(Path(args.out).read_text()) if Path(args.out).exists() else {}
     if args.report:
-        defaults = any("|default|" in k for k in results)
-        print(report_default(results, args.size) if defaults else report(results, args.size))
+        if any("|default-noline|" in k for k in results):
+            print(report_line_time(results, args.size))
+        elif any("|default|" in k for k in results):
+            print(report_default(results, args.size))
+        else:
+            print(report(results, args.size))
         return
     with tempfile.TemporaryDirectory() as tmp:
         for scene in args.scenes.split(","):
@@ -306,8 +337,8 @@ def main() -> None:
                         t0 = time.perf_counter()
                         if method == "stfm":
                             r = run_stfm(p, scene, args.steps, mode, truth_cal)
-                        elif method in ("default", "default-fixed"):
-                            r = run_default(p, scene, args.max_steps, truth_cal, method == "default-fixed")
+                        elif method.startswith("default"):
+                            r = run_default(p, scene, args.max_steps, truth_cal, method)
                         elif method in ("blend", "interp"):
                             r = run_gs_only(method, p, scene)
                         else:

@@ -313,10 +313,13 @@ class RollingShutter(LinearOperator):
             return out
         return torch.cat(parts, dim=1) if out is None else out.copy_(torch.cat(parts, dim=1))
 
-    def A_rows(self, v_frames: Tensor, rows: Tensor, frames: Tensor) -> Tensor:  # noqa: N802
+    def A_rows(self, v_frames: Tensor, rows: Tensor, frames: Tensor,  # noqa: N802
+               weights: Tensor | None = None) -> Tensor:
         """Sensor rows `rows` (R,) as seen from frames `frames` (F,) only: v_frames (C, F, H, W)
         -> (C, R, W). Summed over frame subsets that partition the video it gives A(v)[:, rows];
-        only those rows go through the inverse FFT along x (a fit's step samples a few rows)."""
+        only those rows go through the inverse FFT along x (a fit's step samples a few rows).
+        `weights` (R, F): these rows' weights on these frames instead of the operator's (a fit
+        that learns the line time passes them, with their gradient)."""
         conv = self.conv
         h, w = conv.image_shape
         oy, ox = conv.offset
@@ -327,7 +330,9 @@ class RollingShutter(LinearOperator):
         spec = torch.fft.rfft2(v_frames, s=conv.fft_shape) * tf  # (C, F, fh, fw')
         # Only rows `rows` of the inverse DFT along y, weighted per frame and summed over frames:
         # one (R, F fh) x (F fh, fw') product instead of a full inverse FFT per frame and a selection.
-        weights = self._w(v_frames)[rows][:, frames.to(v_frames.device)].T  # (F, R)
+        if weights is None:
+            weights = self._w(v_frames)[rows][:, frames.to(v_frames.device)]
+        weights = weights.to(v_frames).T  # (F, R)
         phase = (2 * math.pi / fh) * torch.outer((rows + oy).to(torch.float64).cpu(),
                                                   torch.arange(fh, dtype=torch.float64))
         dft = (torch.polar(torch.ones_like(phase), phase) / fh).to(spec.device, spec.dtype)  # (R, fh)
@@ -335,11 +340,14 @@ class RollingShutter(LinearOperator):
         summed = torch.matmul(band, spec.reshape(c, n * fh, -1))  # (C, R, fw // 2 + 1)
         return torch.fft.irfft(summed, n=fw, dim=-1)[..., ox:ox + w]
 
-    def A_rows_adjoint(self, b_rows: Tensor, rows: Tensor, frames: Tensor) -> Tensor:  # noqa: N802
-        """Adjoint of A_rows: (C, R, W) -> (C, F, H, W)."""
+    def A_rows_adjoint(self, b_rows: Tensor, rows: Tensor, frames: Tensor,  # noqa: N802
+                       weights: Tensor | None = None) -> Tensor:
+        """Adjoint of A_rows (with the same `weights`, if any): (C, R, W) -> (C, F, H, W)."""
         c, _, w = b_rows.shape
         h = self.conv.image_shape[0]
-        weights = self._w(b_rows)[rows.to(b_rows.device)][:, frames.to(b_rows.device)].T  # (F, R)
+        if weights is None:
+            weights = self._w(b_rows)[rows.to(b_rows.device)][:, frames.to(b_rows.device)]
+        weights = weights.to(b_rows).T  # (F, R)
         full = torch.zeros(c, len(frames), h, w, dtype=b_rows.dtype, device=b_rows.device)
         full[:, :, rows.to(b_rows.device)] = b_rows[:, None] * weights[None, :, :, None]
         return self.conv.A_adjoint(full)

@@ -16,6 +16,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import torch
+from torch import Tensor
 
 # Relative tolerance for deciding that an exposure end falls on a frame edge.
 _EDGE_TOL = 1e-9
@@ -92,6 +94,20 @@ class RollingShutterTiming:
         """End of the last sensor row's exposure."""
         last = self.rows * self.rows_per_bin - 1
         return self.trigger_s + last * self.line_time_s + self.exposure_s
+
+    def stretched_weights(self, grid: VideoGrid, rows: Tensor, factor: Tensor) -> Tensor:
+        """(R, n_frames) weights of grid rows `rows` (R,) when the true line time is `factor` (a
+        0-d tensor) times this one, differentiable in `factor`; at factor 1 they are `weights`. An
+        exposure reaching past the grid's last edge counts in the last frame (the video held there)."""
+        dtype = factor.dtype
+        sensor = rows.to(dtype)[:, None] * self.rows_per_bin + torch.arange(self.rows_per_bin, dtype=dtype,
+                                                                             device=factor.device)
+        a = (self.trigger_s + sensor * (self.line_time_s * factor)) / grid.dt_s  # (R, s) in frames
+        b = a + self.exposure_s / grid.dt_s
+        k = torch.arange(grid.n_frames, dtype=dtype, device=factor.device)
+        upper = torch.where(k == grid.n_frames - 1, torch.full_like(k, math.inf), k + 1)
+        overlap = (torch.minimum(b[..., None], upper) - torch.maximum(a[..., None], k)).clamp_min(0)
+        return overlap.mean(dim=1)
 
     def weights(self, grid: VideoGrid) -> np.ndarray:
         """(rows, n_frames) weights: mean over the bin's sensor rows of overlap/dt."""

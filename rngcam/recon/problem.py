@@ -75,6 +75,9 @@ class Problem:
     gs_valid: Tensor | None = None  # (C or 1, G, H, W) bool
     time_origin_s: float = 0.0  # the grid's first edge relative to T0 (< 0 when GS exposes before T0)
     left_out: list[tuple[str, str]] = field(default_factory=list)  # (measurement, reason) not fitted
+    # The RS timing the weights came from (on the grid's clock), where they came from one: what a
+    # fit that learns a line-time factor stretches (None: a coarsened or hand-built problem).
+    rs_timing: RollingShutterTiming | None = None
 
     @property
     def channels(self) -> int:
@@ -125,7 +128,7 @@ class Problem:
                        cast(self.white_balance), list(self.notes),
                        rs_train_rows=cast(self.rs_train_rows), gs_train_mask=cast(self.gs_train_mask),
                        rs_valid=cast(self.rs_valid), gs_valid=cast(self.gs_valid),
-                       time_origin_s=self.time_origin_s, left_out=list(self.left_out))
+                       time_origin_s=self.time_origin_s, left_out=list(self.left_out), rs_timing=self.rs_timing)
 
     def rs_valid_mask(self) -> Tensor | None:
         """(C or 1, H, W) 0/1 float mask of the RS pixels that carry information; None: all do."""
@@ -365,6 +368,7 @@ def _build_problem(bundle: Bundle, grid_bin: int | None, dt_s: float | None, use
         gs_valid=valid_or_none(gs_invalid) if b_gs is not None else None,
         time_origin_s=plan.origin_s,
         left_out=left_out,
+        rs_timing=plan.rs if use_rs else None,
     )
 
 
@@ -385,4 +389,4 @@ def problem_from_video(video: Tensor, psf: Tensor, rs: RollingShutterTiming | No
     b_rs = RollingShutter(psf, rs_w, w, channels=c).A(video) if rs is not None else None
     b_gs = GlobalShutter(gs_w, c, (h, w)).A(video) if gs is not None else None
     return Problem(b_rs=b_rs, b_gs=b_gs, rs_weights=rs_w, gs_weights=gs_w, psf=psf, grid=grid,
-                   gs_times_s=gs.centres_s() if gs is not None else np.zeros(0), truth=video)
+                   gs_times_s=gs.centres_s() if gs is not None else np.zeros(0), truth=video, rs_timing=rs)

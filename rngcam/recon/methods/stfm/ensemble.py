@@ -12,6 +12,7 @@ from rngcam.errors import ConfigError
 from rngcam.recon import ablation
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.stfm.lanes import Lanes, lane_count
+from rngcam.recon.methods.stfm.line_time import line_time_lines, line_time_report
 from rngcam.recon.methods.stfm.method import STFM, geometry_lines, geometry_report
 from rngcam.recon.methods.stfm.model import _chunks
 from rngcam.recon.methods.stfm.settings import REFINE_LR_RATIO, STFMSettings, _base_list, _setting_or_preset
@@ -106,6 +107,9 @@ class STFMEnsemble(MethodBase):
         self.refined = STFM(self.problem, settings, self.device, static_from=first, base_video=base)
         if pose is not None and self.refined.learn_pose:  # the members' transform, refined further
             self.refined.start_pose(pose)
+        factor = self._mean_line_factor()
+        if factor is not None and self.refined.learn_line:
+            self.refined.start_line_factor(factor)
 
     def converged(self) -> str | None:
         if not self._members_done():
@@ -151,13 +155,24 @@ class STFMEnsemble(MethodBase):
         """The learned GS-to-RS pose: the refinement's, else the members' mean (None: not learned)."""
         return self.refined.pose() if self.refined is not None else self._mean_pose()
 
+    def _mean_line_factor(self) -> float | None:
+        factors = [m.line_factor() for m in self.members]
+        return None if any(f is None for f in factors) else float(np.mean(factors))
+
+    def line_factor(self) -> float | None:
+        """The learned line-time factor: the refinement's, else the members' mean (None: not learned)."""
+        return self.refined.line_factor() if self.refined is not None else self._mean_line_factor()
+
+    def line_time_report(self) -> dict | None:
+        return line_time_report(self.members[0].rs_timing, self.line_factor())
+
     def learned_geometry(self) -> dict | None:
         m0 = self.members[0]
         return geometry_report(self.pose(), m0.pose_radius, m0.settings.selfcal_report)
 
     @torch.no_grad()
     def residuals(self) -> dict[str, float]:
-        return (self.refined or self.members[0]).residuals_of(self.estimate(), self.gains())
+        return (self.refined or self.members[0]).residuals_of(self.estimate(), self.gains(), self.line_factor())
 
     @torch.no_grad()
     def components(self) -> dict[str, np.ndarray]:
@@ -215,11 +230,14 @@ class STFMEnsemble(MethodBase):
             out["gs_geometry"] = geometry
             if out.get("self_calibration", {}).get("end"):
                 out["self_calibration"]["end"].update(geometry["end"])
+        if self.line_factor() is not None:
+            out["line_time"] = self.line_time_report()
         return out
 
     @property
     def notes(self) -> list[str]:
-        return self.members[0]._notes + geometry_lines(self.learned_geometry(), self.steps)
+        return (self.members[0]._notes + geometry_lines(self.learned_geometry(), self.steps)
+                + line_time_lines(self.line_time_report(), self.steps))
 
 
 def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",

@@ -12,6 +12,11 @@ from rngcam.recon.methods.stfm.fields import field_on_grid
 from rngcam.recon.methods.stfm.model import _chunks
 
 
+def _cols(w_rows: Tensor | None, frames: Tensor) -> Tensor | None:
+    """Columns `frames` of the sampled rows' weights (None stays None: the operator's own)."""
+    return None if w_rows is None else w_rows.index_select(1, frames)
+
+
 class DataLoss:
     """Part of STFM: normalisation of the data terms and the loss of a step."""
 
@@ -153,7 +158,8 @@ class DataLoss:
         rest = torch.zeros(0, dtype=torch.long, device=dev)
         if self.parts.rs and rows is not None:
             rows = rows.to(dev)
-            w = self.w_rs[rows]
+            w_rows = self._row_weights(rows)  # None: the operator's (no line time learned)
+            w = self.w_rs[rows] if w_rows is None else w_rows.detach()
             touched = torch.nonzero(w.sum(0) > 0).flatten()
             rest = touched[~torch.isin(touched, win_frames)]
         chunks = _chunks(rest, self.frame_chunk)
@@ -182,16 +188,18 @@ class DataLoss:
             pred = torch.zeros(self.C, len(rows), self.W, device=dev)
             if len(shared):
                 pos = torch.searchsorted(win_frames, shared)
-                pred = pred + self.rs_op.A_rows(self._rs_view(v_gs[:, pos]), rows, shared)
+                pred = pred + self.rs_op.A_rows(self._rs_view(v_gs[:, pos]), rows, shared, _cols(w_rows, shared))
             if single:
                 if chunks:
-                    pred = pred + self.rs_op.A_rows(self._rs_view(v_first[:, n_gs:]), rows, chunks[0])
+                    pred = pred + self.rs_op.A_rows(self._rs_view(v_first[:, n_gs:]), rows, chunks[0],
+                                                    _cols(w_rows, chunks[0]))
                 rs = scale * self.rs_miss(pred, rows).square().sum()
                 terms["rs"] = float(rs.detach())
                 graph_loss = graph_loss + rs
             else:  # two passes: residual without a graph, then chunk-wise back-propagation
                 with torch.no_grad():
-                    pred_rest = sum(self.rs_op.A_rows(self._rs_view(self.frames(c, static)), rows, c) for c in chunks)
+                    pred_rest = sum(self.rs_op.A_rows(self._rs_view(self.frames(c, static)), rows, c, _cols(w_rows, c))
+                                    for c in chunks)
                 residual = self.rs_miss(pred.detach() + pred_rest, rows)  # 0/1 mask: also d(loss)/d(pred) / 2
                 terms["rs"] = scale * float(residual.square().sum())
                 grad = 2 * scale * residual
@@ -201,7 +209,8 @@ class DataLoss:
             if graph_loss.requires_grad:
                 graph_loss.backward()
             for c, grad in chunk_jobs:
-                surrogate = (self.rs_op.A_rows(self._rs_view(self.frames(c, static)), rows, c) * grad).sum()
+                w_chunk = _cols(self._row_weights(rows), c)  # its own graph: each backward frees its own
+                surrogate = (self.rs_op.A_rows(self._rs_view(self.frames(c, static)), rows, c, w_chunk) * grad).sum()
                 surrogate.backward()
             if static is not static_graph and static.grad is not None:
                 static_graph.backward(static.grad)

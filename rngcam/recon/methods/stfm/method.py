@@ -19,15 +19,23 @@ from rngcam.recon.methods.stfm.bases import BaseVideos
 from rngcam.recon.methods.stfm.components import Components, choose_components
 from rngcam.recon.methods.stfm.fields import transfer_fields
 from rngcam.recon.methods.stfm.init import GSInit
+from rngcam.recon.methods.stfm.line_time import LineTime, line_time_lines
 from rngcam.recon.methods.stfm.loss import DataLoss
 from rngcam.recon.methods.stfm.model import FieldModel, _chunks
-from rngcam.recon.methods.stfm.settings import _FROM_PRESET, POSE_LR_RATIO, STFMSettings, chunk_frames, resolve
+from rngcam.recon.methods.stfm.settings import (
+    _FROM_PRESET,
+    LINE_LR_RATIO,
+    POSE_LR_RATIO,
+    STFMSettings,
+    chunk_frames,
+    resolve,
+)
 from rngcam.recon.methods.stfm.stopping import NoiseStop
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
 
 
-class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
+class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
     """STFM as a `rngcam.recon.loop.Method`. Build it with `make_stfm`. Its parts live in the
     package's modules (fields and frames, bases, loss, initialisation, stop test)."""
 
@@ -73,6 +81,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         torch.manual_seed(settings.seed)
         self.generator = torch.Generator(device="cpu").manual_seed(settings.seed)
         self._build_geometry()
+        self._build_line_time()
         self._build_base()
         self._build_fields(preset)
         self._build_scales()
@@ -81,10 +90,13 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
             with torch.no_grad():
                 self.log_gain.copy_(fields_from.log_gain.detach().to(self.log_gain))
                 self.gs_pose.copy_(fields_from.gs_pose.detach().to(self.gs_pose) * (self.W / fields_from.W))
+                if fields_from.rs_timing is not None:
+                    self.line_shift.copy_(fields_from.line_shift.detach().to(self.line_shift)
+                                          * (self.readout_frames / fields_from.readout_frames))
         elif self.resolved.init == "gs" and self.parts.gs:
             self._init_from_gs()
         self._build_optimiser(preset)
-        self._params = [*self.fields.parameters(), self.log_gain, self.gs_pose]
+        self._params = [*self.fields.parameters(), self.log_gain, self.line_shift, self.gs_pose]
         self._ema = [q.detach().clone() for q in self._params] if self.resolved.ema_decay > 0 else None
         self.steps = 0
         self._cache: tuple[int, Tensor] | None = None
@@ -96,7 +108,8 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
 
     @property
     def notes(self) -> list[str]:
-        return self._notes + geometry_lines(self.learned_geometry(), self.steps)
+        return (self._notes + geometry_lines(self.learned_geometry(), self.steps)
+                + line_time_lines(self.line_time_report(), self.steps))
 
     @property
     def left_out(self) -> list[tuple[str, str]]:
@@ -123,6 +136,9 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
             self.pose_free[2:] = 0
         if self.learn_pose:
             groups.append({"params": [self.gs_pose], "lr_ratio": POSE_LR_RATIO})
+        self.learn_line = self._line_time_wanted() and self.learn_gain and self.settings.gs_anchor == "soft"
+        if self.learn_line:
+            groups.append({"params": [self.line_shift], "lr_ratio": LINE_LR_RATIO})
         for g in groups:
             g["lr"] = lr * g["lr_ratio"]
         self.optimiser = torch.optim.Adam(groups, lr=lr)
@@ -202,9 +218,11 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         return self.residuals_of(self.estimate(), self.gains())  # both from the averaged weights
 
     @torch.no_grad()
-    def residuals_of(self, video: Tensor, gains: np.ndarray) -> dict[str, float]:
-        """Relative RS and GS residuals of a video (C, K, H, W) with GS/RS gains (C,)."""
+    def residuals_of(self, video: Tensor, gains: np.ndarray, line_factor: float | None = None) -> dict[str, float]:
+        """Relative RS and GS residuals of a video (C, K, H, W) with GS/RS gains (C,) (and the RS
+        rows at `line_factor`, default: this fit's where it learns one)."""
         out = {}
+        self._sync_rs_op(line_factor)
         if self.problem.b_rs is not None:
             pred = self.rs_op.A(video, frame_chunk=self.frame_chunk)
             target = self.problem.b_rs
@@ -266,7 +284,7 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
 
     def state_dict(self) -> dict:
         return {"fields": self.fields.state_dict(), "log_gain": self.log_gain.detach().clone(),
-                "gs_pose": self.gs_pose.detach().clone(),
+                "gs_pose": self.gs_pose.detach().clone(), "line_shift": self.line_shift.detach().clone(),
                 "optimiser": self.optimiser.state_dict(), "steps": self.steps, "base_lr": self.base_lr,
                 "generator": self.generator.get_state(), "rs_history": dict(self._rs_history),
                 "ema": None if self._ema is None else [a.clone() for a in self._ema]}
@@ -277,6 +295,8 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
             self.log_gain.copy_(state["log_gain"])
             if "gs_pose" in state:
                 self.gs_pose.copy_(state["gs_pose"])
+            if "line_shift" in state:
+                self.line_shift.copy_(state["line_shift"])
         self.optimiser.load_state_dict(state["optimiser"])
         self.steps = int(state["steps"])
         self.base_lr = float(state["base_lr"])
@@ -315,6 +335,8 @@ class STFM(FieldModel, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
         geometry = self.learned_geometry()
         if geometry is not None:
             out["gs_geometry"] = geometry
+        if self.learn_line:
+            out["line_time"] = self.line_time_report()
         if ablation.selfcal_note(self.settings):
             out["self_calibration"] = {"mode": "off", "why": ablation.selfcal_off(self.settings)}
         if report:

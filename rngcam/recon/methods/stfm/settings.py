@@ -22,6 +22,7 @@ MIN_FRAME_CHUNK = 4
 # learned alongside drifted where the truth had none (sineball 64 px: scale 1.024, 0.14 deg;
 # bench/realistic.md), as a scale trades against the PSF's magnification.
 GEOMETRY_MODES = ("off", "shift", "similarity")
+LINE_TIME_MODES = ("off", "on", "auto")
 
 
 @dataclass
@@ -83,6 +84,11 @@ class STFMSettings:
     learn_geometry: str = setting(
         "off", "learn the GS-to-RS transform with the fields: its shift, or shift, rotation and scale "
                "(similarity); needs both cameras and soft GS anchoring", choices=GEOMETRY_MODES)
+    learn_line_time: str = setting(
+        "off", "learn a factor on the RS line time with the fields (the recorded one is a rough figure on "
+               "real cameras): on, off, or auto (on with the fast preset, whose compact moving objects time "
+               "the rows; off with prior, where spread motion let it drift); needs both cameras, soft GS "
+               "anchoring and the bundle's RS timing", choices=LINE_TIME_MODES)
     start_floor: bool = setting(False, "output the best GS-only video (cross-fade or flow interpolation) "
                                       "instead of the fit when the fit's RS residual is not below its own")
 
@@ -98,6 +104,9 @@ class STFMSettings:
         if self.learn_geometry not in GEOMETRY_MODES:
             raise ConfigError(f"stfm: learn_geometry must be one of {', '.join(GEOMETRY_MODES)}, "
                               f"got {self.learn_geometry!r}")
+        if self.learn_line_time not in LINE_TIME_MODES:
+            raise ConfigError(f"stfm: learn_line_time must be one of {', '.join(LINE_TIME_MODES)}, "
+                              f"got {self.learn_line_time!r}")
         if self.motion_init not in (None, "flow", "search"):
             raise ConfigError(f"stfm: motion_init must be 'flow' or 'search', got {self.motion_init!r}")
         if self.init not in (None, "gs", "random"):
@@ -139,6 +148,9 @@ ENSEMBLE_BASES = "video,keys,video_hdv3,keys_hdv3"
 # fields' learning rate: 0.02 px a step at the fast preset's start, decaying with it (0.5: smoke's x
 # shift not reached in 1,500 steps; a step that does not decay: sineball 480 steps more, no better)
 POSE_LR_RATIO = 2.0
+# The learned line time's step (Adam, frames of displacement at the last RS row) per unit of the
+# fields' learning rate
+LINE_LR_RATIO = 8.0
 REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
 DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
 
@@ -256,7 +268,7 @@ def resolve(settings: STFMSettings, h: int, w: int, k: int) -> tuple[_Resolved, 
 # output (rngcam.recon.methods.selfcal, rngcam.recon.methods.stfm.floor), and the GS-to-RS transform learned
 # with the fields (rngcam.recon.methods.stfm.model.FieldModel.gs_matrix). The dataclass keeps them off, so that a
 # fit built from STFMSettings directly is exactly the model and nothing around it.
-USER_DEFAULTS = {"self_calibrate": "gains", "start_floor": True, "learn_geometry": "shift"}
+USER_DEFAULTS = {"self_calibrate": "gains", "start_floor": True, "learn_geometry": "shift", "learn_line_time": "auto"}
 
 
 def preset_settings(name: str) -> STFMSettings:

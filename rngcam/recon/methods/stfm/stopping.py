@@ -23,6 +23,7 @@ class NoiseStop:
         demand (on the benchmark clips the truth-PSNR peaked there, then fell)."""
         if not (self.resolved.stop_at_noise and self.parts.rs and self.steps % NOISE_CHECK_STEPS == 0):
             return None
+        self._sync_rs_op()
         rows = self.rs_rows_fit.to(self.device)
         video = self.estimate()  # cached per step: a log at this step reuses it
         pred = self._rs_apply(lambda idx: video[:, idx], rows)

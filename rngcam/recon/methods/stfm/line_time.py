@@ -1,0 +1,98 @@
+"""STFM's line time learned with the fields: the RS rows' exposure windows stretched by a factor.
+
+The recorded line time (the camera's `SensorReadoutTime`, a rough figure by its vendor's word)
+places RS row r's exposure at trigger + r * line_time. A factor f on it moves row r by
+(f - 1) r line_time: nothing at the first row, the most at the last. The fit learns f with its
+fields through the exact stretched weights of the rows a step samples
+(`RollingShutterTiming.stretched_weights`, differentiable in f); full evaluations (the stop
+test, residuals) use the operator rebuilt at the current factor.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from rngcam.physics.operators import RollingShutter
+
+
+class LineTime:
+    """Part of STFM: the line-time factor (`learn_line_time`)."""
+
+    def _build_line_time(self) -> None:
+        """The parameter: the last row's displacement in frames, (f - 1) x the readout span."""
+        timing = self.problem.rs_timing
+        self.rs_timing = timing
+        span = 0.0
+        if timing is not None:
+            span = (timing.rows * timing.rows_per_bin - 1) * timing.line_time_s / self.problem.grid.dt_s
+        self.readout_frames = max(span, 1e-9)
+        self.line_shift = nn.Parameter(torch.zeros((), device=self.device))
+        self.learn_line = False
+        self._synced_factor = 1.0
+
+    def _line_time_wanted(self) -> bool:
+        """`learn_line_time` resolved (auto: with the fast preset) where the RS timing is known; auto
+        leaving it off says why in the notes."""
+        mode = self.settings.learn_line_time
+        if mode == "auto" and self.settings.preset != "fast":
+            self._notes.append(f"RS line time not learned (learn_line_time auto, preset {self.settings.preset}): "
+                               "spread motion does not time the rows (smoke: 0.7 % drift on exact timing)")
+            return False
+        return mode != "off" and self.rs_timing is not None
+
+    def _line_factor_tensor(self) -> Tensor:
+        return 1 + self.line_shift.double() / self.readout_frames
+
+    def line_factor(self) -> float | None:
+        """The learned line-time factor (averaged weights), None where the fit does not learn it."""
+        if not self.learn_line:
+            return None
+        with self._averaged():
+            return float(self._line_factor_tensor().detach())
+
+    def _row_weights(self, rows: Tensor) -> Tensor | None:
+        """(R, K) weights of rows `rows` at the current factor, with its gradient (None: not learned)."""
+        if not self.learn_line:
+            return None
+        w = self.rs_timing.stretched_weights(self.problem.grid, rows.cpu(), self._line_factor_tensor().cpu())
+        return w.to(self.device, torch.float32)
+
+    def start_line_factor(self, factor: float) -> None:
+        """Start the learned factor (and its moving average) at `factor` (another fit's)."""
+        with torch.no_grad():
+            self.line_shift.fill_((factor - 1) * self.readout_frames)
+            if self._ema is not None:
+                at = next(i for i, q in enumerate(self._params) if q is self.line_shift)
+                self._ema[at].copy_(self.line_shift)
+
+    @torch.no_grad()
+    def _sync_rs_op(self, factor: float | None = None) -> None:
+        """Rebuild the RS operator at `factor` (default: the averaged learned one) where it moved,
+        before full evaluations (the stop test, residuals)."""
+        factor = self.line_factor() if factor is None else factor
+        if factor is None or abs(factor - self._synced_factor) < 1e-7 or self.rs_timing is None:
+            return
+        rows = torch.arange(self.H)
+        w = self.rs_timing.stretched_weights(self.problem.grid, rows, torch.tensor(factor, dtype=torch.float64))
+        self.w_rs = w.to(self.device, torch.float32)
+        self.rs_op = RollingShutter(self.problem.psf, self.w_rs, self.W, self.C)
+        self._synced_factor = factor
+
+    def line_time_report(self) -> dict | None:
+        return line_time_report(self.rs_timing, self.line_factor())
+
+
+def line_time_report(timing, factor: float | None) -> dict | None:
+    """{"factor", "recorded_s", "learned_s"}: a sensor row's line time as recorded and as learned."""
+    if factor is None or timing is None:
+        return None
+    return {"factor": factor, "recorded_s": timing.line_time_s, "learned_s": timing.line_time_s * factor}
+
+
+def line_time_lines(report: dict | None, steps: int) -> list[str]:
+    """The note on the learned line time (none before the first step)."""
+    if report is None or steps == 0:
+        return []
+    return [f"RS line time learned with the fields: {report['learned_s'] * 1e6:.4f} us per sensor row "
+            f"(x{report['factor']:.4f} the recorded {report['recorded_s'] * 1e6:.4f} us)"]
