@@ -32,7 +32,7 @@ from rngcam.recon.methods.stfm import STFMSettings
 from rngcam.recon.methods.stfm.auto import choose_preset
 from rngcam.recon.methods.stfm.ensemble import make_stfm
 from rngcam.recon.metrics import motion_metrics, video_metrics
-from rngcam.recon.misfit import verdict
+from rngcam.recon.misfit import learned_by_fit, verdict
 from rngcam.recon.problem import build_problem
 from rngcam.sim.fidelity import LabErrors
 from rngcam.sim.simulate import simulate
@@ -145,7 +145,8 @@ def run_default(p, scene: str, max_steps: int, truth_cal: dict | None, variant: 
     rs = method.resolved_settings()
     out = metrics(method.estimate(), p, scene)
     cal = rs.get("self_calibration") or {}
-    found = verdict(method.residuals().get("rs"), rs.get("rs_noise_level"), cal, result.ended_by, result.status)
+    found = verdict(method.residuals().get("rs"), rs.get("rs_noise_level"), cal, result.ended_by, result.status,
+                    learned=learned_by_fit(rs))
     psf = (cal.get("scales") or {}).get("psf") or {}
     out.update(misfit=found["line"] if found else None, psf_scale_estimate=psf.get("estimate"),
                psf_scale_applied=psf.get("applied"), true_psf_scale=(truth_cal or {}).get("psf_scale", 1.0))

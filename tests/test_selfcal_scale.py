@@ -136,6 +136,11 @@ def test_the_verdict_needs_a_noise_level_and_a_finished_run():
     assert cut["verdict"] == misfit.NOT_FITTED and "before its own stop" in cut["line"]
     fixed = misfit.verdict(0.035, 0.0245, {"applied": True, "scales": {"psf": {"applied": True, "estimate": 0.96}}})
     assert fixed["likely_causes"] == ["line time"]  # gains and transform applied ("all"), the scale too
+    # what the fit learned with its fields is corrected too (its resolved settings say so)
+    learned = misfit.learned_by_fit({"gs_geometry": {"end": {}}, "line_time": {"factor": 1.01}})
+    assert learned == ("geometry", "line time")
+    assert misfit.verdict(0.0300, 0.0245, learned=learned)["likely_causes"] == ["PSF scale"]
+    assert misfit.learned_by_fit({"line_time": None}) == ()
 
 
 def test_the_run_says_it_in_metrics_the_summary_and_the_report(bundles, tmp_path):

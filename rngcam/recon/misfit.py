@@ -4,7 +4,8 @@ An iterative fit whose forward model is right ends with its RS residual near the
 estimated from the RS image (STFM and pnp stop there). One that stops clearly above it is fitting
 data the model does not explain: a PSF at another magnification than the calibration's (a scene at
 another depth), a GS-to-RS transform off, a line time off. `verdict` says so in one line and names
-the causes the run did not correct (from what self-calibration estimated and applied); a run
+the causes the run did not correct (from what self-calibration estimated and applied and what
+the fit learned with its fields); a run
 whose residual reached the noise level gets None. The threshold is set above what the fine
 simulation family ends on (the model right up to sub-grid detail; bench/realistic.md).
 """
@@ -23,30 +24,40 @@ NOT_EXPLAINED = "model does not explain the data"
 NOT_FITTED = "data not fitted yet"
 
 
-def _causes(selfcal: dict | None, gs_fitted: bool = True) -> tuple[list[str], bool]:
+def _causes(selfcal: dict | None, gs_fitted: bool = True, learned: tuple[str, ...] = ()) -> tuple[list[str], bool]:
     """(what the run could not correct, whether the key rows pointed at one of them): the
-    calibration values self-calibration did not apply, a PSF scale it found off by more than 1 %
-    and did not apply first; the GS-to-RS transform only where GS frames were fitted. (The key
-    rows' GS-to-RS transform is too loosely pinned to point.)"""
+    calibration values self-calibration did not apply and the fit did not learn (`learned`:
+    "geometry", "line time"), a PSF scale it found off by more than 1 % and did not apply first;
+    the GS-to-RS transform only where GS frames were fitted. (The key rows' GS-to-RS transform is
+    too loosely pinned to point.)"""
     report = selfcal or {}
     psf = (report.get("scales") or {}).get("psf")
     causes = []
     pointed = bool(psf and not psf.get("applied") and abs(psf.get("estimate", 1.0) - 1) > 0.01)
     if not (psf and psf.get("applied")):
         causes.append("PSF scale")
-    if gs_fitted and (not report.get("applied") or "transform_not_applied" in report):
+    if gs_fitted and "geometry" not in learned and (not report.get("applied") or "transform_not_applied" in report):
         causes.append("geometry")
-    causes.append("line time")  # never estimated (the key rows do not carry it)
+    if "line time" not in learned:  # the key rows do not carry it
+        causes.append("line time")
     return causes, pointed
 
 
+def learned_by_fit(method_results: dict | None) -> tuple[str, ...]:
+    """What the fit learned with its fields, from its resolved settings (method_results)."""
+    found = method_results or {}
+    return tuple(name for name, key in (("geometry", "gs_geometry"), ("line time", "line_time")) if found.get(key))
+
+
 def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str = "own_stop",
-            status: str = "ok", ratio_limit: float = MISFIT_RATIO, gs_fitted: bool = True) -> dict | None:
+            status: str = "ok", ratio_limit: float = MISFIT_RATIO, gs_fitted: bool = True,
+            learned: tuple[str, ...] = ()) -> dict | None:
     """None when the RS residual is within `ratio_limit` x the noise level (POINTED_RATIO where the
     key rows found a PSF scale not applied), or either is unknown, or the run did not finish
     cleanly; else {"verdict", "rs_residual", "noise_level", "ratio", "threshold", "likely_causes",
     "line"}. `selfcal`: STFM's self-calibration report (method_results' self_calibration);
-    `gs_fitted`: False under --no-gs, where the GS-to-RS transform plays no part."""
+    `gs_fitted`: False under --no-gs, where the GS-to-RS transform plays no part; `learned`: the
+    causes the fit corrected itself (`learned_by_fit`)."""
     try:
         residual, noise = float(rs_residual), float(noise_level)
     except (TypeError, ValueError):
@@ -55,7 +66,7 @@ def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str
                                                          and noise > 0):
         return None
     ratio = residual / noise
-    causes, pointed = _causes(selfcal, gs_fitted)
+    causes, pointed = _causes(selfcal, gs_fitted, learned)
     limit = min(ratio_limit, POINTED_RATIO) if pointed else ratio_limit
     if ratio <= limit:
         return None
@@ -77,4 +88,5 @@ def for_metrics(metrics: dict) -> dict | None:
     found = metrics.get("method_results") or {}
     gs_fitted = not (metrics.get("method_settings") or {}).get("no_gs")
     return verdict(metrics.get("residual_rs"), found.get("rs_noise_level"), found.get("self_calibration"),
-                   metrics.get("ended_by", "own_stop"), metrics.get("status", "ok"), gs_fitted=gs_fitted)
+                   metrics.get("ended_by", "own_stop"), metrics.get("status", "ok"), gs_fitted=gs_fitted,
+                   learned=learned_by_fit(found))
