@@ -131,13 +131,15 @@ def test_no_line_time_is_learned_without_the_rs_timing_or_a_camera(slow_readout)
     assert _fit(slow_readout, 1, gs_anchor="hard").line_factor() is None
 
 
-def test_auto_learns_the_line_time_with_the_fast_preset_only_and_says_so(slow_readout):
-    fast = _fit(slow_readout, 1, learn_line_time="auto")
-    assert fast.line_factor() is not None
-    prior = make_stfm(slow_readout.to(torch.float32), STFMSettings(preset="prior", dynamic_base="none", seed=0,
-                                                                    learn_line_time="auto"))
-    assert prior.line_factor() is None
-    assert any("RS line time not learned" in n and "prior" in n for n in prior.notes)
+def test_auto_learns_the_line_time_with_the_prior_preset_only_and_says_so(slow_readout):
+    def built(preset):
+        return make_stfm(slow_readout.to(torch.float32), STFMSettings(preset=preset, dynamic_base="none", seed=0,
+                                                                       learn_line_time="auto"))
+
+    assert built("prior").line_factor() is not None  # one moving layer: its motion times the rows
+    fast = built("fast")
+    assert fast.line_factor() is None
+    assert any("RS line time not learned" in n and "fast" in n for n in fast.notes)
 
 
 def test_a_checkpoint_carries_the_learned_line_time(slow_readout):
@@ -146,3 +148,18 @@ def test_a_checkpoint_carries_the_learned_line_time(slow_readout):
     again.load_state_dict(method.state_dict())
     assert again.line_factor() == pytest.approx(method.line_factor(), abs=1e-9)
     assert again.residuals()["rs"] == pytest.approx(method.residuals()["rs"], rel=1e-5)
+
+
+def test_a_run_reports_the_learned_line_time_in_its_metrics(tmp_path):
+    import json
+
+    import rngcam
+    from rngcam.sim.simulate import simulate
+
+    data = tmp_path / "sineball.h5"
+    simulate("sineball", data, size=32, fidelity="fine")
+    r = rngcam.reconstruct(data, method="stfm-fast", max_iters=3, progress=False, learn_line_time="on")
+    # the simulated RS sensor: 104 us a row (two rows to a grid row)
+    found = json.loads((r.save(tmp_path / "out") / "metrics.json").read_text())["method_results"]["line_time"]
+    assert found["recorded_s"] == pytest.approx(104e-6) and found["factor"] == pytest.approx(1, abs=0.01)
+    assert found["learned_s"] == pytest.approx(found["recorded_s"] * found["factor"])

@@ -32,12 +32,13 @@ class LineTime:
         self._synced_factor = 1.0
 
     def _line_time_wanted(self) -> bool:
-        """`learn_line_time` resolved (auto: with the fast preset) where the RS timing is known; auto
-        leaving it off says why in the notes."""
+        """`learn_line_time` resolved (auto: with the prior preset, one moving layer) where the RS
+        timing is known; auto leaving it off says why in the notes."""
         mode = self.settings.learn_line_time
-        if mode == "auto" and self.settings.preset != "fast":
+        if mode == "auto" and self.settings.preset != "prior":
             self._notes.append(f"RS line time not learned (learn_line_time auto, preset {self.settings.preset}): "
-                               "spread motion does not time the rows (smoke: 0.7 % drift on exact timing)")
+                               "without one moving layer the motion does not time the rows (smoke: 0.7 % drift "
+                               "on exact timing)")
             return False
         return mode != "off" and self.rs_timing is not None
 

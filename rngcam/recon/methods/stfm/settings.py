@@ -86,8 +86,8 @@ class STFMSettings:
                "(similarity); needs both cameras and soft GS anchoring", choices=GEOMETRY_MODES)
     learn_line_time: str = setting(
         "off", "learn a factor on the RS line time with the fields (the recorded one is a rough figure on "
-               "real cameras): on, off, or auto (on with the fast preset, whose compact moving objects time "
-               "the rows; off with prior, where spread motion let it drift); needs both cameras, soft GS "
+               "real cameras): on, off, or auto (on with the prior preset, one moving layer whose motion times "
+               "the rows; off with fast, where spread motion let it drift); needs both cameras, soft GS "
                "anchoring and the bundle's RS timing", choices=LINE_TIME_MODES)
     start_floor: bool = setting(False, "output the best GS-only video (cross-fade or flow interpolation) "
                                       "instead of the fit when the fit's RS residual is not below its own")
