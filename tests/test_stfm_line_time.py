@@ -163,3 +163,19 @@ def test_a_run_reports_the_learned_line_time_in_its_metrics(tmp_path):
     found = json.loads((r.save(tmp_path / "out") / "metrics.json").read_text())["method_results"]["line_time"]
     assert found["recorded_s"] == pytest.approx(104e-6) and found["factor"] == pytest.approx(1, abs=0.01)
     assert found["learned_s"] == pytest.approx(found["recorded_s"] * found["factor"])
+
+
+def test_the_start_floor_judges_the_fit_and_the_start_at_the_learned_line_time(slow_readout):
+    from rngcam.recon.methods.stfm.floor import StartFloor
+
+    method = _fit(slow_readout, 60)
+    floor = StartFloor(method, slow_readout)
+    nominal = floor.start_rs
+    floor.estimate()
+    factor = method.line_factor()
+    assert floor._line_factor == pytest.approx(factor) and abs(factor - 1) > 1e-3
+    p = slow_readout.to(torch.float32)
+    w = p.rs_timing.stretched_weights(p.grid, torch.arange(p.b_rs.shape[1]), torch.tensor(factor, dtype=torch.float64))
+    pred = RollingShutter(p.psf, w.float(), p.b_rs.shape[-1], 3).A(floor._start(floor.start_name))
+    assert floor.start_rs == pytest.approx(float((pred - p.b_rs).norm() / p.b_rs.norm()), rel=1e-4)
+    assert floor.start_rs != pytest.approx(nominal, rel=1e-4)

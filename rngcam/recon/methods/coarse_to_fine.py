@@ -333,6 +333,11 @@ class CoarseToFine(MethodBase):
     def gains(self):
         return self.method.gains()
 
+    def line_factor(self) -> float | None:
+        """The current level's learned RS line-time factor (None: it learns none)."""
+        get = getattr(self.method, "line_factor", None)
+        return get() if callable(get) else None
+
     def components(self) -> dict:
         """The method's components, upsampled to the full grid when the run ended on a coarser level
         (motion in pixels scaled with the grid)."""

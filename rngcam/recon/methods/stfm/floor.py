@@ -8,6 +8,8 @@ key frames), and then that video, with a note saying so. Everything else is the 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -24,6 +26,7 @@ class StartFloor(MethodBase):
         self._method = method
         self._problem = problem.to(torch.float32)
         self._rs_op = self._problem.rs_op()
+        self._line_factor = 1.0  # the line-time factor _rs_op's rows are at (a fit may learn one)
         self._checked: tuple[int, int, bool] | None = None  # (id, version of the fit's estimate, kept the start)
         self.guard_note: str | None = None
         # Only the start's name and residual are kept: its video (as large as the output) is made
@@ -104,12 +107,29 @@ class StartFloor(MethodBase):
         return self._start_video
 
     @torch.no_grad()
+    def _follow_line_time(self) -> bool:
+        """Where the fit learned a line-time factor, both residuals are of the rows at it (the
+        start's computed again): True when it moved since the last comparison."""
+        get = getattr(self._method, "line_factor", None)
+        factor = get() if callable(get) else None
+        p = self._problem
+        if factor is None or abs(factor - self._line_factor) < 1e-6 or p.rs_timing is None:
+            return False
+        rows = torch.arange(p.b_rs.shape[1])
+        w = p.rs_timing.stretched_weights(p.grid, rows, torch.tensor(factor, dtype=torch.float64))
+        self._rs_op = replace(p, rs_weights=w.to(p.rs_weights)).rs_op()
+        self._line_factor = factor
+        video = self.start_video if self._start_video is not None else self._start(self.start_name)
+        self.start_rs = self._rs_residual(video)
+        return True
+
+    @torch.no_grad()
     def estimate(self) -> Tensor:
         video = self._method.estimate()
         if self.start_name is None:
             return video
         key = (id(video), video._version)
-        if self._checked is None or self._checked[:2] != key:
+        if self._follow_line_time() or self._checked is None or self._checked[:2] != key:
             res = self._rs_residual(video)
             keep = not res < self.start_rs
             self._checked = (*key, keep)
