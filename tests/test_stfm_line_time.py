@@ -110,7 +110,7 @@ def test_a_known_line_time_factor_is_learned_with_the_fields(slow_readout):
     assert 0.965 < factor < 0.988
     report = method.resolved_settings()["line_time"]
     assert report["factor"] == pytest.approx(factor) and report["learned_s"] == pytest.approx(2 * LINE * factor)
-    assert any("RS line time learned with the fields" in n for n in method.notes)
+    assert any("RS line time learned with the fields" in n and "calibrate linetime" in n for n in method.notes)
     fixed = _fit(slow_readout, 400, learn_line_time="off")
     assert fixed.line_factor() is None and "line_time" not in fixed.resolved_settings()
     truth = slow_readout.truth.float()

@@ -15,6 +15,10 @@ from torch import Tensor, nn
 
 from rngcam.physics.operators import RollingShutter
 
+# A learned factor further than this from 1 says the recorded line time is off: the fit wanders
+# 0.2 % on exact timing and closes about half of a 2 % error (bench/realistic.md)
+SUSPECT_LINE_TIME = 0.005
+
 
 class LineTime:
     """Part of STFM: the line-time factor (`learn_line_time`)."""
@@ -95,5 +99,9 @@ def line_time_lines(report: dict | None, steps: int) -> list[str]:
     """The note on the learned line time (none before the first step)."""
     if report is None or steps == 0:
         return []
-    return [f"RS line time learned with the fields: {report['learned_s'] * 1e6:.4f} us per sensor row "
-            f"(x{report['factor']:.4f} the recorded {report['recorded_s'] * 1e6:.4f} us)"]
+    line = (f"RS line time learned with the fields: {report['learned_s'] * 1e6:.4f} us per sensor row "
+            f"(x{report['factor']:.4f} the recorded {report['recorded_s'] * 1e6:.4f} us)")
+    if abs(report["factor"] - 1) > SUSPECT_LINE_TIME:
+        line += ("; the recorded line time looks off (the fit corrects part of a large error): measure it with "
+                 "`rngcam calibrate linetime --flicker`")
+    return [line]
