@@ -153,3 +153,17 @@ def test_the_learned_gs_to_rs_shift_goes_to_the_finer_level_in_its_pixels(preset
     np.testing.assert_allclose(fine.learned_geometry()["end"]["shift_px"], [0.6, -0.4], atol=0.05)  # 2x the pixels
     assert torch.isfinite(fine.estimate()).all()
     assert selfcal.describe(fine.gs_matrix().detach().double().numpy())["scale"] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("preset", ["fast", "prior"])
+def test_only_the_full_level_learns_the_line_time(preset):
+    p = _toy_problem()
+    settings = STFMSettings(preset=preset, rows_per_step=4, learn_line_time="on")
+    m = make_multilevel(p, settings, "cpu", (2, 1), lambda q, s: make_stfm(q, s), max_level_steps=20)
+    run(m, LoopSettings(time_budget_s=None, max_iters=10, progress=False))  # the coarse level only
+    assert m.line_factor() is None  # a coarsened problem has no RS timing: the recorded line time
+    run(m, LoopSettings(time_budget_s=None, max_iters=14, progress=False))  # the coarse level's end, 4 fine steps
+    fine = m.method
+    assert fine.H == p.shape[2] and m.line_factor() is not None and abs(m.line_factor() - 1) < 0.01
+    assert torch.isfinite(fine.estimate()).all() and np.isfinite(m.residuals()["rs"])
+    assert m.resolved_settings()["line_time"]["factor"] == pytest.approx(m.line_factor())
