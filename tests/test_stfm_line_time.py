@@ -179,3 +179,14 @@ def test_the_start_floor_judges_the_fit_and_the_start_at_the_learned_line_time(s
     pred = RollingShutter(p.psf, w.float(), p.b_rs.shape[-1], 3).A(floor._start(floor.start_name))
     assert floor.start_rs == pytest.approx(float((pred - p.b_rs).norm() / p.b_rs.norm()), rel=1e-4)
     assert floor.start_rs != pytest.approx(nominal, rel=1e-4)
+
+
+def test_the_factor_is_held_within_twenty_percent_and_a_readout_under_a_frame_learns_none(slow_readout):
+    method = _fit(slow_readout, 0)
+    method.start_line_factor(3.0)  # as a diverging fit would push it
+    assert method.line_factor() == pytest.approx(1.2)
+    w = method._row_weights(torch.arange(4)).detach()
+    assert torch.isfinite(w).all()
+    assert float(w.sum(1).min()) == pytest.approx(EXPOSURE / slow_readout.grid.dt_s, rel=1e-5)
+    short = replace(slow_readout.rs_timing, line_time_s=slow_readout.rs_timing.line_time_s / 100)
+    assert _fit(replace(slow_readout, rs_timing=short), 0).line_factor() is None

@@ -18,6 +18,9 @@ from rngcam.physics.operators import RollingShutter
 # A learned factor further than this from 1 says the recorded line time is off: the fit wanders
 # 0.2 % on exact timing and closes about half of a 2 % error (bench/realistic.md)
 SUSPECT_LINE_TIME = 0.005
+# The factor is held within 1 +- this: a recorded line time further off is not a rough figure but
+# a wrong one (the readout would not fit the capture), and a factor near 0 would fold the rows
+MAX_LINE_CHANGE = 0.2
 
 
 class LineTime:
@@ -44,10 +47,12 @@ class LineTime:
                                "without one moving layer the motion does not time the rows (smoke: 0.7 % drift "
                                "on exact timing)")
             return False
-        return mode != "off" and self.rs_timing is not None
+        # a readout shorter than a frame: no factor moves a row's window by a measurable share
+        return mode != "off" and self.rs_timing is not None and self.readout_frames >= 1
 
     def _line_factor_tensor(self) -> Tensor:
-        return 1 + self.line_shift.double() / self.readout_frames
+        change = (self.line_shift.double() / self.readout_frames).clamp(-MAX_LINE_CHANGE, MAX_LINE_CHANGE)
+        return 1 + change
 
     def line_factor(self) -> float | None:
         """The learned line-time factor (averaged weights), None where the fit does not learn it."""
