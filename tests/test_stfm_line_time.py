@@ -61,6 +61,11 @@ def test_a_rows_with_given_weights_is_the_operator_built_with_them_and_its_adjoi
     b = torch.rand(c, len(rows), w, generator=gen, dtype=torch.float64)
     back = op.A_rows_adjoint(b, rows, frames, weights=given)
     assert float((got * b).sum()) == pytest.approx(float((v * back).sum()), rel=1e-10)
+    moved = op.with_weights(other)  # the operator at other weights shares the PSF's transfer
+    full = torch.rand(c, k, h, w, generator=gen, dtype=torch.float64)
+    assert moved.conv is op.conv and moved.weights is not op.weights
+    torch.testing.assert_close(moved.A(full), built.A(full), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(op.A(full), RollingShutter(psf / psf.sum(), weights, w, c).A(full))  # op unchanged
 
 
 def _moving_capture(true_factor: float, size: int = 32):
@@ -190,3 +195,16 @@ def test_the_factor_is_held_within_twenty_percent_and_a_readout_under_a_frame_le
     assert float(w.sum(1).min()) == pytest.approx(EXPOSURE / slow_readout.grid.dt_s, rel=1e-5)
     short = replace(slow_readout.rs_timing, line_time_s=slow_readout.rs_timing.line_time_s / 100)
     assert _fit(replace(slow_readout, rs_timing=short), 0).line_factor() is None
+
+
+def test_the_factor_gets_the_same_gradient_in_one_graph_and_frame_chunk_by_chunk(slow_readout):
+    def grad(chunk):
+        method = _fit(slow_readout, 0, frame_chunk=chunk)
+        method.start_line_factor(0.985)
+        rows = torch.arange(8, 16)
+        method.optimiser.zero_grad(set_to_none=True)
+        method.loss_terms(rows, None, backward=True)
+        return float(method.line_shift.grad)
+
+    whole, chunked = grad(64), grad(2)  # 2: the sampled rows' frames in several graphs
+    assert abs(whole) > 0 and chunked == pytest.approx(whole, rel=1e-4)

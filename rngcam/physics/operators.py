@@ -7,6 +7,7 @@ operator returns a tuple of measurements; `inner` and `norm_sq` handle tensors a
 
 from __future__ import annotations
 
+import copy
 import math
 import threading
 
@@ -184,6 +185,12 @@ class RollingShutter(LinearOperator):
         self.conv = PSFConvolution(psf, (rows, width), batch_shape=(k,), channels=channels)
         self.domain_shape = self.conv.domain_shape
         self._band_cache: dict = {}
+
+    def with_weights(self, weights: Tensor) -> RollingShutter:
+        """The same PSF and shape with other row weights (H, K): the PSF's transfer is shared."""
+        out = copy.copy(self)
+        out.weights, out._band_cache = torch.as_tensor(weights), {}
+        return out
 
     def _w(self, like: Tensor) -> Tensor:
         return self.weights.to(dtype=like.dtype, device=like.device)

@@ -99,6 +99,12 @@ class Problem:
         c, _, _, w = self.shape
         return RollingShutter(self.psf, self.rs_weights, width=w, channels=c)
 
+    def rs_weights_at(self, line_factor: float) -> Tensor:
+        """(H, K) RS weights with the recorded line time times `line_factor` (needs `rs_timing`)."""
+        rows = torch.arange(self.rs_weights.shape[0])
+        w = self.rs_timing.stretched_weights(self.grid, rows, torch.tensor(line_factor, dtype=torch.float64))
+        return w.to(self.rs_weights)
+
     def gs_op(self) -> GlobalShutter:
         c, _, h, w = self.shape
         return GlobalShutter(self.gs_weights, c, (h, w))

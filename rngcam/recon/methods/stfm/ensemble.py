@@ -12,8 +12,8 @@ from rngcam.errors import ConfigError
 from rngcam.recon import ablation
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.stfm.lanes import Lanes, lane_count
-from rngcam.recon.methods.stfm.line_time import line_time_lines, line_time_report
-from rngcam.recon.methods.stfm.method import STFM, geometry_lines, geometry_report
+from rngcam.recon.methods.stfm.line_time import line_time_report
+from rngcam.recon.methods.stfm.method import STFM, add_learned, geometry_report, learned_notes
 from rngcam.recon.methods.stfm.model import _chunks
 from rngcam.recon.methods.stfm.settings import REFINE_LR_RATIO, STFMSettings, _base_list, _setting_or_preset
 
@@ -225,19 +225,11 @@ class STFMEnsemble(MethodBase):
         out["member_steps"] = [m.steps for m in self.members]
         out["refine"] = self.use_refine
         out["refine_steps"] = None if self.refined is None else self.refined.steps
-        geometry = self.learned_geometry()
-        if geometry is not None:
-            out["gs_geometry"] = geometry
-            if out.get("self_calibration", {}).get("end"):
-                out["self_calibration"]["end"].update(geometry["end"])
-        if self.line_factor() is not None:
-            out["line_time"] = self.line_time_report()
-        return out
+        return add_learned(out, self)
 
     @property
     def notes(self) -> list[str]:
-        return (self.members[0]._notes + geometry_lines(self.learned_geometry(), self.steps)
-                + line_time_lines(self.line_time_report(), self.steps))
+        return self.members[0]._notes + learned_notes(self)
 
 
 def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",

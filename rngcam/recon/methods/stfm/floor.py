@@ -8,8 +8,6 @@ key frames), and then that video, with a note saying so. Everything else is the 
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import torch
 from torch import Tensor
@@ -115,9 +113,7 @@ class StartFloor(MethodBase):
         p = self._problem
         if factor is None or abs(factor - self._line_factor) < 1e-6 or p.rs_timing is None:
             return False
-        rows = torch.arange(p.b_rs.shape[1])
-        w = p.rs_timing.stretched_weights(p.grid, rows, torch.tensor(factor, dtype=torch.float64))
-        self._rs_op = replace(p, rs_weights=w.to(p.rs_weights)).rs_op()
+        self._rs_op = self._rs_op.with_weights(p.rs_weights_at(factor))
         self._line_factor = factor
         video = self.start_video if self._start_video is not None else self._start(self.start_name)
         self.start_rs = self._rs_residual(video)

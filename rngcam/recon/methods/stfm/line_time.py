@@ -13,8 +13,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from rngcam.physics.operators import RollingShutter
-
 # A learned factor further than this from 1 says the recorded line time is off: the fit wanders
 # 0.2 % on exact timing and closes about half of a 2 % error (bench/realistic.md)
 SUSPECT_LINE_TIME = 0.005
@@ -70,11 +68,7 @@ class LineTime:
 
     def start_line_factor(self, factor: float) -> None:
         """Start the learned factor (and its moving average) at `factor` (another fit's)."""
-        with torch.no_grad():
-            self.line_shift.fill_((factor - 1) * self.readout_frames)
-            if self._ema is not None:
-                at = next(i for i, q in enumerate(self._params) if q is self.line_shift)
-                self._ema[at].copy_(self.line_shift)
+        self._start_param(self.line_shift, torch.tensor((factor - 1) * self.readout_frames))
 
     @torch.no_grad()
     def _sync_rs_op(self, factor: float | None = None) -> None:
@@ -83,10 +77,8 @@ class LineTime:
         factor = self.line_factor() if factor is None else factor
         if factor is None or abs(factor - self._synced_factor) < 1e-7 or self.rs_timing is None:
             return
-        rows = torch.arange(self.H)
-        w = self.rs_timing.stretched_weights(self.problem.grid, rows, torch.tensor(factor, dtype=torch.float64))
-        self.w_rs = w.to(self.device, torch.float32)
-        self.rs_op = RollingShutter(self.problem.psf, self.w_rs, self.W, self.C)
+        self.w_rs = self.problem.rs_weights_at(factor).to(self.device, torch.float32)
+        self.rs_op = self.rs_op.with_weights(self.w_rs)
         self._synced_factor = factor
 
     def line_time_report(self) -> dict | None:

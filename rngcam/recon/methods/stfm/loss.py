@@ -156,9 +156,13 @@ class DataLoss:
                 graph_loss = graph_loss + smooth
         # Frames the sampled RS rows touch, split into those inside GS windows and the rest.
         rest = torch.zeros(0, dtype=torch.long, device=dev)
+        w_rows = w_graph = None
         if self.parts.rs and rows is not None:
             rows = rows.to(dev)
-            w_rows = self._row_weights(rows)  # None: the operator's (no line time learned)
+            w_graph = self._row_weights(rows)  # None: the operator's (no line time learned)
+            # as the static image: a leaf for every chunk's graph, its gradient taken on once at the end
+            w_rows = None if w_graph is None else (
+                w_graph.detach().requires_grad_() if backward and w_graph.requires_grad else w_graph)
             w = self.w_rs[rows] if w_rows is None else w_rows.detach()
             touched = torch.nonzero(w.sum(0) > 0).flatten()
             rest = touched[~torch.isin(touched, win_frames)]
@@ -209,11 +213,13 @@ class DataLoss:
             if graph_loss.requires_grad:
                 graph_loss.backward()
             for c, grad in chunk_jobs:
-                w_chunk = _cols(self._row_weights(rows), c)  # its own graph: each backward frees its own
-                surrogate = (self.rs_op.A_rows(self._rs_view(self.frames(c, static)), rows, c, w_chunk) * grad).sum()
+                surrogate = (self.rs_op.A_rows(self._rs_view(self.frames(c, static)), rows, c, _cols(w_rows, c))
+                             * grad).sum()
                 surrogate.backward()
             if static is not static_graph and static.grad is not None:
                 static_graph.backward(static.grad)
+            if w_rows is not w_graph and w_rows.grad is not None:
+                w_graph.backward(w_rows.grad)
         return terms
 
     def full_objective(self) -> dict:

@@ -8,7 +8,7 @@ from dataclasses import asdict
 
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from rngcam.errors import ConfigError
 from rngcam.memory import release_free_memory
@@ -108,8 +108,7 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
 
     @property
     def notes(self) -> list[str]:
-        return (self._notes + geometry_lines(self.learned_geometry(), self.steps)
-                + line_time_lines(self.line_time_report(), self.steps))
+        return self._notes + learned_notes(self)
 
     @property
     def left_out(self) -> list[tuple[str, str]]:
@@ -272,12 +271,16 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         with self._averaged():
             return (self.gs_pose * self.pose_free).detach().clone()
 
+    @torch.no_grad()
+    def _start_param(self, param: nn.Parameter, value: Tensor) -> None:
+        """Set `param` and its moving average to `value` (another fit's start)."""
+        param.copy_(value.to(param))
+        if self._ema is not None:
+            self._ema[next(i for i, q in enumerate(self._params) if q is param)].copy_(param)
+
     def start_pose(self, pose: Tensor) -> None:
         """Start the learned pose (and its moving average) at `pose` (another fit's, same grid)."""
-        with torch.no_grad():
-            self.gs_pose.copy_(pose.to(self.gs_pose))
-            if self._ema is not None:
-                self._ema[-1].copy_(self.gs_pose)  # _params ends with the pose
+        self._start_param(self.gs_pose, pose)
 
     def learned_geometry(self) -> dict | None:
         return geometry_report(self.pose(), self.pose_radius, self.settings.selfcal_report)
@@ -332,11 +335,6 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}
         out["left_out"] = [list(x) for x in self.left_out]
         report = self.settings.selfcal_report
-        geometry = self.learned_geometry()
-        if geometry is not None:
-            out["gs_geometry"] = geometry
-        if self.learn_line:
-            out["line_time"] = self.line_time_report()
         if ablation.selfcal_note(self.settings):
             out["self_calibration"] = {"mode": "off", "why": ablation.selfcal_off(self.settings)}
         if report:
@@ -344,9 +342,27 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
             if report.get("applied"):  # the fit learns the gains further (Lambda, on the refined scale)
                 learned = self.gains() if self.learn_gain else np.ones(self.C)
                 end = [float(g) * r for g, r in zip(learned, report["refined"]["gains"], strict=True)]
-                out["self_calibration"]["end"] = {**report["refined"], "gains": end,
-                                                  **({} if geometry is None else geometry["end"])}
-        return out
+                out["self_calibration"]["end"] = {**report["refined"], "gains": end}
+        return add_learned(out, self)
+
+
+def learned_notes(method) -> list[str]:
+    """The notes on what a fit (an STFM or an ensemble) learned with its fields."""
+    return (geometry_lines(method.learned_geometry(), method.steps)
+            + line_time_lines(method.line_time_report(), method.steps))
+
+
+def add_learned(out: dict, method) -> dict:
+    """Resolved settings `out` with what a fit learned with its fields: gs_geometry (whose end is
+    also self-calibration's end, where that applied a calibration) and line_time."""
+    geometry, line = method.learned_geometry(), method.line_time_report()
+    if geometry is not None:
+        out["gs_geometry"] = geometry
+        if out.get("self_calibration", {}).get("end"):
+            out["self_calibration"]["end"].update(geometry["end"])
+    if line is not None:
+        out["line_time"] = line
+    return out
 
 
 def geometry_report(pose: Tensor | None, radius: float, selfcal: dict | None) -> dict | None:

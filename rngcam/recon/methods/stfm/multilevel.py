@@ -30,6 +30,7 @@ from torch import Tensor
 
 from rngcam.memory import release_free_memory
 from rngcam.recon.methods.coarse_to_fine import CoarseToFine, default_factors, power_norm, upsample
+from rngcam.recon.methods.selfcal import pose_matrix, warp
 from rngcam.recon.methods.stfm.method import STFM
 from rngcam.recon.methods.stfm.settings import REFINE_LR_RATIO, STFMSettings, _preset
 
@@ -109,8 +110,6 @@ def _fit_of(method) -> STFM:
 def _to_native(video: Tensor, pose: Tensor, radius: float) -> Tensor:
     """A video (C, K, H, W) in RS coordinates in the GS camera's (sampled at S p), in place, frame
     chunk by frame chunk (the full grid's base is the run's largest buffer)."""
-    from rngcam.recon.methods.selfcal import pose_matrix, warp
-
     m = pose_matrix(pose.double().cpu(), radius).numpy()
     for i in range(0, video.shape[1], 8):
         video[:, i:i + 8] = warp(video[:, i:i + 8].float(), m).to(video.dtype)
