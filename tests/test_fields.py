@@ -112,3 +112,27 @@ def test_bad_configuration_is_a_clear_error():
         make_field("siren", 2, 3, width=3)
     with pytest.raises(ConfigError, match="resolutions"):
         make_field("planes", 2, 3, resolutions=(1,))
+
+
+def test_grid_path_at_frame_indices_matches_those_frames_and_reuses_the_axes_matrices():
+    from rngcam.recon.methods.stfm import fields
+
+    torch.manual_seed(2)
+    f = PlaneField(3, 2, resolutions=(4, 6), time_resolutions=(5, 3), features=3, hidden=8).double()
+    with torch.no_grad():
+        for plane in f.planes:
+            plane.uniform_(-1, 1)
+    xs, ys, ts = (torch.linspace(-1, 1, n, dtype=torch.float64) for n in (7, 5, 9))
+    idx = torch.tensor([0, 3, 3, 8])
+    picked = field_on_grid(f, [xs, ys, ts], idx)
+    assert torch.allclose(picked, field_on_grid(f, [xs, ys, ts[idx]]), atol=1e-12)
+    # the axes' matrices are kept while the axes live and are unchanged, rebuilt once changed in place
+    m = fields._interp_matrix(ts, 5, torch.float64)
+    assert fields._interp_matrix(ts, 5, torch.float64) is m
+    ts[0] = -0.5
+    again = fields._interp_matrix(ts, 5, torch.float64)
+    assert again is not m and float(again[0].sum()) == pytest.approx(1.0)
+    assert torch.allclose(again, fields._build_interp_matrix(ts, 5, torch.float64))
+    key = id(ts)
+    del ts, again
+    assert key not in fields._MATRIX_CACHE  # a dead axis leaves nothing behind

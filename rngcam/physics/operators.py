@@ -185,6 +185,7 @@ class RollingShutter(LinearOperator):
         self.conv = PSFConvolution(psf, (rows, width), batch_shape=(k,), channels=channels)
         self.domain_shape = self.conv.domain_shape
         self._band_cache: dict = {}
+        self._row_dft_cache: dict = {}  # independent of the weights: shared by with_weights' copies
 
     def with_weights(self, weights: Tensor) -> RollingShutter:
         """The same PSF and shape with other row weights (H, K): the PSF's transfer is shared."""
@@ -224,6 +225,16 @@ class RollingShutter(LinearOperator):
             self._band_cache[key] = (rows.to(device), fwd.to(device=device, dtype=cdt).contiguous(),
                                      adj.to(device=device, dtype=cdt).contiguous())
         return self._band_cache[key]
+
+    def _row_dft(self, dtype, device) -> Tensor:
+        """(H, fh) rows of the inverse DFT along y, e^{+2 pi i f (r + oy) / fh} / fh, for every grid row r."""
+        key = (dtype, str(device))
+        if key not in self._row_dft_cache:
+            fh = self.conv.fft_shape[0]
+            rows = torch.arange(self.weights.shape[0], dtype=torch.float64) + self.conv.offset[0]
+            phase = (2 * math.pi / fh) * torch.outer(rows, torch.arange(fh, dtype=torch.float64))
+            self._row_dft_cache[key] = (torch.polar(torch.ones_like(phase), phase) / fh).to(device, dtype)
+        return self._row_dft_cache[key]
 
     def frames_per_chunk(self, channels: int, frame_chunk: int | None = None) -> int:
         """Frames that go through the FFTs at a time: `frame_chunk`, else as many as fit CHUNK_BYTES."""
@@ -329,7 +340,7 @@ class RollingShutter(LinearOperator):
         that learns the line time passes them, with their gradient)."""
         conv = self.conv
         h, w = conv.image_shape
-        oy, ox = conv.offset
+        ox = conv.offset[1]
         fh, fw = conv.fft_shape
         c, n = v_frames.shape[0], v_frames.shape[1]
         tf = conv._broadcast(conv.transfer(v_frames.dtype, v_frames.device), v_frames.ndim)
@@ -340,9 +351,7 @@ class RollingShutter(LinearOperator):
         if weights is None:
             weights = self._w(v_frames)[rows][:, frames.to(v_frames.device)]
         weights = weights.to(v_frames).T  # (F, R)
-        phase = (2 * math.pi / fh) * torch.outer((rows + oy).to(torch.float64).cpu(),
-                                                  torch.arange(fh, dtype=torch.float64))
-        dft = (torch.polar(torch.ones_like(phase), phase) / fh).to(spec.device, spec.dtype)  # (R, fh)
+        dft = self._row_dft(spec.dtype, spec.device).index_select(0, rows)  # (R, fh)
         band = (weights.T[:, :, None].to(spec.dtype) * dft[:, None, :]).reshape(len(rows), n * fh)
         summed = torch.matmul(band, spec.reshape(c, n * fh, -1))  # (C, R, fw // 2 + 1)
         return torch.fft.irfft(summed, n=fw, dim=-1)[..., ox:ox + w]

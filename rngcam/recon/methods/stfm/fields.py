@@ -20,6 +20,7 @@ With align_corners=True, -1 and +1 are the centres of the first and last pixel/f
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Sequence
 
 import torch
@@ -166,12 +167,13 @@ class PlaneField(nn.Module):
                     count += 1
         return total / max(count, 1)
 
-    def forward_grid(self, axes: Sequence[Tensor]) -> Tensor:
+    def forward_grid(self, axes: Sequence[Tensor], t_index: Tensor | None = None) -> Tensor:
         """The field on the Cartesian product of 1-D coordinate vectors (x, y[, t]).
 
         Returns (n_y, n_x, out) or (n_t, n_y, n_x, out). Same values as `forward` on the
         meshgrid, but each plane is sampled with two small interpolation matrices instead of
-        grid_sample: much faster, forward and backward, on a CPU.
+        grid_sample: much faster, forward and backward, on a CPU. `t_index`: the frames
+        axes[2][t_index] only (the time axis's matrix is built once and its rows picked).
         """
         if len(axes) != self.in_dims:
             raise ValueError(f"expected {self.in_dims} coordinate vectors, got {len(axes)}")
@@ -182,6 +184,8 @@ class PlaneField(nn.Module):
                 plane = self.planes[s * len(self.pairs) + j][0]  # (F, R_b, R_a)
                 m_a = _interp_matrix(axes[a], plane.shape[2], plane.dtype)
                 m_b = _interp_matrix(axes[b], plane.shape[1], plane.dtype)
+                if b == 2 and t_index is not None:
+                    m_b = m_b.index_select(0, t_index)
                 sampled = m_b @ plane @ m_a.t()  # (F, n_b, n_a)
                 if (a, b) == (0, 1):
                     sampled = sampled if self.in_dims == 2 else sampled[:, None]  # (F, [1,] n_y, n_x)
@@ -195,23 +199,27 @@ class PlaneField(nn.Module):
         return self.decoder(feats.movedim(0, -1))
 
 
-_MATRIX_CACHE: dict = {}
-_MATRIX_CACHE_LIMIT = 256
+# id(coordinate vector) -> (weak reference, its version, {(size, dtype): matrix}): the pixel and
+# frame axes repeat every step. Keyed by the tensor itself, not its values: reading the values
+# would wait for a GPU at every call.
+_MATRIX_CACHE: dict[int, tuple] = {}
 
 
 def _interp_matrix(coords: Tensor, size: int, dtype) -> Tensor:
     """(n, size) matrix of 1-D linear interpolation weights, align_corners=True, border clamp.
 
-    Matrices for coordinates that do not need a gradient are cached (the pixel and frame axes
-    repeat every step)."""
+    Matrices for coordinate vectors that do not need a gradient are kept while the vector lives
+    and is not changed in place."""
     if coords.requires_grad:
         return _build_interp_matrix(coords, size, dtype)
-    key = (str(coords.device), dtype, size, coords.detach().cpu().numpy().tobytes())
-    m = _MATRIX_CACHE.get(key)
+    key = id(coords)
+    entry = _MATRIX_CACHE.get(key)
+    if entry is None or entry[0]() is not coords or entry[1] != coords._version:
+        entry = _MATRIX_CACHE[key] = (weakref.ref(coords, lambda _ref, k=key: _MATRIX_CACHE.pop(k, None)),
+                                      coords._version, {})
+    m = entry[2].get((size, dtype))
     if m is None:
-        if len(_MATRIX_CACHE) >= _MATRIX_CACHE_LIMIT:
-            _MATRIX_CACHE.clear()
-        m = _MATRIX_CACHE[key] = _build_interp_matrix(coords, size, dtype)
+        m = entry[2][(size, dtype)] = _build_interp_matrix(coords, size, dtype)
     return m
 
 
@@ -226,14 +234,17 @@ def _build_interp_matrix(coords: Tensor, size: int, dtype) -> Tensor:
     return m
 
 
-def field_on_grid(field: nn.Module, axes: Sequence[Tensor]) -> Tensor:
-    """Evaluate any field on the product grid of 1-D coordinates (x, y[, t]).
+def field_on_grid(field: nn.Module, axes: Sequence[Tensor], t_index: Tensor | None = None) -> Tensor:
+    """Evaluate any field on the product grid of 1-D coordinates (x, y[, t]) (`t_index`: at
+    axes[2][t_index] only).
 
     Returns (n_y, n_x, out) for 2-D fields and (n_t, n_y, n_x, out) for 3-D fields; uses the
     fast separable path of a PlaneField and a meshgrid otherwise.
     """
     if hasattr(field, "forward_grid"):
-        return field.forward_grid(axes)
+        return field.forward_grid(axes, t_index)
+    if t_index is not None:
+        axes = [*axes[:2], axes[2][t_index]]
     grids = torch.meshgrid(*reversed(list(axes)), indexing="ij")  # ([t,] y, x)
     p = torch.stack([g.reshape(-1) for g in reversed(grids)], dim=-1)
     return field(p).reshape(*grids[0].shape, -1)

@@ -89,7 +89,7 @@ class GSInit:
         for _ in range(steps):
             idx = torch.randperm(self.K, generator=gen)[:4].to(self.device)
             opt.zero_grad()
-            raw = field_on_grid(field, [self.xs, self.ys, self.ts[idx]]).permute(3, 0, 1, 2)
+            raw = field_on_grid(field, [self.xs, self.ys, self.ts], idx).permute(3, 0, 1, 2)
             if self.base_source is not None:  # the colour is already the base video: keep it
                 loss = raw[self._correction_channels()].square().mean()
             else:

@@ -13,6 +13,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from rngcam.recon.methods.stfm.model import _to_device
+
 # A learned factor further than this from 1 says the recorded line time is off: the fit wanders
 # 0.2 % on exact timing and closes about half of a 2 % error (bench/realistic.md)
 SUSPECT_LINE_TIME = 0.005
@@ -63,8 +65,8 @@ class LineTime:
         """(R, K) weights of rows `rows` at the current factor, with its gradient (None: not learned)."""
         if not self.learn_line:
             return None
-        w = self.rs_timing.stretched_weights(self.problem.grid, rows.cpu(), self._line_factor_tensor().cpu())
-        return w.to(self.device, torch.float32)
+        rows = _to_device(rows, self.device)
+        return self.rs_timing.stretched_weights(self.problem.grid, rows, self._line_factor_tensor()).float()
 
     def start_line_factor(self, factor: float) -> None:
         """Start the learned factor (and its moving average) at `factor` (another fit's)."""

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from rngcam.recon.methods.stfm.fields import field_on_grid
-from rngcam.recon.methods.stfm.model import _chunks
+from rngcam.recon.methods.stfm.model import _chunks, _to_device
 
 
 def _cols(w_rows: Tensor | None, frames: Tensor) -> Tensor | None:
@@ -129,13 +129,16 @@ class DataLoss:
         frames and GS frames (`gs_windows`, None: all; full terms: all rows, all frames). With
         `backward` the gradient of their sum is accumulated, chunk by chunk."""
         dev = self.device
+        # Index sets are worked out on the host (small), so a step does not wait for a GPU to know them.
         if not self.parts.gs:
-            windows = win_frames = torch.zeros(0, dtype=torch.long, device=dev)
+            windows, win_host = torch.zeros(0, dtype=torch.long, device=dev), torch.zeros(0, dtype=torch.long)
         elif gs_windows is None or self.settings.gs_anchor == "hard":
-            windows, win_frames = torch.arange(self.w_gs.shape[0], device=dev), self.gs_frames
+            windows, win_host = torch.arange(self.w_gs.shape[0], device=dev), self.gs_frames_host
         else:
-            windows = gs_windows.to(dev)
-            win_frames = torch.nonzero(self.w_gs[windows].sum(0) > 0).flatten()
+            windows = _to_device(gs_windows, dev)
+            win_host = torch.nonzero(self.w_gs_host[gs_windows.cpu()].sum(0) > 0).flatten()
+        win_frames = self.gs_frames if win_host is self.gs_frames_host else _to_device(win_host, dev)
+        # terms stay tensors until the end: one wait for a GPU per call, not one per term
         terms = {"gs": 0.0, "rs": 0.0, "tv": 0.0, "smooth": 0.0, "matte": 0.0}
         static_graph = self._static() if self.parts.static else None
         # Every frame evaluation sees the static image as a leaf: each chunk's graph is freed by its
@@ -146,26 +149,27 @@ class DataLoss:
         graph_loss = torch.zeros((), device=dev)
         if self._has_canonical_matte:
             matte = self.matte_term()
-            terms["matte"] = float(matte.detach())
+            terms["matte"] = matte.detach()
             graph_loss = graph_loss + matte
         if self.resolved.time_smoothness > 0:
             rough = [f.time_roughness() for f in self.fields.values() if hasattr(f, "time_roughness")]
             if rough:
                 smooth = self.resolved.time_smoothness * sum(rough)
-                terms["smooth"] = float(smooth.detach())
+                terms["smooth"] = smooth.detach()
                 graph_loss = graph_loss + smooth
         # Frames the sampled RS rows touch, split into those inside GS windows and the rest.
         rest = torch.zeros(0, dtype=torch.long, device=dev)
         w_rows = w_graph = None
         if self.parts.rs and rows is not None:
-            rows = rows.to(dev)
             w_graph = self._row_weights(rows)  # None: the operator's (no line time learned)
             # as the static image: a leaf for every chunk's graph, its gradient taken on once at the end
             w_rows = None if w_graph is None else (
                 w_graph.detach().requires_grad_() if backward and w_graph.requires_grad else w_graph)
-            w = self.w_rs[rows] if w_rows is None else w_rows.detach()
-            touched = torch.nonzero(w.sum(0) > 0).flatten()
-            rest = touched[~torch.isin(touched, win_frames)]
+            touched = (self._rs_frames(rows) if w_rows is None
+                       else torch.nonzero(w_rows.detach().sum(0) > 0).flatten().cpu())
+            inside = torch.isin(touched, win_host)
+            shared, rest = _to_device(touched[inside], dev), _to_device(touched[~inside], dev)
+            rows = _to_device(rows, dev)
         chunks = _chunks(rest, self.frame_chunk)
         single = len(chunks) <= 1
         # One evaluation for the GS windows and (when it fits in one chunk) the RS frames.
@@ -179,16 +183,15 @@ class DataLoss:
                 v_gs = self._anchored(v_gs)
             else:
                 gs = self.gs_term(v_gs, windows, win_frames)
-                terms["gs"] = float(gs.detach())
+                terms["gs"] = gs.detach()
                 graph_loss = graph_loss + gs
         if self.parts.motion and self.parts.motion_reg and tv_frames is not None:
-            tv = self.tv_term(tv_frames.to(dev))
-            terms["tv"] = float(tv.detach())
+            tv = self.tv_term(_to_device(tv_frames, dev))
+            terms["tv"] = tv.detach()
             graph_loss = graph_loss + tv
         chunk_jobs = []
         if self.parts.rs and rows is not None:
             scale = self.rs_scale(len(rows))
-            shared = touched[torch.isin(touched, win_frames)]
             pred = torch.zeros(self.C, len(rows), self.W, device=dev)
             if len(shared):
                 pos = torch.searchsorted(win_frames, shared)
@@ -198,14 +201,14 @@ class DataLoss:
                     pred = pred + self.rs_op.A_rows(self._rs_view(v_first[:, n_gs:]), rows, chunks[0],
                                                     _cols(w_rows, chunks[0]))
                 rs = scale * self.rs_miss(pred, rows).square().sum()
-                terms["rs"] = float(rs.detach())
+                terms["rs"] = rs.detach()
                 graph_loss = graph_loss + rs
             else:  # two passes: residual without a graph, then chunk-wise back-propagation
                 with torch.no_grad():
                     pred_rest = sum(self.rs_op.A_rows(self._rs_view(self.frames(c, static)), rows, c, _cols(w_rows, c))
                                     for c in chunks)
                 residual = self.rs_miss(pred.detach() + pred_rest, rows)  # 0/1 mask: also d(loss)/d(pred) / 2
-                terms["rs"] = scale * float(residual.square().sum())
+                terms["rs"] = scale * residual.square().sum()
                 grad = 2 * scale * residual
                 graph_loss = graph_loss + (pred * grad).sum()
                 chunk_jobs = [(c, grad) for c in chunks]
@@ -220,7 +223,17 @@ class DataLoss:
                 static_graph.backward(static.grad)
             if w_rows is not w_graph and w_rows.grad is not None:
                 w_graph.backward(w_rows.grad)
+        names = [k for k, v in terms.items() if isinstance(v, Tensor)]
+        if names:
+            terms.update(zip(names, torch.stack([terms[k].float() for k in names]).tolist(), strict=True))
         return terms
+
+    def _rs_frames(self, rows: Tensor) -> Tensor:
+        """Frames the RS rows `rows` see (their weights' non-zero columns), on the host, read from a
+        host copy of the weights."""
+        if self._w_rs_host is None or self._w_rs_host[0] is not self.w_rs:
+            self._w_rs_host = (self.w_rs, self.w_rs.cpu())
+        return torch.nonzero(self._w_rs_host[1][rows.cpu()].sum(0) > 0).flatten()
 
     def full_objective(self) -> dict:
         """The exact objective terms (all rows, all frames), without gradients."""

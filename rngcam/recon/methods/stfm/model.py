@@ -16,6 +16,14 @@ def _chunks(idx: Tensor, size: int) -> list[Tensor]:
     return [idx[i:i + size] for i in range(0, len(idx), size)] if len(idx) else []
 
 
+def _to_device(idx: Tensor, device: torch.device) -> Tensor:
+    """A host tensor (a step's sampled indices) on `device`; to a GPU through pinned memory without
+    waiting (a plain copy would wait for everything queued before it)."""
+    if idx.device == device or device.type != "cuda" or idx.device.type != "cpu":
+        return idx.to(device)
+    return idx.pin_memory().to(device, non_blocking=True)
+
+
 def _inverse_softplus(y: Tensor) -> Tensor:
     """x with softplus(x) = y (y clamped to >= 1e-4): y + log(1 - exp(-y)), stable."""
     y = y.clamp_min(1e-4)
@@ -35,14 +43,17 @@ class FieldModel:
         self.mask = None if p.mask is None else p.mask.to(dev, torch.float32)
         self.px_per_unit = torch.tensor([(self.W - 1) / 2, (self.H - 1) / 2], device=dev).clamp_min(0.5)
         self.w_rs = p.rs_weights.to(dev, torch.float32)
+        self._w_rs_host = None  # (self.w_rs, a host copy): which frames a step's rows see, without a GPU's answer
         # Held-out split (rngcam.recon.problem): fit only the training rows and GS pixels.
         self.rs_rows_fit = (torch.arange(self.H) if p.rs_train_rows is None
                             else torch.nonzero(p.rs_train_rows.cpu()).flatten())
         fit = p.gs_fit_mask() if p.b_gs is not None else None
         self.gs_fit = None if fit is None else fit.to(dev, torch.float32)
         self.w_gs = p.gs_weights.to(dev, torch.float32)
+        self.w_gs_host = p.gs_weights.to("cpu", torch.float32)
         self.gs_frames = torch.nonzero(self.w_gs.sum(0) > 0).flatten() if self.parts.gs else \
             torch.zeros(0, dtype=torch.long, device=dev)
+        self.gs_frames_host = self.gs_frames.cpu()
         # The forward model is rngcam.physics.operators' (a step uses its row/frame restrictions).
         self.rs_op = RollingShutter(p.psf, self.w_rs, self.W, self.C)
         self.gs_op = GlobalShutter(self.w_gs, self.C, (self.H, self.W))
@@ -105,7 +116,7 @@ class FieldModel:
 
     def _motion(self, idx: Tensor) -> Tensor:
         """(n, H, W, 2) displacement in coordinate units at frames idx."""
-        return field_on_grid(self.fields["motion"], [self.xs, self.ys, self.ts[idx]])
+        return field_on_grid(self.fields["motion"], [self.xs, self.ys, self.ts], idx)
 
     @property
     def _key_warps(self) -> bool:
@@ -141,7 +152,7 @@ class FieldModel:
         (frames idx: the time coordinate when the dynamic field has one)."""
         n = u.shape[0]
         if self._key_warps:  # the motion moves the key frames; the field sits at (x, y, t)
-            raw = field_on_grid(self.fields["dynamic"], [self.xs, self.ys, self.ts[idx]]).permute(3, 0, 1, 2)
+            raw = field_on_grid(self.fields["dynamic"], [self.xs, self.ys, self.ts], idx).permute(3, 0, 1, 2)
             base = self._keys_at(u, raw[self.C + 1], idx) * self._gain()[:, None, None, None]
             return F.softplus(raw[:self.C] + _inverse_softplus(base)), torch.sigmoid(raw[self.C:self.C + 1])
         x = self.xs.view(1, 1, -1) + u[..., 0]
