@@ -116,7 +116,10 @@ class FieldModel:
 
     def _motion(self, idx: Tensor) -> Tensor:
         """(n, H, W, 2) displacement in coordinate units at frames idx."""
-        return field_on_grid(self.fields["motion"], [self.xs, self.ys, self.ts], idx)
+        u = field_on_grid(self.fields["motion"], [self.xs, self.ys, self.ts], idx)
+        if self.resolved.motion_model == "translation":  # one rigid layer: the field's mean over the frame
+            u = u.mean(dim=(1, 2), keepdim=True).expand_as(u)
+        return u
 
     @property
     def _key_warps(self) -> bool:
