@@ -28,7 +28,7 @@ LINE_TIME_MODES = ("off", "on", "auto")
 MOTION_MODELS = ("field", "translation")
 # A translation's motion TV is paid at every pixel, a field's mostly where the object moves: a
 # translation's tau is a field's times this (about a small object's share of the frame).
-# At the prior preset's own tau the ball's path was cut at its turns (2-2.8 px late; sineball 64 px).
+# At a field's tau the ball's path was cut at its turns (2-2.8 px late; sineball 64 px).
 TRANSLATION_TV_SHARE = 0.02
 
 
