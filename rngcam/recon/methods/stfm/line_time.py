@@ -79,7 +79,8 @@ class LineTime:
         factor = self.line_factor() if factor is None else factor
         if factor is None or abs(factor - self._synced_factor) < 1e-7 or self.rs_timing is None:
             return
-        self.w_rs = self.problem.rs_weights_at(factor).to(self.device, torch.float32)
+        self.w_rs_host = self.problem.rs_weights_at(factor).to("cpu", torch.float32)
+        self.w_rs = self.w_rs_host.to(self.device)
         self.rs_op = self.rs_op.with_weights(self.w_rs)
         self._synced_factor = factor
 

@@ -62,7 +62,7 @@ class DataLoss:
     def _rs_apply(self, frames_fn, rows: Tensor, frames: Tensor | None = None) -> Tensor:
         """RS rows `rows` of the video frames_fn(idx) -> (C, n, H, W), frame chunk by frame chunk."""
         if frames is None:
-            frames = torch.nonzero(self.w_rs[rows].sum(0) > 0).flatten()
+            frames = _to_device(self._rs_frames(rows), self.device)
         out = torch.zeros(self.C, len(rows), self.W, device=self.device)
         for idx in _chunks(frames, self.frame_chunk):
             out += self.rs_op.A_rows(frames_fn(idx), rows, idx)
@@ -129,15 +129,7 @@ class DataLoss:
         frames and GS frames (`gs_windows`, None: all; full terms: all rows, all frames). With
         `backward` the gradient of their sum is accumulated, chunk by chunk."""
         dev = self.device
-        # Index sets are worked out on the host (small), so a step does not wait for a GPU to know them.
-        if not self.parts.gs:
-            windows, win_host = torch.zeros(0, dtype=torch.long, device=dev), torch.zeros(0, dtype=torch.long)
-        elif gs_windows is None or self.settings.gs_anchor == "hard":
-            windows, win_host = torch.arange(self.w_gs.shape[0], device=dev), self.gs_frames_host
-        else:
-            windows = _to_device(gs_windows, dev)
-            win_host = torch.nonzero(self.w_gs_host[gs_windows.cpu()].sum(0) > 0).flatten()
-        win_frames = self.gs_frames if win_host is self.gs_frames_host else _to_device(win_host, dev)
+        windows, win_frames, win_host = self._step_windows(gs_windows)
         # terms stay tensors until the end: one wait for a GPU per call, not one per term
         terms = {"gs": 0.0, "rs": 0.0, "tv": 0.0, "smooth": 0.0, "matte": 0.0}
         static_graph = self._static() if self.parts.static else None
@@ -165,10 +157,7 @@ class DataLoss:
             # as the static image: a leaf for every chunk's graph, its gradient taken on once at the end
             w_rows = None if w_graph is None else (
                 w_graph.detach().requires_grad_() if backward and w_graph.requires_grad else w_graph)
-            touched = (self._rs_frames(rows) if w_rows is None
-                       else torch.nonzero(w_rows.detach().sum(0) > 0).flatten().cpu())
-            inside = torch.isin(touched, win_host)
-            shared, rest = _to_device(touched[inside], dev), _to_device(touched[~inside], dev)
+            shared, rest = self._split_rs_frames(rows, w_rows, win_host)
             rows = _to_device(rows, dev)
         chunks = _chunks(rest, self.frame_chunk)
         single = len(chunks) <= 1
@@ -228,12 +217,29 @@ class DataLoss:
             terms.update(zip(names, torch.stack([terms[k].float() for k in names]).tolist(), strict=True))
         return terms
 
+    # Index sets are worked out on the host (small), so a step does not wait for a GPU to know them.
+
+    def _step_windows(self, gs_windows: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+        """(GS windows, the frames their exposures touch, on the device; those frames on the host) for
+        sampled windows `gs_windows` (None, or hard anchoring: all)."""
+        dev = self.device
+        if not self.parts.gs:
+            return torch.zeros(0, dtype=torch.long, device=dev), self.gs_frames, self.gs_frames_host
+        if gs_windows is None or self.settings.gs_anchor == "hard":
+            return torch.arange(self.w_gs.shape[0], device=dev), self.gs_frames, self.gs_frames_host
+        frames = torch.nonzero(self.w_gs_host[gs_windows.cpu()].sum(0) > 0).flatten()
+        return _to_device(gs_windows, dev), _to_device(frames, dev), frames
+
     def _rs_frames(self, rows: Tensor) -> Tensor:
-        """Frames the RS rows `rows` see (their weights' non-zero columns), on the host, read from a
-        host copy of the weights."""
-        if self._w_rs_host is None or self._w_rs_host[0] is not self.w_rs:
-            self._w_rs_host = (self.w_rs, self.w_rs.cpu())
-        return torch.nonzero(self._w_rs_host[1][rows.cpu()].sum(0) > 0).flatten()
+        """Frames the RS rows `rows` see (their weights' non-zero columns), on the host."""
+        return torch.nonzero(self.w_rs_host[rows.cpu()].sum(0) > 0).flatten()
+
+    def _split_rs_frames(self, rows: Tensor, w_rows: Tensor | None, win_host: Tensor) -> tuple[Tensor, Tensor]:
+        """The frames the RS rows see (at the learned line time where `w_rows` are given), split into
+        those inside the GS windows' frames `win_host` and the rest, on the device."""
+        touched = self._rs_frames(rows) if w_rows is None else torch.nonzero(w_rows.detach().sum(0) > 0).flatten().cpu()
+        inside = torch.isin(touched, win_host)
+        return _to_device(touched[inside], self.device), _to_device(touched[~inside], self.device)
 
     def full_objective(self) -> dict:
         """The exact objective terms (all rows, all frames), without gradients."""

@@ -42,15 +42,16 @@ class FieldModel:
         self.xs, self.ys, self.ts = axis(self.W), axis(self.H), axis(self.K)
         self.mask = None if p.mask is None else p.mask.to(dev, torch.float32)
         self.px_per_unit = torch.tensor([(self.W - 1) / 2, (self.H - 1) / 2], device=dev).clamp_min(0.5)
-        self.w_rs = p.rs_weights.to(dev, torch.float32)
-        self._w_rs_host = None  # (self.w_rs, a host copy): which frames a step's rows see, without a GPU's answer
+        # host copies of the weights: which frames a step's rows and windows see, without a GPU's answer
+        self.w_rs_host = p.rs_weights.to("cpu", torch.float32)
+        self.w_rs = self.w_rs_host.to(dev)
         # Held-out split (rngcam.recon.problem): fit only the training rows and GS pixels.
         self.rs_rows_fit = (torch.arange(self.H) if p.rs_train_rows is None
                             else torch.nonzero(p.rs_train_rows.cpu()).flatten())
         fit = p.gs_fit_mask() if p.b_gs is not None else None
         self.gs_fit = None if fit is None else fit.to(dev, torch.float32)
-        self.w_gs = p.gs_weights.to(dev, torch.float32)
         self.w_gs_host = p.gs_weights.to("cpu", torch.float32)
+        self.w_gs = self.w_gs_host.to(dev)
         self.gs_frames = torch.nonzero(self.w_gs.sum(0) > 0).flatten() if self.parts.gs else \
             torch.zeros(0, dtype=torch.long, device=dev)
         self.gs_frames_host = self.gs_frames.cpu()
