@@ -144,7 +144,7 @@ def test_stochastic_loss_is_unbiased():
     assert np.mean(gs) == pytest.approx(full["gs"], rel=1e-5)
     assert np.mean(gs_pairs) == pytest.approx(full["gs"], rel=1e-5)
     for samples in (rs, tv, gs):
-        assert np.std(samples) > 1e-3 * np.mean(samples)  # the samples do differ (far above rounding)
+        assert np.std(samples) > 0.01 * np.mean(samples)  # the samples do differ
 
 
 def test_sampled_rows_cover_each_row_equally():

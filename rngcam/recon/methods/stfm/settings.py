@@ -167,12 +167,6 @@ POSE_LR_RATIO = 2.0
 LINE_LR_RATIO = 8.0
 REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
 DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
-# The fast preset's decoders (hidden units) and motion planes (features): 16 and 4 make a 64 px step
-# 1.4x cheaper than 32 and 8 (57 -> 41 ms, one thread) for 5-13 % more steps to the own stop, and the
-# same result within 0.14 dB on smoke and the clip. The prior preset keeps 32 and 8: its one canonical
-# image lost 1.6 dB and the ball's p90 rose 0.3 px with 16 (bench/convergence.md).
-FAST_HIDDEN, FAST_MOTION_FEATURES = 16, 4
-PRIOR_HIDDEN, PRIOR_MOTION_FEATURES = 32, 8
 
 
 def _preset(name: str, h: int, w: int, k: int) -> dict:
@@ -204,15 +198,12 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
         return t + (t[-1],) * (len(space) - len(t))
 
     motion_time = motion_time_for(motion_space)
-    def motion(features: int, hidden: int) -> tuple[str, dict]:
-        return ("planes", {"resolutions": motion_space, "time_resolutions": motion_time,
-                           "features": features, "hidden": hidden})
-
     fast = {
-        "static": ("planes", {"resolutions": appearance, "features": 8, "hidden": FAST_HIDDEN}),
-        "motion": motion(FAST_MOTION_FEATURES, FAST_HIDDEN),
+        "static": ("planes", {"resolutions": appearance, "features": 8, "hidden": 32}),
+        "motion": ("planes", {"resolutions": motion_space, "time_resolutions": motion_time,
+                               "features": 8, "hidden": 32}),
         "dynamic": ("planes", {"resolutions": appearance, "time_resolutions": motion_time_for(appearance),
-                                "features": DYNAMIC_FEATURES, "hidden": FAST_HIDDEN}),
+                                "features": DYNAMIC_FEATURES, "hidden": 32}),
         "lr": 1e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
         "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 8)), "init": "gs",
         "dynamic_time": True, "dynamic_base": "ensemble", "gs_windows_per_step": 1, "time_smoothness": 0.3,
@@ -220,10 +211,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
         "motion_init": "flow", "motion_model": "field",
         "matte_l1": 0.0}
     if name == "prior":  # the paper's prior on the fast fields: one canonical dynamic image that the motion moves
-        fast.update({"static": ("planes", {"resolutions": appearance, "features": 8, "hidden": PRIOR_HIDDEN}),
-                     "motion": motion(PRIOR_MOTION_FEATURES, PRIOR_HIDDEN),
-                     "dynamic": ("planes", {"resolutions": appearance, "features": DYNAMIC_FEATURES,
-                                            "hidden": PRIOR_HIDDEN}),
+        fast.update({"dynamic": ("planes", {"resolutions": appearance, "features": DYNAMIC_FEATURES, "hidden": 32}),
                      "dynamic_time": False, "dynamic_base": "none", "refine": False, "motion_init": "search",
                      # One translation per frame: the scenes auto gives prior are those one translating
                      # layer explains, and a motion field, even 10x stiffer in space, tore the canonical
