@@ -154,7 +154,8 @@ def test_the_verdict_needs_a_noise_level_and_a_finished_run():
     cut = misfit.verdict(0.0350, 0.0245, ended_by="budget")
     assert cut["verdict"] == misfit.NOT_FITTED and "before its own stop" in cut["line"]
     fixed = misfit.verdict(0.035, 0.0245, {"applied": True, "scales": {"psf": {"applied": True, "estimate": 0.96}}})
-    assert fixed["likely_causes"] == ["line time"]  # gains and transform applied ("all"), the scale too
+    # gains and transform applied ("all"), the scale too: named last, as what may be short of the truth
+    assert fixed["likely_causes"] == ["line time", "PSF scale (x0.960 applied, perhaps not all of it)"]
     # what the fit learned with its fields is corrected too (its resolved settings say so)
     learned = misfit.learned_by_fit({"gs_geometry": {"end": {}}, "line_time": {"factor": 1.01}})
     assert learned == ("geometry", "line time")
