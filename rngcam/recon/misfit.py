@@ -29,8 +29,8 @@ def _causes(selfcal: dict | None, gs_fitted: bool = True, learned: tuple[str, ..
     calibration values self-calibration did not apply and the fit did not learn (`learned`:
     "geometry", "line time"), a PSF scale it found off by more than 1 % and did not apply first;
     the GS-to-RS transform only where GS frames were fitted; a PSF scale it applied last (its
-    estimate is short of large errors: a PSF 5 % small found as 1.026-1.042 for 1.053). (The key rows' GS-to-RS transform is
-    too loosely pinned to point.)"""
+    estimate is short of large errors: a PSF 5 % small found as 1.026-1.042 for 1.053). (The key
+    rows' GS-to-RS transform is too loosely pinned to point.)"""
     report = selfcal or {}
     psf = (report.get("scales") or {}).get("psf")
     causes = []
