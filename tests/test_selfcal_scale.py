@@ -163,6 +163,25 @@ def test_the_verdict_needs_a_noise_level_and_a_finished_run():
     assert misfit.learned_by_fit({"line_time": None}) == ()
 
 
+def test_a_line_time_learned_far_off_is_said_even_where_the_data_are_explained():
+    """A line time 2 % long is learned as 1.3 % and the re-timed motion explains the RS image: the
+    residual cannot tell, the learned factor can (bench/realistic.md)."""
+    assert misfit.verdict(0.0250, 0.0245, line_factor=1.004) is None  # exact timing wanders this much
+    far = misfit.verdict(0.0250, 0.0245, line_factor=1.0131)
+    assert far["verdict"] == misfit.FAR_OFF and far["likely_causes"] == ["line time"]
+    assert "x1.0131" in far["line"] and "calibrate linetime --flicker" in far["line"]
+    assert misfit.verdict(0.0250, 0.0245, line_factor=0.972)["verdict"] == misfit.FAR_OFF
+    # above the noise limit the misfit verdict stands; a run that did not finish cleanly gets none
+    assert misfit.verdict(0.0350, 0.0245, line_factor=1.02)["verdict"] == misfit.NOT_EXPLAINED
+    assert misfit.verdict(0.0250, 0.0245, status="interrupted", line_factor=1.02) is None
+    # from metrics.json's method results, as the runner calls it
+    metrics = {"residual_rs": 0.0250, "status": "ok", "ended_by": "own_stop",
+               "method_results": {"rs_noise_level": 0.0245, "line_time": {"factor": 1.0131}}}
+    assert misfit.for_metrics(metrics)["verdict"] == misfit.FAR_OFF
+    metrics["method_results"]["line_time"] = {"factor": "1.02"}  # not a number: not trusted
+    assert misfit.for_metrics(metrics) is None
+
+
 def test_the_run_says_it_in_metrics_the_summary_and_the_report(bundles, tmp_path):
     r = rngcam.reconstruct(bundles[1.08], method="stfm-fast", max_iters=1, progress=False, start_floor=False,
                            self_calibrate="off")

@@ -69,7 +69,8 @@ class Result:
     @property
     def misfit(self) -> dict | None:
         """The misfit verdict (rngcam.recon.misfit): the RS residual clearly above the noise level,
-        its likely causes; None when the model explains the data or the method has no noise level."""
+        or a learned line time far off the recorded one, with its likely causes; None when the model
+        explains the data with the calibration as given or the method has no noise level."""
         return self.metrics.get("misfit")
 
     def save(self, folder: str | Path, echo=None, truth: np.ndarray | None = None) -> Path:
