@@ -247,11 +247,11 @@ def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True):
     if found is None:
         return problem, {"mode": mode, "applied": False,
                          "why": "no RS row is exposed over the same window as a GS frame"}
-    report, matrix = found
+    report, matrix, fitted = found
     calibrated = _apply(problem, matrix, np.asarray(report["refined"]["gains"], np.float64))
     if psf_scale:  # the key rows' transform where it was not applied to the GS frames (it steadies the search)
-        rejected = report.get("transform_rejected")
-        calibrated, scale = calibrate_psf_scale(calibrated, None if rejected is None else _matrix_of(rejected))
+        rejected = "transform_rejected" in report
+        calibrated, scale = calibrate_psf_scale(calibrated, fitted if rejected else None)
         if scale is not None and scale["applied"]:
             from dataclasses import replace
 
@@ -259,7 +259,7 @@ def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True):
             again = _register(magnified, mode)
             if again is not None:
                 first = report
-                report, matrix = again
+                report, matrix, _ = again
                 report["before_psf_scale"] = {"refined": first.get("transform_rejected", first["refined"]),
                                               "rs_residual_after": first["rs_residual_after"]}
                 calibrated = _apply(magnified, matrix, np.asarray(report["refined"]["gains"], np.float64))
@@ -268,9 +268,10 @@ def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True):
     return calibrated, report
 
 
-def _register(problem, mode: str) -> tuple[dict, np.ndarray] | None:
-    """(report, the transform to apply) of the key-row fit of the gains and the transform (None
-    without key rows); the transform is the identity where `mode` or its uncertainty keeps it out."""
+def _register(problem, mode: str) -> tuple[dict, np.ndarray, np.ndarray] | None:
+    """(report, the transform to apply, the transform fitted) of the key-row fit of the gains and the
+    transform (None without key rows); the one to apply is the identity where `mode` or its
+    uncertainty keeps the fitted one out."""
     c = problem.channels
     wb0 = np.ones(c) if problem.white_balance is None else problem.white_balance.double().cpu().numpy()
     # The transform is always fitted: left out, a misregistration biases the gains by several percent.
@@ -296,13 +297,7 @@ def _register(problem, mode: str) -> tuple[dict, np.ndarray] | None:
         report["transform_not_applied"] = why
         report["transform_rejected"] = report["refined"]
         report["refined"] = {**describe(np.eye(3)), "gains": gains.tolist()}
-    return report, (np.eye(3) if why is not None else result["matrix"])
-
-
-def _matrix_of(values: dict) -> np.ndarray:
-    """The similarity of describe()'s values."""
-    return similarity(values["shift_px"][0], values["shift_px"][1], math.radians(values["rotation_deg"]),
-                      values["scale"])
+    return report, (np.eye(3) if why is not None else result["matrix"]), result["matrix"]
 
 
 def _apply(problem, matrix: np.ndarray, gains: np.ndarray):
