@@ -15,7 +15,7 @@ import rngcam
 from rngcam.formats.bundle import read_bundle
 from rngcam.physics.psf import magnify, magnify_matrix
 from rngcam.recon import misfit
-from rngcam.recon.methods.selfcal import calibrate_problem, estimate_psf_scale, report_lines
+from rngcam.recon.methods.selfcal import calibrate_problem, estimate_psf_scale, register_key_rows, report_lines
 from rngcam.recon.noise import relative_noise_level
 from rngcam.recon.problem import build_problem
 from rngcam.sim.fidelity import LabErrors
@@ -87,22 +87,38 @@ def test_a_psf_given_too_small_is_magnified_before_the_fit(bundles):
     assert any(line.startswith("PSF scale") and line.endswith("applied") for line in report_lines(report))
 
 
-def test_the_gains_are_fitted_again_through_the_magnified_psf(tmp_path):
-    """Fitted through the PSF as handed (5 % small), the gains absorb its scale error; once the PSF
-    is magnified they are fitted again through it and come out near the truth (1: the lab family
+def test_the_gains_are_fitted_through_the_magnified_psf(tmp_path):
+    """Fitted through the PSF as handed (5 % small), the gains absorb its scale error; the gains the
+    fit gets are fitted through the magnified PSF and come out near the truth (1: the lab family
     here has no gain error)."""
     data = simulate("sineball", tmp_path / "small_psf.h5", size=32, fidelity="lab",
                     lab_errors=LabErrors(psf_scale=0.95))
     problem = build_problem(data)
     calibrated, report = calibrate_problem(problem, "gains")
     assert report["scales"]["psf"]["applied"]
-    first = np.abs(np.asarray(report["before_psf_scale"]["refined"]["gains"]) - 1).max()
+    as_handed = np.abs(register_key_rows(problem)["gains"] - 1).max()
     again = np.asarray(report["refined"]["gains"])
-    assert first > 0.03  # the bias this removes
-    assert np.abs(again - 1).max() < 0.5 * first
-    # the GS frames the fit sees carry the second fit's gains (the bundle's white balance is 1)
+    assert as_handed > 0.03  # the bias this removes
+    assert np.abs(again - 1).max() < 0.5 * as_handed
+    # the GS frames the fit sees carry those gains (the bundle's white balance is 1)
     assert torch.allclose(calibrated.b_gs, problem.b_gs * torch.as_tensor(again, dtype=problem.b_gs.dtype)[:, None, None, None])
-    assert any("through the PSF as handed" in line for line in report_lines(report))
+    assert any("through the PSF magnified" in line for line in report_lines(report))
+
+
+def test_the_psf_scale_is_searched_before_the_registration_takes_it_up(tmp_path):
+    """Registered through a PSF 5 % small, the key rows take up part of its error as rotation and
+    scale, and a search through that registration stops short; searched first with the GS frames
+    as they are, then again through a registration made with the PSF so magnified, it comes closer."""
+    data = simulate("sineball", tmp_path / "small_psf.h5", size=32, fidelity="lab",
+                    lab_errors=LabErrors(psf_scale=0.95))
+    problem = build_problem(data)
+    truth = 1 / 0.95
+    through_handed = estimate_psf_scale(problem, register_key_rows(problem)["matrix"])["estimate"]
+    _, report = calibrate_problem(problem, "gains")
+    psf = report["scales"]["psf"]
+    assert psf["applied"] and psf["first_estimate"] > 1.02
+    assert abs(psf["end"] - truth) < 0.75 * abs(through_handed - truth)
+    assert psf["end"] == pytest.approx(truth, rel=0.012)
 
 
 def _truth_residual(problem) -> float:
@@ -155,7 +171,9 @@ def test_the_verdict_needs_a_noise_level_and_a_finished_run():
     assert cut["verdict"] == misfit.NOT_FITTED and "before its own stop" in cut["line"]
     fixed = misfit.verdict(0.035, 0.0245, {"applied": True, "scales": {"psf": {"applied": True, "estimate": 0.96}}})
     # gains and transform applied ("all"), the scale too: named last, as what may be short of the truth
-    assert fixed["likely_causes"] == ["line time", "PSF scale (x0.960 applied, perhaps not all of it)"]
+    assert fixed["likely_causes"] == ["line time", "PSF scale (x0.960 applied; shrunk, it lacks the edge its measurement lost)"]
+    grown = misfit.verdict(0.035, 0.0245, {"applied": True, "scales": {"psf": {"applied": True, "end": 1.012}}})
+    assert grown["likely_causes"][-1] == "PSF scale (x1.012 applied; perhaps another error taken for it)"
     # what the fit learned with its fields is corrected too (its resolved settings say so)
     learned = misfit.learned_by_fit({"gs_geometry": {"end": {}}, "line_time": {"factor": 1.01}})
     assert learned == ("geometry", "line time")

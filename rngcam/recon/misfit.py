@@ -35,9 +35,10 @@ def _causes(selfcal: dict | None, gs_fitted: bool = True, learned: tuple[str, ..
     """(what the run could not correct, whether the key rows pointed at one of them): the
     calibration values self-calibration did not apply and the fit did not learn (`learned`:
     "geometry", "line time"), a PSF scale it found off by more than 1 % and did not apply first;
-    the GS-to-RS transform only where GS frames were fitted; a PSF scale it applied last (its
-    estimate is short of large errors: a PSF 5 % small found as 1.026-1.042 for 1.053). (The key
-    rows' GS-to-RS transform is too loosely pinned to point.)"""
+    the GS-to-RS transform only where GS frames were fitted; a PSF scale it applied last (shrunk, the
+    PSF lacks the edge its measurement lost; magnified, the estimate can take up another error: a
+    3 % line-time error found as a PSF scale of 1.012). (The key rows' GS-to-RS transform is too
+    loosely pinned to point.)"""
     report = selfcal or {}
     psf = (report.get("scales") or {}).get("psf")
     causes = []
@@ -48,8 +49,10 @@ def _causes(selfcal: dict | None, gs_fitted: bool = True, learned: tuple[str, ..
         causes.append("geometry")
     if "line time" not in learned:  # the key rows do not carry it
         causes.append("line time")
-    if psf and psf.get("applied"):  # the key rows' estimate falls short of large errors (bench/realistic.md)
-        causes.append(f"PSF scale (x{psf.get('end', psf.get('estimate', 1.0)):.3f} applied, perhaps not all of it)")
+    if psf and psf.get("applied"):  # what an applied scale cannot mend (bench/realistic.md)
+        end = float(psf.get("end", psf.get("estimate", 1.0)))
+        why = "shrunk, it lacks the edge its measurement lost" if end < 1 else "perhaps another error taken for it"
+        causes.append(f"PSF scale (x{end:.3f} applied; {why})")
     return causes, pointed
 
 

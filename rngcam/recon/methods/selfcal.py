@@ -9,9 +9,9 @@ and the gains to those rows gives the gains to about a percent; the similarity i
 biased by what the rows and the key frame do not share (motion within the part of the exposures
 they do not overlap, the binned forward model's own error), so it is applied only where its
 standard error says it is pinned (`calibrate_problem`, mode "all"; bench/realistic.md).
-The same rows then give the PSF's magnification (a scene at another distance than the
+The same rows give the PSF's magnification (a scene at another distance than the
 calibration's point source): a one-dimensional search, applied where it lowers their residual
-(`calibrate_psf_scale`).
+(`calibrate_psf_scale`), made before the registration and again through it (`calibrate_problem`).
 
 Transforms are 3x3 matrices acting on pixel coordinates (x, y) measured from the grid's centre
 (pixel centres at i + 0.5 - W / 2), the convention of rngcam.sim.fidelity's truth values.
@@ -233,39 +233,56 @@ def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True):
     rows (register_key_rows): b_gs becomes gains x b_gs sampled at S^-1 (white balance then 1).
     The report has the start values (identity, the bundle's white balance), the refined ones,
     their standard errors, and why a transform was not applied; with `psf_scale`, then the PSF's
-    magnification (calibrate_psf_scale: report["scales"]["psf"]). Where that magnification is
-    applied, the gains and transform are fitted again through the magnified PSF (fitted through the
-    PSF as handed, they absorb its error: sineball with a PSF 5 % small, gains 0.93 / 0.95 / 1.00
-    for a truth of 1; report["before_psf_scale"] keeps the first fit). mode "off": (problem, None)."""
+    magnification (calibrate_psf_scale: report["scales"]["psf"]).
+
+    The PSF scale is searched first with the GS frames as they are: a registration through a PSF
+    some percent off takes up its error as rotation and scale (sineball, PSF 5 % small: 10.6 deg,
+    x1.059) and a search through that registration stops short (1.042 for 1.053). The transform
+    is then fitted through the PSF so magnified, the scale searched again through it, and the gains
+    and transform fitted once more through the PSF the fit will use (through the PSF as handed the
+    gains absorb its error: 0.93 / 0.95 / 1.00 for a truth of 1). mode "off": (problem, None)."""
+    from dataclasses import replace
+
     if mode not in MODES:
         from rngcam.errors import ConfigError
 
         raise ConfigError(f"self_calibrate must be one of {', '.join(MODES)}, got {mode!r}")
     if mode == "off" or problem.b_rs is None or problem.b_gs is None:
         return problem, None
-    found = _register(problem, mode)
+    first = calibrate_psf_scale(problem)[1] if psf_scale else None
+    through = problem
+    if first is not None and first["applied"]:
+        through = replace(problem, psf=_magnified(problem.psf, first["estimate"]), notes=list(problem.notes))
+    found = _register(through, mode)
     if found is None:
         return problem, {"mode": mode, "applied": False,
                          "why": "no RS row is exposed over the same window as a GS frame"}
     report, matrix, fitted = found
     calibrated = _apply(problem, matrix, np.asarray(report["refined"]["gains"], np.float64))
-    if psf_scale:  # the key rows' transform where it was not applied to the GS frames (it steadies the search)
-        rejected = "transform_rejected" in report
-        calibrated, scale = calibrate_psf_scale(calibrated, fitted if rejected else None)
-        if scale is not None and scale["applied"]:
-            from dataclasses import replace
-
-            magnified = replace(problem, psf=calibrated.psf, notes=list(problem.notes))
-            again = _register(magnified, mode)
-            if again is not None:
-                first = report
-                report, matrix, _ = again
-                report["before_psf_scale"] = {"refined": first.get("transform_rejected", first["refined"]),
-                                              "rs_residual_after": first["rs_residual_after"]}
-                calibrated = _apply(magnified, matrix, np.asarray(report["refined"]["gains"], np.float64))
-        if scale is not None:
+    if not psf_scale:
+        return calibrated, report
+    # the key rows' transform where it was not applied to the GS frames (it steadies the search)
+    rejected = "transform_rejected" in report
+    calibrated, scale = calibrate_psf_scale(calibrated, fitted if rejected else None)
+    if scale is None:
+        return calibrated, report
+    scale["first_estimate"] = None if first is None else first["estimate"]
+    report["scales"] = {"psf": scale}
+    final = replace(problem, psf=calibrated.psf, notes=list(problem.notes))
+    if final.psf is not through.psf:  # fit the gains and transform through the PSF the fit will use
+        again = _register(final, mode)
+        if again is not None:
+            report, matrix, _ = again
             report["scales"] = {"psf": scale}
+            calibrated = _apply(final, matrix, np.asarray(report["refined"]["gains"], np.float64))
     return calibrated, report
+
+
+def _magnified(psf: Tensor, scale: float) -> Tensor:
+    """The PSF magnified by `scale` about its centre (rngcam.physics.psf.magnify), in its dtype."""
+    from rngcam.physics.psf import magnify
+
+    return torch.from_numpy(magnify(psf.double().cpu().numpy(), scale)).to(psf.dtype)
 
 
 def _register(problem, mode: str) -> tuple[dict, np.ndarray, np.ndarray] | None:
@@ -338,15 +355,14 @@ def report_lines(report: dict | None, end_gains=None) -> list[str]:
     psf = (report.get("scales") or {}).get("psf")
     if psf:
         outcome = "applied" if psf["applied"] else f"not applied, {psf['why']}"
+        first = "" if psf.get("first_estimate") is None else f"; x{psf['first_estimate']:.4f} before registering"
         lines.append(f"PSF scale {psf['estimate']:.4f} estimated from the key rows (residual "
-                     f"{psf['residual_before']:.4f} -> {psf['residual_after']:.4f}): {outcome}")
+                     f"{psf['residual_before']:.4f} -> {psf['residual_after']:.4f}{first}): {outcome}")
     gains = "/".join(f"{g:.3f}" for g in s["gains"]) + " -> " + "/".join(f"{g:.3f}" for g in r["gains"])
     if end_gains is not None:
         gains += " -> " + "/".join(f"{g * r0:.3f}" for g, r0 in zip(end_gains, r["gains"], strict=True)) + " (fit)"
-    first = report.get("before_psf_scale")
-    if first:
-        gains += (" (fitted again through the magnified PSF; through the PSF as handed: "
-                  + "/".join(f"{g:.3f}" for g in first["refined"]["gains"]) + ")")
+    if psf and psf["applied"]:
+        gains += f" (fitted through the PSF magnified x{psf['end']:.4f})"
     lines.append(f"GS/RS gains {gains}")
     return lines
 
@@ -444,8 +460,6 @@ def calibrate_psf_scale(problem, matrix=None, min_drop: float = MIN_DROP):
     uses), "why" (where not applied)} (None without key rows)."""
     from dataclasses import replace
 
-    from rngcam.physics.psf import magnify
-
     found = estimate_psf_scale(problem, matrix)
     if found is None:
         return problem, None
@@ -460,6 +474,5 @@ def calibrate_psf_scale(problem, matrix=None, min_drop: float = MIN_DROP):
                          "the magnified PSF (resampled on the grid) does not lower the key rows' residual")
     else:
         report["applied"], report["end"] = True, found["estimate"]
-        psf = torch.from_numpy(magnify(problem.psf.double().cpu().numpy(), found["estimate"]))
-        problem = replace(problem, psf=psf.to(problem.psf.dtype), notes=list(problem.notes))
+        problem = replace(problem, psf=_magnified(problem.psf, found["estimate"]), notes=list(problem.notes))
     return problem, report
