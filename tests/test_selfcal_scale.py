@@ -15,6 +15,7 @@ import rngcam
 from rngcam.formats.bundle import read_bundle
 from rngcam.physics.psf import magnify, magnify_matrix
 from rngcam.recon import misfit
+from rngcam.recon.methods import selfcal
 from rngcam.recon.methods.selfcal import calibrate_problem, estimate_psf_scale, register_key_rows, report_lines
 from rngcam.recon.noise import relative_noise_level
 from rngcam.recon.problem import build_problem
@@ -85,6 +86,22 @@ def test_a_psf_given_too_small_is_magnified_before_the_fit(bundles):
     assert psf["residual_after"] < 0.97 * psf["residual_before"]
     assert torch.allclose(calibrated.psf, torch.from_numpy(magnify(problem.psf.numpy(), psf["estimate"])))
     assert any(line.startswith("PSF scale") and line.endswith("applied") for line in report_lines(report))
+
+
+def test_a_psf_given_too_large_is_reported_not_shrunk(bundles, monkeypatch):
+    """A PSF measured too large lost its outer ring: a shrink that lowers the key rows' residual
+    is reported with why and where to measure, never applied; the verdict passes the why on."""
+    problem = build_problem(read_bundle(bundles[1.04]))
+    found = {"estimate": 0.95, "residual_before": 0.042, "residual_after": 0.030, "at_bound": False}
+    monkeypatch.setattr(selfcal, "estimate_psf_scale", lambda *_a, **_k: dict(found))
+    calibrated, report = calibrate_problem(problem, "gains")
+    psf = report["scales"]["psf"]
+    assert not psf["applied"] and psf["why"] == selfcal.SHRINK_WHY and psf["end"] == 1.0
+    assert torch.equal(calibrated.psf, problem.psf)
+    said = misfit.verdict(0.0300, 0.0245, report)
+    assert said["likely_causes"][0] == "PSF scale"
+    assert "PSF scale of 0.950, not applied: a PSF shrunk on the grid" in said["line"]
+    assert "measure the PSF at the scene's distance" in said["line"]
 
 
 def test_the_gains_are_fitted_through_the_magnified_psf(tmp_path):
@@ -169,16 +186,19 @@ def test_the_verdict_needs_a_noise_level_and_a_finished_run():
     assert "suggest a PSF scale of 0.960" in pointed["line"]
     cut = misfit.verdict(0.0350, 0.0245, ended_by="budget")
     assert cut["verdict"] == misfit.NOT_FITTED and "before its own stop" in cut["line"]
-    fixed = misfit.verdict(0.035, 0.0245, {"applied": True, "scales": {"psf": {"applied": True, "estimate": 0.96}}})
-    # gains and transform applied ("all"), the scale too: named last, as what may be short of the truth
-    assert fixed["likely_causes"] == ["line time", "PSF scale (x0.960 applied; shrunk, it lacks the edge its measurement lost)"]
-    grown = misfit.verdict(0.035, 0.0245, {"applied": True, "scales": {"psf": {"applied": True, "end": 1.012}}})
-    assert grown["likely_causes"][-1] == "PSF scale (x1.012 applied; perhaps another error taken for it)"
+    fixed = misfit.verdict(0.035, 0.0245, {"applied": True, "scales": {"psf": {"applied": True, "end": 1.012}}})
+    # gains and transform applied ("all"), the scale too: named last, as what may have taken up another error
+    assert fixed["likely_causes"] == ["line time", "PSF scale (x1.012 applied; perhaps another error taken for it)"]
     # what the fit learned with its fields is corrected too (its resolved settings say so)
     learned = misfit.learned_by_fit({"gs_geometry": {"end": {}}, "line_time": {"factor": 1.01}})
     assert learned == ("geometry", "line time")
     assert misfit.verdict(0.0300, 0.0245, learned=learned)["likely_causes"] == ["PSF scale"]
     assert misfit.learned_by_fit({"line_time": None}) == ()
+    # a self-calibration report of odd shape (metrics.json from elsewhere) points at nothing
+    for odd in ("junk", {"scales": "x"}, {"scales": {"psf": {"estimate": "0.9"}}},
+                {"scales": {"psf": {"applied": True, "end": "big"}}}):
+        said = misfit.verdict(0.0300, 0.0245, odd)
+        assert said["verdict"] == misfit.NOT_EXPLAINED and "suggest" not in said["line"]
 
 
 def test_a_line_time_learned_far_off_is_said_even_where_the_data_are_explained():

@@ -35,25 +35,31 @@ def _causes(selfcal: dict | None, gs_fitted: bool = True, learned: tuple[str, ..
     """(what the run could not correct, whether the key rows pointed at one of them): the
     calibration values self-calibration did not apply and the fit did not learn (`learned`:
     "geometry", "line time"), a PSF scale it found off by more than 1 % and did not apply first;
-    the GS-to-RS transform only where GS frames were fitted; a PSF scale it applied last (shrunk, the
-    PSF lacks the edge its measurement lost; magnified, the estimate can take up another error: a
-    3 % line-time error found as a PSF scale of 1.012). (The key rows' GS-to-RS transform is too
-    loosely pinned to point.)"""
-    report = selfcal or {}
-    psf = (report.get("scales") or {}).get("psf")
+    the GS-to-RS transform only where GS frames were fitted; a PSF scale it applied last (the
+    estimate can take up another error: a 3 % line-time error found as a PSF scale of 1.012). (The
+    key rows' GS-to-RS transform is too loosely pinned to point.)"""
+    report = selfcal if isinstance(selfcal, dict) else {}  # a foreign metrics.json may hold anything
+    scales = report.get("scales")
+    psf = scales.get("psf") if isinstance(scales, dict) else None
+    psf = psf if isinstance(psf, dict) else None
     causes = []
-    pointed = bool(psf and not psf.get("applied") and abs(psf.get("estimate", 1.0) - 1) > 0.01)
+    estimate = _number(psf.get("estimate")) if psf else None
+    pointed = bool(estimate is not None and not psf.get("applied") and abs(estimate - 1) > 0.01)
     if not (psf and psf.get("applied")):
         causes.append("PSF scale")
     if gs_fitted and "geometry" not in learned and (not report.get("applied") or "transform_not_applied" in report):
         causes.append("geometry")
     if "line time" not in learned:  # the key rows do not carry it
         causes.append("line time")
-    if psf and psf.get("applied"):  # what an applied scale cannot mend (bench/realistic.md)
-        end = float(psf.get("end", psf.get("estimate", 1.0)))
-        why = "shrunk, it lacks the edge its measurement lost" if end < 1 else "perhaps another error taken for it"
-        causes.append(f"PSF scale (x{end:.3f} applied; {why})")
+    if psf and psf.get("applied"):  # the estimate can take up another error (bench/realistic.md)
+        end = _number(psf.get("end", psf.get("estimate")))
+        causes.append(f"PSF scale ({'' if end is None else f'x{end:.3f} '}applied; perhaps another error taken for it)")
     return causes, pointed
+
+
+def _number(value) -> float | None:
+    """A finite float, else None."""
+    return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else None
 
 
 def learned_by_fit(method_results: dict | None) -> tuple[str, ...]:
@@ -91,7 +97,9 @@ def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str
     if finished:
         line += f"; likely causes not corrected: {', '.join(causes)}"
         if pointed:
-            line += f" (the key rows suggest a PSF scale of {selfcal['scales']['psf']['estimate']:.3f}, not applied)"
+            psf = selfcal["scales"]["psf"]
+            why = f": {psf['why']}" if isinstance(psf.get("why"), str) else ""
+            line += f" (the key rows suggest a PSF scale of {float(psf['estimate']):.3f}, not applied{why})"
     else:
         line += f" (ended by {ended_by} before its own stop: more iterations, or {', '.join(causes)})"
     return {"verdict": what, "rs_residual": residual, "noise_level": noise, "ratio": ratio,
