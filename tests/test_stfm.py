@@ -485,18 +485,19 @@ def test_stall_stop_ends_a_fit_whose_residual_no_longer_falls(sineball16):
 
 def test_prior_preset_stops_itself_on_a_slower_stall_test(sineball16):
     from rngcam.recon.methods.stfm import NOISE_CHECK_STEPS, STALL_PASSES
+    from rngcam.recon.methods.stfm.settings import PRIOR_STALL_PASSES
 
     fast = make_stfm(sineball16, small_settings())
     prior = make_stfm(sineball16, STFMSettings(preset="prior", components="all"))
     assert prior.resolved.stop_at_noise and prior.resolved.stall_drop == 0.001
-    # twice the passes of the fast preset's window (whose rows per step may differ)
-    assert prior._stall_window() >= 30 * len(prior.rs_rows_fit) / prior.resolved.rows_per_step
+    # a longer window than the fast preset's (whose rows per step may differ)
+    assert prior._stall_window() >= PRIOR_STALL_PASSES * len(prior.rs_rows_fit) / prior.resolved.rows_per_step
     assert fast._stall_window() < STALL_PASSES * len(fast.rs_rows_fit) / fast.resolved.rows_per_step + NOISE_CHECK_STEPS
     prior.rs_noise_level = 0.0  # a model that cannot reach the noise level: only the stall test can stop it
     window = prior._stall_window()
     result = run(prior, LoopSettings(time_budget_s=None, max_iters=40 * window, progress=False))
     assert window < result.iterations < 40 * window
-    assert any("fell less than 0.1% in 30 passes" in e for e in result.events)
+    assert any(f"fell less than 0.1% in {PRIOR_STALL_PASSES} passes" in e for e in result.events)
 
 
 def test_noise_level_comes_from_the_fitted_rows_only(sineball16):
