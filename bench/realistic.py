@@ -145,8 +145,9 @@ def run_default(p, scene: str, max_steps: int, truth_cal: dict | None, variant: 
     rs = method.resolved_settings()
     out = metrics(method.estimate(), p, scene)
     cal = rs.get("self_calibration") or {}
+    line_factor = (rs.get("line_time") or {}).get("factor")
     found = verdict(method.residuals().get("rs"), rs.get("rs_noise_level"), cal, result.ended_by, result.status,
-                    learned=learned_by_fit(rs))
+                    learned=learned_by_fit(rs), line_factor=line_factor)
     psf = (cal.get("scales") or {}).get("psf") or {}
     out.update(misfit=found["line"] if found else None, psf_scale_estimate=psf.get("estimate"),
                psf_scale_applied=psf.get("applied"), true_psf_scale=(truth_cal or {}).get("psf_scale", 1.0))
