@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import tempfile
 import time
 from dataclasses import replace
@@ -250,7 +251,12 @@ def _misfit_cell(r: dict) -> str:
     line = r.get("misfit")
     if "misfit" not in r:
         return "-"
-    return "ok" if not line else line.split(": ")[1] + " (" + line.split(" is ")[1].split(" the")[0] + ")"
+    if not line:
+        return "ok"
+    what, _, rest = line.removeprefix("misfit: ").partition(": ")
+    ratio = re.search(r" is ([0-9.]+x) the noise", rest)
+    factor = re.search(r"line time at (x[0-9.]+)", rest)
+    return f"{what} ({(ratio or factor).group(1)})" if (ratio or factor) else what
 
 
 def report_line_time(results: dict, size: int = 64) -> str:
