@@ -108,7 +108,8 @@ def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str
 
 def _far_off(line_factor, residual: float, noise: float, ratio: float, limit: float) -> dict | None:
     """The verdict where the data are explained but the fit learned a line time far off the recorded one."""
-    if line_factor is None or not math.isfinite(line_factor) or abs(line_factor - 1) <= LINE_TIME_FAR:
+    line_factor = _number(line_factor)
+    if line_factor is None or abs(line_factor - 1) <= LINE_TIME_FAR:
         return None
     line = (f"misfit: {FAR_OFF}: the fit learned the RS line time at x{line_factor:.4f} the recorded one; errors "
             f"beyond {100 * LINE_TIME_FAR:g} % are learned only in part (a line time 2 % long as 1.3 %), so moving "
@@ -123,7 +124,6 @@ def for_metrics(metrics: dict) -> dict | None:
     found = metrics.get("method_results") or {}
     gs_fitted = not (metrics.get("method_settings") or {}).get("no_gs")
     line = found.get("line_time") if isinstance(found.get("line_time"), dict) else {}
-    factor = line.get("factor")
     return verdict(metrics.get("residual_rs"), found.get("rs_noise_level"), found.get("self_calibration"),
                    metrics.get("ended_by", "own_stop"), metrics.get("status", "ok"), gs_fitted=gs_fitted,
-                   learned=learned_by_fit(found), line_factor=factor if isinstance(factor, (int, float)) else None)
+                   learned=learned_by_fit(found), line_factor=_number(line.get("factor")))
