@@ -36,16 +36,21 @@ def _causes(selfcal: dict | None, gs_fitted: bool = True, learned: tuple[str, ..
     calibration values self-calibration did not apply and the fit did not learn (`learned`:
     "geometry", "line time"), a PSF scale it found off by more than 1 % and did not apply first;
     the GS-to-RS transform only where GS frames were fitted; a PSF scale it applied last (the
-    estimate can take up another error: a 3 % line-time error found as a PSF scale of 1.012). (The
+    estimate can take up another error: a 3 % line-time error found as a PSF scale of 1.012), or
+    the shrink a second fit used with the PSF's lost edge fitted (report["psf_edge"]). (The
     key rows' GS-to-RS transform is too loosely pinned to point.)"""
     report = selfcal if isinstance(selfcal, dict) else {}  # a foreign metrics.json may hold anything
     scales = report.get("scales")
     psf = scales.get("psf") if isinstance(scales, dict) else None
     psf = psf if isinstance(psf, dict) else None
+    edge = report.get("psf_edge") if isinstance(report.get("psf_edge"), dict) else {}
+    edge_scale = _number(edge.get("scale")) if edge.get("kept") == "second" else None  # the output's PSF
     causes = []
     estimate = _number(psf.get("estimate")) if psf else None
-    pointed = bool(estimate is not None and not psf.get("applied") and abs(estimate - 1) > 0.01)
-    if not (psf and psf.get("applied")):
+    pointed = bool(estimate is not None and not psf.get("applied") and abs(estimate - 1) > 0.01 and edge_scale is None)
+    if edge_scale is not None:
+        causes.append(f"PSF scale (x{edge_scale:.3f} with its lost edge fitted; perhaps another error taken for it)")
+    elif not (psf and psf.get("applied")):
         causes.append("PSF scale")
     if gs_fitted and "geometry" not in learned and (not report.get("applied") or "transform_not_applied" in report):
         causes.append("geometry")

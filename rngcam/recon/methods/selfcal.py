@@ -414,7 +414,7 @@ def key_row_misfit(problem, matrix=None):
     return misfit
 
 
-def _parabola(xs: np.ndarray, ys: np.ndarray) -> float:
+def parabola_vertex(xs: np.ndarray, ys: np.ndarray) -> float:
     """The vertex of the parabola through the lowest point and its neighbours (the lowest point
     itself at an end of the range or where the three do not curve upwards)."""
     i = int(np.argmin(ys))
@@ -449,7 +449,7 @@ def estimate_psf_scale(problem, matrix=None, scales: tuple[float, float] = PSF_S
     best = float(coarse[int(np.argmin(ys))])
     fine = np.arange(max(lo, best - 2 * _COARSE), min(hi, best + 2 * _COARSE) + 1e-9, _FINE)
     yf = np.nan_to_num(np.array([at(s) for s in fine]), nan=np.inf)
-    estimate = _parabola(fine, yf)
+    estimate = parabola_vertex(fine, yf)
     if at(estimate) > float(yf.min()):  # the parabola missed: the best point sampled
         estimate = float(fine[int(np.argmin(yf))])
     return {"estimate": estimate, "residual_before": misfit(psf)[0],

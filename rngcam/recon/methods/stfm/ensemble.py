@@ -249,6 +249,7 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
     and why. With `no_gs` / `no_rs` the runner hands it the problem without that camera
     (rngcam.recon.runner.method_view), and self-calibration, which needs both, is off."""
     settings = settings or STFMSettings()
+    handed = problem  # before self-calibration: a second fit through another PSF calibrates again
     if settings.selfcal_report is None and settings.self_calibrate != "off" and not ablation.removed(settings):
         from rngcam.recon.methods.selfcal import calibrate_problem
 
@@ -267,7 +268,30 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
         from rngcam.recon.methods.stfm.floor import StartFloor
 
         method = StartFloor(method, problem)
+    if initial_video is None:
+        method = _with_edge_refit(method, handed, problem, settings, device, clock, stage)
     return method
+
+
+def _with_edge_refit(method, handed, problem, settings: STFMSettings, device, clock, stage):
+    """`method` wrapped in an EdgeRefit where the key rows found the PSF measured too large
+    (rngcam.recon.methods.stfm.edge_refit); the second fit calibrates again through its PSF."""
+    from rngcam.recon.methods.stfm.edge_refit import EdgeRefit, edge_scale
+
+    scale = edge_scale(settings.selfcal_report) if settings.psf_edge else None
+    if scale is None or problem.b_rs is None or problem.b_gs is None or ablation.removed(settings):
+        return method
+
+    def second(psf: Tensor, report: dict):
+        from rngcam.recon.methods.selfcal import calibrate_problem
+
+        again, calibration = calibrate_problem(replace(handed, psf=psf.to(handed.psf), notes=list(handed.notes)),
+                                               settings.self_calibrate, psf_scale=False)
+        calibration = dict(calibration or {}, scales=settings.selfcal_report.get("scales"), psf_edge=report)
+        return make_stfm(again, replace(settings, selfcal_report=calibration, psf_edge=False), device,
+                         clock=clock, stage=stage)
+
+    return EdgeRefit(method, problem, scale, second)
 
 
 def _make_stfm(problem, settings: STFMSettings, device, initial_video: Tensor | None, clock=None, stage=None):

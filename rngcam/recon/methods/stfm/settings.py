@@ -95,6 +95,10 @@ class STFMSettings:
     self_calibrate_psf_scale: bool = setting(
         True, "with self_calibrate, also search the PSF's magnification (0.9-1.1) on those rows; applied where it "
               "lowers their residual by 3 % or more (else reported)")
+    psf_edge: bool = setting(
+        True, "with self_calibrate, where the key rows find the PSF measured too large (scale <= 0.99) and the fit "
+              "ends above 1.15x its noise level: fit the edge the PSF lost off the sensor to the fit's video, "
+              "fit again through that PSF and keep the fit that explains the RS image better")
     selfcal_report: dict | None = field(default=None, metadata={"internal": True})  # what self-calibration refined
     learn_geometry: str = setting(
         "off", "learn the GS-to-RS transform with the fields: its shift, or shift, rotation and scale "

@@ -1,0 +1,200 @@
+"""A PSF measured too large: its lost edge fitted from a video, and the second fit through it (issue 39).
+
+The bundle here is simulated with one PSF crop and handed the PSF of a crop 5 % smaller (the same
+caustic magnified, rendered from the source image), so the handed PSF lost the ring that fell off
+the sensor, as a real calibration's would."""
+
+from dataclasses import replace
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from rngcam.formats.bundle import read_bundle
+from rngcam.physics.operators import RollingShutter
+from rngcam.physics.psf import magnify
+from rngcam.recon import misfit
+from rngcam.recon.methods import psf_edge
+from rngcam.recon.methods.psf_edge import edge_mask, fit_edge, search_edge
+from rngcam.recon.methods.stfm import edge_refit
+from rngcam.recon.methods.stfm.edge_refit import EdgeRefit, edge_line, edge_scale
+from rngcam.recon.problem import build_problem
+from rngcam.sim.simulate import DEFAULT_PSF_CROP, simulate
+
+LARGE = 1.05
+
+
+@pytest.fixture(scope="module")
+def problems(tmp_path_factory):
+    """(the problem with the PSF 5 % too large, the same capture with its own PSF), 32 px, fine."""
+    folder = tmp_path_factory.mktemp("edge")
+    data, other, wrong = folder / "matched.h5", folder / "other.h5", folder / "wrong.h5"
+    simulate("sineball", data, size=32, fidelity="fine")
+    simulate("sineball", other, size=32, fidelity="fine", psf_crop=DEFAULT_PSF_CROP / LARGE)
+    with h5py.File(other, "r") as f:
+        psf = f["calibration/psf"][()]
+    wrong.write_bytes(data.read_bytes())
+    with h5py.File(wrong, "r+") as f:
+        f["calibration/psf"][...] = psf
+    return build_problem(read_bundle(wrong)), build_problem(read_bundle(data))
+
+
+def _residual(problem, psf) -> float:
+    p = problem.to(torch.float64)
+    pred = RollingShutter(psf.double(), p.rs_weights, p.b_rs.shape[-1], channels=p.channels).A(p.truth)
+    return float((pred - p.b_rs).norm() / p.b_rs.norm())
+
+
+def test_the_edge_is_what_a_shrunk_psf_does_not_cover():
+    assert not edge_mask((16, 20), 1.0).any()
+    mask = edge_mask((16, 20), 0.9)
+    covered = magnify(np.ones((1, 16, 20)), 0.9)[0]
+    covered /= covered.max()
+    assert np.array_equal(mask, covered < 1 - 1e-9)
+    assert mask[0].all() and mask[:, -1].all() and not mask[4:-4, 4:-4].any()
+
+
+def test_the_lost_edge_is_fitted_from_the_true_video(problems):
+    wrong, matched = problems
+    found = fit_edge(wrong, wrong.truth, 1 / LARGE)
+    mask = edge_mask(tuple(wrong.psf.shape[-2:]), 1 / LARGE)
+    assert found["edge_pixels"] == mask.sum() and found["rows"] == wrong.b_rs.shape[1]
+    assert torch.allclose(found["psf"].double().sum((1, 2)), torch.ones(3, dtype=torch.float64), atol=1e-6)
+    assert (found["psf"] >= 0).all()
+    # the edge holds about the energy the true PSF has there, and the data are explained as well as by it
+    true_energy = matched.psf.double()[:, mask].sum(1)
+    assert np.allclose(found["edge_energy"], true_energy.numpy(), rtol=0.15)
+    assert found["residual"] < 0.5 * found["residual_shrunk"]
+    assert _residual(wrong, found["psf"]) < 1.05 * _residual(wrong, matched.psf)
+    assert _residual(wrong, wrong.psf) > 2 * _residual(wrong, found["psf"])
+
+
+def test_the_shrink_is_searched_with_the_edge_fitted(problems):
+    wrong, _ = problems
+    found = search_edge(wrong, wrong.truth)
+    assert found["scale"] == pytest.approx(1 / LARGE, abs=0.03)
+    assert found["residual"] == min(r for _, r in found["searched"])
+    assert fit_edge(wrong, wrong.truth, 1.0) is None  # nothing lost at the handed scale
+
+
+def test_rows_beyond_the_design_limit_are_subsampled(problems, monkeypatch):
+    wrong, _ = problems
+    whole = fit_edge(wrong, wrong.truth, 1 / LARGE)
+    monkeypatch.setattr(psf_edge, "MAX_DESIGN", 32 * 124 * 12)
+    found = fit_edge(wrong, wrong.truth, 1 / LARGE)
+    assert found["rows"] == 12  # of 32: the PSF fitted on them explains all rows nearly as well
+    assert _residual(wrong, found["psf"]) < 1.25 * _residual(wrong, whole["psf"]) < 0.6 * _residual(wrong, wrong.psf)
+
+
+class _Fit:
+    """A stand-in for a whole STFM run: stops at once with a given residual and video."""
+
+    def __init__(self, residual, video, noise=0.01):
+        self.rs, self.video, self.rs_noise_level = residual, video, noise
+        self.supports_holdout = self.stops_itself = True
+        self.left_out, self.notes, self.steps = [], ["a note"], 0
+
+    def step(self):
+        self.steps += 1
+        return 0.0
+
+    def converged(self):
+        return "stalled" if self.steps else None
+
+    def residuals(self):
+        return {"rs": self.rs}
+
+    def estimate(self):
+        return self.video
+
+    def state_dict(self):
+        return {"steps": self.steps}
+
+    def load_state_dict(self, state):
+        self.steps = state["steps"]
+
+    def resolved_settings(self):
+        return {"self_calibration": {"mode": "gains"}}
+
+
+def _refit(problem, first_rs, second_rs):
+    made = []
+
+    def second(psf, report):
+        made.append(psf)
+        return _Fit(second_rs, problem.truth)
+
+    return EdgeRefit(_Fit(first_rs, problem.truth), problem, 0.97, second), made
+
+
+@pytest.mark.parametrize("second_rs, kept", [(0.012, "second"), (0.05, "first")])
+def test_a_first_fit_left_unexplained_is_fitted_again_through_the_edge(problems, second_rs, kept):
+    wrong, _ = problems
+    method, made = _refit(wrong, 0.03, second_rs)
+    assert method.notes == ["a note"]  # nothing said before it is tried
+    method.step()
+    assert method.converged() is None and len(made) == 1  # the second fit starts
+    assert method.residuals()["rs"] == second_rs
+    state = method.state_dict()
+    method.step()
+    assert method.converged() == "stalled"
+    assert method.report["kept"] == kept
+    assert method.residuals()["rs"] == (second_rs if kept == "second" else 0.03)
+    assert method.report["scale"] == pytest.approx(1 / LARGE, abs=0.03)
+    line = method.notes[-1]
+    assert line.startswith("PSF edge: the PSF shrunk") and f"the {kept} fit kept" in line
+    out = method.resolved_settings()
+    assert out["psf_edge"]["kept"] == kept and out["self_calibration"]["psf_edge"]["kept"] == kept
+    method.load_state_dict(state)  # a roll-back into the second fit's earlier state
+    assert method.residuals()["rs"] == second_rs and method._method.steps == 0
+
+
+def test_no_second_fit_where_the_first_explains_the_data(problems):
+    wrong, _ = problems
+    method, made = _refit(wrong, 0.0105, 0.001)
+    method.step()
+    assert method.converged() == "stalled" and not made
+    assert "within 1.15x its noise level" in method.notes[-1] and method.notes[-1].startswith("PSF edge not fitted")
+
+
+def test_no_second_fit_where_the_edge_does_not_pay(problems, monkeypatch):
+    wrong, _ = problems
+    monkeypatch.setattr(edge_refit, "EDGE_MIN_DROP", 0.999)
+    method, made = _refit(wrong, 0.03, 0.001)
+    method.step()
+    assert method.converged() == "stalled" and not made
+    assert "(< 99.9 %)" in edge_line(method.report)
+
+
+def test_the_edge_is_tried_only_where_the_key_rows_find_the_psf_too_large():
+    def report(estimate, applied=False):
+        return {"scales": {"psf": {"estimate": estimate, "applied": applied}}}
+
+    assert edge_scale(report(0.97)) == 0.97
+    assert edge_scale(report(0.995)) is None and edge_scale(report(1.05, True)) is None
+    assert edge_scale(None) is None and edge_scale({"scales": {"psf": {"estimate": "x"}}}) is None
+
+
+def test_the_verdict_names_the_shrink_the_output_was_fitted_through():
+    base = {"applied": True, "scales": {"psf": {"estimate": 0.978, "applied": False, "why": "x"}}}
+    said = misfit.verdict(0.03, 0.01, dict(base, psf_edge={"scale": 0.9513, "kept": "second"}))
+    assert "PSF scale (x0.951 with its lost edge fitted" in said["line"] and said["threshold"] == misfit.MISFIT_RATIO
+    kept_first = misfit.verdict(0.03, 0.01, dict(base, psf_edge={"scale": 0.9513, "kept": "first"}))
+    assert kept_first["likely_causes"][0] == "PSF scale" and kept_first["threshold"] == misfit.POINTED_RATIO
+
+
+def test_stfm_is_wrapped_only_where_the_key_rows_find_the_psf_too_large(problems):
+    from rngcam.recon.methods.stfm.ensemble import make_stfm
+    from rngcam.recon.methods.stfm.settings import STFMSettings
+
+    wrong, matched = problems
+    settings = STFMSettings(self_calibrate="gains", preset="prior")
+    method = make_stfm(wrong, settings)
+    assert isinstance(method, EdgeRefit)
+    assert method.report["key_rows_scale"] < 0.99
+    second = method._make_refit(wrong.psf * 0 + 1 / wrong.psf[0].numel(), {"scale": 0.95})
+    assert not isinstance(second, EdgeRefit)  # one second fit, never a third
+    assert second.settings.selfcal_report["psf_edge"] == {"scale": 0.95}
+    assert not isinstance(make_stfm(matched, settings), EdgeRefit)
+    assert not isinstance(make_stfm(wrong, replace(settings, psf_edge=False)), EdgeRefit)
