@@ -150,8 +150,10 @@ def run_default(p, scene: str, max_steps: int, truth_cal: dict | None, variant: 
     found = verdict(method.residuals().get("rs"), rs.get("rs_noise_level"), cal, result.ended_by, result.status,
                     learned=learned_by_fit(rs), line_factor=line_factor)
     psf = (cal.get("scales") or {}).get("psf") or {}
+    edge = rs.get("psf_edge") or {}
     out.update(misfit=found["line"] if found else None, psf_scale_estimate=psf.get("estimate"),
-               psf_scale_applied=psf.get("applied"), true_psf_scale=(truth_cal or {}).get("psf_scale", 1.0))
+               psf_scale_applied=psf.get("applied"), true_psf_scale=(truth_cal or {}).get("psf_scale", 1.0),
+               psf_edge={k: v for k, v in edge.items() if k != "searched"} or None)
     out.update(steps=result.iterations, events=result.events, notes=list(method.notes),
                preset=(rs.get("preset_choice") or {}).get("preset"),
                output_is_start=rs.get("start_floor", {}).get("output_is_start"),
@@ -243,8 +245,10 @@ def report(results: dict, size: int = 64) -> str:
 def _psf_cell(r: dict) -> str:
     if r.get("psf_scale_estimate") is None:
         return "-"
+    edge = r.get("psf_edge") or {}
+    fitted = f"; edge fitted at {edge['scale']:.3f}, {edge.get('kept', '?')} fit kept" if edge.get("refit") else ""
     return (f"{r['psf_scale_estimate']:.3f}{' applied' if r.get('psf_scale_applied') else ''} "
-            f"({1 / r.get('true_psf_scale', 1.0):.3f})")
+            f"({1 / r.get('true_psf_scale', 1.0):.3f}){fitted}")
 
 
 def _misfit_cell(r: dict) -> str:

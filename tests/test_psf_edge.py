@@ -88,7 +88,7 @@ def test_rows_beyond_the_design_limit_are_subsampled(problems, monkeypatch):
 
 
 class _Fit:
-    """A stand-in for a whole STFM run: stops at once with a given residual and video."""
+    """A stand-in for a whole STFM run: stops after one step with a given residual and video."""
 
     def __init__(self, residual, video, noise=0.01):
         self.rs, self.video, self.rs_noise_level = residual, video, noise
@@ -118,52 +118,85 @@ class _Fit:
         return {"self_calibration": {"mode": "gains"}}
 
 
-def _refit(problem, first_rs, second_rs):
+def _refit(problem, first_rs, later_rs):
+    """An EdgeRefit over stand-ins whose fits through fitted edges end on `later_rs` in turn."""
     made = []
 
-    def second(psf, report):
-        made.append(psf)
-        return _Fit(second_rs, problem.truth)
+    def another(psf, report):
+        made.append((psf, report))
+        return _Fit(later_rs[len(made) - 1], problem.truth)
 
-    return EdgeRefit(_Fit(first_rs, problem.truth), problem, 0.97, second), made
+    return EdgeRefit(_Fit(first_rs, problem.truth), problem, 0.97, another), made
 
 
-@pytest.mark.parametrize("second_rs, kept", [(0.012, "second"), (0.05, "first")])
-def test_a_first_fit_left_unexplained_is_fitted_again_through_the_edge(problems, second_rs, kept):
+def _run(method, limit=10):
+    for _ in range(limit):
+        method.step()
+        if method.converged():
+            return
+
+
+@pytest.mark.parametrize("later, kept", [((0.0105,), 1), ((0.05,), 0), ((0.02, 0.0105), 2), ((0.02, 0.025), 1)])
+def test_a_fit_left_unexplained_is_fitted_again_through_the_edge(problems, later, kept):
     wrong, _ = problems
-    method, made = _refit(wrong, 0.03, second_rs)
+    method, made = _refit(wrong, 0.03, later)
     assert method.notes == ["a note"]  # nothing said before it is tried
     method.step()
     assert method.converged() is None and len(made) == 1  # the second fit starts
-    assert method.residuals()["rs"] == second_rs
-    state = method.state_dict()
-    method.step()
-    assert method.converged() == "stalled"
-    assert method.report["kept"] == kept
-    assert method.residuals()["rs"] == (second_rs if kept == "second" else 0.03)
-    assert method.report["scale"] == pytest.approx(1 / LARGE, abs=0.03)
+    assert method.residuals()["rs"] == later[0]
+    _run(method)
+    report = method.report
+    assert len(made) == len(later) and report["kept"] == kept
+    assert method.residuals()["rs"] == ([0.03] + list(later))[kept]
+    assert all(r["scale"] == pytest.approx(1 / LARGE, abs=0.03) for r in report["refits"])
+    assert [r["rs"] for r in report["refits"]] == list(later)
+    if len(later) == 2:  # the third fit's edge came from the best fit's video
+        assert report["refits"][1]["from_fit"] == 1
+    if kept == 0:  # the first fit's video gave its edge: not fitted again
+        assert "did not do better" in report["why"]
     line = method.notes[-1]
-    assert line.startswith("PSF edge: the PSF shrunk") and f"the {kept} fit kept" in line
+    assert line.startswith("PSF edge (") and ["the first", "the second", "the third"][kept] + " fit kept" in line
+    assert method.stops_itself and method.supports_holdout  # asked of it after every step, whichever fit is left
     out = method.resolved_settings()
     assert out["psf_edge"]["kept"] == kept and out["self_calibration"]["psf_edge"]["kept"] == kept
-    method.load_state_dict(state)  # a roll-back into the second fit's earlier state
-    assert method.residuals()["rs"] == second_rs and method._method.steps == 0
+
+
+def test_the_refits_are_bounded(problems):
+    wrong, _ = problems
+    method, made = _refit(wrong, 0.03, (0.029, 0.028, 0.027))
+    _run(method)
+    assert len(made) == edge_refit.MAX_REFITS and method.report["kept"] == 2
+    assert method.report["why"] == f"{edge_refit.MAX_REFITS} fits through a fitted edge made"
+
+
+def test_a_run_resumed_in_a_later_fit_makes_that_fit_again(problems):
+    wrong, _ = problems
+    method, made = _refit(wrong, 0.03, (0.0105,))
+    method.step()
+    method.converged()
+    state = method.state_dict()
+    again, made_again = _refit(wrong, 0.03, (0.0105,))
+    again.load_state_dict(state)
+    assert len(made_again) == 1 and torch.equal(made_again[0][0], made[0][0])
+    assert again.residuals()["rs"] == 0.0105 and again.report["refits"][0]["scale"] == method.report["refits"][0]["scale"]
+    _run(again)
+    assert again.report["kept"] == 1
 
 
 def test_no_second_fit_where_the_first_explains_the_data(problems):
     wrong, _ = problems
-    method, made = _refit(wrong, 0.0105, 0.001)
-    method.step()
-    assert method.converged() == "stalled" and not made
+    method, made = _refit(wrong, 0.0105, (0.001,))
+    _run(method)
+    assert not made and method.report["kept"] == 0
     assert "within 1.15x its noise level" in method.notes[-1] and method.notes[-1].startswith("PSF edge not fitted")
 
 
 def test_no_second_fit_where_the_edge_does_not_pay(problems, monkeypatch):
     wrong, _ = problems
     monkeypatch.setattr(edge_refit, "EDGE_MIN_DROP", 0.999)
-    method, made = _refit(wrong, 0.03, 0.001)
-    method.step()
-    assert method.converged() == "stalled" and not made
+    method, made = _refit(wrong, 0.03, (0.001,))
+    _run(method)
+    assert not made
     assert "(< 99.9 %)" in edge_line(method.report)
 
 
@@ -178,9 +211,9 @@ def test_the_edge_is_tried_only_where_the_key_rows_find_the_psf_too_large():
 
 def test_the_verdict_names_the_shrink_the_output_was_fitted_through():
     base = {"applied": True, "scales": {"psf": {"estimate": 0.978, "applied": False, "why": "x"}}}
-    said = misfit.verdict(0.03, 0.01, dict(base, psf_edge={"scale": 0.9513, "kept": "second"}))
+    said = misfit.verdict(0.03, 0.01, dict(base, psf_edge={"scale": 0.9513, "kept": 1}))
     assert "PSF scale (x0.951 with its lost edge fitted" in said["line"] and said["threshold"] == misfit.MISFIT_RATIO
-    kept_first = misfit.verdict(0.03, 0.01, dict(base, psf_edge={"scale": 0.9513, "kept": "first"}))
+    kept_first = misfit.verdict(0.03, 0.01, dict(base, psf_edge={"scale": None, "kept": 0}))
     assert kept_first["likely_causes"][0] == "PSF scale" and kept_first["threshold"] == misfit.POINTED_RATIO
 
 

@@ -44,7 +44,8 @@ def _causes(selfcal: dict | None, gs_fitted: bool = True, learned: tuple[str, ..
     psf = scales.get("psf") if isinstance(scales, dict) else None
     psf = psf if isinstance(psf, dict) else None
     edge = report.get("psf_edge") if isinstance(report.get("psf_edge"), dict) else {}
-    edge_scale = _number(edge.get("scale")) if edge.get("kept") == "second" else None  # the output's PSF
+    kept = edge.get("kept")  # the output: the first fit (0), or one through a fitted edge
+    edge_scale = _number(edge.get("scale")) if isinstance(kept, int) and kept > 0 else None
     causes = []
     estimate = _number(psf.get("estimate")) if psf else None
     pointed = bool(estimate is not None and not psf.get("applied") and abs(estimate - 1) > 0.01 and edge_scale is None)
