@@ -82,13 +82,22 @@ class EdgeRefit(MethodBase):
         self._method.reduce_step(factor)
 
     def components(self) -> dict:
-        return self._method.components()
+        return self._output().components()
 
     def estimate(self) -> Tensor:
-        return self._method.estimate()
+        return self._output().estimate()
 
     def residuals(self) -> dict[str, float]:
-        return self._method.residuals()
+        return self._output().residuals()
+
+    def _output(self):
+        """The fit to show: the current one, unless it has not ended and explains the RS image less
+        well than the best so far (a budget that ends a later fit early leaves the best one out)."""
+        cur = self._method
+        if self._current == self._best or self._current in self._rs:
+            return cur
+        res = cur.residuals().get("rs")
+        return cur if isinstance(res, float) and res < self._rs[self._best] else self._fits[self._best]
 
     def converged(self) -> str | None:
         why = self._method.converged()
@@ -177,10 +186,10 @@ class EdgeRefit(MethodBase):
 
     @property
     def notes(self) -> list[str]:
-        return list(self._method.notes) + ([edge_line(self.report)] if self.report["tried"] else [])
+        return list(self._output().notes) + ([edge_line(self.report)] if self.report["tried"] else [])
 
     def resolved_settings(self) -> dict | None:
-        out = self._method.resolved_settings()
+        out = self._output().resolved_settings()
         out = {} if out is None else dict(out)
         out["psf_edge"] = _copy(self.report)
         if isinstance(out.get("self_calibration"), dict):  # the misfit verdict reads it there
@@ -205,7 +214,7 @@ def edge_line(report: dict) -> str:
     parts = []
     for i, r in enumerate(refits, 1):
         energy = "/".join(f"{100 * e:.1f}" for e in r["edge_energy"])
-        ended = f", ended at {r['rs']:.4f}" if "rs" in r else ""
+        ended = f", ended at {r['rs']:.4f}" if "rs" in r else " (not run to its own stop)"
         parts.append(f"from the {_nth(r['from_fit'])} fit's video x{r['scale']:.4f} ({r['edge_pixels']} pixels, "
                      f"{energy} % of the energy; RS residual {r['from_rs']:.4f} -> {r['residual']:.4f} on it): "
                      f"the {_nth(i)} fit{ended}")
