@@ -180,18 +180,26 @@ def test_a_later_fit_cut_short_is_shown_only_where_it_does_better(problems, runn
     assert "(not run to its own stop)" in method.notes[-1]
 
 
-def test_a_run_resumed_in_a_later_fit_makes_that_fit_again(problems):
+def test_a_run_resumed_in_a_later_fit_makes_that_fit_again(problems, tmp_path):
+    from rngcam.recon import checkpoint
+
     wrong, _ = problems
     method, made = _refit(wrong, 0.03, (0.0105,))
     method.step()
     method.converged()
-    state = method.state_dict()
+    checkpoint.save(tmp_path / "c.pt", {"method": method.state_dict()})  # as plain data, read back as such
+    state = checkpoint.load(tmp_path / "c.pt")["method"]
     again, made_again = _refit(wrong, 0.03, (0.0105,))
     again.load_state_dict(state)
     assert len(made_again) == 1 and torch.equal(made_again[0][0], made[0][0])
     assert again.residuals()["rs"] == 0.0105 and again.report["refits"][0]["scale"] == method.report["refits"][0]["scale"]
     _run(again)
     assert again.report["kept"] == 1
+    from rngcam.errors import RngcamError
+
+    for bad in ({"edge_psfs": {1: state["edge_psfs"][1][:, :4]}}, {"edge_current": 7}, {"edge_psfs": {}}):
+        with pytest.raises(RngcamError, match="PSF-edge stage is not as rngcam writes it"):
+            _refit(wrong, 0.03, (0.0105,))[0].load_state_dict({**state, **bad})
 
 
 def test_no_second_fit_where_the_first_explains_the_data(problems):

@@ -173,6 +173,7 @@ class EdgeRefit(MethodBase):
         if "fits" not in state:  # a checkpoint of the first fit alone
             self._fits[0].load_state_dict(state)
             return
+        _check_state(state, self._problem.psf.shape)
         self.report, self._rs = _copy(state["edge_report"]), dict(state["edge_rs"])
         for k, psf in state["edge_psfs"].items():
             if k not in self._fits:  # a run resumed after its first fit: the later ones made again
@@ -195,6 +196,23 @@ class EdgeRefit(MethodBase):
         if isinstance(out.get("self_calibration"), dict):  # the misfit verdict reads it there
             out["self_calibration"] = dict(out["self_calibration"], psf_edge=_copy(self.report))
         return out
+
+
+def _check_state(state: dict, psf_shape) -> None:
+    """A checkpoint's edge stage as this class writes it (a checkpoint may come from elsewhere): the
+    fitted PSFs of the problem's shape, finite and non-negative, and the fits it names present."""
+    from rngcam.errors import RngcamError
+
+    fits, psfs = state.get("fits"), state.get("edge_psfs")
+    ok = (isinstance(fits, dict) and isinstance(psfs, dict) and isinstance(state.get("edge_rs"), dict)
+          and isinstance(state.get("edge_report"), dict) and 0 in fits
+          and state.get("edge_current") in fits and state.get("edge_best") in fits
+          and all(isinstance(k, int) and k in psfs for k in fits if k)
+          and all(isinstance(p, Tensor) and tuple(p.shape) == tuple(psf_shape) and bool(torch.isfinite(p).all())
+                  and bool((p >= 0).all()) for p in psfs.values()))
+    if not ok:
+        raise RngcamError("cannot resume: the checkpoint's PSF-edge stage is not as rngcam writes it; "
+                          "use --overwrite to start again")
 
 
 def _copy(report: dict) -> dict:
