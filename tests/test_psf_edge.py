@@ -187,7 +187,8 @@ def test_a_run_resumed_in_a_later_fit_makes_that_fit_again(problems, tmp_path):
     method, made = _refit(wrong, 0.03, (0.0105,))
     method.step()
     method.converged()
-    checkpoint.save(tmp_path / "c.pt", {"method": method.state_dict()})  # as plain data, read back as such
+    checkpoint.save(tmp_path / "c.pt", {"method": method.state_dict(), "iteration": 1, "solve_s": 1.0, "wall_s": 1.0,
+                                        "log": [], "events": [], "rng": torch.get_rng_state(), "identity": None})
     state = checkpoint.load(tmp_path / "c.pt")["method"]
     again, made_again = _refit(wrong, 0.03, (0.0105,))
     again.load_state_dict(state)
