@@ -81,10 +81,12 @@ def test_the_shrink_is_searched_with_the_edge_fitted(problems):
 def test_rows_beyond_the_design_limit_are_subsampled(problems, monkeypatch):
     wrong, _ = problems
     whole = fit_edge(wrong, wrong.truth, 1 / LARGE)
-    monkeypatch.setattr(psf_edge, "MAX_DESIGN", 32 * 124 * 12)
+    monkeypatch.setattr(psf_edge, "MAX_DESIGN", 32 * 124 * 16)
     found = fit_edge(wrong, wrong.truth, 1 / LARGE)
-    assert found["rows"] == 12  # of 32: the PSF fitted on them explains all rows nearly as well
+    assert found["rows"] == 16  # of 32: the PSF fitted on them explains all rows nearly as well
     assert _residual(wrong, found["psf"]) < 1.25 * _residual(wrong, whole["psf"]) < 0.6 * _residual(wrong, wrong.psf)
+    monkeypatch.setattr(psf_edge, "MAX_DESIGN", 32 * 124 * 2)  # 4 rows: fewer RS pixels than 4 per unknown
+    assert fit_edge(wrong, wrong.truth, 1 / LARGE) is None and search_edge(wrong, wrong.truth) is None
 
 
 class _Fit:

@@ -20,6 +20,7 @@ from torch import Tensor
 from rngcam.recon.metrics import relative_residual
 
 MAX_DESIGN = 4_000_000  # design-matrix entries per PSF channel: sensor rows beyond it are subsampled
+MIN_EQUATIONS = 4  # RS pixels per unknown a fit needs, or the edge takes up noise (None: not fitted)
 
 
 def edge_mask(shape: tuple[int, int], scale: float) -> np.ndarray:
@@ -57,7 +58,8 @@ def fit_edge(problem, video: Tensor, scale: float, seed: int = 0) -> dict | None
     (C, K, H, W, on the RS scale): per PSF channel, non-negative a * shrunk + edge, normalised.
     Returns {"psf" (a Tensor like problem.psf), "scale", "edge_pixels", "edge_energy" (per channel),
     "residual_shrunk" (the shrunk PSF with the best factor), "residual" (the fitted PSF)}, the
-    residuals relative, over the rows the fit used; None without an RS image or an edge."""
+    residuals relative, over the rows the fit used; None without an RS image or an edge, or where
+    the rows the design affords (MAX_DESIGN) give fewer than MIN_EQUATIONS pixels per unknown."""
     from scipy.optimize import nnls
 
     from rngcam.physics.operators import RollingShutter
@@ -76,6 +78,8 @@ def fit_edge(problem, video: Tensor, scale: float, seed: int = 0) -> dict | None
     valid = problem.rs_valid_mask()
     valid = torch.ones_like(b) if valid is None else valid.detach().double().cpu().expand_as(b)
     n_rows = min(h, max(4, MAX_DESIGN // max(1, w * len(pixels))))
+    if n_rows * w < MIN_EQUATIONS * (len(pixels) + 1):  # a large grid: the edge has too many pixels
+        return None
     rows = torch.arange(h) if n_rows >= h else torch.from_numpy(
         np.sort(np.random.default_rng(seed).choice(h, n_rows, replace=False)))
     shrunk = torch.from_numpy(magnify(psf.numpy(), scale))

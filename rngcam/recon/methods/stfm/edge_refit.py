@@ -149,7 +149,8 @@ class EdgeRefit(MethodBase):
         with torch.no_grad():
             found = search_edge(self._problem, best.estimate())
         if found is None:
-            self.report["why"] = "no edge could be fitted"
+            self.report["why"] = ("no edge could be fitted (on a large grid the edge has more pixels than the RS "
+                                  "rows a fit affords can pin: psf_edge.MAX_DESIGN)")
             return False
         drop = 1 - found["residual"] / max(res, 1e-30)
         attempt = {k: v for k, v in found.items() if k not in ("psf", "searched")}
