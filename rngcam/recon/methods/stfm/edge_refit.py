@@ -91,13 +91,23 @@ class EdgeRefit(MethodBase):
         return self._output().residuals()
 
     def _output(self):
+        return self._fits[self._output_index()]
+
+    def _output_index(self) -> int:
         """The fit to show: the current one, unless it has not ended and explains the RS image less
         well than the best so far (a budget that ends a later fit early leaves the best one out)."""
-        cur = self._method
-        if self._current == self._best or self._current in self._rs:
-            return cur
-        res = cur.residuals().get("rs")
-        return cur if isinstance(res, float) and res < self._rs[self._best] else self._fits[self._best]
+        k = self._current
+        if k == self._best or k in self._rs:
+            return k
+        res = self._fits[k].residuals().get("rs")
+        return k if isinstance(res, float) and res < self._rs[self._best] else self._best
+
+    def _shown_report(self) -> dict:
+        """The report with the fit shown as the one kept (a later fit cut short may be it)."""
+        report, k = _copy(self.report), self._output_index()
+        if k != report["kept"]:
+            report["kept"], report["scale"] = k, report["refits"][k - 1]["scale"]
+        return report
 
     def converged(self) -> str | None:
         why = self._method.converged()
@@ -188,14 +198,14 @@ class EdgeRefit(MethodBase):
 
     @property
     def notes(self) -> list[str]:
-        return list(self._output().notes) + ([edge_line(self.report)] if self.report["tried"] else [])
+        return list(self._output().notes) + ([edge_line(self._shown_report())] if self.report["tried"] else [])
 
     def resolved_settings(self) -> dict | None:
         out = self._output().resolved_settings()
         out = {} if out is None else dict(out)
-        out["psf_edge"] = _copy(self.report)
+        out["psf_edge"] = self._shown_report()
         if isinstance(out.get("self_calibration"), dict):  # the misfit verdict reads it there
-            out["self_calibration"] = dict(out["self_calibration"], psf_edge=_copy(self.report))
+            out["self_calibration"] = dict(out["self_calibration"], psf_edge=self._shown_report())
         return out
 
 
