@@ -246,7 +246,9 @@ def _psf_cell(r: dict) -> str:
     if r.get("psf_scale_estimate") is None:
         return "-"
     edge = r.get("psf_edge") or {}
-    fitted = f"; edge fitted at {edge['scale']:.3f}, {edge.get('kept', '?')} fit kept" if edge.get("refit") else ""
+    n = len(edge.get("refits") or [])
+    fitted = (f"; edge fitted at {edge['scale']:.3f}, fit {edge['kept'] + 1} of {n + 1} kept" if edge.get("kept")
+              else f"; no edge fit kept ({n} tried)" if n else "")
     return (f"{r['psf_scale_estimate']:.3f}{' applied' if r.get('psf_scale_applied') else ''} "
             f"({1 / r.get('true_psf_scale', 1.0):.3f}){fitted}")
 
