@@ -76,6 +76,7 @@ def test_the_shrink_is_searched_with_the_edge_fitted(problems):
     assert found["scale"] == pytest.approx(1 / LARGE, abs=0.03)
     assert found["residual"] == min(r for _, r in found["searched"])
     assert fit_edge(wrong, wrong.truth, 1.0) is None  # nothing lost at the handed scale
+    assert fit_edge(wrong, wrong.truth * float("nan"), 0.95) is None  # a video gone bad fits nothing
 
 
 def test_rows_beyond_the_design_limit_are_subsampled(problems, monkeypatch):

@@ -75,6 +75,8 @@ def fit_edge(problem, video: Tensor, scale: float, seed: int = 0) -> dict | None
     c, h, w = problem.b_rs.shape
     v = video.detach().double().cpu()
     b = problem.b_rs.detach().double().cpu()
+    if not (bool(torch.isfinite(v).all()) and bool(torch.isfinite(b).all())):
+        return None
     valid = problem.rs_valid_mask()
     valid = torch.ones_like(b) if valid is None else valid.detach().double().cpu().expand_as(b)
     n_rows = min(h, max(4, MAX_DESIGN // max(1, w * len(pixels))))
@@ -97,7 +99,10 @@ def fit_edge(problem, video: Tensor, scale: float, seed: int = 0) -> dict | None
         design = torch.cat([torch.cat([base[ch].reshape(-1, 1), cols[ch].reshape(-1, len(pixels))], 1)
                             for ch in chans]).numpy()
         y = torch.cat([target[ch].reshape(-1) for ch in chans]).numpy()
-        x, _ = nnls(design, y, maxiter=20 * design.shape[1])
+        try:
+            x, _ = nnls(design, y, maxiter=20 * design.shape[1])
+        except RuntimeError:  # no convergence within maxiter (SciPy before 1.12 raises it)
+            return None
         full = x[0] * shrunk[p_ch].numpy()
         full[mask] += x[1:]
         total = full.sum()
