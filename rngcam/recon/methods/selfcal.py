@@ -341,7 +341,8 @@ def report_lines(report: dict | None, end_gains=None) -> list[str]:
     if not report.get("applied"):
         return [f"self-calibration ({report['mode']}) not applied: {report['why']}"]
     s, r = report["start"], report["refined"]
-    lines = [f"self-calibration ({report['mode']}) from {report['rows']} RS rows exposed with the GS frames: "
+    through = f" through {report['through']}" if isinstance(report.get("through"), str) else ""
+    lines = [f"self-calibration ({report['mode']}){through} from {report['rows']} RS rows exposed with the GS frames: "
              f"RS residual on them {report['rs_residual_before']:.4f} -> {report['rs_residual_after']:.4f}"]
     if "transform_not_applied" not in report:
         lines.append(f"GS-to-RS shift ({s['shift_px'][0]:+.3f}, {s['shift_px'][1]:+.3f}) -> "

@@ -287,7 +287,10 @@ def _with_edge_refit(method, handed, problem, settings: STFMSettings, device, cl
 
         again, calibration = calibrate_problem(replace(handed, psf=psf.to(handed.psf), notes=list(handed.notes)),
                                                settings.self_calibrate, psf_scale=False)
-        calibration = dict(calibration or {}, scales=settings.selfcal_report.get("scales"), psf_edge=report)
+        scale = ((report.get("refits") or [report])[-1]).get("scale")
+        through = "the PSF with its lost edge fitted" + ("" if scale is None else f" (shrunk x{scale:.4f})")
+        calibration = dict(calibration or {}, scales=settings.selfcal_report.get("scales"), psf_edge=report,
+                           through=through)
         return make_stfm(again, replace(settings, selfcal_report=calibration, psf_edge=False), device,
                          clock=clock, stage=stage)
 
