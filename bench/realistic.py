@@ -248,7 +248,7 @@ def _psf_cell(r: dict) -> str:
     edge = r.get("psf_edge") or {}
     n = len(edge.get("refits") or [])
     fitted = (f"; edge fitted at {edge['scale']:.3f}, fit {edge['kept'] + 1} of {n + 1} kept" if edge.get("kept")
-              else f"; no edge fit kept ({n} tried)" if n else "")
+              else f"; no edge fit kept ({n} tried)" if n else "; no edge fitted" if edge.get("tried") else "")
     return (f"{r['psf_scale_estimate']:.3f}{' applied' if r.get('psf_scale_applied') else ''} "
             f"({1 / r.get('true_psf_scale', 1.0):.3f}){fitted}")
 
@@ -295,7 +295,9 @@ def report_default(results: dict, size: int = 64) -> str:
         if method != "default" or not key.endswith(f"|{size}"):
             continue
         gs = [results.get(f"{scene}|{family}|{m}|{size}") for m in ("blend", "interp")]
-        best = max((g["psnr_intermediate_db"], m) for g, m in zip(gs, ("blend", "interp"), strict=True) if g)
+        best = max(((g["psnr_intermediate_db"], m) for g, m in zip(gs, ("blend", "interp"), strict=True) if g),
+                   default=None)  # a row run without the GS-only videos: "-"
+        best_cell = "- | -" if best is None else f"{best[0]:.2f} ({best[1]}) | {r['psnr_intermediate_db'] - best[0]:+.2f}"
         fine = results.get(f"{scene}|fine|default|{size}")
         vs = f"{r['psnr_intermediate_db'] - fine['psnr_intermediate_db']:+.2f}" if fine and family != "fine" else "-"
         why = "own stop" if any("stopped at iteration" in e for e in r.get("events", [])) else "a cap"
@@ -304,7 +306,7 @@ def report_default(results: dict, size: int = 64) -> str:
         cal = r.get("calibration") or {}
         gain = f"{100 * cal['gain_error_end']:.1f} %" if "gain_error_end" in cal else "-"
         lines.append(f"| {scene} | {family} | {r['steps']:,} ({why}) | {r['psnr_intermediate_db']:.2f} | {vs} | "
-                     f"{r['psnr_dynamic_db']:.2f} | {best[0]:.2f} ({best[1]}) | {r['psnr_intermediate_db'] - best[0]:+.2f} | "
+                     f"{r['psnr_dynamic_db']:.2f} | {best_cell} | "
                      f"{ball} | {gain} | {_psf_cell(r)} | {_misfit_cell(r)} | {r['load_before']:.1f} |")
     return "\n".join(lines)
 
