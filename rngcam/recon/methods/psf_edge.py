@@ -128,26 +128,19 @@ def search_edge(problem, video: Tensor, scales: tuple[float, float] = EDGE_SCALE
     one around the best and a parabola through the lowest three (the key rows alone place it short:
     sineball with its PSF 5 % large, 0.978 for 0.952; with the edge fitted, the residual is lowest
     at 0.952). fit_edge's dict with "searched" [(scale, residual), ...]; None where none fits."""
-    from rngcam.recon.methods.selfcal import parabola_vertex
+    from rngcam.recon.methods.selfcal import line_search
 
     tried: dict[float, dict | None] = {}
 
     def at(s: float) -> float:
         s = round(float(s), 6)
         if s not in tried:
-            tried[s] = fit_edge(problem, video, s)
+            tried[s] = fit_edge(problem, video, s) if math.isfinite(s) else None
         return tried[s]["residual"] if tried[s] is not None else math.inf
 
-    lo, hi = scales
-    coarse = np.arange(lo, hi + 1e-9, _COARSE)
-    best = float(coarse[int(np.argmin([at(s) for s in coarse]))])
-    fine = np.arange(max(lo, best - _COARSE), min(hi, best + _COARSE) + 1e-9, _FINE)
-    ys = np.array([at(s) for s in fine])
-    if not np.isfinite(ys).any():
+    estimate = line_search(at, *scales, _COARSE, _FINE, _COARSE)
+    if tried.get(round(estimate, 6)) is None:
         return None
-    estimate = parabola_vertex(fine, ys)
-    if at(estimate) > float(ys.min()):  # the parabola missed: the best point sampled
-        estimate = float(fine[int(np.argmin(ys))])
     found = dict(tried[round(estimate, 6)])
     found["searched"] = sorted((s, r["residual"]) for s, r in tried.items() if r is not None)
     return found

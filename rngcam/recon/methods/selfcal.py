@@ -415,7 +415,7 @@ def key_row_misfit(problem, matrix=None):
     return misfit
 
 
-def parabola_vertex(xs: np.ndarray, ys: np.ndarray) -> float:
+def _parabola(xs: np.ndarray, ys: np.ndarray) -> float:
     """The vertex of the parabola through the lowest point and its neighbours (the lowest point
     itself at an end of the range or where the three do not curve upwards)."""
     i = int(np.argmin(ys))
@@ -426,6 +426,21 @@ def parabola_vertex(xs: np.ndarray, ys: np.ndarray) -> float:
     a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / denom
     b = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / denom
     return float(xs[i]) if a <= 0 else float(np.clip(-b / (2 * a), x0, x2))
+
+
+def line_search(at, lo: float, hi: float, coarse: float, fine: float, width: float, include=()) -> float:
+    """The x in [lo, hi] where at(x) is lowest: a grid of step `coarse` (and the points `include`),
+    one of step `fine` within `width` of its best, and the vertex of the parabola through the lowest
+    three of that (its best sample where the vertex is no better). Non-finite values count as worst."""
+    xs = np.unique(np.append(np.arange(lo, hi + 1e-9, coarse), include))
+    ys = np.nan_to_num(np.array([at(x) for x in xs]), nan=np.inf)
+    best = float(xs[int(np.argmin(ys))])
+    xf = np.arange(max(lo, best - width), min(hi, best + width) + 1e-9, fine)
+    yf = np.nan_to_num(np.array([at(x) for x in xf]), nan=np.inf)
+    estimate = _parabola(xf, yf)
+    if at(estimate) > float(yf.min()):  # the parabola missed: the best point sampled
+        estimate = float(xf[int(np.argmin(yf))])
+    return estimate
 
 
 def estimate_psf_scale(problem, matrix=None, scales: tuple[float, float] = PSF_SCALE_RANGE) -> dict | None:
@@ -445,14 +460,7 @@ def estimate_psf_scale(problem, matrix=None, scales: tuple[float, float] = PSF_S
         return misfit(magnify(psf, s, blur=EVEN_BLUR))[0]
 
     lo, hi = scales
-    coarse = np.unique(np.append(np.arange(lo, hi + 1e-9, _COARSE), 1.0))
-    ys = np.nan_to_num(np.array([at(s) for s in coarse]), nan=np.inf)
-    best = float(coarse[int(np.argmin(ys))])
-    fine = np.arange(max(lo, best - 2 * _COARSE), min(hi, best + 2 * _COARSE) + 1e-9, _FINE)
-    yf = np.nan_to_num(np.array([at(s) for s in fine]), nan=np.inf)
-    estimate = parabola_vertex(fine, yf)
-    if at(estimate) > float(yf.min()):  # the parabola missed: the best point sampled
-        estimate = float(fine[int(np.argmin(yf))])
+    estimate = line_search(at, lo, hi, _COARSE, _FINE, 2 * _COARSE, include=(1.0,))
     return {"estimate": estimate, "residual_before": misfit(psf)[0],
             "residual_after": misfit(magnify(psf, estimate))[0],
             "at_bound": bool(min(estimate - lo, hi - estimate) < _FINE / 2)}
