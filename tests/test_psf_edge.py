@@ -96,7 +96,7 @@ class _Fit:
     def __init__(self, residual, video, noise=0.01):
         self.rs, self.video, self.rs_noise_level = residual, video, noise
         self.supports_holdout = self.stops_itself = True
-        self.left_out, self.notes, self.steps = [], ["a note"], 0
+        self.left_out, self.notes, self.steps, self.asked = [], ["a note"], 0, 0
 
     def step(self):
         self.steps += 1
@@ -106,6 +106,7 @@ class _Fit:
         return "stalled" if self.steps else None
 
     def residuals(self):
+        self.asked += 1
         return {"rs": self.rs}
 
     def estimate(self):
@@ -183,6 +184,7 @@ def test_a_later_fit_cut_short_is_shown_only_where_it_does_better(problems, runn
     assert method.resolved_settings()["psf_edge"]["kept"] == kept
     assert "(not run to its own stop)" in method.notes[-1]
     assert f"the {['first', 'second'][kept]} fit kept" in method.notes[-1]
+    assert method._fits[1].asked == 1  # the running fit's residual worked out once a step, however often asked
 
 
 def test_a_run_resumed_in_a_later_fit_makes_that_fit_again(problems, tmp_path):

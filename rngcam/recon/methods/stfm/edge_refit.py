@@ -49,6 +49,8 @@ class EdgeRefit(MethodBase):
         self._psfs: dict[int, Tensor] = {}
         self._current = self._best = 0
         self._rs: dict[int, float] = {}  # each ended fit's RS residual
+        self._steps = 0
+        self._running: tuple[int, dict] | None = None  # a running later fit's residuals, at that step count
         self.report: dict = {"key_rows_scale": scale, "tried": False, "refits": [], "kept": 0}
 
     @property
@@ -73,6 +75,7 @@ class EdgeRefit(MethodBase):
         return self._method.left_out
 
     def step(self) -> float:
+        self._steps += 1
         return self._method.step()
 
     def budget_cut(self) -> str:
@@ -88,7 +91,8 @@ class EdgeRefit(MethodBase):
         return self._output().estimate()
 
     def residuals(self) -> dict[str, float]:
-        return self._output().residuals()
+        k = self._output_index()
+        return self._running[1] if k == self._current and self._running is not None else self._fits[k].residuals()
 
     def _output(self):
         return self._fits[self._output_index()]
@@ -98,8 +102,11 @@ class EdgeRefit(MethodBase):
         well than the best so far (a budget that ends a later fit early leaves the best one out)."""
         k = self._current
         if k == self._best or k in self._rs:
+            self._running = None
             return k
-        res = self._fits[k].residuals().get("rs")
+        if self._running is None or self._running[0] != self._steps:  # once a step, however often asked
+            self._running = (self._steps, self._fits[k].residuals())
+        res = self._running[1].get("rs")
         return k if isinstance(res, float) and res < self._rs[self._best] else self._best
 
     def _shown_report(self) -> dict:
