@@ -2,6 +2,7 @@
 
     python -m bench.gpu_check -o OUT                 # on a lent GPU (about 8 minutes)
     python -m bench.gpu_check -o OUT --device cpu --quick   # its CPU half: tiny sizes, a few steps
+    python -m bench.gpu_check -o OUT --sweep chunks --skip-tests   # the paper grid's frames a graph
 
 Each reconstruction runs rngcam.reconstruct in a child process of its own (`run` below), so the peak
 GPU memory it reports is that run's alone. Every step has its own time limit; a step that fails
@@ -30,6 +31,21 @@ FULL = [
     # at 8x the final truth evaluation (SSIM of 429 M elements) runs past the budget: give it room
     ("smoke 456x684 budget 150", "smoke", "456x684", {"time_budget_s": 150}, 300),
 ]
+# Rows per step on the GPU, where a step's cost hardly grows with its rows (bench/large_grids.md): the paper
+# grid with a 70 s budget at the default's 8 rows a step and at more, then the 64 px default (issue 40's "paper
+# grid within 0.5 dB in <= 60 s" on a GPU).
+ROWS_SWEEP = [
+    *[(f"smoke 228x342 rows {n} budget 70", "smoke", "228x342", {"time_budget_s": 70, "rows_per_step": n}, 130)
+      for n in (8, 32, 96)],
+    ("sineball 64 default", "sineball", "64", {"time_budget_s": 150}, 190),
+]
+# Frames per autograd graph on the GPU (the CPU's 65,536-point chunk is 4 frames at the paper grid, and a
+# step whose rows touch more frames than a chunk evaluates them twice): the paper grid, 70 s each.
+CHUNK_SWEEP = [
+    *[(f"smoke 228x342 chunk {c} rows {n} budget 70", "smoke", "228x342",
+       {"time_budget_s": 70, "rows_per_step": n, "frame_chunk": c}, 130) for c, n in ((32, 8), (128, 8), (128, 32))],
+]
+SWEEPS = {"rows": ROWS_SWEEP, "chunks": CHUNK_SWEEP}
 QUICK = [
     ("sineball 32 quick", "sineball", "32", {"max_iters": 10}, 120),
     ("smoke 32 quick", "smoke", "32", {"max_iters": 10}, 120),
@@ -172,10 +188,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--device", default="cuda", help="cuda (default) or cpu")
     p.add_argument("--quick", action="store_true", help="tiny sizes and a few steps (the CPU half, for CI)")
     p.add_argument("--skip-tests", action="store_true", help="leave out the device-parametrised tests")
+    p.add_argument("--sweep", choices=sorted(SWEEPS), help="instead of the check: the paper grid at 8, 32 and 96 rows a "
+                   "step (rows) or at 32 and 128 frames per autograd graph (chunks), 70 s each")
     p.add_argument("--only", default="", help="comma-separated run labels' first words to keep (e.g. sineball)")
     a = p.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
-    runs = QUICK if a.quick else FULL
+    runs = QUICK if a.quick else SWEEPS[a.sweep] if a.sweep else FULL
     if a.only:
         runs = [r for r in runs if any(r[0].startswith(w) for w in a.only.split(","))]
     device = describe_device(a.device)

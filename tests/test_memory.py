@@ -216,3 +216,29 @@ def test_an_stfm_step_holds_one_chunk_of_frames_in_its_graph_at_a_time():
         peaks[chunk] = saved.peak
         assert saved.alive == 0  # every graph freed by the end of the step
     assert peaks[2] < 0.6 * peaks[64], peaks  # the chunks' graphs are not kept until the last one
+
+
+def test_a_graph_saves_what_the_gpu_chunk_assumes_per_point():
+    from rngcam.recon.methods.stfm.settings import GRAPH_BYTES_PER_POINT
+
+    p = _toy_problem(48, 64)
+    m = make_stfm(p, STFMSettings(dynamic_base="video", refine=False, frame_chunk=8))
+    saved = _SavedBytes()
+    with torch.autograd.graph.saved_tensors_hooks(saved.pack, saved.unpack):
+        m.frames(torch.arange(8), m._static()).sum().backward()
+    per_point = saved.peak / (8 * 48 * 64)
+    assert 0.3 * GRAPH_BYTES_PER_POINT < per_point < 1.25 * GRAPH_BYTES_PER_POINT, per_point
+
+
+@pytest.mark.parametrize("card_gib, frames", [(80, 32), (8, 11), (1, 4)])
+def test_a_gpu_takes_larger_frame_chunks_bounded_by_its_memory(monkeypatch, card_gib, frames):
+    from types import SimpleNamespace
+
+    from rngcam.recon.methods.stfm.settings import chunk_frames
+
+    monkeypatch.setattr(torch.cuda, "get_device_properties",
+                        lambda _dev: SimpleNamespace(total_memory=int(card_gib * 2**30)))
+    assert chunk_frames(STFMSettings(), 228, 342, "cuda") == frames  # the paper grid
+    assert chunk_frames(STFMSettings(), 228, 342, "cpu") == 4
+    assert chunk_frames(STFMSettings(frame_chunk=3), 228, 342, "cuda:0") == 3  # the setting wins
+    assert chunk_frames(STFMSettings(), 64, 64, "cpu") == 16

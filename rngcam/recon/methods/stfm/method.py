@@ -72,7 +72,7 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         p.check_finite("stfm")
         self.C, self.K, self.H, self.W = p.shape
         self.resolved, preset = resolve(settings, self.H, self.W, self.K)
-        self.frame_chunk = chunk_frames(settings, self.H, self.W)
+        self.frame_chunk = chunk_frames(settings, self.H, self.W, str(self.device))
         self.parts: Components = choose_components(
             problem, auto=settings.components == "auto", no_static=settings.no_static,
             no_motion_reg=settings.no_motion_reg, no_rs=settings.no_rs, no_gs=settings.no_gs, tau=self.resolved.tau)

@@ -22,6 +22,11 @@ MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow 
 # with one (bench/convergence.md); large grids keep 4 frames.
 CHUNK_POINTS = 65_536
 MIN_FRAME_CHUNK = 4
+# On a GPU larger graphs pay: at the paper grid 32 frames a graph (2.5 M points) ran 2.05x the steps of 4
+# in the same time on an H100, 128 frames no more (bench/large_grids.md, "The third GPU session"). A
+# graph saves about 1.2 kB a point (tests/test_memory.py), so 2.9 GiB: never more than an eighth of the card.
+GPU_CHUNK_POINTS = 2_500_000
+GRAPH_BYTES_PER_POINT = 1_200
 # What learn_geometry learns of the GS-to-RS transform. "shift" by default: rotation and scale
 # learned alongside drifted where the truth had none (sineball 64 px: scale 1.024, 0.14 deg;
 # bench/realistic.md), as a scale trades against the PSF's magnification.
@@ -276,9 +281,18 @@ _FROM_PRESET = ("beta", "tau", "lr", "lr_half_life_steps", "init", "dynamic_time
                 "motion_model", "matte_l1")
 
 
-def chunk_frames(settings: STFMSettings, h: int, w: int) -> int:
-    """Frames per autograd graph: the setting, else as many as hold CHUNK_POINTS pixels (at least 4)."""
-    return settings.frame_chunk or max(MIN_FRAME_CHUNK, CHUNK_POINTS // max(1, h * w))
+def chunk_frames(settings: STFMSettings, h: int, w: int, device: str | None = None) -> int:
+    """Frames per autograd graph: the setting, else as many as hold CHUNK_POINTS pixels (at least 4);
+    on a CUDA `device`, GPU_CHUNK_POINTS, or what an eighth of its memory holds where that is less."""
+    if settings.frame_chunk:
+        return settings.frame_chunk
+    points = CHUNK_POINTS
+    if device is not None and str(device).startswith("cuda"):
+        import torch
+
+        card = torch.cuda.get_device_properties(torch.device(device)).total_memory
+        points = max(CHUNK_POINTS, min(GPU_CHUNK_POINTS, card // (8 * GRAPH_BYTES_PER_POINT)))
+    return max(MIN_FRAME_CHUNK, points // max(1, h * w))
 
 
 def resolve(settings: STFMSettings, h: int, w: int, k: int) -> tuple[_Resolved, dict]:
