@@ -153,7 +153,8 @@ def run_default(p, scene: str, max_steps: int, truth_cal: dict | None, variant: 
     edge = rs.get("psf_edge") or {}
     out.update(misfit=found["line"] if found else None, psf_scale_estimate=psf.get("estimate"),
                psf_scale_applied=psf.get("applied"), true_psf_scale=(truth_cal or {}).get("psf_scale", 1.0),
-               psf_edge={k: v for k, v in edge.items() if k != "searched"} or None)
+               psf_edge={k: v for k, v in edge.items() if k != "searched"} or None,
+               line_refit=rs.get("line_refit") or None)
     out.update(steps=result.iterations, events=result.events, notes=list(method.notes),
                preset=(rs.get("preset_choice") or {}).get("preset"),
                output_is_start=rs.get("start_floor", {}).get("output_is_start"),
@@ -257,12 +258,15 @@ def _misfit_cell(r: dict) -> str:
     line = r.get("misfit")
     if "misfit" not in r:
         return "-"
+    refit = r.get("line_refit") or {}
+    tried = refit.get("refits") or []
+    again = (f"; second fit at x{tried[0]['factor']:.4f}, fit {refit['kept'] + 1} of 2 kept" if tried else "")
     if not line:
-        return "ok"
+        return "ok" + again
     what, _, rest = line.removeprefix("misfit: ").partition(": ")
     ratio = re.search(r" is ([0-9.]+x) the noise", rest)
     factor = re.search(r"line time at (x[0-9.]+)", rest)
-    return f"{what} ({(ratio or factor).group(1)})" if (ratio or factor) else what
+    return (f"{what} ({(ratio or factor).group(1)})" if (ratio or factor) else what) + again
 
 
 def report_line_time(results: dict, size: int = 64) -> str:

@@ -205,7 +205,7 @@ def test_a_run_resumed_in_a_later_fit_makes_that_fit_again(problems, tmp_path):
     assert again.report["kept"] == 1
     from rngcam.errors import RngcamError
 
-    for bad in ({"edge_psfs": {1: state["edge_psfs"][1][:, :4]}}, {"edge_current": 7}, {"edge_psfs": {}}):
+    for bad in ({"edge_made": {1: state["edge_made"][1][:, :4]}}, {"edge_current": 7}, {"edge_made": {}}):
         with pytest.raises(RngcamError, match="PSF-edge stage is not as rngcam writes it"):
             _refit(wrong, 0.03, (0.0105,))[0].load_state_dict({**state, **bad})
 

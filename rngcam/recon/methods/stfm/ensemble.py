@@ -269,8 +269,37 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
 
         method = StartFloor(method, problem)
     if initial_video is None:
+        method = _with_line_refit(method, handed, problem, settings, device, clock, stage)
         method = _with_edge_refit(method, handed, problem, settings, device, clock, stage)
     return method
+
+
+def _with_line_refit(method, handed, problem, settings: STFMSettings, device, clock, stage):
+    """`method` wrapped in a LineRefit where the fit learns the line time (`learn_line_time` on, or
+    auto with the prior preset): a second fit at a factor the first learned far off
+    (rngcam.recon.methods.stfm.line_refit)."""
+    from rngcam.recon.methods.stfm.line_refit import LineRefit
+
+    learns = settings.learn_line_time == "on" or (settings.learn_line_time == "auto" and settings.preset == "prior")
+    if (not settings.line_refit or not learns or problem.rs_timing is None or problem.b_rs is None
+            or problem.b_gs is None or ablation.removed(settings)):
+        return method
+
+    def second(factor: float, report: dict):
+        timing = handed.rs_timing
+        stretched = replace(handed, rs_weights=handed.rs_weights_at(factor), notes=list(handed.notes),
+                            rs_timing=replace(timing, line_time_s=timing.line_time_s * factor))
+        again, calibration = stretched, settings.selfcal_report
+        if settings.self_calibrate != "off":
+            from rngcam.recon.methods.selfcal import calibrate_problem
+
+            again, calibration = calibrate_problem(stretched, settings.self_calibrate,
+                                                   settings.self_calibrate_psf_scale)
+            calibration = dict(calibration or {}, line_refit=report, through=f"the RS line time at x{factor:.4f}")
+        return make_stfm(again, replace(settings, selfcal_report=calibration, line_refit=False, psf_edge=False),
+                         device, clock=clock, stage=stage)
+
+    return LineRefit(method, problem, second)
 
 
 def _with_edge_refit(method, handed, problem, settings: STFMSettings, device, clock, stage):

@@ -1,0 +1,127 @@
+"""The line-time refit: a second whole fit started at the line time the first learned far off, kept
+where it explains the RS image better; said against the recorded line time; bounded; resumable."""
+
+from dataclasses import replace
+
+import pytest
+import torch
+from test_psf_edge import _Fit as _EdgeFit
+from test_stfm_line_time import _moving_capture
+
+from rngcam.errors import RngcamError
+from rngcam.recon.methods.stfm import STFMSettings, make_stfm
+from rngcam.recon.methods.stfm.line_refit import LineRefit
+
+RECORDED = 1e-4
+
+
+class _Fit(_EdgeFit):
+    """The PSF-edge tests' stand-in for a whole fit (stops after one step at RS residual `rs`), with a
+    learned line-time factor `factor`."""
+
+    def __init__(self, rs, factor):
+        super().__init__(rs, None)
+        self.factor, self.notes = factor, [f"RS line time learned with the fields: x{factor}"]
+
+    def line_factor(self):
+        return self.factor
+
+    def line_time_report(self):
+        return {"factor": self.factor, "recorded_s": RECORDED, "learned_s": RECORDED * self.factor}
+
+    def resolved_settings(self):
+        return {"line_time": self.line_time_report()}
+
+
+def _refit(first_factor, first_rs, second_rs, second_factor=0.999):
+    made = []
+
+    def another(factor, report):
+        made.append((factor, report))
+        # the second fit learns on a timing stretched by `factor`: its recorded line time is that
+        fit = _Fit(second_rs, second_factor)
+        fit.line_time_report = lambda: {"factor": second_factor, "recorded_s": RECORDED * factor,
+                                        "learned_s": RECORDED * factor * second_factor}
+        return fit
+
+    return LineRefit(_Fit(first_rs, first_factor), None, another), made
+
+
+def _run(method, limit=10):
+    for _ in range(limit):
+        method.step()
+        if method.converged():
+            return
+
+
+@pytest.mark.parametrize("second_rs, kept", [(0.013, 1), (0.015, 0)])
+def test_a_line_time_learned_far_off_starts_a_second_fit_there(second_rs, kept):
+    method, made = _refit(1.014, 0.0143, second_rs)
+    method.step()
+    assert method.converged() is None and [m[0] for m in made] == [1.014]
+    _run(method)
+    assert method.report["kept"] == kept and len(made) == 1 and method.report["why"] == "one fit at the learned line time made"
+    assert method.residuals()["rs"] == min(second_rs, 0.0143)
+    line_time = method.resolved_settings()["line_time"]
+    if kept:  # said against the recorded line time: the start times what the second fit learned on top
+        assert line_time["factor"] == pytest.approx(1.014 * 0.999)
+        assert line_time["recorded_s"] == pytest.approx(RECORDED)
+        assert line_time["learned_s"] == pytest.approx(RECORDED * 1.014 * 0.999)
+        assert any(f"x{1.014 * 0.999:.4f} the recorded" in n for n in method.notes)
+        assert not any(n.startswith("RS line time learned with the fields: x0.999") for n in method.notes)
+    else:
+        assert line_time["factor"] == pytest.approx(1.014)
+    assert method.notes[-1].startswith("line time: a second fit started at the first fit's learned x1.0140")
+    assert f"the {['first', 'second'][kept]} fit kept" in method.notes[-1]
+    assert method.resolved_settings()["line_refit"]["kept"] == kept
+
+
+@pytest.mark.parametrize("factor, why", [(1.003, "within 0.5 %"), (None, "did not learn the line time")])
+def test_no_second_fit_where_the_line_time_is_near_the_recorded_one_or_not_learned(factor, why):
+    method, made = _refit(factor, 0.0143, 0.001)
+    _run(method)
+    assert made == [] and method.report["kept"] == 0 and why in method.report["why"]
+    assert not any(n.startswith("line time: a second fit") for n in method.notes)
+
+
+def test_a_run_resumed_in_the_second_fit_makes_it_again_and_a_tampered_factor_is_refused(tmp_path):
+    from rngcam.recon import checkpoint
+
+    method, made = _refit(1.014, 0.0143, 0.013)
+    method.step()
+    method.converged()
+    checkpoint.save(tmp_path / "c.pt", {"method": method.state_dict(), "iteration": 1, "solve_s": 1.0, "wall_s": 1.0,
+                                        "log": [], "events": [], "rng": torch.get_rng_state(), "identity": None})
+    state = checkpoint.load(tmp_path / "c.pt")["method"]
+    again, made_again = _refit(1.014, 0.0143, 0.013)
+    again.load_state_dict(state)
+    assert [m[0] for m in made_again] == [1.014]
+    _run(again)
+    assert again.report["kept"] == 1
+    for bad in ({"line_made": {1: 5.0}}, {"line_made": {1: float("nan")}}, {"line_current": 3}):
+        with pytest.raises(RngcamError, match="line-time refit stage is not as rngcam writes it"):
+            _refit(1.014, 0.0143, 0.013)[0].load_state_dict({**state, **bad})
+
+
+@pytest.fixture(scope="module")
+def slow_readout():
+    return _moving_capture(0.97).to(torch.float32)
+
+
+def test_make_stfm_wraps_where_the_line_time_is_learned_and_the_second_fit_runs_on_the_stretched_timing(slow_readout):
+    def built(**kw):
+        return make_stfm(slow_readout, STFMSettings(**{"preset": "fast", "dynamic_base": "none", "seed": 0,
+                                                       "learn_line_time": "on", **kw}))
+
+    method = built()
+    assert isinstance(method, LineRefit)
+    assert not isinstance(built(learn_line_time="off"), LineRefit)
+    assert not isinstance(built(line_refit=False), LineRefit)
+    assert not isinstance(built(learn_line_time="auto"), LineRefit)  # auto learns it with prior only
+    assert not isinstance(make_stfm(replace(slow_readout, rs_timing=None),
+                                    STFMSettings(preset="fast", dynamic_base="none", learn_line_time="on")), LineRefit)
+    second = method._make_refit(0.98, dict(method.report))
+    assert not isinstance(second, LineRefit)  # never a third
+    p = second.problem
+    assert p.rs_timing.line_time_s == pytest.approx(0.98 * slow_readout.rs_timing.line_time_s)
+    torch.testing.assert_close(p.rs_weights, slow_readout.rs_weights_at(0.98).to(p.rs_weights))
