@@ -150,11 +150,11 @@ def run_default(p, scene: str, max_steps: int, truth_cal: dict | None, variant: 
     found = verdict(method.residuals().get("rs"), rs.get("rs_noise_level"), cal, result.ended_by, result.status,
                     learned=learned_by_fit(rs), line_factor=line_factor)
     psf = (cal.get("scales") or {}).get("psf") or {}
-    edge = rs.get("psf_edge") or {}
+    edge = rs.get("edge_refits") or {}
     out.update(misfit=found["line"] if found else None, psf_scale_estimate=psf.get("estimate"),
                psf_scale_applied=psf.get("applied"), true_psf_scale=(truth_cal or {}).get("psf_scale", 1.0),
                psf_edge={k: v for k, v in edge.items() if k != "searched"} or None,
-               line_refit=rs.get("line_refit") or None)
+               line_refit=rs.get("line_refits") or None)
     out.update(steps=result.iterations, events=result.events, notes=list(method.notes),
                preset=(rs.get("preset_choice") or {}).get("preset"),
                output_is_start=rs.get("start_floor", {}).get("output_is_start"),

@@ -73,7 +73,8 @@ def test_a_line_time_learned_far_off_starts_a_second_fit_there(second_rs, kept):
         assert line_time["factor"] == pytest.approx(1.014)
     assert method.notes[-1].startswith("line time: a second fit started at the first fit's learned x1.0140")
     assert f"the {['first', 'second'][kept]} fit kept" in method.notes[-1]
-    assert method.resolved_settings()["line_refit"]["kept"] == kept
+    assert method.resolved_settings()["line_refits"]["kept"] == kept
+    assert method.resolved_settings()["line_refit"] is True
 
 
 @pytest.mark.parametrize("factor, why", [(1.003, "within 0.5 %"), (None, "did not learn the line time")])
@@ -125,3 +126,13 @@ def test_make_stfm_wraps_where_the_line_time_is_learned_and_the_second_fit_runs_
     p = second.problem
     assert p.rs_timing.line_time_s == pytest.approx(0.98 * slow_readout.rs_timing.line_time_s)
     torch.testing.assert_close(p.rs_weights, slow_readout.rs_weights_at(0.98).to(p.rs_weights))
+
+
+def test_the_stages_settings_and_their_reports_land_apart_in_metrics():
+    from rngcam.recon.result import split_results
+
+    method, _ = _refit(1.014, 0.0143, 0.013)
+    _run(method)
+    settings, results = split_results({**method.resolved_settings(), "psf_edge": True})
+    assert settings["line_refit"] is True and settings["psf_edge"] is True
+    assert results["line_refits"]["kept"] == 1 and "line_refit" not in results and "psf_edge" not in results

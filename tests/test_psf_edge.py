@@ -162,7 +162,8 @@ def test_a_fit_left_unexplained_is_fitted_again_through_the_edge(problems, later
     assert line.startswith("PSF edge (") and ["the first", "the second", "the third"][kept] + " fit kept" in line
     assert method.stops_itself and method.supports_holdout  # asked of it after every step, whichever fit is left
     out = method.resolved_settings()
-    assert out["psf_edge"]["kept"] == kept and out["self_calibration"]["psf_edge"]["kept"] == kept
+    assert out["edge_refits"]["kept"] == kept and out["self_calibration"]["psf_edge"]["kept"] == kept
+    assert out["psf_edge"] is True  # the setting, as the run had it
 
 
 def test_the_refits_are_bounded(problems):
@@ -181,7 +182,7 @@ def test_a_later_fit_cut_short_is_shown_only_where_it_does_better(problems, runn
     assert method.converged() is None and len(made) == 1  # the loop ends here (a budget): no own stop
     assert method.residuals()["rs"] == shown and method.estimate() is wrong.truth
     kept = 0 if shown == 0.03 else 1
-    assert method.resolved_settings()["psf_edge"]["kept"] == kept
+    assert method.resolved_settings()["edge_refits"]["kept"] == kept
     assert "(not run to its own stop)" in method.notes[-1]
     assert f"the {['first', 'second'][kept]} fit kept" in method.notes[-1]
     assert method._fits[1].asked == 1  # the running fit's residual worked out once a step, however often asked

@@ -23,7 +23,8 @@ class LineRefit(Refits):
     """`first` and, where it learned a line-time factor off the recorded one, a fit that starts at
     that factor: `refit(factor, report)` makes it (its own factor is learned on top)."""
 
-    KEY, VALUE, STATE, STAGE_NAME = "line_refit", "factor", "line", "line-time refit"
+    SETTING, RESULT, KEY, VALUE = "line_refit", "line_refits", "line_refit", "factor"
+    STATE, STAGE_NAME = "line", "line-time refit"
 
     def __init__(self, first, problem, refit: Callable):
         super().__init__(first, problem, refit, {"factor": 1.0})

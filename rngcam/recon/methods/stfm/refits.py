@@ -19,10 +19,12 @@ from rngcam.recon.loop import MethodBase
 
 class Refits(MethodBase):
     """`first` and the fits `refit(made, report)` makes from what `_propose` returns. Subclasses set
-    KEY (the report's name in the results), VALUE (the attempt's figure shown as the kept one), STATE
-    (the checkpoint's key prefix) and STAGE_NAME, and write `_propose`, `_check_made` and `_line`."""
+    SETTING (the STFM setting that builds the stage), RESULT (the report's name in the results), KEY (its
+    name in the self-calibration report, which the misfit verdict reads), VALUE (the attempt's figure shown
+    as the kept one), STATE (the checkpoint's key prefix) and STAGE_NAME, and write `_propose`, `_check_made`
+    and `_line`."""
 
-    KEY = VALUE = STATE = STAGE_NAME = ""
+    SETTING = RESULT = KEY = VALUE = STATE = STAGE_NAME = ""
 
     def __init__(self, first, problem, refit: Callable, report: dict):
         self._problem, self._make_refit = problem, refit
@@ -201,7 +203,8 @@ class Refits(MethodBase):
     def resolved_settings(self) -> dict | None:
         out = self._output().resolved_settings()
         out = {} if out is None else dict(out)
-        out[self.KEY] = self._shown_report()
+        out[self.SETTING] = True  # a later fit was made with the stage off: the run had it on
+        out[self.RESULT] = self._shown_report()
         if isinstance(out.get("self_calibration"), dict):  # the misfit verdict reads it there
             out["self_calibration"] = dict(out["self_calibration"], **{self.KEY: self._shown_report()})
         return out
