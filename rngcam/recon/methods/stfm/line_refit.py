@@ -2,12 +2,12 @@
 
 The fit learns a factor on the RS line time with its fields (`line_time`), but from a start at the
 recorded figure it takes up only part of a large error (sineball, +2 %: x1.014), and the ball
-its early steps placed by the wrong timing stays lost in the last rows' frames. Started at the
-learned factor, a second fit places the ball by nearly the right timing from its first step and
-learns on from there (sineball +2 %: 27.8 -> 33 dB; bench/realistic.md, "The line time: a second
-fit at the learned factor"). Where the first fit learned a factor more than SUSPECT_LINE_TIME off,
-one more whole fit runs with the problem's RS timing stretched by it (calibrated again); the output
-is the fit that explains the RS image best (`refits`).
+its early steps placed by the wrong timing stays lost in the last rows' frames. At the learned
+factor, a second fit places the ball by nearly the right timing from its first step (sineball +2 %:
+27.8 -> 34 dB; bench/realistic.md, "A line time learned far off"). Where the first fit learned a
+factor more than SUSPECT_LINE_TIME off, one more whole fit runs with the problem's RS timing
+stretched by it and held there (calibrated again); the output is the fit that explains the RS image
+best (`refits`).
 """
 
 from __future__ import annotations
@@ -15,13 +15,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-from rngcam.recon.methods.stfm.line_time import MAX_LINE_CHANGE, SUSPECT_LINE_TIME, line_time_lines
+from rngcam.recon.methods.stfm.line_time import MAX_LINE_CHANGE, SUSPECT_LINE_TIME
 from rngcam.recon.methods.stfm.refits import Refits, nth
 
 
 class LineRefit(Refits):
-    """`first` and, where it learned a line-time factor off the recorded one, a fit that starts at
-    that factor: `refit(factor, report)` makes it (its own factor is learned on top)."""
+    """`first` and, where it learned a line-time factor off the recorded one, a fit at that factor:
+    `refit(factor, report)` makes it (the factor held; `problem`'s RS timing is the recorded one)."""
 
     SETTING, RESULT, KEY, VALUE = "line_refit", "line_refits", "line_refit", "factor"
     STATE, STAGE_NAME = "line", "line-time refit"
@@ -53,32 +53,38 @@ class LineRefit(Refits):
             return ""
         r = refits[0]
         ended = f", ended at {r['rs']:.4f}" if "rs" in r else " (not run to its own stop)"
-        return (f"line time: a second fit started at the first fit's learned x{r['factor']:.4f} the recorded "
+        return (f"line time: a second fit held at the first fit's learned x{r['factor']:.4f} the recorded "
                 f"line time (RS residual {r['from_rs']:.4f}){ended}; the {nth(report['kept'])} fit kept")
 
     @property
     def notes(self) -> list[str]:
-        """The output fit's notes, its learned line time said against the recorded one."""
+        """The output fit's notes, with the line time it ran at said against the recorded one."""
         base = self._output().notes
         k = self._output_index()
         if k:
-            report = self._line_time(k)
-            base = [n for n in base if not n.startswith("RS line time learned")] + line_time_lines(report, 1)
+            base = [n for n in base if not n.startswith(("RS line time learned", "RS line time not learned"))]
+            base += [held_line(self._line_time(k))]
         line = self._line(self._shown_report()) if self.report["tried"] else ""
         return list(base) + ([line] if line else [])
 
-    def _line_time(self, k: int) -> dict | None:
-        """Fit k's learned line time against the recorded one (a later fit learned it on a stretched timing)."""
-        report = self._fits[k].line_time_report() if hasattr(self._fits[k], "line_time_report") else None
-        if report is None:
-            return None
-        start = self._made.get(k, 1.0)
-        return {"factor": report["factor"] * start, "recorded_s": report["recorded_s"] / start,
-                "learned_s": report["learned_s"]}
+    def _line_time(self, k: int) -> dict:
+        """The line time later fit k ran at (held at the factor it was made with), against the recorded one."""
+        recorded, factor = self._problem.rs_timing.line_time_s, self._made[k]
+        return {"factor": factor, "recorded_s": recorded, "learned_s": recorded * factor, "held": True}
 
     def resolved_settings(self) -> dict | None:
         out = super().resolved_settings()
         k = self._output_index()
-        if k and out.get("line_time") is not None:
+        if k:
             out["line_time"] = self._line_time(k)
         return out
+
+
+def held_line(report: dict) -> str:
+    """The note on the line time a later fit held."""
+    line = (f"RS line time held at {report['learned_s'] * 1e6:.4f} us per sensor row (x{report['factor']:.4f} the "
+            f"recorded {report['recorded_s'] * 1e6:.4f} us), as the first fit learned it")
+    if abs(report["factor"] - 1) > SUSPECT_LINE_TIME:
+        line += ("; the recorded line time looks off (the fit corrects part of a large error): measure it with "
+                 "`rngcam calibrate linetime --flicker`")
+    return line

@@ -106,8 +106,8 @@ class STFMSettings:
               "fit again through that PSF and keep the fit that explains the RS image better")
     line_refit: bool = setting(
         True, "where the fit learns the RS line time (learn_line_time) and ends with it more than 0.5 % off the "
-              "recorded one: fit again from the start with the line time at that factor, and keep the fit that "
-              "explains the RS image better")
+              "recorded one: fit again from the start with the line time held at that factor, and keep the fit "
+              "that explains the RS image better")
     selfcal_report: dict | None = field(default=None, metadata={"internal": True})  # what self-calibration refined
     learn_geometry: str = setting(
         "off", "learn the GS-to-RS transform with the fields: its shift, or shift, rotation and scale "
