@@ -105,7 +105,7 @@ class STFMSettings:
               "ends above 1.15x its noise level: fit the edge the PSF lost off the sensor to the fit's video, "
               "fit again through that PSF and keep the fit that explains the RS image better")
     line_refit: bool = setting(
-        True, "where the fit learns the RS line time (learn_line_time) and ends with it more than 0.5 % off the "
+        True, "where the fit learns the RS line time (learn_line_time) and ends with it more than 0.7 % off the "
               "recorded one: fit again from the start with the line time held at that factor, and keep the fit "
               "that explains the RS image better")
     selfcal_report: dict | None = field(default=None, metadata={"internal": True})  # what self-calibration refined
