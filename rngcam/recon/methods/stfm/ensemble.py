@@ -301,7 +301,7 @@ def _with_line_refit(method, handed, problem, settings: STFMSettings, device, cl
         return make_stfm(again, replace(settings, selfcal_report=calibration, line_refit=False, psf_edge=False,
                                         learn_line_time="off"), device, clock=clock, stage=stage)
 
-    return LineRefit(method, problem, second)
+    return LineRefit(method, problem, second, {"psf_edge": settings.psf_edge})
 
 
 def _with_edge_refit(method, handed, problem, settings: STFMSettings, device, clock, stage):

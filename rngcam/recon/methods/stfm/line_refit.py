@@ -31,8 +31,8 @@ class LineRefit(Refits):
     SETTING, RESULT, KEY, VALUE = "line_refit", "line_refits", "line_refit", "factor"
     STATE, STAGE_NAME = "line", "line-time refit"
 
-    def __init__(self, first, problem, refit: Callable):
-        super().__init__(first, problem, refit, {"factor": 1.0})
+    def __init__(self, first, problem, refit: Callable, settings: dict | None = None):
+        super().__init__(first, problem, refit, {"factor": 1.0}, settings)
 
     def _propose(self, best, res: float) -> tuple[float, dict] | None:
         if self.report["refits"]:

@@ -19,15 +19,17 @@ from rngcam.recon.loop import MethodBase
 
 class Refits(MethodBase):
     """`first` and the fits `refit(made, report)` makes from what `_propose` returns. Subclasses set
-    SETTING (the STFM setting that builds the stage), RESULT (the report's name in the results), KEY (its
+    SETTING (the STFM setting that builds the stage; `settings`: others a later fit turns off, as the run
+    had them), RESULT (the report's name in the results), KEY (its
     name in the self-calibration report, which the misfit verdict reads), VALUE (the attempt's figure shown
     as the kept one), STATE (the checkpoint's key prefix) and STAGE_NAME, and write `_propose`, `_check_made`
     and `_line`."""
 
     SETTING = RESULT = KEY = VALUE = STATE = STAGE_NAME = ""
 
-    def __init__(self, first, problem, refit: Callable, report: dict):
+    def __init__(self, first, problem, refit: Callable, report: dict, settings: dict | None = None):
         self._problem, self._make_refit = problem, refit
+        self._settings = {self.SETTING: True, **(settings or {})}  # the run's: later fits turn stages off
         self._flags = (first.supports_holdout, first.stops_itself)  # kept: the first fit may be let go
         self._fits: dict[int, object] = {0: first}  # the current fit and the best so far, by index
         self._made: dict[int, object] = {}  # what each later fit was made from
@@ -203,7 +205,7 @@ class Refits(MethodBase):
     def resolved_settings(self) -> dict | None:
         out = self._output().resolved_settings()
         out = {} if out is None else dict(out)
-        out[self.SETTING] = True  # a later fit was made with the stage off: the run had it on
+        out.update(self._settings)  # a later fit was made with the stages off: the run had them as given
         out[self.RESULT] = self._shown_report()
         if isinstance(out.get("self_calibration"), dict):  # the misfit verdict reads it there
             out["self_calibration"] = dict(out["self_calibration"], **{self.KEY: self._shown_report()})
