@@ -151,7 +151,9 @@ def test_capture_through_aravis_writes_a_bundle_with_the_cameras_frame_ids_and_t
     # the cameras' own frame counters and GVSP timestamps, one frame per trigger
     assert np.all(np.diff(b.gs.frame_ids) == 1)
     steps = np.diff(b.gs.timestamps_s)
-    assert np.all(np.abs(steps - 19e-3) < 6e-3), steps  # 19 ms triggers; the fake's ~5 ms frame quantum
+    # 38 ms triggers: one frame each (a lost or merged trigger is a 76 or ~0 ms step); the fake's ~5 ms frame
+    # quantum and its threads' jitter on a loaded machine (7 ms seen with three busy processes on two cores)
+    assert np.all(np.abs(steps - 38e-3) < 12e-3), steps
     lat = b.gs.features["TriggerToFrameLatency_s"] + b.rs.features["TriggerToFrameLatency_s"]
     assert len(lat) == 4 and all(0 < x < 0.05 for x in lat), lat
 
