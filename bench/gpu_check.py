@@ -31,9 +31,9 @@ FULL = [
     # at 8x the final truth evaluation (SSIM of 429 M elements) runs past the budget: give it room
     ("smoke 456x684 budget 150", "smoke", "456x684", {"time_budget_s": 150}, 300),
 ]
-# Rows per step on the GPU, where a step's cost hardly grows with its rows (bench/large_grids.md): the paper
-# grid with a 70 s budget at the default's 8 rows a step and at more, then the 64 px default (issue 40's "paper
-# grid within 0.5 dB in <= 60 s" on a GPU).
+# Rows per step on the GPU, where the second session guessed a step's cost hardly grows with its rows (at the
+# paper grid it does: bench/large_grids.md, "The third GPU session"): the paper grid with a 70 s budget at the
+# default's 8 rows a step and at more, then the 64 px default.
 ROWS_SWEEP = [
     *[(f"smoke 228x342 rows {n} budget 70", "smoke", "228x342", {"time_budget_s": 70, "rows_per_step": n}, 130)
       for n in (8, 32, 96)],

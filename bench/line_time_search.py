@@ -18,6 +18,7 @@ import torch
 
 from rngcam.formats.bundle import read_bundle
 from rngcam.physics.operators import RollingShutter
+from rngcam.recon.metrics import relative_residual
 from rngcam.recon.problem import build_problem
 
 
@@ -30,7 +31,7 @@ def residuals(problem, video: torch.Tensor, factors: np.ndarray) -> list[float]:
                             video.shape[0])
         pred = op.A(video)
         gains = (pred * b).sum((1, 2), keepdim=True) / (pred * pred).sum((1, 2), keepdim=True)
-        out.append(float(torch.linalg.norm(gains * pred - b) / torch.linalg.norm(b)))
+        out.append(relative_residual(gains * pred, b))
     return out
 
 

@@ -40,7 +40,7 @@ def _refit(first_factor, first_rs, second_rs):
     def another(factor, report):
         made.append((factor, report))
         fit = _Fit(second_rs, None)  # held at `factor`: it learns none
-        fit.notes = ["RS line time not learned", "a note"]
+        fit.notes = ["a note"]  # held: learn_line_time off, so no line-time note of its own
         fit.line_time_report = lambda: None
         fit.resolved_settings = lambda: {"psf_edge": False, "line_refit": False}  # as the later fit was made
         return fit

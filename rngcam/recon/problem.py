@@ -105,6 +105,11 @@ class Problem:
         w = self.rs_timing.stretched_weights(self.grid, rows, torch.tensor(line_factor, dtype=torch.float64))
         return w.to(self.rs_weights)
 
+    def at_line_time(self, line_factor: float) -> Problem:
+        """The problem with the recorded line time times `line_factor`: its timing and RS weights."""
+        timing = replace(self.rs_timing, line_time_s=self.rs_timing.line_time_s * line_factor)
+        return replace(self, rs_weights=self.rs_weights_at(line_factor), rs_timing=timing)
+
     def gs_op(self) -> GlobalShutter:
         c, _, h, w = self.shape
         return GlobalShutter(self.gs_weights, c, (h, w))

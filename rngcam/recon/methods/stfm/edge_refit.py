@@ -41,7 +41,7 @@ class EdgeRefit(Refits):
     """`first` (a whole STFM run) and, where the best fit so far ends unexplained, another through
     the PSF with its edge fitted to that fit's video: `refit(psf, edge_report)` makes such a run."""
 
-    SETTING, RESULT, KEY, VALUE = "psf_edge", "edge_refits", "psf_edge", "scale"
+    SETTING, RESULT, VALUE = "psf_edge", "edge_refits", "scale"
     STATE, STAGE_NAME = "edge", "PSF-edge"
 
     def __init__(self, first, problem, scale: float, refit: Callable):

@@ -274,32 +274,35 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
     return method
 
 
-def _with_line_refit(method, handed, problem, settings: STFMSettings, device, clock, stage):
-    """`method` wrapped in a LineRefit where the fit learns the line time (`learn_line_time` on, or
-    auto with the prior preset): a second fit at a factor the first learned far off
-    (rngcam.recon.methods.stfm.line_refit)."""
-    from rngcam.recon.methods.stfm.line_refit import LineRefit
+def _another_fit(changed, settings: STFMSettings, device, clock, stage, found: dict, psf_scale: bool, **off):
+    """A later fit of a refit stage: a whole STFM run on `changed` (the problem as handed, changed),
+    calibrated again as the first was (what the stage found kept in its report), the settings `off` given."""
+    changed = replace(changed, notes=list(changed.notes))
+    calibration = settings.selfcal_report
+    if settings.self_calibrate != "off":
+        from rngcam.recon.methods.selfcal import calibrate_problem
 
-    learns = settings.learn_line_time == "on" or (settings.learn_line_time == "auto" and settings.preset == "prior")
-    if (not settings.line_refit or not learns or problem.rs_timing is None or problem.b_rs is None
-            or problem.b_gs is None or ablation.removed(settings)):
+        changed, calibration = calibrate_problem(changed, settings.self_calibrate, psf_scale)
+        calibration = dict(calibration or {}, **found)
+    return make_stfm(changed, replace(settings, selfcal_report=calibration, **off), device, clock=clock, stage=stage)
+
+
+def _with_line_refit(method, handed, problem, settings: STFMSettings, device, clock, stage):
+    """`method` wrapped in a LineRefit where the fit learns the line time: a second fit at a factor
+    the first learned far off (rngcam.recon.methods.stfm.line_refit)."""
+    from rngcam.recon.methods.stfm.line_refit import LineRefit
+    from rngcam.recon.methods.stfm.line_time import learns_line_time
+
+    if (not settings.line_refit or not learns_line_time(settings) or problem.rs_timing is None
+            or problem.b_rs is None or problem.b_gs is None or ablation.removed(settings)):
         return method
 
     def second(factor: float, report: dict):
-        timing = handed.rs_timing
-        stretched = replace(handed, rs_weights=handed.rs_weights_at(factor), notes=list(handed.notes),
-                            rs_timing=replace(timing, line_time_s=timing.line_time_s * factor))
-        again, calibration = stretched, settings.selfcal_report
-        if settings.self_calibrate != "off":
-            from rngcam.recon.methods.selfcal import calibrate_problem
-
-            again, calibration = calibrate_problem(stretched, settings.self_calibrate,
-                                                   settings.self_calibrate_psf_scale)
-            calibration = dict(calibration or {}, line_refit=report, through=f"the RS line time at x{factor:.4f}")
         # held there: learned on, it drifts back towards the first fit's bias (sineball +2 %: 32.98 dB
         # against 34.03 held; bench/realistic.md)
-        return make_stfm(again, replace(settings, selfcal_report=calibration, line_refit=False, psf_edge=False,
-                                        learn_line_time="off"), device, clock=clock, stage=stage)
+        return _another_fit(handed.at_line_time(factor), settings, device, clock, stage,
+                            {"line_refit": report, "through": f"the RS line time at x{factor:.4f}"},
+                            settings.self_calibrate_psf_scale, line_refit=False, psf_edge=False, learn_line_time="off")
 
     return LineRefit(method, problem, second, {"psf_edge": settings.psf_edge})
 
@@ -314,16 +317,11 @@ def _with_edge_refit(method, handed, problem, settings: STFMSettings, device, cl
         return method
 
     def second(psf: Tensor, report: dict):
-        from rngcam.recon.methods.selfcal import calibrate_problem
-
-        again, calibration = calibrate_problem(replace(handed, psf=psf.to(handed.psf), notes=list(handed.notes)),
-                                               settings.self_calibrate, psf_scale=False)
-        scale = ((report.get("refits") or [report])[-1]).get("scale")
-        through = "the PSF with its lost edge fitted" + ("" if scale is None else f" (shrunk x{scale:.4f})")
-        calibration = dict(calibration or {}, scales=settings.selfcal_report.get("scales"), psf_edge=report,
-                           through=through)
-        return make_stfm(again, replace(settings, selfcal_report=calibration, psf_edge=False), device,
-                         clock=clock, stage=stage)
+        shrink = ((report.get("refits") or [report])[-1]).get("scale")
+        through = "the PSF with its lost edge fitted" + ("" if shrink is None else f" (shrunk x{shrink:.4f})")
+        found = {"scales": settings.selfcal_report.get("scales"), "psf_edge": report, "through": through}
+        return _another_fit(replace(handed, psf=psf.to(handed.psf)), settings, device, clock, stage, found, False,
+                            psf_edge=False)
 
     return EdgeRefit(method, problem, scale, second)
 

@@ -28,7 +28,7 @@ class LineRefit(Refits):
     """`first` and, where it learned a line-time factor off the recorded one, a fit at that factor:
     `refit(factor, report)` makes it (the factor held; `problem`'s RS timing is the recorded one)."""
 
-    SETTING, RESULT, KEY, VALUE = "line_refit", "line_refits", "line_refit", "factor"
+    SETTING, RESULT, VALUE = "line_refit", "line_refits", "factor"
     STATE, STAGE_NAME = "line", "line-time refit"
 
     def __init__(self, first, problem, refit: Callable, settings: dict | None = None):
@@ -63,14 +63,11 @@ class LineRefit(Refits):
 
     @property
     def notes(self) -> list[str]:
-        """The output fit's notes, with the line time it ran at said against the recorded one."""
-        base = self._output().notes
+        """The output fit's notes; a later one's (which learns no line time) with the line time it held."""
         k = self._output_index()
-        if k:
-            base = [n for n in base if not n.startswith(("RS line time learned", "RS line time not learned"))]
-            base += [held_line(self._line_time(k))]
+        notes = list(self._output().notes) + ([held_line(self._line_time(k))] if k else [])
         line = self._line(self._shown_report()) if self.report["tried"] else ""
-        return list(base) + ([line] if line else [])
+        return notes + ([line] if line else [])
 
     def _line_time(self, k: int) -> dict:
         """The line time later fit k ran at (held at the factor it was made with), against the recorded one."""

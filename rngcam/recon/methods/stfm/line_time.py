@@ -23,6 +23,13 @@ SUSPECT_LINE_TIME = 0.005
 MAX_LINE_CHANGE = 0.2
 
 
+def learns_line_time(settings) -> bool:
+    """`learn_line_time` resolved against the preset: on, or auto with the prior preset (one moving
+    layer, whose motion times the rows)."""
+    mode = settings.learn_line_time
+    return mode == "on" or (mode == "auto" and settings.preset == "prior")
+
+
 class LineTime:
     """Part of STFM: the line-time factor (`learn_line_time`)."""
 
@@ -41,14 +48,13 @@ class LineTime:
     def _line_time_wanted(self) -> bool:
         """`learn_line_time` resolved (auto: with the prior preset, one moving layer) where the RS
         timing is known; auto leaving it off says why in the notes."""
-        mode = self.settings.learn_line_time
-        if mode == "auto" and self.settings.preset != "prior":
+        if self.settings.learn_line_time == "auto" and not learns_line_time(self.settings):
             self._notes.append(f"RS line time not learned (learn_line_time auto, preset {self.settings.preset}): "
                                "without one moving layer the motion does not time the rows (smoke: 0.7 % drift "
                                "on exact timing)")
             return False
         # a readout shorter than a frame: no factor moves a row's window by a measurable share
-        return mode != "off" and self.rs_timing is not None and self.readout_frames >= 1
+        return learns_line_time(self.settings) and self.rs_timing is not None and self.readout_frames >= 1
 
     def _line_factor_tensor(self) -> Tensor:
         change = (self.line_shift.double() / self.readout_frames).clamp(-MAX_LINE_CHANGE, MAX_LINE_CHANGE)

@@ -19,13 +19,13 @@ from rngcam.recon.loop import MethodBase
 
 class Refits(MethodBase):
     """`first` and the fits `refit(made, report)` makes from what `_propose` returns. Subclasses set
-    SETTING (the STFM setting that builds the stage; `settings`: others a later fit turns off, as the run
-    had them), RESULT (the report's name in the results), KEY (its
-    name in the self-calibration report, which the misfit verdict reads), VALUE (the attempt's figure shown
-    as the kept one), STATE (the checkpoint's key prefix) and STAGE_NAME, and write `_propose`, `_check_made`
-    and `_line`."""
+    SETTING (the STFM setting that builds the stage, and the report's name in the self-calibration
+    report, which the misfit verdict reads; `settings`: others a later fit turns off, as the run had
+    them), RESULT (the report's name in the results), VALUE (the attempt's figure shown as the kept
+    one), STATE (the checkpoint's key prefix) and STAGE_NAME, and write `_propose`, `_check_made` and
+    `_line`."""
 
-    SETTING = RESULT = KEY = VALUE = STATE = STAGE_NAME = ""
+    SETTING = RESULT = VALUE = STATE = STAGE_NAME = ""
 
     def __init__(self, first, problem, refit: Callable, report: dict, settings: dict | None = None):
         self._problem, self._make_refit = problem, refit
@@ -208,7 +208,7 @@ class Refits(MethodBase):
         out.update(self._settings)  # a later fit was made with the stages off: the run had them as given
         out[self.RESULT] = self._shown_report()
         if isinstance(out.get("self_calibration"), dict):  # the misfit verdict reads it there
-            out["self_calibration"] = dict(out["self_calibration"], **{self.KEY: self._shown_report()})
+            out["self_calibration"] = dict(out["self_calibration"], **{self.SETTING: self._shown_report()})
         return out
 
 
