@@ -101,7 +101,6 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         self.steps = 0
         self._cache: tuple[int, Tensor] | None = None
         self._rs_history: dict[int, float] = {}  # step -> relative RS residual at the stop checks
-        self._annealed_at: int | None = None  # the step where the stall test lowered the lr (anneal_lr)
         self.rs_noise_level = (relative_noise_level(self.problem.b_rs.index_select(1, self.rs_rows_fit.to(self.device)))
                                if self.parts.rs else None)
 
@@ -150,8 +149,7 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
     def _lr_now(self) -> float:
         half = self.resolved.lr_half_life_steps
         decay = 1.0 if not math.isfinite(half) else max(0.5 ** (self.steps / half), 0.05)
-        anneal = 1.0 if self._annealed_at is None else self.resolved.anneal_lr
-        return self.base_lr * decay * anneal
+        return self.base_lr * decay
 
     def step(self) -> float:
         self._cache = None  # the last evaluated video goes before this step's graph is built
@@ -292,7 +290,6 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
                 "gs_pose": self.gs_pose.detach().clone(), "line_shift": self.line_shift.detach().clone(),
                 "optimiser": self.optimiser.state_dict(), "steps": self.steps, "base_lr": self.base_lr,
                 "generator": self.generator.get_state(), "rs_history": dict(self._rs_history),
-                "annealed_at": self._annealed_at,
                 "ema": None if self._ema is None else [a.clone() for a in self._ema]}
 
     def load_state_dict(self, state: dict) -> None:
@@ -308,7 +305,6 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         self.base_lr = float(state["base_lr"])
         self.generator.set_state(state["generator"])
         self._rs_history = dict(state.get("rs_history", {}))
-        self._annealed_at = state.get("annealed_at")
         if self._ema is not None and state.get("ema") is not None:
             with torch.no_grad():
                 for a, saved in zip(self._ema, state["ema"], strict=True):

@@ -12,15 +12,10 @@ PRESETS = ("paper", "fast", "prior", "auto")  # auto: prior or fast per scene (r
 INIT_STEPS = 100
 NOISE_CHECK_STEPS = 20  # steps between discrepancy-principle checks (one full RS forward each)
 STALL_PASSES = 15  # the stall test compares the RS residual with its value this many passes over the rows ago (fast)
-# The prior preset's stop: the first stall (0.1 % over 30 passes) lowers the step x0.25 and the fit
-# stops at the next (over 15). A stop at the first stall over 30 passes caught some fits in a lull
-# (sineball 1 px shift: 34.85 dB at 620 steps; bench/realistic.md); over 45 passes, with a slower lr
-# decay, the sineball fits took 1,100-1,240 steps for 0.46 dB less on average than now in 900-1,200
-# (bench/convergence.md, "The prior preset: anneal at the first stall").
-PRIOR_STALL_PASSES = 30
-PRIOR_ANNEAL_LR = 0.25
-PRIOR_ANNEAL_PASSES = 15
-PRIOR_LR_HALF_LIFE = 600.0
+# The prior preset's window: over 30 passes a lull stopped some fits at 620-700 steps, 2.3 dB under
+# the same capture's other seeds (sineball 1 px shift: 34.85 dB; 37.3 / 37.8 with seeds 1 / 2;
+# 37.09 over 45 passes, at 1,220 steps; bench/realistic.md)
+PRIOR_STALL_PASSES = 45
 MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow is skipped
 # A step holds one chunk of frames' autograd graph at a time. Small grids take more frames per chunk:
 # a step's RS frames then fit in one graph, evaluated once instead of a pass without a graph and a pass
@@ -85,12 +80,9 @@ class STFMSettings:
                                            "more than the data need", unit="relative", sweep=True)
     stop_at_noise: bool | None = setting(None, "stop once the RS residual reaches the noise level estimated "
                                                "from the RS image, or stalls (falls by less than 2 % over 15 passes "
-                                               "over the RS rows in the fast preset; in prior, 0.1 % over 30 lowers "
-                                               "the step x0.25 and 0.1 % over 15 after that stops)")
+                                               "over the RS rows in the fast preset, 0.1 % over 45 in prior)")
     stall_drop: float | None = None  # ... or once it fell less than this fraction over stall_passes (0: off)
     stall_passes: int | None = None  # passes over the RS rows the stall test looks back
-    anneal_lr: float | None = None  # the stall test's first firing: lr x this, then stop at the next stall (0: stop)
-    anneal_passes: int | None = None  # the stall test's window after the anneal, in passes over the RS rows
     ema_decay: float | None = None  # outputs use an exponential moving average of the weights (0: off)
     refine: bool | None = None  # ensemble: one more fit on the members' average once they have stopped
     motion_init: str | None = None  # 2-D dynamic field: "flow" (key-frame optical flow) or "search" (motion_search)
@@ -160,10 +152,6 @@ class STFMSettings:
             raise ConfigError(f"stfm: stall_drop must be in [0, 1), got {self.stall_drop!r}")
         if self.stall_passes is not None and self.stall_passes < 1:
             raise ConfigError(f"stfm: stall_passes must be >= 1, got {self.stall_passes!r}")
-        if self.anneal_lr is not None and not 0 <= self.anneal_lr < 1:
-            raise ConfigError(f"stfm: anneal_lr must be in [0, 1) (0: the first stall stops), got {self.anneal_lr!r}")
-        if self.anneal_passes is not None and (self.anneal_passes < 0 or (self.anneal_passes < 1 and self.anneal_lr)):
-            raise ConfigError(f"stfm: anneal_passes must be at least 1 where anneal_lr is set, got {self.anneal_passes!r}")
         if self.ema_decay is not None and not 0 <= self.ema_decay < 1:
             raise ConfigError(f"stfm: ema_decay must be in [0, 1), got {self.ema_decay!r}")
         for name in ("beta", "tau", "psi", "lr", "matte_l1"):
@@ -213,7 +201,6 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
             "beta": 10.0, "tau": 1e-3, "rows_per_step": max(1, h // 4), "init": "random",
             "dynamic_time": False, "dynamic_base": "none", "gs_windows_per_step": 0, "time_smoothness": 0.0,
             "stop_at_noise": False, "stall_drop": 0.0, "stall_passes": STALL_PASSES, "ema_decay": 0.0,
-            "anneal_lr": 0.0, "anneal_passes": 0,
             "refine": False, "motion_init": "flow", "motion_model": "field",
             "matte_l1": 0.0}
 
@@ -238,7 +225,6 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
         "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 8)), "init": "gs",
         "dynamic_time": True, "dynamic_base": "ensemble", "gs_windows_per_step": 1, "time_smoothness": 0.3,
         "stop_at_noise": True, "stall_drop": 0.02, "stall_passes": STALL_PASSES, "ema_decay": 0.95, "refine": True,
-        "anneal_lr": 0.0, "anneal_passes": 0,
         "motion_init": "flow", "motion_model": "field",
         "matte_l1": 0.0}
     if name == "prior":  # the paper's prior on the fast fields: one canonical dynamic image that the motion moves
@@ -253,8 +239,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
                      # at 300 steps, 29.6 at 800); on captures its model cannot fit to the noise level it
                      # settles by ~1,500 steps (bench/realistic.md), and without a stop the result
                      # depended on how many steps the time budget allowed, i.e. on the machine's load.
-                     "stall_drop": 0.001, "stall_passes": PRIOR_STALL_PASSES, "anneal_lr": PRIOR_ANNEAL_LR,
-                     "anneal_passes": PRIOR_ANNEAL_PASSES, "lr_half_life_steps": PRIOR_LR_HALF_LIFE,
+                     "stall_drop": 0.001, "stall_passes": PRIOR_STALL_PASSES,
                      # A nearly rigid motion (spatial TV 10x fast's, temporal the same): a motion that
                      # varies across the object tears the canonical image (bench/stfm_motion.md).
                      "beta": 0.1, "tau": 1e-3 * TRANSLATION_TV_SHARE,
@@ -287,8 +272,6 @@ class _Resolved:
     stall_drop: float
     stall_passes: int
     ema_decay: float
-    anneal_lr: float = 0.0
-    anneal_passes: int = 0
     motion_init: str = "flow"
     motion_model: str = "field"
     matte_l1: float = 0.0
@@ -299,7 +282,7 @@ class _Resolved:
 # _Resolved's values that a None setting takes from the preset (rows_per_step also: capped by H).
 _FROM_PRESET = ("beta", "tau", "lr", "lr_half_life_steps", "init", "dynamic_time", "dynamic_base", "time_smoothness",
                 "gs_windows_per_step", "stop_at_noise", "stall_drop", "stall_passes", "ema_decay", "motion_init",
-                "motion_model", "matte_l1", "anneal_lr", "anneal_passes")
+                "motion_model", "matte_l1")
 
 
 def chunk_frames(settings: STFMSettings, h: int, w: int, device: str | None = None) -> int:

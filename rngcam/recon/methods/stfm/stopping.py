@@ -20,9 +20,7 @@ class NoiseStop:
         estimated from the RS image (rngcam.recon.noise) the fit would start fitting noise. The
         stall test: once the residual fell by less than `stall_drop` over the last `stall_passes`
         passes over the rows, further steps buy little residual with structure the data do not
-        demand (on the benchmark clips the truth-PSNR peaked there, then fell). With `anneal_lr`
-        the first stall lowers the step by that factor instead and the fit goes on to the next stall,
-        over `anneal_passes`: where a larger step stalls, its residual is the step's noise."""
+        demand (on the benchmark clips the truth-PSNR peaked there, then fell)."""
         if not (self.resolved.stop_at_noise and self.parts.rs and self.steps % NOISE_CHECK_STEPS == 0):
             return None
         self._sync_rs_op()
@@ -43,23 +41,13 @@ class NoiseStop:
         then = self.steps - window
         drop = self.resolved.stall_drop
         if drop > 0 and then in self._rs_history and residual > (1 - drop) * self._rs_history[then]:
-            if self.resolved.anneal_lr > 0 and self._annealed_at is None:
-                self._annealed_at = self.steps
-                self._rs_history = {self.steps: residual}
-                return None
-            passes = self._stall_passes()
-            annealed = "" if self._annealed_at is None else (
-                f", after the step lowered x{self.resolved.anneal_lr:g} at the first stall, step {self._annealed_at}")
+            passes = self.resolved.stall_passes
             return (f"RS residual {residual:.4f} fell less than {100 * drop:g}% in {passes} passes over the "
-                    f"rows (from {self._rs_history[then]:.4f}; noise level {self.rs_noise_level:.4f}{annealed})")
+                    f"rows (from {self._rs_history[then]:.4f}; noise level {self.rs_noise_level:.4f})")
         return None
 
     def _stall_window(self) -> int:
         """`stall_passes` passes over the fitted rows, in steps (a multiple of NOISE_CHECK_STEPS)."""
-        steps = self._stall_passes() * len(self.rs_rows_fit) / self.resolved.rows_per_step
+        steps = self.resolved.stall_passes * len(self.rs_rows_fit) / self.resolved.rows_per_step
         return NOISE_CHECK_STEPS * max(1, math.ceil(steps / NOISE_CHECK_STEPS))
 
-    def _stall_passes(self) -> int:
-        """The stall test's window in passes: `stall_passes`, then `anneal_passes` once the stall
-        test has lowered the step (`anneal_lr`)."""
-        return self.resolved.stall_passes if self._annealed_at is None else self.resolved.anneal_passes
