@@ -207,4 +207,6 @@ def test_the_factor_gets_the_same_gradient_in_one_graph_and_frame_chunk_by_chunk
         return float(method.line_shift.grad)
 
     whole, chunked = grad(64), grad(2)  # 2: the sampled rows' frames in several graphs
-    assert abs(whole) > 0 and chunked == pytest.approx(whole, rel=1e-4)
+    # float32 sums in another order: 1.05e-4 apart on one x86-64 host (near a stationary point the
+    # gradient is a small difference of large terms), so 3e-4
+    assert abs(whole) > 0 and chunked == pytest.approx(whole, rel=3e-4)
