@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-from rngcam.recon.methods.stfm.line_time import MAX_LINE_CHANGE, SUSPECT_LINE_TIME
+from rngcam.recon.methods.stfm.line_time import MAX_LINE_CHANGE, line_time_lines
 from rngcam.recon.methods.stfm.refits import Refits, nth
 
 # A learned factor further than this from 1 starts a second fit: past what exact timing wanders (up to
@@ -65,7 +65,7 @@ class LineRefit(Refits):
     def notes(self) -> list[str]:
         """The output fit's notes; a later one's (which learns no line time) with the line time it held."""
         k = self._output_index()
-        notes = list(self._output().notes) + ([held_line(self._line_time(k))] if k else [])
+        notes = list(self._output().notes) + (line_time_lines(self._line_time(k), 1) if k else [])
         line = self._line(self._shown_report()) if self.report["tried"] else ""
         return notes + ([line] if line else [])
 
@@ -81,12 +81,3 @@ class LineRefit(Refits):
             out["line_time"] = self._line_time(k)
         return out
 
-
-def held_line(report: dict) -> str:
-    """The note on the line time a later fit held."""
-    line = (f"RS line time held at {report['learned_s'] * 1e6:.4f} us per sensor row (x{report['factor']:.4f} the "
-            f"recorded {report['recorded_s'] * 1e6:.4f} us), as the first fit learned it")
-    if abs(report["factor"] - 1) > SUSPECT_LINE_TIME:
-        line += ("; the recorded line time looks off (the fit corrects part of a large error): measure it with "
-                 "`rngcam calibrate linetime --flicker`")
-    return line

@@ -102,11 +102,14 @@ def line_time_report(timing, factor: float | None) -> dict | None:
 
 
 def line_time_lines(report: dict | None, steps: int) -> list[str]:
-    """The note on the learned line time (none before the first step)."""
+    """The note on the line time: learned with the fields, or held at another fit's learned factor
+    (`report["held"]`, rngcam.recon.methods.stfm.line_refit); none before the first step."""
     if report is None or steps == 0:
         return []
-    line = (f"RS line time learned with the fields: {report['learned_s'] * 1e6:.4f} us per sensor row "
-            f"(x{report['factor']:.4f} the recorded {report['recorded_s'] * 1e6:.4f} us)")
+    us = (f"{report['learned_s'] * 1e6:.4f} us per sensor row (x{report['factor']:.4f} the recorded "
+          f"{report['recorded_s'] * 1e6:.4f} us)")
+    line = (f"RS line time held at {us}, as the first fit learned it" if report.get("held")
+            else f"RS line time learned with the fields: {us}")
     if abs(report["factor"] - 1) > SUSPECT_LINE_TIME:
         line += ("; the recorded line time looks off (the fit corrects part of a large error): measure it with "
                  "`rngcam calibrate linetime --flicker`")
