@@ -180,3 +180,31 @@ def test_a_psf_file_keeping_its_data_in_another_file_is_refused(tmp_path):
     with h5py.File(tmp_path / "ok.h5", "w") as f:
         f.create_dataset("calibration/psf", data=np.ones((3, 16, 16)))
     assert load_psf(tmp_path / "ok.h5").shape == (3, 16, 16)
+
+
+@pytest.mark.parametrize("factor,shape", [(2, (16, 20)), (3, (9, 7)), (2, (15, 11)), (1, (8, 9))])
+def test_binned_psf_is_exact_for_a_scene_constant_over_each_grid_pixel(factor, shape):
+    # The scene blurred at the sensor's resolution by a PSF that fills the whole sensor (its outer
+    # ring included) and binned like the frames equals the grid image blurred by the binned PSF.
+    import torch
+
+    from rngcam.physics.operators import PSFConvolution
+
+    rng = np.random.default_rng(factor)
+    h, w = shape
+    raw = P.normalise(rng.uniform(0.1, 1.0, (1, h * factor, w * factor)))
+    img = rng.uniform(0.0, 1.0, (2, h, w))
+    sensor = np.repeat(np.repeat(img, factor, -2), factor, -1)
+    seen = PSFConvolution(torch.from_numpy(raw), sensor.shape[-2:]).A(torch.from_numpy(sensor)).numpy()
+    binned = seen.reshape(2, h, factor, w, factor).mean(axis=(2, 4))
+    psf = P.bin_psf(raw, factor)
+    assert psf.sum() == pytest.approx(1.0)
+    if factor > 1 and h % 2 == 0:
+        assert psf.shape[-2] == h + 1  # the outer ring of sensor pixels reaches one grid pixel further
+    grid = PSFConvolution(torch.from_numpy(psf), shape).A(torch.from_numpy(img)).numpy()
+    np.testing.assert_allclose(grid, binned, rtol=1e-10, atol=1e-12)
+
+
+def test_binning_a_psf_by_a_non_integer_is_a_clear_error():
+    with pytest.raises(ValueError, match="positive integer"):
+        P.bin_psf(np.ones((1, 8, 8)), 1.5)

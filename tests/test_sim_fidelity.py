@@ -166,7 +166,7 @@ def test_binned_psf_is_centred_like_the_binned_frames():
     raw[0, 16, 16] = 1.0
     b = Bundle(rs=None, gs=None, calibration=Calibration(psf=raw))
     psf = grid_psf(b, 2, 1)
-    assert psf.shape[-2:] == (16, 16)
+    assert psf.shape[-2:] == (17, 17)  # one grid pixel past 32 / 2: the outer ring (physics.psf.bin_psf)
     assert np.unravel_index(np.argmax(psf[0]), psf.shape[-2:]) == (8, 8) and psf[0, 8, 8] > 0.99
     # Light one raw pixel left of the centre is half a grid pixel left: split evenly.
     raw[0, 16, 16], raw[0, 16, 15] = 0.0, 1.0

@@ -37,8 +37,7 @@ def bundle_physics(b):
     gs = GlobalShutterTiming(trigger_s=tuple(b.gs.trigger_times_s), exposure_s=b.gs.exposure_s)
     grid = VideoGrid.covering(rs, gs)
     raw = np.asarray(b.calibration.psf, np.float64)
-    shape = (raw.shape[-2] // grid_bin, raw.shape[-1] // grid_bin)
-    psf, _ = psf_mod.prepare_psf(psf_mod.centre_for_binning(raw, shape), shape, bias=None)
+    psf = psf_mod.bin_psf(raw, grid_bin)
     return rs, gs, grid, torch.from_numpy(psf)
 
 

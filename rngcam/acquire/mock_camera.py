@@ -110,16 +110,11 @@ class MockWorld:
         return self.rows // self.bin, self.cols // self.bin
 
     def grid_psf(self) -> np.ndarray:
-        """The PSF on the grid, area-binned from the sensor PSF as the reconstruction does."""
+        """The PSF on the grid, binned from the sensor PSF as the reconstruction does."""
         if self._grid_psf is None:
-            from rngcam.physics.psf import centre_for_binning, prepare_psf
+            from rngcam.physics.psf import bin_psf
 
-            if self.bin == 1:
-                self._grid_psf = self.psf
-            else:
-                hp, wp = self.psf.shape[-2:]
-                shape = (max(1, round(hp / self.bin)), max(1, round(wp / self.bin)))
-                self._grid_psf = prepare_psf(centre_for_binning(self.psf, shape), shape, bias=None)[0]
+            self._grid_psf = self.psf if self.bin == 1 else bin_psf(self.psf, self.bin)
         return self._grid_psf
 
     def plug(self, device: MockDevice) -> None:

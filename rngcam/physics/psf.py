@@ -244,21 +244,33 @@ def lenslet_psf(grid_shape: tuple[int, int], binning: int = 8, lenslets: int = 6
     return normalise(bin_sum(render_spots(sensor, centres, energy, spot_fwhm_px), binning)[None])
 
 
-def centre_for_binning(raw: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """The raw PSF moved so that its centre pixel (the one a point's own pixel sees, Hp // 2)
-    lands on the centre of the binned PSF's centre pixel (h // 2). Without this a PSF binned by f
-    sits (f - 1) / 2 raw pixels off the binned GS frames, whose binning is centred (0.25 grid px
-    at f = 2, 0.47 at the lab rig's 16)."""
-    hp, wp = raw.shape[-2:]
-    h, w = shape
-    fy, fx = hp / h, wp / w
-    sy = (h // 2 + 0.5) * fy - (hp // 2 + 0.5)
-    sx = (w // 2 + 0.5) * fx - (wp // 2 + 0.5)
-    if abs(sy) < 1e-9 and abs(sx) < 1e-9:
-        return raw
-    m = np.array([[1.0, 0.0, sx], [0.0, 1.0, sy]])
-    return np.stack([cv2.warpAffine(ch, m, (wp, hp), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-                     for ch in raw])
+def binning_matrix(n: int, factor: int) -> np.ndarray:
+    """(m, n) weights along one axis that bin a PSF of n sensor pixels to the grid (`factor` sensor
+    pixels a grid pixel) exactly for a scene constant over each grid pixel: that scene, blurred at
+    the sensor's resolution and binned like the frames, is the grid image blurred by the binned PSF.
+    Sensor pixel i reaches grid pixel j with the triangle (factor - |d|) / factor,
+    d = i - factor (j - m // 2) - n // 2 (pixel n // 2 is a point's own sensor pixel, m // 2 its own
+    grid pixel). m is the smallest size that holds every weight with that centre: the triangle
+    reaches one grid pixel past n / factor, where a plain binned PSF loses its outer ring."""
+    f, c = int(factor), n // 2
+    if f < 1 or f != factor:
+        raise ValueError(f"binning must be a positive integer, got {factor}")
+    lo = (c + f - 1) // f  # grid pixels the weights reach below the centre
+    hi = (n - 1 - c + f - 1) // f  # and above it
+    m = lo + hi + 1
+    while m // 2 < lo or m - 1 - m // 2 < hi:
+        m += 1
+    d = np.arange(n)[None, :] - f * (np.arange(m)[:, None] - m // 2) - c
+    return np.clip(f - np.abs(d), 0, None) / f
+
+
+def bin_psf(raw: np.ndarray, factor: int) -> np.ndarray:
+    """(C, Hp, Wp) PSF at the sensor's resolution -> (C, h, w) on a grid of `factor` x `factor`
+    sensor pixels, summing to 1 per channel, exact for a scene constant over each grid pixel
+    (binning_matrix; h is Hp / factor + 1 for even Hp / factor). Factor 1 keeps the PSF as it is."""
+    raw = as_chw(np.asarray(raw, np.float64))
+    my, mx = binning_matrix(raw.shape[-2], factor), binning_matrix(raw.shape[-1], factor)
+    return normalise(my @ raw @ mx.T)
 
 
 def magnify_matrix(n: int, factor: float, centre: float | None = None) -> np.ndarray:

@@ -140,14 +140,11 @@ def grid_psf(bundle: Bundle, grid_bin: int, channels: int) -> np.ndarray:
     if raw is None:
         raise BundleError("the bundle has no PSF (calibration/psf); run `rngcam calibrate psf`")
     raw = psf_mod.as_chw(np.asarray(raw, np.float64))
-    shape = (max(1, round(raw.shape[-2] / grid_bin)), max(1, round(raw.shape[-1] / grid_bin)))
-    raw = psf_mod.centre_for_binning(raw, shape)
     try:
-        psf, _ = psf_mod.prepare_psf(raw, shape, crop=1.0, bias=None,
-                                     channels=channels if raw.shape[0] == 1 else None)
+        psf = psf_mod.bin_psf(raw, grid_bin)
     except ValueError as exc:
         raise BundleError(f"the bundle's PSF is unusable: {exc}") from None
-    return psf
+    return np.repeat(psf, channels, axis=0) if psf.shape[0] == 1 else psf
 
 
 def grid_truth(bundle: Bundle, grid: VideoGrid, rs_shape, notes: list[str]) -> Tensor | None:

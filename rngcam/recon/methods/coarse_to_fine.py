@@ -82,9 +82,7 @@ def coarsen(problem: Problem, factor: int, time_factor: int | None = None) -> Pr
     frames = block_matrix(k2, k, t)
     rs_w = r.to(problem.rs_weights) @ problem.rs_weights @ frames.to(problem.rs_weights).T
     gs_w = problem.gs_weights @ frames.to(problem.gs_weights).T
-    hp, wp = problem.psf.shape[-2:]
-    psf_shape = (max(1, round(hp * h2 / h)), max(1, round(wp * w2 / w)))
-    psf = torch.from_numpy(psf_mod.prepare_psf(problem.psf.double().cpu().numpy(), psf_shape, bias=None)[0])
+    psf = torch.from_numpy(psf_mod.bin_psf(problem.psf.double().cpu().numpy(), s))  # exact for s x s blocks
     truth = None if problem.truth is None else bin_video(problem.truth, (c, k2, h2, w2), t)
 
     def bin_valid(valid):

@@ -25,13 +25,18 @@ MIN_EQUATIONS = 4  # RS pixels per unknown a fit needs, or the edge takes up noi
 
 def edge_mask(shape: tuple[int, int], scale: float) -> np.ndarray:
     """(Hp, Wp) bool: the pixels a PSF shrunk by `scale` (rngcam.physics.psf.magnify) does not
-    fully cover: its lost edge (none for scale >= 1)."""
+    fully cover, with their neighbours: its lost edge (none for scale >= 1). A grid pixel of a PSF
+    binned from the sensor (physics.psf.bin_psf) gathers sensor pixels up to one grid pixel past its
+    own square, so the light the sensor lost reaches one pixel further in than the shrink shows."""
     from rngcam.physics.psf import magnify_matrix
 
     if scale >= 1:
         return np.zeros(shape, bool)
-    cy, cx = (magnify_matrix(n, scale).sum(1) * scale for n in shape)  # share of each output pixel covered
-    return (cy[:, None] < 1 - 1e-6) | (cx[None, :] < 1 - 1e-6)
+    lost = []
+    for n in shape:
+        full = np.pad(magnify_matrix(n, scale).sum(1) * scale >= 1 - 1e-6, 1)  # share of each pixel covered
+        lost.append(~(full[:-2] & full[1:-1] & full[2:]))
+    return lost[0][:, None] | lost[1][None, :]
 
 
 def _row_videos(video: Tensor, weights: Tensor, rows: Tensor) -> Tensor:
