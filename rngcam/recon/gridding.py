@@ -139,7 +139,6 @@ def grid_psf(bundle: Bundle, grid_bin: int, channels: int) -> np.ndarray:
     raw = bundle.calibration.psf
     if raw is None:
         raise BundleError("the bundle has no PSF (calibration/psf); run `rngcam calibrate psf`")
-    raw = psf_mod.as_chw(np.asarray(raw, np.float64))
     try:
         psf = psf_mod.bin_psf(raw, grid_bin)
     except ValueError as exc:

@@ -139,7 +139,7 @@ def prepare_simulation_psf(psf: str | Path | None, sensor_size, grid_size, crop:
             raise SimulationError(f"PSF {path}: {exc}") from None
         source = PACKAGE_PREFIX + MEASURED_PSF if psf is None else str(path.resolve())
     sensor = sensor.astype(np.float32)
-    grid = psf_mod.bin_psf(sensor.astype(np.float64), sensor_hw[0] // grid_hw[0])
+    grid = psf_mod.bin_psf(sensor, sensor_hw[0] // grid_hw[0])
     return PreparedPSF(sensor, grid, source, float(bias), model)
 
 
@@ -183,7 +183,7 @@ def _fine_capture(scene: str, size: tuple[int, int], seed: int, timing: SimTimin
     video = fm.bin_space(fm.bin_time(fine_video, timing.grid.n_frames)).astype(np.float32)
     del fine_video
     stored = fm.psf_measured(fine_psf.sensor, errors, seed)
-    grid_psf = psf_mod.bin_psf(stored.astype(np.float64), fm.SPACE)
+    grid_psf = psf_mod.bin_psf(stored, fm.SPACE)
     return video, PreparedPSF(stored, grid_psf, fine_psf.source, fine_psf.bias, fine_psf.model), rs_y, gs_y
 
 

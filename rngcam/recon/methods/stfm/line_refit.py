@@ -65,7 +65,7 @@ class LineRefit(Refits):
     def notes(self) -> list[str]:
         """The output fit's notes; a later one's (which learns no line time) with the line time it held."""
         k = self._output_index()
-        notes = list(self._output().notes) + (line_time_lines(self._line_time(k), 1) if k else [])
+        notes = list(self._output().notes) + (line_time_lines(self._line_time(k), self._steps) if k else [])
         line = self._line(self._shown_report()) if self.report["tried"] else ""
         return notes + ([line] if line else [])
 
