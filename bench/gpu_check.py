@@ -6,8 +6,8 @@
 
 Each reconstruction runs rngcam.reconstruct in a child process of its own (`run` below), so the peak
 GPU memory it reports is that run's alone. Every step has its own time limit; a step that fails
-or runs out is a row that says so, and the rest still run. Writes OUT/gpu_check.json and
-OUT/gpu_check.md (the table) and prints the table.
+or runs out is a row that says so, and the rest still run. Writes OUT/gpu_check.json (with each run's
+steps by level and the line it stopped on) and OUT/gpu_check.md (the table) and prints the table.
 """
 
 from __future__ import annotations
@@ -68,7 +68,9 @@ def child(bundle: str, out: str, device: str, settings: str) -> None:
     row = {k: m.get(k) for k in KEYS}
     row.update(wall_s=wall, setup_s=m.get("setup_seconds"), peak_rss_gib=(m.get("peak_rss_bytes") or 0) / 2**30,
                peak_gpu_gib=(torch.cuda.max_memory_allocated() / 2**30) if torch.cuda.is_available() else None,
-               psnr_60s_db=_psnr_by(Path(out) / "errors.csv", 60.0))
+               psnr_60s_db=_psnr_by(Path(out) / "errors.csv", 60.0),
+               level_steps=[lv.get("steps") for lv in (m.get("method_results") or {}).get("levels") or []],
+               stop=(m.get("events") or [""])[-1][:300])
     print("ROW " + json.dumps(row), flush=True)
 
 
@@ -161,12 +163,19 @@ def table(rows: list[dict], device: str) -> str:
         if r.get("summary"):
             status += f": {r['summary']}"
         lines.append("| " + " | ".join([r["label"], str(r.get("device") or ""), f(r.get("wall_s")),
-                                         f(r.get("setup_s")), str(r.get("iterations") or ""),
+                                         f(r.get("setup_s")), _steps(r),
                                          f(r.get("psnr_db"), "{:.2f}"), f(r.get("psnr_60s_db"), "{:.2f}"),
                                          f(r.get("psnr_intermediate_db"), "{:.2f}"),
                                          ball, f(r.get("peak_gpu_gib"), "{:.2f}"), f(r.get("peak_rss_gib"), "{:.2f}"),
                                          status, r.get("load_before", "")]) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _steps(row: dict) -> str:
+    """The run's steps, split by coarse-to-fine level where it had levels."""
+    levels = row.get("level_steps") or []
+    split = f" ({' + '.join(str(n) for n in levels)})" if len(levels) > 1 else ""
+    return f"{row.get('iterations') or ''}{split}"
 
 
 def describe_device(device: str) -> str:
@@ -190,7 +199,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--skip-tests", action="store_true", help="leave out the device-parametrised tests")
     p.add_argument("--sweep", choices=sorted(SWEEPS), help="instead of the check: the paper grid at 8, 32 and 96 rows a "
                    "step (rows) or at 32 and 128 frames per autograd graph (chunks), 70 s each")
-    p.add_argument("--only", default="", help="comma-separated run labels' first words to keep (e.g. sineball)")
+    p.add_argument("--only", default="", help="comma-separated label prefixes to keep (e.g. 'sineball,smoke 64': "
+                   "'smoke' alone keeps every smoke row, the 8x one too)")
     a = p.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
     runs = QUICK if a.quick else SWEEPS[a.sweep] if a.sweep else FULL

@@ -1,0 +1,37 @@
+"""bench/gpu_check.py's CPU half (`--quick`): a scene simulated, reconstructed in a child of its own and
+written as one table row with its figures, as the GPU check does on a lent GPU."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from bench import gpu_check
+
+
+@pytest.mark.slow
+def test_the_quick_check_runs_a_scene_and_writes_its_row(tmp_path):
+    rc = gpu_check.main(["-o", str(tmp_path), "--device", "cpu", "--quick", "--skip-tests", "--only", "sineball"])
+    assert rc == 0
+    rows = json.loads((tmp_path / "gpu_check.json").read_text())["rows"]
+    assert [r["label"] for r in rows] == ["sineball 32 quick"]
+    row = rows[0]
+    assert row["status"] == "ok" and row["ended_by"] == "iterations" and row["iterations"] == 10
+    assert row["device"] == "cpu" and row["peak_gpu_gib"] is None
+    assert math.isfinite(row["psnr_db"]) and row["psnr_db"] > 15
+    assert row["centroid_error_median_px"] >= 0 and row["wall_s"] > row["setup_s"] > 0
+    assert row["level_steps"] == [] or sum(row["level_steps"]) == 10
+    table = (tmp_path / "gpu_check.md").read_text()
+    assert "| sineball 32 quick | cpu |" in table and "CPU," in table
+
+
+def test_only_keeps_runs_by_label_prefix_and_a_failed_simulation_is_a_row(tmp_path, monkeypatch):
+    monkeypatch.setattr(gpu_check, "simulate_all", lambda out, runs, limit: None)  # no bundle made
+    rc = gpu_check.main(["-o", str(tmp_path), "--device", "cpu", "--quick", "--skip-tests", "--only", "smoke 32"])
+    assert rc == 1  # a row that is not ok
+    rows = json.loads((tmp_path / "gpu_check.json").read_text())["rows"]
+    assert [r["label"] for r in rows] == ["smoke 32 quick"]
+    assert rows[0]["status"].startswith("no bundle")
+    assert "smoke 32 quick" in (tmp_path / "gpu_check.md").read_text()
