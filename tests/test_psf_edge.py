@@ -178,6 +178,22 @@ def test_a_fit_left_unexplained_is_fitted_again_through_the_edge(problems, later
     assert out["psf_edge"] is True  # the setting, as the run had it
 
 
+def test_an_edge_that_pays_too_little_is_reported_with_its_scale_and_not_fitted_through(problems):
+    wrong, _ = problems
+    edge = search_edge(wrong, wrong.truth)["residual"]
+    first_rs = edge / 0.95  # the edge would lower the first fit's residual by 5 %, under EDGE_MIN_DROP
+    made = []
+    method = EdgeRefit(_Fit(first_rs, wrong.truth, noise=first_rs / 1.3), wrong, 0.97,
+                       lambda psf, report: made.append(psf))
+    _run(method)
+    report = method.report
+    assert made == [] and report["kept"] == 0 and report["refits"] == []
+    found = report["not_refitted"]
+    assert found["scale"] == pytest.approx(1 / LARGE, abs=0.03) and found["drop"] == pytest.approx(0.05, abs=0.01)
+    assert f"(x{found['scale']:.4f}) lowers its RS residual by 5.0 %" in report["why"]
+    assert report["why"] in method.notes[-1]
+
+
 def test_the_refits_are_bounded(problems):
     wrong, _ = problems
     method, made = _refit(wrong, 0.03, (0.029, 0.028, 0.027))

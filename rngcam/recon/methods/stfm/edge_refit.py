@@ -74,8 +74,9 @@ class EdgeRefit(Refits):
         attempt = {k: v for k, v in found.items() if k not in ("psf", "searched")}
         attempt.update(drop=drop, from_fit=self._best, from_rs=res)
         if not drop >= EDGE_MIN_DROP:
-            self.report["why"] = (f"an edge fitted to the {nth(self._best)} fit's video lowers its RS residual "
-                                  f"by {100 * drop:.1f} % (< {100 * EDGE_MIN_DROP:g} %)")
+            self.report["why"] = (f"an edge fitted to the {nth(self._best)} fit's video (x{found['scale']:.4f}) lowers "
+                                  f"its RS residual by {100 * drop:.1f} % (< {100 * EDGE_MIN_DROP:g} %)")
+            self.report["not_refitted"] = attempt  # what the search found, for the notes and the next session
             return None
         return found["psf"], attempt
 
