@@ -26,6 +26,9 @@ from bench.program import RNGCAM
 FULL = [
     # the default to its own stop (the budget is a backstop): issue 40's "own stop in <= 60 s"
     ("sineball 64 default", "sineball", "64", {"time_budget_s": 150}, 190),
+    # the same on two of that machine's CPU threads: a baseline from the same call (the fourth session's,
+    # run last in what was left of the call, never finished)
+    ("sineball 64 default, 2 CPU threads", "sineball", "64", {"time_budget_s": 150, "device": "cpu", "threads": 2}, 190),
     ("smoke 64 default", "smoke", "64", {"time_budget_s": 150}, 190),
     ("smoke 228x342 budget 120", "smoke", "228x342", {"time_budget_s": 120}, 180),
     # at 8x the final truth evaluation (SSIM of 429 M elements) runs past the budget: give it room
@@ -62,12 +65,14 @@ def child(bundle: str, out: str, device: str, settings: str) -> None:
     from rngcam import reconstruct
 
     t0 = time.perf_counter()
-    reconstruct(bundle, "stfm", out=out, overwrite=True, progress=False, device=device, **json.loads(settings))
+    kwargs = {"device": device, **json.loads(settings)}  # a run's own device (a CPU baseline) wins
+    reconstruct(bundle, "stfm", out=out, overwrite=True, progress=False, **kwargs)
     wall = time.perf_counter() - t0
     m = json.loads((Path(out) / "metrics.json").read_text())
     row = {k: m.get(k) for k in KEYS}
     row.update(wall_s=wall, setup_s=m.get("setup_seconds"), peak_rss_gib=(m.get("peak_rss_bytes") or 0) / 2**30,
-               peak_gpu_gib=(torch.cuda.max_memory_allocated() / 2**30) if torch.cuda.is_available() else None,
+               peak_gpu_gib=(torch.cuda.max_memory_allocated() / 2**30)
+               if torch.cuda.is_available() and kwargs["device"] != "cpu" else None,
                psnr_60s_db=_psnr_by(Path(out) / "errors.csv", 60.0),
                level_steps=[lv.get("steps") for lv in (m.get("method_results") or {}).get("levels") or []],
                stop=(m.get("events") or [""])[-1][:300])
