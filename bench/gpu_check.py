@@ -26,8 +26,7 @@ from bench.program import RNGCAM
 FULL = [
     # the default to its own stop (the budget is a backstop): issue 40's "own stop in <= 60 s"
     ("sineball 64 default", "sineball", "64", {"time_budget_s": 150}, 190),
-    # the same on two of that machine's CPU threads: a baseline from the same call (the fourth session's,
-    # run last in what was left of the call, never finished)
+    # the same on two of that machine's CPU threads: the GPU's ratio from one machine and one call
     ("sineball 64 default, 2 CPU threads", "sineball", "64", {"time_budget_s": 150, "device": "cpu", "threads": 2}, 190),
     ("smoke 64 default", "smoke", "64", {"time_budget_s": 150}, 190),
     ("smoke 228x342 budget 120", "smoke", "228x342", {"time_budget_s": 120}, 180),

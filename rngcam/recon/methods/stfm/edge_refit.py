@@ -76,7 +76,7 @@ class EdgeRefit(Refits):
         if not drop >= EDGE_MIN_DROP:
             self.report["why"] = (f"an edge fitted to the {nth(self._best)} fit's video (x{found['scale']:.4f}) lowers "
                                   f"its RS residual by {100 * drop:.1f} % (< {100 * EDGE_MIN_DROP:g} %)")
-            self.report["not_refitted"] = attempt  # what the search found, for the notes and the next session
+            self.report["not_refitted"] = attempt  # what the search found, reported though not fitted through
             return None
         return found["psf"], attempt
 
