@@ -25,7 +25,8 @@ def test_the_quick_check_runs_a_scene_on_its_own_device_and_writes_its_row(tmp_p
     assert row["device"] == "cpu" and row["peak_gpu_gib"] is None
     assert math.isfinite(row["psnr_db"]) and row["psnr_db"] > 15
     assert row["centroid_error_median_px"] >= 0 and row["wall_s"] > row["setup_s"] > 0
-    assert row["level_steps"] == [] or sum(row["level_steps"]) == 10
+    assert row["level_steps"] == []  # 32 px runs on one level
+    assert row["stop"] == ""  # ended by its iteration cap: no own-stop line (the status column says why)
     table = (tmp_path / "gpu_check.md").read_text()
     assert "| sineball 32 quick | cpu |" in table
 
@@ -38,3 +39,13 @@ def test_only_keeps_runs_by_label_prefix_and_a_failed_simulation_is_a_row(tmp_pa
     assert [r["label"] for r in rows] == ["smoke 32 quick"]
     assert rows[0]["status"].startswith("no bundle")
     assert "smoke 32 quick" in (tmp_path / "gpu_check.md").read_text()
+
+
+def test_the_steps_column_splits_a_coarse_to_fine_run_by_level():
+    rows = [{"label": "paper", "iterations": 1386, "level_steps": [900, 300, 186]},
+            {"label": "one level", "iterations": 820, "level_steps": [820]},
+            {"label": "failed", "status": "recon failed (1)"}]
+    lines = gpu_check.table(rows, "a device").splitlines()
+    assert "| paper |  |" in lines[4] and "| 1386 (900 + 300 + 186) |" in lines[4]
+    assert "| 820 |" in lines[5] and "(" not in lines[5].split("|")[5]
+    assert "recon failed (1)" in lines[6]
