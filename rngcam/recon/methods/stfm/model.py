@@ -24,6 +24,12 @@ def _to_device(idx: Tensor, device: torch.device) -> Tensor:
     return idx.pin_memory().to(device, non_blocking=True)
 
 
+# A translation is the motion field's mean over this many points per axis of the frame (at most),
+# not over every pixel: the same family of motions (the mean of a field over a grid), for a 16th of
+# the field's evaluations at 64 px (sineball: a step 52 -> 39 ms, two threads; bench/convergence.md).
+TRANSLATION_MEAN_POINTS = 16
+
+
 def _inverse_softplus(y: Tensor) -> Tensor:
     """x with softplus(x) = y (y clamped to >= 1e-4): y + log(1 - exp(-y)), stable."""
     y = y.clamp_min(1e-4)
@@ -40,6 +46,7 @@ class FieldModel:
             return torch.linspace(-1.0, 1.0, n, device=dev) if n > 1 else torch.zeros(1, device=dev)
 
         self.xs, self.ys, self.ts = axis(self.W), axis(self.H), axis(self.K)
+        self.xs_mean, self.ys_mean = (axis(min(n, TRANSLATION_MEAN_POINTS)) for n in (self.W, self.H))
         self.mask = None if p.mask is None else p.mask.to(dev, torch.float32)
         self.px_per_unit = torch.tensor([(self.W - 1) / 2, (self.H - 1) / 2], device=dev).clamp_min(0.5)
         # host copies of the weights: which frames a step's rows and windows see, without a GPU's answer
@@ -117,10 +124,11 @@ class FieldModel:
 
     def _motion(self, idx: Tensor) -> Tensor:
         """(n, H, W, 2) displacement in coordinate units at frames idx."""
-        u = field_on_grid(self.fields["motion"], [self.xs, self.ys, self.ts], idx)
         if self.resolved.motion_model == "translation":  # one rigid layer: the field's mean over the frame
-            u = u.mean(dim=(1, 2), keepdim=True).expand_as(u)
-        return u
+            u = field_on_grid(self.fields["motion"], [self.xs_mean, self.ys_mean, self.ts], idx)
+            u = u.mean(dim=(1, 2), keepdim=True)
+            return u.expand(len(idx), self.H, self.W, u.shape[-1])
+        return field_on_grid(self.fields["motion"], [self.xs, self.ys, self.ts], idx)
 
     @property
     def _key_warps(self) -> bool:
