@@ -102,3 +102,21 @@ def test_a_translation_is_the_fields_mean_over_a_coarse_grid_of_the_frame():
     assert TRANSLATION_MEAN_POINTS < 40 and u.shape == (3, 40, 40, 2)
     assert torch.allclose(u[:, 5, 9], coarse, atol=1e-6)
     assert float((coarse - every_pixel).abs().amax()) > 1e-5  # a different average than every pixel's
+
+
+def test_a_translations_tv_is_what_every_pixel_of_it_pays():
+    """The TV term takes a translation as one pixel (no spatial TV, one temporal difference): the
+    same value as the per-pixel sum over the frame, divided by its pixels."""
+    p = _sineball(24, 24)
+    m = STFM(p, STFMSettings(preset="prior", components="all"))
+    idx = torch.tensor([0, 3, 9, p.shape[1] - 1])
+    with torch.no_grad():
+        for q in m.fields["motion"].parameters():
+            q.uniform_(-0.5, 0.5)
+        got = float(m.tv_term(idx))
+        nxt = (idx + 1).clamp(max=m.K - 1)
+        u = m._motion(torch.cat([idx, nxt])) * m._motion_px()  # (8, H, W, 2), every pixel
+    u0, u1 = u[:4], u[4:]
+    spatial = (u0[:, 1:] - u0[:, :-1]).abs().sum() + (u0[:, :, 1:] - u0[:, :, :-1]).abs().sum()
+    every_pixel = m.resolved.tau * (spatial + m.resolved.beta * (u1 - u0).abs().sum()) / (m.H * m.W) / len(idx)
+    assert got > 0 and got == pytest.approx(float(every_pixel), rel=1e-5)

@@ -106,11 +106,12 @@ class DataLoss:
     def tv_term(self, idx: Tensor) -> Tensor:
         """Unbiased estimate of tau TV_S(U) from frames idx (uniform sample without replacement)."""
         nxt = (idx + 1).clamp(max=self.K - 1)
-        u = self._motion(torch.cat([idx, nxt])) * self._motion_px()  # pixels
+        # a translation as one pixel: no spatial TV, its temporal TV the same at every pixel
+        u = self._motion(torch.cat([idx, nxt]), per_pixel=False) * self._motion_px()  # pixels
         u0, u1 = u[:len(idx)], u[len(idx):]
         spatial = (u0[:, 1:] - u0[:, :-1]).abs().sum() + (u0[:, :, 1:] - u0[:, :, :-1]).abs().sum()
         temporal = (u1 - u0).abs().sum()  # zero for the last frame (nxt == idx)
-        per_frame = (spatial + self.resolved.beta * temporal) / (self.H * self.W)
+        per_frame = (spatial + self.resolved.beta * temporal) / (u.shape[1] * u.shape[2])
         return self.resolved.tau * per_frame / len(idx)
 
     def sample_rows(self) -> Tensor:

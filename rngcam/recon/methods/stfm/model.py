@@ -122,12 +122,13 @@ class FieldModel:
         raw = field_on_grid(self.fields["static"], [self.xs, self.ys])  # (H, W, C)
         return F.softplus(raw).permute(2, 0, 1)
 
-    def _motion(self, idx: Tensor) -> Tensor:
-        """(n, H, W, 2) displacement in coordinate units at frames idx."""
+    def _motion(self, idx: Tensor, per_pixel: bool = True) -> Tensor:
+        """(n, H, W, 2) displacement in coordinate units at frames idx; a translation as (n, 1, 1, 2)
+        where not `per_pixel`."""
         if self.resolved.motion_model == "translation":  # one rigid layer: the field's mean over the frame
             u = field_on_grid(self.fields["motion"], [self.xs_mean, self.ys_mean, self.ts], idx)
             u = u.mean(dim=(1, 2), keepdim=True)
-            return u.expand(len(idx), self.H, self.W, u.shape[-1])
+            return u.expand(len(idx), self.H, self.W, u.shape[-1]) if per_pixel else u
         return field_on_grid(self.fields["motion"], [self.xs, self.ys, self.ts], idx)
 
     @property
