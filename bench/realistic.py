@@ -154,7 +154,7 @@ def run_default(p, scene: str, max_steps: int, truth_cal: dict | None, variant: 
     out.update(misfit=found["line"] if found else None, psf_scale_estimate=psf.get("estimate"),
                psf_scale_applied=psf.get("applied"), true_psf_scale=(truth_cal or {}).get("psf_scale", 1.0),
                psf_edge={k: v for k, v in edge.items() if k != "searched"} or None,
-               line_refit=rs.get("line_refits") or None)
+               line_refit=rs.get("line_refits") or None, row_gain_refit=rs.get("row_gain_refits") or None)
     out.update(steps=result.iterations, events=result.events, notes=list(method.notes),
                preset=(rs.get("preset_choice") or {}).get("preset"),
                output_is_start=rs.get("start_floor", {}).get("output_is_start"),
@@ -250,8 +250,11 @@ def _psf_cell(r: dict) -> str:
     n = len(edge.get("refits") or [])
     fitted = (f"; edge fitted at {edge['scale']:.3f}, fit {edge['kept'] + 1} of {n + 1} kept" if edge.get("kept")
               else f"; no edge fit kept ({n} tried)" if n else "; no edge fitted" if edge.get("tried") else "")
+    gains = r.get("row_gain_refit") or {}
+    searched = ("; row-gain run kept" if gains.get("kept") else "; row-gain run made, plain kept" if gains.get("refits")
+                else "")
     return (f"{r['psf_scale_estimate']:.3f}{' applied' if r.get('psf_scale_applied') else ''} "
-            f"({1 / r.get('true_psf_scale', 1.0):.3f}){fitted}")
+            f"({1 / r.get('true_psf_scale', 1.0):.3f}){fitted}{searched}")
 
 
 def _misfit_cell(r: dict) -> str:

@@ -27,6 +27,9 @@ def test_the_table_shows_the_edge_stage_and_rows_without_gs_only_videos():
     assert _psf_cell(dict(base, psf_edge=kept)) == "0.978 (0.952); edge fitted at 0.951, fit 2 of 2 kept"
     assert _psf_cell(dict(base, psf_edge={"tried": True, "refits": [], "kept": 0})).endswith("; no edge fitted")
     assert _psf_cell(base) == "0.978 (0.952)"
+    made = {"tried": True, "refits": [{"row_gains": True}]}
+    assert _psf_cell(dict(base, row_gain_refit=dict(made, kept=1))) == "0.978 (0.952); row-gain run kept"
+    assert _psf_cell(dict(base, row_gain_refit=dict(made, kept=0))).endswith("; row-gain run made, plain kept")
     row = dict(base, steps=2140, events=["stopped at iteration 2140: x"], psnr_intermediate_db=35.88,
                psnr_dynamic_db=25.44, misfit=None, load_before=1.4)
     table = report_default({"sineball|psf+3|default|64": row})

@@ -755,6 +755,36 @@ def test_prior_preset_keeps_one_canonical_image_and_finds_the_turning_object():
     assert np.median(np.abs(between - xs)) >= 3.0
 
 
+def test_the_motion_search_with_row_gains_follows_rows_whose_light_is_off_by_varying_amounts():
+    """The turning square again, its RS rows' light off by up to 30 % from row to row (what a PSF
+    that lost its edge predicts: short by an amount that varies across the image). The search that
+    scores each row after its own gain (row_gain_search, made by the row-gain refit) follows the
+    square; scored on the light as predicted, it loses it."""
+    from dataclasses import replace
+
+    size = 20
+    _, _gs, grid = timing(size)
+    k = grid.n_frames
+    bg = 0.3 * (0.7 + 0.3 * np.random.default_rng(0).random((3, size, size)))
+    video = np.repeat(bg[:, None], k, axis=1).astype(np.float64)
+    xs = np.round(2 + 12 * np.sin(1.5 * np.pi * np.arange(k) / (k - 1)) ** 2).astype(int)
+    for t, x in enumerate(xs):
+        video[:, t, 8:12, x:x + 4] = 0.95
+    p = video_problem(video, noise=0.001)
+    rows = torch.arange(size, dtype=torch.float64)
+    p = replace(p, b_rs=p.b_rs * (1 + 0.3 * torch.sin(2 * math.pi * rows / 5 + 1))[None, :, None])
+    errors = {}
+    for row_gains in (False, True):
+        m = make_stfm(p, STFMSettings(preset="prior", components="all", row_gain_search=row_gains,
+                                      start_floor=False))
+        middle = int(round(m._gs_centre_frames()[1]))
+        found = xs[middle] + m.motion_track_px[:, 0].numpy()
+        errors[row_gains] = (float(np.median(np.abs(found - xs))), float(np.median(np.abs(m.motion_track_px[:, 1].numpy()))))
+        assert any("each RS row scored after its own gain" in n for n in m.notes) == row_gains
+    assert max(errors[True]) <= 1.0, errors  # measured (1, 0) px
+    assert max(errors[False]) >= 2.0, errors  # measured (2, 5) px: the square lost in y
+
+
 def test_without_rife_weights_stfm_says_what_it_uses_instead(sineball16, monkeypatch):
     import rngcam.recon.methods.rife as rife_mod
 

@@ -271,6 +271,7 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
     if initial_video is None:
         method = _with_line_refit(method, handed, problem, settings, device, clock, stage)
         method = _with_edge_refit(method, handed, problem, settings, device, clock, stage)
+        method = _with_row_gain_refit(method, handed, problem, settings, device, clock, stage)
     return method
 
 
@@ -324,6 +325,27 @@ def _with_edge_refit(method, handed, problem, settings: STFMSettings, device, cl
                             psf_edge=False)
 
     return EdgeRefit(method, problem, scale, second)
+
+
+def _with_row_gain_refit(method, handed, problem, settings: STFMSettings, device, clock, stage):
+    """`method` wrapped in a RowGainRefit where the key rows found the PSF measured too large and the
+    motion is searched (rngcam.recon.methods.stfm.row_gain_refit): the whole run, or a later fit of
+    the edge or line-time stage (one fit, made again as one fit); not in the row-gain run itself."""
+    from rngcam.recon.methods.stfm.edge_refit import edge_scale
+    from rngcam.recon.methods.stfm.row_gain_refit import RowGainRefit
+
+    scale = edge_scale(settings.selfcal_report) if settings.row_gain_refit else None
+    if (scale is None or settings.row_gain_search or _setting_or_preset(settings, "motion_init") != "search"
+            or problem.b_rs is None or problem.b_gs is None or ablation.removed(settings)):
+        return method
+
+    def second(_row_gains: bool, report: dict):
+        found = {"row_gain_refit": report, "through": "the motion search with row gains"}
+        return _another_fit(handed, settings, device, clock, stage, found, settings.self_calibrate_psf_scale,
+                            row_gain_refit=False, row_gain_search=True)
+
+    through = (settings.selfcal_report or {}).get("through")  # a later fit of another stage: what it is made through
+    return RowGainRefit(method, problem, scale, second, through if isinstance(through, str) else None)
 
 
 def _make_stfm(problem, settings: STFMSettings, device, initial_video: Tensor | None, clock=None, stage=None):

@@ -62,8 +62,10 @@ def candidate_shifts(h: int, w: int, device) -> tuple[Tensor, int, int]:
 
 
 @torch.no_grad()
-def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor) -> Tensor:
-    """(K, 2) shift in pixels (dx, dy) of the layer in every frame of `stfm`'s problem."""
+def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_gains: bool = False) -> Tensor:
+    """(K, 2) shift in pixels (dx, dy) of the layer in every frame of `stfm`'s problem. With
+    `row_gains`, each RS row and channel is scored after its least-squares gain (>= 0): by the shape of
+    its light, not by how much of it the PSF predicts (rngcam.recon.methods.stfm.row_gain_refit)."""
     p, dev = stfm.problem, stfm.device
     k = stfm.K
     shifts, side, step = candidate_shifts(stfm.H, stfm.W, dev)
@@ -73,17 +75,21 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor) -> T
         rows = stfm.rs_rows_fit.to(dev)
         w = stfm.w_rs.index_select(0, rows)  # (R, K)
         s_r = w.sum(1).clamp_min(1e-12)
-        target = p.b_rs.index_select(1, rows)
         valid = None if stfm.rs_valid is None else stfm.rs_valid.index_select(1, rows)
+        target = p.b_rs.index_select(1, rows) * (1 if valid is None else valid)
+        target_sq = target.square().sum(-1)[:, None]  # (C, 1, R)
         rs_cost = torch.zeros(len(rows), n, device=dev)
         for i in range(0, n, SEARCH_CHUNK):
             frames = shifted_frames(background, layer, obj, shifts[i:i + SEARCH_CHUNK])
             # The frame held over a row's whole exposure: the row sees s_r times its convolution.
             conv = stfm.rs_op.conv.A(frames.permute(1, 0, 2, 3)).index_select(2, rows)  # (C, n, R, W)
-            miss = conv * s_r[None, None, :, None] - target[:, None]
-            if valid is not None:
-                miss = miss * valid[:, None]
-            rs_cost[:, i:i + SEARCH_CHUNK] = miss.square().sum((0, 3)).t()
+            pred = conv * s_r[None, None, :, None] * (1 if valid is None else valid[:, None])
+            if row_gains:  # ||b - a pred||^2 at the best a >= 0
+                dot = (pred * target[:, None]).sum(-1).clamp_min(0)
+                miss_sq = target_sq - dot.square() / pred.square().sum(-1).clamp_min(1e-30)
+            else:
+                miss_sq = (pred - target[:, None]).square().sum(-1)
+            rs_cost[:, i:i + SEARCH_CHUNK] = miss_sq.sum(0).t()
         cost += _normalised((w / s_r[:, None]).t() @ rs_cost)
     if stfm.parts.gs:
         keys = p.gs_images(gains=True).float().to(dev)  # (C, G, H, W)

@@ -108,6 +108,12 @@ class STFMSettings:
         True, "where the fit learns the RS line time (learn_line_time) and ends with it more than 0.7 % off the "
               "recorded one: fit again from the start with the line time held at that factor, and keep the fit "
               "that explains the RS image better")
+    row_gain_refit: bool = setting(
+        True, "with self_calibrate, where the key rows find the PSF measured too large and the run ends above 1.15x "
+              "its noise level: run again with a motion search that scores each RS row after its own gain (a PSF "
+              "that lost its edge predicts the rows' light short by varying amounts), and keep the run that "
+              "explains the RS image better")
+    row_gain_search: bool = field(default=False, metadata={"internal": True})  # set in row_gain_refit's run
     selfcal_report: dict | None = field(default=None, metadata={"internal": True})  # what self-calibration refined
     learn_geometry: str = setting(
         "off", "learn the GS-to-RS transform with the fields: its shift, or shift, rotation and scale "
