@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from rngcam.recon.metrics import relative_residual
+from rngcam.recon.nnls import nnls_normal
 
 MAX_DESIGN = 4_000_000  # design-matrix entries per PSF channel: sensor rows beyond it are subsampled
 MIN_EQUATIONS = 4  # RS pixels per unknown a fit needs, or the edge takes up noise (None: not fitted)
@@ -65,8 +66,6 @@ def fit_edge(problem, video: Tensor, scale: float, seed: int = 0) -> dict | None
     "residual_shrunk" (the shrunk PSF with the best factor), "residual" (the fitted PSF)}, the
     residuals relative, over the rows the fit used; None without an RS image or an edge, or where
     the rows the design affords (MAX_DESIGN) give fewer than MIN_EQUATIONS pixels per unknown."""
-    from scipy.optimize import nnls
-
     from rngcam.physics.operators import RollingShutter
     from rngcam.physics.psf import magnify
 
@@ -105,8 +104,8 @@ def fit_edge(problem, video: Tensor, scale: float, seed: int = 0) -> dict | None
                             for ch in chans]).numpy()
         y = torch.cat([target[ch].reshape(-1) for ch in chans]).numpy()
         try:
-            x, _ = nnls(design, y, maxiter=20 * design.shape[1])
-        except RuntimeError:  # no convergence within maxiter (SciPy before 1.12 raises it)
+            x = nnls_normal(design, y)
+        except RuntimeError:  # no convergence
             return None
         full = x[0] * shrunk[p_ch].numpy()
         full[mask] += x[1:]
