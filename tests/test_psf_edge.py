@@ -239,6 +239,26 @@ def test_a_run_resumed_in_a_later_fit_makes_that_fit_again(problems, tmp_path):
             _refit(wrong, 0.03, (0.0105,))[0].load_state_dict({**state, **bad})
 
 
+def test_a_run_resumed_after_a_later_fit_did_better_than_the_first_resumes(problems, tmp_path):
+    """The first fit is let go once a later one does better: a checkpoint written in the third fit
+    holds the second and the third, and resumes there (a resumed run once refused it)."""
+    from rngcam.recon import checkpoint
+
+    wrong, _ = problems
+    method, _ = _refit(wrong, 0.03, (0.02, 0.0105))
+    for _ in range(2):
+        method.step()
+        method.converged()
+    assert method._current == 2 and sorted(method._fits) == [1, 2]
+    checkpoint.save(tmp_path / "c.pt", {"method": method.state_dict(), "iteration": 2, "solve_s": 1.0, "wall_s": 1.0,
+                                        "log": [], "events": [], "rng": torch.get_rng_state(), "identity": None})
+    again, made = _refit(wrong, 0.03, (0.02, 0.0105))
+    again.load_state_dict(checkpoint.load(tmp_path / "c.pt")["method"])
+    assert len(made) == 2 and sorted(again._fits) == [1, 2] and again.residuals()["rs"] == 0.0105  # the running fit does better
+    _run(again)
+    assert again.report["kept"] == 2 and again.residuals()["rs"] == 0.0105
+
+
 def test_no_second_fit_where_the_first_explains_the_data(problems):
     wrong, _ = problems
     method, made = _refit(wrong, 0.0105, (0.001,))

@@ -184,14 +184,15 @@ class Refits(MethodBase):
         self._current, self._best = state[f"{s}_current"], state[f"{s}_best"]
 
     def _check_state(self, state: dict) -> None:
-        """A checkpoint's stage as this class writes it: the fits it names present, what they were
-        made from as the stage makes it; one line otherwise."""
+        """A checkpoint's stage as this class writes it: the fits it names present (the first is let
+        go once a later one does better), what they were made from as the stage makes it; one line
+        otherwise."""
         from rngcam.errors import RngcamError
 
         s = self.STATE
         fits, made = state.get("fits"), state.get(f"{s}_made")
         ok = (isinstance(fits, dict) and isinstance(made, dict) and isinstance(state.get(f"{s}_rs"), dict)
-              and isinstance(state.get(f"{s}_report"), dict) and 0 in fits
+              and isinstance(state.get(f"{s}_report"), dict) and bool(fits)
               and state.get(f"{s}_current") in fits and state.get(f"{s}_best") in fits
               and all(isinstance(k, int) and k in made for k in fits if k) and self._check_made(made))
         if not ok:
