@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
-from rngcam.recon.nnls import nnls_normal
+from rngcam.recon.methods.nnls import nnls_normal
 
 
 @pytest.mark.parametrize("seed", range(4))
