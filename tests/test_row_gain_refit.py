@@ -98,6 +98,8 @@ def test_stfm_is_wrapped_where_the_key_rows_find_the_psf_too_large_and_the_motio
     assert isinstance(through_edge, RowGainRefit) and not through_edge._fits[0].settings.row_gain_search  # wrapped
     again = through_edge._make_refit(True, {"refits": [], "kept": 0})
     assert again.settings.row_gain_search and not isinstance(again, (EdgeRefit, RowGainRefit))  # as one fit
+    assert any(n.startswith("self-calibration (gains) through the motion search with row gains and the PSF with "
+                            "its lost edge fitted (shrunk x0.9500)") for n in again.notes)
     through_edge.step()
     through_edge._fits[0].converged = lambda: "stalled"  # ends, and (not yet fitted) far above its noise
     assert through_edge.converged() is None and through_edge._current == 1

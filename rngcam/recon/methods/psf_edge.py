@@ -17,8 +17,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from rngcam.recon.metrics import relative_residual
 from rngcam.recon.methods.nnls import nnls_normal
+from rngcam.recon.metrics import relative_residual
 
 MAX_DESIGN = 4_000_000  # design-matrix entries per PSF channel: sensor rows beyond it are subsampled
 MIN_EQUATIONS = 4  # RS pixels per unknown a fit needs, or the edge takes up noise (None: not fitted)

@@ -339,13 +339,16 @@ def _with_row_gain_refit(method, handed, problem, settings: STFMSettings, device
             or problem.b_rs is None or problem.b_gs is None or ablation.removed(settings)):
         return method
 
+    through = (settings.selfcal_report or {}).get("through")  # a later fit of another stage: what it is made through
+    through = through if isinstance(through, str) else None
+
     def second(_row_gains: bool, report: dict):
-        found = {"row_gain_refit": report, "through": "the motion search with row gains"}
+        label = "the motion search with row gains" + ("" if through is None else f" and {through}")
+        found = {"row_gain_refit": report, "through": label}
         return _another_fit(handed, settings, device, clock, stage, found, settings.self_calibrate_psf_scale,
                             row_gain_refit=False, row_gain_search=True)
 
-    through = (settings.selfcal_report or {}).get("through")  # a later fit of another stage: what it is made through
-    return RowGainRefit(method, problem, scale, second, through if isinstance(through, str) else None)
+    return RowGainRefit(method, problem, scale, second, through)
 
 
 def _make_stfm(problem, settings: STFMSettings, device, initial_video: Tensor | None, clock=None, stage=None):
