@@ -731,10 +731,9 @@ def test_viterbi_finds_the_cheapest_path_with_its_l1_penalty():
     assert total(best) == pytest.approx(total(brute))
 
 
-def test_prior_preset_keeps_one_canonical_image_and_finds_the_turning_object():
-    """A bright square that turns round between the key frames (the key frames see it at the left,
-    the centre and the right): the translation search finds where it went in between."""
-    size = 20
+def _turning_square(size: int = 20):
+    """(problem, the square's x per frame): a bright 4 px square over a textured background that turns
+    round between the key frames (they see it at the left, the centre and the right)."""
     _, _gs, grid = timing(size)
     k = grid.n_frames
     bg = 0.3 * (0.7 + 0.3 * np.random.default_rng(0).random((3, size, size)))
@@ -742,14 +741,27 @@ def test_prior_preset_keeps_one_canonical_image_and_finds_the_turning_object():
     xs = np.round(2 + 12 * np.sin(1.5 * np.pi * np.arange(k) / (k - 1)) ** 2).astype(int)
     for t, x in enumerate(xs):
         video[:, t, 8:12, x:x + 4] = 0.95
-    p = video_problem(video, noise=0.001)
+    return video_problem(video, noise=0.001), xs
+
+
+def _track_errors(m, xs) -> tuple[float, float]:
+    """Median |error| in px of the motion search's track of the turning square: in x, and in y (where it stays)."""
+    middle = int(round(m._gs_centre_frames()[1]))
+    found = xs[middle] + m.motion_track_px[:, 0].numpy()
+    return float(np.median(np.abs(found - xs))), float(np.median(np.abs(m.motion_track_px[:, 1].numpy())))
+
+
+def test_prior_preset_keeps_one_canonical_image_and_finds_the_turning_object():
+    """A bright square that turns round between the key frames (the key frames see it at the left,
+    the centre and the right): the translation search finds where it went in between."""
+    p, xs = _turning_square()
+    k = len(xs)
     m = make_stfm(p, STFMSettings(preset="prior", components="all"))
     assert not m.resolved.dynamic_time and m.resolved.motion_init == "search"
     assert m.fields["dynamic"].in_dims == 2  # one canonical image: the dynamics live in the motion
-    middle = int(round(m._gs_centre_frames()[1]))
-    found = xs[middle] + m.motion_track_px[:, 0].numpy()
-    assert np.median(np.abs(found - xs)) <= 1.0
-    assert np.median(np.abs(m.motion_track_px[:, 1].numpy())) <= 1.0
+    error_x, error_y = _track_errors(m, xs)
+    assert error_x <= 1.0
+    assert error_y <= 1.0
     keys = np.round(m._gs_centre_frames()).astype(int)
     between = np.interp(np.arange(k), keys, xs[keys])  # what the key frames alone suggest
     assert np.median(np.abs(between - xs)) >= 3.0
@@ -763,23 +775,14 @@ def test_the_motion_search_with_row_gains_follows_rows_whose_light_is_off_by_var
     from dataclasses import replace
 
     size = 20
-    _, _gs, grid = timing(size)
-    k = grid.n_frames
-    bg = 0.3 * (0.7 + 0.3 * np.random.default_rng(0).random((3, size, size)))
-    video = np.repeat(bg[:, None], k, axis=1).astype(np.float64)
-    xs = np.round(2 + 12 * np.sin(1.5 * np.pi * np.arange(k) / (k - 1)) ** 2).astype(int)
-    for t, x in enumerate(xs):
-        video[:, t, 8:12, x:x + 4] = 0.95
-    p = video_problem(video, noise=0.001)
+    p, xs = _turning_square(size)
     rows = torch.arange(size, dtype=torch.float64)
     p = replace(p, b_rs=p.b_rs * (1 + 0.3 * torch.sin(2 * math.pi * rows / 5 + 1))[None, :, None])
     errors = {}
     for row_gains in (False, True):
         m = make_stfm(p, STFMSettings(preset="prior", components="all", row_gain_search=row_gains,
                                       start_floor=False))
-        middle = int(round(m._gs_centre_frames()[1]))
-        found = xs[middle] + m.motion_track_px[:, 0].numpy()
-        errors[row_gains] = (float(np.median(np.abs(found - xs))), float(np.median(np.abs(m.motion_track_px[:, 1].numpy()))))
+        errors[row_gains] = _track_errors(m, xs)
         assert any("each RS row scored after its own gain" in n for n in m.notes) == row_gains
     assert max(errors[True]) <= 1.0, errors  # measured (1, 0) px
     assert max(errors[False]) >= 2.0, errors  # measured (2, 5) px: the square lost in y

@@ -77,7 +77,7 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
         s_r = w.sum(1).clamp_min(1e-12)
         valid = None if stfm.rs_valid is None else stfm.rs_valid.index_select(1, rows)
         target = p.b_rs.index_select(1, rows) * (1 if valid is None else valid)
-        target_sq = target.square().sum(-1)[:, None]  # (C, 1, R)
+        target_sq = target.square().sum(-1)[:, None] if row_gains else None  # (C, 1, R)
         rs_cost = torch.zeros(len(rows), n, device=dev)
         for i in range(0, n, SEARCH_CHUNK):
             frames = shifted_frames(background, layer, obj, shifts[i:i + SEARCH_CHUNK])

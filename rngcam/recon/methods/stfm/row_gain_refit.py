@@ -29,8 +29,8 @@ RATIO = 1.15
 
 
 class RowGainRefit(Refits):
-    """`first` (a whole STFM run, its refit stages included) and, where it ends unexplained, the same
-    run with the row-gain motion search: `refit(True, report)` makes it."""
+    """`first` (a whole STFM run with its refit stages, or one later fit of those stages) and, where it
+    ends unexplained, the same with the row-gain motion search: `refit(True, report)` makes it."""
 
     SETTING, RESULT, VALUE = "row_gain_refit", "row_gain_refits", "row_gains"
     STATE, STAGE_NAME = "row_gain", "row-gain refit"

@@ -109,10 +109,10 @@ class STFMSettings:
               "recorded one: fit again from the start with the line time held at that factor, and keep the fit "
               "that explains the RS image better")
     row_gain_refit: bool = setting(
-        True, "with self_calibrate, where the key rows find the PSF measured too large and the run ends above 1.15x "
-              "its noise level: run again with a motion search that scores each RS row after its own gain (a PSF "
-              "that lost its edge predicts the rows' light short by varying amounts), and keep the run that "
-              "explains the RS image better")
+        True, "with self_calibrate, where the key rows find the PSF measured too large and the run (or a later fit "
+              "through a fitted PSF edge or line time) ends at 1.15x its noise level or more: make it again with a "
+              "motion search that scores each RS row after its own gain (a PSF that lost its edge predicts the "
+              "rows' light short by varying amounts), and keep the one that explains the RS image better")
     row_gain_search: bool = field(default=False, metadata={"internal": True})  # set in row_gain_refit's run
     selfcal_report: dict | None = field(default=None, metadata={"internal": True})  # what self-calibration refined
     learn_geometry: str = setting(
