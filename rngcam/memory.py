@@ -70,3 +70,16 @@ def release_free_memory(collect: bool = True) -> None:
     except (OSError, AttributeError):  # not glibc
         return
     trim(0)
+
+
+# glibc's largest mmap threshold: a buffer at least this large is mapped afresh, so the heap's free
+# pages would add to the peak beside it; a smaller one may reuse them.
+LARGE_BUFFER_BYTES = 32 * 2**20
+
+
+def release_before(nbytes: int) -> None:
+    """`release_free_memory(collect=False)` before a buffer of `nbytes` comes, where that buffer is
+    large enough to be mapped afresh. At 64 px a trim before each stop test's video cost the next
+    step ~10 ms of page faults (4 % of the run; bench/convergence.md)."""
+    if nbytes >= LARGE_BUFFER_BYTES:
+        release_free_memory(collect=False)

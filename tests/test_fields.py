@@ -136,3 +136,39 @@ def test_grid_path_at_frame_indices_matches_those_frames_and_reuses_the_axes_mat
     key = id(ts)
     del ts, again
     assert key not in fields._MATRIX_CACHE  # a dead axis leaves nothing behind
+
+
+def test_translated_path_matches_pointwise_values_and_gradients():
+    """forward_translated (STFM's one translation per frame) gives what `forward` gives at the moved
+    points, border clamp included, and the same gradients for the planes and the shifts."""
+    torch.manual_seed(2)
+    f = PlaneField(2, 3, resolutions=(4, 7, 9), features=3, hidden=8).double()
+    with torch.no_grad():
+        for plane in f.planes:
+            plane.uniform_(-1, 1)
+    xs, ys = torch.linspace(-1, 1, 9, dtype=torch.float64), torch.linspace(-1, 1, 6, dtype=torch.float64)
+    # some points moved off the planes; none exactly onto their edge, where grid_sample's coordinate
+    # gradient takes the slope towards the zeros outside and the matrices the slope inside
+    shifts = torch.tensor([[0.01, -0.02], [0.13, -0.41], [-0.9, 0.3], [1.7, -1.55]], dtype=torch.float64)
+
+    def both(path):
+        s = shifts.clone().requires_grad_()
+        out = path(s)
+        weights = torch.linspace(-1, 2, out.numel(), dtype=torch.float64).view_as(out)
+        grads = torch.autograd.grad((out * weights).sum(), [s, *f.parameters()])
+        return out.detach(), grads
+
+    def pointwise(s):
+        x = (xs[None, None, :] + s[:, 0, None, None]).expand(len(s), len(ys), len(xs))
+        y = (ys[None, :, None] + s[:, 1, None, None]).expand(len(s), len(ys), len(xs))
+        return f(torch.stack([x, y], dim=-1).reshape(-1, 2)).reshape(len(s), len(ys), len(xs), 3)
+
+    fast, fast_grads = both(lambda s: f.forward_translated([xs, ys], s))
+    slow, slow_grads = both(pointwise)
+    assert fast.shape == (4, 6, 9, 3)
+    assert torch.allclose(fast, slow, atol=1e-12)
+    for a, b in zip(fast_grads, slow_grads, strict=True):
+        assert torch.allclose(a, b, atol=1e-10)
+    assert fast_grads[0][1].abs().sum() > 0  # a shift inside the planes moves the output
+    with pytest.raises(ValueError):
+        PlaneField(3, 2).forward_translated([xs, ys], shifts)

@@ -192,3 +192,30 @@ def test_log_spacing_counts_the_cost_of_keeping_the_state():
     result = run(_SlowToKeep(_sineball_problem(), TV3DSettings()),
                  LoopSettings(time_budget_s=None, max_iters=60, log_every_s=1e-6, progress=False))
     assert result.iterations == 60 and 2 <= len(result.log) <= 15, len(result.log)
+
+
+class _ReadyEvery(TV3D):
+    """A method whose rows cost least every `n`-th step (as STFM's after its stop test)."""
+
+    def __init__(self, problem, n):
+        super().__init__(problem, TV3DSettings())
+        self.n, self.steps = n, 0
+
+    def step(self):
+        self.steps += 1
+        return super().step()
+
+    def log_ready(self):
+        return self.steps % self.n == 0
+
+
+def test_a_row_due_by_time_waits_for_the_method_to_be_ready():
+    result = run(_ReadyEvery(_sineball_problem(), 4),
+                 LoopSettings(time_budget_s=None, max_iters=21, log_every_s=1e-6, progress=False))
+    iterations = [row["iteration"] for row in result.log]
+    assert iterations[0] == 0 and iterations[-1] == 21  # the start and the end are always kept
+    # due at every step by time (rows are also spaced by their cost): kept only where the method is ready
+    assert len(iterations) >= 4 and all(i % 4 == 0 for i in iterations[1:-1]), iterations
+    # rows asked for by count (log_every_iters) do not wait
+    counted = run(_ReadyEvery(_sineball_problem(), 4), _settings(max_iters=6, log_every_iters=1))
+    assert [row["iteration"] for row in counted.log] == list(range(7))

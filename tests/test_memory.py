@@ -242,3 +242,17 @@ def test_a_gpu_takes_larger_frame_chunks_bounded_by_its_memory(monkeypatch, card
     assert chunk_frames(STFMSettings(), 228, 342, "cpu") == 4
     assert chunk_frames(STFMSettings(frame_chunk=3), 228, 342, "cuda:0") == 3  # the setting wins
     assert chunk_frames(STFMSettings(), 64, 64, "cpu") == 16
+
+
+def test_the_heap_is_trimmed_before_large_buffers_only(monkeypatch):
+    """A trim before a small video (64 px) only made the next step fault its pages back in; before a
+    buffer mapped afresh (at or over glibc's largest mmap threshold) it keeps the peak down."""
+    import rngcam.memory as memory
+
+    trims = []
+    monkeypatch.setattr(memory, "release_free_memory", lambda collect=True: trims.append(collect))
+    memory.release_before(67 * 64 * 64 * 3 * 4)
+    assert trims == []
+    memory.release_before(memory.LARGE_BUFFER_BYTES)
+    memory.release_before(231 * 228 * 342 * 3 * 4)
+    assert trims == [False, False]

@@ -117,6 +117,9 @@ class _Fit:
     def converged(self):
         return "stalled" if self.steps else None
 
+    def log_ready(self):
+        return True
+
     def residuals(self):
         self.asked += 1
         return {"rs": self.rs}

@@ -113,3 +113,31 @@ def test_tv3d_self_calibrates_on_request_only():
     assert any(n.startswith("GS/RS gains 1.000/1.000/1.000 -> 1.03") for n in m.notes)
     plain = make_tv3d(p, TV3DSettings(coarse_to_fine=False))
     assert not hasattr(plain, "selfcal_report")
+
+
+@pytest.mark.parametrize("dx,dy", [(0.0, 0.0), (0.37, -0.81), (-2.6, 1.25), (7.5, -9.2)])
+def test_warp_by_a_shift_is_the_bicubic_warp_values_and_gradients(dx, dy):
+    """warp_shift (STFM's learned GS-to-RS shift) reproduces grid_sample's bicubic warp by that
+    translation, border clamp included (the last shift reaches past the border), and its gradients."""
+    torch.manual_seed(3)
+    images = torch.rand(2, 3, 11, 13, dtype=torch.float64)
+
+    def both(path):
+        x, d = images.clone().requires_grad_(), torch.tensor([dx, dy], dtype=torch.float64, requires_grad=True)
+        out = path(x, d)
+        weights = torch.linspace(-1, 1, out.numel(), dtype=torch.float64).view_as(out)
+        return out.detach(), torch.autograd.grad((out * weights).sum(), [x, d])
+
+    def by_matrix(x, d):
+        one, zero = torch.ones((), dtype=x.dtype), torch.zeros((), dtype=x.dtype)
+        m = torch.stack([torch.stack([one, zero, d[0]]), torch.stack([zero, one, d[1]]),
+                         torch.stack([zero, zero, one])])
+        return selfcal.warp(x, m)
+
+    fast, fast_grads = both(lambda x, d: selfcal.warp_shift(x, d[0], d[1]))
+    slow, slow_grads = both(by_matrix)
+    assert torch.allclose(fast, slow, atol=1e-10)
+    for a, b in zip(fast_grads, slow_grads, strict=True):
+        assert torch.allclose(a, b, atol=1e-8)
+    if dx == dy == 0:
+        assert torch.allclose(fast, images, atol=1e-12)

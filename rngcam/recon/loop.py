@@ -98,6 +98,10 @@ class Method(Protocol):
     def reduce_step(self, factor: float) -> None:
         """Shrink the step size / learning rate after a NaN or Inf."""
 
+    def log_ready(self) -> bool:
+        """Whether a log row now costs least (STFM: its stop test has just made the video the row
+        scores); a row due by time waits for it."""
+
     def converged(self) -> str | None:
         """Asked after every step; a reason ends the run early (e.g. STFM's discrepancy-principle
         stop) and is kept in the events."""
@@ -123,6 +127,9 @@ class MethodBase:
 
     def converged(self) -> str | None:
         return None
+
+    def log_ready(self) -> bool:
+        return True
 
     def budget_cut(self) -> str:
         return ""
@@ -303,7 +310,8 @@ class _Loop:
         self.iteration += 1
         due = (settings.log_every_iters is not None and self.iteration % settings.log_every_iters == 0) or (
             settings.log_every_iters is None
-            and self.solve_s - self.last_log_solve >= max(settings.log_every_s, LOG_COST_RATIO * self.eval_s))
+            and self.solve_s - self.last_log_solve >= max(settings.log_every_s, LOG_COST_RATIO * self.eval_s)
+            and method.log_ready())
         ckpt_due = self.ckpt is not None and time.perf_counter() - self.last_ckpt_t >= settings.checkpoint_every_s
         asked = settings.stop_requested() if settings.stop_requested is not None else None
         # A non-finite state shows in the next objective; the whole state is checked only where it

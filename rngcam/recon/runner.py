@@ -29,7 +29,7 @@ import torch
 from rngcam.cpu import choose_threads, torch_threads
 from rngcam.errors import RngcamError, SettingError
 from rngcam.formats.bundle import Bundle, bundle_checksum, is_warning, open_checked
-from rngcam.memory import peak_rss_bytes, release_free_memory
+from rngcam.memory import peak_rss_bytes, release_before, release_free_memory
 from rngcam.physics.operators import drop_scratch
 from rngcam.recon import ablation, checkpoint, outputs, registry
 from rngcam.recon.loop import LoopSettings, Method, RunResult, run, stage_printer
@@ -394,7 +394,7 @@ def _iterate(problem: Problem, run_: Run, method: Method, made: dict, rows: _Row
     scorer = HoldoutScorer(problem) if settings.holdout is not None else None
 
     def evaluate(m) -> dict:
-        release_free_memory(collect=False)  # the steps' freed heap pages go before the metrics' chunks come
+        release_before(problem.truth.nbytes if problem.truth is not None else 0)  # before the metrics' chunks
         row = scorer(m.estimate().detach()) if scorer is not None else {}
         return {**row, **rows.truth(m.estimate(), ssim=rows.progress_ssim)}
 

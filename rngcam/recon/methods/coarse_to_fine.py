@@ -301,6 +301,9 @@ class CoarseToFine(MethodBase):
     def converged(self) -> str | None:
         return self.method.converged() if self.final else None
 
+    def log_ready(self) -> bool:
+        return self.method.log_ready() if self.final else True  # coarse levels run no stop test
+
     def budget_cut(self) -> str:
         if self.final:
             return ""

@@ -71,6 +71,38 @@ def warp(images: Tensor, matrix: Tensor | np.ndarray) -> Tensor:
     return out.transpose(0, 1)
 
 
+# grid_sample's bicubic kernel (Keys' cubic convolution, A = -0.75), which warp_shift reproduces.
+_CUBIC_A = -0.75
+
+
+def _cubic_shift_matrix(n: int, shift: Tensor, dtype, device) -> Tensor:
+    """(n, n): row i samples a line at i + shift with grid_sample's bicubic taps, clamped to the border."""
+    a = _CUBIC_A
+    pos = torch.arange(n, dtype=dtype, device=device) + shift.to(dtype)
+    left = pos.detach().floor()
+    t = pos - left
+
+    def near(x):  # |x| <= 1
+        return ((a + 2) * x - (a + 3)) * x * x + 1
+
+    def far(x):  # 1 < |x| < 2
+        return ((a * x - 5 * a) * x + 8 * a) * x - 4 * a
+
+    weights = torch.stack([far(t + 1), near(t), near(1 - t), far(2 - t)], dim=1)  # (n, 4)
+    taps = (left.long()[:, None] + torch.arange(-1, 3, device=device)).clamp(0, n - 1)
+    rows = torch.arange(n, device=device)[:, None].expand(n, 4)
+    return torch.zeros(n, n, dtype=dtype, device=device).index_put((rows, taps), weights, accumulate=True)
+
+
+def warp_shift(images: Tensor, dx: Tensor, dy: Tensor) -> Tensor:
+    """`warp` by a translation (out(p) = in(p + (dx, dy)), bicubic, border values outside), as one
+    small matrix product per axis: the same values, half grid_sample's time with its backward on a
+    CPU (bench/convergence.md). dx, dy: 0-d tensors (a gradient reaches them)."""
+    c, n, h, w = images.shape
+    rows = _cubic_shift_matrix(h, dy, images.dtype, images.device)
+    cols = _cubic_shift_matrix(w, dx, images.dtype, images.device)
+    return rows @ images @ cols.t()
+
 def inside(matrix: Tensor, h: int, w: int) -> Tensor:
     """(H, W): 1 where M p lies within the grid's outer pixel centres (warp samples no border value there), else 0."""
     g = sample_grid(matrix.detach(), h, w)[0]

@@ -198,6 +198,24 @@ class PlaneField(nn.Module):
         feats = torch.cat(outs, dim=0)
         return self.decoder(feats.movedim(0, -1))
 
+    def forward_translated(self, axes: Sequence[Tensor], shifts: Tensor) -> Tensor:
+        """A 2-D field on the grid of 1-D coordinates (x, y) moved by one translation per frame,
+        `shifts` (n, 2) in coordinate units: (n, n_y, n_x, out), the values `forward` gives at
+        those points. Each plane is sampled with one matrix product per axis instead of
+        grid_sample: half the time with its backward on a CPU (bench/convergence.md)."""
+        if self.in_dims != 2 or len(axes) != 2:
+            raise ValueError("forward_translated takes a 2-D field and two coordinate vectors")
+        xs, ys = axes
+        n, nx, ny = shifts.shape[0], xs.shape[0], ys.shape[0]
+        outs = []
+        for s in range(self.scale_count):
+            plane = self.planes[s][0]  # (F, R_y, R_x): a 2-D field has one plane per scale
+            f, ry, rx = plane.shape
+            m_x = _build_interp_matrix((xs[None] + shifts[:, :1]).reshape(-1), rx, plane.dtype)  # (n n_x, R_x)
+            m_y = _build_interp_matrix((ys[None] + shifts[:, 1:]).reshape(-1), ry, plane.dtype).view(n, ny, ry)
+            along_x = (plane.reshape(f * ry, rx) @ m_x.t()).view(f, ry, n, nx)
+            outs.append(torch.bmm(m_y, along_x.permute(2, 1, 0, 3).reshape(n, ry, f * nx)).view(n, ny, f, nx))
+        return self.decoder(torch.cat(outs, dim=2).permute(0, 1, 3, 2))  # features in `encode`'s order
 
 # id(coordinate vector) -> (weak reference, its version, {(size, dtype): matrix}): the pixel and
 # frame axes repeat every step. Keyed by the tensor itself, not its values: reading the values

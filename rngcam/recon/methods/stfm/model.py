@@ -8,7 +8,7 @@ from torch import Tensor, nn
 
 from rngcam.errors import ConfigError
 from rngcam.physics.operators import GlobalShutter, RollingShutter
-from rngcam.recon.methods.selfcal import inside, pose_matrix, warp
+from rngcam.recon.methods.selfcal import inside, pose_matrix, warp, warp_shift
 from rngcam.recon.methods.stfm.fields import field_on_grid, make_field
 
 
@@ -113,6 +113,7 @@ class FieldModel:
         self.pose_free = torch.ones(4, device=self.device)  # 0: that value held at zero
         self.pose_radius = max(self.H, self.W) / 2
         self.learn_pose = False
+        self.pose_is_shift = False  # rotation and scale held at zero (learn_geometry "shift")
 
 
     # ------------------------------------------------------------------ the model
@@ -168,17 +169,26 @@ class FieldModel:
             raw = field_on_grid(self.fields["dynamic"], [self.xs, self.ys, self.ts], idx).permute(3, 0, 1, 2)
             base = self._keys_at(u, raw[self.C + 1], idx) * self._gain()[:, None, None, None]
             return F.softplus(raw[:self.C] + _inverse_softplus(base)), torch.sigmoid(raw[self.C:self.C + 1])
+        if self._translated_dynamic():  # one translation per frame: the field sampled axis by axis
+            raw = self.fields["dynamic"].forward_translated([self.xs, self.ys], u[:, 0, 0, :2])
+            raw = raw.permute(3, 0, 1, 2).contiguous()  # softplus on a strided view: 4x its time, backward too
+            return F.softplus(raw[:self.C]), torch.sigmoid(raw[self.C:])
         x = self.xs.view(1, 1, -1) + u[..., 0]
         y = self.ys.view(1, -1, 1) + u[..., 1]
         coords = [x, y]
         if self.resolved.dynamic_time:
             coords.append(self.ts[idx].view(-1, 1, 1).expand_as(x))
         raw = self.fields["dynamic"](torch.stack(coords, dim=-1).reshape(-1, len(coords)))
-        raw = raw.reshape(n, self.H, self.W, self.C + 1).permute(3, 0, 1, 2)
+        raw = raw.reshape(n, self.H, self.W, self.C + 1).permute(3, 0, 1, 2).contiguous()
         colour = raw[:self.C]
         if self.base_source is not None:  # the field is a correction to the warped base video
             colour = colour + _inverse_softplus(self._base_at(x, y, idx) * self._gain()[:, None, None, None])
         return F.softplus(colour), torch.sigmoid(raw[self.C:])
+
+    def _translated_dynamic(self) -> bool:
+        """Whether the dynamic field is 2-D, moved by one translation per frame, with no base video."""
+        return (self.resolved.motion_model == "translation" and not self.resolved.dynamic_time
+                and self.base_source is None and hasattr(self.fields["dynamic"], "forward_translated"))
 
     def _base_at(self, x: Tensor, y: Tensor, idx: Tensor) -> Tensor:
         """The base video (C, n, H, W) of frames idx sampled at the points (x, y) (n, H, W)."""
@@ -214,6 +224,9 @@ class FieldModel:
         """Frames (C, n, H, W) of the fields (GS coordinates) in RS coordinates: sampled at S^-1 q."""
         if not self.learn_pose:
             return frames
+        if self.pose_is_shift:  # S is a translation by the pose's (dx, dy): S^-1 moves back by them
+            shift = self.gs_pose[:2] * self.pose_free[:2]
+            return warp_shift(frames, -shift[0], -shift[1])
         return warp(frames, torch.linalg.inv(self.gs_matrix()))
 
     def frames(self, idx: Tensor, static: Tensor | None = None) -> Tensor:

@@ -118,6 +118,9 @@ class Refits(MethodBase):
             report["kept"], report[self.VALUE] = k, report["refits"][k - 1][self.VALUE]
         return report
 
+    def log_ready(self) -> bool:
+        return self._method.log_ready()
+
     def converged(self) -> str | None:
         why = self._method.converged()
         if why is None or self._rs.get(self._current) is not None:

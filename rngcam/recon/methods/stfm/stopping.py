@@ -46,6 +46,11 @@ class NoiseStop:
                     f"rows (from {self._rs_history[then]:.4f}; noise level {self.rs_noise_level:.4f})")
         return None
 
+    def log_ready(self) -> bool:
+        """A log row scores the video the stop test makes every NOISE_CHECK_STEPS steps: at those
+        steps it is made once for both (a row elsewhere made it again: 5 % of a 64 px run's wall)."""
+        return not (self.resolved.stop_at_noise and self.parts.rs) or self.steps % NOISE_CHECK_STEPS == 0
+
     def _stall_window(self) -> int:
         """`stall_passes` passes over the fitted rows, in steps (a multiple of NOISE_CHECK_STEPS)."""
         steps = self.resolved.stall_passes * len(self.rs_rows_fit) / self.resolved.rows_per_step
