@@ -12,14 +12,6 @@ from rngcam.recon.methods.stfm.fields import field_on_grid
 from rngcam.recon.methods.stfm.settings import INIT_STEPS, MIN_FLOW_SIZE_PX
 
 
-def adam(params, lr: float) -> torch.optim.Adam:
-    """Adam, fused into one kernel for all parameters where the device has it (CPU, CUDA): on a
-    CPU a 64 px STFM step's update in a quarter of the per-parameter loop's time."""
-    params = list(params)
-    tensors = [t for g in params for t in (g["params"] if isinstance(g, dict) else [g])]
-    return torch.optim.Adam(params, lr=lr, fused=bool(tensors) and tensors[0].device.type in ("cpu", "cuda"))
-
-
 class GSInit:
     """Part of STFM: fits the fields to what the GS frames say before the main fit."""
 
@@ -95,7 +87,7 @@ class GSInit:
     def _fit_dynamic_to_blend(self, v: Tensor, times: Tensor, alpha: Tensor | None, steps: int) -> None:
         weights = self._blend_weights(times)  # (K, G)
         field = self.fields["dynamic"]
-        opt = adam(field.parameters(), 2e-2)
+        opt = torch.optim.Adam(field.parameters(), lr=2e-2)
         gen = torch.Generator(device="cpu").manual_seed(self.settings.seed + 2)
         for _ in range(steps):
             idx = torch.randperm(self.K, generator=gen)[:4].to(self.device)
@@ -145,7 +137,7 @@ class GSInit:
     def _fit_motion_to(self, target: Tensor, steps: int, frames_per_step: int = 4) -> None:
         """Fit the motion field to a displacement (K, H, W, 2) in coordinate units."""
         params = list(self.fields["motion"].parameters())
-        opt = adam(params, 2e-2)
+        opt = torch.optim.Adam(params, lr=2e-2)
         gen = torch.Generator(device="cpu").manual_seed(self.settings.seed + 1)
         for _ in range(steps):
             idx = torch.randperm(self.K, generator=gen)[:frames_per_step].to(self.device)
@@ -167,7 +159,7 @@ def _fit_image(module: nn.Module, xs: Tensor, ys: Tensor, image: Tensor, steps: 
                alpha: Tensor | None = None) -> None:
     """Fit a 2-D field so softplus(colour) = image (C, H, W) (and sigmoid(last) = alpha)."""
     params = list(module.parameters())
-    opt = adam(params, 2e-2)
+    opt = torch.optim.Adam(params, lr=2e-2)
     c = image.shape[0]
     for _ in range(steps):
         opt.zero_grad()
