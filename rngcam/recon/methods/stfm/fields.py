@@ -202,7 +202,7 @@ class PlaneField(nn.Module):
         """A 2-D field on the grid of 1-D coordinates (x, y) moved by one translation per frame,
         `shifts` (n, 2) in coordinate units: (n, n_y, n_x, out), the values `forward` gives at
         those points. Each plane is sampled with one matrix product per axis instead of
-        grid_sample: half the time with its backward on a CPU (bench/convergence.md)."""
+        grid_sample: two thirds of the time with its backward on a CPU (bench/convergence.md)."""
         if self.in_dims != 2 or len(axes) != 2:
             raise ValueError("forward_translated takes a 2-D field and two coordinate vectors")
         xs, ys = axes

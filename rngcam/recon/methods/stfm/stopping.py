@@ -48,7 +48,7 @@ class NoiseStop:
 
     def log_ready(self) -> bool:
         """A log row scores the video the stop test makes every NOISE_CHECK_STEPS steps: at those
-        steps it is made once for both (a row elsewhere made it again: 5 % of a 64 px run's wall)."""
+        steps it is made once for both (a row elsewhere made it again: ~60 ms at 64 px)."""
         return not (self.resolved.stop_at_noise and self.parts.rs) or self.steps % NOISE_CHECK_STEPS == 0
 
     def _stall_window(self) -> int:
