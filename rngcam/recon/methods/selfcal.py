@@ -103,6 +103,7 @@ def warp_shift(images: Tensor, dx: Tensor, dy: Tensor) -> Tensor:
     cols = _cubic_shift_matrix(w, dx, images.dtype, images.device)
     return rows @ images @ cols.t()
 
+
 def inside(matrix: Tensor, h: int, w: int) -> Tensor:
     """(H, W): 1 where M p lies within the grid's outer pixel centres (warp samples no border value there), else 0."""
     g = sample_grid(matrix.detach(), h, w)[0]

@@ -217,6 +217,7 @@ class PlaneField(nn.Module):
             outs.append(torch.bmm(m_y, along_x.permute(2, 1, 0, 3).reshape(n, ry, f * nx)).view(n, ny, f, nx))
         return self.decoder(torch.cat(outs, dim=2).permute(0, 1, 3, 2))  # features in `encode`'s order
 
+
 # id(coordinate vector) -> (weak reference, its version, {(size, dtype): matrix}): the pixel and
 # frame axes repeat every step. Keyed by the tensor itself, not its values: reading the values
 # would wait for a GPU at every call.
