@@ -120,18 +120,26 @@ def test_the_loop_reads_the_runs_clock_and_says_once_how_it_ended():
     assert cut.ended_by == "budget" and cut.status == "budget_before_first_iteration" and cut.iterations == 0
 
 
-class _StopsAt(TV3D):
+class _Counting(TV3D):
+    """TV3D that counts its steps."""
+
+    def __init__(self, problem):
+        super().__init__(problem, TV3DSettings())
+        self.steps = 0
+
+    def step(self):
+        self.steps += 1
+        return super().step()
+
+
+class _StopsAt(_Counting):
     """TV3D that declares itself converged after a given number of steps."""
 
     stops_itself = True
 
     def __init__(self, problem, stop_after):
-        super().__init__(problem, TV3DSettings())
-        self.stop_after, self.steps = stop_after, 0
-
-    def step(self):
-        self.steps += 1
-        return super().step()
+        super().__init__(problem)
+        self.stop_after = stop_after
 
     def converged(self):
         return "enough" if self.steps >= self.stop_after else None
@@ -194,16 +202,12 @@ def test_log_spacing_counts_the_cost_of_keeping_the_state():
     assert result.iterations == 60 and 2 <= len(result.log) <= 15, len(result.log)
 
 
-class _ReadyEvery(TV3D):
+class _ReadyEvery(_Counting):
     """A method whose rows cost least every `n`-th step (as STFM's after its stop test)."""
 
     def __init__(self, problem, n):
-        super().__init__(problem, TV3DSettings())
-        self.n, self.steps = n, 0
-
-    def step(self):
-        self.steps += 1
-        return super().step()
+        super().__init__(problem)
+        self.n = n
 
     def log_ready(self):
         return self.steps % self.n == 0
