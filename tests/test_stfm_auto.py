@@ -34,6 +34,19 @@ def test_a_translating_square_is_one_layer_and_a_growing_disc_is_not():
     assert min(growing) > LAYER_MISFIT_MAX
 
 
+def test_large_key_frames_are_tested_binned_to_the_scale_the_threshold_was_set_at():
+    """At 256 px the test bins by 4 to 64 px: the same misfits as on key frames binned beforehand,
+    and the same verdicts as at the small size."""
+    for kind in ("translate", "grow"):
+        keys = torch.nn.functional.interpolate(key_frames(kind, 64), scale_factor=4, mode="nearest")
+        binned = torch.nn.functional.avg_pool2d(keys[0], 4)[None]
+        assert layer_misfits(keys) == pytest.approx(layer_misfits(binned), rel=1e-5)
+        mask = torch.ones(256, 256)
+        assert layer_misfits(keys, mask) == pytest.approx(layer_misfits(binned), rel=1e-5)
+    assert max(layer_misfits(torch.nn.functional.interpolate(key_frames("translate", 64), scale_factor=4))) < 0.05
+    assert min(layer_misfits(torch.nn.functional.interpolate(key_frames("grow", 64), scale_factor=4))) > LAYER_MISFIT_MAX
+
+
 @pytest.mark.parametrize("scene, preset", [("sineball", "prior"), ("smoke", "fast")])
 def test_auto_picks_prior_for_the_ball_and_fast_for_smoke(scene, preset):
     choice = choose_preset(scene_problem(scene, 32))
