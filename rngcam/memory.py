@@ -12,6 +12,9 @@ import ctypes
 import gc
 import os
 import resource
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 
@@ -61,8 +64,8 @@ def total_memory_bytes() -> int:
 def release_free_memory(collect: bool = True) -> None:
     """Hand the C heap's free pages back to the system (glibc's malloc_trim, well under a
     millisecond; nothing elsewhere), after collecting garbage cycles with `collect` (~0.1 s).
-    Tensors under glibc's mmap threshold (up to 32 MiB, e.g. a coarse level's videos, a step's
-    temporaries at 228x342) live in the heap; once freed, their pages stay in RSS until trimmed."""
+    Tensors under glibc's mmap threshold (up to 32 MiB), and every tensor inside `heap_reuse`,
+    live in the heap; once freed, their pages stay in RSS until trimmed."""
     if collect:
         gc.collect()
     try:
@@ -72,8 +75,8 @@ def release_free_memory(collect: bool = True) -> None:
     trim(0)
 
 
-# glibc's largest mmap threshold: a buffer at least this large is mapped afresh, so the heap's free
-# pages would add to the peak beside it; a smaller one may reuse them.
+# glibc's largest mmap threshold: outside `heap_reuse` a buffer at least this large is mapped afresh,
+# so the heap's free pages would add to the peak beside it; a smaller one may reuse them.
 LARGE_BUFFER_BYTES = 32 * 2**20
 
 
@@ -83,3 +86,43 @@ def release_before(nbytes: int) -> None:
     step ~10 ms of page faults (4 % of the run; bench/convergence.md)."""
     if nbytes >= LARGE_BUFFER_BYTES:
         release_free_memory(collect=False)
+
+
+# mallopt's parameters (glibc's malloc.h) and the defaults they are handed back
+_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
+_GLIBC_MMAP_MAX = 65536
+_GLIBC_TRIM_THRESHOLD = 128 * 1024
+_reuse_lock = threading.Lock()
+_reuse_depth = 0
+
+
+def _mallopt(param: int, value: int) -> None:
+    try:
+        ctypes.CDLL(None).mallopt(param, value)
+    except (OSError, AttributeError):  # not glibc
+        pass
+
+
+@contextmanager
+def heap_reuse() -> Iterator[None]:
+    """For the duration, every C allocation comes from the heap and a freed one stays there for the
+    next (glibc's mallopt: no mmap, no trimming on free); `release_free_memory` hands the pages back.
+    glibc maps a buffer over 32 MiB afresh and unmaps it on free, so at 228x342 each step's
+    temporaries were faulted in again page by page: 0.3-0.4 M faults and 0.7-0.9 s of system time a
+    2.5 s step (bench/convergence.md). Around steps only: around a set-up at 456x684 the heap kept
+    blocks it could not reuse and the peak rose 19 %. Nested and concurrent uses (an ensemble's lanes)
+    share one setting; the last to leave restores glibc's."""
+    global _reuse_depth
+    with _reuse_lock:
+        _reuse_depth += 1
+        if _reuse_depth == 1:
+            _mallopt(_M_MMAP_MAX, 0)
+            _mallopt(_M_TRIM_THRESHOLD, 2**31 - 1)
+    try:
+        yield
+    finally:
+        with _reuse_lock:
+            _reuse_depth -= 1
+            if _reuse_depth == 0:
+                _mallopt(_M_MMAP_MAX, _GLIBC_MMAP_MAX)
+                _mallopt(_M_TRIM_THRESHOLD, _GLIBC_TRIM_THRESHOLD)

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from rngcam.errors import ConfigError
-from rngcam.memory import release_before
+from rngcam.memory import heap_reuse, release_before
 from rngcam.recon import ablation
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.selfcal import describe, pose_matrix, report_lines, similarity
@@ -165,8 +165,9 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         n_win = self.resolved.gs_windows_per_step
         if self.parts.gs and n_win and n_win < self.w_gs.shape[0]:
             windows = torch.randperm(self.w_gs.shape[0], generator=self.generator)[:n_win].sort().values
-        terms = self.loss_terms(rows, tv_frames, backward=True, gs_windows=windows)
-        self.optimiser.step()
+        with heap_reuse():  # a large grid's temporaries are not faulted in afresh every step
+            terms = self.loss_terms(rows, tv_frames, backward=True, gs_windows=windows)
+            self.optimiser.step()
         self.steps += 1
         if self._ema is not None:  # warm-up as in TF's ExponentialMovingAverage(num_updates)
             decay = min(self.resolved.ema_decay, (1 + self.steps) / (10 + self.steps))
