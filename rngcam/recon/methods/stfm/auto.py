@@ -77,9 +77,10 @@ def layer_misfits(keys: Tensor, mask: Tensor | None = None) -> list[float]:
 
 def _binned(keys: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor | None]:
     """Key frames (C, G, H, W) and mask (H, W) averaged over f x f blocks, f = the longer side //
-    LAYER_TEST_SIDE (as they are where f < 2; a remainder of rows or columns is left out)."""
+    LAYER_TEST_SIDE, at most the shorter side (as they are where f < 2; a remainder of rows or
+    columns is left out)."""
     c, g, h, w = keys.shape
-    f = max(h, w) // LAYER_TEST_SIDE
+    f = min(max(h, w) // LAYER_TEST_SIDE, h, w)
     if f < 2:
         return keys, mask
     keys = F.avg_pool2d(keys.reshape(c * g, 1, h, w), f).reshape(c, g, h // f, w // f)
