@@ -258,7 +258,6 @@ def test_the_heap_is_trimmed_before_large_buffers_only(monkeypatch):
     assert trims == [False, False]
 
 
-
 # A step-like burst of large temporaries (48, 48 and 96 MiB, freed at its end), eight times: the
 # minor page faults of the cheapest of the last four (the heap's free blocks take a few steps to
 # settle into ones that fit), outside heap_reuse and inside it. In a fresh interpreter: what earlier
