@@ -19,7 +19,7 @@ differently, the camera pans), it is not. The test: for each other key frame g,
 The prior preset is chosen when their mean is below LAYER_MISFIT_MAX. It costs one
 composite per candidate shift and key frame (about a second at 64 px), no fit. Key frames larger
 than LAYER_TEST_SIDE are binned down to about it first: the threshold was set at 32-64 px, and at
-228x342 the test at full size took 10-14 s of the set-up.
+228x342 the test at full size took 8 s of the set-up (0.3 s binned).
 """
 
 from __future__ import annotations
