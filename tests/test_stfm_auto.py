@@ -43,7 +43,7 @@ def test_large_key_frames_are_tested_binned_to_the_scale_the_threshold_was_set_a
         assert layer_misfits(keys) == pytest.approx(layer_misfits(binned), rel=1e-5)
         mask = torch.ones(256, 256)
         assert layer_misfits(keys, mask) == pytest.approx(layer_misfits(binned), rel=1e-5)
-    strip = torch.rand(3, 3, 2, 300, generator=torch.Generator().manual_seed(0))  # a frame thinner than the factor its longer side asks: binned by 2
+    strip = torch.rand(3, 3, 2, 300, generator=torch.Generator().manual_seed(0))  # thinner than the factor its longer side asks: one row
     assert len(layer_misfits(strip)) == 2 and all(m >= 0 for m in layer_misfits(strip))
     assert max(layer_misfits(torch.nn.functional.interpolate(key_frames("translate", 64), scale_factor=4))) < 0.05
     assert min(layer_misfits(torch.nn.functional.interpolate(key_frames("grow", 64), scale_factor=4))) > LAYER_MISFIT_MAX

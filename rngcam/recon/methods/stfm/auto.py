@@ -27,9 +27,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
+from rngcam.recon.methods.coarse_to_fine import bin_video
 from rngcam.recon.methods.stfm.motion_search import candidate_shifts, key_frame_layer, shifted_frames
 
 LAYER_MISFIT_MAX = 0.5  # mean misfit: sineball 0.29 (64 px), 0.39 (32 px); smoke 0.68, 0.60; real clips 0.72-1.0
@@ -76,17 +76,16 @@ def layer_misfits(keys: Tensor, mask: Tensor | None = None) -> list[float]:
 
 
 def _binned(keys: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor | None]:
-    """Key frames (C, G, H, W) and mask (H, W) averaged over f x f blocks, f = the longer side //
-    LAYER_TEST_SIDE, at most the shorter side (as they are where f < 2; a remainder of rows or
-    columns is left out)."""
+    """Key frames (C, G, H, W) and mask (H, W) binned by area as `coarsen` bins a problem, by
+    f = the longer side // LAYER_TEST_SIDE (as they are where f < 2); the mask becomes a weight."""
     c, g, h, w = keys.shape
-    f = min(max(h, w) // LAYER_TEST_SIDE, h, w)
+    f = max(h, w) // LAYER_TEST_SIDE
     if f < 2:
         return keys, mask
-    keys = F.avg_pool2d(keys.reshape(c * g, 1, h, w), f).reshape(c, g, h // f, w // f)
+    shape = (c, g, max(1, round(h / f)), max(1, round(w / f)))
     if mask is not None:
-        mask = F.avg_pool2d(mask.to(keys.device, torch.float32)[None, None], f)[0, 0]
-    return keys, mask
+        mask = bin_video(mask.to(keys)[None, None], (1, 1, *shape[2:]), 1)[0, 0]
+    return bin_video(keys, shape, 1), mask
 
 
 def choose_preset(problem) -> PresetChoice:
