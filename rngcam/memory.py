@@ -9,6 +9,7 @@ process reports at least the parent's size.
 from __future__ import annotations
 
 import ctypes
+import functools
 import gc
 import os
 import resource
@@ -61,6 +62,18 @@ def total_memory_bytes() -> int:
         return 8 * 2**30
 
 
+@functools.cache
+def _glibc():
+    """The process's own C library where it is glibc (malloc_trim and mallopt), else None; looked up
+    once (heap_reuse calls it twice a solver step)."""
+    try:
+        libc = ctypes.CDLL(None)
+        libc.malloc_trim, libc.mallopt  # noqa: B018 (glibc only)
+    except (OSError, AttributeError):
+        return None
+    return libc
+
+
 def release_free_memory(collect: bool = True) -> None:
     """Hand the C heap's free pages back to the system (glibc's malloc_trim, well under a
     millisecond; nothing elsewhere), after collecting garbage cycles with `collect` (~0.1 s).
@@ -68,11 +81,9 @@ def release_free_memory(collect: bool = True) -> None:
     live in the heap; once freed, their pages stay in RSS until trimmed."""
     if collect:
         gc.collect()
-    try:
-        trim = ctypes.CDLL(None).malloc_trim  # the process's own libc
-    except (OSError, AttributeError):  # not glibc
-        return
-    trim(0)
+    libc = _glibc()
+    if libc is not None:
+        libc.malloc_trim(0)
 
 
 # glibc's largest mmap threshold: outside `heap_reuse` a buffer at least this large is mapped afresh,
@@ -97,10 +108,9 @@ _reuse_depth = 0
 
 
 def _mallopt(param: int, value: int) -> None:
-    try:
-        ctypes.CDLL(None).mallopt(param, value)
-    except (OSError, AttributeError):  # not glibc
-        pass
+    libc = _glibc()
+    if libc is not None:
+        libc.mallopt(param, value)
 
 
 @contextmanager
@@ -111,7 +121,8 @@ def heap_reuse() -> Iterator[None]:
     temporaries were faulted in again page by page: 0.3-0.4 M faults and 0.7-0.9 s of system time a
     2.5 s step (bench/convergence.md). Around steps only: around a set-up at 456x684 the heap kept
     blocks it could not reuse and the peak rose 19 %. Nested and concurrent uses (an ensemble's lanes)
-    share one setting; the last to leave restores glibc's."""
+    share one setting; the last to leave restores glibc's (its mmap threshold then stays where the
+    set-up's frees had raised it: glibc stops adjusting it once a threshold is set)."""
     global _reuse_depth
     with _reuse_lock:
         _reuse_depth += 1
