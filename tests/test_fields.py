@@ -138,18 +138,37 @@ def test_grid_path_at_frame_indices_matches_those_frames_and_reuses_the_axes_mat
     assert key not in fields._MATRIX_CACHE  # a dead axis leaves nothing behind
 
 
-def test_translated_path_matches_pointwise_values_and_gradients():
-    """forward_translated (STFM's one translation per frame) gives what `forward` gives at the moved
-    points, border clamp included, and the same gradients for the planes and the shifts."""
+def test_translated_path_is_the_decoded_image_moved_bilinearly():
+    """forward_translated (STFM's one translation per frame): the field decoded on a grid twice as
+    fine as the pixels, moved per frame by bilinear interpolation with a border clamp, values and
+    gradients (planes, decoder and shifts) as grid_sample gives them on that image; at the pixels
+    themselves and at moves by whole knots, what `forward` gives at the moved points."""
     torch.manual_seed(2)
     f = PlaneField(2, 3, resolutions=(4, 7, 9), features=3, hidden=8).double()
     with torch.no_grad():
         for plane in f.planes:
             plane.uniform_(-1, 1)
     xs, ys = torch.linspace(-1, 1, 9, dtype=torch.float64), torch.linspace(-1, 1, 6, dtype=torch.float64)
-    # some points moved off the planes; none exactly onto their edge, where grid_sample's coordinate
+    # some points moved off the grid; none exactly onto its edge, where grid_sample's coordinate
     # gradient takes the slope towards the zeros outside and the matrices the slope inside
     shifts = torch.tensor([[0.01, -0.02], [0.13, -0.41], [-0.9, 0.3], [1.7, -1.55]], dtype=torch.float64)
+
+    def pointwise(x, y):
+        return f(torch.stack([x, y], dim=-1).reshape(-1, 2)).reshape(*x.shape, 3)
+
+    def moved(s):
+        x = (xs[None, None, :] + s[:, 0, None, None]).expand(len(s), len(ys), len(xs))
+        y = (ys[None, :, None] + s[:, 1, None, None]).expand(len(s), len(ys), len(xs))
+        return x, y
+
+    def reference(s):
+        kx, ky = torch.linspace(-1, 1, 17, dtype=torch.float64), torch.linspace(-1, 1, 11, dtype=torch.float64)
+        gy, gx = torch.meshgrid(ky, kx, indexing="ij")
+        image = pointwise(gx, gy).permute(2, 0, 1)[None].expand(len(s), 3, 11, 17)
+        x, y = moved(s)
+        out = torch.nn.functional.grid_sample(image, torch.stack([x, y], dim=-1), mode="bilinear",
+                                              padding_mode="border", align_corners=True)
+        return out.permute(0, 2, 3, 1)
 
     def both(path):
         s = shifts.clone().requires_grad_()
@@ -158,17 +177,19 @@ def test_translated_path_matches_pointwise_values_and_gradients():
         grads = torch.autograd.grad((out * weights).sum(), [s, *f.parameters()])
         return out.detach(), grads
 
-    def pointwise(s):
-        x = (xs[None, None, :] + s[:, 0, None, None]).expand(len(s), len(ys), len(xs))
-        y = (ys[None, :, None] + s[:, 1, None, None]).expand(len(s), len(ys), len(xs))
-        return f(torch.stack([x, y], dim=-1).reshape(-1, 2)).reshape(len(s), len(ys), len(xs), 3)
-
     fast, fast_grads = both(lambda s: f.forward_translated([xs, ys], s))
-    slow, slow_grads = both(pointwise)
+    slow, slow_grads = both(reference)
     assert fast.shape == (4, 6, 9, 3)
     assert torch.allclose(fast, slow, atol=1e-12)
     for a, b in zip(fast_grads, slow_grads, strict=True):
         assert torch.allclose(a, b, atol=1e-10)
-    assert fast_grads[0][1].abs().sum() > 0  # a shift inside the planes moves the output
+    assert fast_grads[0][1].abs().sum() > 0  # a shift inside the grid moves the output
+    with torch.no_grad():  # on the knots the image is the field itself: no shift, and whole knots
+        knots = torch.tensor([[0.0, 0.0], [2 / 16, -3 * 2 / 10], [-5 * 2 / 16, 2 / 10]], dtype=torch.float64)
+        assert torch.allclose(f.forward_translated([xs, ys], knots), pointwise(*moved(knots)), atol=1e-12)
+        # an axis of one pixel: its centre stays on the grid
+        one = f.forward_translated([torch.zeros(1, dtype=torch.float64), ys], knots[:1])
+        assert torch.allclose(one, pointwise(*torch.meshgrid(torch.zeros(1, dtype=torch.float64), ys,
+                                                             indexing="xy"))[None], atol=1e-12)
     with pytest.raises(ValueError):
         PlaneField(3, 2).forward_translated([xs, ys], shifts)

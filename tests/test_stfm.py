@@ -157,12 +157,16 @@ def test_sampled_rows_cover_each_row_equally():
     assert np.allclose(counts / 800, 1, atol=0.15)
 
 
-def test_chunked_backpropagation_gives_the_same_gradient(sineball16):
+@pytest.mark.parametrize("preset", [{}, {"preset": "prior", "dynamic_base": None, "matte_l1": 0.0}],
+                         ids=["fast", "prior (the canonical image decoded once, a leaf of every chunk)"])
+def test_chunked_backpropagation_gives_the_same_gradient(sineball16, preset):
     grads = []
     for chunk in (64, 2):  # one graph for all frames vs. two-pass chunk-wise
-        m = make_stfm(sineball16, small_settings(frame_chunk=chunk, init="random"))
+        m = make_stfm(sineball16, small_settings(frame_chunk=chunk, init="random", **preset))
+        assert m._translated_dynamic() == bool(preset)
         m.optimiser.zero_grad()
         terms = m.loss_terms(torch.arange(2, 10), torch.tensor([1, 5]), backward=True)
+        assert all(float(p.grad.abs().sum()) > 0 for p in m.fields["dynamic"].parameters())
         grads.append(([p.grad.clone() for p in m.fields.parameters()], terms))
     (g1, t1), (g2, t2) = grads
     assert t1 == pytest.approx(t2, rel=1e-5)
@@ -187,8 +191,8 @@ def test_memory_per_step_does_not_grow_with_the_frame_count():
         sizes = []
         original = m.frames
 
-        def counting(idx, static=None):
-            out = original(idx, static)
+        def counting(idx, *parts):
+            out = original(idx, *parts)
             if out.requires_grad:
                 sizes.append(len(idx))
             return out

@@ -198,24 +198,38 @@ class PlaneField(nn.Module):
         feats = torch.cat(outs, dim=0)
         return self.decoder(feats.movedim(0, -1))
 
-    def forward_translated(self, axes: Sequence[Tensor], shifts: Tensor) -> Tensor:
-        """A 2-D field on the grid of 1-D coordinates (x, y) moved by one translation per frame,
-        `shifts` (n, 2) in coordinate units: (n, n_y, n_x, out), the values `forward` gives at
-        those points. Each plane is sampled with one matrix product per axis instead of
-        grid_sample: two thirds of the time with its backward on a CPU (bench/convergence.md)."""
+    def forward_translated(self, axes: Sequence[Tensor], shifts: Tensor, oversample: int = 2) -> Tensor:
+        """A 2-D field on the grid of 1-D pixel coordinates (x, y), each axis linspace(-1, 1, n),
+        moved by one translation per frame, `shifts` (n, 2) in coordinate units: (n, n_y, n_x, out).
+
+        The field is decoded once (`decode_for_translation`) and each frame is that image
+        interpolated bilinearly at the moved pixels (`translate_image`): a step decodes one image
+        instead of every frame's pixels (bench/convergence.md, stop 59). Without a shift, the
+        values `forward` gives at the pixels."""
+        return translate_image(self.decode_for_translation(axes, oversample), axes, shifts)
+
+    def decode_for_translation(self, axes: Sequence[Tensor], oversample: int = 2) -> Tensor:
+        """The 2-D field (R_y, R_x, out) on a grid `oversample` times finer than the pixel axes
+        (x, y) (each linspace(-1, 1, n)), the pixel centres on it."""
         if self.in_dims != 2 or len(axes) != 2:
-            raise ValueError("forward_translated takes a 2-D field and two coordinate vectors")
-        xs, ys = axes
-        n, nx, ny = shifts.shape[0], xs.shape[0], ys.shape[0]
-        outs = []
-        for s in range(self.scale_count):
-            plane = self.planes[s][0]  # (F, R_y, R_x): a 2-D field has one plane per scale
-            f, ry, rx = plane.shape
-            m_x = _build_interp_matrix((xs[None] + shifts[:, :1]).reshape(-1), rx, plane.dtype)  # (n n_x, R_x)
-            m_y = _build_interp_matrix((ys[None] + shifts[:, 1:]).reshape(-1), ry, plane.dtype).view(n, ny, ry)
-            along_x = (plane.reshape(f * ry, rx) @ m_x.t()).view(f, ry, n, nx)
-            outs.append(torch.bmm(m_y, along_x.permute(2, 1, 0, 3).reshape(n, ry, f * nx)).view(n, ny, f, nx))
-        return self.decoder(torch.cat(outs, dim=2).permute(0, 1, 3, 2))  # features in `encode`'s order
+            raise ValueError("a translated field takes a 2-D field and two coordinate vectors")
+        knots = [torch.linspace(-1.0, 1.0, oversample * (max(a.shape[0], 2) - 1) + 1, device=a.device,
+                                dtype=a.dtype) for a in axes]
+        return self.forward_grid(knots)
+
+
+def translate_image(image: Tensor, axes: Sequence[Tensor], shifts: Tensor) -> Tensor:
+    """An image (R_y, R_x, out) on linspace(-1, 1) knots, interpolated bilinearly (border clamp) at
+    the pixel grid (x, y) moved by `shifts` (n, 2) in coordinate units: (n, n_y, n_x, out). One
+    interpolation matrix per frame and axis, two matrix products."""
+    xs, ys = axes
+    n, nx, ny = shifts.shape[0], xs.shape[0], ys.shape[0]
+    ry, rx, out = image.shape
+    m_x = _build_interp_matrix((xs[None] + shifts[:, :1]).reshape(-1), rx, image.dtype)  # (n n_x, R_x)
+    m_y = _build_interp_matrix((ys[None] + shifts[:, 1:]).reshape(-1), ry, image.dtype).view(n, ny, ry)
+    along_x = (image.permute(2, 0, 1).reshape(out * ry, rx) @ m_x.t()).view(out, ry, n, nx)
+    moved = torch.bmm(m_y, along_x.permute(2, 1, 0, 3).reshape(n, ry, out * nx)).view(n, ny, out, nx)
+    return moved.permute(0, 1, 3, 2)
 
 
 # id(coordinate vector) -> (weak reference, its version, {(size, dtype): matrix}): the pixel and

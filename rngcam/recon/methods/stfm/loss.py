@@ -139,6 +139,10 @@ class DataLoss:
         # gradient once at the end.
         static = None if static_graph is None else (
             static_graph.detach().requires_grad_() if backward and static_graph.requires_grad else static_graph)
+        canonical_graph = self._canonical()  # likewise: the translated dynamic field decoded once a step
+        canonical = None if canonical_graph is None else (
+            canonical_graph.detach().requires_grad_() if backward and canonical_graph.requires_grad
+            else canonical_graph)
         graph_loss = torch.zeros((), device=dev)
         if self._has_canonical_matte:
             matte = self.matte_term()
@@ -165,7 +169,7 @@ class DataLoss:
         # One evaluation for the GS windows and (when it fits in one chunk) the RS frames.
         n_gs = len(win_frames)
         first = torch.cat([win_frames] + ([chunks[0]] if single and chunks else []))
-        v_first = self.frames(first, static) if len(first) else None
+        v_first = self.frames(first, static, canonical) if len(first) else None
         v_gs = None
         if n_gs:
             v_gs = v_first[:, :n_gs]
@@ -195,7 +199,8 @@ class DataLoss:
                 graph_loss = graph_loss + rs
             else:  # two passes: residual without a graph, then chunk-wise back-propagation
                 with torch.no_grad():
-                    pred_rest = sum(self.rs_op.A_rows(self._rs_view(self.frames(c, static)), rows, c, _cols(w_rows, c))
+                    pred_rest = sum(self.rs_op.A_rows(self._rs_view(self.frames(c, static, canonical)), rows, c,
+                                                      _cols(w_rows, c))
                                     for c in chunks)
                 residual = self.rs_miss(pred.detach() + pred_rest, rows)  # 0/1 mask: also d(loss)/d(pred) / 2
                 terms["rs"] = scale * residual.square().sum()
@@ -206,11 +211,13 @@ class DataLoss:
             if graph_loss.requires_grad:
                 graph_loss.backward()
             for c, grad in chunk_jobs:
-                surrogate = (self.rs_op.A_rows(self._rs_view(self.frames(c, static)), rows, c, _cols(w_rows, c))
-                             * grad).sum()
+                frames = self._rs_view(self.frames(c, static, canonical))
+                surrogate = (self.rs_op.A_rows(frames, rows, c, _cols(w_rows, c)) * grad).sum()
                 surrogate.backward()
             if static is not static_graph and static.grad is not None:
                 static_graph.backward(static.grad)
+            if canonical is not canonical_graph and canonical.grad is not None:
+                canonical_graph.backward(canonical.grad)
             if w_rows is not w_graph and w_rows.grad is not None:
                 w_graph.backward(w_rows.grad)
         names = [k for k, v in terms.items() if isinstance(v, Tensor)]

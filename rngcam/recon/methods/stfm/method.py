@@ -210,7 +210,7 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         video = torch.empty(self.C, self.K, self.H, self.W, device=self.device)
         if self.device.type == "cpu":  # the steps' freed heap pages go before a large video's buffer comes
             release_before(video.numel() * video.element_size())
-        with self._averaged():
+        with self._averaged(), self._decoded_once():
             for idx in _chunks(torch.arange(self.K, device=self.device), self.frame_chunk):
                 video[:, idx] = self._video_frames(idx)
         self._cache = (self.steps, video)
