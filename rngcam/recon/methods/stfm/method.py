@@ -158,7 +158,6 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         lr = self._lr_now()
         for g in self.optimiser.param_groups:
             g["lr"] = lr * g["lr_ratio"]
-        self.optimiser.zero_grad(set_to_none=True)
         rows = self.sample_rows() if self.parts.rs else None
         tv_frames = self.sample_tv_frames() if (self.parts.motion and self.parts.motion_reg) else None
         windows = None
@@ -166,6 +165,8 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         if self.parts.gs and n_win and n_win < self.w_gs.shape[0]:
             windows = torch.randperm(self.w_gs.shape[0], generator=self.generator)[:n_win].sort().values
         with heap_reuse():  # a large grid's temporaries are not faulted in afresh every step
+            # freed inside: outside, glibc trimmed the heap top the last step's gradients held
+            self.optimiser.zero_grad(set_to_none=True)
             terms = self.loss_terms(rows, tv_frames, backward=True, gs_windows=windows)
             self.optimiser.step()
         self.steps += 1
