@@ -174,6 +174,24 @@ def test_chunked_backpropagation_gives_the_same_gradient(sineball16, preset):
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-7)
 
 
+def test_a_translated_canonical_image_is_decoded_once_per_video(sineball16, monkeypatch):
+    """estimate() decodes the prior preset's canonical image once for all its chunks, to the same
+    video as decoding it for every chunk, and forgets it afterwards."""
+    m = make_stfm(sineball16, small_settings(preset="prior", dynamic_base=None, frame_chunk=2, ema_decay=0.0))
+    for _ in range(3):
+        m.step()
+    field = m.fields["dynamic"]
+    decodes = []
+    original = field.decode_for_translation
+    monkeypatch.setattr(field, "decode_for_translation", lambda *a, **k: decodes.append(1) or original(*a, **k))
+    video = m.estimate()
+    assert len(decodes) == 1 and m._canonical_now is None
+    with torch.no_grad():
+        each = torch.cat([m._video_frames(torch.arange(k, min(k + 2, m.K))) for k in range(0, m.K, 2)], dim=1)
+    assert len(decodes) == 1 + (m.K + 1) // 2
+    assert torch.allclose(video, each, rtol=0, atol=1e-6)
+
+
 def test_memory_per_step_does_not_grow_with_the_frame_count():
     """Frames evaluated under one autograd graph stay bounded when K doubles (finer grid)."""
     def max_graph_frames(dt_factor):
