@@ -6,7 +6,14 @@ import pytest
 import torch
 
 from rngcam.errors import ConfigError
-from rngcam.recon.methods.stfm.fields import PlaneField, PositionalEncoding, Siren, field_on_grid, make_field
+from rngcam.recon.methods.stfm.fields import (
+    PlaneField,
+    PositionalEncoding,
+    Siren,
+    field_on_grid,
+    make_field,
+    translate_image,
+)
 
 
 def test_positional_encoding_values_and_size():
@@ -139,8 +146,9 @@ def test_grid_path_at_frame_indices_matches_those_frames_and_reuses_the_axes_mat
 
 
 def test_translated_path_is_the_decoded_image_moved_bilinearly():
-    """forward_translated (STFM's one translation per frame): the field decoded on a grid twice as
-    fine as the pixels, moved per frame by bilinear interpolation with a border clamp, values and
+    """decode_for_translation then translate_image (STFM's one translation per frame): the field
+    decoded on a grid twice as fine as the pixels, moved per frame by bilinear interpolation with a
+    border clamp, values and
     gradients (planes, decoder and shifts) as grid_sample gives them on that image; at the pixels
     themselves and at moves by whole knots, what `forward` gives at the moved points."""
     torch.manual_seed(2)
@@ -155,6 +163,9 @@ def test_translated_path_is_the_decoded_image_moved_bilinearly():
 
     def pointwise(x, y):
         return f(torch.stack([x, y], dim=-1).reshape(-1, 2)).reshape(*x.shape, 3)
+
+    def moved_image(axes, s):
+        return translate_image(f.decode_for_translation(axes), axes, s)
 
     def moved(s):
         x = (xs[None, None, :] + s[:, 0, None, None]).expand(len(s), len(ys), len(xs))
@@ -177,7 +188,7 @@ def test_translated_path_is_the_decoded_image_moved_bilinearly():
         grads = torch.autograd.grad((out * weights).sum(), [s, *f.parameters()])
         return out.detach(), grads
 
-    fast, fast_grads = both(lambda s: f.forward_translated([xs, ys], s))
+    fast, fast_grads = both(lambda s: moved_image([xs, ys], s))
     slow, slow_grads = both(reference)
     assert fast.shape == (4, 6, 9, 3)
     assert torch.allclose(fast, slow, atol=1e-12)
@@ -186,10 +197,10 @@ def test_translated_path_is_the_decoded_image_moved_bilinearly():
     assert fast_grads[0][1].abs().sum() > 0  # a shift inside the grid moves the output
     with torch.no_grad():  # on the knots the image is the field itself: no shift, and whole knots
         knots = torch.tensor([[0.0, 0.0], [2 / 16, -3 * 2 / 10], [-5 * 2 / 16, 2 / 10]], dtype=torch.float64)
-        assert torch.allclose(f.forward_translated([xs, ys], knots), pointwise(*moved(knots)), atol=1e-12)
+        assert torch.allclose(moved_image([xs, ys], knots), pointwise(*moved(knots)), atol=1e-12)
         # an axis of one pixel: its centre stays on the grid
-        one = f.forward_translated([torch.zeros(1, dtype=torch.float64), ys], knots[:1])
+        one = moved_image([torch.zeros(1, dtype=torch.float64), ys], knots[:1])
         assert torch.allclose(one, pointwise(*torch.meshgrid(torch.zeros(1, dtype=torch.float64), ys,
                                                              indexing="xy"))[None], atol=1e-12)
     with pytest.raises(ValueError):
-        PlaneField(3, 2).forward_translated([xs, ys], shifts)
+        PlaneField(3, 2).decode_for_translation([xs, ys])

@@ -209,8 +209,8 @@ def test_memory_per_step_does_not_grow_with_the_frame_count():
         sizes = []
         original = m.frames
 
-        def counting(idx, *parts):
-            out = original(idx, *parts)
+        def counting(idx, static=None):
+            out = original(idx, static)
             if out.requires_grad:
                 sizes.append(len(idx))
             return out

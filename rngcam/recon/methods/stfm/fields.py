@@ -198,19 +198,12 @@ class PlaneField(nn.Module):
         feats = torch.cat(outs, dim=0)
         return self.decoder(feats.movedim(0, -1))
 
-    def forward_translated(self, axes: Sequence[Tensor], shifts: Tensor, oversample: int = 2) -> Tensor:
-        """A 2-D field on the grid of 1-D pixel coordinates (x, y), each axis linspace(-1, 1, n),
-        moved by one translation per frame, `shifts` (n, 2) in coordinate units: (n, n_y, n_x, out).
-
-        The field is decoded once (`decode_for_translation`) and each frame is that image
-        interpolated bilinearly at the moved pixels (`translate_image`): a step decodes one image
-        instead of every frame's pixels (bench/convergence.md, stop 59). Without a shift, the
-        values `forward` gives at the pixels."""
-        return translate_image(self.decode_for_translation(axes, oversample), axes, shifts)
-
     def decode_for_translation(self, axes: Sequence[Tensor], oversample: int = 2) -> Tensor:
         """The 2-D field (R_y, R_x, out) on a grid `oversample` times finer than the pixel axes
-        (x, y) (each linspace(-1, 1, n)), the pixel centres on it."""
+        (x, y) (each linspace(-1, 1, n)), the pixel centres on it: an image that `translate_image`
+        moves, one translation per frame (STFM's prior preset decodes its canonical image once a
+        step instead of at every frame's pixels; bench/convergence.md, stop 59). At the pixels, the
+        values `forward` gives."""
         if self.in_dims != 2 or len(axes) != 2:
             raise ValueError("a translated field takes a 2-D field and two coordinate vectors")
         knots = [torch.linspace(-1.0, 1.0, oversample * (max(a.shape[0], 2) - 1) + 1, device=a.device,

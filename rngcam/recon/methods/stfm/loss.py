@@ -129,6 +129,20 @@ class DataLoss:
         """The step's terms {"gs", "rs", "tv", "smooth"} as floats for given samples of RS rows, TV
         frames and GS frames (`gs_windows`, None: all; full terms: all rows, all frames). With
         `backward` the gradient of their sum is accumulated, chunk by chunk."""
+        # A translated canonical image is decoded once and, as the static image, is a leaf of every
+        # chunk's graph: its gradient is taken on once at the end.
+        canonical_graph = self._canonical()
+        canonical = canonical_graph
+        if backward and canonical_graph is not None and canonical_graph.requires_grad:
+            canonical = canonical_graph.detach().requires_grad_()
+        with self._decoded_once(canonical):
+            terms = self._terms(rows, tv_frames, backward, gs_windows)
+        if canonical is not canonical_graph and canonical.grad is not None:
+            canonical_graph.backward(canonical.grad)
+        return terms
+
+    def _terms(self, rows: Tensor | None, tv_frames: Tensor | None, backward: bool,
+               gs_windows: Tensor | None) -> dict:
         dev = self.device
         windows, win_frames, win_host = self._step_windows(gs_windows)
         # terms stay tensors until the end: one wait for a GPU per call, not one per term
@@ -139,10 +153,6 @@ class DataLoss:
         # gradient once at the end.
         static = None if static_graph is None else (
             static_graph.detach().requires_grad_() if backward and static_graph.requires_grad else static_graph)
-        canonical_graph = self._canonical()  # likewise: the translated dynamic field decoded once a step
-        canonical = None if canonical_graph is None else (
-            canonical_graph.detach().requires_grad_() if backward and canonical_graph.requires_grad
-            else canonical_graph)
         graph_loss = torch.zeros((), device=dev)
         if self._has_canonical_matte:
             matte = self.matte_term()
@@ -169,7 +179,7 @@ class DataLoss:
         # One evaluation for the GS windows and (when it fits in one chunk) the RS frames.
         n_gs = len(win_frames)
         first = torch.cat([win_frames] + ([chunks[0]] if single and chunks else []))
-        v_first = self.frames(first, static, canonical) if len(first) else None
+        v_first = self.frames(first, static) if len(first) else None
         v_gs = None
         if n_gs:
             v_gs = v_first[:, :n_gs]
@@ -199,8 +209,7 @@ class DataLoss:
                 graph_loss = graph_loss + rs
             else:  # two passes: residual without a graph, then chunk-wise back-propagation
                 with torch.no_grad():
-                    pred_rest = sum(self.rs_op.A_rows(self._rs_view(self.frames(c, static, canonical)), rows, c,
-                                                      _cols(w_rows, c))
+                    pred_rest = sum(self.rs_op.A_rows(self._rs_view(self.frames(c, static)), rows, c, _cols(w_rows, c))
                                     for c in chunks)
                 residual = self.rs_miss(pred.detach() + pred_rest, rows)  # 0/1 mask: also d(loss)/d(pred) / 2
                 terms["rs"] = scale * residual.square().sum()
@@ -211,13 +220,11 @@ class DataLoss:
             if graph_loss.requires_grad:
                 graph_loss.backward()
             for c, grad in chunk_jobs:
-                frames = self._rs_view(self.frames(c, static, canonical))
-                surrogate = (self.rs_op.A_rows(frames, rows, c, _cols(w_rows, c)) * grad).sum()
+                surrogate = (self.rs_op.A_rows(self._rs_view(self.frames(c, static)), rows, c, _cols(w_rows, c))
+                             * grad).sum()
                 surrogate.backward()
             if static is not static_graph and static.grad is not None:
                 static_graph.backward(static.grad)
-            if canonical is not canonical_graph and canonical.grad is not None:
-                canonical_graph.backward(canonical.grad)
             if w_rows is not w_graph and w_rows.grad is not None:
                 w_graph.backward(w_rows.grad)
         names = [k for k, v in terms.items() if isinstance(v, Tensor)]

@@ -81,7 +81,7 @@ class FieldModel:
         kind_m, cfg_m = preset["motion"]
         kind_d, cfg_d = preset["dynamic"]
         self.fields = nn.ModuleDict()
-        self._canonical_now: Tensor | None = None  # set inside _decoded_once
+        self._canonical_now: Tensor | None = None  # the decoded canonical image inside _decoded_once
         if self.parts.static:
             self.fields["static"] = make_field(kind_s, 2, self.C, **cfg_s)
         if self.parts.motion:
@@ -164,19 +164,16 @@ class FieldModel:
         m = torch.sigmoid(self.key_logit.index_select(0, idx) + blend_logit)[:, None]
         return (m * w0 + (1 - m) * w1).permute(1, 0, 2, 3)
 
-    def _dynamic_at(self, u: Tensor, idx: Tensor, canonical: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def _dynamic_at(self, u: Tensor, idx: Tensor) -> tuple[Tensor, Tensor]:
         """Dynamic colour (C, n, H, W) and alpha (1, n, H, W) at the points warped by u (n, H, W, 2)
-        (frames idx: the time coordinate when the dynamic field has one; `canonical`: the
-        translated field's decoded image, if already evaluated)."""
+        (frames idx: the time coordinate when the dynamic field has one)."""
         n = u.shape[0]
         if self._key_warps:  # the motion moves the key frames; the field sits at (x, y, t)
             raw = field_on_grid(self.fields["dynamic"], [self.xs, self.ys, self.ts], idx).permute(3, 0, 1, 2)
             base = self._keys_at(u, raw[self.C + 1], idx) * self._gain()[:, None, None, None]
             return F.softplus(raw[:self.C] + _inverse_softplus(base)), torch.sigmoid(raw[self.C:self.C + 1])
         if self._translated_dynamic():  # one translation per frame: the decoded image moved
-            image = self._canonical_now if canonical is None else canonical
-            if image is None:
-                image = self._canonical()
+            image = self._canonical_now if self._canonical_now is not None else self._canonical()
             raw = translate_image(image, [self.xs, self.ys], u[:, 0, 0, :2])
             raw = raw.permute(3, 0, 1, 2).contiguous()  # softplus on a strided view: 4x its time, backward too
             return F.softplus(raw[:self.C]), torch.sigmoid(raw[self.C:])
@@ -205,13 +202,15 @@ class FieldModel:
         return self.fields["dynamic"].decode_for_translation([self.xs, self.ys])
 
     @contextmanager
-    def _decoded_once(self):
-        """Inside, without gradients: every frame evaluation moves one decoded canonical image."""
-        self._canonical_now = self._canonical()
+    def _decoded_once(self, image: Tensor | None = None):
+        """Inside: every frame evaluation moves one decoded canonical image, `image` (a step's leaf)
+        or, without one, the image decoded now."""
+        previous = self._canonical_now
+        self._canonical_now = self._canonical() if image is None else image
         try:
             yield
         finally:
-            self._canonical_now = None
+            self._canonical_now = previous
 
     def _base_at(self, x: Tensor, y: Tensor, idx: Tensor) -> Tensor:
         """The base video (C, n, H, W) of frames idx sampled at the points (x, y) (n, H, W)."""
@@ -252,18 +251,17 @@ class FieldModel:
             return warp_shift(frames, -shift[0], -shift[1])
         return warp(frames, torch.linalg.inv(self.gs_matrix()))
 
-    def frames(self, idx: Tensor, static: Tensor | None = None, canonical: Tensor | None = None) -> Tensor:
+    def frames(self, idx: Tensor, static: Tensor | None = None) -> Tensor:
         """Video frames idx (C, n, H, W), before any hard GS anchoring (zero outside the mask).
 
-        `static` and `canonical` may pass in the static image and the translated dynamic field's
-        decoded image (`_canonical`) already evaluated for this step."""
+        `static` may pass in the static image already evaluated for this step."""
         n = len(idx)
         if self.parts.static and static is None:
             static = self._static()
         if not self.parts.motion:
             v = static[:, None].expand(self.C, n, self.H, self.W)
         else:
-            colour, alpha = self._dynamic_at(self._motion(idx), idx, canonical)
+            colour, alpha = self._dynamic_at(self._motion(idx), idx)
             v = colour if not self.parts.static else alpha * static[:, None] + (1 - alpha) * colour
         return v if self.mask is None else v * self.mask
 
