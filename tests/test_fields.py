@@ -11,6 +11,8 @@ from rngcam.recon.methods.stfm.fields import (
     PositionalEncoding,
     Siren,
     field_on_grid,
+    interpolate_grid,
+    knots_every,
     make_field,
     translate_image,
 )
@@ -204,3 +206,29 @@ def test_translated_path_is_the_decoded_image_moved_bilinearly():
                                                              indexing="xy"))[None], atol=1e-12)
     with pytest.raises(ValueError):
         PlaneField(3, 2).decode_for_translation([xs, ys])
+
+
+def test_values_on_knots_are_interpolated_bilinearly_at_the_pixels():
+    """interpolate_grid (STFM's motion field, decoded on knots about every 2 px): values and their
+    gradient as grid_sample gives them on the knots' image; a pixel on a knot reads that knot."""
+    torch.manual_seed(3)
+    xs, ys = torch.linspace(-1, 1, 33, dtype=torch.float64), torch.linspace(-1, 1, 19, dtype=torch.float64)
+    kx, ky = knots_every(xs, 2), knots_every(ys, 2)
+    assert (len(kx), len(ky)) == (17, 10) and kx[0] == -1 and kx[-1] == 1
+    values = torch.randn(4, len(ky), len(kx), 2, dtype=torch.float64, requires_grad=True)
+    out = interpolate_grid(values, [kx, ky], [xs, ys])
+    grid = torch.stack(torch.meshgrid(ys, xs, indexing="ij")[::-1], dim=-1)[None].expand(4, -1, -1, -1)
+    ref = torch.nn.functional.grid_sample(values.permute(0, 3, 1, 2), grid, mode="bilinear",
+                                          padding_mode="border", align_corners=True).permute(0, 2, 3, 1)
+    assert out.shape == (4, 19, 33, 2)
+    assert torch.allclose(out, ref, atol=1e-12)
+    weights = torch.linspace(-1, 2, out.numel(), dtype=torch.float64).view_as(out)
+    got, = torch.autograd.grad((out * weights).sum(), values)
+    want, = torch.autograd.grad((ref * weights).sum(), values)
+    assert torch.allclose(got, want, atol=1e-12)
+    assert torch.allclose(out[:, ::2, ::2], values, atol=1e-12)  # every other pixel is a knot here
+    # axes too short to thin are their own knots, passed through untouched
+    two = torch.linspace(-1, 1, 2)
+    assert knots_every(two, 2) is two and knots_every(torch.zeros(1), 2).shape == (1,)
+    same = torch.randn(3, 2, 2, 1)
+    assert interpolate_grid(same, [two, two], [two, two]) is same

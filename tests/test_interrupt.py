@@ -16,9 +16,11 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 from click.testing import CliRunner
 
 from rngcam.cli import main
+from rngcam.recon import registry
 
 REPO = Path(__file__).resolve().parents[1]
 RECON = [sys.executable, "-c", "import sys; from rngcam.cli import main; sys.argv[0] = 'rngcam'; main()", "recon"]
@@ -134,6 +136,16 @@ def test_resume_refuses_another_bundle_method_or_folder_in_one_line_and_touches_
         lines = text.strip().splitlines()
         assert code == 2 and len(lines) == 1 and why in lines[0] and lines[0].startswith("error: cannot resume"), text
         assert folder_state(out) == before
+    # a checkpoint of an earlier revision of the method's model: the same settings fit another model
+    saved = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert saved["identity"]["settings"]["model_revision"] == registry.get("tv3d").model_revision
+    saved["identity"]["settings"]["model_revision"] -= 1
+    torch.save(saved, out / "checkpoint.pt")
+    before = folder_state(out)
+    code, text = recon([str(mock_bundle), "--method", "tv3d", "-o", str(out), "--resume", "--iters", "4", "--quiet"])
+    revision = registry.get("tv3d").model_revision
+    assert code == 2 and f"its settings differ: model_revision {revision - 1} there, {revision} now" in text, text
+    assert folder_state(out) == before
     # a folder of another method's outputs without a checkpoint is refused as well
     (out / "checkpoint.pt").unlink()
     code, text = recon([str(mock_bundle), "--method", "blend", "-o", str(out), "--resume", "--quiet"])

@@ -66,6 +66,9 @@ class MethodEntry:
     # is the most a measured method needs per element.
     memory: MemoryModel = MemoryModel(bytes_per_element=40)
     fits_holdout: bool = False  # fits only the training split (Method.supports_holdout): sweeps can score it
+    # Raised when the method's model changes what a saved state means: a checkpoint of another
+    # revision is not resumed (rngcam.recon.settings.ReconSettings.fitted).
+    model_revision: int = 1
 
     def __post_init__(self):
         if self.kind not in (ITERATIVE, GS_ONLY):
@@ -241,7 +244,9 @@ STFM_MEMORY = MemoryModel(bytes_per_element=13.64, fixed_bytes=333e6, bytes_per_
 # The default method first. STFM's default preset is auto (prior or fast, chosen per scene from the
 # key frames, rngcam.recon.methods.stfm.auto); both stop by themselves (fast after 1-3 min at 64 px on one
 # CPU thread), so the auto budget only guards against a fit that never settles.
-register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=600.0,
+# STFM's model_revision: 2, the prior preset's canonical image decoded on a grid (stop 59); 3, motion
+# fields decoded on knots 2 px apart, a base video's correction read on the pixel grid (stop 60).
+register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=600.0, model_revision=3,
                      presets={p: preset_settings(p)
                               for p in ("auto", "fast", *(p for p in STFM_PRESETS if p not in ("auto", "fast")))},
                      benchmarked=("fast", "paper"), memory=STFM_MEMORY, fits_holdout=True))

@@ -71,6 +71,7 @@ class ReconSettings:
     def fitted(self) -> dict:
         """The settings that change what is fitted: a checkpoint resumes only with the same."""
         return {"method_settings": asdict(self.method_settings), "grid_bin": self.grid_bin,
+                "model_revision": registry.get(self.method).model_revision,
                 "holdout": self.holdout, "holdout_gs": self.holdout_gs if self.holdout else None,
                 "holdout_seed": self.holdout_seed if self.holdout else None, "max_frames": self.max_frames}
 

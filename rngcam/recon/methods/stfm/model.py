@@ -11,7 +11,7 @@ from torch import Tensor, nn
 from rngcam.errors import ConfigError
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.recon.methods.selfcal import inside, pose_matrix, warp, warp_shift
-from rngcam.recon.methods.stfm.fields import field_on_grid, make_field, translate_image
+from rngcam.recon.methods.stfm.fields import field_on_grid, interpolate_grid, knots_every, make_field, translate_image
 
 
 def _chunks(idx: Tensor, size: int) -> list[Tensor]:
@@ -30,6 +30,10 @@ def _to_device(idx: Tensor, device: torch.device) -> Tensor:
 # not over every pixel: the same family of motions (the mean of a field over a grid), for a 16th of
 # the field's evaluations at 64 px (sineball: a step 52 -> 39 ms, two threads; bench/convergence.md).
 TRANSLATION_MEAN_POINTS = 16
+# A motion field is decoded on knots about this many pixels apart and interpolated bilinearly
+# between them: its finest planes have knots 4 px apart, and a quarter of the decoder's points cut
+# a fast step by a sixth (smoke 64 px: the same 28.17 dB; bench/convergence.md, stop 60).
+MOTION_KNOT_PX = 2
 
 
 def _inverse_softplus(y: Tensor) -> Tensor:
@@ -49,6 +53,7 @@ class FieldModel:
 
         self.xs, self.ys, self.ts = axis(self.W), axis(self.H), axis(self.K)
         self.xs_mean, self.ys_mean = (axis(min(n, TRANSLATION_MEAN_POINTS)) for n in (self.W, self.H))
+        self.xs_knots, self.ys_knots = (knots_every(a, MOTION_KNOT_PX) for a in (self.xs, self.ys))
         self.mask = None if p.mask is None else p.mask.to(dev, torch.float32)
         self.px_per_unit = torch.tensor([(self.W - 1) / 2, (self.H - 1) / 2], device=dev).clamp_min(0.5)
         # host copies of the weights: which frames a step's rows and windows see, without a GPU's answer
@@ -133,7 +138,8 @@ class FieldModel:
             u = field_on_grid(self.fields["motion"], [self.xs_mean, self.ys_mean, self.ts], idx)
             u = u.mean(dim=(1, 2), keepdim=True)
             return u.expand(len(idx), self.H, self.W, u.shape[-1]) if per_pixel else u
-        return field_on_grid(self.fields["motion"], [self.xs, self.ys, self.ts], idx)
+        u = field_on_grid(self.fields["motion"], [self.xs_knots, self.ys_knots, self.ts], idx)
+        return interpolate_grid(u, [self.xs_knots, self.ys_knots], [self.xs, self.ys])
 
     @property
     def _key_warps(self) -> bool:
@@ -165,13 +171,11 @@ class FieldModel:
         return (m * w0 + (1 - m) * w1).permute(1, 0, 2, 3)
 
     def _dynamic_at(self, u: Tensor, idx: Tensor) -> tuple[Tensor, Tensor]:
-        """Dynamic colour (C, n, H, W) and alpha (1, n, H, W) at the points warped by u (n, H, W, 2)
-        (frames idx: the time coordinate when the dynamic field has one)."""
+        """Dynamic colour (C, n, H, W) and alpha (1, n, H, W) of frames idx under the motion u
+        (n, H, W, 2). With a base (key frames or a video) and a field over (x, y, t), the motion
+        moves the base and the field corrects it where it sits; otherwise the field (the canonical
+        image where it is 2-D, with the base where there is one) is read at the moved points."""
         n = u.shape[0]
-        if self._key_warps:  # the motion moves the key frames; the field sits at (x, y, t)
-            raw = field_on_grid(self.fields["dynamic"], [self.xs, self.ys, self.ts], idx).permute(3, 0, 1, 2)
-            base = self._keys_at(u, raw[self.C + 1], idx) * self._gain()[:, None, None, None]
-            return F.softplus(raw[:self.C] + _inverse_softplus(base)), torch.sigmoid(raw[self.C:self.C + 1])
         if self._translated_dynamic():  # one translation per frame: the decoded image moved
             image = self._canonical_now if self._canonical_now is not None else self._canonical()
             raw = translate_image(image, [self.xs, self.ys], u[:, 0, 0, :2])
@@ -179,14 +183,21 @@ class FieldModel:
             return F.softplus(raw[:self.C]), torch.sigmoid(raw[self.C:])
         x = self.xs.view(1, 1, -1) + u[..., 0]
         y = self.ys.view(1, -1, 1) + u[..., 1]
+        gain = self._gain()[:, None, None, None]
+        if self._key_warps or (self.base_source is not None and self.resolved.dynamic_time):
+            # On the pixel grid: a field at the moved points cost a fast step a third more
+            # (grid_sample's backward), for the same video (bench/convergence.md, stop 60).
+            raw = field_on_grid(self.fields["dynamic"], [self.xs, self.ys, self.ts], idx).permute(3, 0, 1, 2)
+            base = self._keys_at(u, raw[self.C + 1], idx) if self._key_warps else self._base_at(x, y, idx)
+            return F.softplus(raw[:self.C] + _inverse_softplus(base * gain)), torch.sigmoid(raw[self.C:self.C + 1])
         coords = [x, y]
         if self.resolved.dynamic_time:
             coords.append(self.ts[idx].view(-1, 1, 1).expand_as(x))
         raw = self.fields["dynamic"](torch.stack(coords, dim=-1).reshape(-1, len(coords)))
         raw = raw.reshape(n, self.H, self.W, self.C + 1).permute(3, 0, 1, 2).contiguous()
         colour = raw[:self.C]
-        if self.base_source is not None:  # the field is a correction to the warped base video
-            colour = colour + _inverse_softplus(self._base_at(x, y, idx) * self._gain()[:, None, None, None])
+        if self.base_source is not None:  # a 2-D field: the canonical image moves with the base
+            colour = colour + _inverse_softplus(self._base_at(x, y, idx) * gain)
         return F.softplus(colour), torch.sigmoid(raw[self.C:])
 
     def _translated_dynamic(self) -> bool:
