@@ -68,7 +68,7 @@ class STFMSettings:
     lr_half_life_steps: float | None = None  # exponential LR decay (None: preset's; inf: none)
     init: str | None = None  # "gs" (fit fields to the GS frames first) or "random"
     gs_windows_per_step: int | None = None  # GS frames per step (soft anchoring; 0: all)
-    dynamic_time: bool | None = None  # F_D(x + u_x, y + u_y, t) instead of F_D(x + u_x, y + u_y)
+    dynamic_time: bool | None = None  # 3-D F_D (with a base: F_D(x, y, t), the base moved), not F_D(x + u_x, y + u_y)
     dynamic_base: str | None = setting(
         None, "the GS-only start the dynamic field corrects: video (rife, else interp), rife, interp, keys "
               "(key frames warped by RIFE's flows, else DIS's), keys_rife, keys_interp, video_hdv3 or keys_hdv3 "
