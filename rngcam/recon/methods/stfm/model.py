@@ -185,8 +185,8 @@ class FieldModel:
         y = self.ys.view(1, -1, 1) + u[..., 1]
         gain = self._gain()[:, None, None, None]
         if self._key_warps or (self.base_source is not None and self.resolved.dynamic_time):
-            # On the pixel grid: a field at the moved points cost a fast step a third more
-            # (grid_sample's backward), for the same video (bench/convergence.md, stop 60).
+            # On the pixel grid: read at the moved points (grid_sample's backward) it cost a video
+            # member's step half as much again, for the same video (bench/convergence.md, stop 60).
             raw = field_on_grid(self.fields["dynamic"], [self.xs, self.ys, self.ts], idx).permute(3, 0, 1, 2)
             base = self._keys_at(u, raw[self.C + 1], idx) if self._key_warps else self._base_at(x, y, idx)
             return F.softplus(raw[:self.C] + _inverse_softplus(base * gain)), torch.sigmoid(raw[self.C:self.C + 1])
