@@ -12,7 +12,7 @@ from rngcam.recon.methods.stfm.fields import (
     Siren,
     field_on_grid,
     interpolate_grid,
-    knots_every,
+    knots,
     make_field,
     translate_image,
 )
@@ -148,7 +148,7 @@ def test_grid_path_at_frame_indices_matches_those_frames_and_reuses_the_axes_mat
 
 
 def test_translated_path_is_the_decoded_image_moved_bilinearly():
-    """decode_for_translation then translate_image (STFM's one translation per frame): the field
+    """The field on knots half a pixel apart, then translate_image (STFM's one translation per frame): the field
     decoded on a grid twice as fine as the pixels, moved per frame by bilinear interpolation with a
     border clamp, values and
     gradients (planes, decoder and shifts) as grid_sample gives them on that image; at the pixels
@@ -167,7 +167,7 @@ def test_translated_path_is_the_decoded_image_moved_bilinearly():
         return f(torch.stack([x, y], dim=-1).reshape(-1, 2)).reshape(*x.shape, 3)
 
     def moved_image(axes, s):
-        return translate_image(f.decode_for_translation(axes), axes, s)
+        return translate_image(f.forward_grid([knots(a, 0.5) for a in axes]), axes, s)
 
     def moved(s):
         x = (xs[None, None, :] + s[:, 0, None, None]).expand(len(s), len(ys), len(xs))
@@ -198,14 +198,14 @@ def test_translated_path_is_the_decoded_image_moved_bilinearly():
         assert torch.allclose(a, b, atol=1e-10)
     assert fast_grads[0][1].abs().sum() > 0  # a shift inside the grid moves the output
     with torch.no_grad():  # on the knots the image is the field itself: no shift, and whole knots
-        knots = torch.tensor([[0.0, 0.0], [2 / 16, -3 * 2 / 10], [-5 * 2 / 16, 2 / 10]], dtype=torch.float64)
-        assert torch.allclose(moved_image([xs, ys], knots), pointwise(*moved(knots)), atol=1e-12)
+        whole = torch.tensor([[0.0, 0.0], [2 / 16, -3 * 2 / 10], [-5 * 2 / 16, 2 / 10]], dtype=torch.float64)
+        assert torch.allclose(moved_image([xs, ys], whole), pointwise(*moved(whole)), atol=1e-12)
         # an axis of one pixel: its centre stays on the grid
-        one = moved_image([torch.zeros(1, dtype=torch.float64), ys], knots[:1])
+        one = moved_image([torch.zeros(1, dtype=torch.float64), ys], whole[:1])
         assert torch.allclose(one, pointwise(*torch.meshgrid(torch.zeros(1, dtype=torch.float64), ys,
                                                              indexing="xy"))[None], atol=1e-12)
     with pytest.raises(ValueError):
-        PlaneField(3, 2).decode_for_translation([xs, ys])
+        PlaneField(3, 2).forward_grid([knots(a, 0.5) for a in (xs, ys)])
 
 
 def test_values_on_knots_are_interpolated_bilinearly_at_the_pixels():
@@ -213,7 +213,7 @@ def test_values_on_knots_are_interpolated_bilinearly_at_the_pixels():
     gradient as grid_sample gives them on the knots' image; a pixel on a knot reads that knot."""
     torch.manual_seed(3)
     xs, ys = torch.linspace(-1, 1, 33, dtype=torch.float64), torch.linspace(-1, 1, 19, dtype=torch.float64)
-    kx, ky = knots_every(xs, 2), knots_every(ys, 2)
+    kx, ky = knots(xs, 2), knots(ys, 2)
     assert (len(kx), len(ky)) == (17, 10) and kx[0] == -1 and kx[-1] == 1
     values = torch.randn(4, len(ky), len(kx), 2, dtype=torch.float64, requires_grad=True)
     out = interpolate_grid(values, [kx, ky], [xs, ys])
@@ -229,6 +229,6 @@ def test_values_on_knots_are_interpolated_bilinearly_at_the_pixels():
     assert torch.allclose(out[:, ::2, ::2], values, atol=1e-12)  # every other pixel is a knot here
     # axes too short to thin are their own knots, passed through untouched
     two = torch.linspace(-1, 1, 2)
-    assert knots_every(two, 2) is two and knots_every(torch.zeros(1), 2).shape == (1,)
+    assert knots(two, 2) is two and knots(torch.zeros(1), 2).shape == (1,)
     same = torch.randn(3, 2, 2, 1)
     assert interpolate_grid(same, [two, two], [two, two]) is same

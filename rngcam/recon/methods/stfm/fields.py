@@ -198,23 +198,12 @@ class PlaneField(nn.Module):
         feats = torch.cat(outs, dim=0)
         return self.decoder(feats.movedim(0, -1))
 
-    def decode_for_translation(self, axes: Sequence[Tensor], oversample: int = 2) -> Tensor:
-        """The 2-D field (R_y, R_x, out) on a grid `oversample` times finer than the pixel axes
-        (x, y) (each linspace(-1, 1, n)), the pixel centres on it: an image that `translate_image`
-        moves, one translation per frame (STFM's prior preset decodes its canonical image once a
-        step instead of at every frame's pixels; bench/convergence.md, stop 59). At the pixels, the
-        values `forward` gives."""
-        if self.in_dims != 2 or len(axes) != 2:
-            raise ValueError("a translated field takes a 2-D field and two coordinate vectors")
-        knots = [torch.linspace(-1.0, 1.0, oversample * (max(a.shape[0], 2) - 1) + 1, device=a.device,
-                                dtype=a.dtype) for a in axes]
-        return self.forward_grid(knots)
-
 
 def translate_image(image: Tensor, axes: Sequence[Tensor], shifts: Tensor) -> Tensor:
     """An image (R_y, R_x, out) on linspace(-1, 1) knots, interpolated bilinearly (border clamp) at
     the pixel grid (x, y) moved by `shifts` (n, 2) in coordinate units: (n, n_y, n_x, out). One
-    interpolation matrix per frame and axis, two matrix products."""
+    interpolation matrix per frame and axis, two matrix products. (STFM's prior preset decodes its
+    canonical image once a step on `knots` half a pixel apart and moves it so; bench/convergence.md, stop 59.)"""
     xs, ys = axes
     n, nx, ny = shifts.shape[0], xs.shape[0], ys.shape[0]
     ry, rx, out = image.shape
@@ -225,10 +214,18 @@ def translate_image(image: Tensor, axes: Sequence[Tensor], shifts: Tensor) -> Te
     return moved.permute(0, 1, 3, 2)
 
 
-def knots_every(axis: Tensor, step: int) -> Tensor:
-    """linspace(-1, 1) knots about every `step` points of a pixel axis (itself where that is no coarser)."""
-    n = (axis.shape[0] - 1) // step + 1
-    return axis if n < 2 or n >= axis.shape[0] else torch.linspace(-1.0, 1.0, n, device=axis.device, dtype=axis.dtype)
+def knots(axis: Tensor, spacing: float) -> Tensor:
+    """linspace(-1, 1) knots about `spacing` pixels apart along a pixel axis (linspace(-1, 1, n)):
+    coarser (spacing > 1: the axis itself where that is no coarser) or finer (spacing 1/k: the pixel
+    centres on them; an axis of one pixel spans -1 to 1 with its centre on the middle knot)."""
+    n = axis.shape[0]
+    if spacing >= 1:
+        count = (n - 1) // round(spacing) + 1
+        if count < 2 or count >= n:
+            return axis
+    else:
+        count = round((max(n, 2) - 1) / spacing) + 1
+    return torch.linspace(-1.0, 1.0, count, device=axis.device, dtype=axis.dtype)
 
 
 def interpolate_grid(values: Tensor, knots: Sequence[Tensor], axes: Sequence[Tensor]) -> Tensor:

@@ -17,6 +17,18 @@ def _cols(w_rows: Tensor | None, frames: Tensor) -> Tensor | None:
     return None if w_rows is None else w_rows.index_select(1, frames)
 
 
+def _leaf(graph: Tensor | None, backward: bool) -> Tensor | None:
+    """`graph` cut off as a leaf of the graphs built on it, where its gradient is wanted (`backward`):
+    each chunk's graph is then freed by its own backward, and `_back_into` takes the summed gradient on."""
+    return graph.detach().requires_grad_() if backward and graph is not None and graph.requires_grad else graph
+
+
+def _back_into(graph: Tensor | None, leaf: Tensor | None) -> None:
+    """The gradient gathered on `leaf` (from `_leaf`) back-propagated through `graph`."""
+    if leaf is not graph and leaf.grad is not None:
+        graph.backward(leaf.grad)
+
+
 class DataLoss:
     """Part of STFM: normalisation of the data terms and the loss of a step."""
 
@@ -100,7 +112,9 @@ class DataLoss:
     def matte_term(self) -> Tensor:
         """matte_l1 times the mean of the canonical dynamic image's matte, 1 - alpha (the share of
         each pixel the moving layer covers), on the pixel grid."""
-        raw = field_on_grid(self.fields["dynamic"], [self.xs, self.ys])  # (H, W, C + 1)
+        raw = self._canonical_at_pixels()
+        if raw is None:
+            raw = field_on_grid(self.fields["dynamic"], [self.xs, self.ys])  # (H, W, C + 1)
         return self.resolved.matte_l1 * (1 - torch.sigmoid(raw[..., self.C])).mean()
 
     def tv_term(self, idx: Tensor) -> Tensor:
@@ -132,13 +146,10 @@ class DataLoss:
         # A translated canonical image is decoded once and, as the static image, is a leaf of every
         # chunk's graph: its gradient is taken on once at the end.
         canonical_graph = self._canonical()
-        canonical = canonical_graph
-        if backward and canonical_graph is not None and canonical_graph.requires_grad:
-            canonical = canonical_graph.detach().requires_grad_()
+        canonical = _leaf(canonical_graph, backward)
         with self._decoded_once(canonical):
             terms = self._terms(rows, tv_frames, backward, gs_windows)
-        if canonical is not canonical_graph and canonical.grad is not None:
-            canonical_graph.backward(canonical.grad)
+        _back_into(canonical_graph, canonical)
         return terms
 
     def _terms(self, rows: Tensor | None, tv_frames: Tensor | None, backward: bool,
@@ -151,8 +162,7 @@ class DataLoss:
         # Every frame evaluation sees the static image as a leaf: each chunk's graph is freed by its
         # own backward (no graph retained across chunks), and the static field gets the summed
         # gradient once at the end.
-        static = None if static_graph is None else (
-            static_graph.detach().requires_grad_() if backward and static_graph.requires_grad else static_graph)
+        static = _leaf(static_graph, backward)
         graph_loss = torch.zeros((), device=dev)
         if self._has_canonical_matte:
             matte = self.matte_term()
@@ -170,8 +180,7 @@ class DataLoss:
         if self.parts.rs and rows is not None:
             w_graph = self._row_weights(rows)  # None: the operator's (no line time learned)
             # as the static image: a leaf for every chunk's graph, its gradient taken on once at the end
-            w_rows = None if w_graph is None else (
-                w_graph.detach().requires_grad_() if backward and w_graph.requires_grad else w_graph)
+            w_rows = _leaf(w_graph, backward)
             shared, rest = self._split_rs_frames(rows, w_rows, win_host)
             rows = _to_device(rows, dev)
         chunks = _chunks(rest, self.frame_chunk)
@@ -223,10 +232,8 @@ class DataLoss:
                 surrogate = (self.rs_op.A_rows(self._rs_view(self.frames(c, static)), rows, c, _cols(w_rows, c))
                              * grad).sum()
                 surrogate.backward()
-            if static is not static_graph and static.grad is not None:
-                static_graph.backward(static.grad)
-            if w_rows is not w_graph and w_rows.grad is not None:
-                w_graph.backward(w_rows.grad)
+            _back_into(static_graph, static)
+            _back_into(w_graph, w_rows)
         names = [k for k, v in terms.items() if isinstance(v, Tensor)]
         if names:
             terms.update(zip(names, torch.stack([terms[k].float() for k in names]).tolist(), strict=True))

@@ -11,7 +11,7 @@ from torch import Tensor, nn
 from rngcam.errors import ConfigError
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.recon.methods.selfcal import inside, pose_matrix, warp, warp_shift
-from rngcam.recon.methods.stfm.fields import field_on_grid, interpolate_grid, knots_every, make_field, translate_image
+from rngcam.recon.methods.stfm.fields import field_on_grid, interpolate_grid, knots, make_field, translate_image
 
 
 def _chunks(idx: Tensor, size: int) -> list[Tensor]:
@@ -34,6 +34,9 @@ TRANSLATION_MEAN_POINTS = 16
 # between them: its finest planes have knots 4 px apart, and a quarter of the decoder's points cut
 # a fast step by a sixth (smoke 64 px: the same 28.17 dB; bench/convergence.md, stop 60).
 MOTION_KNOT_PX = 2
+# The prior preset's canonical image is decoded on knots this many pixels apart, the pixel centres
+# on them, and moved by bilinear interpolation (bench/convergence.md, stop 59).
+CANONICAL_KNOT_PX = 0.5
 
 
 def _inverse_softplus(y: Tensor) -> Tensor:
@@ -53,7 +56,8 @@ class FieldModel:
 
         self.xs, self.ys, self.ts = axis(self.W), axis(self.H), axis(self.K)
         self.xs_mean, self.ys_mean = (axis(min(n, TRANSLATION_MEAN_POINTS)) for n in (self.W, self.H))
-        self.xs_knots, self.ys_knots = (knots_every(a, MOTION_KNOT_PX) for a in (self.xs, self.ys))
+        self.xs_knots, self.ys_knots = (knots(a, MOTION_KNOT_PX) for a in (self.xs, self.ys))
+        self.canonical_knots = [knots(a, CANONICAL_KNOT_PX) for a in (self.xs, self.ys)]
         self.mask = None if p.mask is None else p.mask.to(dev, torch.float32)
         self.px_per_unit = torch.tensor([(self.W - 1) / 2, (self.H - 1) / 2], device=dev).clamp_min(0.5)
         # host copies of the weights: which frames a step's rows and windows see, without a GPU's answer
@@ -203,14 +207,22 @@ class FieldModel:
     def _translated_dynamic(self) -> bool:
         """Whether the dynamic field is 2-D, moved by one translation per frame, with no base video."""
         return (self.parts.motion and self.resolved.motion_model == "translation" and not self.resolved.dynamic_time
-                and self.base_source is None and hasattr(self.fields["dynamic"], "decode_for_translation"))
+                and self.base_source is None)
 
     def _canonical(self) -> Tensor | None:
         """The translated dynamic field's decoded image (R_y, R_x, C + 1), which every frame moves
         (None: the dynamic field is not translated)."""
         if not self._translated_dynamic():
             return None
-        return self.fields["dynamic"].decode_for_translation([self.xs, self.ys])
+        return field_on_grid(self.fields["dynamic"], self.canonical_knots)
+
+    def _canonical_at_pixels(self) -> Tensor | None:
+        """The decoded canonical image at the pixels, which lie on its knots (None: none decoded now,
+        or an axis of one pixel, whose centre is not on the knots' stride)."""
+        image, step = self._canonical_now, round(1 / CANONICAL_KNOT_PX)
+        if image is None or min(self.H, self.W) < 2:
+            return None
+        return image[::step, ::step]
 
     @contextmanager
     def _decoded_once(self, image: Tensor | None = None):
