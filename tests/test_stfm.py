@@ -845,3 +845,16 @@ def test_key_warps_below_the_flow_size_run_no_network(monkeypatch):
     m = make_stfm(scene_problem("sineball", 8), small_settings(preset="fast", dynamic_base="keys"))
     assert m.base_source == "interp"
     m.step()
+
+
+def test_stop_tests_are_spaced_by_the_frames_a_test_makes(sineball16):
+    from rngcam.recon.methods.stfm import NOISE_CHECK_STEPS
+    from rngcam.recon.methods.stfm.stopping import check_interval
+
+    # up to 80 frames (every 64 px capture) every NOISE_CHECK_STEPS steps; the paper grid's 231 frames every 3x
+    assert [check_interval(k) for k in (16, 68, 80, 81, 116, 231, 459)] == \
+        [NOISE_CHECK_STEPS * n for n in (1, 1, 1, 2, 2, 3, 6)]
+    m = make_stfm(sineball16, small_settings())
+    m.K = 231  # what the interval reads (the fit's frames); the stall window is a whole number of intervals
+    assert m.check_every() == 60 and m._stall_window() % 60 == 0
+    assert m._stall_window() >= m.resolved.stall_passes * len(m.rs_rows_fit) / m.resolved.rows_per_step

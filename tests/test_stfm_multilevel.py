@@ -167,3 +167,19 @@ def test_only_the_full_level_learns_the_line_time(preset):
     assert fine.H == p.shape[2] and m.line_factor() is not None and abs(m.line_factor() - 1) < 0.01
     assert torch.isfinite(fine.estimate()).all() and np.isfinite(m.residuals()["rs"])
     assert m.resolved_settings()["line_time"]["factor"] == pytest.approx(m.line_factor())
+
+
+def test_a_coarse_level_under_a_budget_may_spend_its_share_of_what_is_left():
+    from rngcam.recon.loop import Clock
+    from rngcam.recon.methods.stfm.multilevel import LEVEL_SHARE
+
+    p = _toy_problem()
+    clock = Clock(seconds=1000.0)
+    m = make_multilevel(p, STFMSettings(rows_per_step=4), "cpu", (2, 1), lambda q, s: make_stfm(q, s),
+                        clock=clock, max_level_steps=10_000)
+    left = clock.left()
+    assert m.level_share_s == pytest.approx(LEVEL_SHARE * left, rel=0.05)
+    m.level_step_s, m.level_steps = m.level_share_s, 10**6  # many cheap steps have used the share: the
+    # next step moves on (the finer level fits in what is left)
+    m.step()
+    assert m.final

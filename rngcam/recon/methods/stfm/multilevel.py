@@ -5,7 +5,8 @@ e.g. 1/4, 1/2 and the full grid at 228x342). The coarsest level is the ordinary 
 settings (`make_stfm`: RIFE or flow bases, the fast preset's ensemble, the prior preset's motion
 search), so the set-up work that does not scale with the grid (RIFE, optical flow, the motion
 search, the GS initialisation fits) runs on 1/16 of the pixels and 1/4 of the frames. A coarse
-level ends at its own stop test (noise level or stall), or after `max_level_steps`.
+level ends at its own stop test (noise level or stall), after `max_level_steps`, or, under a time budget,
+once its steps have used LEVEL_SHARE of what the budget had left when it started.
 
 Each finer level starts from the level below, in the preset's own model:
 - a model with a time-dependent dynamic field on a base video (fast; `dynamic_time=True`):
@@ -35,6 +36,11 @@ from rngcam.recon.methods.stfm.method import STFM
 from rngcam.recon.methods.stfm.settings import REFINE_LR_RATIO, STFMSettings, _preset
 
 MAX_LEVEL_STEPS = 3000  # a coarse level that never meets its stop test ends here
+# Under a time budget a coarse level may spend this share of what is left when it starts (the
+# full level gets the rest). Coarse steps are 3-5x cheaper than the next level's and carry most of
+# the result: at 228x342x231 in 300 s, shares 0.15 / 0.3 / 0.45 / 0.6 gave 30.9 / 31.8 / 32.0 /
+# 31.8 dB (bench/convergence.md, stop 61).
+LEVEL_SHARE = 0.45
 
 
 def stfm_levels(problem, settings: STFMSettings) -> tuple[int, ...]:
@@ -96,7 +102,7 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
         return method
 
     return CoarseToFine(problem, make, factors, clock=clock, stage=stage, level_stop="method",
-                        max_level_steps=max_level_steps)
+                        max_level_steps=max_level_steps, level_share=LEVEL_SHARE)
 
 
 def _fit_of(method) -> STFM:

@@ -11,6 +11,7 @@ from rngcam.recon.options import setting
 PRESETS = ("paper", "fast", "prior", "auto")  # auto: prior or fast per scene (rngcam.recon.methods.stfm.auto)
 INIT_STEPS = 100
 NOISE_CHECK_STEPS = 20  # steps between discrepancy-principle checks (one full RS forward each)
+NOISE_CHECK_FRAMES = 80  # ... up to this many frames; one more interval for each further 80 (stopping.py)
 STALL_PASSES = 15  # the stall test compares the RS residual with its value this many passes over the rows ago (fast)
 # The prior preset's window: over 30 passes a lull stopped some fits at 620-700 steps, 2.3 dB under
 # the same capture's other seeds (sineball 1 px shift: 34.85 dB; 37.3 / 37.8 with seeds 1 / 2;

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from rngcam.recon.methods.stfm.settings import NOISE_CHECK_STEPS
+from rngcam.recon.methods.stfm.settings import NOISE_CHECK_FRAMES, NOISE_CHECK_STEPS
 from rngcam.recon.metrics import relative_residual
 
 
@@ -15,13 +15,13 @@ class NoiseStop:
 
     @torch.no_grad()
     def converged(self) -> str | None:
-        """Every NOISE_CHECK_STEPS steps (`stop_at_noise`), the relative RS residual on
+        """Every `check_every()` steps (`stop_at_noise`), the relative RS residual on
         the fitted rows is tested twice. The discrepancy principle: at or below the noise level
         estimated from the RS image (rngcam.recon.noise) the fit would start fitting noise. The
         stall test: once the residual fell by less than `stall_drop` over the last `stall_passes`
         passes over the rows, further steps buy little residual with structure the data do not
         demand (on the benchmark clips the truth-PSNR peaked there, then fell)."""
-        if not (self.resolved.stop_at_noise and self.parts.rs and self.steps % NOISE_CHECK_STEPS == 0):
+        if not (self.resolved.stop_at_noise and self.parts.rs and self.steps % self.check_every() == 0):
             return None
         self._sync_rs_op()
         rows = self.rs_rows_fit.to(self.device)
@@ -47,12 +47,24 @@ class NoiseStop:
         return None
 
     def log_ready(self) -> bool:
-        """A log row scores the video the stop test makes every NOISE_CHECK_STEPS steps: at those
+        """A log row scores the video the stop test makes every `check_every()` steps: at those
         steps it is made once for both (a row elsewhere made it again: ~60 ms at 64 px)."""
-        return not (self.resolved.stop_at_noise and self.parts.rs) or self.steps % NOISE_CHECK_STEPS == 0
+        return not (self.resolved.stop_at_noise and self.parts.rs) or self.steps % self.check_every() == 0
+
+    def check_every(self) -> int:
+        """Steps between this fit's stop tests (`check_interval` of its frames)."""
+        return check_interval(self.K)
 
     def _stall_window(self) -> int:
-        """`stall_passes` passes over the fitted rows, in steps (a multiple of NOISE_CHECK_STEPS)."""
+        """`stall_passes` passes over the fitted rows, in steps (a multiple of `check_every()`)."""
         steps = self.resolved.stall_passes * len(self.rs_rows_fit) / self.resolved.rows_per_step
-        return NOISE_CHECK_STEPS * max(1, math.ceil(steps / NOISE_CHECK_STEPS))
+        every = self.check_every()
+        return every * max(1, math.ceil(steps / every))
 
+
+def check_interval(frames: int) -> int:
+    """Steps between stop tests of a fit of `frames` frames: NOISE_CHECK_STEPS up to NOISE_CHECK_FRAMES
+    frames, one more interval for each further NOISE_CHECK_FRAMES. A test makes the whole video, a step
+    only the frames of its rows, so at a fixed interval the tests' share of the time grows with the
+    frames (at 228x342x231, tested every 20 steps: a third of the full level's time)."""
+    return NOISE_CHECK_STEPS * max(1, math.ceil(frames / NOISE_CHECK_FRAMES))
