@@ -217,6 +217,17 @@ def test_auto_budget_scales_with_the_problem_and_says_what_it_chose():
     assert auto_time_budget("stfm", (3, 231, 228, 342))[0] == 1800.0  # capped
 
 
+def test_the_outputs_share_of_a_budget_grows_with_the_video_they_write():
+    from rngcam.recon.settings import finish_seconds
+
+    assert finish_seconds(60.0, (3, 67, 64, 64)) == pytest.approx(6.0)  # a tenth
+    assert finish_seconds(300.0, (3, 231, 228, 342)) == pytest.approx(30.0)  # a tenth (outputs ~24 s)
+    assert finish_seconds(3600.0, (3, 67, 64, 64)) == pytest.approx(60.0)  # at most a minute ...
+    eight = finish_seconds(1200.0, (3, 459, 456, 684))  # ... unless the video takes longer to write
+    assert 150.0 < eight < 250.0
+    assert finish_seconds(100.0, (3, 459, 456, 684)) == pytest.approx(50.0)  # never more than half
+
+
 def test_rs_rows_gradient_is_the_rows_adjoint():
     """STFM back-propagates through A_rows (the banded row DFT): autograd must give A_rows^T."""
     p = _toy_problem()

@@ -44,7 +44,7 @@ def test_recon_writes_every_output(mock_bundle, tmp_path, method, extra):
     assert metrics["ended_by"] == ("one_shot" if one_shot else "iterations")
     setup = "" if one_shot else f" (set-up {metrics['setup_seconds']:.1f} s of it)"
     timing = (f"{method}: {'one pass' if one_shot else '3 iterations'} in {metrics['seconds']:.1f} s{setup}, "
-              f"{metrics['wall_seconds']:.1f} s in all")
+              f"{metrics['wall_seconds']:.1f} s to the fit's end")
     assert timing in res.output, res.output
     seen = metrics["error_visibility"]  # the mock bundle is noisy, so both ratios are finite
     assert set(seen) == {"rs", "gs"} and all(np.isfinite(v) and v > 0 for v in seen.values())

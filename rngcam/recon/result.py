@@ -109,13 +109,13 @@ class Result:
         n = m["iterations"]
         passes = "one pass" if m.get("ended_by") == "one_shot" else f"{n} iteration{'s' if n != 1 else ''}"
         line = f"{self.method}: {passes}"
-        # seconds: the run's own compute (reading and set-up included; not the truth evaluations,
-        # checkpoints or outputs, which wall_seconds adds)
+        # seconds: the run's own compute (reading and set-up included; not the truth evaluations or
+        # checkpoints, which wall_seconds adds; neither counts the final metrics and outputs)
         line += f" in {m['seconds']:.1f} s"
         if m.get("ended_by") != "one_shot" and 0 < m.get("setup_seconds", 0) <= m["seconds"]:
             line += f" (set-up {m['setup_seconds']:.1f} s of it)"
         if "wall_seconds" in m:
-            line += f", {m['wall_seconds']:.1f} s in all"
+            line += f", {m['wall_seconds']:.1f} s to the fit's end"
         if self.status == "budget_before_first_iteration":
             line += " (the time budget ran out in set-up: this is the start video)"
         elif self.status == "interrupted":

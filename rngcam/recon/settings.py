@@ -137,9 +137,12 @@ AUTO_REFERENCE_VOXELS = 3 * 67 * 64 * 64
 AUTO_MAX_S = 1800.0
 
 # Of a time budget, this fraction (at most FINISH_MAX_S) is kept for what follows the solve (the
-# final metrics, recon.h5, the TIFF, MP4 and plots), so a whole run ends near its budget.
+# final metrics, recon.h5, the TIFF, MP4 and plots), so a whole run ends near its budget; on grids
+# whose outputs take longer, FINISH_S_PER_MVOXEL of the video's size (at 456x684x459, 429 M values,
+# they took 187 s on two cores: bench/large_grids.md, stop 61), at most half the budget.
 FINISH_FRACTION = 0.1
 FINISH_MAX_S = 60.0
+FINISH_S_PER_MVOXEL = 0.45
 
 
 def auto_time_budget(method: str, shape: tuple[int, int, int, int]) -> tuple[float, str]:
@@ -187,6 +190,12 @@ def resolve(settings: ReconSettings, shape: tuple[int, int, int, int], clock: Cl
         budget, how = None, ("auto: a one-shot method runs to its end" if asked == "auto" else "none given")
     else:
         budget, how = float(asked), "given"
-    keep = min(FINISH_FRACTION * budget, FINISH_MAX_S) if finish and budget is not None else 0.0
+    keep = finish_seconds(budget, shape) if finish and budget is not None else 0.0
     clock.limit(None if budget is None else budget - keep)
     return Run(settings, budget, how, resolve_device(settings.device), clock, keep)
+
+
+def finish_seconds(budget: float, shape: tuple[int, int, int, int]) -> float:
+    """Of `budget`, the seconds kept for the metrics and outputs of a video of `shape` (C, K, H, W)."""
+    by_size = FINISH_S_PER_MVOXEL * math.prod(shape) / 1e6
+    return min(max(min(FINISH_FRACTION * budget, FINISH_MAX_S), by_size), 0.5 * budget)
