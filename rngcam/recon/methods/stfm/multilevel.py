@@ -36,10 +36,11 @@ from rngcam.recon.methods.stfm.method import STFM
 from rngcam.recon.methods.stfm.settings import REFINE_LR_RATIO, STFMSettings, _preset
 
 MAX_LEVEL_STEPS = 3000  # a coarse level that never meets its stop test ends here
-# Under a time budget a coarse level may spend this share of what is left when it starts (the
-# full level gets the rest). Coarse steps are 3-5x cheaper than the next level's and carry most of
-# the result: at 228x342x231 in 300 s, shares 0.15 / 0.3 / 0.45 / 0.6 gave 30.9 / 31.8 / 32.0 /
-# 31.8 dB (bench/convergence.md, stop 61).
+# Under a time budget a coarse level of a base-video model (fast) may spend this share of what is
+# left when it starts (the full level gets the rest): its coarse steps are 3-5x cheaper and carry most
+# of the result (smoke 228x342x231 in 300 s: shares 0.15 / 0.3 / 0.45 / 0.6 gave 30.9 / 31.8 / 32.0 /
+# 31.8 dB). A model that carries its fields (prior) keeps CoarseToFine's 0.15: sineball at 0.45 lost
+# 1.4 dB and the ball's p90 (bench/convergence.md, stop 61).
 LEVEL_SHARE = 0.45
 
 
@@ -102,7 +103,7 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
         return method
 
     return CoarseToFine(problem, make, factors, clock=clock, stage=stage, level_stop="method",
-                        max_level_steps=max_level_steps, level_share=LEVEL_SHARE)
+                        max_level_steps=max_level_steps, **({"level_share": LEVEL_SHARE} if with_base else {}))
 
 
 def _fit_of(method) -> STFM:
