@@ -49,3 +49,18 @@ def test_the_steps_column_splits_a_coarse_to_fine_run_by_level():
     assert "| paper |  |" in lines[4] and "| 1386 (900 + 300 + 186) |" in lines[4]
     assert "| 820 |" in lines[5] and "(" not in lines[5].split("|")[5]
     assert "recon failed (1)" in lines[6]
+
+
+def test_a_whole_label_keeps_that_row_alone_and_threads_reach_every_run(tmp_path, monkeypatch):
+    seen = []
+    monkeypatch.setattr(gpu_check, "simulate_all", lambda out, runs, limit: None)
+    monkeypatch.setattr(gpu_check, "reconstruction",
+                        lambda out, label, scene, size, settings, limit, device: seen.append((label, settings))
+                        or {"label": label, "status": "ok"})
+    monkeypatch.setattr(gpu_check, "FULL", [("a 64", "a", "64", {}, 9), ("a 64, 2 threads", "a", "64", {"threads": 2}, 9),
+                                            ("b 64", "b", "64", {}, 9), ("b 128", "b", "128", {}, 9)])
+    assert gpu_check.main(["-o", str(tmp_path), "--skip-tests", "--only", "a 64,b", "--threads", "4"]) == 0
+    assert seen == [("a 64", {"threads": 4}), ("b 64", {"threads": 4}), ("b 128", {"threads": 4})]
+    seen.clear()
+    assert gpu_check.main(["-o", str(tmp_path), "--skip-tests", "--only", "a 64,", "--threads", "4"]) == 0
+    assert [label for label, _ in seen] == ["a 64"]  # a trailing comma's empty word keeps nothing more
