@@ -110,8 +110,8 @@ def _sh(cmd: list[str], limit: float, log: Path) -> tuple[int, str]:
 def simulate_all(out: Path, runs: list[tuple], limit: float) -> None:
     """Simulate every run's bundle at once, in parallel children (the CPUs are otherwise idle)."""
     procs = []
-    for _label, scene, size, _extra, _limit in runs:
-        bundle = out / f"{scene}-{size}.h5"
+    for scene, size in dict.fromkeys((scene, size) for _label, scene, size, _extra, _limit in runs):
+        bundle = out / f"{scene}-{size}.h5"  # once each: two runs of one bundle raced to write it
         if not bundle.exists():
             cmd = [*RNGCAM, "simulate", scene, "--size", size,
                    "-o", str(bundle)]

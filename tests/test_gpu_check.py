@@ -64,3 +64,19 @@ def test_a_whole_label_keeps_that_row_alone_and_threads_reach_every_run(tmp_path
     seen.clear()
     assert gpu_check.main(["-o", str(tmp_path), "--skip-tests", "--only", "a 64,", "--threads", "4"]) == 0
     assert [label for label, _ in seen] == ["a 64"]  # a trailing comma's empty word keeps nothing more
+
+
+def test_two_runs_of_one_bundle_simulate_it_once(tmp_path, monkeypatch):
+    started = []
+
+    class Proc:
+        def __init__(self, cmd, **_kw):
+            started.append(cmd)
+
+        def communicate(self, timeout=None):
+            return ("", None)
+
+    monkeypatch.setattr(gpu_check.subprocess, "Popen", Proc)
+    gpu_check.simulate_all(tmp_path, [("a 60", "smoke", "228x342", {}, 9), ("a 120", "smoke", "228x342", {}, 9),
+                                      ("b", "smoke", "64", {}, 9)], 10)
+    assert [cmd[cmd.index("--size") + 1] for cmd in started] == ["228x342", "64"]
