@@ -67,3 +67,25 @@ def test_without_hdv3_weights_the_pinned_member_falls_back_to_interpolation(sine
     m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video,video_hdv3", refine=False))
     assert [(f.base_source, f.base_model) for f in fits(m)] == [("rife", "4"), ("interp", None)]
     assert np.isfinite(m.estimate().numpy()).all()
+
+
+def test_rife_runs_where_the_fit_runs(monkeypatch, sineball16):
+    """A fit on a GPU runs RIFE's network there; a CPU fit on the CPU."""
+    from rngcam.recon.methods import rife as rife_mod
+    from rngcam.recon.methods.stfm.bases import _base_video, _network_device
+
+    assert _network_device(torch.device("cuda", 1)) == "cuda:1"
+    assert _network_device(torch.device("cpu")) == "cpu"
+    seen = []
+
+    def fake_rife(frames, gs_times_s, frame_times_s, model=None, device="cpu"):
+        seen.append(device)
+        return np.zeros((frames.shape[0], len(frame_times_s), *frames.shape[-2:]), np.float32)
+
+    monkeypatch.setattr(rife_mod, "rife", fake_rife)
+    p = sineball16
+    video, source, why = _base_video(torch.from_numpy(_key_frames(p)), p.gs_times_s, p.frame_times_s, "video",
+                                     device="cuda:1")
+    assert seen == ["cuda:1"] and source == "rife" and why == "" and video.shape[1] == len(p.frame_times_s)
+    make_stfm(p, small_settings(dynamic_base="video"))  # a CPU fit
+    assert seen[1:] == ["cpu"]

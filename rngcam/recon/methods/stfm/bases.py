@@ -35,7 +35,7 @@ class BaseVideos:
             kind = "interp"  # too few key frames or too small for flow
         if kind in BASE_VIDEOS:
             self.base_video, self.base_source, why = _base_video(keys, p.gs_times_s, p.frame_times_s, kind,
-                                                                 self.base_model)
+                                                                 self.base_model, _network_device(self.device))
             self.base_video = self.base_video.to(self.device, torch.float32)
             self.base_model = _resolved_model(self.base_model) if self.base_source == "rife" else None
             self.base_source += HDV3_SUFFIX if self.base_model == "hdv3" else ""
@@ -62,7 +62,8 @@ class BaseVideos:
         if kind != "keys_interp" and keys.shape[0] in (1, 3):
             try:
                 with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
-                    warps, source = rife_warps(*args, model=self.base_model), "keys_rife"
+                    warps, source = rife_warps(*args, model=self.base_model,
+                                               device=_network_device(self.device)), "keys_rife"
             except (RifeUnavailableError, BaselineInputError) as exc:
                 if kind == "keys_rife":
                     raise
@@ -103,10 +104,17 @@ def _first_line(exc: Exception) -> str:
     return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
 
 
-def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str, model: str | None = None
-                ) -> tuple[Tensor, str, str]:
+def _network_device(device: torch.device) -> str:
+    """Where RIFE's network runs for a fit on `device`: that GPU (its flows are much of a large grid's
+    set-up on a CPU), else the CPU."""
+    return str(device) if device.type == "cuda" else "cpu"
+
+
+def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str, model: str | None = None,
+                device: str = "cpu") -> tuple[Tensor, str, str]:
     """The GS-only video (C, K, H, W) a dynamic field corrects, which baseline made it, and why
-    RIFE was not used where it was preferred ("" otherwise). `model`: the RIFE model (None: the default)."""
+    RIFE was not used where it was preferred ("" otherwise). `model`: the RIFE model (None: the default);
+    `device`: where RIFE's network runs."""
     from rngcam.recon.methods.baselines import interp
 
     frames = keys.detach().float().cpu().numpy()
@@ -115,7 +123,7 @@ def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str, model: str |
 
         try:
             with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
-                return torch.from_numpy(rife(frames, gs_times_s, frame_times_s, model=model)), "rife", ""
+                return torch.from_numpy(rife(frames, gs_times_s, frame_times_s, model=model, device=device)), "rife", ""
         except RifeUnavailableError as exc:
             if kind == "rife":
                 raise
