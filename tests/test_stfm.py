@@ -658,7 +658,7 @@ def _stopped_members(m):
 
 
 def test_ensemble_refines_the_members_average_once_they_have_stopped(sineball16):
-    from rngcam.recon.methods.stfm import NOISE_CHECK_STEPS, REFINE_LR_RATIO
+    from rngcam.recon.methods.stfm import NOISE_CHECK_STEPS, REFINE_LR_RATIO, REFINE_STALL_PASSES
 
     m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video,keys_interp"))
     _stopped_members(m)
@@ -672,12 +672,23 @@ def test_ensemble_refines_the_members_average_once_they_have_stopped(sineball16)
     gains = torch.as_tensor(np.mean([f.gains() for f in fits(m)], axis=0))[:, None, None, None]
     assert torch.allclose(refined.base_video * gains, average, atol=1e-6)  # its base is the average
     assert refined.resolved.lr == pytest.approx(REFINE_LR_RATIO * fits(m)[0].resolved.lr)
+    assert refined.resolved.stall_passes == REFINE_STALL_PASSES < fits(m)[0].resolved.stall_passes
     assert torch.equal(m.estimate(), refined.estimate()) and m.converged() is None
     refined.rs_noise_level = 1.0
     result = run(m, LoopSettings(time_budget_s=None, max_iters=2 * NOISE_CHECK_STEPS, progress=False))
     assert any("refinement: RS residual" in e for e in result.events), result.events
     assert refined.steps == NOISE_CHECK_STEPS and m.resolved_settings()["refine_steps"] == NOISE_CHECK_STEPS
     assert np.all(np.isfinite(m.estimate().numpy())) and set(m.components()) >= {"static", "alpha", "motion"}
+
+
+def test_a_stall_window_the_user_set_holds_in_the_refinement_too(sineball16):
+    from rngcam.recon.methods.stfm import NOISE_CHECK_STEPS
+
+    m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video,keys_interp", stall_passes=7))
+    _stopped_members(m)
+    for _ in range(2 * NOISE_CHECK_STEPS + 1):
+        m.step()
+    assert m.refined is not None and m.refined.resolved.stall_passes == 7
 
 
 def test_ensemble_without_refinement_stops_with_its_members_and_returns_their_average(sineball16):

@@ -173,9 +173,10 @@ class LoopSettings:
             raise ValueError(f"iteration count must be >= 0, got {self.max_iters}")
 
 
-# A log row comes after at least this many times its own cost in steps, so rows take at most ~10 %
-# of a run (at large grids a row is seconds: bench/large_grids.md).
-LOG_COST_RATIO = 9
+# A log row comes after at least this many times its own cost in steps, so rows take at most ~5 %
+# of a run (at large grids a row is seconds; at 64 px the fast preset's row, four members' videos,
+# was 0.3 s every 3-4 s of steps at 9: bench/convergence.md, stop 62).
+LOG_COST_RATIO = 19
 
 # What ended a run (metrics.json's "ended_by"): the method's own stop, the time budget, the
 # iteration count, a signal, non-finite steps, or a one-shot method's single pass.

@@ -22,9 +22,10 @@ from rngcam.recon.methods.stfm.settings import (
     NOISE_CHECK_STEPS,
     PRESETS,
     REFINE_LR_RATIO,
+    REFINE_STALL_PASSES,
     STALL_PASSES,
     STFMSettings,
 )
 
 __all__ = ["ALL_BASES", "ENSEMBLE_BASES", "INIT_STEPS", "NOISE_CHECK_STEPS", "PRESETS", "REFINE_LR_RATIO",
-           "STALL_PASSES", "STFM", "STFMEnsemble", "STFMSettings", "make_stfm"]
+           "REFINE_STALL_PASSES", "STALL_PASSES", "STFM", "STFMEnsemble", "STFMSettings", "make_stfm"]

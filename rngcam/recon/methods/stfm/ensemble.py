@@ -15,7 +15,13 @@ from rngcam.recon.methods.stfm.lanes import Lanes, lane_count
 from rngcam.recon.methods.stfm.line_time import line_time_report
 from rngcam.recon.methods.stfm.method import STFM, add_learned, geometry_report, learned_notes
 from rngcam.recon.methods.stfm.model import _chunks
-from rngcam.recon.methods.stfm.settings import REFINE_LR_RATIO, STFMSettings, _base_list, _setting_or_preset
+from rngcam.recon.methods.stfm.settings import (
+    REFINE_LR_RATIO,
+    REFINE_STALL_PASSES,
+    STFMSettings,
+    _base_list,
+    _setting_or_preset,
+)
 
 
 class STFMEnsemble(MethodBase):
@@ -31,7 +37,8 @@ class STFMEnsemble(MethodBase):
     (rngcam.recon.methods.stfm.lanes): an iteration is one round, `member_steps` counts each fit's.
 
     Refinement (`refine`, fast preset): once every member has stopped, one more fit takes their
-    average as its base video, with REFINE_LR_RATIO of the learning rate, until its own stop test
+    average as its base video, with REFINE_LR_RATIO of the learning rate, until its own stop test (its
+    stall test over REFINE_STALL_PASSES passes unless `stall_passes` is set)
     fires; it is then the output. Like every fit it starts from the GS frames' static composition
     (alpha * static + (1 - alpha) * base, alpha where every key frame agrees with their median),
     which the members' fits had eroded; the RS image keeps that composition where it fits the data
@@ -103,7 +110,8 @@ class STFMEnsemble(MethodBase):
         pose = self._mean_pose()
         video = self.estimate() if pose is None else self.average(native=True)  # the refinement's fields are native
         base = video / torch.as_tensor(self._mean_gains(), device=self.device)[:, None, None, None]
-        settings = replace(self.settings, dynamic_base="video", seed=self.settings.seed + len(self.members), lr=lr)
+        settings = replace(self.settings, dynamic_base="video", seed=self.settings.seed + len(self.members), lr=lr,
+                           stall_passes=self.settings.stall_passes or REFINE_STALL_PASSES)
         self.refined = STFM(self.problem, settings, self.device, static_from=first, base_video=base)
         if pose is not None and self.refined.learn_pose:  # the members' transform, refined further
             self.refined.start_pose(pose)
