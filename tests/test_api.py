@@ -65,6 +65,28 @@ def test_result_save_writes_the_folder_recon_writes(shot, tmp_path):
         assert f.attrs["bundle_sha256"] == r.bundle_sha256 != ""
 
 
+def test_a_missing_pyav_costs_the_preview_alone(shot, tmp_path, monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_av(name, *args, **kwargs):
+        if name == "av":
+            raise ModuleNotFoundError("No module named 'av'")
+        return real_import(name, *args, **kwargs)
+
+    r = rngcam.reconstruct(shot, method="tv3d", max_iters=2, progress=False)
+    monkeypatch.setattr(builtins, "__import__", no_av)
+    said: list[str] = []
+    folder = r.save(tmp_path / "saved", echo=said.append)
+    assert not (folder / "preview.mp4").exists()
+    for name in ("recon.h5", "video.tif", "errors.csv", "metrics.json", "recon.log"):
+        assert (folder / name).is_file(), name
+    assert [line for line in said if line.startswith("warning: preview.mp4 not written (PyAV")], said
+    with pytest.warns(UserWarning, match="preview.mp4 not written"):  # without an echo: a Python warning
+        r.save(tmp_path / "again")
+
+
 def test_settings_by_keyword_method_labels_and_an_open_bundle(shot):
     b = rngcam.open_bundle(shot)
     assert b.truth is not None and b.rs is not None and b.path == shot  # the bundle's fields show through

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -91,8 +92,12 @@ class Result:
                                self.bundle_sha256, self.components, self.left_out, context=ctx, results=found)
         outputs.write_tiff(out / "video.tif", self.video, frame_interval_s=self.frame_interval_s or None,
                            pixel_size_m=ctx.get("pixel_size_m"))
-        outputs.write_mp4(out / "preview.mp4", self.video, capture_fps=fps, frame_times_s=self.frame_times_s,
-                          key_times_s=ctx.get("key_frame_times_s"))
+        try:
+            outputs.write_mp4(out / "preview.mp4", self.video, capture_fps=fps, frame_times_s=self.frame_times_s,
+                              key_times_s=ctx.get("key_frame_times_s"))
+        except ImportError as exc:  # PyAV missing or broken: the preview only; the rest of the run stands
+            line = f"warning: preview.mp4 not written (PyAV: {exc}); `rngcam preview {out}` makes it once PyAV imports"
+            echo(line) if echo else warnings.warn(line, stacklevel=2)
         outputs.write_errors(out / "errors.csv", out / "errors.png", self.log, self.method,
                              noise_level=ctx.get("rs_noise_level"))
         outputs.write_metrics(out / "metrics.json", self.metrics)
