@@ -33,6 +33,8 @@ FULL = [
     # issue 40's GPU target: the paper grid within 0.5 dB of its converged figure in <= 60 s
     ("smoke 228x342 budget 60", "smoke", "228x342", {"time_budget_s": 60}, 150),
     ("smoke 228x342 budget 120", "smoke", "228x342", {"time_budget_s": 120}, 180),
+    # where the paper grid's set-up goes on that machine (25.5 s of a 60 s budget in the fifth session)
+    ("smoke 228x342 set-up profile", "smoke", "228x342", {"max_iters": 1, "profile": True}, 150),
     # at 8x the final truth evaluation (SSIM of 429 M elements) runs past the budget: give it room
     ("smoke 456x684 budget 150", "smoke", "456x684", {"time_budget_s": 150}, 300),
 ]
@@ -68,6 +70,13 @@ def child(bundle: str, out: str, device: str, settings: str) -> None:
 
     t0 = time.perf_counter()
     kwargs = {"device": device, **json.loads(settings)}  # a run's own device (a CPU baseline) wins
+    profile = kwargs.pop("profile", False)
+    profiler = None
+    if profile:
+        import cProfile
+
+        profiler = cProfile.Profile()
+        profiler.enable()
     reconstruct(bundle, "stfm", out=out, overwrite=True, progress=False, **kwargs)
     wall = time.perf_counter() - t0
     m = json.loads((Path(out) / "metrics.json").read_text())
@@ -78,7 +87,20 @@ def child(bundle: str, out: str, device: str, settings: str) -> None:
                psnr_60s_db=_psnr_by(Path(out) / "errors.csv", 60.0),
                level_steps=[lv.get("steps") for lv in (m.get("method_results") or {}).get("levels") or []],
                stop=(m.get("events") or [""])[-1][:300])
+    if profiler is not None:
+        profiler.disable()
+        row["profile_top"] = _top_functions(profiler, 40)
     print("ROW " + json.dumps(row), flush=True)
+
+
+def _top_functions(profiler, n: int) -> list[str]:
+    """The profile's `n` rngcam functions of most cumulative time, as 'seconds calls file:line(name)'."""
+    import pstats
+
+    stats = pstats.Stats(profiler).stats
+    rows = sorted(((ct, nc, f"{Path(f).name}:{line}({name})") for (f, line, name), (_cc, nc, _tt, ct, _callers)
+                   in stats.items() if "rngcam" in f), reverse=True)
+    return [f"{ct:8.2f} {nc:6d} {where}" for ct, nc, where in rows[:n]]
 
 
 def _psnr_by(errors_csv: Path, wall_s: float) -> float | None:

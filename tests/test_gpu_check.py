@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 
@@ -80,3 +81,20 @@ def test_two_runs_of_one_bundle_simulate_it_once(tmp_path, monkeypatch):
     gpu_check.simulate_all(tmp_path, [("a 60", "smoke", "228x342", {}, 9), ("a 120", "smoke", "228x342", {}, 9),
                                       ("b", "smoke", "64", {}, 9)], 10)
     assert [cmd[cmd.index("--size") + 1] for cmd in started] == ["228x342", "64"]
+
+
+def test_a_profiled_run_lists_where_its_time_went(tmp_path, monkeypatch, capsys):
+    import rngcam
+
+    def fake_reconstruct(bundle, method, out, **kwargs):
+        assert "profile" not in kwargs  # the check's own switch never reaches reconstruct
+        Path(out).mkdir(parents=True, exist_ok=True)
+        from rngcam.recon.methods.selfcal import line_search
+
+        line_search(lambda x: (x - 0.3) ** 2, 0.0, 1.0, 0.1, 0.01, 0.2)  # some rngcam work to profile
+        (Path(out) / "metrics.json").write_text(json.dumps({"iterations": 1, "status": "ok"}))
+
+    monkeypatch.setattr(rngcam, "reconstruct", fake_reconstruct)
+    gpu_check.child("b.h5", str(tmp_path / "o"), "cpu", json.dumps({"max_iters": 1, "profile": True}))
+    row = json.loads(capsys.readouterr().out.split("ROW ", 1)[1])
+    assert any("line_search" in line for line in row["profile_top"]), row["profile_top"]
