@@ -174,8 +174,7 @@ class LoopSettings:
 
 
 # A log row comes after at least this many times its own cost in steps, so rows take at most ~5 %
-# of a run (at large grids a row is seconds; at 64 px the fast preset's row, four members' videos,
-# was 0.3 s every 3-4 s of steps at 9: bench/convergence.md, stop 62).
+# of a run (a row is a whole video, or four for the fast preset's ensemble: bench/convergence.md, stop 62).
 LOG_COST_RATIO = 19
 
 # What ended a run (metrics.json's "ended_by"): the method's own stop, the time budget, the

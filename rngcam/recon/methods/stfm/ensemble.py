@@ -37,9 +37,9 @@ class STFMEnsemble(MethodBase):
     (rngcam.recon.methods.stfm.lanes): an iteration is one round, `member_steps` counts each fit's.
 
     Refinement (`refine`, fast preset): once every member has stopped, one more fit takes their
-    average as its base video, with REFINE_LR_RATIO of the learning rate, until its own stop test (its
-    stall test over REFINE_STALL_PASSES passes unless `stall_passes` is set)
-    fires; it is then the output. Like every fit it starts from the GS frames' static composition
+    average as its base video, with REFINE_LR_RATIO of the learning rate, until its own stop test
+    fires (its stall test over REFINE_STALL_PASSES passes unless `stall_passes` is set); it is then the
+    output. Like every fit it starts from the GS frames' static composition
     (alpha * static + (1 - alpha) * base, alpha where every key frame agrees with their median),
     which the members' fits had eroded; the RS image keeps that composition where it fits the data
     and undoes it where something moved between the key frames (bench/stfm_compare.md).

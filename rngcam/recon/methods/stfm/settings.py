@@ -190,8 +190,8 @@ POSE_LR_RATIO = 2.0
 # fields' learning rate
 LINE_LR_RATIO = 8.0
 REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
-# ... and its stall test looks back this many passes over the rows (unless stall_passes is set): its
-# gain is in its first ~50 steps (smoke 64 px: 15 passes took 360 steps, the last 300 of them +0.03 dB)
+# ... and its stall test looks back this many passes over the rows (unless stall_passes is set): what it
+# gains, it gains in its first steps (bench/convergence.md, stop 62)
 REFINE_STALL_PASSES = 5
 DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
 
