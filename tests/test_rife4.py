@@ -95,3 +95,36 @@ def test_small_images_run_at_a_finer_scale():
     assert rife4.working_scale(128, 96) == 2.0
     assert rife4.working_scale(256, 300) == 1.0 and rife4.working_scale(1080, 1920) == 1.0
     assert rife4.working_scale(16, 16) == 4.0
+
+
+def test_the_video_and_the_warps_of_one_call_share_the_networks_flows(monkeypatch):
+    """rife then rife_warps on the same key frames and times run the network once, for the same values
+    as two separate calls; different key frames, or flows over the size cap, run it again."""
+    from rngcam.recon.methods import rife as rife_mod
+
+    g = np.random.default_rng(1)
+    keys = (0.2 + 0.6 * g.random((3, 3, 32, 48))).astype(np.float32)
+    times, targets = np.array([0.0, 1.0, 2.0]), np.linspace(0, 2, 11)
+    rife_mod._last_flows4.clear()
+    alone_video = rife(keys, times, targets)
+    rife_mod._last_flows4.clear()
+    alone_warps = rife_warps(keys, times, targets)
+    rife_mod._last_flows4.clear()
+    calls = []
+    flows = rife4.IFNet4.flows
+    monkeypatch.setattr(rife4.IFNet4, "flows", lambda self, *a, **k: calls.append(1) or flows(self, *a, **k))
+    video = rife(keys, times, targets)
+    asked = len(calls)
+    warps = rife_warps(keys, times, targets)
+    assert asked > 0 and len(calls) == asked  # the warps took the video's flows
+    np.testing.assert_array_equal(video, alone_video)
+    for name in ("flow0", "flow1", "weight0"):
+        np.testing.assert_array_equal(getattr(warps, name), getattr(alone_warps, name))
+    assert not rife_mod._last_flows4  # taken, not held
+    rife(keys, times, targets)
+    rife_warps(keys * 0.9, times, targets)  # other key frames: the network again
+    assert len(calls) == 3 * asked
+    monkeypatch.setattr(rife_mod, "SHARED_FLOWS_BYTES", 0)
+    rife(keys, times, targets)
+    rife_warps(keys, times, targets)  # nothing kept over the cap
+    assert len(calls) == 5 * asked
