@@ -97,7 +97,10 @@ class Result:
                               key_times_s=ctx.get("key_frame_times_s"))
         except ImportError as exc:  # PyAV missing or broken: the preview only; the rest of the run stands
             line = f"warning: preview.mp4 not written (PyAV: {exc}); `rngcam preview {out}` makes it once PyAV imports"
-            echo(line) if echo else warnings.warn(line, stacklevel=2)
+            if echo:
+                echo(line)
+            else:
+                warnings.warn(line, stacklevel=2)
         outputs.write_errors(out / "errors.csv", out / "errors.png", self.log, self.method,
                              noise_level=ctx.get("rs_noise_level"))
         outputs.write_metrics(out / "metrics.json", self.metrics)

@@ -170,6 +170,10 @@ def default_factors(shape: tuple[int, int, int, int], min_side: int = 48) -> tup
     return tuple(reversed(factors))
 
 
+# Under a time budget a coarse level may spend this share of what is left when it starts.
+LEVEL_SHARE = 0.15
+
+
 class CoarseToFine(MethodBase):
     """A `Method` (rngcam.recon.loop) that runs `make(level_problem, x0)` at each level in turn.
 
@@ -188,7 +192,7 @@ class CoarseToFine(MethodBase):
 
     def __init__(self, problem: Problem, make: Callable[[Problem, Tensor | None], object],
                  factors: tuple[int, ...] | None = None, clock: Clock | None = None,
-                 level_share: float = 0.15, level_rtol: float = 2e-3, window: int = 10,
+                 level_share: float = LEVEL_SHARE, level_rtol: float = 2e-3, window: int = 10,
                  max_level_steps: int = 300, stage: Callable[[str], None] | None = None,
                  level_stop: str = "objective", fine_steps: int = 5,
                  detail: Callable[[Problem, tuple[int, int, int, int]], Tensor] | None = None):

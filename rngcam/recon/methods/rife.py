@@ -30,7 +30,7 @@ from rngcam.recon.methods.baselines import (
     srgb_to_linear,
     validate_key_frames,
 )
-from rngcam.recon.nets.rife_common import RifeUnavailableError, backward_warp
+from rngcam.recon.nets.rife_common import RifeUnavailableError
 from rngcam.recon.nets.rife_hdv3 import IFNet, find_weights, load_ifnet
 
 # The network downsamples by 4 (scale list) x 4 (two stride-2 convs); pad to a safe multiple.
@@ -213,12 +213,9 @@ def _rife4(f: np.ndarray, times_s, targets, weights, device: str) -> np.ndarray:
     out = np.empty((c, len(targets), h, w), np.float32)
     out[:, exact] = f[:, idx[exact] + (frac[exact] == 1.0)]
     scale = encoding_scale(f)
-    flows = _shared_flows4(net, weights, f, times_s, targets, device, net_scale)
-    for (chunk, first, second, _t), (flow, mask) in zip(_pair_batches(f, idx, frac, exact, scale, device, net_scale),
-                                                          flows, strict=True):
-        w0 = torch.sigmoid(mask)  # IFNet4.forward's blend, from the flows it would compute
-        frames = backward_warp(first, flow[:, :2]) * w0 + backward_warp(second, flow[:, 2:4]) * (1 - w0)
-        out[:, chunk] = _from_network(frames, c, h, w, scale)
+    for chunk, first, second, flow, mask in _shared_flows4(net, weights, f, idx, frac, exact, scale, device,
+                                                           net_scale):
+        out[:, chunk] = _from_network(net.blend(first, second, flow, mask), c, h, w, scale)
     return out
 
 
@@ -230,23 +227,23 @@ _last_flows4: dict = {}
 SHARED_FLOWS_BYTES = 64 * 2**20
 
 
-def _shared_flows4(net, weights, f: np.ndarray, times_s, targets, device: str, net_scale: float) -> list:
-    """[(flow, mask)] of each of `_pair_batches`' batches: `net.flows` at each target's time, or the
-    previous call's where it asked for the same (the same frames, times, weights, device and scale)."""
+def _shared_flows4(net, weights, f: np.ndarray, idx, frac, exact, scale: float, device: str,
+                   net_scale: float) -> list:
+    """[(target indices, first, second key frames as the network takes them, flow, mask)] of each of
+    `_pair_batches`' batches: `net.flows` at each target's time, or the previous call's where it asked
+    for the same (the same frames, targets, weights, device and scale)."""
     import hashlib
 
-    key = (hashlib.sha256(np.ascontiguousarray(f).tobytes()).hexdigest(), f.shape,
-           np.asarray(times_s, np.float64).tobytes(), np.asarray(targets, np.float64).tobytes(),
-           str(weights), str(device), net_scale)
+    key = (hashlib.sha256(np.ascontiguousarray(f).tobytes()).hexdigest(), f.shape, idx.tobytes(),
+           np.asarray(frac, np.float64).tobytes(), str(weights), str(device), net_scale)
     found = _last_flows4.pop("entry", None)
     if found is not None and found[0] == key:
         return found[1]
-    idx, frac, exact = _targets_by_pair(f, times_s, targets)
-    flows = [net.flows(first, second, t, net_scale)
-             for _chunk, first, second, t in _pair_batches(f, idx, frac, exact, encoding_scale(f), device, net_scale)]
-    if sum(x.numel() * x.element_size() for pair in flows for x in pair) <= SHARED_FLOWS_BYTES:
-        _last_flows4["entry"] = (key, flows)
-    return flows
+    batches = [(chunk, first, second, *net.flows(first, second, t, net_scale))
+               for chunk, first, second, t in _pair_batches(f, idx, frac, exact, scale, device, net_scale)]
+    if sum(x.numel() * x.element_size() for *_, flow, mask in batches for x in (flow, mask)) <= SHARED_FLOWS_BYTES:
+        _last_flows4["entry"] = (key, batches)
+    return batches
 
 
 def _pair_batches(f: np.ndarray, idx, frac, exact, scale: float, device: str, net_scale: float = 1.0):
@@ -281,9 +278,8 @@ def _rife4_warps(f: np.ndarray, times_s, targets, weights, device: str):
     flow0, flow1 = np.zeros((k, h, w, 2), np.float32), np.zeros((k, h, w, 2), np.float32)
     weight0 = np.where(frac <= 0.5, 1.0, 0.0)[:, None, None].repeat(h, 1).repeat(w, 2).astype(np.float32)
     scale = encoding_scale(f)
-    flows = _shared_flows4(net, weights, f, times_s, targets, device, net_scale)
-    for (chunk, _first, _second, _t), (flow, mask) in zip(_pair_batches(f, idx, frac, exact, scale, device, net_scale),
-                                                           flows, strict=True):
+    for chunk, _first, _second, flow, mask in _shared_flows4(net, weights, f, idx, frac, exact, scale, device,
+                                                             net_scale):
         flow = flow[:, :, :h, :w].permute(0, 2, 3, 1).cpu().numpy()
         flow0[chunk], flow1[chunk] = flow[..., :2], flow[..., 2:]
         weight0[chunk] = torch.sigmoid(mask[:, 0, :h, :w]).cpu().numpy()

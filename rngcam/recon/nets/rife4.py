@@ -123,7 +123,11 @@ class IFNet4(nn.Module):
                                      nn.Conv2d(64, 1, 3, 1, 1))
 
     def forward(self, img0: torch.Tensor, img1: torch.Tensor, t=0.5, scale: float = 1.0) -> torch.Tensor:
-        flow, mask = self.flows(img0, img1, t, scale)
+        return self.blend(img0, img1, *self.flows(img0, img1, t, scale))
+
+    @staticmethod
+    def blend(img0: torch.Tensor, img1: torch.Tensor, flow: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """The frame that `flows`' output makes of img0 and img1 (forward's last step)."""
         w0 = torch.sigmoid(mask)
         return backward_warp(img0, flow[:, :2]) * w0 + backward_warp(img1, flow[:, 2:4]) * (1 - w0)
 

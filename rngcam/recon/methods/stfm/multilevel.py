@@ -6,7 +6,8 @@ settings (`make_stfm`: RIFE or flow bases, the fast preset's ensemble, the prior
 search), so the set-up work that does not scale with the grid (RIFE, optical flow, the motion
 search, the GS initialisation fits) runs on 1/16 of the pixels and 1/4 of the frames. A coarse
 level ends at its own stop test (noise level or stall), after `max_level_steps`, or, under a time budget,
-once its steps have used LEVEL_SHARE of what the budget had left when it started.
+once its steps have used their share of what the budget had left when it started (LEVEL_SHARE for a
+base-video model, CoarseToFine's for the others).
 
 Each finer level starts from the level below, in the preset's own model:
 - a model with a time-dependent dynamic field on a base video (fast; `dynamic_time=True`):
@@ -30,6 +31,7 @@ import torch
 from torch import Tensor
 
 from rngcam.memory import release_free_memory
+from rngcam.recon.methods.coarse_to_fine import LEVEL_SHARE as DEFAULT_LEVEL_SHARE
 from rngcam.recon.methods.coarse_to_fine import CoarseToFine, default_factors, power_norm, upsample
 from rngcam.recon.methods.selfcal import pose_matrix, warp
 from rngcam.recon.methods.stfm.method import STFM
@@ -103,7 +105,8 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
         return method
 
     return CoarseToFine(problem, make, factors, clock=clock, stage=stage, level_stop="method",
-                        max_level_steps=max_level_steps, **({"level_share": LEVEL_SHARE} if with_base else {}))
+                        max_level_steps=max_level_steps,
+                        level_share=LEVEL_SHARE if with_base else DEFAULT_LEVEL_SHARE)
 
 
 def _fit_of(method) -> STFM:
