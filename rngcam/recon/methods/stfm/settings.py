@@ -248,6 +248,9 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
                      # image (sineball 64 px: a round ball in every frame; bench/stfm_motion.md). Its tau
                      # below is a translation's: TRANSLATION_TV_SHARE of the field's 1e-3.
                      "motion_model": "translation",
+                     # below 64 px an eighth of the rows a step, as before the fast preset's change (not measured
+                     # on the prior preset's scenes)
+                     "rows_per_step": max(1, min(8, h // 8)),
                      # A slow stall test: 2 % over 15 passes stopped it while it was still gaining (27.7 dB
                      # at 300 steps, 29.6 at 800); on captures its model cannot fit to the noise level it
                      # settles by ~1,500 steps (bench/realistic.md), and without a stop the result
