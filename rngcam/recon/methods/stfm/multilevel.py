@@ -118,9 +118,11 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
             release_free_memory()
             if pose is not None:  # the estimate is in RS coordinates; the fields' base in the GS camera's
                 x0 = _to_native(x0, pose * ratio, max(level.shape[-2:]) / 2)
-            if level.b_gs is not None and h * w <= FINE_GS_MAX_PIXELS:
+            # a small grid: the GS-only video's detail on the start, which the fit then only refines
+            detail = level.b_gs is not None and level.shape[-2] * level.shape[-1] <= FINE_GS_MAX_PIXELS
+            if detail:
                 x0 = _with_detail(level, x0, coarse_shape, round(ratio))
-            method = _on_base(level, single_settings, device, x0, start)
+            method = _on_base(level, single_settings, device, x0, start, refinement=detail)
             if pose is not None and method.learn_pose:  # (fields_from carries it in the other two ways)
                 method.start_pose(pose * ratio)
         else:
@@ -170,14 +172,18 @@ def _lr(settings: STFMSettings, problem) -> float:
     return REFINE_LR_RATIO * base
 
 
-def _on_base(problem, settings: STFMSettings, device, x0: Tensor, norm_start: Tensor | None = None) -> STFM:
+def _on_base(problem, settings: STFMSettings, device, x0: Tensor, norm_start: Tensor | None = None,
+             refinement: bool = False) -> STFM:
     """One fit on the base video x0 (C, K, H, W), the coarser level's estimate upsampled (kept as
     it is, half precision included: no copy). The base is x0 divided by the gains the fit starts
-    with (on the fly), so its first video is x0 itself."""
+    with (on the fly), so its first video is x0 itself. `refinement`: with the ensemble refinement's
+    stall window (REFINE_STALL_PASSES, unless stall_passes is set), where x0 carries the GS-only
+    detail (on the paper grid's middle level it cost 0.5 dB: that level stopped at 160 steps, not 342)."""
     wb = problem.white_balance
     gains = None if wb is None or bool(torch.all(wb == 1)) else wb.float()
-    fine = replace(settings, dynamic_base="video", dynamic_time=True, lr=_lr(settings, problem),
-                   stall_passes=settings.stall_passes or REFINE_STALL_PASSES)
+    fine = replace(settings, dynamic_base="video", dynamic_time=True, lr=_lr(settings, problem))
+    if refinement:
+        fine = replace(fine, stall_passes=settings.stall_passes or REFINE_STALL_PASSES)
     return STFM(problem, fine, device, base_video=x0, base_gains=gains, rs_norm_start=norm_start)
 
 
