@@ -62,8 +62,8 @@ LEVEL_SHARE = 0.45
 
 # Below 96 px, where default_factors gives one level, a base-video model (fast) still starts on the
 # half grid when that keeps this many pixels a side: its ensemble there, with bases from the full
-# grid's frames, then one fit on the full grid (smoke 64 px: 98 -> 40 s and +0.8 dB;
-# bench/convergence.md, stop 63). A model that carries its fields (prior) keeps one level.
+# grid's frames, then one fit on the full grid (64 px, own stop: smoke 105 -> 46 s and +0.7 dB, the clip
+# 124 -> 55 s and -0.1 dB; bench/convergence.md, stop 63). A model that carries its fields (prior) keeps one level.
 BASE_MIN_SIDE = 32
 
 
