@@ -176,6 +176,12 @@ def test_a_gs_exposure_straddling_t0_extends_the_grid_before_t0(clean, tmp_path)
     assert problem.b_gs.shape[1] == 3 and problem.left_out == []
     # its whole exposure is on the grid: the weights sum to exposure / dt
     np.testing.assert_allclose(problem.gs_weights.sum(1).numpy(), 650e-6 / 208e-6)
+    # a coarse-to-fine level keeps the clock: its frames are the fine frames' pairs, before T0 too
+    from rngcam.recon.methods.coarse_to_fine import coarsen
+
+    coarse = coarsen(problem, 2)
+    fine_times = problem.frame_times_s
+    np.testing.assert_allclose(coarse.frame_times_s[:2], [fine_times[0:2].mean(), fine_times[2:4].mean()])
 
 
 def test_an_rs_trigger_after_t0_is_an_error(clean, tmp_path):

@@ -70,15 +70,9 @@ def _bin2(img: Tensor, r: Tensor, x: Tensor) -> Tensor:
     return r.to(img) @ img @ x.to(img).T
 
 
-# A coarse level keeps the GS frames of a source grid up to this many pixels (Problem.fine_gs): its
-# GS-only videos and flows are computed there, where RIFE sees the detail it needs.
-FINE_GS_MAX_PIXELS = 128 * 128
-
-
 def coarsen(problem: Problem, factor: int, time_factor: int | None = None) -> Problem:
     """The problem on a grid `factor` times coarser in space and `time_factor` (default: the same)
-    in time. Held-out splits are not carried over (a coarse fit would see the held-out data). The
-    source grid's GS frames go along as `fine_gs` where it has at most FINE_GS_MAX_PIXELS."""
+    in time. Held-out splits are not carried over (a coarse fit would see the held-out data)."""
     if problem.has_holdout:
         raise ValueError("coarse-to-fine does not support a held-out split")
     s, t = int(factor), int(time_factor or factor)
@@ -101,22 +95,7 @@ def coarsen(problem: Problem, factor: int, time_factor: int | None = None) -> Pr
         gs_times_s=problem.gs_times_s, truth=truth,
         mask=None if problem.mask is None else _bin2(problem.mask.double(), r, x) > 0.5,
         white_balance=problem.white_balance, notes=[], time_origin_s=problem.time_origin_s,
-        rs_valid=bin_valid(problem.rs_valid), gs_valid=bin_valid(problem.gs_valid), fine_gs=_fine_gs(problem))
-
-
-def _fine_gs(problem: Problem) -> Tensor | None:
-    """The GS frames a level binned from `problem` computes its GS-only videos on (None: its own)."""
-    if problem.fine_gs is not None:
-        return problem.fine_gs
-    if problem.b_gs is None or problem.b_gs.shape[-2] * problem.b_gs.shape[-1] > FINE_GS_MAX_PIXELS:
-        return None
-    return problem.gs_images()
-
-
-def bin_space(video: Tensor, height: int, width: int) -> Tensor:
-    """(..., H, W) -> (..., height, width) by area, as `coarsen` bins the measurements."""
-    h, w = video.shape[-2:]
-    return _bin2(video, area_matrix(height, h), area_matrix(width, w))
+        rs_valid=bin_valid(problem.rs_valid), gs_valid=bin_valid(problem.gs_valid))
 
 
 def bin_video(video: Tensor, shape: tuple[int, int, int, int], time_factor: int) -> Tensor:
