@@ -21,6 +21,7 @@ from rngcam.cli import main
 from rngcam.errors import ConfigError, RngcamError
 from rngcam.evaluate import stress_cases as edits
 from rngcam.formats.bundle import read_bundle
+from rngcam.recon.methods.coarse_to_fine import coarsen
 from rngcam.recon.metrics import error_visibility, error_visibility_caveats
 from rngcam.recon.problem import build_problem
 from rngcam.recon.runner import ReconSettings, reconstruct
@@ -177,8 +178,6 @@ def test_a_gs_exposure_straddling_t0_extends_the_grid_before_t0(clean, tmp_path)
     # its whole exposure is on the grid: the weights sum to exposure / dt
     np.testing.assert_allclose(problem.gs_weights.sum(1).numpy(), 650e-6 / 208e-6)
     # a coarse-to-fine level keeps the clock: its frames are the fine frames' pairs, before T0 too
-    from rngcam.recon.methods.coarse_to_fine import coarsen
-
     coarse = coarsen(problem, 2)
     fine_times = problem.frame_times_s
     np.testing.assert_allclose(coarse.frame_times_s[:2], [fine_times[0:2].mean(), fine_times[2:4].mean()])
