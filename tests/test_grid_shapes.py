@@ -167,6 +167,39 @@ def test_tv3d_coarse_to_fine_reaches_the_full_grid_and_improves_on_its_start():
     assert np.isfinite(end) and end > start
 
 
+def test_coarse_levels_may_keep_every_frame():
+    """time_factors (1, 1): the coarse level bins pixels only, its estimate reaches the full grid with
+    every frame, and the next level's start is the coarse video with its frames as they were."""
+    from rngcam.recon.methods.coarse_to_fine import CoarseToFine
+    from rngcam.recon.methods.tv3d import TV3D, TV3DSettings
+
+    from rngcam.recon.methods.coarse_to_fine import upsample
+
+    p = _toy_problem().to(torch.float32)
+    built, starts = [], []
+
+    def make(q, x0):
+        if x0 is not None:  # the coarse level's estimate as it ended, beside the start made of it
+            starts.append((built[-1].estimate(), x0))
+        built.append(TV3D(q, TV3DSettings(), x0=x0))
+        return built[-1]
+
+    m = CoarseToFine(p, make, (2, 1), max_level_steps=5, time_factors=(1, 1))
+    c, k, h, w = p.shape
+    assert m.problems[0].shape == (c, k, h // 2, w // 2)
+    assert m.estimate().shape == p.shape
+    for _ in range(6):
+        m.step()
+    assert m.final and len(starts) == 1
+    coarse, start = starts[0]
+    assert start.shape == p.shape
+    # each fine frame is its own coarse frame, upsampled in space only (the start is kept in half precision)
+    torch.testing.assert_close(start.float(), upsample(coarse.float(), p.shape, 1), rtol=1e-2, atol=1e-3)
+    assert float((upsample(coarse.float(), p.shape, 2) - start.float()).abs().max()) > 1e-2
+    with pytest.raises(ValueError, match="time factors"):
+        CoarseToFine(p, make, (2, 1), time_factors=(2,))
+
+
 def test_a_budget_that_ends_a_coarse_level_says_what_was_cut():
     from rngcam.recon.loop import LoopSettings, run
     from rngcam.recon.methods.coarse_to_fine import CoarseToFine

@@ -89,7 +89,10 @@ def test_the_prediction_is_within_15_percent_of_a_measured_run(small_bundle, tmp
                                                              mapped / 2**20)
 
 
-def test_a_fine_stfm_level_keeps_its_start_once_in_half_precision():
+def test_a_fine_stfm_level_keeps_its_start_once_in_half_precision(monkeypatch):
+    from rngcam.recon.methods.stfm import multilevel
+
+    monkeypatch.setattr(multilevel, "FINE_GS_MAX_PIXELS", 0)  # a large grid's: no GS-only detail added to it
     p = _toy_problem()
     m = make_multilevel(p, STFMSettings(rows_per_step=4, dynamic_base="video", refine=False), "cpu", (2, 1),
                         lambda q, s: make_stfm(q, s), max_level_steps=3)
@@ -105,7 +108,10 @@ def test_a_fine_stfm_level_keeps_its_start_once_in_half_precision():
     assert torch.isfinite(m.estimate()).all()
 
 
-def test_a_fine_level_divides_the_start_by_the_gains_on_the_fly():
+def test_a_fine_level_divides_the_start_by_the_gains_on_the_fly(monkeypatch):
+    from rngcam.recon.methods.stfm import multilevel
+
+    monkeypatch.setattr(multilevel, "FINE_GS_MAX_PIXELS", 0)  # a large grid's: the start itself is the base
     p = _toy_problem()
     p.white_balance = torch.tensor([1.1, 1.0, 0.9])
     m = make_multilevel(p, STFMSettings(rows_per_step=4, dynamic_base="video", refine=False, init="random"),

@@ -120,11 +120,31 @@ def test_the_video_and_the_warps_of_one_call_share_the_networks_flows(monkeypatc
     np.testing.assert_array_equal(video, alone_video)
     for name in ("flow0", "flow1", "weight0"):
         np.testing.assert_array_equal(getattr(warps, name), getattr(alone_warps, name))
-    assert not rife_mod._last_flows4  # taken, not held
+    assert rife_mod._last_flows4  # held for a later call on the same frames (a coarse to fine run's full level)
     rife(keys, times, targets)
+    assert len(calls) == asked
     rife_warps(keys * 0.9, times, targets)  # other key frames: the network again
-    assert len(calls) == 3 * asked
+    assert len(calls) == 2 * asked
     monkeypatch.setattr(rife_mod, "SHARED_FLOWS_BYTES", 0)
     rife(keys, times, targets)
     rife_warps(keys, times, targets)  # nothing kept over the cap
-    assert len(calls) == 5 * asked
+    assert len(calls) == 4 * asked
+
+
+def test_frames_next_to_a_key_frame_tend_to_it():
+    """RIFE 4.x is not asked closer to a key frame than NEAR_KEY of the interval: a frame there lies on the
+    line from the key to the network's frame at NEAR_KEY, so it tends to the key and meets the network's
+    frames without a jump."""
+    from rngcam.recon.methods import rife as rife_mod
+
+    g = np.random.default_rng(2)
+    keys = (0.2 + 0.6 * g.random((3, 2, 32, 48))).astype(np.float32)
+    near = rife_mod.NEAR_KEY
+    fracs = np.array([1e-3, near / 2, near, 0.5, 1 - near / 2, 1 - 1e-3])
+    out = rife(keys, np.array([0.0, 1.0]), fracs)
+    step = np.abs(out[:, 2] - keys[:, 0]).max()
+    assert step > 1e-3  # the network's frame at NEAR_KEY is not the key: the test has something to see
+    np.testing.assert_allclose(out[:, 0], keys[:, 0] + 1e-3 / near * (out[:, 2] - keys[:, 0]), atol=1e-5)
+    np.testing.assert_allclose(out[:, 1], (keys[:, 0] + out[:, 2]) / 2, atol=1e-5)
+    np.testing.assert_allclose(out[:, 5], keys[:, 1], atol=1e-3 / near * 1.5 + 1e-5)
+    assert np.abs(out[:, 4] - keys[:, 1]).mean() < np.abs(out[:, 3] - keys[:, 1]).mean()

@@ -252,3 +252,17 @@ def test_without_gs_frames_the_verdict_does_not_blame_the_geometry():
     full = for_metrics({**base, "method_settings": {"no_gs": False}})
     assert "geometry" not in ablated["likely_causes"] and "geometry" in full["likely_causes"]
     assert ablated["likely_causes"][0] == "PSF scale"
+
+
+def test_a_coarse_to_fine_run_is_held_to_its_own_threshold():
+    """A run whose last level refines a coarser estimate ends further from the noise level: 1.3x is
+    explained there, not after one level; 1.4x is not explained either way."""
+    from rngcam.recon import misfit
+
+    levels = [{"level": "level 1 of 2 (32x32x34)"}, {"level": "level 2 of 2 (64x64x67)"}]
+    for ratio, one, two in ((1.3, True, False), (1.4, True, True)):
+        base = {"residual_rs": 0.02 * ratio, "status": "ok", "ended_by": "own_stop"}
+        single = misfit.for_metrics({**base, "method_results": {"rs_noise_level": 0.02}})
+        multi = misfit.for_metrics({**base, "method_results": {"rs_noise_level": 0.02, "levels": levels}})
+        assert (single is not None) == one and (multi is not None) == two
+    assert multi["threshold"] == misfit.MISFIT_RATIO_LEVELS

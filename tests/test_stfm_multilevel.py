@@ -9,18 +9,18 @@ from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.methods.coarse_to_fine import upsample
 from rngcam.recon.methods.stfm import STFM, STFMSettings, make_stfm
 from rngcam.recon.methods.stfm.fields import field_on_grid, make_field, transfer_fields
-from rngcam.recon.methods.stfm.multilevel import make_multilevel, stfm_levels
+from rngcam.recon.methods.stfm.multilevel import make_multilevel, stfm_levels, stfm_time_factors
 from rngcam.recon.metrics import video_metrics
 from rngcam.sim.scenes import render_scene
 from rngcam.sim.simulate import simulation_timing
 
 
-def _toy_problem(h=32, w=48):
+def _toy_problem(h=32, w=48, scene="sineball"):
     from rngcam.recon.problem import problem_from_video
     from rngcam.sim.simulate import prepare_simulation_psf
 
     timing = simulation_timing((h, w))
-    video = torch.from_numpy(render_scene("sineball", timing.grid, (h, w), 0)).double()
+    video = torch.from_numpy(render_scene(scene, timing.grid, (h, w), 0)).double()
     psf = prepare_simulation_psf(None, (h, w), (h, w), 0.25).grid
     return problem_from_video(video, torch.from_numpy(psf), timing.rs, timing.gs).to(torch.float32)
 
@@ -69,7 +69,7 @@ def test_prior_preset_fine_level_starts_from_the_coarse_model():
     assert isinstance(fine, STFM) and fine.resolved.dynamic_time is False  # the prior's own model
     assert fine.resolved.lr == pytest.approx(0.25 * coarse.resolved.lr)
     # before any fine step the fine video is the coarse model on the finer grid
-    up = upsample(coarse.estimate(), p.shape, 2)
+    up = upsample(coarse.estimate(), p.shape, m.time_factors[0])
     first = fine.estimate()
     assert float((first - up).norm() / up.norm()) < 0.1
     torch.testing.assert_close(fine.log_gain, coarse.log_gain)
@@ -183,3 +183,61 @@ def test_a_coarse_level_under_a_budget_may_spend_its_share_of_what_is_left():
     # next step moves on (the finer level fits in what is left)
     m.step()
     assert m.final
+
+
+def test_the_fast_preset_starts_on_the_half_grid_from_64_px():
+    def shaped(h, w):
+        return type("P", (), {"shape": (3, 67, h, w), "has_holdout": False})()
+
+    assert stfm_levels(shaped(64, 64), STFMSettings(preset="fast")) == (2, 1)
+    assert stfm_levels(shaped(64, 64), STFMSettings(preset="fast", coarse_to_fine=False)) == (1,)
+    assert stfm_levels(shaped(64, 64), STFMSettings(preset="prior")) == (1,)  # carries its fields: one level
+    assert stfm_levels(shaped(48, 64), STFMSettings(preset="fast")) == (1,)  # a 24 px half grid is too small
+    # that half grid keeps every frame (binned in pairs, its fit learned a biased GS-to-RS shift); the
+    # paper grid's levels bin frames as they bin pixels
+    assert stfm_time_factors(shaped(64, 64), (2, 1)) == (1, 1)
+    assert stfm_time_factors(shaped(228, 342), (4, 2, 1)) == (4, 2, 1)
+    assert stfm_time_factors(shaped(64, 64), (2, 1), with_base=False) == (2, 1)  # prior: not measured
+
+
+def test_a_coarse_level_keeps_the_finer_grids_gs_frames_up_to_a_size(monkeypatch):
+    from rngcam.recon.methods import coarse_to_fine
+
+    p = _toy_problem()
+    q = coarse_to_fine.coarsen(p, 2)
+    assert q.fine_gs.shape == p.gs_images().shape and torch.allclose(q.fine_gs, p.gs_images())
+    assert coarse_to_fine.coarsen(q, 2).fine_gs is q.fine_gs  # always the finest grid's
+    monkeypatch.setattr(coarse_to_fine, "FINE_GS_MAX_PIXELS", 32 * 48 - 1)
+    assert coarse_to_fine.coarsen(p, 2).fine_gs is None
+
+
+def test_a_coarse_levels_base_video_and_key_flows_come_from_the_finer_grid():
+    from rngcam.recon.methods.baselines import interp, interp_warps
+    from rngcam.recon.methods.coarse_to_fine import bin_space, coarsen
+
+    p = _toy_problem()
+    q = coarsen(p, 2)
+    fine = p.gs_images().numpy()
+    video = STFM(q, STFMSettings(preset="fast", dynamic_base="interp"), "cpu")
+    expected = bin_space(torch.from_numpy(np.asarray(interp(fine, p.gs_times_s, q.frame_times_s), np.float32)), 16, 24)
+    assert video.base_source == "interp" and torch.allclose(video.base_video, expected, atol=1e-5)
+    keys = STFM(q, STFMSettings(preset="fast", dynamic_base="keys_interp"), "cpu")
+    warps = interp_warps(fine, p.gs_times_s, q.frame_times_s)
+    flows = torch.from_numpy(np.concatenate([warps.flow0, warps.flow1], axis=-1)) / torch.tensor([23.5, 15.5] * 2)
+    assert keys.key_images.shape == (3, 3, 16, 24)  # the coarse grid's key frames, warped by the fine flows
+    binned = bin_space(flows.permute(0, 3, 1, 2), 16, 24).permute(0, 2, 3, 1)  # coordinate units on both grids
+    assert torch.allclose(keys.key_flow, binned, atol=1e-5) and float(binned.abs().max()) > 0
+
+
+def test_the_full_levels_start_has_the_gs_only_videos_detail():
+    from rngcam.recon.methods.coarse_to_fine import bin_video, coarsen
+    from rngcam.recon.methods.stfm.multilevel import _with_detail
+
+    p = _toy_problem(scene="smoke")
+    for frames in (2, 1):  # a half grid that bins frames in pairs, or keeps them
+        q = coarsen(p, 2, frames)
+        coarse_truth = upsample(bin_video(p.truth, q.shape, frames), p.shape, frames)
+        started = _with_detail(p, coarse_truth.clone(), q.shape)
+        assert started.shape == p.shape and float(started.min()) >= 0
+        gain = _psnr(started, p.truth) - _psnr(coarse_truth, p.truth)
+        assert gain > 1, (frames, gain)  # the detail the half grid could not hold

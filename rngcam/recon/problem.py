@@ -78,6 +78,10 @@ class Problem:
     # The RS timing the weights came from (on the grid's clock), where they came from one: what a
     # fit that learns a line-time factor stretches (None: a coarsened or hand-built problem).
     rs_timing: RollingShutterTiming | None = None
+    # A coarse-to-fine level's GS frames as video intensity (C, G, H', W') on the finer grid it was
+    # binned from: GS-only videos and flows are computed there and binned to this grid (RIFE on a
+    # 32 px clip's frames lost 2 dB against RIFE at 64 px binned; bench/convergence.md, stop 63).
+    fine_gs: Tensor | None = None
 
     @property
     def channels(self) -> int:
@@ -139,7 +143,8 @@ class Problem:
                        cast(self.white_balance), list(self.notes),
                        rs_train_rows=cast(self.rs_train_rows), gs_train_mask=cast(self.gs_train_mask),
                        rs_valid=cast(self.rs_valid), gs_valid=cast(self.gs_valid),
-                       time_origin_s=self.time_origin_s, left_out=list(self.left_out), rs_timing=self.rs_timing)
+                       time_origin_s=self.time_origin_s, left_out=list(self.left_out), rs_timing=self.rs_timing,
+                       fine_gs=cast(self.fine_gs))
 
     def rs_valid_mask(self) -> Tensor | None:
         """(C or 1, H, W) 0/1 float mask of the RS pixels that carry information; None: all do."""

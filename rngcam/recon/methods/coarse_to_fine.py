@@ -70,9 +70,15 @@ def _bin2(img: Tensor, r: Tensor, x: Tensor) -> Tensor:
     return r.to(img) @ img @ x.to(img).T
 
 
+# A coarse level keeps the GS frames of a source grid up to this many pixels (Problem.fine_gs): its
+# GS-only videos and flows are computed there, where RIFE sees the detail it needs.
+FINE_GS_MAX_PIXELS = 128 * 128
+
+
 def coarsen(problem: Problem, factor: int, time_factor: int | None = None) -> Problem:
     """The problem on a grid `factor` times coarser in space and `time_factor` (default: the same)
-    in time. Held-out splits are not carried over (a coarse fit would see the held-out data)."""
+    in time. Held-out splits are not carried over (a coarse fit would see the held-out data). The
+    source grid's GS frames go along as `fine_gs` where it has at most FINE_GS_MAX_PIXELS."""
     if problem.has_holdout:
         raise ValueError("coarse-to-fine does not support a held-out split")
     s, t = int(factor), int(time_factor or factor)
@@ -95,7 +101,22 @@ def coarsen(problem: Problem, factor: int, time_factor: int | None = None) -> Pr
         gs_times_s=problem.gs_times_s, truth=truth,
         mask=None if problem.mask is None else _bin2(problem.mask.double(), r, x) > 0.5,
         white_balance=problem.white_balance, notes=[], time_origin_s=problem.time_origin_s,
-        rs_valid=bin_valid(problem.rs_valid), gs_valid=bin_valid(problem.gs_valid))
+        rs_valid=bin_valid(problem.rs_valid), gs_valid=bin_valid(problem.gs_valid), fine_gs=_fine_gs(problem))
+
+
+def _fine_gs(problem: Problem) -> Tensor | None:
+    """The GS frames a level binned from `problem` computes its GS-only videos on (None: its own)."""
+    if problem.fine_gs is not None:
+        return problem.fine_gs
+    if problem.b_gs is None or problem.b_gs.shape[-2] * problem.b_gs.shape[-1] > FINE_GS_MAX_PIXELS:
+        return None
+    return problem.gs_images()
+
+
+def bin_space(video: Tensor, height: int, width: int) -> Tensor:
+    """(..., H, W) -> (..., height, width) by area, as `coarsen` bins the measurements."""
+    h, w = video.shape[-2:]
+    return _bin2(video, area_matrix(height, h), area_matrix(width, w))
 
 
 def bin_video(video: Tensor, shape: tuple[int, int, int, int], time_factor: int) -> Tensor:
@@ -195,12 +216,18 @@ class CoarseToFine(MethodBase):
                  level_share: float = LEVEL_SHARE, level_rtol: float = 2e-3, window: int = 10,
                  max_level_steps: int = 300, stage: Callable[[str], None] | None = None,
                  level_stop: str = "objective", fine_steps: int = 5,
-                 detail: Callable[[Problem, tuple[int, int, int, int]], Tensor] | None = None):
+                 detail: Callable[[Problem, tuple[int, int, int, int]], Tensor] | None = None,
+                 time_factors: tuple[int, ...] | None = None):
         self.full_shape = problem.shape
         self.factors = tuple(factors or default_factors(problem.shape))
         if self.factors[-1] != 1:
             self.factors = (*self.factors, 1)
-        self.problems = [coarsen(problem, f) if f > 1 else problem for f in self.factors]
+        # frames a coarse frame bins, per level (default: the spatial factors)
+        self.time_factors = tuple(time_factors or self.factors)
+        if len(self.time_factors) != len(self.factors) or self.time_factors[-1] != 1:
+            raise ValueError(f"time factors {self.time_factors} do not match the levels {self.factors}")
+        self.problems = [coarsen(problem, f, t) if f > 1 or t > 1 else problem
+                         for f, t in zip(self.factors, self.time_factors, strict=True)]
         self.make, self.clock, self.level_share = make, clock, level_share
         self.level_rtol, self.window, self.max_level_steps = level_rtol, window, max_level_steps
         self.level_stop, self.level_ends, self.fine_steps = level_stop, [], fine_steps
@@ -245,7 +272,8 @@ class CoarseToFine(MethodBase):
         left = None if self.clock is None else self.clock.left()
         if left is None:
             return True
-        growth = (self.factors[self.level] / self.factors[self.level + 1]) ** 3
+        i = self.level
+        growth = ((self.factors[i] / self.factors[i + 1]) ** 2 * self.time_factors[i] / self.time_factors[i + 1])
         per_step = self.level_step_s / max(self.level_steps, 1)
         # A level whose build is not the coarse one's (STFM: one fit instead of RIFE and an
         # ensemble) is guessed from its steps alone.
@@ -260,7 +288,7 @@ class CoarseToFine(MethodBase):
         fine = self.problems[i].shape
         # Half precision: the start is kept for a checkpoint's resume (the level is rebuilt from it)
         # and a level starts from exactly what a resume would rebuild it from.
-        x0 = upsample(self.method.estimate().detach(), fine, self.factors[i - 1] / self.factors[i],
+        x0 = upsample(self.method.estimate().detach(), fine, self.time_factors[i - 1] / self.time_factors[i],
                       dtype=START_DTYPE)
         self.method = None  # make() may keep what it needs of the coarser level; the rest can go
         release_free_memory()
@@ -291,7 +319,7 @@ class CoarseToFine(MethodBase):
         x = self.method.estimate()
         if self.final:
             return x
-        up = upsample(x.detach(), self.full_shape, self.factors[self.level])
+        up = upsample(x.detach(), self.full_shape, self.time_factors[self.level])
         if self.detail is None:
             return up
         if self._detail[0] != self.level:  # computed once per level, on the full grid
@@ -355,7 +383,7 @@ class CoarseToFine(MethodBase):
         for name, a in out.items():
             x = torch.as_tensor(a, dtype=torch.float32)
             x = x[:, None] if x.ndim == 3 else x  # a still image: one frame
-            x = upsample(x, (x.shape[0], k if x.shape[1] > 1 else 1, h, w), f)
+            x = upsample(x, (x.shape[0], k if x.shape[1] > 1 else 1, h, w), self.time_factors[self.level])
             full[name] = (x[:, 0] if np.ndim(a) == 3 else x * (f if name == "motion" else 1)).cpu().numpy()
         return full
 

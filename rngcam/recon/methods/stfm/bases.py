@@ -7,6 +7,7 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.recon.methods.coarse_to_fine import bin_space
 from rngcam.recon.methods.stfm.settings import BASE_VIDEOS, HDV3_SUFFIX, KEY_WARPS, MIN_FLOW_SIZE_PX
 
 
@@ -29,14 +30,18 @@ class BaseVideos:
             self.base_video, self.base_source = self._given_base.to(self.device), "given"  # no cast copy
             return
         keys = p.gs_images()  # without gains: the current Lambda multiplies the base
+        # GS-only videos and flows come from the finer grid's frames where a coarse level has them
+        source = keys if p.fine_gs is None else p.fine_gs
         if kind in KEY_WARPS:
-            if self._build_key_warps(keys, kind):
+            if self._build_key_warps(keys, kind, source):
                 return
             kind = "interp"  # too few key frames or too small for flow
         if kind in BASE_VIDEOS:
-            self.base_video, self.base_source, why = _base_video(keys, p.gs_times_s, p.frame_times_s, kind,
-                                                                 self.base_model, _network_device(self.device))
-            self.base_video = self.base_video.to(self.device, torch.float32)
+            video, self.base_source, why = _base_video(source, p.gs_times_s, p.frame_times_s, kind,
+                                                       self.base_model, _network_device(self.device))
+            if source is not keys:
+                video = bin_space(video, self.H, self.W)
+            self.base_video = video.to(self.device, torch.float32)
             self.base_model = _resolved_model(self.base_model) if self.base_source == "rife" else None
             self.base_source += HDV3_SUFFIX if self.base_model == "hdv3" else ""
             if why:
@@ -47,42 +52,49 @@ class BaseVideos:
         times = torch.as_tensor(self._gs_centre_frames(), device=self.device).float()
         self.base_weights = self._blend_weights(times)
 
-    def _build_key_warps(self, keys: Tensor, kind: str) -> bool:
+    def _build_key_warps(self, keys: Tensor, kind: str, source: Tensor) -> bool:
         """Per frame, the flows to its two key frames and their blend weights, from RIFE's midpoint
         flows ("keys_rife"; "keys" when RIFE is installed) or DIS optical-flow interpolation
-        ("keys_interp"), that the motion and dynamic fields correct. False where no flow can be
-        computed (fewer than two key frames, images under MIN_FLOW_SIZE_PX)."""
+        ("keys_interp"), that the motion and dynamic fields correct; computed on the key frames
+        `source` (a finer grid's: binned to this one) and applied to `keys`. False where no flow can
+        be computed (fewer than two key frames, images under MIN_FLOW_SIZE_PX)."""
         from rngcam.recon.methods.baselines import BaselineInputError, interp_warps
         from rngcam.recon.methods.rife import RifeUnavailableError, rife_warps
 
-        if min(keys.shape[-2:]) < MIN_FLOW_SIZE_PX:  # as _base_video: no flow of either kind that small
+        if min(source.shape[-2:]) < MIN_FLOW_SIZE_PX:  # as _base_video: no flow of either kind that small
             return False
-        args = (keys.detach().float().cpu().numpy(), self.problem.gs_times_s, self.problem.frame_times_s)
+        args = (source.detach().float().cpu().numpy(), self.problem.gs_times_s, self.problem.frame_times_s)
         warps = None
         if kind != "keys_interp" and keys.shape[0] in (1, 3):
             try:
                 with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
-                    warps, source = rife_warps(*args, model=self.base_model,
-                                               device=_network_device(self.device)), "keys_rife"
+                    warps, name = rife_warps(*args, model=self.base_model,
+                                             device=_network_device(self.device)), "keys_rife"
             except (RifeUnavailableError, BaselineInputError) as exc:
                 if kind == "keys_rife":
                     raise
                 self.substitutes.append(("RIFE flows", f"DIS optical flow used instead ({_first_line(exc)})"))
         try:
             if warps is None:
-                warps, source = interp_warps(*args), "keys_interp"
+                warps, name = interp_warps(*args), "keys_interp"
         except BaselineInputError:
             return False
-        dev, px = self.device, self.px_per_unit.repeat(2)
-        self.base_model = _resolved_model(self.base_model) if source == "keys_rife" else None
-        source += HDV3_SUFFIX if self.base_model == "hdv3" else ""
-        self.key_images = torch.from_numpy(warps.keys).permute(1, 0, 2, 3).contiguous().to(dev)  # (G, C, H, W)
-        self.key_left = torch.from_numpy(warps.left).to(dev)
-        flows = torch.from_numpy(np.concatenate([warps.flow0, warps.flow1], axis=-1)).to(dev)
-        self.key_flow = flows / px  # (K, H, W, 4), coordinate units
-        w0 = torch.from_numpy(warps.weight0).to(dev).clamp(1e-6, 1 - 1e-6)
+        self.base_model = _resolved_model(self.base_model) if name == "keys_rife" else None
+        name += HDV3_SUFFIX if self.base_model == "hdv3" else ""
+        order = np.argsort(self.problem.gs_times_s, kind="stable")  # the warps' keys are sorted by time
+        self.key_images = keys[:, order].permute(1, 0, 2, 3).to(self.device, torch.float32).contiguous()  # (G, C, H, W)
+        self.key_left = torch.from_numpy(warps.left).to(self.device)
+        flows = torch.from_numpy(np.concatenate([warps.flow0, warps.flow1], axis=-1))
+        h, w = source.shape[-2:]
+        px = torch.tensor([(w - 1) / 2, (h - 1) / 2]).clamp_min(0.5).repeat(2)  # the source grid's pixels
+        flows, w0 = flows / px, torch.from_numpy(warps.weight0)  # coordinate units: the same on every grid
+        if source is not keys:
+            flows = bin_space(flows.permute(0, 3, 1, 2), self.H, self.W).permute(0, 2, 3, 1)
+            w0 = bin_space(w0, self.H, self.W)
+        self.key_flow = flows.to(self.device, torch.float32).contiguous()  # (K, H, W, 4)
+        w0 = w0.to(self.device, torch.float32).clamp(1e-6, 1 - 1e-6)
         self.key_logit = torch.log(w0) - torch.log1p(-w0)
-        self.base_source = source
+        self.base_source = name
         return True
 
 

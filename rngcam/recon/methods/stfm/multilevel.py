@@ -31,11 +31,25 @@ import torch
 from torch import Tensor
 
 from rngcam.memory import release_free_memory
+from rngcam.recon.methods.coarse_to_fine import (
+    FINE_GS_MAX_PIXELS,
+    CoarseToFine,
+    bin_video,
+    default_factors,
+    power_norm,
+    upsample,
+)
 from rngcam.recon.methods.coarse_to_fine import LEVEL_SHARE as DEFAULT_LEVEL_SHARE
-from rngcam.recon.methods.coarse_to_fine import CoarseToFine, default_factors, power_norm, upsample
 from rngcam.recon.methods.selfcal import pose_matrix, warp
+from rngcam.recon.methods.stfm.bases import _base_video, _network_device
 from rngcam.recon.methods.stfm.method import STFM
-from rngcam.recon.methods.stfm.settings import REFINE_LR_RATIO, STFMSettings, _preset
+from rngcam.recon.methods.stfm.settings import (
+    REFINE_LR_RATIO,
+    REFINE_STALL_PASSES,
+    STFMSettings,
+    _preset,
+    _setting_or_preset,
+)
 
 MAX_LEVEL_STEPS = 3000  # a coarse level that never meets its stop test ends here
 # Under a time budget a coarse level of a base-video model (fast) may spend this share of what is
@@ -46,11 +60,32 @@ MAX_LEVEL_STEPS = 3000  # a coarse level that never meets its stop test ends her
 LEVEL_SHARE = 0.45
 
 
+# Below 96 px, where default_factors gives one level, a base-video model (fast) still starts on the
+# half grid when that keeps this many pixels a side: its ensemble there, with bases from the full
+# grid's frames, then one fit on the full grid (64 px, own stop: smoke 105 -> 46 s and +0.7 dB, the clip
+# 124 -> 55 s and -0.1 dB; bench/convergence.md, stop 63). A model that carries its fields (prior) keeps one level.
+BASE_MIN_SIDE = 32
+
+
 def stfm_levels(problem, settings: STFMSettings) -> tuple[int, ...]:
     """Spatial factors of the levels (coarse to fine); (1,) means a single level."""
     if not settings.coarse_to_fine or problem.has_holdout:
         return (1,)
-    return default_factors(problem.shape)
+    factors = default_factors(problem.shape)
+    if factors != (1,) or min(problem.shape[-2:]) < 2 * BASE_MIN_SIDE or settings.preset == "auto":
+        return factors  # ("auto" is resolved before the levels are chosen: make_stfm)
+    return (2, 1) if _setting_or_preset(settings, "dynamic_time") else factors
+
+
+def stfm_time_factors(problem, factors: tuple[int, ...], with_base: bool = True) -> tuple[int, ...]:
+    """The frames a coarse frame bins, per level: none on a base-video model's (fast) half-grid-first path
+    (below 96 px), whose
+    coarse level learns the GS-to-RS shift that the full level keeps (with frames binned in pairs smoke fine
+    learned +0.34 px where the truth has none, the clip 0.36 px off; unbinned 0.13 / 0.10 px, one level
+    0.03 / 0.13; bench/convergence.md, stop 64); elsewhere the spatial factors."""
+    if with_base and len(factors) > 1 and default_factors(problem.shape) == (1,):
+        return (1,) * len(factors)
+    return factors
 
 
 def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int, ...], single,
@@ -89,11 +124,16 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
                                          lr=_lr(single_settings, level)), device, base_video=base,
                           base_gains=coarse.base_gains, fields_from=coarse, rs_norm_start=start)
         elif with_base:
+            coarse_shape = _fit_of(previous[-1]).problem.shape
             previous.clear()  # the coarser fit is not needed any more: free it before building
             release_free_memory()
             if pose is not None:  # the estimate is in RS coordinates; the fields' base in the GS camera's
                 x0 = _to_native(x0, pose * ratio, max(level.shape[-2:]) / 2)
-            method = _on_base(level, single_settings, device, x0, start)
+            # a small grid: the GS-only video's detail on the start, which the fit then only refines
+            detail = level.b_gs is not None and level.shape[-2] * level.shape[-1] <= FINE_GS_MAX_PIXELS
+            if detail:
+                x0 = _with_detail(level, x0, coarse_shape)
+            method = _on_base(level, single_settings, device, x0, start, refinement=detail)
             if pose is not None and method.learn_pose:  # (fields_from carries it in the other two ways)
                 method.start_pose(pose * ratio)
         else:
@@ -105,7 +145,7 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
         return method
 
     return CoarseToFine(problem, make, factors, clock=clock, stage=stage, level_stop="method",
-                        max_level_steps=max_level_steps,
+                        max_level_steps=max_level_steps, time_factors=stfm_time_factors(problem, factors, with_base),
                         level_share=LEVEL_SHARE if with_base else DEFAULT_LEVEL_SHARE)
 
 
@@ -126,19 +166,36 @@ def _to_native(video: Tensor, pose: Tensor, radius: float) -> Tensor:
     return video
 
 
+@torch.no_grad()
+def _with_detail(problem, x0: Tensor, coarse_shape: tuple[int, int, int, int]) -> Tensor:
+    """x0 (the coarser estimate, upsampled) plus the detail of the GS-only video (RIFE's, else
+    optical-flow interpolation's, on the RS scale) that the coarser grid could not hold: the video less
+    its binning to `coarse_shape`, upsampled."""
+    video = _base_video(problem.gs_images(gains=True), problem.gs_times_s, problem.frame_times_s, "video",
+                        device=_network_device(x0.device))[0].to(x0.device, torch.float32)
+    frames = round(problem.shape[1] / coarse_shape[1])  # fine frames a coarse frame bins
+    low = upsample(bin_video(video, coarse_shape, frames), problem.shape, frames)
+    return video.sub_(low).add_(x0).clamp_min_(0)
+
+
 def _lr(settings: STFMSettings, problem) -> float:
     c, k, h, w = problem.shape
     base = settings.lr if settings.lr is not None else _preset(settings.preset, h, w, k)["lr"]
     return REFINE_LR_RATIO * base
 
 
-def _on_base(problem, settings: STFMSettings, device, x0: Tensor, norm_start: Tensor | None = None) -> STFM:
+def _on_base(problem, settings: STFMSettings, device, x0: Tensor, norm_start: Tensor | None = None,
+             refinement: bool = False) -> STFM:
     """One fit on the base video x0 (C, K, H, W), the coarser level's estimate upsampled (kept as
     it is, half precision included: no copy). The base is x0 divided by the gains the fit starts
-    with (on the fly), so its first video is x0 itself."""
+    with (on the fly), so its first video is x0 itself. `refinement`: with the ensemble refinement's
+    stall window (REFINE_STALL_PASSES, unless stall_passes is set), where x0 carries the GS-only
+    detail (on the paper grid's middle level it cost 0.5 dB: that level stopped at 160 steps, not 342)."""
     wb = problem.white_balance
     gains = None if wb is None or bool(torch.all(wb == 1)) else wb.float()
     fine = replace(settings, dynamic_base="video", dynamic_time=True, lr=_lr(settings, problem))
+    if refinement:
+        fine = replace(fine, stall_passes=settings.stall_passes or REFINE_STALL_PASSES)
     return STFM(problem, fine, device, base_video=x0, base_gains=gains, rs_norm_start=norm_start)
 
 

@@ -17,6 +17,9 @@ STALL_PASSES = 15  # the stall test compares the RS residual with its value this
 # the same capture's other seeds (sineball 1 px shift: 34.85 dB; 37.3 / 37.8 with seeds 1 / 2;
 # 37.09 over 45 passes, at 1,220 steps; bench/realistic.md)
 PRIOR_STALL_PASSES = 45
+# ... and on grids of at most SMALL_STALL_SIDE rows (the half grid of a 64 px run, whose full level refines
+# it): 15 passes took the clip's members 1,590 steps, 10 passes 1,310 (-0.06 dB; bench/convergence.md, stop 64)
+SMALL_STALL_PASSES, SMALL_STALL_SIDE = 10, 32
 MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow is skipped
 # A step holds one chunk of frames' autograd graph at a time. Small grids take more frames per chunk:
 # a step's RS frames then fit in one graph, evaluated once instead of a pass without a graph and a pass
@@ -91,8 +94,9 @@ class STFMSettings:
         None, "the dynamic layer's motion: a field over x, y and t, or one translation per frame (a rigid layer; "
               "the prior preset's, whose scenes one translating layer explains); default: the preset's",
         choices=MOTION_MODELS, shown_default="the preset's")
-    coarse_to_fine: bool = setting(True, "on grids of 96 px and more, reconstruct 1/4 and 1/2 grids first, "
-                                         "each starting the next (else one level at the full grid)")
+    coarse_to_fine: bool = setting(True, "reconstruct coarser grids first (1/2 from 96 px, from 64 px for the fast "
+                                         "preset; 1/4 too from 192 px), each starting the next "
+                                         "(else one level at the full grid)")
     preset_choice: dict | None = field(default=None, metadata={"internal": True})  # auto's choice (make_stfm)
     self_calibrate: str = setting(
         "off", "refine the calibration from the RS rows exposed with the GS frames before the fit "
@@ -231,10 +235,13 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
                                "features": 8, "hidden": 32}),
         "dynamic": ("planes", {"resolutions": appearance, "time_resolutions": motion_time_for(appearance),
                                 "features": DYNAMIC_FEATURES, "hidden": 32}),
+        # rows a step: 8, a quarter of the rows below 32 px (the half grid of a 64 px run: 8 rows, not the
+        # 4 of h // 8: 0.8x the time, smoke +0.5 dB, the clip +0.1; bench/convergence.md, stop 63)
         "lr": 1e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
-        "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 8)), "init": "gs",
+        "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 4)), "init": "gs",
         "dynamic_time": True, "dynamic_base": "ensemble", "gs_windows_per_step": 1, "time_smoothness": 0.3,
-        "stop_at_noise": True, "stall_drop": 0.02, "stall_passes": STALL_PASSES, "ema_decay": 0.95, "refine": True,
+        "stop_at_noise": True, "stall_drop": 0.02, "ema_decay": 0.95, "refine": True,
+        "stall_passes": SMALL_STALL_PASSES if h <= SMALL_STALL_SIDE else STALL_PASSES,
         "motion_init": "flow", "motion_model": "field",
         "matte_l1": 0.0}
     if name == "prior":  # the paper's prior on the fast fields: one canonical dynamic image that the motion moves
@@ -245,6 +252,9 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
                      # image (sineball 64 px: a round ball in every frame; bench/stfm_motion.md). Its tau
                      # below is a translation's: TRANSLATION_TV_SHARE of the field's 1e-3.
                      "motion_model": "translation",
+                     # below 64 px an eighth of the rows a step, as before the fast preset's change (not measured
+                     # on the prior preset's scenes)
+                     "rows_per_step": max(1, min(8, h // 8)),
                      # A slow stall test: 2 % over 15 passes stopped it while it was still gaining (27.7 dB
                      # at 300 steps, 29.6 at 800); on captures its model cannot fit to the noise level it
                      # settles by ~1,500 steps (bench/realistic.md), and without a stop the result
