@@ -170,10 +170,8 @@ def test_tv3d_coarse_to_fine_reaches_the_full_grid_and_improves_on_its_start():
 def test_coarse_levels_may_keep_every_frame():
     """time_factors (1, 1): the coarse level bins pixels only, its estimate reaches the full grid with
     every frame, and the next level's start is the coarse video with its frames as they were."""
-    from rngcam.recon.methods.coarse_to_fine import CoarseToFine
+    from rngcam.recon.methods.coarse_to_fine import CoarseToFine, upsample
     from rngcam.recon.methods.tv3d import TV3D, TV3DSettings
-
-    from rngcam.recon.methods.coarse_to_fine import upsample
 
     p = _toy_problem().to(torch.float32)
     built, starts = [], []

@@ -487,13 +487,15 @@ def test_discrepancy_stop_ends_the_fit_at_the_noise_level(sineball16):
 
 
 def test_stall_stop_ends_a_fit_whose_residual_no_longer_falls(sineball16):
-    from rngcam.recon.methods.stfm import NOISE_CHECK_STEPS, STALL_PASSES
+    from rngcam.recon.methods.stfm import NOISE_CHECK_STEPS
+    from rngcam.recon.methods.stfm.settings import SMALL_STALL_PASSES
 
     m = make_stfm(sineball16, small_settings(stall_drop=0.999))  # demands a 99.9 % fall: stalls at once
     m.rs_noise_level = 0.0  # the noise test never fires
     window = m._stall_window()
     assert window % NOISE_CHECK_STEPS == 0
-    assert window >= STALL_PASSES * len(m.rs_rows_fit) / m.resolved.rows_per_step
+    assert m.resolved.stall_passes == SMALL_STALL_PASSES  # a 16 px grid: the small grids' window
+    assert window >= SMALL_STALL_PASSES * len(m.rs_rows_fit) / m.resolved.rows_per_step
     result = run(m, LoopSettings(time_budget_s=None, max_iters=window + 3 * NOISE_CHECK_STEPS, progress=False))
     assert result.iterations == window + NOISE_CHECK_STEPS  # the first check with a residual a window back
     assert any("fell less than 99.9%" in e for e in result.events)

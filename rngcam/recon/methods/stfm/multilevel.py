@@ -62,8 +62,8 @@ LEVEL_SHARE = 0.45
 
 # Below 96 px, where default_factors gives one level, a base-video model (fast) still starts on the
 # half grid when that keeps this many pixels a side: its ensemble there, with bases from the full
-# grid's frames, then one fit on the full grid (64 px, own stop: smoke 105 -> 46 s and +0.7 dB, the clip
-# 124 -> 55 s and -0.1 dB; bench/convergence.md, stop 63). A model that carries its fields (prior) keeps one level.
+# grid's frames, then one fit on the full grid (64 px, own stop: smoke 104 -> 38 s and +0.6 dB, the clip
+# 132 -> 54 s and -0.1 dB; bench/convergence.md, stop 64). A model that carries its fields (prior) keeps one level.
 BASE_MIN_SIDE = 32
 
 
@@ -78,11 +78,10 @@ def stfm_levels(problem, settings: STFMSettings) -> tuple[int, ...]:
 
 
 def stfm_time_factors(problem, factors: tuple[int, ...], with_base: bool = True) -> tuple[int, ...]:
-    """The frames a coarse frame bins, per level: none on a base-video model's (fast) half-grid-first path
-    (below 96 px), whose
-    coarse level learns the GS-to-RS shift that the full level keeps (with frames binned in pairs smoke fine
-    learned +0.34 px where the truth has none, the clip 0.36 px off; unbinned 0.13 / 0.10 px, one level
-    0.03 / 0.13; bench/convergence.md, stop 64); elsewhere the spatial factors."""
+    """The frames a coarse frame bins, per level: none on a base-video model's (fast) half-grid-first
+    path (below 96 px), whose coarse level learns the GS-to-RS shift the full level keeps (binning frames
+    in pairs, smoke fine learned +0.34 px where the truth has none, the clip 0.36 px off; keeping them
+    0.11 / 0.10; bench/convergence.md, stop 64); elsewhere the spatial factors."""
     if with_base and len(factors) > 1 and default_factors(problem.shape) == (1,):
         return (1,) * len(factors)
     return factors

@@ -340,6 +340,9 @@ def resolve(settings: STFMSettings, h: int, w: int, k: int) -> tuple[_Resolved, 
 USER_DEFAULTS = {"self_calibrate": "gains", "start_floor": True, "learn_geometry": "shift", "learn_line_time": "auto"}
 
 
+SIZE_DEPENDENT = ("rows_per_step", "stall_passes")  # preset values that depend on the grid (_preset's h)
+
+
 def preset_settings(name: str) -> STFMSettings:
     """Preset `name` as settings: every value that does not depend on the problem's size filled in
     (what the registry offers and `--help` shows); the others stay None (resolved per problem).
@@ -349,7 +352,7 @@ def preset_settings(name: str) -> STFMSettings:
     values = _preset(name, 2, 2, 2)
     user = {} if name == "paper" else USER_DEFAULTS  # paper: the paper's method as published
     return replace(STFMSettings(preset=name, **user), **{f.name: values[f.name] for f in fields(STFMSettings)
-                                                          if f.name in values and f.name != "rows_per_step"})
+                                                          if f.name in values and f.name not in SIZE_DEPENDENT})
 
 
 def _setting_or_preset(settings: STFMSettings, name: str):
