@@ -234,7 +234,7 @@ def _meet_the_keys(net, f: np.ndarray, out: np.ndarray, idx, frac, exact, scale:
 
     near = NEAR_KEY
     c, _, h, w = f.shape
-    for i in np.unique(idx[~exact]):
+    for i in np.unique(idx[~exact]):  # per key-frame pair with frames next to either key
         sel = np.flatnonzero((idx == i) & ~exact & ((frac < near) | (frac > 1 - near)))
         if not len(sel):
             continue
