@@ -58,6 +58,10 @@ MAX_LEVEL_STEPS = 3000  # a coarse level that never meets its stop test ends her
 # 31.8 dB). A model that carries its fields (prior) keeps CoarseToFine's 0.15: sineball at 0.45 lost
 # 1.4 dB and the ball's p90 (bench/convergence.md, stop 61).
 LEVEL_SHARE = 0.45
+# ... and on the half-grid-first path (below 96 px) this share: its full level is one short refinement
+# (40-80 steps, ~3-5 s at 64 px), so 0.45 cut smoke's half grid at 396 of its 610 steps under a 45 s
+# budget, above its 32-38 s own stop (28.28 dB against 28.75; bench/convergence.md, stop 64).
+HALF_GRID_LEVEL_SHARE = 0.85
 
 
 # Below 96 px, where default_factors gives one level, a base-video model (fast) still starts on the
@@ -143,9 +147,10 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
         previous[:] = [method]
         return method
 
+    time_factors = stfm_time_factors(problem, factors, with_base)
+    share = DEFAULT_LEVEL_SHARE if not with_base else HALF_GRID_LEVEL_SHARE if time_factors != factors else LEVEL_SHARE
     return CoarseToFine(problem, make, factors, clock=clock, stage=stage, level_stop="method",
-                        max_level_steps=max_level_steps, time_factors=stfm_time_factors(problem, factors, with_base),
-                        level_share=LEVEL_SHARE if with_base else DEFAULT_LEVEL_SHARE)
+                        max_level_steps=max_level_steps, time_factors=time_factors, level_share=share)
 
 
 def _fit_of(method) -> STFM:
