@@ -174,9 +174,12 @@ def _to_native(video: Tensor, pose: Tensor, radius: float) -> Tensor:
 def _with_detail(problem, x0: Tensor, coarse_shape: tuple[int, int, int, int]) -> Tensor:
     """x0 (the coarser estimate, upsampled) plus the detail of the GS-only video (RIFE's, else
     optical-flow interpolation's, on the RS scale) that the coarser grid could not hold: the video less
-    its binning to `coarse_shape`, upsampled."""
-    video = _base_video(problem.gs_images(gains=True), problem.gs_times_s, problem.frame_times_s, "video",
+    its binning to `coarse_shape`, upsampled. The video is made of the frames the coarser level's bases
+    were (without gains: RIFE's flows are those it already computed) and then put on the RS scale."""
+    video = _base_video(problem.gs_images(), problem.gs_times_s, problem.frame_times_s, "video",
                         device=_network_device(x0.device))[0].to(x0.device, torch.float32)
+    if problem.white_balance is not None:
+        video.mul_(problem.white_balance.to(video)[:, None, None, None])
     frames = round(problem.shape[1] / coarse_shape[1])  # fine frames a coarse frame bins
     low = upsample(bin_video(video, coarse_shape, frames), problem.shape, frames)
     return video.sub_(low).add_(x0).clamp_min_(0)
