@@ -291,6 +291,37 @@ def report_line_time(results: dict, size: int = 64) -> str:
     return "\n".join(lines)
 
 
+def _seed_of(key: str) -> int:
+    """The bundle seed of a results key (seed 0's keys carry none)."""
+    last = key.rsplit("|", 1)[-1]
+    return int(last[1:]) if last.startswith("s") and last[1:].isdigit() else 0
+
+
+def report_seeds(results: dict, size: int = 64) -> str:
+    """The default's lab (all) against fine per scene and bundle seed (each its own draw of the scene, the
+    noise and the lab errors), with the ball on sineball, then the gap's mean and range over the seeds."""
+    lines = ["| scene | seed | fine: interm. dB | lab (all): interm. dB | lab - fine | ball med / p90 px: fine; lab |",
+             "|---|---|---|---|---|---|"]
+    gaps: dict[str, list[float]] = {}
+    for key, fine in results.items():
+        scene, family, method = key.split("|")[:3]
+        seed = _seed_of(key)
+        if family != "fine" or method != "default" or key.split("|")[3] != str(size):
+            continue
+        lab = results.get(key.replace("|fine|", "|all|", 1))
+        if not lab:
+            continue
+        gap = lab["psnr_intermediate_db"] - fine["psnr_intermediate_db"]
+        gaps.setdefault(scene, []).append(gap)
+        ball = "; ".join(f"{r['centroid_error_median_px']:.2f} / {r['centroid_error_p90_px']:.2f}"
+                         for r in (fine, lab)) if "centroid_error_median_px" in fine else "-"
+        lines.append(f"| {scene} | {seed} | {fine['psnr_intermediate_db']:.2f} | {lab['psnr_intermediate_db']:.2f} | "
+                     f"{gap:+.2f} | {ball} |")
+    for scene, g in gaps.items():
+        lines.append(f"| {scene} | mean of {len(g)} | | | {np.mean(g):+.2f} ({min(g):+.2f} to {max(g):+.2f}) | |")
+    return "\n".join(lines)
+
+
 def report_default(results: dict, size: int = 64) -> str:
     """The table of `--methods default` runs (rngcam recon's STFM to its own stop) against the
     GS-only videos, per scene and family, with the lab families' cost against `fine`."""
@@ -331,7 +362,8 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=400, help="steps per iterative method (fixed: load-independent)")
     ap.add_argument("--linear-steps", type=int, default=100)
     ap.add_argument("--size", type=int, default=64)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", default="0", help="bundle seeds, comma-separated: each its own draw of the scene, "
+                                                 "the noise and the lab errors (seed 0's results keep their keys)")
     ap.add_argument("--out", default=str(ROOT / "bench" / "realistic.json"))
     ap.add_argument("--report", action="store_true", help="print the tables of --out and stop")
     args = ap.parse_args()
@@ -342,42 +374,46 @@ def main() -> None:
             print(report_line_time(results, args.size))
         elif any("|default|" in k for k in results):
             print(report_default(results, args.size))
+            if any(_seed_of(k) for k in results):
+                print("\n" + report_seeds(results, args.size))
         else:
             print(report(results, args.size))
         return
     with tempfile.TemporaryDirectory() as tmp:
         for scene in args.scenes.split(","):
-            for family in args.families.split(","):
-                b, p = bundle(scene, family, args.size, args.seed, Path(tmp))
-                truth_cal = b.meta.get("truth_calibration")
-                for method in args.methods.split(","):
-                    modes = args.selfcal.split(",") if method == "stfm" else [""]
-                    for mode in modes:
-                        key = f"{scene}|{family}|{method}{'|' + mode if mode else ''}|{args.size}"
-                        if key in results:
-                            continue
-                        load = os.getloadavg()[0]
-                        t0 = time.perf_counter()
-                        if method == "stfm":
-                            r = run_stfm(p, scene, args.steps, mode, truth_cal)
-                        elif method.startswith("default"):
-                            r = run_default(p, scene, args.max_steps, truth_cal, method)
-                        elif method in ("blend", "interp"):
-                            r = run_gs_only(method, p, scene)
-                        else:
-                            r = run_linear(method, p, scene, args.linear_steps)
-                        r.update(load_before=load, load_after=os.getloadavg()[0], wall_s=time.perf_counter() - t0)
-                        results[key] = r
-                        Path(args.out).write_text(json.dumps(results, indent=1, default=float))
-                        cal = r.get("calibration") or {}
-                        print(f"{key}: inter {r['psnr_intermediate_db']:.2f} dB, moving {r['psnr_dynamic_db']:.2f}"
-                              + (f", centroid {r['centroid_error_median_px']:.2f}/{r['centroid_error_p90_px']:.2f} px"
-                                 if "centroid_error_median_px" in r else "")
-                              + (f", shift err {cal['shift_error_px']:.3f} px, gain err {cal['gain_error_refined']:.3f}"
-                                 if cal else "")
-                              + (f", learned shift err {r['learned_shift_error_px']:.3f} px"
-                                 if "learned_shift_error_px" in r else "") + f" (load {load:.1f}, {r['wall_s']:.0f} s)",
-                              flush=True)
+            for seed in (int(s) for s in args.seeds.split(",")):
+                for family in args.families.split(","):
+                    b, p = bundle(scene, family, args.size, seed, Path(tmp))
+                    truth_cal = b.meta.get("truth_calibration")
+                    for method in args.methods.split(","):
+                        modes = args.selfcal.split(",") if method == "stfm" else [""]
+                        for mode in modes:
+                            key = (f"{scene}|{family}|{method}{'|' + mode if mode else ''}|{args.size}"
+                                   + (f"|s{seed}" if seed else ""))
+                            if key in results:
+                                continue
+                            load = os.getloadavg()[0]
+                            t0 = time.perf_counter()
+                            if method == "stfm":
+                                r = run_stfm(p, scene, args.steps, mode, truth_cal)
+                            elif method.startswith("default"):
+                                r = run_default(p, scene, args.max_steps, truth_cal, method)
+                            elif method in ("blend", "interp"):
+                                r = run_gs_only(method, p, scene)
+                            else:
+                                r = run_linear(method, p, scene, args.linear_steps)
+                            r.update(load_before=load, load_after=os.getloadavg()[0], wall_s=time.perf_counter() - t0)
+                            results[key] = r
+                            Path(args.out).write_text(json.dumps(results, indent=1, default=float))
+                            cal = r.get("calibration") or {}
+                            print(f"{key}: inter {r['psnr_intermediate_db']:.2f} dB, moving {r['psnr_dynamic_db']:.2f}"
+                                  + (f", centroid {r['centroid_error_median_px']:.2f}/{r['centroid_error_p90_px']:.2f} px"
+                                     if "centroid_error_median_px" in r else "")
+                                  + (f", shift err {cal['shift_error_px']:.3f} px, gain err {cal['gain_error_refined']:.3f}"
+                                     if cal else "")
+                                  + (f", learned shift err {r['learned_shift_error_px']:.3f} px"
+                                     if "learned_shift_error_px" in r else "") + f" (load {load:.1f}, {r['wall_s']:.0f} s)",
+                                  flush=True)
 
 
 if __name__ == "__main__":

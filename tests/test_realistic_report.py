@@ -34,3 +34,23 @@ def test_the_table_shows_the_edge_stage_and_rows_without_gs_only_videos():
                psnr_dynamic_db=25.44, misfit=None, load_before=1.4)
     table = report_default({"sineball|psf+3|default|64": row})
     assert "| sineball | psf+3 | 2,140 (own stop) | 35.88 | - | 25.44 | - | - |" in table
+
+
+def test_the_seeds_table_pairs_each_seeds_lab_capture_with_its_fine_one():
+    from bench.realistic import _seed_of, report_seeds
+
+    def run(db, ball=None):
+        return {"psnr_intermediate_db": db} | ({} if ball is None else
+                                               {"centroid_error_median_px": ball[0], "centroid_error_p90_px": ball[1]})
+    results = {"smoke|fine|default|64": run(28.75), "smoke|all|default|64": run(27.89),
+               "smoke|fine|default|64|s1": run(27.00), "smoke|all|default|64|s1": run(27.40),
+               "smoke|fine|default|64|s2": run(26.00),  # no lab capture of seed 2: no row
+               "smoke|fine|stfm|gains|64|s1": run(20.0),  # another method: not in this table
+               "sineball|fine|default|64|s3": run(33.60, (0.69, 2.38)), "sineball|all|default|64|s3": run(31.40, (0.92, 3.88))}
+    assert (_seed_of("smoke|fine|default|64|s12"), _seed_of("smoke|fine|default|64")) == (12, 0)
+    table = report_seeds(results).splitlines()
+    assert "| smoke | 0 | 28.75 | 27.89 | -0.86 | - |" in table
+    assert "| smoke | 1 | 27.00 | 27.40 | +0.40 | - |" in table
+    assert "| sineball | 3 | 33.60 | 31.40 | -2.20 | 0.69 / 2.38; 0.92 / 3.88 |" in table
+    assert "| smoke | mean of 2 | | | -0.23 (-0.86 to +0.40) | |" in table
+    assert not any("| 2 |" in row for row in table)
