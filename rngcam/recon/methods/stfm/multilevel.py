@@ -66,8 +66,9 @@ HALF_GRID_LEVEL_SHARE = 0.85
 
 # Below 96 px, where default_factors gives one level, a base-video model (fast) still starts on the
 # half grid when that keeps this many pixels a side: its ensemble there, with bases from the full
-# grid's frames, then one fit on the full grid (64 px, own stop: smoke 104 -> 38 s and +0.6 dB, the clip
-# 132 -> 54 s and -0.1 dB; bench/convergence.md, stop 64). A model that carries its fields (prior) keeps one level.
+# grid's frames, then one fit on the full grid (64 px, own stop: smoke 104 -> 38 s, the clip 132 -> 54 s,
+# bench/convergence.md, stop 64; over five smoke captures the same PSNR, -0.09 dB mean, bench/realistic.md,
+# stop 65). A model that carries its fields (prior) keeps one level.
 BASE_MIN_SIDE = 32
 
 
@@ -86,9 +87,12 @@ def stfm_time_factors(problem, factors: tuple[int, ...], with_base: bool = True)
     path (below 96 px), whose coarse level learns the GS-to-RS shift the full level keeps (binning frames
     in pairs, smoke fine learned +0.34 px where the truth has none, the clip 0.36 px off; keeping them
     0.11 / 0.10; bench/convergence.md, stop 64); elsewhere the spatial factors."""
-    if with_base and len(factors) > 1 and default_factors(problem.shape) == (1,):
-        return (1,) * len(factors)
-    return factors
+    return (1,) * len(factors) if _half_grid_first(problem, factors, with_base) else factors
+
+
+def _half_grid_first(problem, factors: tuple[int, ...], with_base: bool) -> bool:
+    """Whether these levels are a base-video model's half grid first below 96 px (stfm_levels)."""
+    return with_base and len(factors) > 1 and default_factors(problem.shape) == (1,)
 
 
 def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int, ...], single,
@@ -147,10 +151,13 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
         previous[:] = [method]
         return method
 
-    time_factors = stfm_time_factors(problem, factors, with_base)
-    share = DEFAULT_LEVEL_SHARE if not with_base else HALF_GRID_LEVEL_SHARE if time_factors != factors else LEVEL_SHARE
+    if not with_base:
+        share = DEFAULT_LEVEL_SHARE
+    else:
+        share = HALF_GRID_LEVEL_SHARE if _half_grid_first(problem, factors, with_base) else LEVEL_SHARE
     return CoarseToFine(problem, make, factors, clock=clock, stage=stage, level_stop="method",
-                        max_level_steps=max_level_steps, time_factors=time_factors, level_share=share)
+                        max_level_steps=max_level_steps, time_factors=stfm_time_factors(problem, factors, with_base),
+                        level_share=share)
 
 
 def _fit_of(method) -> STFM:
