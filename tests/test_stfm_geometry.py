@@ -9,6 +9,7 @@ import torch
 from rngcam.recon.methods import selfcal
 from rngcam.recon.methods.stfm import STFMSettings, make_stfm
 from rngcam.recon.methods.stfm.method import geometry_report
+from rngcam.recon.methods.stfm.settings import POSE_HOLD_STEPS
 
 TRUTH = selfcal.similarity(0.45, -0.3)  # GS pixel p sees the scene at S p
 
@@ -94,6 +95,19 @@ def test_a_known_shift_is_learned_with_the_fields(shifted, learned):
 
     assert error(learned) < 0.6 * error(without)
     assert learned.residuals()["rs"] < without.residuals()["rs"]
+
+
+def test_a_fit_holds_the_pose_it_starts_while_its_fields_settle_and_not_one_it_is_given(shifted):
+    fresh = _fit(shifted, POSE_HOLD_STEPS)
+    assert float(fresh.gs_pose.detach().abs().max()) < 1e-12
+    for _ in range(10):
+        fresh.step()
+    assert float(fresh.gs_pose.detach()[:2].abs().max()) > 0.02
+    given = _fit(shifted, 0)
+    given.start_pose(torch.tensor([0.2, 0.0, 0.0, 0.0]))
+    for _ in range(10):
+        given.step()
+    assert float((given.gs_pose.detach()[:2] - torch.tensor([0.2, 0.0])).abs().max()) > 0.005  # not held
 
 
 def test_it_is_reported_in_the_settings_the_notes_and_carried_by_a_checkpoint(shifted, learned):

@@ -25,6 +25,8 @@ from rngcam.recon.methods.stfm.model import FieldModel, _chunks
 from rngcam.recon.methods.stfm.settings import (
     _FROM_PRESET,
     LINE_LR_RATIO,
+    POSE_HOLD_STEPS,
+    POSE_LR_AFTER_HOLD,
     POSE_LR_RATIO,
     STFMSettings,
     chunk_frames,
@@ -93,12 +95,13 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
                 if fields_from.rs_timing is not None:
                     self.line_shift.copy_(fields_from.line_shift.detach().to(self.line_shift)
                                           * (self.readout_frames / fields_from.readout_frames))
+            self._pose_inherited = True
         elif self.resolved.init == "gs" and self.parts.gs:
             self._init_from_gs()
+        self.steps = 0
         self._build_optimiser(preset)
         self._params = [*self.fields.parameters(), self.log_gain, self.line_shift, self.gs_pose]
         self._ema = [q.detach().clone() for q in self._params] if self.resolved.ema_decay > 0 else None
-        self.steps = 0
         self._cache: tuple[int, Tensor] | None = None
         self._rs_history: dict[int, float] = {}  # step -> relative RS residual at the stop checks
         self.rs_noise_level = (relative_noise_level(self.problem.b_rs.index_select(1, self.rs_rows_fit.to(self.device)))
@@ -134,17 +137,23 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         if mode == "shift":  # rotation and scale held at zero (no gradient reaches them)
             self.pose_free[2:] = 0
             self.pose_is_shift = True
-        if self.learn_pose:
-            groups.append({"params": [self.gs_pose], "lr_ratio": POSE_LR_RATIO})
+        if self.learn_pose:  # held for its first steps unless another fit's pose starts it (start_pose)
+            inherited = self._pose_inherited
+            groups.append({"params": [self.gs_pose], "hold_steps": 0 if inherited else POSE_HOLD_STEPS,
+                           "lr_ratio": POSE_LR_RATIO * (1 if inherited else POSE_LR_AFTER_HOLD)})
         self.learn_line = self._line_time_wanted() and self.learn_gain and self.settings.gs_anchor == "soft"
         if self.learn_line:
             groups.append({"params": [self.line_shift], "lr_ratio": LINE_LR_RATIO})
         for g in groups:
-            g["lr"] = lr * g["lr_ratio"]
+            g["lr"] = lr * self._ratio(g)
         # fused: one kernel for all parameters (CPU and CUDA), 4x less time a step than the loop on a CPU
         self.optimiser = torch.optim.Adam(groups, lr=lr, fused=self.device.type in ("cpu", "cuda"))
         self.base_lr = lr
 
+
+    def _ratio(self, group: dict) -> float:
+        """A parameter group's learning rate per unit of the fields' at this step (0 while it is held)."""
+        return 0.0 if self.steps < group.get("hold_steps", 0) else group["lr_ratio"]
 
     # ------------------------------------------------------------------ Method protocol
 
@@ -157,7 +166,7 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         self._cache = None  # the last evaluated video goes before this step's graph is built
         lr = self._lr_now()
         for g in self.optimiser.param_groups:
-            g["lr"] = lr * g["lr_ratio"]
+            g["lr"] = lr * self._ratio(g)
         rows = self.sample_rows() if self.parts.rs else None
         tv_frames = self.sample_tv_frames() if (self.parts.motion and self.parts.motion_reg) else None
         windows = None
@@ -286,6 +295,10 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
     def start_pose(self, pose: Tensor) -> None:
         """Start the learned pose (and its moving average) at `pose` (another fit's, same grid)."""
         self._start_param(self.gs_pose, pose)
+        self._pose_inherited = True  # learned from the first step, at the plain rate
+        for g in self.optimiser.param_groups:
+            if any(q is self.gs_pose for q in g["params"]):
+                g["hold_steps"], g["lr_ratio"] = 0, POSE_LR_RATIO
 
     def learned_geometry(self) -> dict | None:
         return geometry_report(self.pose(), self.pose_radius, self.settings.selfcal_report)

@@ -125,6 +125,7 @@ class FieldModel:
         self.pose_free = torch.ones(4, device=self.device)  # 0: that value held at zero
         self.pose_radius = max(self.H, self.W) / 2
         self.learn_pose = False
+        self._pose_inherited = False  # started from another fit's pose (start_pose, fields_from)
         self.pose_is_shift = False  # rotation and scale held at zero (learn_geometry "shift")
 
 
