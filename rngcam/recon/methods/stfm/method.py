@@ -150,10 +150,10 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         self.optimiser = torch.optim.Adam(groups, lr=lr, fused=self.device.type in ("cpu", "cuda"))
         self.base_lr = lr
 
-
     def _ratio(self, group: dict) -> float:
         """A parameter group's learning rate per unit of the fields' at this step (0 while it is held)."""
         return 0.0 if self.steps < group.get("hold_steps", 0) else group["lr_ratio"]
+
 
     # ------------------------------------------------------------------ Method protocol
 

@@ -192,7 +192,7 @@ ENSEMBLE_BASES = "video,keys,video_hdv3,keys_hdv3"
 POSE_LR_RATIO = 2.0
 # A fit that learns the pose from its start holds it for its first steps: while the fields are far from
 # the data, a shift along the scene's motion explains what they get wrong about its timing (smoke rises:
-# every ensemble member put +0.3 to +0.9 px in y within 50 steps, on captures with none, and kept it:
+# every ensemble member put +0.4 to +0.9 px in y within 50 steps, on captures with none, and kept it:
 # -1.9 dB). After the hold its step is this many times POSE_LR_RATIO, to reach a 1 px shift in the
 # steps left (bench/realistic.md, stop 66). A fit started from another's pose neither holds nor speeds up.
 POSE_HOLD_STEPS = 100
