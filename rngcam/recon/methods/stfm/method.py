@@ -137,10 +137,8 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         if mode == "shift":  # rotation and scale held at zero (no gradient reaches them)
             self.pose_free[2:] = 0
             self.pose_is_shift = True
-        if self.learn_pose:  # held for its first steps unless another fit's pose starts it (start_pose)
-            inherited = self._pose_inherited
-            groups.append({"params": [self.gs_pose], "hold_steps": 0 if inherited else POSE_HOLD_STEPS,
-                           "lr_ratio": POSE_LR_RATIO * (1 if inherited else POSE_LR_AFTER_HOLD)})
+        if self.learn_pose:
+            groups.append({"params": [self.gs_pose], **self._pose_schedule()})
         self.learn_line = self._line_time_wanted() and self.learn_gain and self.settings.gs_anchor == "soft"
         if self.learn_line:
             groups.append({"params": [self.line_shift], "lr_ratio": LINE_LR_RATIO})
@@ -149,6 +147,13 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         # fused: one kernel for all parameters (CPU and CUDA), 4x less time a step than the loop on a CPU
         self.optimiser = torch.optim.Adam(groups, lr=lr, fused=self.device.type in ("cpu", "cuda"))
         self.base_lr = lr
+
+    def _pose_schedule(self) -> dict:
+        """The pose group's hold and step: a fit that learns the pose from its start holds it while its
+        fields settle, then steps it faster; one started from another fit's pose neither."""
+        if self._pose_inherited:
+            return {"hold_steps": 0, "lr_ratio": POSE_LR_RATIO}
+        return {"hold_steps": POSE_HOLD_STEPS, "lr_ratio": POSE_LR_RATIO * POSE_LR_AFTER_HOLD}
 
     def _ratio(self, group: dict) -> float:
         """A parameter group's learning rate per unit of the fields' at this step (0 while it is held)."""
@@ -295,10 +300,10 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
     def start_pose(self, pose: Tensor) -> None:
         """Start the learned pose (and its moving average) at `pose` (another fit's, same grid)."""
         self._start_param(self.gs_pose, pose)
-        self._pose_inherited = True  # learned from the first step, at the plain rate
+        self._pose_inherited = True
         for g in self.optimiser.param_groups:
             if any(q is self.gs_pose for q in g["params"]):
-                g["hold_steps"], g["lr_ratio"] = 0, POSE_LR_RATIO
+                g.update(self._pose_schedule())
 
     def learned_geometry(self) -> dict | None:
         return geometry_report(self.pose(), self.pose_radius, self.settings.selfcal_report)
