@@ -746,23 +746,34 @@ def test_base_lists_are_validated():
 # ----------------------------------------------------------------------------- the prior preset
 
 
-def test_viterbi_finds_the_cheapest_path_with_its_l1_penalty():
+def test_viterbi_finds_the_cheapest_path_with_its_move_and_turn_penalties_and_speed_limit():
     from itertools import product
 
     from rngcam.recon.methods.stfm.motion_search import _viterbi
 
-    rng = np.random.default_rng(0)
-    cost = rng.random((4, 3, 3))
-    penalty = 0.3
-    best = _viterbi(cost, penalty)
+    cost = np.random.default_rng(9).random((5, 3, 3))  # its best path moves 2 steps at once
 
     def total(path):
-        pts = [divmod(int(i), 3) for i in path]
-        moves = sum(abs(a[0] - b[0]) + abs(a[1] - b[1]) for a, b in zip(pts, pts[1:]))
-        return sum(cost[t].flat[i] for t, i in enumerate(path)) + penalty * moves
+        pts = np.array([divmod(int(i), 3) for i in path])
+        change = np.diff(pts, axis=0)
+        if np.abs(change).max() > speed:
+            return np.inf
+        return (sum(cost[t].flat[i] for t, i in enumerate(path)) + move * np.abs(change).sum()
+                + turn * np.abs(np.diff(change, axis=0)).sum())
 
-    brute = min(product(range(9), repeat=4), key=total)
-    assert total(best) == pytest.approx(total(brute))
+    for move, turn, speed in [(0.1, 0.3, 2), (0.05, 0.2, 1)]:  # on 3 x 3 shifts, a limit of 1 binds
+        best = _viterbi(cost, move, turn, speed)
+        brute = min(product(range(9), repeat=5), key=total)
+        assert total(best) == pytest.approx(total(brute))
+    assert list(_viterbi(cost, 0.1, 0.3, 10)) == list(_viterbi(cost, 0.1, 0.3, 2))  # no faster than the grid
+    # A turn the costs alone would take is smoothed away once turning costs more than it saves.
+    zigzag = np.ones((4, 4, 4))
+    for t, x in enumerate([0, 3, 0, 3]):
+        zigzag[t, 0, x] = 0
+    zigzag[:, 0, 1] = 0.2
+    assert [int(i) for i in _viterbi(zigzag, 0.0, 0.0, 3)] == [0, 3, 0, 3]
+    assert [int(i) for i in _viterbi(zigzag, 0.0, 1.0, 3)] == [1, 1, 1, 1]
+    assert [int(i) for i in _viterbi(zigzag, 0.0, 0.0, 2)] != [0, 3, 0, 3]  # over the speed limit
 
 
 def _turning_square(size: int = 20):
@@ -801,13 +812,18 @@ def test_prior_preset_keeps_one_canonical_image_and_finds_the_turning_object():
     assert np.median(np.abs(between - xs)) >= 3.0
 
 
-def test_the_motion_search_with_row_gains_follows_rows_whose_light_is_off_by_varying_amounts():
+def test_the_motion_search_with_row_gains_follows_rows_whose_light_is_off_by_varying_amounts(monkeypatch):
     """The turning square again, its RS rows' light off by up to 30 % from row to row (what a PSF
     that lost its edge predicts: short by an amount that varies across the image). The search that
     scores each row after its own gain (row_gain_search, made by the row-gain refit) follows the
-    square; scored on the light as predicted, it loses it."""
+    square; scored on the light as predicted, it loses it. The scores alone: the path's turn
+    penalty and speed limit are off (on this 20 px square they hold both searches within 2 px)."""
     from dataclasses import replace
 
+    import rngcam.recon.methods.stfm.motion_search as search
+
+    monkeypatch.setattr(search, "SEARCH_TURN", 0.0)
+    monkeypatch.setattr(search, "SEARCH_SPEED", 64)
     size = 20
     p, xs = _turning_square(size)
     rows = torch.arange(size, dtype=torch.float64)

@@ -9,9 +9,11 @@ background (1 - o(x - d)) + layer(x - d) o(x - d) (o: the layer's object mask) i
 RS operator, and each RS row's misfit is charged to the frames its exposure touches (in
 proportion to their weights); each GS frame's misfit to the frame(s) at its exposure's centre
 (a key frame is the layer averaged over its exposure: where it is on average). A Viterbi
-pass over frames with an L1 penalty `smooth` on the change of shift between frames (costs
-normalised by their spread) then picks one shift per frame. Cost: one RS forward per candidate
-shift, in chunks.
+pass over frames then picks one shift per frame (costs normalised by their spread), charging a
+small L1 penalty on each change of shift and a larger one on the change of that change:
+between key frames the RS rows often cannot tell a smooth path from a detour of 20-30 px
+(sineball), and an object's velocity changes little from frame to frame. Cost: one RS forward per
+candidate shift, in chunks; the pass is about 0.3 s at 64 px.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ from torch import Tensor
 SEARCH_CHUNK = 64  # candidate shifts through the RS operator at once
 SEARCH_REACH = 0.6  # shifts up to this fraction of the image side each way
 SEARCH_SMOOTH = 1e-3  # L1 penalty per pixel of shift change between frames (normalised costs)
+SEARCH_TURN = 0.2  # L1 penalty per grid step of change in that change (normalised costs)
+SEARCH_SPEED = 4  # fastest motion searched: grid steps per frame per axis (7.5 % of the image side)
 SEARCH_POINTS = 64  # about this many candidate positions per axis (step 1 px up to ~107 px images)
 
 
@@ -103,7 +107,7 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
         # Charged to the exposure's centre only: charged to every frame it touches (as the RS rows'
         # misfits are) it held the layer still there, 5-10 px off (bench/stfm_motion.md).
         cost += _normalised(centre_weights(stfm._gs_centre_frames(), k).to(dev).t() @ g_cost)
-    best = _viterbi(cost.cpu().numpy().reshape(k, side, side), SEARCH_SMOOTH * step)
+    best = _viterbi(cost.cpu().numpy().reshape(k, side, side), SEARCH_SMOOTH * step, SEARCH_TURN, SEARCH_SPEED)
     return shifts.cpu()[torch.from_numpy(best)]
 
 
@@ -129,32 +133,55 @@ def _normalised(cost: Tensor) -> Tensor:
     return cost / spread if spread > 0 else cost
 
 
-def _viterbi(cost: np.ndarray, penalty: float) -> np.ndarray:
-    """Flat index per frame of the shift path minimising sum of costs (K, S, S) plus penalty times
-    the L1 change (in grid steps) between consecutive frames."""
+def _viterbi(cost: np.ndarray, move: float, turn: float, speed: int) -> np.ndarray:
+    """Flat index per frame of the shift path minimising the sum of costs (K, S, S) plus `move` times
+    each frame's L1 change of shift and `turn` times the L1 change of that change (grid steps), with
+    no change over `speed` steps per axis. The state is (shift, last change): a dynamic
+    programme over (S, S, V, V)."""
     k, side, _ = cost.shape
-    totals = [cost[0]]
+    speed = max(0, min(speed, side - 1))
+    steps = np.arange(-speed, speed + 1)
+    v = len(steps)
+    moves = move * (np.abs(steps)[:, None] + np.abs(steps)[None, :])
+    total = np.repeat(np.repeat(cost[0][:, :, None, None], v, 2), v, 3)
+    came = np.zeros((k, side, side, v, v), dtype=np.int8 if v * v < 128 else np.int16)  # flat over (V, V)
     for t in range(1, k):
-        totals.append(cost[t] + _l1_envelope(totals[-1], penalty))
-    yy, xx = np.mgrid[0:side, 0:side]
-    at = np.unravel_index(int(np.argmin(totals[-1])), (side, side))
-    path = [at]
-    for t in range(k - 2, -1, -1):
-        y0, x0 = path[-1]
-        score = totals[t] + penalty * (np.abs(yy - y0) + np.abs(xx - x0))
-        path.append(np.unravel_index(int(np.argmin(score)), (side, side)))
+        turned, last = _turn_envelope(total, turn)
+        total = np.full_like(total, np.inf)
+        for i, dy in enumerate(steps):
+            for j, dx in enumerate(steps):  # reach shift q with change d from shift q - d
+                dst, src = _moved(side, dy), _moved(side, dx)
+                total[dst[0], src[0], i, j] = turned[dst[1], src[1], i, j]
+                came[t, dst[0], src[0], i, j] = last[dst[1], src[1], i, j]
+        total += cost[t][:, :, None, None] + moves[None, None]
+    y, x, i, j = np.unravel_index(int(np.argmin(total)), total.shape)
+    path = [(y, x)]
+    for t in range(k - 1, 0, -1):
+        before = came[t, y, x, i, j]
+        y, x = y - steps[i], x - steps[j]
+        i, j = divmod(int(before), v)
+        path.append((y, x))
     path.reverse()
     return np.array([y * side + x for y, x in path])
 
 
-def _l1_envelope(d: np.ndarray, penalty: float) -> np.ndarray:
-    """min over d' of d(d') + penalty |d - d'|_1 on a 2-D grid (two passes per axis)."""
-    out = d.copy()
-    for axis in (0, 1):
-        out = np.moveaxis(out, axis, 0)
-        for i in range(1, out.shape[0]):
-            np.minimum(out[i], out[i - 1] + penalty, out=out[i])
-        for i in range(out.shape[0] - 2, -1, -1):
-            np.minimum(out[i], out[i + 1] + penalty, out=out[i])
-        out = np.moveaxis(out, 0, axis)
-    return out
+def _moved(side: int, d: int) -> tuple[slice, slice]:
+    """Slices (to, from) along one axis for indices moved by d on a grid of `side`."""
+    return slice(max(d, 0), side + min(d, 0)), slice(max(-d, 0), side + min(-d, 0))
+
+
+def _turn_envelope(total: np.ndarray, penalty: float) -> tuple[np.ndarray, np.ndarray]:
+    """min over the last change c' of total(q, c') + penalty |c - c'|_1 for every shift q and change
+    c (total: (S, S, V, V)), by two passes per change axis (a distance transform); and the flat index
+    over (V, V) of the c' each minimum came from."""
+    v = total.shape[2]
+    out = total.copy()
+    came = np.broadcast_to(np.arange(v * v).reshape(1, 1, v, v), total.shape).copy()
+    for axis in (2, 3):
+        out, came = np.moveaxis(out, axis, 0), np.moveaxis(came, axis, 0)
+        for i, j in [(i, i - 1) for i in range(1, v)] + [(i, i + 1) for i in range(v - 2, -1, -1)]:
+            better = out[j] + penalty < out[i]
+            out[i] = np.where(better, out[j] + penalty, out[i])
+            came[i] = np.where(better, came[j], came[i])
+        out, came = np.moveaxis(out, 0, axis), np.moveaxis(came, 0, axis)
+    return out, came
