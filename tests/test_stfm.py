@@ -823,7 +823,8 @@ def test_the_motion_search_with_row_gains_follows_rows_whose_light_is_off_by_var
     import rngcam.recon.methods.stfm.motion_search as search
 
     monkeypatch.setattr(search, "SEARCH_TURN", 0.0)
-    monkeypatch.setattr(search, "SEARCH_SPEED", 64)
+    monkeypatch.setattr(search, "SEARCH_SPEED", 1.0)
+    monkeypatch.setattr(search, "SEARCH_SPEED_STEPS", 64)
     size = 20
     p, xs = _turning_square(size)
     rows = torch.arange(size, dtype=torch.float64)

@@ -26,8 +26,9 @@ from torch import Tensor
 SEARCH_CHUNK = 64  # candidate shifts through the RS operator at once
 SEARCH_REACH = 0.6  # shifts up to this fraction of the image side each way
 SEARCH_SMOOTH = 1e-3  # L1 penalty per pixel of shift change between frames (normalised costs)
-SEARCH_TURN = 0.2  # L1 penalty per grid step of change in that change (normalised costs)
-SEARCH_SPEED = 4  # fastest motion searched: grid steps per frame per axis (7.5 % of the image side)
+SEARCH_TURN = 0.1  # L1 penalty per px/frame of change in velocity at a 64 px side (normalised costs)
+SEARCH_SPEED = 0.125  # fastest motion searched: this share of the image side per frame, per axis,
+SEARCH_SPEED_STEPS = 5  # and at most this many grid steps (the pass keeps K x S^2 x (2 x 5 + 1)^2 bytes)
 SEARCH_POINTS = 64  # about this many candidate positions per axis (step 1 px up to ~107 px images)
 
 
@@ -107,7 +108,10 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
         # Charged to the exposure's centre only: charged to every frame it touches (as the RS rows'
         # misfits are) it held the layer still there, 5-10 px off (bench/stfm_motion.md).
         cost += _normalised(centre_weights(stfm._gs_centre_frames(), k).to(dev).t() @ g_cost)
-    best = _viterbi(cost.cpu().numpy().reshape(k, side, side), SEARCH_SMOOTH * step, SEARCH_TURN, SEARCH_SPEED)
+    size = max(stfm.H, stfm.W)  # the turn penalty and speed limit scale with the image: in grid steps
+    turn = SEARCH_TURN * step * 64 / size
+    speed = min(int(np.ceil(SEARCH_SPEED * size / step)), SEARCH_SPEED_STEPS)
+    best = _viterbi(cost.cpu().numpy().reshape(k, side, side), SEARCH_SMOOTH * step, turn, speed)
     return shifts.cpu()[torch.from_numpy(best)]
 
 
