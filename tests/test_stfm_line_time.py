@@ -147,6 +147,29 @@ def test_auto_learns_the_line_time_with_the_prior_preset_only_and_says_so(slow_r
     assert any("RS line time not learned" in n and "fast" in n for n in fast.notes)
 
 
+def test_a_fit_started_by_the_motion_search_holds_the_line_time_first_and_one_given_it_does_not(
+        slow_readout, monkeypatch):
+    import rngcam.recon.methods.stfm.method as stfm_method
+
+    monkeypatch.setattr(stfm_method, "LINE_HOLD_STEPS_SEARCH", 5)
+
+    def moved_after(preset, steps, start=None):
+        m = make_stfm(slow_readout.to(torch.float32), STFMSettings(preset=preset, dynamic_base="none", seed=0,
+                                                                   learn_line_time="on"))
+        if start is not None:
+            m.start_line_factor(start)
+        before = float(m.line_shift.detach())
+        for _ in range(steps):
+            m.step()
+        return abs(float(m.line_shift.detach()) - before), m
+
+    held, prior = moved_after("prior", 5)
+    assert prior.resolved.motion_init == "search" and held == 0.0
+    assert moved_after("prior", 8)[0] > 0  # learned once the hold is over
+    assert moved_after("prior", 3, start=0.99)[0] > 0  # another fit's line time: no hold
+    assert moved_after("fast", 3)[0] > 0  # no search, no hold
+
+
 def test_a_checkpoint_carries_the_learned_line_time(slow_readout):
     method = _fit(slow_readout, 30)
     again = _fit(slow_readout, 0)

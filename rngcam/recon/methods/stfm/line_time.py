@@ -75,8 +75,12 @@ class LineTime:
         return self.rs_timing.stretched_weights(self.problem.grid, rows, self._line_factor_tensor()).float()
 
     def start_line_factor(self, factor: float) -> None:
-        """Start the learned factor (and its moving average) at `factor` (another fit's)."""
+        """Start the learned factor (and its moving average) at `factor` (another fit's), and learn
+        it from the next step on (no hold)."""
         self._start_param(self.line_shift, torch.tensor((factor - 1) * self.readout_frames))
+        for group in self.optimiser.param_groups:
+            if any(q is self.line_shift for q in group["params"]):
+                group["hold_steps"] = 0
 
     @torch.no_grad()
     def _sync_rs_op(self, factor: float | None = None) -> None:

@@ -24,6 +24,7 @@ from rngcam.recon.methods.stfm.loss import DataLoss
 from rngcam.recon.methods.stfm.model import FieldModel, _chunks
 from rngcam.recon.methods.stfm.settings import (
     _FROM_PRESET,
+    LINE_HOLD_STEPS_SEARCH,
     LINE_LR_RATIO,
     POSE_HOLD_STEPS,
     POSE_LR_AFTER_HOLD,
@@ -141,7 +142,7 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
             groups.append({"params": [self.gs_pose], **self._pose_schedule()})
         self.learn_line = self._line_time_wanted() and self.learn_gain and self.settings.gs_anchor == "soft"
         if self.learn_line:
-            groups.append({"params": [self.line_shift], "lr_ratio": LINE_LR_RATIO})
+            groups.append({"params": [self.line_shift], "lr_ratio": LINE_LR_RATIO, "hold_steps": self._line_hold()})
         for g in groups:
             g["lr"] = lr * self._ratio(g)
         # fused: one kernel for all parameters (CPU and CUDA), 4x less time a step than the loop on a CPU
@@ -154,6 +155,12 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         if self._pose_inherited:
             return {"hold_steps": 0, "lr_ratio": POSE_LR_RATIO}
         return {"hold_steps": POSE_HOLD_STEPS, "lr_ratio": POSE_LR_RATIO * POSE_LR_AFTER_HOLD}
+
+    def _line_hold(self) -> int:
+        """Steps the learned line time is held: a fit whose motion starts from the translation search,
+        unless it started from another fit (its fields or its line time)."""
+        search = self.parts.motion and self.resolved.motion_init == "search" and not self.resolved.dynamic_time
+        return LINE_HOLD_STEPS_SEARCH if search and not self._pose_inherited else 0
 
     def _ratio(self, group: dict) -> float:
         """A parameter group's learning rate per unit of the fields' at this step (0 while it is held)."""

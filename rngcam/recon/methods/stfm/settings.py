@@ -197,6 +197,12 @@ POSE_LR_RATIO = 2.0
 # steps left (bench/realistic.md, stop 66). A fit started from another's pose neither holds nor speeds up.
 POSE_HOLD_STEPS = 100
 POSE_LR_AFTER_HOLD = 3.0
+# A fit whose motion starts from the translation search (the prior preset) holds the learned line time
+# for its first steps: from the search's track the line time took up the track's timing (sineball seed 6,
+# fine: x1.034 for a truth of 1, the ball later and later, -6 dB); held 300 steps, 24 captures gained
+# 1.26 dB mean and the ball target was missed on 5, not 7 (bench/realistic.md, stop 67). A fit started
+# from another's line time or fields does not hold it.
+LINE_HOLD_STEPS_SEARCH = 300
 # The learned line time's step (Adam, frames of displacement at the last RS row) per unit of the
 # fields' learning rate
 LINE_LR_RATIO = 8.0
