@@ -78,9 +78,7 @@ class LineTime:
         """Start the learned factor (and its moving average) at `factor` (another fit's), and learn
         it from the next step on (no hold)."""
         self._start_param(self.line_shift, torch.tensor((factor - 1) * self.readout_frames))
-        for group in self.optimiser.param_groups:
-            if any(q is self.line_shift for q in group["params"]):
-                group["hold_steps"] = 0
+        self._update_group(self.line_shift, hold_steps=0)
 
     @torch.no_grad()
     def _sync_rs_op(self, factor: float | None = None) -> None:

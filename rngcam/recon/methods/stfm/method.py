@@ -166,6 +166,11 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         """A parameter group's learning rate per unit of the fields' at this step (0 while it is held)."""
         return 0.0 if self.steps < group.get("hold_steps", 0) else group["lr_ratio"]
 
+    def _update_group(self, param: nn.Parameter, **changes) -> None:
+        """Change the schedule of the optimiser group that steps `param` (a start from another fit)."""
+        for g in self.optimiser.param_groups:
+            if any(q is param for q in g["params"]):
+                g.update(changes)
 
     # ------------------------------------------------------------------ Method protocol
 
@@ -308,9 +313,7 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         """Start the learned pose (and its moving average) at `pose` (another fit's, same grid)."""
         self._start_param(self.gs_pose, pose)
         self._pose_inherited = True
-        for g in self.optimiser.param_groups:
-            if any(q is self.gs_pose for q in g["params"]):
-                g.update(self._pose_schedule())
+        self._update_group(self.gs_pose, **self._pose_schedule())
 
     def learned_geometry(self) -> dict | None:
         return geometry_report(self.pose(), self.pose_radius, self.settings.selfcal_report)
