@@ -154,7 +154,8 @@ def run_default(p, scene: str, max_steps: int, truth_cal: dict | None, variant: 
     out.update(misfit=found["line"] if found else None, psf_scale_estimate=psf.get("estimate"),
                psf_scale_applied=psf.get("applied"), true_psf_scale=(truth_cal or {}).get("psf_scale", 1.0),
                psf_edge={k: v for k, v in edge.items() if k != "searched"} or None,
-               line_refit=rs.get("line_refits") or None, row_gain_refit=rs.get("row_gain_refits") or None)
+               line_refit=rs.get("line_refits") or None, row_gain_refit=rs.get("row_gain_refits") or None,
+               track_refit=rs.get("track_refits") or None)
     out.update(steps=result.iterations, events=result.events, notes=list(method.notes),
                preset=(rs.get("preset_choice") or {}).get("preset"),
                output_is_start=rs.get("start_floor", {}).get("output_is_start"),
@@ -264,6 +265,9 @@ def _misfit_cell(r: dict) -> str:
     refit = r.get("line_refit") or {}
     tried = refit.get("refits") or []
     again = (f"; second fit at x{tried[0]['factor']:.4f}, fit {refit['kept'] + 1} of 2 kept" if tried else "")
+    track = r.get("track_refit") or {}
+    again += ("; run from a softer search kept" if track.get("kept") else
+              "; run from a softer search made, first kept" if track.get("refits") else "")
     if not line:
         return "ok" + again
     what, _, rest = line.removeprefix("misfit: ").partition(": ")

@@ -17,6 +17,10 @@ def test_the_misfit_cell_shows_each_verdict():
     assert _misfit_cell({"misfit": far, "line_refit": refit}) == (f"{misfit.FAR_OFF} (x1.0141); second fit at "
                                                                    "x1.0141, fit 2 of 2 kept")
     assert _misfit_cell({"misfit": None, "line_refit": {"tried": True, "refits": [], "kept": 0}}) == "ok"
+    track = {"tried": True, "refits": [{"turn_scale": 0.5}]}
+    assert _misfit_cell({"misfit": None, "track_refit": dict(track, kept=1)}) == "ok; run from a softer search kept"
+    assert _misfit_cell({"misfit": not_explained, "track_refit": dict(track, kept=0)}) == (
+        f"{misfit.NOT_EXPLAINED} (1.22x); run from a softer search made, first kept")
 
 
 def test_the_table_shows_the_edge_stage_and_rows_without_gs_only_videos():

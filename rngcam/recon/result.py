@@ -26,7 +26,7 @@ STATUSES = ("ok", "failed", "interrupted", "budget_before_first_iteration")
 # kept apart from the settings, in metrics.json's "method_results".
 RESULT_KEYS = ("self_calibration", "gs_geometry", "line_time", "preset_choice", "rs_noise_level", "member_steps",
                "refine_steps", "start_floor", "levels", "left_out", "edge_refits",
-               "line_refits", "row_gain_refits")
+               "line_refits", "row_gain_refits", "track_refits")
 # Internal settings fields that only carry a result to where it is reported (STFMSettings.selfcal_report
 # is "self_calibration" above): dropped from both.
 CARRIERS = ("selfcal_report",)

@@ -280,6 +280,7 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
         method = _with_line_refit(method, handed, problem, settings, device, clock, stage)
         method = _with_edge_refit(method, handed, problem, settings, device, clock, stage)
         method = _with_row_gain_refit(method, handed, problem, settings, device, clock, stage)
+        method = _with_track_refit(method, handed, problem, settings, device, clock, stage)
     return method
 
 
@@ -357,6 +358,26 @@ def _with_row_gain_refit(method, handed, problem, settings: STFMSettings, device
                             row_gain_refit=False, row_gain_search=True)
 
     return RowGainRefit(method, problem, scale, second, through)
+
+
+def _with_track_refit(method, handed, problem, settings: STFMSettings, device, clock, stage):
+    """`method` wrapped in a TrackRefit where the motion is searched and the row-gain stage does not
+    apply (rngcam.recon.methods.stfm.track_refit): the whole run, not a later fit of another stage."""
+    from rngcam.recon.methods.stfm.edge_refit import edge_scale
+    from rngcam.recon.methods.stfm.track_refit import TrackRefit
+
+    if (not settings.track_refit or settings.search_turn_scale != 1
+            or settings.row_gain_search or (settings.row_gain_refit and edge_scale(settings.selfcal_report) is not None)
+            or _setting_or_preset(settings, "motion_init") != "search"
+            or problem.b_rs is None or problem.b_gs is None or ablation.removed(settings)):
+        return method
+
+    def second(scale: float, report: dict):
+        found = {"track_refit": report, "through": f"the motion search with its turn penalty x{scale:g}"}
+        return _another_fit(handed, settings, device, clock, stage, found, settings.self_calibrate_psf_scale,
+                            track_refit=False, search_turn_scale=scale)
+
+    return TrackRefit(method, problem, second)
 
 
 def _make_stfm(problem, settings: STFMSettings, device, initial_video: Tensor | None, clock=None, stage=None):

@@ -109,7 +109,7 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
         # misfits are) it held the layer still there, 5-10 px off (bench/stfm_motion.md).
         cost += _normalised(centre_weights(stfm._gs_centre_frames(), k).to(dev).t() @ g_cost)
     size = max(stfm.H, stfm.W)  # the turn penalty and speed limit scale with the image: in grid steps
-    turn = SEARCH_TURN * step * 64 / size
+    turn = SEARCH_TURN * stfm.settings.search_turn_scale * step * 64 / size  # scaled in track_refit's run
     speed = min(int(np.ceil(SEARCH_SPEED * size / step)), SEARCH_SPEED_STEPS)
     best = _viterbi(cost.cpu().numpy().reshape(k, side, side), SEARCH_SMOOTH * step, turn, speed)
     return shifts.cpu()[torch.from_numpy(best)]

@@ -49,6 +49,19 @@ class Refits(MethodBase):
         """Whether a checkpoint's `made` values are as this stage writes them."""
         raise NotImplementedError
 
+    def _ratio_over(self, best, res: float, ratio: float) -> float | None:
+        """The ended fit's RS residual over its noise level where it is `ratio` or more (a later fit is
+        worth making), else None with report["why"] set."""
+        noise = getattr(best, "rs_noise_level", None)
+        if not noise:
+            self.report["why"] = "no noise level"
+            return None
+        self.report["noise_level"] = noise
+        if not res >= ratio * noise:
+            self.report["why"] = f"the first run's RS residual is within {ratio}x its noise level"
+            return None
+        return res / noise
+
     def _line(self, report: dict) -> str:
         """One note on what the stage did."""
         raise NotImplementedError
@@ -204,7 +217,8 @@ class Refits(MethodBase):
 
     @property
     def notes(self) -> list[str]:
-        return list(self._output().notes) + ([self._line(self._shown_report())] if self.report["tried"] else [])
+        line = self._line(self._shown_report()) if self.report["tried"] else ""
+        return list(self._output().notes) + ([line] if line else [])
 
     def resolved_settings(self) -> dict | None:
         out = self._output().resolved_settings()

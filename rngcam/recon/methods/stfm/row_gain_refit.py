@@ -44,15 +44,10 @@ class RowGainRefit(Refits):
         if self.report["refits"]:
             self.report["why"] = "one run with row gains made"
             return None
-        noise = getattr(best, "rs_noise_level", None)
-        if not noise:
-            self.report["why"] = "no noise level"
+        ratio = self._ratio_over(best, res, RATIO)
+        if ratio is None:
             return None
-        self.report["noise_level"] = noise
-        if not res >= RATIO * noise:
-            self.report["why"] = f"the first run's RS residual is within {RATIO}x its noise level"
-            return None
-        return True, {"row_gains": True, "from_fit": 0, "from_rs": res, "ratio": res / noise}
+        return True, {"row_gains": True, "from_fit": 0, "from_rs": res, "ratio": ratio}
 
     def _check_made(self, made: dict) -> bool:
         """What each later run was made with: the row-gain search, nothing else."""

@@ -119,6 +119,11 @@ class STFMSettings:
               "motion search that scores each RS row after its own gain (a PSF that lost its edge predicts the "
               "rows' light short by varying amounts), and keep the one that explains the RS image better")
     row_gain_search: bool = field(default=False, metadata={"internal": True})  # set in row_gain_refit's run
+    track_refit: bool = setting(
+        True, "where the motion starts from the translation search (the prior preset) and the run ends at 1.15x "
+              "its noise level or more (and row_gain_refit does not apply): make it again from a search with half "
+              "the turn penalty, and keep the one that explains the RS image better")
+    search_turn_scale: float = field(default=1.0, metadata={"internal": True})  # set in track_refit's run
     selfcal_report: dict | None = field(default=None, metadata={"internal": True})  # what self-calibration refined
     learn_geometry: str = setting(
         "off", "learn the GS-to-RS transform with the fields: its shift, or shift, rotation and scale "

@@ -1,0 +1,60 @@
+"""Runs again from a motion search with a smaller turn penalty, where a run started from the search
+cannot explain the data.
+
+The prior preset starts its moving layer on the track a search over translations finds
+(`motion_search`); between key frames the RS rows often cannot tell the path from a detour, and a
+penalty on each change of velocity decides. Where the penalty is too stiff for a path's turns, the
+track cuts a stretch of frames 10-30 px off and the fit never leaves it; that run ends with its RS
+residual well above its noise level (sineball lab seed 1: 1.43x, ball p90 13 px), where the same
+capture searched at half the penalty ends at 1.02x with the ball kept (bench/realistic.md, "stop 68").
+So where a run whose motion came from the search ends at RATIO x its noise level or more, and the
+row-gain stage (a PSF found too large) does not apply, it is made again with the search's turn
+penalty times TURN_SCALE; the run whose RS residual is lower is the output. `make_stfm` wraps the
+whole run this way; the second run has its own edge and line-time stages and wraps nothing more.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+from rngcam.recon.methods.stfm.refits import Refits, nth
+
+# The first run's RS residual / noise level at or above which the second run is made: the row-gain
+# stage's threshold (a lost ball ended at 1.24x-1.43x, kept ones at 1.0x-1.13x; row_gain_refit.RATIO)
+RATIO = 1.15
+TURN_SCALE = 0.5  # the second run's turn penalty, of the search's (motion_search.SEARCH_TURN)
+
+
+class TrackRefit(Refits):
+    """`first` (a whole STFM run with its refit stages) and, where it ends unexplained, the same with
+    the motion search's turn penalty scaled: `refit(scale, report)` makes it."""
+
+    SETTING, RESULT, VALUE = "track_refit", "track_refits", "turn_scale"
+    STATE, STAGE_NAME = "track", "track refit"
+
+    def __init__(self, first, problem, refit: Callable):
+        super().__init__(first, problem, refit, {"turn_scale": 1.0})
+
+    def _propose(self, best, res: float) -> tuple[float, dict] | None:
+        if self.report["refits"]:
+            self.report["why"] = "one run from a search with a smaller turn penalty made"
+            return None
+        ratio = self._ratio_over(best, res, RATIO)
+        if ratio is None:
+            return None
+        return TURN_SCALE, {"turn_scale": TURN_SCALE, "from_fit": 0, "from_rs": res, "ratio": ratio}
+
+    def _check_made(self, made: dict) -> bool:
+        """What each later run was made with: the turn penalty's scale this stage uses, nothing else."""
+        return all(isinstance(s, float) and math.isclose(s, TURN_SCALE) for s in made.values())
+
+    def _line(self, report: dict) -> str:
+        refits = report.get("refits") or []
+        if not refits:  # most runs: nothing to say (the report has why)
+            return ""
+        r = refits[0]
+        ended = f"ended at {r['rs']:.4f}" if "rs" in r else "not run to its own stop"
+        return (f"motion search with a smaller turn penalty (the first run ended at {r['from_rs']:.4f}, "
+                f"{r['ratio']:.2f}x its noise level): a second run, the search's turn penalty x{r['turn_scale']:g}, "
+                f"{ended}; the {nth(report['kept'])} run kept")

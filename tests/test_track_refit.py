@@ -1,0 +1,111 @@
+"""The track refit: where a run whose motion came from the translation search ends unexplained, a
+second whole run from a search with half the turn penalty, kept where it explains the RS image
+better; bounded to one; resumable; a tampered checkpoint refused; the search's penalty scaled."""
+
+from dataclasses import replace
+
+import pytest
+import torch
+from test_psf_edge import _Fit, _run, problems  # noqa: F401 (the fixture)
+
+from rngcam.errors import RngcamError
+from rngcam.recon.methods.stfm import motion_search, track_refit
+from rngcam.recon.methods.stfm.row_gain_refit import RowGainRefit
+from rngcam.recon.methods.stfm.track_refit import TrackRefit
+
+NOISE = 0.01
+
+
+def _refit(first_rs, second_rs):
+    made = []
+
+    def another(scale, report):
+        made.append((scale, report))
+        return _Fit(second_rs, "second video", noise=NOISE)
+
+    return TrackRefit(_Fit(first_rs, "first video", noise=NOISE), None, another), made
+
+
+@pytest.mark.parametrize("second_rs, kept", [(0.0102, 1), (0.015, 0)])
+def test_a_run_left_unexplained_is_made_again_with_a_smaller_turn_penalty_and_the_better_one_kept(second_rs, kept):
+    method, made = _refit(0.0143, second_rs)
+    method.step()
+    assert method.converged() is None and len(made) == 1 and made[0][0] == track_refit.TURN_SCALE
+    assert made[0][1]["refits"][0]["ratio"] == pytest.approx(1.43)
+    _run(method)
+    assert len(made) == 1 and method.report["kept"] == kept
+    assert method.residuals()["rs"] == (0.0143, second_rs)[kept]
+    assert method.estimate() == ("first video", "second video")[kept]
+    line = method.notes[-1]
+    assert line.startswith("motion search with a smaller turn penalty (the first run ended at 0.0143, 1.43x its "
+                           "noise level): a second run, the search's turn penalty x0.5")
+    assert f"ended at {second_rs:.4f}; the {('first', 'second')[kept]} run kept" in line
+    out = method.resolved_settings()
+    assert out["track_refits"]["kept"] == kept and out["track_refits"]["turn_scale"] == (1.0, 0.5)[kept]
+    from rngcam.recon.result import split_results
+
+    settings, results = split_results(out)  # metrics.json: the stage's report a result, its switch a setting
+    assert results["track_refits"]["kept"] == kept and settings["track_refit"] is True
+
+
+def test_no_second_run_where_the_first_ends_near_its_noise_level():
+    method, made = _refit(0.0114, 0.001)  # 1.14x: kept balls ended at 1.0x-1.13x
+    _run(method)
+    assert not made and method.report["kept"] == 0
+    assert method.notes == ["a note"]  # nothing said where nothing was made
+    assert method.report["why"] == f"the first run's RS residual is within {track_refit.RATIO}x its noise level"
+    assert method.resolved_settings()["track_refits"]["refits"] == []
+
+
+def test_a_run_resumed_in_the_second_run_makes_it_again_and_a_tampered_one_is_refused(tmp_path):
+    from rngcam.recon import checkpoint
+
+    method, _ = _refit(0.0143, 0.0102)
+    method.step()
+    method.converged()
+    checkpoint.save(tmp_path / "c.pt", {"method": method.state_dict(), "iteration": 1, "solve_s": 1.0, "wall_s": 1.0,
+                                        "log": [], "events": [], "rng": torch.get_rng_state(), "identity": None})
+    state = checkpoint.load(tmp_path / "c.pt")["method"]
+    again, made = _refit(0.0143, 0.0102)
+    again.load_state_dict(state)
+    assert len(made) == 1 and made[0][0] == track_refit.TURN_SCALE and again.residuals()["rs"] == 0.0102
+    _run(again)
+    assert again.report["kept"] == 1
+    for bad in ({"track_made": {1: 0.0}}, {"track_made": {1: "import os"}}, {"track_made": {}}, {"track_best": 3}):
+        with pytest.raises(RngcamError, match="track refit stage is not as rngcam writes it"):
+            _refit(0.0143, 0.0102)[0].load_state_dict({**state, **bad})
+
+
+def test_stfm_is_wrapped_where_the_motion_is_searched_and_the_row_gain_stage_does_not_apply(problems):  # noqa: F811
+    from rngcam.recon.methods.stfm.ensemble import make_stfm
+    from rngcam.recon.methods.stfm.settings import STFMSettings
+
+    wrong, matched = problems
+    settings = STFMSettings(self_calibrate="gains", preset="prior")
+    method = make_stfm(matched, settings)
+    assert isinstance(method, TrackRefit) and method._fits[0].settings.search_turn_scale == 1
+    second = method._make_refit(track_refit.TURN_SCALE, {"refits": [], "kept": 0})
+    assert not isinstance(second, TrackRefit)  # the whole run again, never a third
+    assert second.settings.search_turn_scale == 0.5 and not second.settings.track_refit
+    assert "motion search: turn penalty x0.5" in second.notes
+    assert not any("turn penalty" in n for n in method._fits[0].notes)
+    said = [n for n in second.notes if n.startswith("self-calibration")]
+    assert said[0].startswith("self-calibration (gains) through the motion search with its turn penalty x0.5")
+    assert isinstance(make_stfm(wrong, settings), RowGainRefit)  # a PSF found too large: that stage instead
+    assert isinstance(make_stfm(wrong, replace(settings, row_gain_refit=False)), TrackRefit)
+    assert not isinstance(make_stfm(matched, replace(settings, track_refit=False)), TrackRefit)
+    assert not isinstance(make_stfm(matched, replace(settings, preset="fast")), TrackRefit)  # motion from flow
+
+
+def test_the_search_charges_turns_by_the_runs_scale(problems, monkeypatch):  # noqa: F811
+    from rngcam.recon.methods.stfm.ensemble import make_stfm
+    from rngcam.recon.methods.stfm.settings import STFMSettings
+
+    _, matched = problems
+    turns = []
+    viterbi = motion_search._viterbi
+    monkeypatch.setattr(motion_search, "_viterbi", lambda cost, move, turn, speed: turns.append(turn) or
+                        viterbi(cost, move, turn, speed))
+    for scale in (1.0, 0.5):
+        make_stfm(matched, STFMSettings(preset="prior", track_refit=False, search_turn_scale=scale))
+    assert len(turns) == 2 and turns[1] == pytest.approx(0.5 * turns[0]) and turns[0] > 0
