@@ -177,7 +177,8 @@ def test_chunked_backpropagation_gives_the_same_gradient(sineball16, preset):
 def test_a_translated_canonical_image_is_decoded_once_per_video(sineball16, monkeypatch):
     """estimate() decodes the prior preset's canonical image once for all its chunks, to the same
     video as decoding it for every chunk, and forgets it afterwards."""
-    m = make_stfm(sineball16, small_settings(preset="prior", dynamic_base=None, frame_chunk=2, ema_decay=0.0))
+    m = make_stfm(sineball16, small_settings(preset="prior", dynamic_base=None, frame_chunk=2, ema_decay=0.0,
+                                             track_refit=False))  # the fit itself, not its refit stage
     for _ in range(3):
         m.step()
     decodes = []
@@ -511,7 +512,7 @@ def test_prior_preset_stops_itself_on_a_slower_stall_test(sineball16):
     from rngcam.recon.methods.stfm.settings import PRIOR_STALL_PASSES
 
     fast = make_stfm(sineball16, small_settings())
-    prior = make_stfm(sineball16, STFMSettings(preset="prior", components="all"))
+    prior = make_stfm(sineball16, STFMSettings(preset="prior", components="all", track_refit=False))
     assert prior.resolved.stop_at_noise and prior.resolved.stall_drop == 0.001
     # a longer window than the fast preset's (whose rows per step may differ)
     assert prior._stall_window() >= PRIOR_STALL_PASSES * len(prior.rs_rows_fit) / prior.resolved.rows_per_step
