@@ -33,7 +33,7 @@ from rngcam.recon.methods.stfm import STFMSettings
 from rngcam.recon.methods.stfm.auto import choose_preset
 from rngcam.recon.methods.stfm.ensemble import make_stfm
 from rngcam.recon.metrics import motion_metrics, video_metrics
-from rngcam.recon.misfit import learned_by_fit, verdict
+from rngcam.recon.misfit import learned_by_fit, ratio_limit, verdict
 from rngcam.recon.problem import build_problem
 from rngcam.sim.fidelity import LabErrors
 from rngcam.sim.simulate import simulate
@@ -148,14 +148,14 @@ def run_default(p, scene: str, max_steps: int, truth_cal: dict | None, variant: 
     cal = rs.get("self_calibration") or {}
     line_factor = (rs.get("line_time") or {}).get("factor")
     found = verdict(method.residuals().get("rs"), rs.get("rs_noise_level"), cal, result.ended_by, result.status,
-                    learned=learned_by_fit(rs), line_factor=line_factor)
+                    ratio_limit=ratio_limit(rs.get("levels")), learned=learned_by_fit(rs), line_factor=line_factor)
     psf = (cal.get("scales") or {}).get("psf") or {}
     edge = rs.get("edge_refits") or {}
     out.update(misfit=found["line"] if found else None, psf_scale_estimate=psf.get("estimate"),
                psf_scale_applied=psf.get("applied"), true_psf_scale=(truth_cal or {}).get("psf_scale", 1.0),
                psf_edge={k: v for k, v in edge.items() if k != "searched"} or None,
                line_refit=rs.get("line_refits") or None, row_gain_refit=rs.get("row_gain_refits") or None,
-               track_refit=rs.get("track_refits") or None)
+               track_refit=rs.get("track_refits") or None, levels=len(rs.get("levels") or []) or 1)
     out.update(steps=result.iterations, events=result.events, notes=list(method.notes),
                preset=(rs.get("preset_choice") or {}).get("preset"),
                output_is_start=rs.get("start_floor", {}).get("output_is_start"),

@@ -131,14 +131,19 @@ def _far_off(line_factor, residual: float, noise: float, ratio: float, limit: fl
             "likely_causes": ["line time"], "line_factor": line_factor, "line": line}
 
 
+def ratio_limit(levels) -> float:
+    """The residual / noise ratio above which a run is unexplained: MISFIT_RATIO_LEVELS where it went
+    coarse to fine (`levels`: method_results' list of levels), else MISFIT_RATIO."""
+    return MISFIT_RATIO_LEVELS if isinstance(levels, list) and len(levels) > 1 else MISFIT_RATIO
+
+
 def for_metrics(metrics: dict) -> dict | None:
     """The verdict for a run's metrics (residual_rs, method_results' noise level, self-calibration and
     levels: MISFIT_RATIO_LEVELS where the run went coarse to fine)."""
     found = metrics.get("method_results") or {}
     gs_fitted = not (metrics.get("method_settings") or {}).get("no_gs")
     line = found.get("line_time") if isinstance(found.get("line_time"), dict) else {}
-    levels = found.get("levels")
-    limit = MISFIT_RATIO_LEVELS if isinstance(levels, list) and len(levels) > 1 else MISFIT_RATIO
     return verdict(metrics.get("residual_rs"), found.get("rs_noise_level"), found.get("self_calibration"),
-                   metrics.get("ended_by", "own_stop"), metrics.get("status", "ok"), ratio_limit=limit,
+                   metrics.get("ended_by", "own_stop"), metrics.get("status", "ok"),
+                   ratio_limit=ratio_limit(found.get("levels")),
                    gs_fitted=gs_fitted, learned=learned_by_fit(found), line_factor=_number(line.get("factor")))
