@@ -7,6 +7,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 from test_psf_edge import _Fit as _EdgeFit
+from test_psf_edge import _through_checkpoint
 from test_stfm_line_time import _moving_capture
 
 from rngcam.errors import RngcamError
@@ -87,14 +88,10 @@ def test_no_second_fit_where_the_line_time_is_near_the_recorded_one_or_not_learn
 
 
 def test_a_run_resumed_in_the_second_fit_makes_it_again_and_a_tampered_factor_is_refused(tmp_path):
-    from rngcam.recon import checkpoint
-
     method, made = _refit(1.014, 0.0143, 0.013)
     method.step()
     method.converged()
-    checkpoint.save(tmp_path / "c.pt", {"method": method.state_dict(), "iteration": 1, "solve_s": 1.0, "wall_s": 1.0,
-                                        "log": [], "events": [], "rng": torch.get_rng_state(), "identity": None})
-    state = checkpoint.load(tmp_path / "c.pt")["method"]
+    state = _through_checkpoint(method, tmp_path)
     again, made_again = _refit(1.014, 0.0143, 0.013)
     again.load_state_dict(state)
     assert [m[0] for m in made_again] == [1.014]

@@ -14,7 +14,7 @@ import torch
 from rngcam.formats.bundle import read_bundle
 from rngcam.physics.operators import RollingShutter
 from rngcam.physics.psf import magnify
-from rngcam.recon import misfit
+from rngcam.recon import checkpoint, misfit
 from rngcam.recon.methods import psf_edge
 from rngcam.recon.methods.psf_edge import edge_mask, fit_edge, search_edge
 from rngcam.recon.methods.stfm import edge_refit
@@ -148,6 +148,14 @@ def _refit(problem, first_rs, later_rs):
     return EdgeRefit(_Fit(first_rs, problem.truth), problem, 0.97, another), made
 
 
+def _through_checkpoint(method, folder, iteration: int = 1) -> dict:
+    """`method`'s state as a run's checkpoint file saves it and a resumed run loads it."""
+    checkpoint.save(folder / "c.pt", {"method": method.state_dict(), "iteration": iteration, "solve_s": 1.0,
+                                      "wall_s": 1.0, "log": [], "events": [], "rng": torch.get_rng_state(),
+                                      "identity": None})
+    return checkpoint.load(folder / "c.pt")["method"]
+
+
 def _run(method, limit=10):
     for _ in range(limit):
         method.step()
@@ -220,15 +228,11 @@ def test_a_later_fit_cut_short_is_shown_only_where_it_does_better(problems, runn
 
 
 def test_a_run_resumed_in_a_later_fit_makes_that_fit_again(problems, tmp_path):
-    from rngcam.recon import checkpoint
-
     wrong, _ = problems
     method, made = _refit(wrong, 0.03, (0.0105,))
     method.step()
     method.converged()
-    checkpoint.save(tmp_path / "c.pt", {"method": method.state_dict(), "iteration": 1, "solve_s": 1.0, "wall_s": 1.0,
-                                        "log": [], "events": [], "rng": torch.get_rng_state(), "identity": None})
-    state = checkpoint.load(tmp_path / "c.pt")["method"]
+    state = _through_checkpoint(method, tmp_path)
     again, made_again = _refit(wrong, 0.03, (0.0105,))
     again.load_state_dict(state)
     assert len(made_again) == 1 and torch.equal(made_again[0][0], made[0][0])
@@ -245,18 +249,15 @@ def test_a_run_resumed_in_a_later_fit_makes_that_fit_again(problems, tmp_path):
 def test_a_run_resumed_after_a_later_fit_did_better_than_the_first_resumes(problems, tmp_path):
     """The first fit is let go once a later one does better: a checkpoint written in the third fit
     holds the second and the third, and resumes there (a resumed run once refused it)."""
-    from rngcam.recon import checkpoint
-
     wrong, _ = problems
     method, _ = _refit(wrong, 0.03, (0.02, 0.0105))
     for _ in range(2):
         method.step()
         method.converged()
     assert method._current == 2 and sorted(method._fits) == [1, 2]
-    checkpoint.save(tmp_path / "c.pt", {"method": method.state_dict(), "iteration": 2, "solve_s": 1.0, "wall_s": 1.0,
-                                        "log": [], "events": [], "rng": torch.get_rng_state(), "identity": None})
+    state = _through_checkpoint(method, tmp_path, 2)
     again, made = _refit(wrong, 0.03, (0.02, 0.0105))
-    again.load_state_dict(checkpoint.load(tmp_path / "c.pt")["method"])
+    again.load_state_dict(state)
     assert len(made) == 2 and sorted(again._fits) == [1, 2] and again.residuals()["rs"] == 0.0105  # the running fit does better
     _run(again)
     assert again.report["kept"] == 2 and again.residuals()["rs"] == 0.0105

@@ -5,8 +5,7 @@ the RS image better; bounded to one; resumable; a tampered checkpoint refused.""
 from dataclasses import replace
 
 import pytest
-import torch
-from test_psf_edge import _Fit, _run, problems  # noqa: F401 (the fixture)
+from test_psf_edge import _Fit, _run, _through_checkpoint, problems  # noqa: F401 (the fixture)
 
 from rngcam.errors import RngcamError
 from rngcam.recon.methods.stfm import row_gain_refit
@@ -58,14 +57,10 @@ def test_no_second_run_where_the_first_ends_near_its_noise_level():
 
 
 def test_a_run_resumed_in_the_second_run_makes_it_again_and_a_tampered_one_is_refused(tmp_path):
-    from rngcam.recon import checkpoint
-
     method, _ = _refit(0.014, 0.0125)
     method.step()
     method.converged()
-    checkpoint.save(tmp_path / "c.pt", {"method": method.state_dict(), "iteration": 1, "solve_s": 1.0, "wall_s": 1.0,
-                                        "log": [], "events": [], "rng": torch.get_rng_state(), "identity": None})
-    state = checkpoint.load(tmp_path / "c.pt")["method"]
+    state = _through_checkpoint(method, tmp_path)
     again, made = _refit(0.014, 0.0125)
     again.load_state_dict(state)
     assert len(made) == 1 and made[0][0] is True and again.residuals()["rs"] == 0.0125

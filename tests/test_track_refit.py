@@ -5,11 +5,11 @@ better; bounded to one; resumable; a tampered checkpoint refused; the search's p
 from dataclasses import replace
 
 import pytest
-import torch
-from test_psf_edge import _Fit, _run, problems  # noqa: F401 (the fixture)
+from test_psf_edge import _Fit, _run, _through_checkpoint, problems  # noqa: F401 (the fixture)
 
 from rngcam.errors import RngcamError
 from rngcam.recon.methods.stfm import motion_search, track_refit
+from rngcam.recon.methods.stfm.edge_refit import EdgeRefit
 from rngcam.recon.methods.stfm.row_gain_refit import RowGainRefit
 from rngcam.recon.methods.stfm.track_refit import TrackRefit
 
@@ -58,14 +58,10 @@ def test_no_second_run_where_the_first_ends_near_its_noise_level():
 
 
 def test_a_run_resumed_in_the_second_run_makes_it_again_and_a_tampered_one_is_refused(tmp_path):
-    from rngcam.recon import checkpoint
-
     method, _ = _refit(0.0143, 0.0102)
     method.step()
     method.converged()
-    checkpoint.save(tmp_path / "c.pt", {"method": method.state_dict(), "iteration": 1, "solve_s": 1.0, "wall_s": 1.0,
-                                        "log": [], "events": [], "rng": torch.get_rng_state(), "identity": None})
-    state = checkpoint.load(tmp_path / "c.pt")["method"]
+    state = _through_checkpoint(method, tmp_path)
     again, made = _refit(0.0143, 0.0102)
     again.load_state_dict(state)
     assert len(made) == 1 and made[0][0] == track_refit.TURN_SCALE and again.residuals()["rs"] == 0.0102
@@ -92,7 +88,10 @@ def test_stfm_is_wrapped_where_the_motion_is_searched_and_the_row_gain_stage_doe
     said = [n for n in second.notes if n.startswith("self-calibration")]
     assert said[0].startswith("self-calibration (gains) through the motion search with its turn penalty x0.5")
     assert isinstance(make_stfm(wrong, settings), RowGainRefit)  # a PSF found too large: that stage instead
-    assert isinstance(make_stfm(wrong, replace(settings, row_gain_refit=False)), TrackRefit)
+    wrapped = make_stfm(wrong, replace(settings, row_gain_refit=False))
+    assert isinstance(wrapped, TrackRefit) and isinstance(wrapped._fits[0], EdgeRefit)
+    psf = wrong.psf * 0 + 1 / wrong.psf[0].numel()
+    assert not isinstance(wrapped._fits[0]._make_refit(psf, {"scale": 0.95}), TrackRefit)  # a later fit: not wrapped
     assert not isinstance(make_stfm(matched, replace(settings, track_refit=False)), TrackRefit)
     assert not isinstance(make_stfm(matched, replace(settings, preset="fast")), TrackRefit)  # motion from flow
 

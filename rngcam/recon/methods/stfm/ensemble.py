@@ -286,7 +286,8 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
 
 def _another_fit(changed, settings: STFMSettings, device, clock, stage, found: dict, psf_scale: bool, **off):
     """A later fit of a refit stage: a whole STFM run on `changed` (the problem as handed, changed),
-    calibrated again as the first was (what the stage found kept in its report), the settings `off` given."""
+    calibrated again as the first was (what the stage found kept in its report), the settings `off` given
+    and no track refit (that stage wraps the first whole run only)."""
     changed = replace(changed, notes=list(changed.notes))
     calibration = settings.selfcal_report
     if settings.self_calibrate != "off":
@@ -294,7 +295,8 @@ def _another_fit(changed, settings: STFMSettings, device, clock, stage, found: d
 
         changed, calibration = calibrate_problem(changed, settings.self_calibrate, psf_scale)
         calibration = dict(calibration or {}, **found)
-    return make_stfm(changed, replace(settings, selfcal_report=calibration, **off), device, clock=clock, stage=stage)
+    return make_stfm(changed, replace(settings, selfcal_report=calibration, track_refit=False, **off), device,
+                     clock=clock, stage=stage)
 
 
 def _with_line_refit(method, handed, problem, settings: STFMSettings, device, clock, stage):
@@ -366,8 +368,7 @@ def _with_track_refit(method, handed, problem, settings: STFMSettings, device, c
     from rngcam.recon.methods.stfm.edge_refit import edge_scale
     from rngcam.recon.methods.stfm.track_refit import TrackRefit
 
-    if (not settings.track_refit or settings.search_turn_scale != 1
-            or settings.row_gain_search or (settings.row_gain_refit and edge_scale(settings.selfcal_report) is not None)
+    if (not settings.track_refit or (settings.row_gain_refit and edge_scale(settings.selfcal_report) is not None)
             or _setting_or_preset(settings, "motion_init") != "search"
             or problem.b_rs is None or problem.b_gs is None or ablation.removed(settings)):
         return method
@@ -375,7 +376,7 @@ def _with_track_refit(method, handed, problem, settings: STFMSettings, device, c
     def second(scale: float, report: dict):
         found = {"track_refit": report, "through": f"the motion search with its turn penalty x{scale:g}"}
         return _another_fit(handed, settings, device, clock, stage, found, settings.self_calibrate_psf_scale,
-                            track_refit=False, search_turn_scale=scale)
+                            search_turn_scale=scale)
 
     return TrackRefit(method, problem, second)
 

@@ -49,9 +49,13 @@ class Refits(MethodBase):
         """Whether a checkpoint's `made` values are as this stage writes them."""
         raise NotImplementedError
 
-    def _ratio_over(self, best, res: float, ratio: float) -> float | None:
-        """The ended fit's RS residual over its noise level where it is `ratio` or more (a later fit is
-        worth making), else None with report["why"] set."""
+    def _unexplained_once(self, best, res: float, ratio: float, made: str) -> float | None:
+        """For a stage that makes one later run where the first ends unexplained: the ended fit's RS
+        residual over its noise level where it is `ratio` or more and no later run was made yet, else
+        None with report["why"] set (`made`: why, where one was)."""
+        if self.report["refits"]:
+            self.report["why"] = made
+            return None
         noise = getattr(best, "rs_noise_level", None)
         if not noise:
             self.report["why"] = "no noise level"

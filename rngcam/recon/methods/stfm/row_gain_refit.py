@@ -41,13 +41,8 @@ class RowGainRefit(Refits):
         super().__init__(first, problem, refit, {"key_rows_scale": scale, "row_gains": False, "through": through})
 
     def _propose(self, best, res: float) -> tuple[bool, dict] | None:
-        if self.report["refits"]:
-            self.report["why"] = "one run with row gains made"
-            return None
-        ratio = self._ratio_over(best, res, RATIO)
-        if ratio is None:
-            return None
-        return True, {"row_gains": True, "from_fit": 0, "from_rs": res, "ratio": ratio}
+        ratio = self._unexplained_once(best, res, RATIO, "one run with row gains made")
+        return None if ratio is None else (True, {"row_gains": True, "from_fit": 0, "from_rs": res, "ratio": ratio})
 
     def _check_made(self, made: dict) -> bool:
         """What each later run was made with: the row-gain search, nothing else."""

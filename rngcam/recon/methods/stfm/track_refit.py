@@ -37,13 +37,9 @@ class TrackRefit(Refits):
         super().__init__(first, problem, refit, {"turn_scale": 1.0})
 
     def _propose(self, best, res: float) -> tuple[float, dict] | None:
-        if self.report["refits"]:
-            self.report["why"] = "one run from a search with a smaller turn penalty made"
-            return None
-        ratio = self._ratio_over(best, res, RATIO)
-        if ratio is None:
-            return None
-        return TURN_SCALE, {"turn_scale": TURN_SCALE, "from_fit": 0, "from_rs": res, "ratio": ratio}
+        ratio = self._unexplained_once(best, res, RATIO, "one run from a search with a smaller turn penalty made")
+        return None if ratio is None else (TURN_SCALE, {"turn_scale": TURN_SCALE, "from_fit": 0, "from_rs": res,
+                                                        "ratio": ratio})
 
     def _check_made(self, made: dict) -> bool:
         """What each later run was made with: the turn penalty's scale this stage uses, nothing else."""
