@@ -138,7 +138,7 @@ def inline_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1, noi
     b_rs = b_rs + scale * torch.randn(b_rs.shape, generator=gen, dtype=torch.float64)
     b_gs = b_gs + scale * torch.randn(b_gs.shape, generator=gen, dtype=torch.float64)
     return Problem(b_rs=b_rs, b_gs=b_gs, rs_weights=w_rs, gs_weights=w_gs, psf=psf, grid=grid,
-                   gs_times_s=gs.centres_s(), truth=truth, rs_timing=rs)
+                   gs_times_s=gs.centres_s(), truth=truth, rs_timing=rs, gs_timing=gs)
 
 
 def gs_only_video(label: str, problem):

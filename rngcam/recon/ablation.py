@@ -43,7 +43,7 @@ def without(problem, rs: bool = False, gs: bool = False):
     changes = {}
     if gs:
         w = problem.gs_weights
-        changes.update(b_gs=None, gs_valid=None, gs_train_mask=None, gs_times_s=np.zeros(0),
+        changes.update(b_gs=None, gs_valid=None, gs_train_mask=None, gs_times_s=np.zeros(0), gs_timing=None,
                        gs_weights=torch.zeros((0, w.shape[1]), dtype=w.dtype, device=w.device))
     if rs:
         changes.update(b_rs=None, rs_valid=None, rs_train_rows=None)

@@ -78,6 +78,9 @@ class Problem:
     # The RS timing the weights came from (on the grid's clock), where they came from one: what a
     # fit that learns a line-time factor stretches (None: a coarsened or hand-built problem).
     rs_timing: RollingShutterTiming | None = None
+    # The GS timing the GS weights came from (on the grid's clock; None: hand-built or coarsened):
+    # with rs_timing, what `in_subframes` weighs shorter frames by.
+    gs_timing: GlobalShutterTiming | None = None
     # A coarse-to-fine level's GS frames as video intensity (C, G, H', W') on the finer grid it was
     # binned from: GS-only videos and flows are computed there and binned to this grid (RIFE on a
     # 32 px clip's frames lost 2 dB against RIFE at 64 px binned; bench/convergence.md, stop 63).
@@ -114,6 +117,35 @@ class Problem:
         timing = replace(self.rs_timing, line_time_s=self.rs_timing.line_time_s * line_factor)
         return replace(self, rs_weights=self.rs_weights_at(line_factor), rs_timing=timing)
 
+    def can_subdivide(self) -> bool:
+        """Whether `in_subframes` can weigh shorter frames: the timings of the cameras in use are known."""
+        return ((self.b_rs is None or self.rs_timing is not None)
+                and (self.b_gs is None or self.b_gs.shape[1] == 0 or self.gs_timing is not None))
+
+    def in_subframes(self, steps: int) -> Problem:
+        """The problem on a grid of `steps` x shorter frames (dt / steps, K * steps frames, frame k of this
+        grid = frames k * steps ... k * steps + steps - 1), as `build_problem` makes it at dt / steps: each
+        exposure weighed exactly on the shorter frames, the measurements in their units, the truth's frames
+        repeated. A video on it averaged over each frame's subframes is one on this grid; one that holds
+        still within each frame is measured alike by both."""
+        if steps == 1:
+            return self
+        if not self.can_subdivide():
+            raise ConfigError("shorter frames need the cameras' timing (a problem built from a bundle)")
+        grid = VideoGrid(self.grid.dt_s / steps, self.grid.n_frames * steps)
+        # Weights count exposure in the grid's frames, and the measurements are in those units: on frames
+        # `steps` x shorter both are `steps` x larger (the video's intensity is the same). A camera out of
+        # use (an ablation's) keeps weights of the right shape that nothing reads.
+        rs_w = torch.from_numpy(self.rs_timing.weights(grid)) if self.rs_timing is not None else \
+            self.rs_weights.repeat_interleave(steps, dim=1)
+        gs_w = torch.from_numpy(self.gs_timing.weights(grid)) if self.b_gs is not None and self.b_gs.shape[1] else \
+            torch.zeros(self.gs_weights.shape[0], grid.n_frames)
+        truth = None if self.truth is None else self.truth.repeat_interleave(steps, dim=1)
+        return replace(self, rs_weights=rs_w.to(self.rs_weights), gs_weights=gs_w.to(self.gs_weights), grid=grid,
+                       b_rs=None if self.b_rs is None else self.b_rs * steps,
+                       b_gs=None if self.b_gs is None else self.b_gs * steps,
+                       truth=truth, notes=list(self.notes), left_out=list(self.left_out))
+
     def gs_op(self) -> GlobalShutter:
         c, _, h, w = self.shape
         return GlobalShutter(self.gs_weights, c, (h, w))
@@ -144,7 +176,7 @@ class Problem:
                        rs_train_rows=cast(self.rs_train_rows), gs_train_mask=cast(self.gs_train_mask),
                        rs_valid=cast(self.rs_valid), gs_valid=cast(self.gs_valid),
                        time_origin_s=self.time_origin_s, left_out=list(self.left_out), rs_timing=self.rs_timing,
-                       fine_gs=cast(self.fine_gs))
+                       gs_timing=self.gs_timing, fine_gs=cast(self.fine_gs))
 
     def rs_valid_mask(self) -> Tensor | None:
         """(C or 1, H, W) 0/1 float mask of the RS pixels that carry information; None: all do."""
@@ -385,6 +417,7 @@ def _build_problem(bundle: Bundle, grid_bin: int | None, dt_s: float | None, use
         time_origin_s=plan.origin_s,
         left_out=left_out,
         rs_timing=plan.rs if use_rs else None,
+        gs_timing=gs_timing,
     )
 
 
@@ -405,4 +438,5 @@ def problem_from_video(video: Tensor, psf: Tensor, rs: RollingShutterTiming | No
     b_rs = RollingShutter(psf, rs_w, w, channels=c).A(video) if rs is not None else None
     b_gs = GlobalShutter(gs_w, c, (h, w)).A(video) if gs is not None else None
     return Problem(b_rs=b_rs, b_gs=b_gs, rs_weights=rs_w, gs_weights=gs_w, psf=psf, grid=grid,
-                   gs_times_s=gs.centres_s() if gs is not None else np.zeros(0), truth=video, rs_timing=rs)
+                   gs_times_s=gs.centres_s() if gs is not None else np.zeros(0), truth=video, rs_timing=rs,
+                   gs_timing=gs)

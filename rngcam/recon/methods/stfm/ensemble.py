@@ -270,6 +270,10 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
         if settings.no_gs:  # say why there are no key frames to test
             choice = replace(choice, reason=f"--no-gs: {choice.reason}")
         settings = replace(settings, preset=choice.preset, preset_choice=choice.as_dict())
+    steps = _subframes(problem, settings, initial_video)
+    if steps > 1:  # the whole run on shorter frames: its stages and later fits too (they are handed these)
+        handed, problem = handed.in_subframes(steps), problem.in_subframes(steps)
+        settings = replace(settings, subframes=1)
     guard = initial_video is None and settings.start_floor
     method = _make_stfm(problem, replace(settings, start_floor=False), device, initial_video, clock, stage)
     if guard:  # once, around the whole run (not around its levels or members)
@@ -281,7 +285,25 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
         method = _with_edge_refit(method, handed, problem, settings, device, clock, stage)
         method = _with_row_gain_refit(method, handed, problem, settings, device, clock, stage)
         method = _with_track_refit(method, handed, problem, settings, device, clock, stage)
+    if steps > 1:
+        from rngcam.recon.methods.stfm.subframes import SubframesAveraged
+
+        method = SubframesAveraged(method, steps, problem.shape[1])
     return method
+
+
+def _subframes(problem, settings: STFMSettings, initial_video: Tensor | None) -> int:
+    """Subframes per output frame for a whole run (`subframes`, else its preset's); 1 for a level or a
+    fit started from a video (inside a run), and where the problem lacks the cameras' timing, unless asked."""
+    steps = _setting_or_preset(settings, "subframes")
+    if steps == 1 or initial_video is not None:
+        return 1
+    if not problem.can_subdivide():
+        if settings.subframes is not None:
+            raise ConfigError(f"stfm: subframes {steps} needs the cameras' timing, which this problem does not "
+                              "carry (a problem built from a bundle does)")
+        return 1
+    return steps
 
 
 def _another_fit(changed, settings: STFMSettings, device, clock, stage, found: dict, psf_scale: bool, **off):

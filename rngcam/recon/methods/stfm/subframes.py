@@ -1,0 +1,86 @@
+"""Each output frame fitted as `subframes` shorter frames (STFM's `subframes`, the prior preset's 2).
+
+An RS row's exposure begins and ends inside frames. Where a layer moves several pixels a frame, a row
+that starts late in a frame saw it late in that frame; on the output's grid every frame is one image
+over its whole interval, so the fit must put what that row saw where the frame's other rows saw it,
+and it pays in the ball's place and edge and in a biased line time. make_stfm runs the whole fit
+(its stages, refits and floor) on the problem on shorter frames (`Problem.in_subframes`: every
+exposure weighed exactly on them) and wraps it in SubframesAveraged, whose estimate and components
+are the fit's averaged over each output frame's subframes: the scene over that frame's interval, as
+the output's grid means it. Residuals, noise level, checkpoints and notes are the fit's own.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from rngcam.recon.loop import MethodBase
+
+
+def subframes_averaged(video: Tensor, steps: int) -> Tensor:
+    """(C, K * steps, H, W) -> (C, K, H, W): the mean of each frame's `steps` subframes."""
+    c, n, h, w = video.shape
+    return video.reshape(c, n // steps, steps, h, w).mean(dim=2)
+
+
+class SubframesAveraged(MethodBase):
+    """`method` (a whole STFM run on `Problem.in_subframes(steps)`) with its frames averaged `steps` at a time."""
+
+    def __init__(self, method, steps: int, frames: int):
+        self._method = method
+        self.steps = steps
+        self._frames = frames  # the fit's frames: K * steps
+        self._note = (f"fitted on {frames} subframes, {steps} to each of the output's {frames // steps} frames "
+                      f"(subframes {steps}), and averaged into them")
+
+    def __getattr__(self, name):  # everything but the frames shown is the fit's
+        if name.startswith("__") or name == "_method":
+            raise AttributeError(name)
+        return getattr(self._method, name)
+
+    # MethodBase's defaults would hide the fit's own: hand these on explicitly.
+    @property
+    def supports_holdout(self) -> bool:
+        return self._method.supports_holdout
+
+    @property
+    def stops_itself(self) -> bool:
+        return self._method.stops_itself
+
+    @property
+    def left_out(self) -> list:
+        return self._method.left_out
+
+    @property
+    def notes(self) -> list[str]:
+        return [*self._method.notes, self._note]
+
+    def step(self) -> float:
+        return self._method.step()
+
+    def log_ready(self) -> bool:
+        return self._method.log_ready()
+
+    def converged(self) -> str | None:
+        return self._method.converged()
+
+    def budget_cut(self) -> str:
+        return self._method.budget_cut()
+
+    def estimate(self) -> Tensor:
+        return subframes_averaged(self._method.estimate(), self.steps)
+
+    def components(self) -> dict:
+        """The fit's components, those per frame (alpha, motion) averaged as the video is."""
+        out = {}
+        for name, value in self._method.components().items():
+            if isinstance(value, np.ndarray) and value.ndim == 4 and value.shape[1] == self._frames:
+                value = subframes_averaged(torch.from_numpy(value), self.steps).numpy()
+            out[name] = value
+        return out
+
+    def resolved_settings(self) -> dict | None:
+        settings = self._method.resolved_settings()
+        return None if settings is None else {**settings, "subframes": self.steps}
