@@ -19,6 +19,7 @@ from rngcam.recon.methods import psf_edge
 from rngcam.recon.methods.psf_edge import edge_mask, fit_edge, search_edge
 from rngcam.recon.methods.stfm import edge_refit
 from rngcam.recon.methods.stfm.edge_refit import EdgeRefit, edge_line, edge_scale
+from rngcam.recon.methods.stfm.subframes import SubframesAveraged
 from rngcam.recon.problem import build_problem
 from rngcam.sim.simulate import DEFAULT_PSF_CROP, simulate
 
@@ -303,11 +304,14 @@ def test_stfm_is_wrapped_only_where_the_key_rows_find_the_psf_too_large(problems
 
     wrong, matched = problems
     settings = STFMSettings(self_calibrate="gains", preset="prior", row_gain_refit=False, track_refit=False)  # their own tests
-    method = make_stfm(wrong, settings)
+    whole = make_stfm(wrong, settings)
+    assert isinstance(whole, SubframesAveraged)  # the prior preset's half-frames around every stage
+    method = whole._method
     assert isinstance(method, EdgeRefit)
     assert method.report["key_rows_scale"] < 0.99
     second = method._make_refit(wrong.psf * 0 + 1 / wrong.psf[0].numel(), {"scale": 0.95})
-    assert not isinstance(second, EdgeRefit)  # one second fit, never a third
+    assert not isinstance(second, (EdgeRefit, SubframesAveraged))  # one second fit, never a third
+    assert second.problem.shape[1] == 2 * wrong.shape[1]  # on the run's half-frames, not subdivided again
     assert second.settings.selfcal_report["psf_edge"] == {"scale": 0.95}
     said = [n for n in second.notes if n.startswith("self-calibration")]  # told apart from the first fit's
     assert said and said[0].startswith("self-calibration (gains) through the PSF with its lost edge fitted (shrunk x0.9500)")

@@ -76,7 +76,7 @@ def test_stfm_is_wrapped_where_the_key_rows_find_the_psf_too_large_and_the_motio
     from rngcam.recon.methods.stfm.settings import STFMSettings
 
     wrong, matched = problems
-    settings = STFMSettings(self_calibrate="gains", preset="prior")
+    settings = STFMSettings(self_calibrate="gains", preset="prior", subframes=1)  # the stages themselves
     method = make_stfm(wrong, settings)
     assert isinstance(method, RowGainRefit) and isinstance(method._fits[0], EdgeRefit)
     assert not method._fits[0].settings.row_gain_search

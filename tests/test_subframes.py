@@ -118,3 +118,35 @@ def test_without_the_timing_a_run_fits_the_outputs_frames_unless_subframes_are_a
 def test_subframes_out_of_range_are_refused_in_one_line(bad):
     with pytest.raises(ConfigError, match="subframes must be a whole number from 1 to 8"):
         STFMSettings(subframes=bad)
+
+
+def test_a_track_is_drawn_through_the_subframes_instants():
+    from rngcam.recon.methods.stfm.motion_search import through_subframes
+
+    track = torch.tensor([[0.0, 0.0], [4.0, -2.0], [6.0, 2.0]])
+    got = through_subframes(track, 2)
+    want = torch.tensor([[0.0, 0.0], [1.0, -0.5],  # the first frame holds before its instant ...
+                         [3.0, -1.5], [4.5, -1.0],  # ... the others a quarter frame towards each neighbour
+                         [5.5, 1.0], [6.0, 2.0]])  # and the last holds after its own
+    assert torch.allclose(got, want) and through_subframes(track, 1) is track
+    assert torch.allclose(through_subframes(track, 4)[4:8].mean(0), track[1] + (track[2] - 2 * track[1] + track[0]) / 8)
+
+
+def test_on_subframes_the_motion_search_and_the_line_time_count_in_the_outputs_frames():
+    from rngcam.recon.methods.stfm.method import STFM
+    from rngcam.recon.methods.stfm.motion_search import key_frame_layer, through_subframes, translation_track
+
+    p = _sineball(32, 32).to(torch.float32)
+    q = p.in_subframes(2)
+    assert (q.subframes, q.in_subframes(2).subframes, q.to(torch.float64).subframes) == (2, 4, 2)
+    settings = STFMSettings(preset="prior", components="all", learn_line_time="on")
+    one, two = STFM(p, settings), STFM(q, settings)
+    assert two.readout_frames == pytest.approx(one.readout_frames)  # the factor learns at one rate in time
+    tracks = []
+    for fit in (one, two):
+        keys = fit.problem.gs_images(gains=True).float()
+        tracks.append(translation_track(fit, *key_frame_layer(keys, keys.shape[1] // 2)))
+    assert tracks[1].shape == (2 * p.shape[1], 2)
+    # the pass runs over the output's frames, charged what it is charged there: the same track, drawn
+    # through the subframes' instants
+    assert torch.allclose(tracks[1], through_subframes(tracks[0], 2))

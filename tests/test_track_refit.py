@@ -77,7 +77,7 @@ def test_stfm_is_wrapped_where_the_motion_is_searched_and_the_row_gain_stage_doe
     from rngcam.recon.methods.stfm.settings import STFMSettings
 
     wrong, matched = problems
-    settings = STFMSettings(self_calibrate="gains", preset="prior")
+    settings = STFMSettings(self_calibrate="gains", preset="prior", subframes=1)  # the stages themselves
     method = make_stfm(matched, settings)
     assert isinstance(method, TrackRefit) and method._fits[0].settings.search_turn_scale == 1
     second = method._make_refit(track_refit.TURN_SCALE, {"refits": [], "kept": 0})

@@ -81,6 +81,8 @@ class Problem:
     # The GS timing the GS weights came from (on the grid's clock; None: hand-built or coarsened):
     # with rs_timing, what `in_subframes` weighs shorter frames by.
     gs_timing: GlobalShutterTiming | None = None
+    # Frames of this grid to each frame of the output's (`in_subframes`): what a rate per frame counts in.
+    subframes: int = 1
     # A coarse-to-fine level's GS frames as video intensity (C, G, H', W') on the finer grid it was
     # binned from: GS-only videos and flows are computed there and binned to this grid (RIFE on a
     # 32 px clip's frames lost 2 dB against RIFE at 64 px binned; bench/convergence.md, stop 63).
@@ -144,7 +146,8 @@ class Problem:
         return replace(self, rs_weights=rs_w.to(self.rs_weights), gs_weights=gs_w.to(self.gs_weights), grid=grid,
                        b_rs=None if self.b_rs is None else self.b_rs * steps,
                        b_gs=None if self.b_gs is None else self.b_gs * steps,
-                       truth=truth, notes=list(self.notes), left_out=list(self.left_out))
+                       truth=truth, notes=list(self.notes), left_out=list(self.left_out),
+                       subframes=self.subframes * steps)
 
     def gs_op(self) -> GlobalShutter:
         c, _, h, w = self.shape
@@ -176,7 +179,7 @@ class Problem:
                        rs_train_rows=cast(self.rs_train_rows), gs_train_mask=cast(self.gs_train_mask),
                        rs_valid=cast(self.rs_valid), gs_valid=cast(self.gs_valid),
                        time_origin_s=self.time_origin_s, left_out=list(self.left_out), rs_timing=self.rs_timing,
-                       gs_timing=self.gs_timing, fine_gs=cast(self.fine_gs))
+                       gs_timing=self.gs_timing, fine_gs=cast(self.fine_gs), subframes=self.subframes)
 
     def rs_valid_mask(self) -> Tensor | None:
         """(C or 1, H, W) 0/1 float mask of the RS pixels that carry information; None: all do."""

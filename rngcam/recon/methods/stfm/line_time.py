@@ -34,12 +34,14 @@ class LineTime:
     """Part of STFM: the line-time factor (`learn_line_time`)."""
 
     def _build_line_time(self) -> None:
-        """The parameter: the last row's displacement in frames, (f - 1) x the readout span."""
+        """The parameter: the last row's displacement in the output's frames, (f - 1) x the readout span
+        (a fit on subframes learns it at the same rate in time)."""
         timing = self.problem.rs_timing
         self.rs_timing = timing
         span = 0.0
         if timing is not None:
-            span = (timing.rows * timing.rows_per_bin - 1) * timing.line_time_s / self.problem.grid.dt_s
+            frame_s = self.problem.grid.dt_s * self.problem.subframes
+            span = (timing.rows * timing.rows_per_bin - 1) * timing.line_time_s / frame_s
         self.readout_frames = max(span, 1e-9)
         self.line_shift = nn.Parameter(torch.zeros((), device=self.device))
         self.learn_line = False

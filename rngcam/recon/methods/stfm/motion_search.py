@@ -75,7 +75,11 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
     k = stfm.K
     shifts, side, step = candidate_shifts(stfm.H, stfm.W, dev)
     n = len(shifts)
-    cost = torch.zeros(k, n, device=dev)
+    # On subframes the pass runs over the output's frames (each charged its subframes' misfits), so that
+    # its velocities, turn penalty and speed limit are per output frame, as without; the track is then
+    # drawn through the subframes' instants.
+    sub = p.subframes
+    cost = torch.zeros(k // sub, n, device=dev)
     if stfm.parts.rs:
         rows = stfm.rs_rows_fit.to(dev)
         w = stfm.w_rs.index_select(0, rows)  # (R, K)
@@ -95,7 +99,7 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
             else:
                 miss_sq = (pred - target[:, None]).square().sum(-1)
             rs_cost[:, i:i + SEARCH_CHUNK] = miss_sq.sum(0).t()
-        cost += _normalised((w / s_r[:, None]).t() @ rs_cost)
+        cost += _normalised(_per_output_frame((w / s_r[:, None]).t() @ rs_cost, sub))
     if stfm.parts.gs:
         keys = p.gs_images(gains=True).float().to(dev)  # (C, G, H, W)
         g_cost = torch.zeros(keys.shape[1], n, device=dev)
@@ -107,12 +111,32 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
             g_cost[:, i:i + SEARCH_CHUNK] = miss.square().sum((2, 3, 4))
         # Charged to the exposure's centre only: charged to every frame it touches (as the RS rows'
         # misfits are) it held the layer still there, 5-10 px off (bench/stfm_motion.md).
-        cost += _normalised(centre_weights(stfm._gs_centre_frames(), k).to(dev).t() @ g_cost)
+        centres = (np.asarray(stfm._gs_centre_frames(), float) + 0.5) / sub - 0.5  # in the output's frames
+        cost += _normalised(centre_weights(centres, k // sub).to(dev).t() @ g_cost)
     size = max(stfm.H, stfm.W)  # the turn penalty and speed limit scale with the image: in grid steps
     turn = SEARCH_TURN * stfm.settings.search_turn_scale * step * 64 / size  # scaled in track_refit's run
     speed = min(int(np.ceil(SEARCH_SPEED * size / step)), SEARCH_SPEED_STEPS)
-    best = _viterbi(cost.cpu().numpy().reshape(k, side, side), SEARCH_SMOOTH * step, turn, speed)
-    return shifts.cpu()[torch.from_numpy(best)]
+    best = _viterbi(cost.cpu().numpy().reshape(k // sub, side, side), SEARCH_SMOOTH * step, turn, speed)
+    return through_subframes(shifts.cpu()[torch.from_numpy(best)], sub)
+
+
+def _per_output_frame(cost: Tensor, steps: int) -> Tensor:
+    """(K * steps, n) costs of subframes -> (K, n) of the output's frames: each the sum of its subframes'."""
+    return cost.reshape(-1, steps, cost.shape[1]).sum(1)
+
+
+def through_subframes(track: Tensor, steps: int) -> Tensor:
+    """(K, 2) shifts of the output's frames -> (K * steps, 2) at their subframes' instants: on the straight
+    path from each frame's shift to its neighbour's, the first and last frames' held beyond their instants."""
+    if steps == 1:
+        return track
+    k = len(track)
+    before, after = track[(torch.arange(k) - 1).clamp_min(0)], track[(torch.arange(k) + 1).clamp_max(k - 1)]
+    out = []
+    for j in range(steps):
+        s = (j + 0.5) / steps - 0.5  # the subframe's instant, in frames from its frame's own
+        out.append(track + s * (after - track) if s > 0 else track + s * (track - before))
+    return torch.stack(out, dim=1).reshape(k * steps, 2)
 
 
 def centre_weights(centres, k: int) -> Tensor:

@@ -169,8 +169,9 @@ class STFMSettings:
             if bad or len(set(bases)) != len(bases):
                 raise ConfigError(f"stfm: dynamic_base must be one of {', '.join(ALL_BASES)}, a comma-separated list "
                                   f"of distinct ones, or 'ensemble' ({ENSEMBLE_BASES}); got {self.dynamic_base!r}")
-        if self.subframes is not None and not (isinstance(self.subframes, int) and 1 <= self.subframes <= MAX_SUBFRAMES):
-            raise ConfigError(f"stfm: subframes must be a whole number from 1 to {MAX_SUBFRAMES}, got {self.subframes!r}")
+        steps = self.subframes
+        if steps is not None and not (isinstance(steps, int) and 1 <= steps <= MAX_SUBFRAMES):
+            raise ConfigError(f"stfm: subframes must be a whole number from 1 to {MAX_SUBFRAMES}, got {steps!r}")
         if self.stall_drop is not None and not 0 <= self.stall_drop < 1:
             raise ConfigError(f"stfm: stall_drop must be in [0, 1), got {self.stall_drop!r}")
         if self.stall_passes is not None and self.stall_passes < 1:
