@@ -3,6 +3,8 @@ measurements' units, and measures a video that holds still within each frame as 
 does; STFM fits the prior preset's runs on half-frames and shows their average, per frame, in its
 estimate and components; where the timing is missing it fits the output's frames (or refuses, if asked)."""
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -69,8 +71,6 @@ def test_an_ablated_camera_keeps_weights_of_the_right_shape():
 
 
 def test_a_problem_without_timing_cannot_be_subdivided():
-    from dataclasses import replace
-
     p = replace(_sineball(), rs_timing=None)
     assert not p.can_subdivide()
     with pytest.raises(ConfigError, match="timing"):
@@ -106,8 +106,6 @@ def test_subframes_are_the_presets_and_can_be_set():
 
 
 def test_without_the_timing_a_run_fits_the_outputs_frames_unless_subframes_are_asked_for():
-    from dataclasses import replace
-
     p = replace(_sineball(), rs_timing=None).to(torch.float32)
     assert not isinstance(make_stfm(p, STFMSettings(preset="prior")), SubframesAveraged)
     with pytest.raises(ConfigError, match="subframes 2 needs the cameras' timing"):
@@ -150,3 +148,23 @@ def test_on_subframes_the_motion_search_and_the_line_time_count_in_the_outputs_f
     # the pass runs over the output's frames, charged what it is charged there: the same track, drawn
     # through the subframes' instants
     assert torch.allclose(tracks[1], through_subframes(tracks[0], 2))
+
+
+def test_the_noise_level_does_not_stop_a_fit_before_its_held_line_time_has_been_learned():
+    from rngcam.recon.methods.stfm.method import STFM
+    from rngcam.recon.methods.stfm.settings import LINE_HOLD_STEPS_SEARCH
+
+    p = _sineball(32, 32).to(torch.float32)
+    settings = STFMSettings(preset="prior", components="all", learn_line_time="on")
+    fit = STFM(p, settings)
+    fit.rs_noise_level = 1.0  # every residual is below it
+    every, window = fit.check_every(), fit._stall_window()
+    first = LINE_HOLD_STEPS_SEARCH + window
+    assert fit._line_hold() == LINE_HOLD_STEPS_SEARCH and first % every == 0
+    fit.steps = first - every
+    assert fit.converged() is None  # the line time has been learned for less than a stall window
+    fit.steps = first
+    assert "reached the noise level" in fit.converged()
+    plain = STFM(p, replace(settings, learn_line_time="off"))  # nothing held: the noise level stops it at once
+    plain.rs_noise_level, plain.steps = 1.0, every
+    assert "reached the noise level" in plain.converged()
