@@ -205,6 +205,7 @@ def test_a_line_time_learned_far_off_is_said_even_where_the_data_are_explained()
     """A line time 2 % long is learned as 1.3 % and the re-timed motion explains the RS image: the
     residual cannot tell, the learned factor can (bench/realistic.md)."""
     assert misfit.verdict(0.0250, 0.0245, line_factor=1.004) is None  # exact timing wanders this much
+    assert misfit.verdict(0.0250, 0.0245, line_factor=1.0098)["verdict"] == misfit.FAR_OFF  # 2 % as learned now
     far = misfit.verdict(0.0250, 0.0245, line_factor=1.0131)
     assert far["verdict"] == misfit.FAR_OFF and far["likely_causes"] == ["line time"]
     assert "x1.0131" in far["line"] and "calibrate linetime --flicker" in far["line"]
