@@ -141,6 +141,49 @@ class MethodBase:
         return None
 
 
+class Wrapped(MethodBase):
+    """A method around another (`self._method`, set by the subclass): every part it does not define is the
+    inner method's, MethodBase's defaults included (they would hide the inner method's own)."""
+
+    _method: Method
+
+    def __getattr__(self, name):
+        if name.startswith("__") or name == "_method":
+            raise AttributeError(name)
+        return getattr(self._method, name)
+
+    @property
+    def supports_holdout(self) -> bool:
+        return self._method.supports_holdout
+
+    @property
+    def stops_itself(self) -> bool:
+        return self._method.stops_itself
+
+    @property
+    def left_out(self) -> list:
+        return self._method.left_out
+
+    @property
+    def notes(self) -> list[str]:
+        return self._method.notes
+
+    def log_ready(self) -> bool:
+        return self._method.log_ready()
+
+    def converged(self) -> str | None:
+        return self._method.converged()
+
+    def budget_cut(self) -> str:
+        return self._method.budget_cut()
+
+    def components(self) -> dict:
+        return self._method.components()
+
+    def resolved_settings(self) -> dict | None:
+        return self._method.resolved_settings()
+
+
 @dataclass
 class LoopSettings:
     # The run's clock (rngcam.recon.loop.Clock): the loop stops at its deadline. None: a clock made

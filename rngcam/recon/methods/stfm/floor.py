@@ -13,11 +13,11 @@ import torch
 from torch import Tensor
 
 from rngcam.memory import release_free_memory
-from rngcam.recon.loop import MethodBase
+from rngcam.recon.loop import Wrapped
 from rngcam.recon.metrics import relative_residual
 
 
-class StartFloor(MethodBase):
+class StartFloor(Wrapped):
     """`method` (an STFM, ensemble or coarse-to-fine run) with the start as the floor of its output."""
 
     def __init__(self, method, problem):
@@ -32,36 +32,6 @@ class StartFloor(MethodBase):
         self.start_name, self.start_rs = self._best_start()
         self._start_video: Tensor | None = None
         release_free_memory()
-
-    def __getattr__(self, name):  # everything but the output is the method's
-        if name.startswith("__") or name == "_method":
-            raise AttributeError(name)
-        return getattr(self._method, name)
-
-    # MethodBase's defaults would hide the method's own: hand these on explicitly.
-    @property
-    def supports_holdout(self) -> bool:
-        return self._method.supports_holdout
-
-    @property
-    def stops_itself(self) -> bool:
-        return self._method.stops_itself
-
-    @property
-    def left_out(self) -> list:
-        return self._method.left_out
-
-    def log_ready(self) -> bool:
-        return self._method.log_ready()
-
-    def converged(self) -> str | None:
-        return self._method.converged()
-
-    def budget_cut(self) -> str:
-        return self._method.budget_cut()
-
-    def components(self) -> dict:
-        return self._method.components()
 
     def _rs_residual(self, video: Tensor) -> float:
         p = self._problem

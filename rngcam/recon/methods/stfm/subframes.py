@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from rngcam.recon.loop import MethodBase
+from rngcam.recon.loop import Wrapped
 
 
 def subframes_averaged(video: Tensor, steps: int) -> Tensor:
@@ -25,7 +25,7 @@ def subframes_averaged(video: Tensor, steps: int) -> Tensor:
     return video.reshape(c, n // steps, steps, h, w).mean(dim=2)
 
 
-class SubframesAveraged(MethodBase):
+class SubframesAveraged(Wrapped):
     """`method` (a whole STFM run on `Problem.in_subframes(steps)`) with its frames averaged `steps` at a time."""
 
     def __init__(self, method, steps: int, frames: int):
@@ -35,39 +35,9 @@ class SubframesAveraged(MethodBase):
         self._note = (f"fitted on {frames} subframes, {steps} to each of the output's {frames // steps} frames "
                       f"(subframes {steps}), and averaged into them")
 
-    def __getattr__(self, name):  # everything but the frames shown is the fit's
-        if name.startswith("__") or name == "_method":
-            raise AttributeError(name)
-        return getattr(self._method, name)
-
-    # MethodBase's defaults would hide the fit's own: hand these on explicitly.
-    @property
-    def supports_holdout(self) -> bool:
-        return self._method.supports_holdout
-
-    @property
-    def stops_itself(self) -> bool:
-        return self._method.stops_itself
-
-    @property
-    def left_out(self) -> list:
-        return self._method.left_out
-
     @property
     def notes(self) -> list[str]:
         return [*self._method.notes, self._note]
-
-    def step(self) -> float:
-        return self._method.step()
-
-    def log_ready(self) -> bool:
-        return self._method.log_ready()
-
-    def converged(self) -> str | None:
-        return self._method.converged()
-
-    def budget_cut(self) -> str:
-        return self._method.budget_cut()
 
     def estimate(self) -> Tensor:
         return subframes_averaged(self._method.estimate(), self.steps)
