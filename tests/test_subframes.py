@@ -137,6 +137,9 @@ def test_on_subframes_the_motion_search_and_the_line_time_count_in_the_outputs_f
     p = _sineball(32, 32).to(torch.float32)
     q = p.in_subframes(2)
     assert (q.subframes, q.in_subframes(2).subframes, q.to(torch.float64).subframes) == (2, 4, 2)
+    from rngcam.recon.methods.coarse_to_fine import coarsen
+
+    assert (coarsen(q, 2, 1).subframes, coarsen(q, 2, 2).subframes) == (2, 1)  # a coarser level's frames count too
     settings = STFMSettings(preset="prior", components="all", learn_line_time="on")
     one, two = STFM(p, settings), STFM(q, settings)
     assert two.readout_frames == pytest.approx(one.readout_frames)  # the factor learns at one rate in time

@@ -101,7 +101,8 @@ def coarsen(problem: Problem, factor: int, time_factor: int | None = None) -> Pr
         gs_times_s=problem.gs_times_s, truth=truth,
         mask=None if problem.mask is None else _bin2(problem.mask.double(), r, x) > 0.5,
         white_balance=problem.white_balance, notes=[], time_origin_s=problem.time_origin_s,
-        rs_valid=bin_valid(problem.rs_valid), gs_valid=bin_valid(problem.gs_valid), fine_gs=_fine_gs(problem))
+        rs_valid=bin_valid(problem.rs_valid), gs_valid=bin_valid(problem.gs_valid), fine_gs=_fine_gs(problem),
+        subframes=max(1, problem.subframes // t))  # frames t x longer: fewer of them to an output frame
 
 
 def _fine_gs(problem: Problem) -> Tensor | None:
