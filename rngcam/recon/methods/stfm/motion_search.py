@@ -23,6 +23,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from rngcam.recon.methods.stfm.subframes import subframes_averaged
+
 SEARCH_CHUNK = 64  # candidate shifts through the RS operator at once
 SEARCH_REACH = 0.6  # shifts up to this fraction of the image side each way
 SEARCH_SMOOTH = 1e-3  # L1 penalty per pixel of shift change between frames (normalised costs)
@@ -75,7 +77,7 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
     k = stfm.K
     shifts, side, step = candidate_shifts(stfm.H, stfm.W, dev)
     n = len(shifts)
-    # On subframes the pass runs over the output's frames (each charged its subframes' misfits), so that
+    # On subframes the pass runs over the output's frames (each charged its subframes' mean misfit), so that
     # its velocities, turn penalty and speed limit are per output frame, as without; the track is then
     # drawn through the subframes' instants.
     sub = p.subframes
@@ -99,7 +101,7 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
             else:
                 miss_sq = (pred - target[:, None]).square().sum(-1)
             rs_cost[:, i:i + SEARCH_CHUNK] = miss_sq.sum(0).t()
-        cost += _normalised(_per_output_frame((w / s_r[:, None]).t() @ rs_cost, sub))
+        cost += _normalised(subframes_averaged((w / s_r[:, None]).t() @ rs_cost, sub, dim=0))  # scale-free
     if stfm.parts.gs:
         keys = p.gs_images(gains=True).float().to(dev)  # (C, G, H, W)
         g_cost = torch.zeros(keys.shape[1], n, device=dev)
@@ -118,11 +120,6 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
     speed = min(int(np.ceil(SEARCH_SPEED * size / step)), SEARCH_SPEED_STEPS)
     best = _viterbi(cost.cpu().numpy().reshape(k // sub, side, side), SEARCH_SMOOTH * step, turn, speed)
     return through_subframes(shifts.cpu()[torch.from_numpy(best)], sub)
-
-
-def _per_output_frame(cost: Tensor, steps: int) -> Tensor:
-    """(K * steps, n) costs of subframes -> (K, n) of the output's frames: each the sum of its subframes'."""
-    return cost.reshape(-1, steps, cost.shape[1]).sum(1)
 
 
 def through_subframes(track: Tensor, steps: int) -> Tensor:

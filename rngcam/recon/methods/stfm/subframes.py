@@ -19,10 +19,11 @@ from torch import Tensor
 from rngcam.recon.loop import Wrapped
 
 
-def subframes_averaged(video: Tensor, steps: int) -> Tensor:
-    """(C, K * steps, H, W) -> (C, K, H, W): the mean of each frame's `steps` subframes."""
-    c, n, h, w = video.shape
-    return video.reshape(c, n // steps, steps, h, w).mean(dim=2)
+def subframes_averaged(x: Tensor, steps: int, dim: int = 1) -> Tensor:
+    """`x` with its axis `dim` of K * steps subframes (a video's frames: dim 1) -> K output frames: the
+    mean of each frame's `steps` subframes."""
+    shape = x.shape
+    return x.reshape(*shape[:dim], shape[dim] // steps, steps, *shape[dim + 1:]).mean(dim=dim + 1)
 
 
 class SubframesAveraged(Wrapped):
