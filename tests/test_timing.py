@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from rngcam.physics.timing import (
@@ -83,6 +83,8 @@ def test_rs_weights_exact_for_random_timings(line_us, exposure_lines, rows, rows
 @settings(max_examples=30, deadline=None)
 @given(triggers=st.lists(st.floats(0.0, 5e-3), min_size=1, max_size=5),
        exposure=st.floats(1e-6, 2e-3), dt=st.floats(5e-6, 5e-4))
+# A short exposure starting a rounding error after an edge: only its start is snapped.
+@example(triggers=[4e-15], exposure=1e-6, dt=5e-4)
 def test_gs_weights_sum_to_exposure(triggers, exposure, dt):
     gs = GlobalShutterTiming(trigger_s=tuple(triggers), exposure_s=exposure)
     grid = VideoGrid.covering(None, gs, dt_s=dt)
