@@ -264,7 +264,8 @@ def _misfit_cell(r: dict) -> str:
         return "-"
     refit = r.get("line_refit") or {}
     tried = refit.get("refits") or []
-    again = (f"; second fit at x{tried[0]['factor']:.4f}, fit {refit['kept'] + 1} of 2 kept" if tried else "")
+    starts = ", ".join(f"x{t['factor']:.4f}" for t in tried)
+    again = (f"; later fits from {starts}, fit {refit['kept'] + 1} of {len(tried) + 1} kept" if tried else "")
     track = r.get("track_refit") or {}
     again += ("; run from a softer search kept" if track.get("kept") else
               "; run from a softer search made, first kept" if track.get("refits") else "")

@@ -13,9 +13,9 @@ def test_the_misfit_cell_shows_each_verdict():
     assert _misfit_cell({"misfit": cut}) == f"{misfit.NOT_FITTED} (1.43x)"
     far = misfit.verdict(0.0250, 0.0245, line_factor=1.0141)["line"]
     assert _misfit_cell({"misfit": far}) == f"{misfit.FAR_OFF} (x1.0141)"
-    refit = {"tried": True, "refits": [{"factor": 1.0141}], "kept": 1}
-    assert _misfit_cell({"misfit": far, "line_refit": refit}) == (f"{misfit.FAR_OFF} (x1.0141); second fit at "
-                                                                   "x1.0141, fit 2 of 2 kept")
+    refit = {"tried": True, "refits": [{"factor": 1.0141}, {"factor": 1.0190}], "kept": 1}
+    assert _misfit_cell({"misfit": far, "line_refit": refit}) == (f"{misfit.FAR_OFF} (x1.0141); later fits from "
+                                                                   "x1.0141, x1.0190, fit 2 of 3 kept")
     assert _misfit_cell({"misfit": None, "line_refit": {"tried": True, "refits": [], "kept": 0}}) == "ok"
     track = {"tried": True, "refits": [{"turn_scale": 0.5}]}
     assert _misfit_cell({"misfit": None, "track_refit": dict(track, kept=1)}) == "ok; run from a softer search kept"

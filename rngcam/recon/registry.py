@@ -246,8 +246,9 @@ STFM_MEMORY = MemoryModel(bytes_per_element=13.64, fixed_bytes=333e6, bytes_per_
 # CPU thread), so the auto budget only guards against a fit that never settles.
 # STFM's model_revision: 2, the prior preset's canonical image decoded on a grid (stop 59); 3, motion
 # fields decoded on knots 2 px apart, a base video's correction read on the pixel grid (stop 60); 4, the
-# prior preset's fit on half-frames (subframes, stop 69).
-register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=600.0, model_revision=4,
+# prior preset's fit on half-frames (subframes, stop 69); 5, a line refit's later fits learn the line time on
+# from where they start (stop 70: a checkpoint of a held one would resume learning).
+register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=600.0, model_revision=5,
                      presets={p: preset_settings(p)
                               for p in ("auto", "fast", *(p for p in STFM_PRESETS if p not in ("auto", "fast")))},
                      benchmarked=("fast", "paper"), memory=STFM_MEMORY, fits_holdout=True))

@@ -172,7 +172,7 @@ class STFMEnsemble(MethodBase):
         return self.refined.line_factor() if self.refined is not None else self._mean_line_factor()
 
     def line_time_report(self) -> dict | None:
-        return line_time_report(self.members[0].rs_timing, self.line_factor())
+        return line_time_report(self.members[0].rs_timing, self.line_factor(), self.members[0].settings.line_time_from)
 
     def learned_geometry(self) -> dict | None:
         m0 = self.members[0]
@@ -322,8 +322,8 @@ def _another_fit(changed, settings: STFMSettings, device, clock, stage, found: d
 
 
 def _with_line_refit(method, handed, problem, settings: STFMSettings, device, clock, stage):
-    """`method` wrapped in a LineRefit where the fit learns the line time: a second fit at a factor
-    the first learned far off (rngcam.recon.methods.stfm.line_refit)."""
+    """`method` wrapped in a LineRefit where the fit learns the line time: later fits from the factor
+    the one before learned off where it started (rngcam.recon.methods.stfm.line_refit)."""
     from rngcam.recon.methods.stfm.line_refit import LineRefit
     from rngcam.recon.methods.stfm.line_time import learns_line_time
 
@@ -331,14 +331,15 @@ def _with_line_refit(method, handed, problem, settings: STFMSettings, device, cl
             or problem.b_rs is None or problem.b_gs is None or ablation.removed(settings)):
         return method
 
-    def second(factor: float, report: dict):
-        # held there: learned on, it drifts back towards the first fit's bias (sineball +2 %: 32.98 dB
-        # against 34.03 held; bench/realistic.md)
+    def later(factor: float, report: dict):
+        # learned on from there (on half-frames it closes most of what is left: sineball +2 % learned as
+        # x1.0098, then x1.0174, then x1.0189; bench/realistic.md, stop 70)
         return _another_fit(handed.at_line_time(factor), settings, device, clock, stage,
                             {"line_refit": report, "through": f"the RS line time at x{factor:.4f}"},
-                            settings.self_calibrate_psf_scale, line_refit=False, psf_edge=False, learn_line_time="off")
+                            settings.self_calibrate_psf_scale, line_refit=False, psf_edge=False,
+                            line_time_from=factor)
 
-    return LineRefit(method, problem, second, {"psf_edge": settings.psf_edge})
+    return LineRefit(method, problem, later, {"psf_edge": settings.psf_edge})
 
 
 def _with_edge_refit(method, handed, problem, settings: STFMSettings, device, clock, stage):

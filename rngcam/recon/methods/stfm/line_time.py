@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from rngcam.recon.methods.stfm.model import _to_device
 
 # A learned factor further than this from 1 says the recorded line time is off: the fit wanders
-# 0.2 % on exact timing and closes about half of a 2 % error (bench/realistic.md)
+# 0.2 % on exact timing (bench/realistic.md)
 SUSPECT_LINE_TIME = 0.005
 # The factor is held within 1 +- this: a recorded line time further off is not a rough figure but
 # a wrong one (the readout would not fit the capture), and a factor near 0 would fold the rows
@@ -95,26 +95,29 @@ class LineTime:
         self._synced_factor = factor
 
     def line_time_report(self) -> dict | None:
-        return line_time_report(self.rs_timing, self.line_factor())
+        return line_time_report(self.rs_timing, self.line_factor(), self.settings.line_time_from)
 
 
-def line_time_report(timing, factor: float | None) -> dict | None:
-    """{"factor", "recorded_s", "learned_s"}: a sensor row's line time as recorded and as learned."""
+def line_time_report(timing, factor: float | None, start: float = 1.0) -> dict | None:
+    """{"factor", "recorded_s", "learned_s"}: a sensor row's line time as recorded and as learned. `timing`
+    is the fit's, which a line refit's later fit has at `start` x the recorded line time (rngcam.recon.
+    methods.stfm.line_refit); `factor` is learned on top of it; the report counts from the recorded one
+    (and says where the fit started, "started_at", where that is not the recorded one)."""
     if factor is None or timing is None:
         return None
-    return {"factor": factor, "recorded_s": timing.line_time_s, "learned_s": timing.line_time_s * factor}
+    out = {"factor": start * factor, "recorded_s": timing.line_time_s / start, "learned_s": timing.line_time_s * factor}
+    return out if start == 1 else {**out, "started_at": start}
 
 
 def line_time_lines(report: dict | None, steps: int) -> list[str]:
-    """The note on the line time: learned with the fields, or held at another fit's learned factor
-    (`report["held"]`, rngcam.recon.methods.stfm.line_refit); none before the first step."""
+    """The note on the line time learned with the fields (from where a line refit started it, if it
+    did); none before the first step."""
     if report is None or steps == 0:
         return []
     us = (f"{report['learned_s'] * 1e6:.4f} us per sensor row (x{report['factor']:.4f} the recorded "
           f"{report['recorded_s'] * 1e6:.4f} us)")
-    line = (f"RS line time held at {us}, as the first fit learned it" if report.get("held")
-            else f"RS line time learned with the fields: {us}")
+    start = report.get("started_at")
+    line = f"RS line time learned with the fields{'' if start is None else f' from x{start:.4f}'}: {us}"
     if abs(report["factor"] - 1) > SUSPECT_LINE_TIME:
-        line += ("; the recorded line time looks off (the fit corrects part of a large error): measure it with "
-                 "`rngcam calibrate linetime --flicker`")
+        line += ("; the recorded line time looks off: measure it with `rngcam calibrate linetime --flicker`")
     return [line]

@@ -115,9 +115,11 @@ class STFMSettings:
               "ends above 1.15x its noise level: fit the edge the PSF lost off the sensor to the fit's video, "
               "fit again through that PSF and keep the fit that explains the RS image better")
     line_refit: bool = setting(
-        True, "where the fit learns the RS line time (learn_line_time) and ends with it more than 0.7 % off the "
-              "recorded one: fit again from the start with the line time held at that factor, and keep the fit "
-              "that explains the RS image better")
+        True, "where the fit learns the RS line time (learn_line_time) and ends with it more than 0.5 % off where "
+              "it started: fit again from the start at the learned line time, learning it on from there (up to "
+              "three more fits; one, from 0.7 %, after a fit that ends at 1.15x its noise level or more), and "
+              "keep the fit that explains the RS image best")
+    line_time_from: float = field(default=1.0, metadata={"internal": True})  # a line refit's start, x the recorded
     row_gain_refit: bool = setting(
         True, "with self_calibrate, where the key rows find the PSF measured too large and the run (or a later fit "
               "through a fitted PSF edge or line time) ends at 1.15x its noise level or more: make it again with a "
