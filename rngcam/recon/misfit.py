@@ -32,8 +32,8 @@ NOT_EXPLAINED = "model does not explain the data"
 NOT_FITTED = "data not fitted yet"
 FAR_OFF = "calibration far off"
 # A learned line-time factor this far from 1 says the recorded line time is wrong, not rough: on half-frames
-# exact timing wanders <= 0.19 % and the lab family's +-0.5 % is learned within 0.5 % of 1; a capture 2 %
-# long is learned as 1.9 % over three fits (stfm/line_refit.py), where one moving object times the rows
+# exact timing wanders <= 0.38 % and the lab family's +-0.5 % is learned within 0.65 % of 1; a capture 2 %
+# long is learned as 1.9 % over later fits (stfm/line_refit.py), where one moving object times the rows
 # (bench/realistic.md, stops 69-70).
 LINE_TIME_FAR = 0.007
 

@@ -333,7 +333,7 @@ def _with_line_refit(method, handed, problem, settings: STFMSettings, device, cl
 
     def later(factor: float, report: dict):
         # learned on from there (on half-frames it closes most of what is left: sineball +2 % learned as
-        # x1.0098, then x1.0174, then x1.0189; bench/realistic.md, stop 70)
+        # x1.0142, then x1.0187; bench/realistic.md, stop 70)
         return _another_fit(handed.at_line_time(factor), settings, device, clock, stage,
                             {"line_refit": report, "through": f"the RS line time at x{factor:.4f}"},
                             settings.self_calibrate_psf_scale, line_refit=False, psf_edge=False,
