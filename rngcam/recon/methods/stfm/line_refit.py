@@ -55,8 +55,8 @@ class LineRefit(Refits):
             self.report["why"] = (f"the fit from x{self.report['refits'][-1]['factor']:.4f} explained the RS image "
                                   f"less well than the {nth(k)}")
             return None
-        noise = getattr(best, "rs_noise_level", None)
-        explained = bool(noise) and res < EXPLAINED_RATIO * noise
+        over = self._over_noise(best, res)
+        explained = over is not None and over < EXPLAINED_RATIO
         if made >= (MAX_LINE_REFITS if explained else 1):
             self.report["why"] = f"{made} later fit{'s' if made > 1 else ''} made" + (
                 "" if explained else f" (the {nth(k)} fit ended at {EXPLAINED_RATIO}x its noise level or more)")

@@ -56,15 +56,21 @@ class Refits(MethodBase):
         if self.report["refits"]:
             self.report["why"] = made
             return None
-        noise = getattr(best, "rs_noise_level", None)
-        if not noise:
+        over = self._over_noise(best, res)
+        if over is None:
             self.report["why"] = "no noise level"
             return None
-        self.report["noise_level"] = noise
-        if not res >= ratio * noise:
+        self.report["noise_level"] = best.rs_noise_level
+        if not over >= ratio:
             self.report["why"] = f"the first run's RS residual is within {ratio}x its noise level"
             return None
-        return res / noise
+        return over
+
+    @staticmethod
+    def _over_noise(fit, res: float) -> float | None:
+        """An ended fit's RS residual `res` over the noise level it estimated (None: it has none)."""
+        noise = getattr(fit, "rs_noise_level", None)
+        return res / noise if noise else None
 
     def _line(self, report: dict) -> str:
         """One note on what the stage did."""
