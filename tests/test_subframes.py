@@ -3,6 +3,7 @@ measurements' units, and measures a video that holds still within each frame as 
 does; STFM fits the prior preset's runs on half-frames and shows their average, per frame, in its
 estimate and components; where the timing is missing it fits the output's frames (or refuses, if asked)."""
 
+import math
 from dataclasses import replace
 
 import pytest
@@ -153,21 +154,34 @@ def test_on_subframes_the_motion_search_and_the_line_time_count_in_the_outputs_f
     assert torch.allclose(tracks[1], through_subframes(tracks[0], 2))
 
 
-def test_the_noise_level_does_not_stop_a_fit_before_its_held_line_time_has_been_learned():
+def test_no_stop_test_ends_an_explained_search_started_fit_before_its_line_time_is_learned_and_its_step_has_decayed():
     from rngcam.recon.methods.stfm.method import STFM
-    from rngcam.recon.methods.stfm.settings import LINE_HOLD_STEPS_SEARCH
+    from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO, LINE_HOLD_STEPS_SEARCH, SEARCH_FIT_HALF_LIVES
 
     p = _sineball(32, 32).to(torch.float32)
     settings = STFMSettings(preset="prior", components="all", learn_line_time="on")
     fit = STFM(p, settings)
-    fit.rs_noise_level = 1.0  # every residual is below it
     every, window = fit.check_every(), fit._stall_window()
-    first = LINE_HOLD_STEPS_SEARCH + window
-    assert fit._line_hold() == LINE_HOLD_STEPS_SEARCH and first % every == 0
+    assert fit._line_hold() == LINE_HOLD_STEPS_SEARCH
+    first = max(LINE_HOLD_STEPS_SEARCH + window, math.ceil(SEARCH_FIT_HALF_LIVES * fit.resolved.lr_half_life_steps))
+    first = every * math.ceil(first / every)  # the first check from there
+    assert first > LINE_HOLD_STEPS_SEARCH + window  # the step's decay, not the hold, sets it here
+    fit.rs_noise_level = 1.0  # every residual is below it
     fit.steps = first - every
-    assert fit.converged() is None  # the line time has been learned for less than a stall window
+    assert fit.converged() is None
     fit.steps = first
     assert "reached the noise level" in fit.converged()
-    plain = STFM(p, replace(settings, learn_line_time="off"))  # nothing held: the noise level stops it at once
-    plain.rs_noise_level, plain.steps = 1.0, every
+    residual = fit.residuals()["rs"]
+    fit.rs_noise_level = residual / 1.1  # explained, not at the noise level: the stall test waits as well
+    fit._rs_history = {first - every - window: 0.0}  # a residual that has not fallen at all
+    fit.steps = first - every
+    assert fit.converged() is None
+    fit._rs_history, fit.steps = {first - window: 0.0}, first
+    assert "fell less than" in fit.converged()
+    fit.rs_noise_level = residual / (EXPLAINED_RATIO + 0.05)  # unexplained: stopped where it stalls, for the stages after
+    fit._rs_history, fit.steps = {every: 0.0}, every + window
+    assert fit.steps < first
+    assert "fell less than" in fit.converged()
+    plain = STFM(p, replace(settings, motion_init="flow"))  # motion not searched, nothing held: stopped at once
+    plain.rs_noise_level, plain.steps = 1.0, plain.check_every()
     assert "reached the noise level" in plain.converged()

@@ -8,7 +8,8 @@ first step and closes most of what is left (sineball +2 %: x1.0142, then x1.0187
 line time's step at 8, x1.0098, x1.0174, x1.0189; bench/realistic.md, stop 70). Where the fit that
 explains the RS image best so far learned a factor more than REFIT_LINE_TIME off where it started,
 one more whole fit runs with the problem's RS timing stretched by the factor learned (calibrated
-again), up to MAX_LINE_REFITS; from a fit that ended unexplained, one, where the factor is far off.
+again), up to MAX_LINE_REFITS; from a fit that ended unexplained (settings.EXPLAINED_RATIO), one, from
+REFIT_LINE_TIME_UNEXPLAINED.
 The output is the fit that explains the RS image best (`refits`).
 """
 
@@ -19,22 +20,19 @@ from collections.abc import Callable
 
 from rngcam.recon.methods.stfm.line_time import MAX_LINE_CHANGE
 from rngcam.recon.methods.stfm.refits import Refits, nth
+from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
 
-# A fit that learned its factor further than this from where it started makes another (where the note
-# says the recorded line time looks off, line_time.SUSPECT_LINE_TIME): past what exact timing wanders on
-# half-frames (<= 0.38 %); the lab family's +-0.5 % is learned as up to 0.65 % (2 of 16 made a later fit,
-# neither kept). From 0.25 % (with the line time's step at 8), lab captures made later fits that drifted
-# past their truth at no RS cost (seed 10: x1.0041, then x1.0079 for 1.005, -3.5 dB; bench/realistic.md,
-# stop 70)
-REFIT_LINE_TIME = 0.005
+# A fit that learned its factor further than this from where it started makes another: past what the
+# lab family's +-0.5 % is learned as. At 0.5 %, once fits ran 4 half-lives of their step (stopping.py), lab
+# captures whose first fits had learned it within 0.07 % made later fits that drifted past their truth at
+# an RS residual 0.02-0.14 % lower (seed 8: x1.0051, then x1.0092 for 1.005, -3.0 dB; bench/realistic.md,
+# stop 71); the first fit learns a 2 % error as 1.78 %, a 3 % one as 2.6 %
+REFIT_LINE_TIME = 0.01
 # Later fits at most: each closes most of what the one before left (a 2 % error in three)
 MAX_LINE_REFITS = 3
-# A fit that ends at this many times its noise level or more is not explained: another error (a PSF at
-# another scale) moves its line time, and the stages for that come next (edge_refit.EDGE_RATIO,
-# row_gain_refit.RATIO). From it, one later fit, and only where the factor is far off (the sineball
-# "together" capture's first fit, through a PSF 5 % large, at 1.76x: x1.0028 and three later fits
-# that took the budget before the PSF's edge was fitted)
-EXPLAINED_RATIO = 1.15
+# From a fit that ended unexplained (settings.EXPLAINED_RATIO), one later fit, where its factor is this far
+# off: another error moves its line time (the "together" capture's first fit, through a PSF 5 % large: x1.0028
+# at stop 70, and three later fits from 0.25 % took the budget before the PSF's edge was fitted)
 REFIT_LINE_TIME_UNEXPLAINED = 0.007
 
 

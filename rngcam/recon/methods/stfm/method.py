@@ -159,8 +159,11 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
     def _line_hold(self) -> int:
         """Steps the learned line time is held: a fit whose motion starts from the translation search,
         unless it started from another fit (its fields or its line time)."""
-        search = self.parts.motion and self.resolved.motion_init == "search" and not self.resolved.dynamic_time
-        return LINE_HOLD_STEPS_SEARCH if search and not self._pose_inherited else 0
+        return LINE_HOLD_STEPS_SEARCH if self._search_started() and not self._pose_inherited else 0
+
+    def _search_started(self) -> bool:
+        """Whether this fit's motion starts from the translation search (the prior preset)."""
+        return self.parts.motion and self.resolved.motion_init == "search" and not self.resolved.dynamic_time
 
     def _ratio(self, group: dict) -> float:
         """A parameter group's learning rate per unit of the fields' at this step (0 while it is held)."""

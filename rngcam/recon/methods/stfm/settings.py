@@ -115,7 +115,7 @@ class STFMSettings:
               "ends above 1.15x its noise level: fit the edge the PSF lost off the sensor to the fit's video, "
               "fit again through that PSF and keep the fit that explains the RS image better")
     line_refit: bool = setting(
-        True, "where the fit learns the RS line time (learn_line_time) and ends with it more than 0.5 % off where "
+        True, "where the fit learns the RS line time (learn_line_time) and ends with it more than 1 % off where "
               "it started: fit again from the start at the learned line time, learning it on from there (up to "
               "three more fits; one, from 0.7 %, after a fit that ends at 1.15x its noise level or more), and "
               "keep the fit that explains the RS image best")
@@ -223,6 +223,16 @@ LINE_HOLD_STEPS_SEARCH = 300
 # at 8 the lab family's +-0.5 % came out as 0.02-0.41 %; at 32 sineball's line-time family x0.995 is
 # learned as x0.9956 (x0.9975 at 8; bench/realistic.md, stop 70)
 LINE_LR_RATIO = 32.0
+# A fit whose motion starts from the translation search, while its RS residual is within EXPLAINED_RATIO of
+# its noise level, runs this many half-lives of its step (lr_half_life_steps) before its stop tests may end
+# it: there its video still gains for ~1,000 steps after the residual has gone flat (bench/realistic.md,
+# stop 71)
+SEARCH_FIT_HALF_LIVES = 4.0
+# A fit that ends at this many times its noise level or more is not explained: another error (a PSF at
+# another scale) moves its line time, and the stages for that come next (edge_refit.EDGE_RATIO,
+# row_gain_refit.RATIO): one later line fit from it at most (line_refit), and it is stopped where it
+# stalls, not run on (stopping.py)
+EXPLAINED_RATIO = 1.15
 REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
 # ... and its stall test looks back this many passes over the rows (unless stall_passes is set): what it
 # gains, it gains in its first steps (bench/convergence.md, stop 62)
