@@ -18,10 +18,11 @@ import torch
 from torch import Tensor
 
 from rngcam.recon.methods.stfm.refits import Refits, nth
+from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
 
-# The best fit's RS residual / its noise level at or above which an edge is fitted: where the key
-# rows point at a PSF scale (rngcam.recon.misfit.POINTED_RATIO)
-EDGE_RATIO = 1.15
+# The best fit's RS residual / its noise level at or above which an edge is fitted: the fit is not
+# explained (settings.EXPLAINED_RATIO), where the key rows point at a PSF scale (rngcam.recon.misfit.POINTED_RATIO)
+EDGE_RATIO = EXPLAINED_RATIO
 EDGE_MAX_SCALE = 0.99  # the key rows' PSF scale at or below which the PSF is taken as measured too large
 EDGE_MIN_DROP = 0.15  # the share by which the fitted edge must lower the best video's RS residual
 MAX_REFITS = 2  # fits after the first

@@ -21,11 +21,12 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from rngcam.recon.methods.stfm.refits import Refits, nth
+from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
 
 # The plain run's RS residual / noise level at or above which the row-gain run is made: on five
 # flagged runs the plain search lost the ball at 1.24x-1.39x and kept it at 1.09x and 1.12x, where the
-# row-gain run did worse (rngcam.recon.misfit.POINTED_RATIO, edge_refit.EDGE_RATIO)
-RATIO = 1.15
+# row-gain run did worse: the fit is not explained (settings.EXPLAINED_RATIO; rngcam.recon.misfit.POINTED_RATIO)
+RATIO = EXPLAINED_RATIO
 
 
 class RowGainRefit(Refits):

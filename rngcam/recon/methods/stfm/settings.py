@@ -228,10 +228,10 @@ LINE_LR_RATIO = 32.0
 # it: there its video still gains for ~1,000 steps after the residual has gone flat (bench/realistic.md,
 # stop 71)
 SEARCH_FIT_HALF_LIVES = 4.0
-# A fit that ends at this many times its noise level or more is not explained: another error (a PSF at
-# another scale) moves its line time, and the stages for that come next (edge_refit.EDGE_RATIO,
-# row_gain_refit.RATIO): one later line fit from it at most (line_refit), and it is stopped where it
-# stalls, not run on (stopping.py)
+# A fit that ends at this many times its noise level or more is not explained: the PSF-edge, row-gain and
+# track stages fit again from it (edge_refit, row_gain_refit, track_refit), another error (a PSF at another
+# scale) moves its line time, so one later line fit from it at most (line_refit), and it is stopped where
+# it stalls, not run on (stopping.py)
 EXPLAINED_RATIO = 1.15
 REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
 # ... and its stall test looks back this many passes over the rows (unless stall_passes is set): what it

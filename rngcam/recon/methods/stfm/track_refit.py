@@ -19,10 +19,12 @@ import math
 from collections.abc import Callable
 
 from rngcam.recon.methods.stfm.refits import Refits, nth
+from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
 
 # The first run's RS residual / noise level at or above which the second run is made: the row-gain
-# stage's threshold (a lost ball ended at 1.24x-1.43x, kept ones at 1.0x-1.13x; row_gain_refit.RATIO)
-RATIO = 1.15
+# stage's, where the fit is not explained (a lost ball ended at 1.24x-1.43x, kept ones at 1.0x-1.13x;
+# settings.EXPLAINED_RATIO)
+RATIO = EXPLAINED_RATIO
 TURN_SCALE = 0.5  # the second run's turn penalty, of the search's (motion_search.SEARCH_TURN)
 
 
