@@ -25,6 +25,7 @@ from rngcam.recon.methods.stfm.model import FieldModel, _chunks
 from rngcam.recon.methods.stfm.settings import (
     _FROM_PRESET,
     LINE_HOLD_STEPS_SEARCH,
+    LINE_LR_AFTER_HOLD,
     LINE_LR_RATIO,
     POSE_HOLD_STEPS,
     POSE_LR_AFTER_HOLD,
@@ -142,7 +143,7 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
             groups.append({"params": [self.gs_pose], **self._pose_schedule()})
         self.learn_line = self._line_time_wanted() and self.learn_gain and self.settings.gs_anchor == "soft"
         if self.learn_line:
-            groups.append({"params": [self.line_shift], "lr_ratio": LINE_LR_RATIO, "hold_steps": self._line_hold()})
+            groups.append({"params": [self.line_shift], **self._line_schedule()})
         for g in groups:
             g["lr"] = lr * self._ratio(g)
         # fused: one kernel for all parameters (CPU and CUDA), 4x less time a step than the loop on a CPU
@@ -155,6 +156,12 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         if self._pose_inherited:
             return {"hold_steps": 0, "lr_ratio": POSE_LR_RATIO}
         return {"hold_steps": POSE_HOLD_STEPS, "lr_ratio": POSE_LR_RATIO * POSE_LR_AFTER_HOLD}
+
+    def _line_schedule(self) -> dict:
+        """The line-time group's hold and step: held while a search-started fit's fields settle, then
+        stepped faster (the fields' step has decayed meanwhile); neither in other fits."""
+        hold = self._line_hold()
+        return {"hold_steps": hold, "lr_ratio": LINE_LR_RATIO * (LINE_LR_AFTER_HOLD if hold else 1.0)}
 
     def _line_hold(self) -> int:
         """Steps the learned line time is held: a fit whose motion starts from the translation search,
