@@ -163,11 +163,19 @@ def test_a_fit_started_by_the_motion_search_holds_the_line_time_first_and_one_gi
             m.step()
         return abs(float(m.line_shift.detach()) - before), m
 
+    def line_ratio(m):
+        return next(g["lr_ratio"] for g in m.optimiser.param_groups if g["params"][0] is m.line_shift)
+
     held, prior = moved_after("prior", 5)
     assert prior.resolved.motion_init == "search" and held == 0.0
+    # after the hold the fields' step has decayed: the line time's steps faster than in a fit without one
+    assert line_ratio(prior) == pytest.approx(stfm_method.LINE_LR_RATIO * stfm_method.LINE_LR_AFTER_HOLD)
+    assert stfm_method.LINE_LR_AFTER_HOLD > 1
     assert moved_after("prior", 8)[0] > 0  # learned once the hold is over
-    assert moved_after("prior", 3, start=0.99)[0] > 0  # another fit's line time: no hold
-    assert moved_after("fast", 3)[0] > 0  # no search, no hold
+    moved, started = moved_after("prior", 3, start=0.99)
+    assert moved > 0 and line_ratio(started) == stfm_method.LINE_LR_RATIO  # another fit's line time: no hold
+    moved, fast = moved_after("fast", 3)
+    assert moved > 0 and line_ratio(fast) == stfm_method.LINE_LR_RATIO  # no search, no hold
 
 
 def test_a_checkpoint_carries_the_learned_line_time(slow_readout):
