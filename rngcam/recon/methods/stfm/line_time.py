@@ -14,7 +14,6 @@ import torch
 from torch import Tensor, nn
 
 from rngcam.recon.methods.stfm.model import _to_device
-from rngcam.recon.methods.stfm.settings import LINE_LR_RATIO
 
 # A learned factor further than this from 1 says the recorded line time is off: the fit wanders
 # 0.2 % on exact timing (bench/realistic.md)
@@ -46,6 +45,7 @@ class LineTime:
         self.readout_frames = max(span, 1e-9)
         self.line_shift = nn.Parameter(torch.zeros((), device=self.device))
         self.learn_line = False
+        self._line_inherited = False  # started from another fit's line time (start_line_factor)
         self._synced_factor = 1.0
 
     def _line_time_wanted(self) -> bool:
@@ -81,7 +81,8 @@ class LineTime:
         """Start the learned factor (and its moving average) at `factor` (another fit's), and learn
         it from the next step on (no hold)."""
         self._start_param(self.line_shift, torch.tensor((factor - 1) * self.readout_frames))
-        self._update_group(self.line_shift, hold_steps=0, lr_ratio=LINE_LR_RATIO)
+        self._line_inherited = True
+        self._update_group(self.line_shift, **self._line_schedule())
 
     @torch.no_grad()
     def _sync_rs_op(self, factor: float | None = None) -> None:

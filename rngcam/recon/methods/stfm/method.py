@@ -39,6 +39,13 @@ from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
 
 
+def held_schedule(hold_steps: int, ratio: float, after_hold: float) -> dict:
+    """An optimiser group's schedule: held (no step) for `hold_steps`, then stepped at `ratio` x
+    `after_hold` of the fields' learning rate (the fields' step has decayed meanwhile); `ratio` without
+    a hold."""
+    return {"hold_steps": hold_steps, "lr_ratio": ratio * (after_hold if hold_steps else 1.0)}
+
+
 class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, MethodBase):
     """STFM as a `rngcam.recon.loop.Method`. Build it with `make_stfm`. Its parts live in the
     package's modules (fields and frames, bases, loss, initialisation, stop test)."""
@@ -153,20 +160,18 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
     def _pose_schedule(self) -> dict:
         """The pose group's hold and step: a fit that learns the pose from its start holds it while its
         fields settle, then steps it faster; one started from another fit's pose neither."""
-        if self._pose_inherited:
-            return {"hold_steps": 0, "lr_ratio": POSE_LR_RATIO}
-        return {"hold_steps": POSE_HOLD_STEPS, "lr_ratio": POSE_LR_RATIO * POSE_LR_AFTER_HOLD}
+        return held_schedule(0 if self._pose_inherited else POSE_HOLD_STEPS, POSE_LR_RATIO, POSE_LR_AFTER_HOLD)
 
     def _line_schedule(self) -> dict:
         """The line-time group's hold and step: held while a search-started fit's fields settle, then
         stepped faster (the fields' step has decayed meanwhile); neither in other fits."""
-        hold = self._line_hold()
-        return {"hold_steps": hold, "lr_ratio": LINE_LR_RATIO * (LINE_LR_AFTER_HOLD if hold else 1.0)}
+        return held_schedule(self._line_hold(), LINE_LR_RATIO, LINE_LR_AFTER_HOLD)
 
     def _line_hold(self) -> int:
         """Steps the learned line time is held: a fit whose motion starts from the translation search,
         unless it started from another fit (its fields or its line time)."""
-        return LINE_HOLD_STEPS_SEARCH if self._search_started() and not self._pose_inherited else 0
+        inherited = self._pose_inherited or self._line_inherited
+        return LINE_HOLD_STEPS_SEARCH if self._search_started() and not inherited else 0
 
     def _search_started(self) -> bool:
         """Whether this fit's motion starts from the translation search (the prior preset)."""
