@@ -157,7 +157,7 @@ def test_sampled_rows_cover_each_row_equally():
     assert np.allclose(counts / 800, 1, atol=0.15)
 
 
-@pytest.mark.parametrize("preset", [{}, {"preset": "prior", "dynamic_base": None, "matte_l1": 0.0}],
+@pytest.mark.parametrize("preset", [{}, {"preset": "prior", "dynamic_base": None, "matte_l1": 0.0, "fits": 1}],
                          ids=["fast", "prior (the canonical image decoded once, a leaf of every chunk)"])
 def test_chunked_backpropagation_gives_the_same_gradient(sineball16, preset):
     grads = []
@@ -178,7 +178,7 @@ def test_a_translated_canonical_image_is_decoded_once_per_video(sineball16, monk
     """estimate() decodes the prior preset's canonical image once for all its chunks, to the same
     video as decoding it for every chunk, and forgets it afterwards."""
     m = make_stfm(sineball16, small_settings(preset="prior", dynamic_base=None, frame_chunk=2, ema_decay=0.0,
-                                             track_refit=False))  # the fit itself, not its refit stage
+                                             track_refit=False, fits=1))  # one fit itself, not its refit stage
     for _ in range(3):
         m.step()
     decodes = []
@@ -512,7 +512,7 @@ def test_prior_preset_stops_itself_on_a_slower_stall_test(sineball16):
     from rngcam.recon.methods.stfm.settings import PRIOR_STALL_PASSES
 
     fast = make_stfm(sineball16, small_settings())
-    prior = make_stfm(sineball16, STFMSettings(preset="prior", components="all", track_refit=False))
+    prior = make_stfm(sineball16, STFMSettings(preset="prior", components="all", track_refit=False, fits=1))
     assert prior.resolved.stop_at_noise and prior.resolved.stall_drop == 0.001
     # a longer window than the fast preset's (whose rows per step may differ)
     assert prior._stall_window() >= PRIOR_STALL_PASSES * len(prior.rs_rows_fit) / prior.resolved.rows_per_step
@@ -744,6 +744,37 @@ def test_base_lists_are_validated():
         STFMSettings(dynamic_base="video,warp")
 
 
+def test_the_prior_preset_averages_two_fits_from_consecutive_seeds_each_initialised_on_its_own(sineball16):
+    import dataclasses
+
+    from rngcam.recon.methods.stfm import STFM, STFMEnsemble
+
+    settings = small_settings(preset="prior", dynamic_base=None, track_refit=False)
+    one = make_stfm(sineball16, dataclasses.replace(settings, fits=1))
+    m = make_stfm(sineball16, settings)  # the preset's two fits
+    assert isinstance(one, STFM) and isinstance(m, STFMEnsemble) and not m.use_refine
+    first, second = fits(m)
+    assert (first.settings.seed, second.settings.seed) == (0, 1)
+    # the second's static field is fitted from its own start, not copied from the first's
+    assert not all(torch.equal(a, b) for a, b in zip(first.fields["static"].parameters(),
+                                                      second.fields["static"].parameters(), strict=True))
+    while min(first.steps, second.steps) < 4:  # one at a time on one thread, side by side on more
+        m.step()
+    assert first.steps == second.steps == 4 == m.resolved_settings()["member_steps"][1]
+    for _ in range(4):
+        one.step()
+    # the first fit is the one fit alone, step for step: each keeps its own generator and optimiser
+    assert torch.allclose(first.estimate(), one.estimate(), atol=1e-5)
+    assert torch.allclose(m.estimate(), (first.estimate() + second.estimate()) / 2, atol=1e-6)
+    assert not torch.allclose(first.estimate(), second.estimate(), atol=1e-3)  # two different fits
+
+
+@pytest.mark.parametrize("bad", [0, 5, 1.5])
+def test_fits_are_validated(bad):
+    with pytest.raises(ConfigError, match="fits must be a whole number from 1 to 4"):
+        STFMSettings(fits=bad)
+
+
 # ----------------------------------------------------------------------------- the prior preset
 
 
@@ -802,7 +833,7 @@ def test_prior_preset_keeps_one_canonical_image_and_finds_the_turning_object():
     the centre and the right): the translation search finds where it went in between."""
     p, xs = _turning_square()
     k = len(xs)
-    m = make_stfm(p, STFMSettings(preset="prior", components="all"))
+    m = make_stfm(p, STFMSettings(preset="prior", components="all", fits=1))
     assert not m.resolved.dynamic_time and m.resolved.motion_init == "search"
     assert m.fields["dynamic"].in_dims == 2  # one canonical image: the dynamics live in the motion
     error_x, error_y = _track_errors(m, xs)
@@ -833,7 +864,7 @@ def test_the_motion_search_with_row_gains_follows_rows_whose_light_is_off_by_var
     errors = {}
     for row_gains in (False, True):
         m = make_stfm(p, STFMSettings(preset="prior", components="all", row_gain_search=row_gains,
-                                      start_floor=False))
+                                      start_floor=False, fits=1))
         errors[row_gains] = _track_errors(m, xs)
         assert any("each RS row scored after its own gain" in n for n in m.notes) == row_gains
     assert max(errors[True]) <= 1.0, errors  # measured (1, 0) px

@@ -155,7 +155,7 @@ def test_a_fit_started_by_the_motion_search_holds_the_line_time_first_and_one_gi
 
     def moved_after(preset, steps, start=None):
         m = make_stfm(slow_readout.to(torch.float32), STFMSettings(preset=preset, dynamic_base="none", seed=0,
-                                                                   learn_line_time="on"))
+                                                                   learn_line_time="on", fits=1))
         if start is not None:
             m.start_line_factor(start)
         before = float(m.line_shift.detach())

@@ -45,8 +45,8 @@ def test_matte_l1_shrinks_the_moving_layer_to_what_the_data_need():
     from rngcam.recon.methods.stfm import STFMSettings, make_stfm
 
     p = _sineball()
-    plain = make_stfm(p, STFMSettings(preset="prior", matte_l1=0.0, components="all"))
-    sparse = make_stfm(p, STFMSettings(preset="prior", components="all"))  # the preset's matte_l1
+    plain = make_stfm(p, STFMSettings(preset="prior", matte_l1=0.0, components="all", fits=1))
+    sparse = make_stfm(p, STFMSettings(preset="prior", components="all", fits=1))  # the preset's matte_l1
     assert sparse.resolved.matte_l1 > 0 and plain.full_objective()["matte"] == 0.0
     start = _matte(sparse)
     assert sparse.full_objective()["matte"] == pytest.approx(sparse.resolved.matte_l1 * start, rel=1e-4)

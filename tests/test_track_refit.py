@@ -106,5 +106,5 @@ def test_the_search_charges_turns_by_the_runs_scale(problems, monkeypatch):  # n
     monkeypatch.setattr(motion_search, "_viterbi", lambda cost, move, turn, speed: turns.append(turn) or
                         viterbi(cost, move, turn, speed))
     for scale in (1.0, 0.5):
-        make_stfm(matched, STFMSettings(preset="prior", track_refit=False, search_turn_scale=scale))
+        make_stfm(matched, STFMSettings(preset="prior", track_refit=False, search_turn_scale=scale, fits=1))
     assert len(turns) == 2 and turns[1] == pytest.approx(0.5 * turns[0]) and turns[0] > 0

@@ -1,4 +1,5 @@
-"""Several STFM fits on different dynamic bases, averaged and refined (the fast preset's default)."""
+"""Several STFM fits on different dynamic bases (the fast preset's default), or of one base from
+different seeds (the prior preset's two, `fits`), averaged and, with `refine`, refined."""
 
 from __future__ import annotations
 
@@ -25,8 +26,9 @@ from rngcam.recon.methods.stfm.settings import (
 
 
 class STFMEnsemble(MethodBase):
-    """Several STFM fits, one per dynamic base, stepped in turn; the output is their average,
-    refined by one more fit.
+    """Several STFM fits, one per dynamic base (or per entry of `bases`: a base listed again is fitted
+    again from the next seed, initialised on its own), stepped in turn; the output is their average,
+    refined by one more fit where `refine` is set.
 
     Each fit starts from a different GS-only guess (the RIFE video, or the key frames warped by
     RIFE's or DIS's flows) and the RS image corrects what it sees; what it cannot see (its null
@@ -56,14 +58,15 @@ class STFMEnsemble(MethodBase):
         self.members: list[STFM] = []
         sources = set()
         for i, base in enumerate(bases):
+            again = bases[:i].count(base)  # a base listed again: another fit of it, initialised on its own
             if i == 0 and first is not None:
                 member = first
             else:
                 member = STFM(problem, replace(settings, dynamic_base=base, seed=settings.seed + i), device,
-                              static_from=self.members[0] if self.members else None)
-            if member.base_source in sources:  # e.g. "keys" falls back to DIS flows without RIFE
+                              static_from=self.members[0] if self.members and not again else None)
+            if (member.base_source, again) in sources:  # e.g. "keys" falls back to DIS flows without RIFE
                 continue
-            sources.add(member.base_source)
+            sources.add((member.base_source, again))
             self.members.append(member)
         self.device = self.members[0].device
         self.steps = 0
@@ -237,7 +240,10 @@ class STFMEnsemble(MethodBase):
 
     @property
     def notes(self) -> list[str]:
-        return self.members[0]._notes + learned_notes(self)
+        seeds = [m.settings.seed for m in self.members]
+        again = len({m.resolved.dynamic_base for m in self.members}) < len(self.members)
+        fits = [f"{len(seeds)} fits from seeds {', '.join(map(str, seeds))}, their videos averaged"] if again else []
+        return self.members[0]._notes + fits + learned_notes(self)
 
 
 def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
@@ -419,9 +425,12 @@ def _make_stfm(problem, settings: STFMSettings, device, initial_video: Tensor | 
         return STFM(problem, replace(settings, dynamic_base="video", dynamic_time=True), device,
                     base_video=initial_video)
     names = _base_list(_setting_or_preset(settings, "dynamic_base"))
-    if len(names) == 1:
+    fits = _setting_or_preset(settings, "fits")
+    if len(names) == 1 and fits == 1:
         return STFM(problem, replace(settings, dynamic_base=names[0]), device)
     first = STFM(problem, replace(settings, dynamic_base=names[0]), device)
+    if len(names) == 1:  # one base, fitted `fits` times from consecutive seeds
+        return STFMEnsemble(first.problem, settings, names * fits, device, first=first)
     if first.base_source is None:  # no dynamic base applies (no GS frames, no motion, ...): one fit
         return first
     # first.problem is float32 on the device: the other fits share its tensors instead of casting again

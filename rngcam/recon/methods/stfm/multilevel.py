@@ -102,7 +102,8 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
     builds the ordinary STFM of the coarsest level; `stage(message)` reports each level's set-up.
     `carry`: "auto" (the preset's way, above), or "fields" for a base-video model too (its base
     upsampled, its fields resampled: bench/large_grids.py `carry` compares the two)."""
-    single_settings = replace(settings, coarse_to_fine=False, track_refit=False)  # a level is no whole run
+    # a level is no whole run; one fit a level (each level takes the fields of the fit before it)
+    single_settings = replace(settings, coarse_to_fine=False, track_refit=False, fits=1)
     c, k, h, w = problem.shape
     with_base = _preset(settings.preset, h, w, k)["dynamic_time"] if settings.dynamic_time is None \
         else settings.dynamic_time
