@@ -769,6 +769,38 @@ def test_the_prior_preset_averages_two_fits_from_consecutive_seeds_each_initiali
     assert not torch.allclose(first.estimate(), second.estimate(), atol=1e-3)  # two different fits
 
 
+class _Deadline:
+    def __init__(self, left):
+        self._left = left
+
+    def left(self):
+        return self._left
+
+
+def test_fits_of_one_base_are_let_go_where_the_deadline_cannot_hold_them_and_a_resume_knows(sineball16, monkeypatch):
+    import dataclasses
+
+    import rngcam.recon.methods.stfm.ensemble as ensemble
+    from rngcam.recon.methods.stfm.ensemble import _make_stfm
+
+    monkeypatch.setattr(ensemble, "AFFORD_CHECK_STEPS", 2)
+    settings = small_settings(preset="prior", dynamic_base=None, track_refit=False, start_floor=False)
+    roomy = _make_stfm(sineball16, settings, "cpu", None, clock=_Deadline(1e9))
+    tight = _make_stfm(sineball16, settings, "cpu", None, clock=_Deadline(1e-3))
+    for m in (roomy, tight):
+        while m.members[0].steps < 4:
+            m.step()
+    assert len(roomy.members) == 2 and not any("let go" in n for n in roomy.notes)
+    assert len(tight.members) == 1 and any("fits 2-2 let go at step 2" in n for n in tight.notes), tight.notes
+    assert not any("videos averaged" in n for n in tight.notes)
+    assert torch.equal(tight.estimate(), tight.members[0].estimate())  # the first fit alone is the output
+    resumed = _make_stfm(sineball16, settings, "cpu", None, clock=_Deadline(1e-3))
+    resumed.load_state_dict(tight.state_dict())
+    assert len(resumed.members) == 1 and torch.equal(resumed.estimate(), tight.estimate())
+    one = _make_stfm(sineball16, dataclasses.replace(settings, fits=1), "cpu", None, clock=_Deadline(1e-3))
+    assert not hasattr(one, "members")  # one fit: nothing to let go
+
+
 @pytest.mark.parametrize("bad", [0, 5, 1.5])
 def test_fits_are_validated(bad):
     with pytest.raises(ConfigError, match="fits must be a whole number from 1 to 4"):

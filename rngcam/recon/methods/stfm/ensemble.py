@@ -3,6 +3,8 @@ different seeds (the prior preset's two, `fits`), averaged and, with `refine`, r
 
 from __future__ import annotations
 
+import math
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -19,10 +21,14 @@ from rngcam.recon.methods.stfm.model import _chunks
 from rngcam.recon.methods.stfm.settings import (
     REFINE_LR_RATIO,
     REFINE_STALL_PASSES,
+    SEARCH_FIT_HALF_LIVES,
     STFMSettings,
     _base_list,
     _setting_or_preset,
 )
+
+# Fits of one base under a deadline: how often (the first fit's steps) the time they still need is checked
+AFFORD_CHECK_STEPS = 100
 
 
 class STFMEnsemble(MethodBase):
@@ -52,7 +58,8 @@ class STFMEnsemble(MethodBase):
     stops_itself = True
     supports_holdout = True
 
-    def __init__(self, problem, settings: STFMSettings, bases: list[str], device="cpu", first: STFM | None = None):
+    def __init__(self, problem, settings: STFMSettings, bases: list[str], device="cpu", first: STFM | None = None,
+                 clock=None):
         self.settings = settings
         self.problem = problem
         self.members: list[STFM] = []
@@ -76,6 +83,10 @@ class STFMEnsemble(MethodBase):
         self._refine_done: str | None = None
         self._cache: tuple[int, Tensor] | None = None
         self._lanes = Lanes()
+        # fits of one base (`fits`): the run's clock, to let the later ones go where it cannot afford them
+        self._clock = clock if len({m.resolved.dynamic_base for m in self.members}) < len(self.members) else None
+        self._timed: tuple[float, int] | None = None  # (perf_counter, member steps) at the first step
+        self._let_go: str | None = None  # why the later fits were let go
 
     @property
     def left_out(self) -> list[tuple[str, str]]:
@@ -102,10 +113,40 @@ class STFMEnsemble(MethodBase):
             for j, (_, done) in zip(active, outcomes, strict=False):
                 self._done[j] = done
             value = sum(v for v, _ in outcomes) / len(outcomes)
+            self._afford()
             if self._members_done():
                 self._lanes.close()
         self.steps += 1
         return value
+
+    def _afford(self) -> None:
+        """Fits of one base under a deadline: every AFFORD_CHECK_STEPS of the first fit's steps, until it
+        has run its least steps (a search-started fit runs SEARCH_FIT_HALF_LIVES half-lives of its step
+        before it may stop), the steps all fits still need at the pace so far; where the time left does
+        not hold them, the later fits are let go and the first runs on alone with their time. Cut at half
+        its steps each, two fits lose more than their average wins (the demo: 36.25 dB at 661 steps each,
+        one fit 37.03 at 1,332; bench/demo.md, stop 73)."""
+        first = self.members[0]
+        if self._clock is None or self._clock.left() is None or len(self.members) < 2:
+            return
+        steps = sum(m.steps for m in self.members)
+        if self._timed is None:
+            self._timed = (time.perf_counter(), steps)
+            return
+        least = SEARCH_FIT_HALF_LIVES * first.resolved.lr_half_life_steps
+        if first.steps % AFFORD_CHECK_STEPS or not math.isfinite(least) or first.steps >= least:
+            return
+        pace = (time.perf_counter() - self._timed[0]) / max(1, steps - self._timed[1])  # seconds a member step
+        need = pace * sum(max(0.0, least - m.steps) for j, m in enumerate(self.members) if self._done[j] is None)
+        left = self._clock.left()
+        if need <= left:
+            return
+        self._let_go = (f"fits 2-{len(self.members)} let go at step {first.steps}: the {left:.0f} s left would cut "
+                        f"every fit before its {least:,.0f} steps (at this pace {need:.0f} s); the output is the "
+                        "first fit alone, not an average")
+        self.members, self._done = self.members[:1], self._done[:1]
+        self._cache = None
+        self._lanes.close()
 
     def _start_refinement(self) -> None:
         first = self.members[0]
@@ -199,9 +240,11 @@ class STFMEnsemble(MethodBase):
     def state_dict(self) -> dict:
         return {"members": [m.state_dict() for m in self.members], "steps": self.steps, "done": list(self._done),
                 "refined": None if self.refined is None else self.refined.state_dict(),
-                "refine_done": self._refine_done}
+                "refine_done": self._refine_done, "let_go": self._let_go}
 
     def load_state_dict(self, state: dict) -> None:
+        if state.get("let_go") and 1 == len(state["members"]) < len(self.members):  # the later fits let go
+            self.members, self._done, self._let_go = self.members[:1], self._done[:1], state["let_go"]
         for m, saved in zip(self.members, state["members"], strict=True):
             m.load_state_dict(saved)
         self.steps = int(state["steps"])
@@ -243,7 +286,7 @@ class STFMEnsemble(MethodBase):
         seeds = [m.settings.seed for m in self.members]
         again = len({m.resolved.dynamic_base for m in self.members}) < len(self.members)
         fits = [f"{len(seeds)} fits from seeds {', '.join(map(str, seeds))}, their videos averaged"] if again else []
-        return self.members[0]._notes + fits + learned_notes(self)
+        return self.members[0]._notes + fits + ([self._let_go] if self._let_go else []) + learned_notes(self)
 
 
 def make_stfm(problem, settings: STFMSettings | None = None, device="cpu",
@@ -430,7 +473,7 @@ def _make_stfm(problem, settings: STFMSettings, device, initial_video: Tensor | 
         return STFM(problem, replace(settings, dynamic_base=names[0]), device)
     first = STFM(problem, replace(settings, dynamic_base=names[0]), device)
     if len(names) == 1:  # one base, fitted `fits` times from consecutive seeds
-        return STFMEnsemble(first.problem, settings, names * fits, device, first=first)
+        return STFMEnsemble(first.problem, settings, names * fits, device, first=first, clock=clock)
     if first.base_source is None:  # no dynamic base applies (no GS frames, no motion, ...): one fit
         return first
     # first.problem is float32 on the device: the other fits share its tensors instead of casting again
