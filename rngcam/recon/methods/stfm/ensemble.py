@@ -244,7 +244,7 @@ class STFMEnsemble(MethodBase):
 
     def load_state_dict(self, state: dict) -> None:
         if state.get("let_go") and 1 == len(state["members"]) < len(self.members):  # the later fits let go
-            self.members, self._done, self._let_go = self.members[:1], self._done[:1], state["let_go"]
+            self.members, self._done, self._let_go = self.members[:1], self._done[:1], str(state["let_go"])[:300]
         for m, saved in zip(self.members, state["members"], strict=True):
             m.load_state_dict(saved)
         self.steps = int(state["steps"])
