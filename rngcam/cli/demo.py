@@ -31,7 +31,8 @@ OUT = Path("demo-out")
 # short says so in the summary).
 # STFM runs last with the `prior` preset (the paper's prior: one canonical image that a motion field
 # moves), which follows the ball where it turns between key frames; it takes whatever time is left
-# (its fit runs at least 1,600 steps, ~115 s on 2 quiet cores: tv3d and pnp get 10 and 20 s).
+# (its fit runs at least 1,600 steps, ~115 s on 2 quiet cores: tv3d and pnp get 10 and 20 s; the
+# preset's second fit, which the budget cannot hold, is let go after 100 steps).
 # `rngcam recon`'s default `fast` preset smears a moving object (bench/stfm_motion.md); to show it
 # too, add ("stfm-fast", {"dynamic_base": "video"}, 60.0) before it.
 PLAN = [
