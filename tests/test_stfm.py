@@ -794,6 +794,7 @@ def test_fits_of_one_base_are_let_go_where_the_deadline_cannot_hold_them_and_a_r
     assert len(tight.members) == 1 and any("fits 2-2 let go at step 2" in n for n in tight.notes), tight.notes
     assert not any("videos averaged" in n for n in tight.notes)
     assert torch.equal(tight.estimate(), tight.members[0].estimate())  # the first fit alone is the output
+    assert "the others were let go" in tight.budget_cut() and "ensemble members" not in tight.budget_cut()
     resumed = _make_stfm(sineball16, settings, "cpu", None, clock=_Deadline(1e-3))
     resumed.load_state_dict(tight.state_dict())
     assert len(resumed.members) == 1 and torch.equal(resumed.estimate(), tight.estimate())

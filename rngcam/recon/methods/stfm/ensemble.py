@@ -166,7 +166,8 @@ class STFMEnsemble(MethodBase):
     def converged(self) -> str | None:
         if not self._members_done():
             return None
-        done = f"all {len(self.members)} ensemble members stopped; first: {self._done[0]}"
+        done = (f"all {len(self.members)} ensemble members stopped" if not self._let_go else
+                "the first fit stopped (the others were let go: see the notes)") + f"; first: {self._done[0]}"
         if not self.use_refine:
             return done
         if self._refine_done is None:
@@ -263,6 +264,8 @@ class STFMEnsemble(MethodBase):
     def budget_cut(self) -> str:
         """Said when a time budget ends the run: which fits had not stopped by themselves."""
         open_members = [i + 1 for i, d in enumerate(self._done) if d is None]
+        if open_members and self._let_go:
+            return f"the first fit had not converged, the others were let go ({self.members[0].budget_cut()})"
         if open_members:
             return (f"ensemble members {', '.join(map(str, open_members))} of {len(self.members)} had not converged"
                     + (" and the refinement had not started" if self.use_refine else "")
