@@ -3,7 +3,6 @@ different seeds (the prior preset's two, `fits`), averaged and, with `refine`, r
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import replace
 
@@ -21,7 +20,6 @@ from rngcam.recon.methods.stfm.model import _chunks
 from rngcam.recon.methods.stfm.settings import (
     REFINE_LR_RATIO,
     REFINE_STALL_PASSES,
-    SEARCH_FIT_HALF_LIVES,
     STFMSettings,
     _base_list,
     _setting_or_preset,
@@ -63,6 +61,7 @@ class STFMEnsemble(MethodBase):
         self.settings = settings
         self.problem = problem
         self.members: list[STFM] = []
+        self._of_one_base = len(set(bases)) < len(bases)  # fits of one base from several seeds (`fits`)
         sources = set()
         for i, base in enumerate(bases):
             again = bases[:i].count(base)  # a base listed again: another fit of it, initialised on its own
@@ -83,8 +82,7 @@ class STFMEnsemble(MethodBase):
         self._refine_done: str | None = None
         self._cache: tuple[int, Tensor] | None = None
         self._lanes = Lanes()
-        # fits of one base (`fits`): the run's clock, to let the later ones go where it cannot afford them
-        self._clock = clock if len({m.resolved.dynamic_base for m in self.members}) < len(self.members) else None
+        self._clock = clock if self._of_one_base else None  # to let the later fits go where it cannot hold them
         self._timed: tuple[float, int] | None = None  # (perf_counter, member steps) at the first step
         self._let_go: str | None = None  # why the later fits were let go
 
@@ -121,20 +119,20 @@ class STFMEnsemble(MethodBase):
 
     def _afford(self) -> None:
         """Fits of one base under a deadline: every AFFORD_CHECK_STEPS of the first fit's steps, until it
-        has run its least steps (a search-started fit runs SEARCH_FIT_HALF_LIVES half-lives of its step
-        before it may stop), the steps all fits still need at the pace so far; where the time left does
-        not hold them, the later fits are let go and the first runs on alone with their time. Cut at half
-        its steps each, two fits lose more than their average wins (the demo: 36.25 dB at 661 steps each,
-        one fit 37.03 at 1,332; bench/demo.md, stop 73)."""
-        first = self.members[0]
-        if self._clock is None or self._clock.left() is None or len(self.members) < 2:
+        has run its least steps (`least_steps`: a search-started fit's 1,600 at 64 px), the steps all fits
+        still need at the pace so far; where the time left does not hold them, the later fits are let go
+        and the first runs on alone with their time. Cut at half its steps each, two fits lose more than
+        their average wins (the demo: 36.25 dB at 661 steps each, one fit 37.03 at 1,332; bench/demo.md,
+        stop 73). Fits without least steps are not let go."""
+        if len(self.members) < 2 or self._clock is None or self._clock.left() is None:
             return
+        first = self.members[0]
         steps = sum(m.steps for m in self.members)
         if self._timed is None:
             self._timed = (time.perf_counter(), steps)
             return
-        least = SEARCH_FIT_HALF_LIVES * first.resolved.lr_half_life_steps
-        if first.steps % AFFORD_CHECK_STEPS or not math.isfinite(least) or first.steps >= least:
+        least = first.least_steps()
+        if first.steps % AFFORD_CHECK_STEPS or first.steps >= least:
             return
         pace = (time.perf_counter() - self._timed[0]) / max(1, steps - self._timed[1])  # seconds a member step
         need = pace * sum(max(0.0, least - m.steps) for j, m in enumerate(self.members) if self._done[j] is None)
@@ -287,8 +285,8 @@ class STFMEnsemble(MethodBase):
     @property
     def notes(self) -> list[str]:
         seeds = [m.settings.seed for m in self.members]
-        again = len({m.resolved.dynamic_base for m in self.members}) < len(self.members)
-        fits = [f"{len(seeds)} fits from seeds {', '.join(map(str, seeds))}, their videos averaged"] if again else []
+        fits = ([f"{len(seeds)} fits from seeds {', '.join(map(str, seeds))}, their videos averaged"]
+                if self._of_one_base and len(seeds) > 1 else [])
         return self.members[0]._notes + fits + ([self._let_go] if self._let_go else []) + learned_notes(self)
 
 

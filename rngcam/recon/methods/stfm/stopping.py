@@ -77,10 +77,16 @@ class NoiseStop:
                  if self.learn_line and g["params"][0] is self.line_shift]
         hold = max(holds, default=0)
         start = hold + window if hold > 0 and residual <= self.rs_noise_level else 0
-        half = self.resolved.lr_half_life_steps
-        if self._search_started() and math.isfinite(half) and residual < EXPLAINED_RATIO * self.rs_noise_level:
-            start = max(start, math.ceil(SEARCH_FIT_HALF_LIVES * half))
+        if residual < EXPLAINED_RATIO * self.rs_noise_level:
+            start = max(start, self.least_steps())
         return start
+
+    def least_steps(self) -> int:
+        """The steps this fit runs before its stop tests may end it while its data are explained:
+        SEARCH_FIT_HALF_LIVES half-lives of its step for a fit whose motion starts from the translation
+        search, else none (0)."""
+        half = self.resolved.lr_half_life_steps
+        return math.ceil(SEARCH_FIT_HALF_LIVES * half) if self._search_started() and math.isfinite(half) else 0
 
     def _stall_window(self) -> int:
         """`stall_passes` passes over the fitted rows, in steps (a multiple of `check_every()`)."""
