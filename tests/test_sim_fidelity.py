@@ -95,6 +95,19 @@ def test_lab_records_the_errors_it_applied(tmp_path):
     assert diff > 0.003 * fine.calibration.psf.max()
 
 
+def test_the_calibrated_family_draws_the_lab_directions_at_what_calibration_leaves():
+    lab, cal = fm.LabErrors.draw(5), fm.LabErrors.draw(5, fm.CALIBRATED_MAGNITUDES)
+    m = fm.CALIBRATED_MAGNITUDES
+    assert np.hypot(*cal.shift_px) == pytest.approx(m["shift_px"]) and m["shift_px"] < fm.LAB_MAGNITUDES["shift_px"]
+    assert np.array(cal.shift_px) / m["shift_px"] == pytest.approx(np.array(lab.shift_px) / fm.LAB_MAGNITUDES["shift_px"])
+    assert np.sign(cal.rotation_deg) == np.sign(lab.rotation_deg) and abs(cal.rotation_deg) == m["rotation_deg"]
+    assert abs(cal.line_time_scale - 1) == pytest.approx(m["line_time"])
+    assert np.sign(cal.line_time_scale - 1) == np.sign(lab.line_time_scale - 1)
+    # what neither calibration measures stays as the lab family draws it
+    assert (cal.gs_gains, cal.psf_noise, cal.vignetting, cal.distortion_k1) == (
+        lab.gs_gains, lab.psf_noise, lab.vignetting, lab.distortion_k1)
+
+
 def test_lab_gs_frames_carry_the_drawn_gains_and_shift():
     # A smooth scene: the GS frame's mean over the middle is the fine one's times the gain, and a
     # pure shift moves a ramp by exactly that many pixels.
@@ -137,6 +150,28 @@ def test_lab_gs_frames_of_a_textured_scene_are_exact_where_the_map_is_exact():
     _, moved = fm.fine_measure(texture, psf, grid, fgrid, dt, dt, gs_t, fm.LabErrors(shift_px=(1.0, 0.0)))
     # S(p) = p + 1 grid px: GS sensor pixel x sees the scene at x + 2 sensor pixels
     np.testing.assert_allclose(moved[..., 4:-4, 4:-6], plain[..., 4:-4, 6:-4], rtol=1e-5, atol=1e-6)
+
+
+def test_the_true_gs_to_rs_homography_registers_lab_gs_frames_at_the_sensor_resolution(tmp_path):
+    """The lab GS frames warped by `true_gs_to_rs` as a bundle's calibration is applied (at the sensor's
+    resolution, then binned: rngcam.recon.gridding) match the fine capture's; the identity does not."""
+    from dataclasses import replace
+
+    from rngcam.recon.problem import build_problem
+
+    err = fm.LabErrors(shift_px=(0.6, -0.45), rotation_deg=0.5, scale=1.01)
+    fine = simulate("smoke", tmp_path / "f.h5", size=32, seed=1, fidelity="fine", noise=False)
+    lab = simulate("smoke", tmp_path / "l.h5", size=32, seed=1, fidelity="lab", lab_errors=err, noise=False)
+    h = fm.true_gs_to_rs(lab.meta["truth_calibration"], lab.gs.frames.shape[1:3])
+    assert h[:2, :2] == pytest.approx(1.01 * np.array([[np.cos(np.radians(0.5)), -np.sin(np.radians(0.5))],
+                                                       [np.sin(np.radians(0.5)), np.cos(np.radians(0.5))]]))
+    registered = build_problem(replace(lab, calibration=replace(lab.calibration, gs_to_rs=h))).b_gs.numpy()
+    plain, exact = build_problem(lab).b_gs.numpy(), build_problem(fine).b_gs.numpy()
+    inner = (slice(None), slice(None), slice(3, -3), slice(3, -3))
+
+    def rel(a):
+        return np.linalg.norm(a[inner] - exact[inner]) / np.linalg.norm(exact[inner])
+    assert rel(registered) < 0.04 and rel(plain) > 5 * rel(registered)  # 0.028 and 0.21 (bilinear, then binned)
 
 
 def test_bad_fidelity_is_one_clear_error(tmp_path):
