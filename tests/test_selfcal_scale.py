@@ -5,6 +5,7 @@ bundles here are simulated with one PSF crop and given the PSF of a smaller crop
 caustic magnified, rendered from the source image, not resampled from the bundle's pixels)."""
 
 import json
+import math
 
 import h5py
 import numpy as np
@@ -219,6 +220,30 @@ def test_a_line_time_learned_far_off_is_said_even_where_the_data_are_explained()
     assert misfit.for_metrics(metrics)["verdict"] == misfit.FAR_OFF
     metrics["method_results"]["line_time"] = {"factor": "1.02"}  # not a number: not trusted
     assert misfit.for_metrics(metrics) is None
+
+
+def test_a_gs_to_rs_shift_learned_far_off_is_said_even_where_the_data_are_explained():
+    """Along the scene's motion the learned shift trades against the motion's timing, and it is applied on
+    the grid: past GEOMETRY_FAR_PX the verdict sends the user to `calibrate align` (bench/realistic.md)."""
+    assert misfit.verdict(0.0250, 0.0245, learned_shift_px=0.51) is None  # what exact captures learn
+    far = misfit.verdict(0.0250, 0.0245, learned_shift_px=0.62)
+    assert far["verdict"] == misfit.FAR_OFF and far["likely_causes"] == ["geometry"]
+    assert "0.62 px" in far["line"] and "calibrate align" in far["line"] and "linetime" not in far["line"]
+    both = misfit.verdict(0.0250, 0.0245, line_factor=1.0131, learned_shift_px=1.2)
+    assert both["likely_causes"] == ["line time", "geometry"]
+    assert "calibrate linetime --flicker" in both["line"] and "calibrate align" in both["line"]
+    # under --no-gs the transform plays no part; above the noise limit the misfit verdict stands
+    assert misfit.verdict(0.0250, 0.0245, gs_fitted=False, learned_shift_px=1.2) is None
+    assert misfit.verdict(0.0350, 0.0245, learned_shift_px=1.2)["verdict"] == misfit.NOT_EXPLAINED
+    # from metrics.json's method results: the shift the fit ended on, on top of the bundle's calibration
+    geometry = {"start": {"shift_px": [0.0, 0.0]}, "learned": {"shift_px": [0.5, -0.4]}, "end": {"shift_px": [0.5, -0.4]}}
+    metrics = {"residual_rs": 0.0250, "status": "ok", "ended_by": "own_stop",
+               "method_results": {"rs_noise_level": 0.0245, "gs_geometry": geometry}}
+    said = misfit.for_metrics(metrics)
+    assert said["verdict"] == misfit.FAR_OFF and said["learned_shift_px"] == pytest.approx(math.hypot(0.5, 0.4))
+    for odd in ({"end": {"shift_px": ["0.5", 1.0]}}, {"end": "x"}, "junk", {"end": {"shift_px": [0.5]}}):
+        metrics["method_results"]["gs_geometry"] = odd  # not of rngcam's shape: not trusted
+        assert misfit.for_metrics(metrics) is None
 
 
 def test_the_run_says_it_in_metrics_the_summary_and_the_report(bundles, tmp_path):

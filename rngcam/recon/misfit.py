@@ -6,8 +6,9 @@ data the model does not explain: a PSF at another magnification than the calibra
 another depth), a GS-to-RS transform off, a line time off. `verdict` says so in one line and names
 the causes the run did not correct (from what self-calibration estimated and applied and what
 the fit learned with its fields); a run whose residual reached the noise level gets None, unless
-the line time it learned is far off the recorded one ("calibration far off": the recorded line
-time is wrong, and what the fit learned of it rests on the motion timing the rows). The
+the line time or the GS-to-RS shift it learned is far off the recorded one ("calibration far off":
+the recorded calibration is wrong, and what the fit learned of it rests on the motion: the line time
+on a motion timing the rows, the shift only across the motion). The
 threshold is set above what the fine simulation family ends on (the model right up to sub-grid
 detail; bench/realistic.md).
 """
@@ -36,6 +37,12 @@ FAR_OFF = "calibration far off"
 # long is learned as 1.9 % over later fits (stfm/line_refit.py), where one moving object times the rows
 # (bench/realistic.md, stops 69-70).
 LINE_TIME_FAR = 0.007
+# A GS-to-RS shift learned this far (px) from the calibration's: the fit pins the shift across the scene's
+# motion only (along it the shift trades against the motion's timing: exact captures learn up to 0.51 px
+# along it, sineball's fine seed 6 1.2 px), and it applies it on the grid, where detail finer than a grid
+# pixel aliases (smoke's lab captures: the true transform at the sensor's resolution +0.43 dB;
+# bench/realistic.md, stop 74). `calibrate align` on a static chart leaves 0.02 px on the mock rig.
+GEOMETRY_FAR_PX = 0.6
 
 
 def _causes(selfcal: dict | None, gs_fitted: bool = True, learned: tuple[str, ...] = ()) -> tuple[list[str], bool]:
@@ -83,15 +90,17 @@ def learned_by_fit(method_results: dict | None) -> tuple[str, ...]:
 
 def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str = "own_stop",
             status: str = "ok", ratio_limit: float = MISFIT_RATIO, gs_fitted: bool = True,
-            learned: tuple[str, ...] = (), line_factor: float | None = None) -> dict | None:
+            learned: tuple[str, ...] = (), line_factor: float | None = None,
+            learned_shift_px: float | None = None) -> dict | None:
     """None when the RS residual is within `ratio_limit` x the noise level (POINTED_RATIO where the
     key rows found a PSF scale not applied), or either is unknown, or the run did not finish
     cleanly; else {"verdict", "rs_residual", "noise_level", "ratio", "threshold", "likely_causes",
     "line"}. `selfcal`: STFM's self-calibration report (method_results' self_calibration);
     `gs_fitted`: False under --no-gs, where the GS-to-RS transform plays no part; `learned`: the
     causes the fit corrected itself (`learned_by_fit`); `line_factor`: the line-time factor it
-    learned: more than LINE_TIME_FAR from 1, a residual within the limit gives the FAR_OFF verdict
-    (explained data, a recorded line time off by more than the fit corrects in full)."""
+    learned, `learned_shift_px`: the length of the GS-to-RS shift it learned: more than LINE_TIME_FAR
+    from 1 or GEOMETRY_FAR_PX long, a residual within the limit gives the FAR_OFF verdict (explained
+    data, a recorded calibration off by more than the fit corrects reliably)."""
     try:
         residual, noise = float(rs_residual), float(noise_level)
     except (TypeError, ValueError):
@@ -103,7 +112,7 @@ def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str
     causes, pointed = _causes(selfcal, gs_fitted, learned)
     limit = min(ratio_limit, POINTED_RATIO) if pointed else ratio_limit
     if ratio <= limit:
-        return _far_off(line_factor, residual, noise, ratio, limit)
+        return _far_off(line_factor, learned_shift_px if gs_fitted else None, residual, noise, ratio, limit)
     finished = ended_by == "own_stop"
     what = NOT_EXPLAINED if finished else NOT_FITTED
     line = (f"misfit: {what}: RS residual {residual:.4f} is {ratio:.2f}x the noise level {noise:.4f}")
@@ -119,17 +128,35 @@ def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str
             "threshold": limit, "likely_causes": causes, "line": line}
 
 
-def _far_off(line_factor, residual: float, noise: float, ratio: float, limit: float) -> dict | None:
-    """The verdict where the data are explained but the fit learned a line time far off the recorded one."""
-    line_factor = _number(line_factor)
-    if line_factor is None or abs(line_factor - 1) <= LINE_TIME_FAR:
+def _far_off(line_factor, shift_px, residual: float, noise: float, ratio: float, limit: float) -> dict | None:
+    """The verdict where the data are explained but the fit learned a line time or a GS-to-RS shift far off
+    the recorded calibration."""
+    line_factor, shift_px = _number(line_factor), _number(shift_px)
+    line_far = line_factor is not None and abs(line_factor - 1) > LINE_TIME_FAR
+    shift_far = shift_px is not None and shift_px > GEOMETRY_FAR_PX
+    if not (line_far or shift_far):
         return None
-    line = (f"misfit: {FAR_OFF}: the fit learned the RS line time at x{line_factor:.4f} the recorded one; an error "
-            f"beyond {100 * LINE_TIME_FAR:g} % is learned over several fits and only where one moving object times "
-            "the rows (elsewhere moving objects may be misplaced in the last rows' frames): measure it with "
-            "`rngcam calibrate linetime --flicker` and reconstruct again")
-    return {"verdict": FAR_OFF, "rs_residual": residual, "noise_level": noise, "ratio": ratio, "threshold": limit,
-            "likely_causes": ["line time"], "line_factor": line_factor, "line": line}
+    parts, causes = [], []
+    if line_far:
+        parts.append(f"the fit learned the RS line time at x{line_factor:.4f} the recorded one; an error beyond "
+                     f"{100 * LINE_TIME_FAR:g} % is learned over several fits and only where one moving object times "
+                     "the rows (elsewhere moving objects may be misplaced in the last rows' frames): measure it with "
+                     "`rngcam calibrate linetime --flicker`")
+        causes.append("line time")
+    if shift_far:
+        parts.append(f"the fit learned a GS-to-RS shift of {shift_px:.2f} px on top of the calibration's; it pins the "
+                     "shift across the scene's motion only (along it the shift trades against the motion's timing) and "
+                     "applies it on the reconstruction's grid, where detail finer than a grid pixel aliases: "
+                     "measure it with `rngcam calibrate align`")
+        causes.append("geometry")
+    line = f"misfit: {FAR_OFF}: " + "; ".join(parts) + " and reconstruct again"
+    found = {"verdict": FAR_OFF, "rs_residual": residual, "noise_level": noise, "ratio": ratio, "threshold": limit,
+             "likely_causes": causes, "line": line}
+    if line_far:
+        found["line_factor"] = line_factor
+    if shift_far:
+        found["learned_shift_px"] = shift_px
+    return found
 
 
 def ratio_limit(levels) -> float:
@@ -147,4 +174,17 @@ def for_metrics(metrics: dict) -> dict | None:
     return verdict(metrics.get("residual_rs"), found.get("rs_noise_level"), found.get("self_calibration"),
                    metrics.get("ended_by", "own_stop"), metrics.get("status", "ok"),
                    ratio_limit=ratio_limit(found.get("levels")),
-                   gs_fitted=gs_fitted, learned=learned_by_fit(found), line_factor=_number(line.get("factor")))
+                   gs_fitted=gs_fitted, learned=learned_by_fit(found), line_factor=_number(line.get("factor")),
+                   learned_shift_px=learned_shift(found.get("gs_geometry")))
+
+
+def learned_shift(geometry) -> float | None:
+    """The length (px) of the GS-to-RS shift a fit ended on, on top of the bundle's calibration, from
+    method_results' gs_geometry (its "end": self-calibration's start and what the fit learned), or None (not
+    learned, or not of rngcam's shape: metrics from elsewhere)."""
+    learned = geometry.get("end") if isinstance(geometry, dict) else None
+    shift = learned.get("shift_px") if isinstance(learned, dict) else None
+    if not (isinstance(shift, list) and len(shift) == 2):
+        return None
+    dx, dy = (_number(v) for v in shift)
+    return None if dx is None or dy is None else math.hypot(dx, dy)
