@@ -103,9 +103,10 @@ def test_the_calibrated_family_draws_the_lab_directions_at_what_calibration_leav
     assert np.sign(cal.rotation_deg) == np.sign(lab.rotation_deg) and abs(cal.rotation_deg) == m["rotation_deg"]
     assert abs(cal.line_time_scale - 1) == pytest.approx(m["line_time"])
     assert np.sign(cal.line_time_scale - 1) == np.sign(lab.line_time_scale - 1)
-    # what neither calibration measures stays as the lab family draws it
-    assert (cal.gs_gains, cal.psf_noise, cal.vignetting, cal.distortion_k1) == (
-        lab.gs_gains, lab.psf_noise, lab.vignetting, lab.distortion_k1)
+    assert cal.psf_noise == m["psf_noise"] < lab.psf_noise
+    # what no calibration measures stays as the lab family draws it
+    assert (cal.gs_gains, cal.psf_background, cal.vignetting, cal.distortion_k1) == (
+        lab.gs_gains, lab.psf_background, lab.vignetting, lab.distortion_k1)
 
 
 def test_lab_gs_frames_carry_the_drawn_gains_and_shift():
