@@ -3,8 +3,10 @@ and what self-calibration wins back. Results: bench/realistic.md.
 
 Every scene is rendered 2x finer in space and 4x in time and measured as the rig measures
 (rngcam.sim.fidelity); "fine" hands the reconstruction exact calibration, each other family adds
-one kind of calibration error at the size the project's calibration leaves (LAB_MAGNITUDES),
-"all" adds every one. Every method runs a fixed number of steps (load-independent outcomes; the
+one kind of calibration error at the lab family's size (LAB_MAGNITUDES: what the project's calibration
+reports of itself, with a margin), "all" adds every one, "calibrated" every one with the geometry, the
+line time and the PSF's noise at what `calibrate align`, `calibrate linetime --flicker` and `calibrate psf`
+leave against the mock rig's truth (CALIBRATED_MAGNITUDES). Every method runs a fixed number of steps (load-independent outcomes; the
 machine's load is recorded anyway). Per run: intermediate-frame PSNR, moving-region PSNR, on
 sineball the ball centroid error (median / p90 px) and ghost, and STFM's self-calibration values
 against the truth.
@@ -33,14 +35,15 @@ from rngcam.recon.methods.stfm import STFMSettings
 from rngcam.recon.methods.stfm.auto import choose_preset
 from rngcam.recon.methods.stfm.ensemble import make_stfm
 from rngcam.recon.metrics import motion_metrics, video_metrics
-from rngcam.recon.misfit import learned_by_fit, ratio_limit, verdict
+from rngcam.recon.misfit import learned_by_fit, learned_shift, ratio_limit, verdict
 from rngcam.recon.problem import build_problem
-from rngcam.sim.fidelity import LabErrors
+from rngcam.sim.fidelity import CALIBRATED_MAGNITUDES, LabErrors, true_gs_to_rs
 from rngcam.sim.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 
-FAMILIES = ("fine", "geometry", "distortion", "psf", "linetime", "gains", "vignetting", "defects", "all")
+FAMILIES = ("fine", "geometry", "distortion", "psf", "linetime", "gains", "vignetting", "defects", "all",
+            "calibrated")
 # Issue 39's robustness variants: one error at a time at the sizes the issue names, and together
 # (a shift of 1 px at 45 degrees; the PSF handed over 5 % too large or too small; line time 2 % long).
 VARIANTS = {
@@ -58,7 +61,7 @@ def family_errors(name: str, seed: int) -> LabErrors | None:
         return LabErrors(**VARIANTS[name])
     full = LabErrors.draw(seed)
     pick = {
-        "fine": None, "all": full,
+        "fine": None, "all": full, "calibrated": LabErrors.draw(seed, CALIBRATED_MAGNITUDES),
         "geometry": dict(shift_px=full.shift_px, rotation_deg=full.rotation_deg, scale=full.scale),
         "distortion": dict(distortion_k1=full.distortion_k1),
         "psf": dict(psf_noise=full.psf_noise, psf_background=full.psf_background),
@@ -75,6 +78,16 @@ def bundle(scene: str, family: str, size: int, seed: int, tmp: Path):
     b = simulate(scene, out, size=size, seed=seed, fidelity="fine" if errors is None else "lab",
                  lab_errors=errors, overwrite=True)
     return b, build_problem(b)
+
+
+def true_geometry(b) -> dict:
+    """run_default's problem and truth with the bundle's GS frames registered by the true GS-to-RS similarity
+    at the sensor's resolution, as a perfect `calibrate align` would hand it over (the truth left over: the
+    radial distortion, which no homography holds)."""
+    truth = b.meta.get("truth_calibration") or {}
+    h = true_gs_to_rs(truth, b.gs.frames.shape[1:3])
+    p = build_problem(replace(b, calibration=replace(b.calibration, gs_to_rs=h)))
+    return {"p": p, "truth_cal": dict(truth, shift_px=[0.0, 0.0], rotation_deg=0.0, scale=1.0)}
 
 
 def metrics(video: torch.Tensor, p, scene: str) -> dict:
@@ -148,7 +161,8 @@ def run_default(p, scene: str, max_steps: int, truth_cal: dict | None, variant: 
     cal = rs.get("self_calibration") or {}
     line_factor = (rs.get("line_time") or {}).get("factor")
     found = verdict(method.residuals().get("rs"), rs.get("rs_noise_level"), cal, result.ended_by, result.status,
-                    ratio_limit=ratio_limit(rs.get("levels")), learned=learned_by_fit(rs), line_factor=line_factor)
+                    ratio_limit=ratio_limit(rs.get("levels")), learned=learned_by_fit(rs), line_factor=line_factor,
+                    learned_shift_px=learned_shift(rs.get("gs_geometry")))
     psf = (cal.get("scales") or {}).get("psf") or {}
     edge = rs.get("edge_refits") or {}
     out.update(misfit=found["line"] if found else None, psf_scale_estimate=psf.get("estimate"),
@@ -273,8 +287,10 @@ def _misfit_cell(r: dict) -> str:
         return "ok" + again
     what, _, rest = line.removeprefix("misfit: ").partition(": ")
     ratio = re.search(r" is ([0-9.]+x) the noise", rest)
-    factor = re.search(r"line time at (x[0-9.]+)", rest)
-    return (f"{what} ({(ratio or factor).group(1)})" if (ratio or factor) else what) + again
+    figures = [m.group(1) for m in (re.search(r"line time at (x[0-9.]+)", rest),
+                                    re.search(r"GS-to-RS shift of ([0-9.]+ px)", rest)) if m]
+    shown = [ratio.group(1)] if ratio else figures
+    return (f"{what} ({'; '.join(shown)})" if shown else what) + again
 
 
 def report_line_time(results: dict, size: int = 64) -> str:
@@ -302,18 +318,21 @@ def _seed_of(key: str) -> int:
     return int(last[1:]) if last.startswith("s") and last[1:].isdigit() else 0
 
 
-def report_seeds(results: dict, size: int = 64) -> str:
-    """The default's lab (all) against fine per scene and bundle seed (each its own draw of the scene, the
-    noise and the lab errors), with the ball on sineball, then the gap's mean and range over the seeds."""
-    lines = ["| scene | seed | fine: interm. dB | lab (all): interm. dB | lab - fine | ball med / p90 px: fine; lab |",
-             "|---|---|---|---|---|---|"]
+def report_seeds(results: dict, size: int = 64, family: str = "all") -> str:
+    """The default's lab (all) capture, or another `family`'s, against fine per scene and bundle seed (each its
+    own draw of the scene, the noise and the errors), with the ball on sineball, then the gap's mean and range
+    over the seeds."""
+    label = "lab (all)" if family == "all" else family
+    short = "lab" if family == "all" else family
+    lines = [f"| scene | seed | fine: interm. dB | {label}: interm. dB | {short} - fine | ball med / p90 px: fine; "
+             f"{short} |", "|---|---|---|---|---|---|"]
     gaps: dict[str, list[float]] = {}
     for key, fine in results.items():
-        scene, family, method = key.split("|")[:3]
+        scene, kind, method = key.split("|")[:3]
         seed = _seed_of(key)
-        if family != "fine" or method != "default" or key.split("|")[3] != str(size):
+        if kind != "fine" or method != "default" or key.split("|")[3] != str(size):
             continue
-        lab = results.get(key.replace("|fine|", "|all|", 1))
+        lab = results.get(key.replace("|fine|", f"|{family}|", 1))
         if not lab:
             continue
         gap = lab["psnr_intermediate_db"] - fine["psnr_intermediate_db"]
@@ -361,7 +380,8 @@ def main() -> None:
     ap.add_argument("--methods", default="stfm,blend,interp",
                     help="stfm (one fit, --steps), default (rngcam recon's STFM to its own stop, at most "
                          "--max-steps), default-fixed (the same with --learn-geometry off), default-line / default-noline (with "
-                         "--learn-line-time on / off), tv3d, pnp, tv3d:gains, blend, interp")
+                         "--learn-line-time on / off), default-true-geometry (the default on the GS frames registered "
+                         "by the true GS-to-RS transform at the sensor's resolution), tv3d, pnp, tv3d:gains, blend, interp")
     ap.add_argument("--max-steps", type=int, default=3500, help="the default's cap")
     ap.add_argument("--selfcal", default="off,gains,all", help="STFM's self_calibrate modes to compare")
     ap.add_argument("--steps", type=int, default=400, help="steps per iterative method (fixed: load-independent)")
@@ -380,7 +400,9 @@ def main() -> None:
         elif any("|default|" in k for k in results):
             print(report_default(results, args.size))
             if any(_seed_of(k) for k in results):
-                print("\n" + report_seeds(results, args.size))
+                for family in ("all", "calibrated"):
+                    if any(f"|{family}|default|" in k for k in results):
+                        print("\n" + report_seeds(results, args.size, family))
         else:
             print(report(results, args.size))
         return
@@ -401,6 +423,8 @@ def main() -> None:
                             t0 = time.perf_counter()
                             if method == "stfm":
                                 r = run_stfm(p, scene, args.steps, mode, truth_cal)
+                            elif method == "default-true-geometry":
+                                r = run_default(**true_geometry(b), scene=scene, max_steps=args.max_steps)
                             elif method.startswith("default"):
                                 r = run_default(p, scene, args.max_steps, truth_cal, method)
                             elif method in ("blend", "interp"):

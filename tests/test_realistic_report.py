@@ -13,6 +13,8 @@ def test_the_misfit_cell_shows_each_verdict():
     assert _misfit_cell({"misfit": cut}) == f"{misfit.NOT_FITTED} (1.43x)"
     far = misfit.verdict(0.0250, 0.0245, line_factor=1.0141)["line"]
     assert _misfit_cell({"misfit": far}) == f"{misfit.FAR_OFF} (x1.0141)"
+    shifted = misfit.verdict(0.0250, 0.0245, line_factor=1.0141, learned_shift_px=0.62)["line"]
+    assert _misfit_cell({"misfit": shifted}) == f"{misfit.FAR_OFF} (x1.0141; 0.62 px)"
     refit = {"tried": True, "refits": [{"factor": 1.0141}, {"factor": 1.0190}], "kept": 1}
     assert _misfit_cell({"misfit": far, "line_refit": refit}) == (f"{misfit.FAR_OFF} (x1.0141); later fits from "
                                                                    "x1.0141, x1.0190, fit 2 of 3 kept")
@@ -58,3 +60,20 @@ def test_the_seeds_table_pairs_each_seeds_lab_capture_with_its_fine_one():
     assert "| sineball | 3 | 33.60 | 31.40 | -2.20 | 0.69 / 2.38; 0.92 / 3.88 |" in table
     assert "| smoke | mean of 2 | | | -0.23 (-0.86 to +0.40) | |" in table
     assert not any("| 2 |" in row for row in table)
+    results["smoke|calibrated|default|64|s1"] = run(26.90)  # the calibrated family's table: its own rows
+    calibrated = report_seeds(results, family="calibrated").splitlines()
+    assert "| smoke | 1 | 27.00 | 26.90 | -0.10 | - |" in calibrated and "calibrated - fine" in calibrated[0]
+    assert not any("| 0 |" in row for row in calibrated)
+
+
+def test_the_true_geometry_variant_registers_the_gs_frames_by_the_truth(tmp_path):
+    from bench.realistic import true_geometry
+    from rngcam.recon.problem import build_problem
+    from rngcam.sim.fidelity import LabErrors
+    from rngcam.sim.simulate import simulate
+
+    b = simulate("smoke", tmp_path / "l.h5", size=16, seed=2, fidelity="lab", lab_errors=LabErrors(shift_px=(0.5, 0.5)))
+    found = true_geometry(b)
+    assert found["truth_cal"]["shift_px"] == [0.0, 0.0] and found["truth_cal"]["scale"] == 1.0
+    plain = build_problem(b).b_gs
+    assert found["p"].b_gs.shape == plain.shape and not found["p"].b_gs.allclose(plain, rtol=0.01)
