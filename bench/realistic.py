@@ -6,10 +6,10 @@ Every scene is rendered 2x finer in space and 4x in time and measured as the rig
 one kind of calibration error at the lab family's size (LAB_MAGNITUDES: what the project's calibration
 reports of itself, with a margin), "all" adds every one, "calibrated" every one with the geometry, the
 line time and the PSF's noise at what `calibrate align`, `calibrate linetime --flicker` and `calibrate psf`
-leave against the mock rig's truth (CALIBRATED_MAGNITUDES). Every method runs a fixed number of steps (load-independent outcomes; the
-machine's load is recorded anyway). Per run: intermediate-frame PSNR, moving-region PSNR, on
-sineball the ball centroid error (median / p90 px) and ghost, and STFM's self-calibration values
-against the truth.
+leave against the mock rig's truth (CALIBRATED_MAGNITUDES). Every method runs a fixed number of steps
+(load-independent outcomes; the machine's load is recorded anyway). Per run: intermediate-frame PSNR,
+moving-region PSNR, on sineball the ball centroid error (median / p90 px) and ghost, and STFM's
+self-calibration values against the truth.
 
     python -m bench.realistic --scenes sineball,smoke,clip --families fine,geometry,all \\
         --methods stfm,blend,interp --selfcal off,gains --steps 400 --out bench/realistic.json
@@ -380,8 +380,9 @@ def main() -> None:
     ap.add_argument("--methods", default="stfm,blend,interp",
                     help="stfm (one fit, --steps), default (rngcam recon's STFM to its own stop, at most "
                          "--max-steps), default-fixed (the same with --learn-geometry off), default-line / default-noline (with "
-                         "--learn-line-time on / off), default-true-geometry (the default on the GS frames registered "
-                         "by the true GS-to-RS transform at the sensor's resolution), tv3d, pnp, tv3d:gains, blend, interp")
+                         "--learn-line-time on / off), default-true-geometry (the default on the GS frames "
+                         "registered by the true GS-to-RS transform at the sensor's resolution), tv3d, pnp, "
+                         "tv3d:gains, blend, interp")
     ap.add_argument("--max-steps", type=int, default=3500, help="the default's cap")
     ap.add_argument("--selfcal", default="off,gains,all", help="STFM's self_calibrate modes to compare")
     ap.add_argument("--steps", type=int, default=400, help="steps per iterative method (fixed: load-independent)")
