@@ -39,7 +39,8 @@ SIM_BYTES_PER_ELEMENT = 23
 @click.option("--fidelity", type=click.Choice(FIDELITIES), default="grid", show_default=True,
               help="grid: the truth on the reconstruction's grid; fine: rendered 2x finer in space and 4x "
                    "in time, binned as the rig bins; lab: fine plus calibration errors of the size "
-                   "calibration leaves (true values in the bundle's meta.truth_calibration).")
+                   "calibration reports of itself, with a margin: several times what it leaves on the mock "
+                   "rig (true values in the bundle's meta.truth_calibration).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 @click.option("--max-memory", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Refuse a simulation estimated to need more memory, in GiB [80 % of this machine's].")
