@@ -25,6 +25,7 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
+from rngcam.physics.geometry import similarity_matrix
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 
 FIDELITIES = ("grid", "fine", "lab")
@@ -134,13 +135,8 @@ def true_gs_to_rs(truth: dict, sensor_shape: tuple[int, int], factor: int = SPAC
     integers) from its meta["truth_calibration"] (`similarity_map`'s S about the grid's centre; the radial
     distortion, which no homography holds, left out): what a perfect `calibrate align` would hand over."""
     h, w = sensor_shape
-    th, s = np.deg2rad(truth.get("rotation_deg", 0.0)), truth.get("scale", 1.0)
-    similarity = np.array([[s * np.cos(th), -s * np.sin(th), truth["shift_px"][0]],
-                           [s * np.sin(th), s * np.cos(th), truth["shift_px"][1]], [0.0, 0.0, 1.0]])
-    # sensor pixel -> grid pixel from the centre
-    to_grid = np.array([[1 / factor, 0, 0.5 / factor - w / factor / 2],
-                        [0, 1 / factor, 0.5 / factor - h / factor / 2], [0, 0, 1.0]])
-    return np.linalg.inv(to_grid) @ similarity @ to_grid
+    shift = factor * np.asarray(truth["shift_px"], np.float64)  # grid pixels -> sensor pixels
+    return similarity_matrix(shift, truth.get("rotation_deg", 0.0), truth.get("scale", 1.0), ((w - 1) / 2, (h - 1) / 2))
 
 
 def vignetting_field(shape: tuple[int, int], amount: float) -> np.ndarray:
