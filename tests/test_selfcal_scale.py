@@ -236,7 +236,8 @@ def test_a_gs_to_rs_shift_learned_far_off_is_said_even_where_the_data_are_explai
     assert misfit.verdict(0.0250, 0.0245, gs_fitted=False, learned_shift_px=1.2) is None
     assert misfit.verdict(0.0350, 0.0245, learned_shift_px=1.2)["verdict"] == misfit.NOT_EXPLAINED
     # from metrics.json's method results: the shift the fit ended on, on top of the bundle's calibration
-    geometry = {"start": {"shift_px": [0.0, 0.0]}, "learned": {"shift_px": [0.5, -0.4]}, "end": {"shift_px": [0.5, -0.4]}}
+    geometry = {"start": {"shift_px": [0.0, 0.0]}, "learned": {"shift_px": [0.5, -0.4]},
+                "end": {"shift_px": [0.5, -0.4]}}
     metrics = {"residual_rs": 0.0250, "status": "ok", "ended_by": "own_stop",
                "method_results": {"rs_noise_level": 0.0245, "gs_geometry": geometry}}
     said = misfit.for_metrics(metrics)

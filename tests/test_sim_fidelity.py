@@ -99,7 +99,8 @@ def test_the_calibrated_family_draws_the_lab_directions_at_what_calibration_leav
     lab, cal = fm.LabErrors.draw(5), fm.LabErrors.draw(5, fm.CALIBRATED_MAGNITUDES)
     m = fm.CALIBRATED_MAGNITUDES
     assert np.hypot(*cal.shift_px) == pytest.approx(m["shift_px"]) and m["shift_px"] < fm.LAB_MAGNITUDES["shift_px"]
-    assert np.array(cal.shift_px) / m["shift_px"] == pytest.approx(np.array(lab.shift_px) / fm.LAB_MAGNITUDES["shift_px"])
+    direction = np.array(lab.shift_px) / fm.LAB_MAGNITUDES["shift_px"]
+    assert np.array(cal.shift_px) / m["shift_px"] == pytest.approx(direction)
     assert np.sign(cal.rotation_deg) == np.sign(lab.rotation_deg) and abs(cal.rotation_deg) == m["rotation_deg"]
     assert abs(cal.line_time_scale - 1) == pytest.approx(m["line_time"])
     assert np.sign(cal.line_time_scale - 1) == np.sign(lab.line_time_scale - 1)

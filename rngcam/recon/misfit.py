@@ -182,8 +182,8 @@ def learned_shift(geometry) -> float | None:
     """The length (px) of the GS-to-RS shift a fit ended on, on top of the bundle's calibration, from
     method_results' gs_geometry (its "end": self-calibration's start and what the fit learned), or None (not
     learned, or not of rngcam's shape: metrics from elsewhere)."""
-    learned = geometry.get("end") if isinstance(geometry, dict) else None
-    shift = learned.get("shift_px") if isinstance(learned, dict) else None
+    end = geometry.get("end") if isinstance(geometry, dict) else None
+    shift = end.get("shift_px") if isinstance(end, dict) else None
     if not (isinstance(shift, list) and len(shift) == 2):
         return None
     dx, dy = (_number(v) for v in shift)
