@@ -7,6 +7,15 @@ the *mean* of those rows, so its weight is the mean of s shifted rects (a trapez
 every row's weights sum to exposure_s / dt. When exposures align with the grid the weights
 are exactly the paper's 0/1 rect indicator.
 
+Readout orders (READOUTS; `RollingShutterTiming.readout`, docs/design.md): when each sensor row
+starts and ends exposing. With N sensor rows, line time L and trigger T, row r exposes
+[T + s(r) L, T + s(r) L + exposure) where s(r), in lines, is r (top-down), N - 1 - r (bottom-up),
+floor(|r - (N - 1) / 2|) (centre-out: two halves read from the centre row outwards, one line time
+per row each), min(r, N - 1 - r) (edges-in: two halves read from the top and bottom edges inwards);
+global-reset rows all start at T and row r ends at T + exposure + r L. `columns` is top-down
+along the sensor's columns, left to right: the timing's rows are the sensor's columns (a
+reconstruction problem transposes the image, rngcam.recon.problem).
+
 All arithmetic is done in units of dt (float64) so aligned cases come out exact.
 """
 
@@ -21,6 +30,33 @@ from torch import Tensor
 
 # Relative tolerance for deciding that an exposure end falls on a frame edge.
 _EDGE_TOL = 1e-9
+
+# Readout orders a rolling-shutter sensor can have (the module docstring gives each one's times).
+READOUTS = ("top-down", "bottom-up", "columns", "centre-out", "edges-in", "global-reset")
+DEFAULT_READOUT = "top-down"
+
+
+def check_readout(readout) -> str:
+    """`readout` if it names a readout order; ValueError (one line listing them) if not."""
+    if not isinstance(readout, str) or readout not in READOUTS:
+        shown = repr(readout)[:60]
+        raise ValueError(f"readout must be one of {', '.join(READOUTS)}, got {shown}")
+    return readout
+
+
+def readout_lines(readout: str, n_rows: int) -> np.ndarray:
+    """(n_rows,) float64: each sensor row's line count s(r) in `readout` (the module docstring):
+    its start's offset from the trigger in line times, or for global-reset its end's (beyond the
+    exposure). For `columns` the rows are the sensor's columns."""
+    check_readout(readout)
+    r = np.arange(n_rows, dtype=np.float64)
+    if readout == "bottom-up":
+        return n_rows - 1 - r
+    if readout == "centre-out":
+        return np.floor(np.abs(r - (n_rows - 1) / 2))
+    if readout == "edges-in":
+        return np.minimum(r, n_rows - 1 - r)
+    return r  # top-down, columns (the rows are columns), global-reset (ends)
 
 
 def _positive(name: str, value: float) -> None:
@@ -74,8 +110,10 @@ def frames_needed(end_s: float, dt: float) -> int:
 class RollingShutterTiming:
     """Rolling-shutter camera timing.
 
-    Sensor row r starts exposing at trigger_s + r * line_time_s for exposure_s. Grid row i
-    is the mean of sensor rows [i*rows_per_bin, (i+1)*rows_per_bin).
+    Top-down (the default `readout`), sensor row r starts exposing at trigger_s + r * line_time_s
+    for exposure_s; other readout orders are in the module docstring. Grid row i is the mean of
+    sensor rows [i*rows_per_bin, (i+1)*rows_per_bin). For readout `columns`, "rows" are the
+    sensor's columns throughout.
     """
 
     line_time_s: float
@@ -83,6 +121,7 @@ class RollingShutterTiming:
     rows: int  # grid rows (after binning)
     rows_per_bin: int = 1
     trigger_s: float = 0.0
+    readout: str = DEFAULT_READOUT
 
     def __post_init__(self):
         _positive("line_time_s", self.line_time_s)
@@ -93,23 +132,33 @@ class RollingShutterTiming:
             raise ValueError(f"rows_per_bin must be a positive integer, got {self.rows_per_bin!r}")
         if not math.isfinite(self.trigger_s) or self.trigger_s < 0:
             raise ValueError(f"trigger_s must be >= 0 (the grid starts at T0), got {self.trigger_s!r}")
+        check_readout(self.readout)
+
+    @property
+    def transposed(self) -> bool:
+        """Whether the timing's rows are the sensor's columns (readout `columns`)."""
+        return self.readout == "columns"
 
     @property
     def grid_dt_s(self) -> float:
         """The natural video frame duration: one grid row's worth of line time."""
         return self.line_time_s * self.rows_per_bin
 
+    def _lines(self) -> np.ndarray:
+        """(rows, rows_per_bin) line counts of the sensor rows (readout_lines)."""
+        return readout_lines(self.readout, self.rows * self.rows_per_bin).reshape(self.rows, self.rows_per_bin)
+
     def sensor_row_windows(self) -> tuple[np.ndarray, np.ndarray]:
         """(starts, ends) in seconds, shape (rows, rows_per_bin)."""
-        r = np.arange(self.rows * self.rows_per_bin, dtype=np.float64)
-        starts = self.trigger_s + r * self.line_time_s
-        starts = starts.reshape(self.rows, self.rows_per_bin)
-        return starts, starts + self.exposure_s
+        offsets = self.trigger_s + self._lines() * self.line_time_s
+        if self.readout == "global-reset":
+            return np.full_like(offsets, self.trigger_s), offsets + self.exposure_s
+        return offsets, offsets + self.exposure_s
 
     @property
     def end_s(self) -> float:
         """End of the last sensor row's exposure."""
-        last = self.rows * self.rows_per_bin - 1
+        last = float(readout_lines(self.readout, self.rows * self.rows_per_bin).max())
         return self.trigger_s + last * self.line_time_s + self.exposure_s
 
     def stretched_weights(self, grid: VideoGrid, rows: Tensor, factor: Tensor) -> Tensor:
@@ -117,10 +166,13 @@ class RollingShutterTiming:
         0-d tensor) times this one, differentiable in `factor`; at factor 1 they are `weights`. An
         exposure reaching past the grid's last edge counts in the last frame (the video held there)."""
         dtype = factor.dtype
-        sensor = rows.to(dtype)[:, None] * self.rows_per_bin + torch.arange(self.rows_per_bin, dtype=dtype,
-                                                                             device=factor.device)
-        a = (self.trigger_s + sensor * (self.line_time_s * factor)) / grid.dt_s  # (R, s) in frames
-        b = a + self.exposure_s / grid.dt_s
+        lines = torch.from_numpy(self._lines()).to(dtype=dtype, device=factor.device)[rows.to(factor.device)]
+        offsets = (self.trigger_s + lines * (self.line_time_s * factor)) / grid.dt_s  # (R, s) in frames
+        if self.readout == "global-reset":
+            a = torch.full_like(offsets, self.trigger_s / grid.dt_s)
+            b = offsets + self.exposure_s / grid.dt_s
+        else:
+            a, b = offsets, offsets + self.exposure_s / grid.dt_s
         k = torch.arange(grid.n_frames, dtype=dtype, device=factor.device)
         upper = torch.where(k == grid.n_frames - 1, torch.full_like(k, math.inf), k + 1)
         overlap = (torch.minimum(b[..., None], upper) - torch.maximum(a[..., None], k)).clamp_min(0)
