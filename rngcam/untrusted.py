@@ -1,14 +1,18 @@
 """Helpers for material that may come from someone else (a bundle, a result folder, a rig).
 
-Text read from such a file is shown as text (`printable`), and files are written into a folder
-without following a link someone planted there (`write_new`, `open_own`).
+Such a file is opened by descriptor, never following a link and never a FIFO or device, and
+checked on that descriptor (`open_untrusted`, `read_untrusted`); text read from it is shown as
+text (`printable`); files are written into a folder without following a link someone planted
+there (`write_new`, `open_own`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
+import stat
 import tempfile
 from pathlib import Path
 
@@ -27,6 +31,111 @@ def printable(text: object, limit: int = 500) -> str:
     if len(s) > limit:
         s = s[:limit] + "..."
     return _CONTROL.sub(lambda m: m.group().encode("unicode_escape").decode("ascii"), s)
+
+
+class UntrustedFileError(RngcamError):
+    """A file from someone else is a link, not a regular file, too large or unreadable."""
+
+
+_READ_FLAGS = (os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+               | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOCTTY", 0))
+_DIR_FLAGS = (os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_NOFOLLOW", 0)
+              | getattr(os, "O_CLOEXEC", 0))
+
+
+def _open_below(path: Path, within: Path) -> int:
+    """A descriptor for `path`, opened one component at a time from `within` (the folder the user
+    named) so that no link anywhere below `within` is followed."""
+    parts = Path(os.path.relpath(os.path.abspath(path), os.path.abspath(within))).parts
+    if not parts or parts[0] == os.pardir:
+        raise UntrustedFileError(f"{printable(path)}: not inside {printable(within)}")
+    dir_fd = os.open(within, _DIR_FLAGS & ~getattr(os, "O_NOFOLLOW", 0))
+    try:
+        for part in parts[:-1]:
+            try:
+                nxt = os.open(part, _DIR_FLAGS, dir_fd=dir_fd)
+            except (NotADirectoryError, OSError) as exc:
+                if stat.S_ISLNK(os.lstat(part, dir_fd=dir_fd).st_mode):
+                    raise OSError(errno.ELOOP, "a link") from None
+                raise exc from None
+            os.close(dir_fd)
+            dir_fd = nxt
+        return os.open(parts[-1], _READ_FLAGS, dir_fd=dir_fd)
+    finally:
+        os.close(dir_fd)
+
+
+def open_untrusted(path: str | os.PathLike, max_bytes: int | None = None, *, what: str = "file",
+                   within: str | os.PathLike | None = None, error: type[RngcamError] = UntrustedFileError):
+    """Open a file that may come from someone else for reading, as a binary file object.
+
+    The name is opened once, by descriptor (O_NOFOLLOW: a symlink at the name is refused;
+    O_NONBLOCK: a FIFO cannot block the open), and the checks are made on that descriptor
+    (`fstat`: only a regular file; its size at most `max_bytes`), so nothing can be swapped in
+    between the check and the read: read from the returned object only. With `within` (the folder
+    the user named), no link in any folder between it and `path` is followed either. Anything
+    refused raises `error` (one line naming the file and the reason). Read at most `max_bytes`
+    (the file may still grow): `read_untrusted` does.
+    """
+    path = Path(path)
+    shown = printable(path)
+    try:
+        fd = _open_below(path, Path(within)) if within is not None else os.open(path, _READ_FLAGS)
+    except FileNotFoundError:
+        raise error(f"{what} not found: {shown}") from None
+    except OSError as exc:
+        if exc.errno in (errno.ELOOP, errno.EMLINK):
+            raise error(f"refusing to read {shown}: it is a link (only plain files are read)") from None
+        if exc.errno == errno.ENOTDIR:
+            raise error(f"{what} not found: {shown} (a part of its path is not a folder)") from None
+        if exc.errno in (errno.ENXIO, errno.EWOULDBLOCK):
+            raise error(f"refusing to read {shown}: it is not a regular file") from None
+        raise error(f"cannot read {shown}: {printable(exc.strerror or exc, 100)}") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            kind = "a folder" if stat.S_ISDIR(st.st_mode) else "not a regular file (a FIFO, device or socket)"
+            raise error(f"refusing to read {shown}: it is {kind}")
+        if max_bytes is not None and st.st_size > max_bytes:
+            raise error(f"refusing to read {shown}: {st.st_size:,} bytes, above the limit of {max_bytes:,} "
+                        f"for a {what}")
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_untrusted(path: str | os.PathLike, max_bytes: int, *, what: str = "file",
+                   within: str | os.PathLike | None = None,
+                   error: type[RngcamError] = UntrustedFileError) -> bytes:
+    """The bytes of a file from someone else, through `open_untrusted`: at most `max_bytes`
+    (a file that grows past it while read is refused too)."""
+    with open_untrusted(path, max_bytes, what=what, within=within, error=error) as fh:
+        try:
+            data = fh.read(max_bytes + 1)
+        except OSError as exc:
+            raise error(f"cannot read {printable(path)}: {printable(exc.strerror or exc, 100)}") from None
+    if len(data) > max_bytes:
+        raise error(f"refusing to read {printable(path)}: above the limit of {max_bytes:,} bytes for a {what}")
+    return data
+
+
+def read_untrusted_text(path: str | os.PathLike, max_bytes: int, *, what: str = "file",
+                        within: str | os.PathLike | None = None,
+                        error: type[RngcamError] = UntrustedFileError) -> str:
+    """`read_untrusted` decoded as UTF-8 (undecodable bytes shown as U+FFFD)."""
+    return read_untrusted(path, max_bytes, what=what, within=within, error=error).decode("utf-8", "replace")
+
+
+def same_open_file(fh, path: str | os.PathLike) -> bool:
+    """True when `path` (not following a link at its name) is still the file open as `fh`."""
+    try:
+        a, b = os.fstat(fh.fileno()), os.lstat(path)
+    except OSError:
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
 
 
 def open_own(path: Path, mode: str = "wb", *, replace: bool = True):
@@ -55,7 +164,7 @@ def open_own(path: Path, mode: str = "wb", *, replace: bool = True):
     except FileExistsError:
         raise RngcamError(f"refusing to replace {path}: it exists (pass --overwrite to replace it)") from None
     except OSError as exc:
-        if exc.errno in (getattr(os, "ELOOP", -1), getattr(os, "EMLINK", -1)):
+        if exc.errno in (errno.ELOOP, errno.EMLINK):
             raise RngcamError(f"refusing to write {path}: it is a link") from None
         raise
     if not _regular(os.fstat(fd)):
@@ -101,8 +210,6 @@ def clean_temps(folder: Path) -> list[Path]:
 
 
 def _regular(st: os.stat_result) -> bool:
-    import stat
-
     return stat.S_ISREG(st.st_mode)
 
 
