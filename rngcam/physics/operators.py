@@ -201,20 +201,23 @@ class RollingShutter(LinearOperator):
         return self._w(like).T[:, :, None]
 
     def _band(self, dtype, device) -> tuple[Tensor, Tensor, Tensor]:
-        """Per frame k the rows it reaches: row indices (K, n) and the DFT matrices of those rows,
+        """Per frame k the rows it reaches (any of them, in order; padded with weight 0): row indices (K, n)
+        and the DFT matrices of those rows,
         forward (K, n, fh) = W e^{+2 pi i f (r + oy) / fh} / fh and adjoint (K, fh, n) = W e^{-...}."""
         key = (dtype, str(device))
         if key not in self._band_cache:
             w = self.weights.detach().to(torch.float64).cpu()
             h, k = w.shape
-            nz = w != 0
-            any_row = nz.any(dim=0)
-            first = torch.where(any_row, nz.float().argmax(dim=0), torch.zeros(k, dtype=torch.long))
-            last = torch.where(any_row, h - 1 - nz.flip(0).float().argmax(dim=0), torch.full((k,), -1))
-            n = max(int((last - first + 1).clamp_min(0).max()), 1)
-            rows = first[:, None] + torch.arange(n)[None]  # (K, n)
-            inside = rows <= last[:, None]
-            rows = rows.clamp_max(h - 1)
+            nz = w.T != 0  # (K, H)
+            count = nz.sum(dim=1)
+            n = max(int(count.max()) if k else 0, 1)
+            # Each frame's reached rows in order, not necessarily adjacent (a dual readout reaches two
+            # groups at once): sort the rows it reaches before the others, keep the first n.
+            r = torch.arange(h)
+            order = torch.where(nz, r[None], r[None] + h)
+            rows = order.sort(dim=1).values[:, :n]
+            inside = torch.arange(rows.shape[1])[None] < count[:, None]
+            rows = torch.where(inside, rows, rows.clamp_max(h - 1))
             wk = torch.where(inside, w.T.gather(1, rows), torch.zeros(()))  # (K, n)
             fh = self.conv.fft_shape[0]
             phase = 2 * math.pi * torch.arange(fh, dtype=torch.float64)[None, None] * (
@@ -424,3 +427,32 @@ class Stacked(LinearOperator):
 
     def A_adjoint(self, y: tuple[Tensor, Tensor]) -> Tensor:  # noqa: N802
         return math.sqrt(self.psi) * self.rs.A_adjoint(y[0]) + self.gs.A_adjoint(y[1])
+
+
+class Transposed(LinearOperator):
+    """`op` acting on images with their last two axes swapped: A(x) = T op.A(T x), T the transpose
+    of (..., H, W). T is a permutation, its own inverse and adjoint, so A^T = T op.A^T T exactly.
+    A readout along columns is a top-down readout of the transposed sensor (physics.timing)."""
+
+    def __init__(self, op: LinearOperator):
+        self.op = op
+        *lead, h, w = op.domain_shape
+        self.domain_shape = (*lead, w, h)
+
+    def A(self, x: Tensor) -> Tensor:  # noqa: N802
+        return self.op.A(x.transpose(-1, -2)).transpose(-1, -2)
+
+    def A_adjoint(self, y: Tensor) -> Tensor:  # noqa: N802
+        return self.op.A_adjoint(y.transpose(-1, -2)).transpose(-1, -2)
+
+
+def rolling_shutter_for(psf: Tensor, weights: Tensor, image_shape: tuple[int, int], channels: int | None = None,
+                        transposed: bool = False) -> LinearOperator:
+    """The RS operator on sensor-oriented video (C, K, H, W) = image_shape (H, W): RollingShutter, or
+    for a timing whose rows are the sensor's columns (`transposed`, RollingShutterTiming.transposed)
+    the same along columns, with the weights (W, K) and the PSF transposed."""
+    h, w = image_shape
+    psf = torch.as_tensor(psf)
+    if not transposed:
+        return RollingShutter(psf, weights, width=w, channels=channels)
+    return Transposed(RollingShutter(psf.transpose(-1, -2), weights, width=h, channels=channels))
