@@ -20,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from rngcam.backends import CAMERAS, GENERATORS, camera_backend, generator_transport
 from rngcam.errors import ConfigError
+from rngcam.physics.timing import DEFAULT_READOUT, check_readout
 
 Dialect = Literal["keysight_33500b", "rigol_dg", "siglent_sdg"]
 FakeFault = Literal["none", "silent", "garbage", "scpi_error"]
@@ -94,6 +95,7 @@ class CameraConfig(_Model):
     gain_db: float = Field(default=0.0, ge=0)
     roi: Roi
     line_time_s: float | None = Field(default=None, gt=0, le=1e-2)  # RS: the expected line time
+    readout: str = DEFAULT_READOUT  # RS: the sensor's readout order, one of physics.timing.READOUTS
     black_level_dn: float = Field(default=0.0, ge=0)
     trigger: TriggerInput
     fetch_timeout_s: float = Field(default=2.0, gt=0)
@@ -105,6 +107,11 @@ class CameraConfig(_Model):
     def _known_backend(cls, v: str) -> str:
         camera_backend(v)  # ValueError naming the known ones
         return v
+
+    @field_validator("readout", mode="before")
+    @classmethod
+    def _known_readout(cls, v):
+        return check_readout(v)  # ValueError naming the readout orders
 
     @property
     def bit_depth(self) -> int:

@@ -10,7 +10,7 @@ method allocates it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -93,9 +93,10 @@ def plan_grid(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = 
     if rows < 1 or cols < 1:
         raise BundleError(f"cannot bin a {sensor_rows}x{sensor_cols} RS frame by {grid_bin}")
     try:
+        readout = cam.readout
         rs = RollingShutterTiming(line_time_s=float(cam.line_time_s), exposure_s=float(cam.exposure_s),
-                                  rows=rows, rows_per_bin=grid_bin,
-                                  trigger_s=float(np.asarray(cam.trigger_times_s)[0]))
+                                  rows=cols if readout == "columns" else rows, rows_per_bin=grid_bin,
+                                  trigger_s=float(np.asarray(cam.trigger_times_s)[0]), readout=readout)
         dt = float(dt_s) if dt_s is not None else rs.grid_dt_s
         gs, kept, left_out = None, np.zeros(0, dtype=int), []
         if bundle.gs is not None:
@@ -112,8 +113,7 @@ def plan_grid(bundle: Bundle, grid_bin: int | None = None, dt_s: float | None = 
         before = VideoGrid.frames_before(gs, dt)
         shift = before * dt
         if shift:
-            rs = RollingShutterTiming(rs.line_time_s, rs.exposure_s, rs.rows, rs.rows_per_bin,
-                                      rs.trigger_s + shift)
+            rs = replace(rs, trigger_s=rs.trigger_s + shift)
             gs = gs.shifted(shift)
         grid = VideoGrid.covering(rs, gs, dt_s=dt)
     except (ValueError, OverflowError) as exc:

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from rngcam.cli import echo_line, error_line
+from rngcam.physics.timing import DEFAULT_READOUT, READOUTS
 from rngcam.sim.fidelity import FIDELITIES, SPACE, TIME
 from rngcam.sim.scenes import SCENES
 from rngcam.sim.simulate import DEFAULT_PSF_CROP
@@ -41,11 +42,15 @@ SIM_BYTES_PER_ELEMENT = 23
                    "in time, binned as the rig bins; lab: fine plus calibration errors of the size "
                    "calibration reports of itself, with a margin: several times what it leaves on the mock "
                    "rig (true values in the bundle's meta.truth_calibration).")
+@click.option("--readout", type=click.Choice(READOUTS), default=DEFAULT_READOUT, show_default=True,
+              help="RS readout order: rows top-down or bottom-up, along columns left to right (a camera on its "
+                   "side), dual readout from the centre row outwards or from the edges inwards, or global-reset "
+                   "(all rows start together, row r ends r line times later).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT if it exists.")
 @click.option("--max-memory", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Refuse a simulation estimated to need more memory, in GiB [80 % of this machine's].")
-def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start, bayer, fidelity, overwrite,
-                 max_memory):
+def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start, bayer, fidelity, readout,
+                 overwrite, max_memory):
     """Simulate SCENE (sineball, smoke or clip) through the RS+GS physics into a bundle."""
     from rngcam.errors import SettingError
     from rngcam.sim.simulate import SimulationError, grid_shape, simulate, simulation_timing, summary
@@ -56,7 +61,7 @@ def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start
     except SimulationError as exc:
         raise click.BadParameter(str(exc), param_hint="--size") from None
     # Refused before anything video-sized is allocated, as recon refuses (rngcam.video_plan).
-    frames = simulation_timing(size, bayer).grid.n_frames
+    frames = simulation_timing(size, bayer, readout=readout).grid.n_frames
     try:
         if frames > DEFAULT_MAX_FRAMES:
             raise SettingError(f"{frames:,} frames, above {DEFAULT_MAX_FRAMES:,}: use a smaller size", "size")
@@ -68,6 +73,6 @@ def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start
         raise click.BadParameter(error_line(exc), param_hint="--size") from None
     bundle = simulate(scene, out, size=size, seed=seed, psf=psf, psf_crop=psf_crop, noise=noise,
                       clip=clip, span=span, start=start, bayer=bayer, overwrite=overwrite,
-                      fidelity=fidelity)
+                      fidelity=fidelity, readout=readout)
     for line in summary(bundle, out):
         echo_line(line)

@@ -17,6 +17,7 @@ import numpy as np
 from rngcam import h5safe, pixels
 from rngcam.errors import BundleError
 from rngcam.formats.bundle_schema import (
+    DEFAULT_READOUT,
     FORMAT_NAME,
     SCHEMA_VERSION,
     WARNING_PREFIX,
@@ -193,6 +194,7 @@ class _Reader:
             "exposure_s": self.attr(g, "exposure_s", float, 0.0),
             "trigger_times_s": self.dataset(g, "trigger_times_s", True),
             "line_time_s": self.attr(g, "line_time_s", float, None, required=False),
+            "readout": self.attr(g, "readout", str, DEFAULT_READOUT, required=False),  # absent: top-down
             "gain_db": self.attr(g, "gain_db", float, 0.0),
             "model": self.attr(g, "model", str, ""),
             "serial": self.attr(g, "serial", str, ""),

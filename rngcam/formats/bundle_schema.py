@@ -8,7 +8,8 @@ A bundle is the contract between acquisition, simulation and reconstruction. Lay
   frame), ``trigger_times_s`` and optional ``timestamps_s`` (float64), ``frame_ids`` (int64),
   ``exposure_start_s`` (float64, measured exposure starts, attr ``method``);
   attrs ``pixel_format``, ``bit_depth``, ``black_level_dn``, ``exposure_s``, ``gain_db``,
-  ``model``, ``serial``, optional ``line_time_s`` (RS), ``features`` (JSON).
+  ``model``, ``serial``, optional ``line_time_s`` and ``readout`` (RS; absent: top-down,
+  physics.timing.READOUTS), ``features`` (JSON).
 - ``calibration`` group: optional datasets ``psf`` (C, Hp, Wp) float32, ``gs_to_rs`` (3, 3),
   ``white_balance`` (C,), ``field_stop`` (H, W) bool; attrs ``psf_source``, ``psf_bias``,
   ``extra`` (JSON).
@@ -29,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from rngcam.physics.timing import DEFAULT_READOUT, READOUTS, readout_lines
 from rngcam.untrusted import printable
 
 SCHEMA_VERSION = 1
@@ -69,6 +71,7 @@ class CameraRecord(ShortRepr):
     planned ones are trigger_times_s), when the cameras report them (rngcam.acquire.exposure_clock);
     exposure_start_method says how they were measured.
     features: every feature read back from the camera (JSON-able).
+    readout: the RS sensor's readout order (physics.timing.READOUTS; "top-down" when not recorded).
     """
 
     frames: np.ndarray
@@ -86,6 +89,7 @@ class CameraRecord(ShortRepr):
     features: dict = field(default_factory=dict)
     exposure_start_s: np.ndarray | None = None
     exposure_start_method: str = ""
+    readout: str = DEFAULT_READOUT
 
 
 @dataclass(repr=False)
@@ -197,6 +201,9 @@ def _check_camera(name: str, rec: CameraRecord) -> list[str]:
         problems.append(f"{label} gain_db must be finite, got {rec.gain_db!r}")
     if rec.line_time_s is not None and (not _finite(rec.line_time_s) or rec.line_time_s <= 0):
         problems.append(f"{label} line_time_s must be finite and > 0, got {rec.line_time_s!r}")
+    if rec.readout not in READOUTS:
+        problems.append(f"{label} readout must be one of {', '.join(READOUTS)}, got "
+                        f"{printable(repr(rec.readout), 60)}")
     trig = np.asarray(rec.trigger_times_s, dtype=np.float64)
     if trig.ndim != 1 or trig.shape[0] != n:
         problems.append(f"{label} trigger_times_s has shape {trig.shape}, expected ({n},) for {n} frames")
@@ -225,7 +232,8 @@ def _check_camera(name: str, rec: CameraRecord) -> list[str]:
 
 
 def _check_gs_window(rs: CameraRecord, gs: CameraRecord) -> list[str]:
-    """Warn about GS exposures not inside the RS exposure window [0, (rows-1)*line_time + exposure].
+    """Warn about GS exposures not inside the RS exposure window [0, last row's end] (for top-down,
+    (rows-1)*line_time + exposure; physics.timing.readout_lines for the other readout orders).
 
     A GS exposure before the window and one after it get the same treatment: a warning here,
     and the reconstruction leaves out a frame that does not overlap the window at all.
@@ -233,12 +241,13 @@ def _check_gs_window(rs: CameraRecord, gs: CameraRecord) -> list[str]:
     rs_trig = np.asarray(rs.trigger_times_s, dtype=np.float64)
     gs_trig = np.asarray(gs.trigger_times_s, dtype=np.float64)
     rs_shape = np.shape(rs.frames)
-    if (rs_trig.size < 1 or len(rs_shape) < 3 or not _finite(rs.line_time_s)
+    if (rs_trig.size < 1 or len(rs_shape) < 3 or not _finite(rs.line_time_s) or rs.readout not in READOUTS
             or not _finite(rs.exposure_s) or not _finite(gs.exposure_s) or not np.all(np.isfinite(rs_trig))
             or gs_trig.ndim != 1 or not np.all(np.isfinite(gs_trig))):
         return []
     start = float(rs_trig[0])
-    end = start + (rs_shape[1] - 1) * float(rs.line_time_s) + float(rs.exposure_s)
+    lines = readout_lines(rs.readout, rs_shape[2 if rs.readout == "columns" else 1]).max()
+    end = start + lines * float(rs.line_time_s) + float(rs.exposure_s)
     gs_end = gs_trig + float(gs.exposure_s)
     tol = 1e-9 * max(abs(end), 1e-12)
     outside = np.flatnonzero((gs_trig < start - tol) | (gs_end > end + tol))

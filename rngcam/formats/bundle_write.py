@@ -115,6 +115,7 @@ def _write_camera(f: h5py.File, name: str, rec: CameraRecord, features_json: str
     g.attrs["exposure_s"] = float(rec.exposure_s)
     if rec.line_time_s is not None:
         g.attrs["line_time_s"] = float(rec.line_time_s)
+        _set_text(g, "readout", rec.readout)
     g.attrs["gain_db"] = float(rec.gain_db)
     _set_text(g, "model", rec.model)
     _set_text(g, "serial", rec.serial)

@@ -37,14 +37,15 @@ def recon_context(bundle_path: Path | None, bundle, problem) -> dict:
            "capture_utc": (bundle.created_utc or "") if bundle is not None else "",
            "dt_s": float(problem.grid.dt_s), "key_frame_times_s": np.asarray(problem.gs_times_s, np.float64)}
     if problem.b_gs is not None and problem.b_gs.shape[1]:
-        ctx["key_frames"] = problem.gs_images().cpu().float().numpy()
+        ctx["key_frames"] = problem.to_sensor(problem.gs_images().cpu().float().numpy())
     if problem.b_rs is not None:
-        ctx["rs_image"] = problem.b_rs.cpu().float().numpy()
+        ctx["rs_image"] = problem.to_sensor(problem.b_rs.cpu().float().numpy())
         ctx["rs_noise_level"] = relative_noise_level(problem.b_rs)
     size = (bundle.meta or {}).get("pixel_size_m") if bundle is not None else None
     if isinstance(size, (int, float)) and math.isfinite(size) and size > 0:
         sensor_rows = bundle.rs.frames.shape[1] if bundle.rs is not None else problem.shape[2]
-        ctx["pixel_size_m"] = float(size) * sensor_rows / problem.shape[2]  # one grid pixel
+        grid_rows = problem.shape[3 if problem.transposed else 2]
+        ctx["pixel_size_m"] = float(size) * sensor_rows / grid_rows  # one grid pixel
     return ctx
 
 

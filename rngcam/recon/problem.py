@@ -87,6 +87,15 @@ class Problem:
     # binned from: GS-only videos and flows are computed there and binned to this grid (RIFE on a
     # 32 px clip's frames lost 2 dB against RIFE at 64 px binned; bench/convergence.md, stop 63).
     fine_gs: Tensor | None = None
+    # The RS reads along columns (readout `columns`): every image here is the sensor's transposed, so the
+    # timing's rows are image rows; `to_sensor` turns a video back (None-safe).
+    transposed: bool = False
+
+    def to_sensor(self, images):
+        """`images` (..., H, W) of this problem in the sensor's orientation: the same unless `transposed`."""
+        if images is None or not self.transposed:
+            return images
+        return images.swapaxes(-1, -2)
 
     @property
     def channels(self) -> int:
@@ -179,7 +188,8 @@ class Problem:
                        rs_train_rows=cast(self.rs_train_rows), gs_train_mask=cast(self.gs_train_mask),
                        rs_valid=cast(self.rs_valid), gs_valid=cast(self.gs_valid),
                        time_origin_s=self.time_origin_s, left_out=list(self.left_out), rs_timing=self.rs_timing,
-                       gs_timing=self.gs_timing, fine_gs=cast(self.fine_gs), subframes=self.subframes)
+                       gs_timing=self.gs_timing, fine_gs=cast(self.fine_gs), subframes=self.subframes,
+                       transposed=self.transposed)
 
     def rs_valid_mask(self) -> Tensor | None:
         """(C or 1, H, W) 0/1 float mask of the RS pixels that carry information; None: all do."""
@@ -403,6 +413,11 @@ def _build_problem(bundle: Bundle, grid_bin: int | None, dt_s: float | None, use
         note = masked_note(name, inv) if used else None
         if note:
             notes.append(note)
+    if plan.rs.transposed:  # the timing's rows are the sensor's columns: work on the transposed images
+        b_rs, b_gs, psf, rs_invalid, gs_invalid = (None if a is None else np.ascontiguousarray(np.swapaxes(a, -1, -2))
+                                                   for a in (b_rs, b_gs, psf, rs_invalid, gs_invalid))
+        truth = None if truth is None else truth.transpose(-1, -2).contiguous()
+        mask = None if mask is None else mask.T.contiguous()
     return Problem(
         b_rs=torch.from_numpy(np.ascontiguousarray(b_rs, np.float64)) if use_rs else None,
         b_gs=torch.from_numpy(np.ascontiguousarray(b_gs, np.float64)) if b_gs is not None else None,
@@ -421,6 +436,7 @@ def _build_problem(bundle: Bundle, grid_bin: int | None, dt_s: float | None, use
         left_out=left_out,
         rs_timing=plan.rs if use_rs else None,
         gs_timing=gs_timing,
+        transposed=plan.rs.transposed,
     )
 
 
@@ -428,18 +444,22 @@ def problem_from_video(video: Tensor, psf: Tensor, rs: RollingShutterTiming | No
                        gs: GlobalShutterTiming | None, dt_s: float | None = None) -> Problem:
     """A noiseless Problem whose truth is `video` (C, K, H, W), measured through the physics.
 
-    For tests and small experiments: the grid must have exactly K frames.
+    For tests and small experiments: the grid must have exactly K frames. An RS timing along
+    columns (`rs.transposed`) makes a transposed problem of the video (Problem.transposed).
     """
     video = torch.as_tensor(video, dtype=torch.float64)
+    psf = torch.as_tensor(psf, dtype=torch.float64)
+    transposed = rs is not None and rs.transposed
+    if transposed:
+        video, psf = video.transpose(-1, -2), psf.transpose(-1, -2)
     c, k, h, w = video.shape
     grid = VideoGrid.covering(rs, gs, dt_s=dt_s)
     if grid.n_frames != k:
         raise ValueError(f"the timing needs {grid.n_frames} frames, the video has {k}")
     rs_w = torch.from_numpy(rs.weights(grid)) if rs is not None else torch.zeros(h, k, dtype=torch.float64)
     gs_w = torch.from_numpy(gs.weights(grid)) if gs is not None else torch.zeros(0, k, dtype=torch.float64)
-    psf = torch.as_tensor(psf, dtype=torch.float64)
     b_rs = RollingShutter(psf, rs_w, w, channels=c).A(video) if rs is not None else None
     b_gs = GlobalShutter(gs_w, c, (h, w)).A(video) if gs is not None else None
     return Problem(b_rs=b_rs, b_gs=b_gs, rs_weights=rs_w, gs_weights=gs_w, psf=psf, grid=grid,
                    gs_times_s=gs.centres_s() if gs is not None else np.zeros(0), truth=video, rs_timing=rs,
-                   gs_timing=gs)
+                   gs_timing=gs, transposed=transposed)

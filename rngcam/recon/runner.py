@@ -437,6 +437,15 @@ def _cut(made: dict, problem: Problem, status: str, why: str, rows: _Rows, saved
     return made
 
 
+def _sensor_components(problem: Problem, components: dict) -> dict:
+    """A method's named parts in the sensor's orientation: those of the image's shape turned back."""
+    if not problem.transposed:
+        return components
+    image = tuple(problem.shape[-2:])
+    return {name: problem.to_sensor(part) if tuple(getattr(part, "shape", ())[-2:]) == image else part
+            for name, part in components.items()}
+
+
 def _finish(source: Source, problem: Problem, run_: Run, extra: dict, fit: dict, job: _Job) -> Result:
     """The metrics and the Result; with `job.out`, its files (and, for a run cut in set-up, a checkpoint
     that `resume` continues). The settings as they ran (`Run.record`: recon.h5, metrics.json's
@@ -445,6 +454,8 @@ def _finish(source: Source, problem: Problem, run_: Run, extra: dict, fit: dict,
 
     settings, out = run_.settings, job.out
     c, k, h, w = problem.shape
+    if problem.transposed:  # the outputs are in the sensor's orientation (Problem.to_sensor)
+        h, w = w, h
     video = fit["video"]
     final = fit["log"][-1] if fit["log"] else {}
     left_out = problem.left_out + fit["left_out"]
@@ -493,13 +504,16 @@ def _finish(source: Source, problem: Problem, run_: Run, extra: dict, fit: dict,
     if misfit:
         metrics["misfit"] = misfit
     metrics["settings"] = {k: v for k, v in resolved.items() if k != "method_settings"}  # that one is above
+    video = np.ascontiguousarray(problem.to_sensor(video))
     result = Result(video=video, frame_times_s=np.asarray(problem.frame_times_s), metrics=metrics,
-                    components=fit["components"], notes=fit["notes"], warnings=list(extra["warnings"]),
+                    components=_sensor_components(problem, fit["components"]), notes=fit["notes"],
+                    warnings=list(extra["warnings"]),
                     left_out=left_out, status=fit["status"], log=fit["log"], message=fit["message"],
                     settings=resolved, bundle_sha256=source.checksum(), frame_interval_s=problem.grid.dt_s,
                     context=extra.get("context") or outputs.recon_context(source.path, None, problem))
     if out is not None and not fit.get("keep_folder"):
-        result.save(out, echo=job.say, truth=problem.truth)  # the report need not read the truth again
+        # the truth here: the report need not read it again
+        result.save(out, echo=job.say, truth=problem.to_sensor(problem.truth))
         if fit.get("cut"):
             checkpoint.save(out / checkpoint.CHECKPOINT_NAME, {
                 "method": None, "iteration": 0, "solve_s": 0.0, "wall_s": fit["wall_s"], "log": [],

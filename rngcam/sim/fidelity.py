@@ -149,21 +149,23 @@ def vignetting_field(shape: tuple[int, int], amount: float) -> np.ndarray:
 
 def fine_measure(video: np.ndarray, psf_fine: np.ndarray, grid: VideoGrid, fgrid: VideoGrid,
                  line_time_s: float, exposure_s: float, gs: GlobalShutterTiming,
-                 errors: LabErrors) -> tuple[np.ndarray, np.ndarray]:
+                 errors: LabErrors, readout: str = "top-down") -> tuple[np.ndarray, np.ndarray]:
     """Noiseless RS (C, Hs, Ws) and GS (C, G, Hs, Ws) at the sensors' resolution, in the grid's
     operator units, from a video (C, Kf, Hs, Ws) on the sub-frame grid `fgrid` (Hs = SPACE H);
-    `line_time_s` is a sensor row's, as recorded (the true one is errors.line_time_scale x it)."""
+    `line_time_s` is a sensor row's, as recorded (the true one is errors.line_time_scale x it);
+    `readout` the RS readout order (physics.timing.READOUTS)."""
     import torch  # here: the CLI imports this module for its choices
 
-    from rngcam.physics.operators import GlobalShutter, RollingShutter
+    from rngcam.physics.operators import GlobalShutter, rolling_shutter_for
 
     v = torch.from_numpy(np.asarray(video, np.float64))
     c, _, hf, wf = v.shape
     true_line = line_time_s * errors.line_time_scale
-    rs_t = RollingShutterTiming(line_time_s=true_line, exposure_s=exposure_s, rows=hf)
+    rs_t = RollingShutterTiming(line_time_s=true_line, exposure_s=exposure_s,
+                                rows=wf if readout == "columns" else hf, readout=readout)
     units = fgrid.dt_s / grid.dt_s  # operator units count exposure in frames of the grid
-    rs = RollingShutter(torch.from_numpy(psf_fine), torch.from_numpy(rs_t.weights(fgrid)), wf,
-                        channels=c).A(v).numpy() * units
+    rs = rolling_shutter_for(torch.from_numpy(psf_fine), torch.from_numpy(rs_t.weights(fgrid)), (hf, wf),
+                             channels=c, transposed=rs_t.transposed).A(v).numpy() * units
     gs_img = GlobalShutter(torch.from_numpy(gs.weights(fgrid)), c, (hf, wf)).A(v).numpy() * units
     if errors != LabErrors():
         mx, my = similarity_map((hf, wf), errors)  # float32

@@ -24,9 +24,15 @@ from rngcam.errors import RngcamError
 from rngcam.formats.bundle import Bundle, Calibration, CameraRecord, Truth, write_bundle
 from rngcam.paths import MEASURED_PSF, PACKAGE_PREFIX, package_data
 from rngcam.physics import psf as psf_mod
-from rngcam.physics.operators import GlobalShutter, RollingShutter
+from rngcam.physics.operators import GlobalShutter, rolling_shutter_for
 from rngcam.physics.sensor import SensorModel
-from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+from rngcam.physics.timing import (
+    DEFAULT_READOUT,
+    GlobalShutterTiming,
+    RollingShutterTiming,
+    VideoGrid,
+    check_readout,
+)
 from rngcam.sim import fidelity as fidelity_mod
 from rngcam.sim.scenes import SCENES, choose_clip_start, default_clip_path, load_clip, render_scene
 from rngcam.version import __version__
@@ -77,16 +83,22 @@ def grid_shape(size) -> tuple[int, int]:
 
 
 def simulation_timing(size, bayer: bool = False, dt_s: float = GRID_DT_S,
-                      exposure_s: float = EXPOSURE_S, grid_bin: int | None = None) -> SimTiming:
-    """RS over the grid's rows (`size`: N or (H, W)), GS key frames at the start, middle and end
-    of the RS window. grid_bin: sensor rows per grid row (default 2 with `bayer`, else 1)."""
-    size = grid_shape(size)[0]
+                      exposure_s: float = EXPOSURE_S, grid_bin: int | None = None,
+                      readout: str = DEFAULT_READOUT) -> SimTiming:
+    """RS over the grid's rows (`size`: N or (H, W)), or its columns for readout `columns`, read in
+    `readout` order (physics.timing.READOUTS); GS key frames at the start, middle and end of the RS
+    window. grid_bin: sensor rows per grid row (default 2 with `bayer`, else 1)."""
+    try:
+        check_readout(readout)
+    except ValueError as exc:
+        raise SimulationError(f"--readout: {exc}") from None
+    size = grid_shape(size)[1 if readout == "columns" else 0]
     grid_bin = (2 if bayer else 1) if grid_bin is None else int(grid_bin)
     line_time_s = dt_s / grid_bin
     rs = RollingShutterTiming(line_time_s=line_time_s, exposure_s=exposure_s, rows=size,
-                              rows_per_bin=grid_bin)
+                              rows_per_bin=grid_bin, readout=readout)
     rs_sensor = RollingShutterTiming(line_time_s=line_time_s, exposure_s=exposure_s,
-                                     rows=size * grid_bin)
+                                     rows=size * grid_bin, readout=readout)
     last = rs.end_s - exposure_s  # the last GS exposure ends with the last RS row
     gs = GlobalShutterTiming(trigger_s=(0.0, last / 2, last), exposure_s=exposure_s)
     return SimTiming(rs, rs_sensor, gs, VideoGrid.covering(rs, gs), grid_bin)
@@ -150,20 +162,26 @@ def measure(video: np.ndarray, psf_grid: np.ndarray, timing: SimTiming) -> tuple
     """Noiseless measurements in operator units, float64, at the sensors' resolution.
 
     RS: (3, H, W), or with Bayer (3, 2H, 2W) where each sensor row has its own exposure
-    window (rows 2i and 2i+1 see grid row i). GS: (3, G, H, W) or (3, G, 2H, 2W).
+    window (rows 2i and 2i+1 see grid row i; columns for readout `columns`). GS: (3, G, H, W)
+    or (3, G, 2H, 2W).
     """
     v = torch.from_numpy(np.asarray(video, np.float64))
     c, _, h, w = v.shape
     psf = torch.from_numpy(psf_grid)
     sensor_w = torch.from_numpy(timing.rs_sensor.weights(timing.grid))  # (rows * bin, K)
     b = timing.grid_bin
-    rs = torch.empty((c, h * b, w), dtype=torch.float64)
+    along = timing.rs.transposed  # the sensor "rows" are columns: the bins' phases run along x
+    rs = torch.empty((c, h, w * b) if along else (c, h * b, w), dtype=torch.float64)
     for phase in range(b):  # sensor rows phase, phase + b, ... share a bin offset
-        rs[:, phase::b] = RollingShutter(psf, sensor_w[phase::b], w, channels=c).A(v)
+        op = rolling_shutter_for(psf, sensor_w[phase::b], (h, w), channels=c, transposed=along)
+        if along:
+            rs[..., phase::b] = op.A(v)
+        else:
+            rs[:, phase::b] = op.A(v)
     gs = GlobalShutter(torch.from_numpy(timing.gs.weights(timing.grid)), c, (h, w)).A(v)
     rs_np, gs_np = rs.numpy(), gs.numpy()
     if b > 1:
-        rs_np = np.repeat(rs_np, b, axis=-1)
+        rs_np = np.repeat(rs_np, b, axis=-2 if along else -1)
         gs_np = np.repeat(np.repeat(gs_np, b, axis=-2), b, axis=-1)
     return rs_np, gs_np
 
@@ -179,7 +197,7 @@ def _fine_capture(scene: str, size: tuple[int, int], seed: int, timing: SimTimin
     fine_video = render_scene(scene, fgrid, fine_size, seed, **render_opts)
     fine_psf = prepare_simulation_psf(psf, fine_size, fine_size, psf_crop, seed)
     rs_y, gs_y = fm.fine_measure(fine_video, fine_psf.grid, timing.grid, fgrid, timing.rs_sensor.line_time_s,
-                                 EXPOSURE_S, timing.gs, errors)
+                                 EXPOSURE_S, timing.gs, errors, timing.rs.readout)
     video = fm.bin_space(fm.bin_time(fine_video, timing.grid.n_frames)).astype(np.float32)
     del fine_video
     stored = fm.psf_measured(fine_psf.sensor, errors, seed)
@@ -203,6 +221,8 @@ def rig_yaml(scene: str, seed: int, size, timing: SimTiming, sensor: SensorModel
         }
         if line_time_s is not None:
             cam["line_time_s"] = line_time_s
+            if timing.rs.readout != DEFAULT_READOUT:
+                cam["readout"] = timing.rs.readout
         cam["black_level_dn"] = sensor.black_level_dn
         cam["trigger"] = {"source": "Line1", "activation": "RisingEdge", "channel": channel}
         cam["mock"] = {"noise": noise, "seed": seed, "bit_depth": sensor.bit_depth,
@@ -263,14 +283,15 @@ def _scene_options(scene: str, timing: SimTiming, clip, span: int, start) -> tup
     return scene_options, render_opts, {"clip": str(clip_path.resolve()), "clip_start": int(start)}
 
 
-def _camera(sensor: SensorModel, frames, triggers, serial: str, model: str, line_time_s=None) -> CameraRecord:
+def _camera(sensor: SensorModel, frames, triggers, serial: str, model: str, line_time_s=None,
+            readout: str = DEFAULT_READOUT) -> CameraRecord:
     """A simulated camera's record: its frames as `sensor` delivers them, triggered at `triggers`."""
     triggers = np.asarray(triggers, np.float64)
     return CameraRecord(frames=frames, pixel_format=sensor.pixel_format, bit_depth=sensor.bit_depth,
                         black_level_dn=sensor.black_level_dn, exposure_s=EXPOSURE_S,
                         trigger_times_s=triggers, line_time_s=line_time_s, gain_db=0.0,
                         model=model, serial=serial, timestamps_s=triggers.copy(),
-                        frame_ids=np.arange(len(triggers), dtype=np.int64),
+                        frame_ids=np.arange(len(triggers), dtype=np.int64), readout=readout,
                         features={"simulated": True, "full_well_e": sensor.full_well_e,
                                   "read_noise_e": sensor.read_noise_e})
 
@@ -292,7 +313,7 @@ def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
              psf: str | Path | None = None, psf_crop: float = DEFAULT_PSF_CROP, noise: bool = True,
              clip: str | Path | None = None, span: int = 8, start: int | None = None,
              bayer: bool = False, overwrite: bool = False, fidelity: str = "grid",
-             lab_errors: fidelity_mod.LabErrors | None = None) -> Bundle:
+             lab_errors: fidelity_mod.LabErrors | None = None, readout: str = DEFAULT_READOUT) -> Bundle:
     """Simulate `scene` on a grid of `size` (N, (H, W) or "HxW") and write the bundle to `out`.
 
     psf: PSF file (default: the measured DiffuserCam caustic in rngcam/data), or 'lenslets' for
@@ -301,10 +322,12 @@ def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
     fidelity: 'grid' (the truth on the reconstruction's grid), 'fine' (rendered finer than the
     grid and binned as the rig bins) or 'lab' (fine plus calibration errors), rngcam.sim.fidelity.
     lab_errors: with 'lab', these errors instead of the seed's draw (one error family alone).
+    readout: the RS sensor's readout order (physics.timing.READOUTS).
     """
     out = Path(out)
     size = _check_options(scene, out, size, bayer, overwrite, fidelity)
-    timing = simulation_timing(size, bayer, grid_bin=None if fidelity == "grid" else fidelity_mod.SPACE)
+    timing = simulation_timing(size, bayer, grid_bin=None if fidelity == "grid" else fidelity_mod.SPACE,
+                               readout=readout)
     sensor = default_sensor(bayer)
     scene_options, render_opts, meta_clip = _scene_options(scene, timing, clip, span, start)
 
@@ -341,7 +364,8 @@ def simulate(scene: str, out: str | Path, size=64, seed: int = 0,
         meta["truth_calibration"] = {**errors.as_dict(), "rs_defects": rs_defects, "gs_defects": gs_defects,
                                      "line_time_s": timing.rs.line_time_s * errors.line_time_scale}
     bundle = Bundle(
-        rs=_camera(sensor, rs_frames, [0.0], "SIM-RS", "rngcam simulated RS", timing.rs.line_time_s),
+        rs=_camera(sensor, rs_frames, [0.0], "SIM-RS", "rngcam simulated RS", timing.rs.line_time_s,
+                   timing.rs.readout),
         gs=_camera(sensor, gs_frames, timing.gs.trigger_s, "SIM-GS", "rngcam simulated GS"),
         calibration=Calibration(psf=prepared.sensor, psf_source=prepared.source, psf_bias=prepared.bias,
                                 gs_to_rs=np.eye(3), white_balance=np.ones(3),
@@ -363,7 +387,7 @@ def summary(bundle: Bundle, out: str | Path) -> list[str]:
         (f"scene {m['scene']} (seed {m['seed']}), {m['n_frames']} video frames of "
          f"{m['dt_s'] * 1e6:.0f} us ({1 / m['dt_s']:,.0f} fps), truth {tuple(bundle.truth.video.shape)}"),
         (f"RS: 1 frame {tuple(rs.frames.shape[1:])} {rs.pixel_format}, line time "
-         f"{rs.line_time_s * 1e6:.0f} us, exposure {rs.exposure_s * 1e6:.0f} us"),
+         f"{rs.line_time_s * 1e6:.0f} us, exposure {rs.exposure_s * 1e6:.0f} us, readout {rs.readout}"),
         (f"GS: {len(gs.frames)} frames {tuple(gs.frames.shape[1:])} {gs.pixel_format}, triggers at "
          + ", ".join(f"{t * 1e3:.3f}" for t in gs.trigger_times_s) + " ms"),
         (f"PSF: {m['psf_source']}" + ("" if m.get("psf_model") else f" (crop {m['psf_crop']:g})")
