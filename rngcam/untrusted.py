@@ -85,7 +85,8 @@ def open_untrusted(path: str | os.PathLike, max_bytes: int | None = None, *, wha
         raise error(f"{what} not found: {shown}") from None
     except OSError as exc:
         if exc.errno in (errno.ELOOP, errno.EMLINK):
-            raise error(f"refusing to read {shown}: it is a link (only plain files are read)") from None
+            raise error(f"refusing to read {shown}: it is a link (only plain files are read; name the file it "
+                        "points to)") from None
         if exc.errno == errno.ENOTDIR:
             raise error(f"{what} not found: {shown} (a part of its path is not a folder)") from None
         if exc.errno in (errno.ENXIO, errno.EWOULDBLOCK):

@@ -3,9 +3,11 @@
 import os
 import threading
 
+import h5py
+import numpy as np
 import pytest
 
-from rngcam.errors import RngcamError
+from rngcam.errors import BundleError, RngcamError
 from rngcam.untrusted import UntrustedFileError, open_untrusted, read_untrusted
 
 
@@ -84,21 +86,16 @@ def test_swaps_racing_the_open_never_read_the_linked_file(tmp_path):
     """A name swapped between a regular file and a link to the reader's file, as fast as possible,
     while it is opened: every open reads the regular file or refuses the link in one line."""
     name = tmp_path / "metrics.json"
-    plain = tmp_path / "plain"
-    plain.write_text("theirs")
     secret = tmp_path / "secret"
     secret.write_text("the reader's own text")
     stop = threading.Event()
 
     def swap():
         while not stop.is_set():
-            try:
-                os.link(plain, tmp_path / "tmp")
-                os.replace(tmp_path / "tmp", name)
-                os.symlink(secret, tmp_path / "tmp")
-                os.replace(tmp_path / "tmp", name)
-            except FileExistsError:
-                pass
+            (tmp_path / "tmp").write_text("theirs")
+            os.replace(tmp_path / "tmp", name)
+            os.symlink(secret, tmp_path / "tmp")
+            os.replace(tmp_path / "tmp", name)
 
     t = threading.Thread(target=swap)
     t.start()
@@ -108,9 +105,159 @@ def test_swaps_racing_the_open_never_read_the_linked_file(tmp_path):
             try:
                 seen.add(read_untrusted(name, 1000))
             except UntrustedFileError as exc:
-                seen.add(str(exc).split(":")[-1].strip())
+                seen.add(str(exc).split(": ", 1)[-1].strip())
     finally:
         stop.set()
         t.join()
     assert b"the reader's own text" not in seen
-    assert seen <= {b"theirs", "it is a link (only plain files are read)"}
+    link_line = "it is a link (only plain files are read; name the file it points to)"
+    assert {s for s in seen if isinstance(s, bytes)} <= {b"theirs"}
+    assert {s for s in seen if isinstance(s, str)} <= {link_line, str(name)}  # str(name): 'not found'
+    assert b"theirs" in seen or link_line in seen
+
+
+# --- HDF5 files from others: links, special files, filters, chunks, bombs, text -------------
+
+def _cli(*args):
+    from click.testing import CliRunner
+
+    from rngcam.cli import main
+
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+def _one_line(res, *words):
+    assert res.exit_code != 0, res.output
+    assert "Traceback" not in res.output and res.output.strip().count("\n") == 0, res.output
+    assert res.output.startswith("error:"), res.output
+    for w in words:
+        assert w in res.output, res.output
+
+
+def _tiny(path):
+    from tests.test_untrusted_bundles import tiny_bundle
+
+    return tiny_bundle(path)
+
+
+def _recompress(path, dataset, **kw):
+    """Rewrite `dataset` of the file at `path` chunked and compressed as `kw` says."""
+    with h5py.File(path, "r+") as f:
+        data = f[dataset][()]
+        attrs = dict(f[dataset].attrs)
+        del f[dataset]
+        d = f.create_dataset(dataset, data=data, **kw)
+        for k, v in attrs.items():
+            d.attrs[k] = v
+        return d.chunks
+
+
+def test_a_linked_bundle_is_refused_in_one_line(tmp_path):
+    own = _tiny(tmp_path / "own.h5")
+    (tmp_path / "shot.h5").symlink_to(own)
+    _one_line(_cli("inspect", tmp_path / "shot.h5"), "shot.h5", "it is a link")
+
+
+def test_a_fifo_bundle_neither_blocks_nor_is_read(tmp_path):
+    os.mkfifo(tmp_path / "shot.h5")
+    _one_line(_cli("inspect", tmp_path / "shot.h5"), "shot.h5")
+
+
+def test_a_device_bundle_is_refused():
+    from rngcam.formats.bundle import read_bundle
+
+    with pytest.raises(BundleError):
+        read_bundle("/dev/zero")
+
+
+def test_an_unknown_hdf5_filter_is_refused_before_hdf5_looks_for_it(tmp_path, monkeypatch):
+    shot = _tiny(tmp_path / "shot.h5")
+    plugins = tmp_path / "plugins"
+    plugins.mkdir()
+    monkeypatch.setenv("HDF5_PLUGIN_PATH", str(plugins))
+    with h5py.File(shot, "r+") as f:
+        f.create_dataset("extra", data=np.zeros(100, "u1"), compression=32015, allow_unknown_filter=True)
+    _one_line(_cli("inspect", shot), "shot.h5", "filter 32015", "refused")
+
+
+def test_the_filters_rngcam_writes_are_read(tmp_path):
+    from rngcam.formats.bundle import read_bundle
+
+    for comp in ("gzip", "lzf"):
+        shot = _tiny(tmp_path / f"{comp}.h5")
+        _recompress(shot, "rs/frames", chunks=(1, 16, 16), compression=comp, shuffle=True, fletcher32=True)
+        _recompress(shot, "gs/trigger_times_s", chunks=(2,), scaleoffset=9)
+        b = read_bundle(shot)
+        assert b.rs.frames.shape == (1, 16, 16) and b.rs.frames.max() > 0
+
+
+def test_a_chunk_larger_than_its_dataset_is_refused(tmp_path):
+    shot = _tiny(tmp_path / "shot.h5")
+    with h5py.File(shot, "r+") as f:
+        data = f["gs/trigger_times_s"][()]
+        del f["gs/trigger_times_s"]
+        d = f.create_dataset("gs/trigger_times_s", shape=data.shape, maxshape=(None,), dtype=data.dtype,
+                             chunks=(2**18,), compression="gzip")
+        d[...] = data
+    _one_line(_cli("inspect", shot), "shot.h5", "chunks of", "larger than the dataset")
+
+
+def _plant_chunk(path, dataset, raw):
+    with h5py.File(path, "r+") as f:
+        d = f[dataset]
+        d.id.write_direct_chunk((0,) * d.ndim, raw)
+
+
+def test_a_gzip_chunk_that_inflates_past_its_size_is_refused(tmp_path):
+    import zlib
+
+    shot = _tiny(tmp_path / "shot.h5")
+    _recompress(shot, "rs/frames", chunks=(1, 16, 16), compression="gzip")
+    _plant_chunk(shot, "rs/frames", zlib.compress(b"\0" * 2**28, 9)[:400])  # 256 MiB of zeros, cut short
+    _one_line(_cli("inspect", shot), "shot.h5", "gzip chunk")
+    _plant_chunk(shot, "rs/frames", zlib.compress(b"\0" * 2**20, 9))  # a whole MiB in a 512-byte chunk
+    _one_line(_cli("inspect", shot), "shot.h5")
+
+
+def test_an_lzf_chunk_that_inflates_past_its_size_is_refused(tmp_path):
+    shot = _tiny(tmp_path / "shot.h5")
+    with h5py.File(tmp_path / "big.h5", "w") as f:  # LZF of 4 MiB of zeros, by h5py's own filter
+        big = f.create_dataset("x", data=np.zeros(2**22, "u1"), chunks=(2**22,), compression="lzf")
+        raw = big.id.read_direct_chunk((0,))[1]
+    _recompress(shot, "rs/frames", chunks=(1, 16, 16), compression="lzf")
+    _plant_chunk(shot, "rs/frames", raw[:500])
+    _one_line(_cli("inspect", shot), "shot.h5", "LZF chunk")
+
+
+def test_a_huge_text_attribute_of_variable_length_is_measured_by_its_length(tmp_path):
+    shot = _tiny(tmp_path / "shot.h5")
+    with h5py.File(shot, "r+") as f:
+        del f.attrs["rig_yaml"]
+        f.attrs.create("rig_yaml", "a: 1\n" * (4 * 2**20), dtype=h5py.string_dtype())  # 20 MiB, item size 8
+    _one_line(_cli("inspect", shot), "shot.h5", "characters of text")
+
+
+def test_an_hdf5_file_swapped_while_opened_reads_what_was_checked(tmp_path):
+    """HDF5 reads the descriptor that was checked: a name swapped for a link to the reader's own
+    file right after the check is never read."""
+    from rngcam import h5safe
+
+    theirs = _tiny(tmp_path / "shot.h5")
+    own = tmp_path / "own.h5"
+    with h5py.File(own, "w") as f:
+        f.attrs["format"] = "the reader's own"
+    real_open = h5safe.open_untrusted_file
+
+    def open_then_swap(path, *a, **kw):
+        fh = real_open(path, *a, **kw)
+        os.replace(path, tmp_path / "moved.h5")
+        os.symlink(own, path)
+        return fh
+
+    h5safe.open_untrusted_file = open_then_swap
+    try:
+        with h5safe.open_untrusted(theirs) as f:
+            assert f.attrs["format"] == b"rngcam-bundle"
+    finally:
+        h5safe.open_untrusted_file = real_open
+    assert h5safe.file_format(theirs) == ""  # now a link: refused, not followed

@@ -15,7 +15,7 @@ import h5py
 import numpy as np
 
 from rngcam import h5safe, pixels
-from rngcam.errors import BundleError
+from rngcam.errors import BundleError, RngcamError
 from rngcam.formats.bundle_schema import (
     DEFAULT_READOUT,
     FORMAT_NAME,
@@ -27,9 +27,10 @@ from rngcam.formats.bundle_schema import (
     TriggerRecord,
     Truth,
     check_bundle,
+    declared_cameras,
     is_warning,
 )
-from rngcam.untrusted import printable
+from rngcam.untrusted import open_untrusted, printable
 
 
 class _Fatal(Exception):
@@ -74,7 +75,9 @@ def _limits(group: str, name: str):
 def _open_h5(path: Path) -> h5py.File:
     check_bundle_path(path)
     try:
-        f = h5py.File(path, "r")
+        f = h5safe.open_h5_file(path, "bundle")
+    except RngcamError as exc:
+        raise BundleError(str(exc)) from None
     except OSError as exc:
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         if "truncated" in reason.lower():
@@ -264,7 +267,8 @@ class _Reader:
         writer, _ = self.attr(self.f, "rngcam_version", str, "")
         rig_yaml, _ = self.attr(self.f, "rig_yaml", str, "")
         meta, _ = self.json_attr(self.f, "meta", dict, {})
-        rs, gs = self.camera("rs"), self.camera("gs")
+        rs = self.camera("rs")
+        gs = self.camera("gs") if "gs" in self.f or "gs" in declared_cameras(meta) else None
         bundle = Bundle(rs=rs, gs=gs, calibration=self.calibration(), trigger=self.trigger(),
                         truth=self.truth(), rig_yaml=rig_yaml, meta=meta, created_utc=created,
                         rngcam_version=writer)
@@ -370,7 +374,7 @@ def bundle_checksum(path: str | os.PathLike) -> str:
     path = check_bundle_path(path)
     digest = hashlib.sha256()
     try:
-        with open(path, "rb") as fh:
+        with open_untrusted(path, what="bundle", error=BundleError) as fh:
             for block in iter(lambda: fh.read(2**20), b""):
                 digest.update(block)
     except OSError as exc:
