@@ -81,6 +81,8 @@ COMMANDS = {
     "recon-batch": "rngcam.cli.sweeps:recon_batch_cmd",
     "bench": "rngcam.cli.bench:bench_cmd",
     "doctor": "rngcam.cli.doctor:doctor_cmd",
+    "import": "rngcam.cli.import_cmd:import_cmd",
+    "export": "rngcam.cli.export:export_cmd",
 }
 
 

@@ -4,7 +4,8 @@ A bundle is the contract between acquisition, simulation and reconstruction. Lay
 
 - root attrs: ``format``, ``schema_version``, ``created_utc``, ``rngcam_version``,
   ``rig_yaml`` (verbatim), ``meta`` (JSON).
-- ``rs`` / ``gs`` groups (both required): dataset ``frames`` (native dtype, one chunk per
+- ``rs`` / ``gs`` groups (both required, but for an RS-only bundle, whose ``meta`` says
+  ``"cameras": ["rs"]``, without ``gs``): dataset ``frames`` (native dtype, one chunk per
   frame), ``trigger_times_s`` and optional ``timestamps_s`` (float64), ``frame_ids`` (int64),
   ``exposure_start_s`` (float64, measured exposure starts, attr ``method``);
   attrs ``pixel_format``, ``bit_depth``, ``black_level_dn``, ``exposure_s``, ``gain_db``,
@@ -405,6 +406,13 @@ def _check_trigger(trig: TriggerRecord) -> list[str]:
     return problems
 
 
+def declared_cameras(meta) -> tuple[str, ...]:
+    """The cameras a bundle says it has: ("rs",) where meta.cameras says RS only (an imported
+    capture without GS frames), else both."""
+    cams = meta.get("cameras") if isinstance(meta, dict) else None
+    return ("rs",) if cams == ["rs"] else ("rs", "gs")
+
+
 def check_bundle(bundle: Bundle, skip: frozenset[str] = frozenset()) -> list[str]:
     """Every problem of an in-memory bundle ([] when valid); warnings start with 'warning: '.
 
@@ -412,13 +420,16 @@ def check_bundle(bundle: Bundle, skip: frozenset[str] = frozenset()) -> list[str
     `skip` names parts ("rs", "gs") already reported as broken, so they are not reported twice.
     """
     problems: list[str] = []
+    cameras = declared_cameras(bundle.meta)
     for name in ("rs", "gs"):
         rec = getattr(bundle, name)
         if rec is None:
-            if name not in skip:
+            if name not in skip and name in cameras:
                 problems.append(f"missing {name.upper()} camera record (group '{name}')")
         else:
             problems += _check_camera(name, rec)
+    if cameras == ("rs",) and bundle.gs is not None:
+        problems.append("meta.cameras says the bundle is RS only, but it has a GS camera record")
     if bundle.rs is not None and bundle.rs.line_time_s is None:
         problems.append("RS camera has no line_time_s")
     if bundle.gs is not None and bundle.gs.line_time_s is not None:

@@ -16,6 +16,7 @@ from rngcam.formats.bundle_schema import (
     Calibration,
     CameraRecord,
     check_bundle,
+    declared_cameras,
     gs_start_offsets,
     trigger_faults,
 )
@@ -71,6 +72,7 @@ def summary_dict(bundle: Bundle, path: str | os.PathLike | None = None,
     out["created_utc"] = bundle.created_utc
     out["rngcam_version"] = bundle.rngcam_version
     out["schema_version"] = SCHEMA_VERSION
+    out["cameras"] = list(declared_cameras(bundle.meta))
     for name in ("rs", "gs"):
         rec = getattr(bundle, name)
         out[name] = _camera_summary(rec) if rec is not None else None
@@ -132,7 +134,7 @@ def render_summary(s: dict) -> str:
         cam = s[name]
         label = f"{name.upper()} camera"
         if cam is None:
-            row(label, "missing")
+            row(label, "none (an RS-only bundle)" if name == "gs" and s.get("cameras") == ["rs"] else "missing")
             continue
         ident = " ".join(x for x in (cam["model"], f"serial {cam['serial']}" if cam["serial"] else "")
                          if x) or "(model unknown)"

@@ -166,7 +166,8 @@ def _write_contents(f: h5py.File, bundle: Bundle, texts: dict[str, str], created
         _write_frames(g, "video", bundle.truth.video, compression, frame_axis=1, dtype=np.float32)
 
     # cameras last: they hold the bulk, and an interrupted write is then missing them too
-    _write_camera(f, "gs", bundle.gs, texts["gs_features"], compression)
+    if bundle.gs is not None:  # an RS-only bundle (meta.cameras ["rs"]) has none
+        _write_camera(f, "gs", bundle.gs, texts["gs_features"], compression)
     _write_camera(f, "rs", bundle.rs, texts["rs_features"], compression)
 
 
@@ -195,7 +196,7 @@ def write_bundle(bundle: Bundle, path: str | os.PathLike, overwrite: bool = Fals
         "meta": _to_json(bundle.meta, "meta"),
         "extra": _to_json((bundle.calibration or Calibration()).extra, "calibration extra"),
         "rs_features": _to_json(bundle.rs.features, "RS features"),
-        "gs_features": _to_json(bundle.gs.features, "GS features"),
+        "gs_features": _to_json(bundle.gs.features if bundle.gs is not None else {}, "GS features"),
         "settings": _to_json(bundle.trigger.settings if bundle.trigger else {}, "trigger settings"),
         "errors": _to_json(list(bundle.trigger.errors) if bundle.trigger else [], "trigger errors"),
     }

@@ -11,6 +11,12 @@ whole problem, so an ablation's metrics compare with the full run's frame for fr
 
 Self-calibration needs both cameras (the RS rows exposed with the GS frames): an ablation turns
 it off and says so (`selfcal_off`).
+
+A capture without a camera is the same seam from the other side: the bundle says which cameras it
+has (meta.cameras; rngcam.formats.bundle_schema.declared_cameras), the problem carries it
+(`Problem.cameras`) and lists the missing camera as left out (`no_camera`), so an RS-only bundle
+is fitted as `--no-gs` is (STFM without its GS term, 3DTV on the RS image), and a method that
+needs GS frames refuses in one line (`needs_gs`).
 """
 
 from __future__ import annotations
@@ -24,6 +30,22 @@ from rngcam.errors import ConfigError
 
 _FLAGS = {"gs": "--no-gs", "rs": "--no-rs"}
 _NEEDS = {"gs": "the GS frames", "rs": "the RS image"}
+NO_GS_CAMERA = ("GS frames", "no GS camera: the bundle is RS only, so the fit uses the RS image alone")
+
+
+def no_camera(cameras: tuple[str, ...]) -> list[tuple[str, str]]:
+    """The left-out entries of a capture with only `cameras` (what a problem built from it lists)."""
+    return [NO_GS_CAMERA] if "gs" not in cameras else []
+
+
+def needs_gs(method: str, cameras: tuple[str, ...], left_out) -> str:
+    """The one line a method that needs GS frames gives where none are left: why, and what runs instead."""
+    if "gs" not in cameras:
+        why = "the bundle has no GS camera (RS only)"
+    else:
+        gone = [m for m, _ in left_out if m.startswith("GS")]
+        why = f"every GS frame was left out ({', '.join(gone)})" if gone else "the bundle has none"
+    return f"method {method} needs GS frames; {why}: use a method that fits the RS image (stfm, tv3d, pnp)"
 
 
 def removed(settings) -> tuple[str, ...]:

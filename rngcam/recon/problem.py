@@ -33,9 +33,11 @@ from torch import Tensor
 from rngcam import pixels
 from rngcam.errors import BundleError, ConfigError
 from rngcam.formats.bundle import Bundle
+from rngcam.formats.bundle_schema import declared_cameras
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.physics.sensor import BAYER_FORMATS
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+from rngcam.recon import ablation
 from rngcam.recon.gridding import (
     bin_frames,
     camera_frames,
@@ -87,6 +89,9 @@ class Problem:
     # binned from: GS-only videos and flows are computed there and binned to this grid (RIFE on a
     # 32 px clip's frames lost 2 dB against RIFE at 64 px binned; bench/convergence.md, stop 63).
     fine_gs: Tensor | None = None
+    # The cameras the capture has (its bundle's meta.cameras): ("rs",) for an RS-only bundle, whose
+    # missing GS camera is listed in left_out (rngcam.recon.ablation.no_camera).
+    cameras: tuple[str, ...] = ("rs", "gs")
     # The RS reads along columns (readout `columns`): every image here is the sensor's transposed, so the
     # timing's rows are image rows; `to_sensor` turns a video back (None-safe).
     transposed: bool = False
@@ -368,7 +373,8 @@ def _build_problem(bundle: Bundle, grid_bin: int | None, dt_s: float | None, use
     check_frames(plan, max_frames)  # before allocating anything frame-sized
     grid_bin = plan.rs.rows_per_bin
     grid = plan.grid
-    left_out: list[tuple[str, str]] = []
+    cameras = declared_cameras(bundle.meta) if bundle.gs is None else ("rs", "gs")
+    left_out: list[tuple[str, str]] = ablation.no_camera(cameras)
     cam = bundle.rs
     mosaic = 2 if cam.pixel_format in BAYER_FORMATS else 1
     stats = pixels.pixel_stats(bundle)
@@ -433,6 +439,7 @@ def _build_problem(bundle: Bundle, grid_bin: int | None, dt_s: float | None, use
         rs_valid=valid_or_none(rs_invalid) if use_rs else None,
         gs_valid=valid_or_none(gs_invalid) if b_gs is not None else None,
         time_origin_s=plan.origin_s,
+        cameras=cameras,
         left_out=left_out,
         rs_timing=plan.rs if use_rs else None,
         gs_timing=gs_timing,

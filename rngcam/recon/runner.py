@@ -106,9 +106,7 @@ def gs_key_frames(problem: Problem) -> np.ndarray:
 def run_gs_only(problem: Problem, settings: ReconSettings) -> tuple[registry.GSOnlyVideo, RunResult]:
     """The GS-only method of `settings` on `problem`'s key frames, and its one-point run."""
     if problem.b_gs is None or problem.b_gs.shape[1] == 0:
-        gone = [m for m, _ in problem.left_out if m.startswith("GS")]
-        why = f"every GS frame was left out ({', '.join(gone)})" if gone else "the bundle has none"
-        raise SettingError(f"method {settings.method} needs GS frames; {why}", "method")
+        raise SettingError(ablation.needs_gs(settings.method, problem.cameras, problem.left_out), "method")
     key = gs_key_frames(problem)
     t0 = time.perf_counter()
     out = registry.get(settings.method).factory(key, problem.gs_times_s, problem.frame_times_s,
