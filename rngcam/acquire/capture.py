@@ -176,7 +176,7 @@ def _record(cfg: CameraConfig, cam: Camera, frames: list[Frame], trigger_times_s
         model=info.model if info else cfg.model, serial=cfg.serial,
         timestamps_s=None if any(s is None for s in stamps) else np.asarray(stamps, np.float64),
         frame_ids=None if any(i is None for i in ids) else np.asarray(ids, np.int64),
-        features=features,
+        features=features, readout=cfg.readout,
         exposure_start_s=None if starts is None else starts.starts.get(role),
         exposure_start_method="" if starts is None else starts.methods.get(role, ""))
 
@@ -250,7 +250,7 @@ def _check_timing(rig: Rig, resolved: ResolvedRig, cams: dict[str, Camera], prog
     rs, gs = cams["rs"], cams["gs"]
     summary, warnings = verify_timing(resolved, rs.configured.exposure_s, gs.configured.exposure_s, rs.line_time_s())
     readout_s, readout_source = gs_readout(c.cameras.gs, gs.configured.features, gs.info.model if gs.info else "")
-    rs_window_s = ((c.cameras.rs.roi.height - 1) * resolved.line_time_s + rs.configured.exposure_s)
+    rs_window_s = resolved.timing()[0].end_s - resolved.timing()[0].exposure_s + rs.configured.exposure_s
     summary += refuse_impossible(rig, rs_window_s, gs.configured.exposure_s, readout_s, readout_source)
     if readout_s is None:
         warnings.append(f"GS readout time {readout_source}: trigger spacing checked against the exposure only")

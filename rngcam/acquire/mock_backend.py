@@ -5,6 +5,8 @@ mock cameras plugged in, each with the sensor physics of its rig section
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from rngcam.acquire.camera import Camera
 from rngcam.acquire.mock_camera import MockCamera, MockDevice, MockWorld
 from rngcam.acquire.mock_clock import MockTiming
@@ -12,7 +14,7 @@ from rngcam.acquire.resolve import ROLES, ResolvedRig
 from rngcam.errors import ConfigError
 from rngcam.formats.bundle import Truth
 from rngcam.physics.sensor import SensorModel
-from rngcam.physics.timing import RollingShutterTiming, VideoGrid
+from rngcam.physics.timing import VideoGrid
 from rngcam.video_plan import default_max_memory_bytes
 
 
@@ -50,6 +52,7 @@ class MockDevices:
             self.world.plug(MockDevice(cam.serial, cam.model or f"mock {role.upper()}", role, sensor,
                                        noise=m.noise, seed=m.seed,
                                        line_time_s=truth.line_time_s if role == "rs" else None,
+                                       readout=cam.readout,
                                        readout_s=m.readout_s,
                                        readout_bias=truth.readout_bias if role == "rs" else 0.0,
                                        led_level=truth.led_level,
@@ -62,7 +65,7 @@ class MockDevices:
         bundle's grid (`truth`)."""
         c, truth = self.resolved.rig.config, self.resolved.mock
         rs, gs, grid = self.resolved.timing()
-        real = RollingShutterTiming(truth.line_time_s, c.cameras.rs.exposure_s, rows=c.cameras.rs.roi.height)
+        real = replace(rs, line_time_s=truth.line_time_s)
         longer = VideoGrid.covering(real, gs.shifted(MockTiming.from_config(c.mock).latest_delay_s()), dt_s=grid.dt_s)
         return longer if longer.n_frames > grid.n_frames else grid
 

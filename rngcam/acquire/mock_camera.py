@@ -51,9 +51,9 @@ from rngcam.acquire.features import estimate_line_time_s
 from rngcam.acquire.mock_clock import TICK_S, MockTiming
 from rngcam.acquire.mock_features import MockFeatures
 from rngcam.errors import HardwareError
-from rngcam.physics.operators import GlobalShutter, PSFConvolution, RollingShutter
+from rngcam.physics.operators import GlobalShutter, PSFConvolution, rolling_shutter_for
 from rngcam.physics.sensor import SensorModel
-from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
+from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid, readout_lines
 
 TRIGGER_LINES = ("Line1", "Line2", "Line3", "Line4")
 EXPOSURE_STEP_S = 1e-6  # exposure is set in whole microseconds, like a Basler ace
@@ -74,6 +74,7 @@ class MockDevice:
     noise: bool = True
     seed: int = 0
     line_time_s: float | None = None  # RS only: the sensor's true line time
+    readout: str = "top-down"  # RS only: the readout order (physics.timing.READOUTS)
     readout_s: float = 1e-3
     gs_to_rs: tuple[tuple[float, ...], ...] | None = None  # GS only: true GS pixel -> RS pixel map
     readout_bias: float = 0.0  # RS only: SensorReadoutTime's slope is (1 + bias) x line_time_s
@@ -321,7 +322,8 @@ class MockCamera(Camera):
     def _busy_s(self) -> float:
         dev = self._dev()
         if dev.kind == "rs":
-            return (self.world.size - 1) * dev.line_time_s + self.exposure_s + dev.readout_s
+            rows = self.world.cols if dev.readout == "columns" else self.world.rows
+            return float(readout_lines(dev.readout, rows).max()) * dev.line_time_s + self.exposure_s + dev.readout_s
         return self.exposure_s + dev.readout_s
 
     def _trigger(self, t_s: float) -> None:
@@ -375,9 +377,12 @@ class MockCamera(Camera):
             video = torch.from_numpy(world.video()).double()
             if world.psf is None:
                 raise HardwareError(f"{self.label}: the mock RS camera needs a PSF")
-            timing = RollingShutterTiming(dev.line_time_s, self.exposure_s, rows=n, trigger_s=rel)
+            rows = world.cols if dev.readout == "columns" else n
+            timing = RollingShutterTiming(dev.line_time_s, self.exposure_s, rows=rows, trigger_s=rel,
+                                          readout=dev.readout)
             world.check_inside(rel, timing.end_s, self.label)
-            op = RollingShutter(torch.from_numpy(world.psf), torch.from_numpy(timing.weights(world.grid)), world.cols)
+            op = rolling_shutter_for(torch.from_numpy(world.psf), torch.from_numpy(timing.weights(world.grid)),
+                                     (n, world.cols), transposed=timing.transposed)
             y = op.A(video).numpy()
         else:
             rel = world.relative(t_s, self.label)
@@ -409,9 +414,11 @@ class MockCamera(Camera):
         if dev.kind == "rs":
             if world.psf is None:
                 raise HardwareError(f"{self.label}: the mock RS camera needs a PSF")
-            timing = RollingShutterTiming(dev.line_time_s, self.exposure_s, rows=h, rows_per_bin=b, trigger_s=rel)
+            timing = RollingShutterTiming(dev.line_time_s, self.exposure_s, rows=w if dev.readout == "columns" else h,
+                                          rows_per_bin=b, trigger_s=rel, readout=dev.readout)
             world.check_inside(rel, timing.end_s, self.label)
-            op = RollingShutter(torch.from_numpy(world.grid_psf()), torch.from_numpy(timing.weights(world.grid)), w)
+            op = rolling_shutter_for(torch.from_numpy(world.grid_psf()), torch.from_numpy(timing.weights(world.grid)),
+                                     (h, w), transposed=timing.transposed)
             y = op.A(video).numpy()
         else:
             timing = GlobalShutterTiming((rel,), self.exposure_s)

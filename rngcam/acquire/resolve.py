@@ -77,8 +77,9 @@ class ResolvedRig:
     def timing(self) -> tuple[RollingShutterTiming, GlobalShutterTiming, VideoGrid]:
         """RS/GS timing relative to T0 with the resolved line time, and the video grid."""
         c = self.rig.config
-        rs = RollingShutterTiming(line_time_s=self.line_time_s, exposure_s=c.cameras.rs.exposure_s,
-                                  rows=c.cameras.rs.roi.height)
+        cam = c.cameras.rs
+        rs = RollingShutterTiming(line_time_s=self.line_time_s, exposure_s=cam.exposure_s, readout=cam.readout,
+                                  rows=cam.roi.width if cam.readout == "columns" else cam.roi.height)
         t0 = c.timing.rs_trigger_s
         gs = GlobalShutterTiming(tuple(t - t0 for t in c.timing.gs_trigger_s), c.cameras.gs.exposure_s)
         return rs, gs, VideoGrid.covering(rs, gs, dt_s=rs.line_time_s * c.recon.grid_bin)

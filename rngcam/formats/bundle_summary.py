@@ -40,6 +40,7 @@ def _camera_summary(rec: CameraRecord) -> dict:
     }
     if rec.line_time_s is not None:
         out["line_time_us"] = float(rec.line_time_s) * 1e6
+        out["readout"] = rec.readout
     if rec.exposure_start_s is not None:
         out["exposure_start_ms"] = [float(t) * 1e3 for t in np.asarray(rec.exposure_start_s, np.float64)]
         out["exposure_start_method"] = rec.exposure_start_method
@@ -144,7 +145,7 @@ def render_summary(s: dict) -> str:
             f"gain {cam['gain_db']:g} dB")
         timing = f"exposure {cam['exposure_ms']:.3f} ms"
         if "line_time_us" in cam:
-            timing += f"  line time {cam['line_time_us']:.3f} us"
+            timing += f"  line time {cam['line_time_us']:.3f} us, readout {cam.get('readout', 'top-down')}"
         row("", timing + f"  trigger times {_fmt_ms(cam['trigger_times_ms'])} ms")
         if "exposure_start_ms" in cam:
             row("", f"measured exposure starts {_fmt_ms(cam['exposure_start_ms'])} ms "
