@@ -25,7 +25,7 @@ IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".npy")
 ARRAY_SUFFIXES = (".tif", ".tiff", ".png", ".npy", ".npz", ".mat")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov")
 # A file's own axis letters -> ours: N frames, H rows, W columns, C channels
-_AXIS = {"T": "N", "I": "N", "Z": "N", "Q": "N", "N": "N", "Y": "H", "H": "H", "X": "W", "W": "W",
+AXIS = {"T": "N", "I": "N", "Z": "N", "Q": "N", "N": "N", "Y": "H", "H": "H", "X": "W", "W": "W",
          "C": "C", "S": "C"}
 
 
@@ -64,7 +64,7 @@ def _tiff(path: Path, fh) -> tuple[np.ndarray, str]:
             raise SidecarError(f"{path} holds no image")
         series = tif.series[0]
         _checked(str(path), series.shape, series.dtype)
-        axes = "".join(_AXIS.get(a, "?") for a in series.axes)
+        axes = "".join(AXIS.get(a, "?") for a in series.axes)
         return series.asarray(), axes
 
 
@@ -246,7 +246,7 @@ def default_axes(ndim: int, colour: bool, stack: bool, matlab: bool) -> str:
 def to_axes(arr: np.ndarray, have: str, want: str, where: str) -> np.ndarray:
     """`arr` with axes `have` rearranged to `want` (letters N, H, W, C); an axis `want` has and
     `have` lacks is added with length 1; one of `have` that `want` lacks must be of length 1."""
-    have = "".join(_AXIS.get(a, a) for a in have)
+    have = "".join(AXIS.get(a, a) for a in have)
     if len(have) != arr.ndim or len(set(have)) != len(have) or not set(have) <= set("NHWC"):
         raise SidecarError(f"{where}: axes {have!r} do not fit an array of shape {arr.shape} "
                            "(put `axes:` in the sidecar, e.g. HW, HWC, NHW, NHWC, CHW)")

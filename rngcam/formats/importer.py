@@ -99,6 +99,10 @@ def _frames(path: Path, part: Camera, name: str, stack: bool, within: Path | Non
     colour = family == "rgb"
     have = part.axes or (file_axes if file_axes not in ("", "mat") else
                          image_files.default_axes(arr.ndim, colour, stack, file_axes == "mat"))
+    letters = "".join(image_files.AXIS.get(a, a) for a in have)
+    if not colour and "C" in letters and len(letters) == arr.ndim and arr.shape[letters.index("C")] > 1:
+        raise SidecarError(f"{name}.pixel_format: {part.pixel_format}, but {path} holds "
+                           f"{arr.shape[letters.index('C')]} colour channels; put pixel_format: rgb")
     frames = image_files.to_axes(arr, have, "NHWC" if colour else "NHW", f"{name}: {path}")
     if colour and frames.shape[-1] != 3:
         raise SidecarError(f"{name}.pixel_format: rgb needs 3 channels, {path} has {frames.shape[-1]}; "
@@ -159,9 +163,9 @@ def _psf(path: Path, side: Sidecar, within: Path | None) -> tuple[np.ndarray, fl
             psf = psf_mod.as_chw(arr)
         except ValueError as exc:
             raise SidecarError(f"psf: {path}: {exc}; put `axes:` (HW, HWC or CHW)") from None
+    if not np.all(np.isfinite(psf)) or float(np.abs(psf).max(initial=0)) > 1e30:
+        raise SidecarError(f"psf: {path} holds NaN, Inf or values past float32's range")
     psf = np.asarray(psf, np.float32)
-    if not np.all(np.isfinite(psf)):
-        raise SidecarError(f"psf: {path} holds NaN or Inf")
     bias = psf_mod.estimate_bias(psf) if side.psf.bias == "auto" else float(side.psf.bias)
     if bias:
         psf = np.clip(psf - np.float32(bias), 0, None)
