@@ -279,3 +279,15 @@ def test_a_columns_reconstruction_is_written_in_the_sensor_orientation(tmp_path)
                                                                                          abs=1e-3)
     assert result.context["rs_image"].shape[-2:] == (16, 24)
     assert (tmp_path / "o" / "video.tif").exists()
+
+
+@pytest.mark.parametrize("readout", ["top-down", "bottom-up", "columns", "centre-out", "edges-in"])
+def test_held_out_row_blocks_span_one_exposure_in_any_order(readout):
+    """A held-out block is the rows one exposure spans (rngcam.recon.problem), read either way."""
+    from rngcam.recon.problem import problem_from_video
+
+    t = RollingShutterTiming(1e-4, 3e-4, rows=12, readout=readout)
+    k = VideoGrid.covering(t).n_frames
+    video = _rand((1, k, 10, 12) if readout == "columns" else (1, k, 12, 10), 5).abs()
+    problem = problem_from_video(video, torch.ones(1, 3, 3) / 9, t, None)
+    assert problem.shape[2] == 12 and problem.rows_per_exposure() == 3

@@ -250,7 +250,7 @@ class Problem:
             return 1
         frames = torch.arange(w.shape[1], dtype=w.dtype) + 0.5
         centres = (w * frames).sum(1) / w.sum(1).clamp_min(1e-12)
-        shift = float(torch.median(centres.diff()))
+        shift = float(torch.median(centres.diff().abs()))  # any readout order: rows apart in time, either way
         exposure = float(torch.median(w.sum(1)))  # in frames (weights are overlap / dt)
         return max(1, math.ceil(exposure / shift - 1e-9)) if shift > 0 else 1
 
