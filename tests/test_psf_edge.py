@@ -17,8 +17,8 @@ from rngcam.physics.psf import magnify
 from rngcam.recon import checkpoint, misfit
 from rngcam.recon.methods import psf_edge
 from rngcam.recon.methods.psf_edge import edge_mask, fit_edge, search_edge
-from rngcam.recon.methods.stfm import edge_refit
 from rngcam.recon.methods.stfm.edge_refit import EdgeRefit, edge_line, edge_scale
+from rngcam.recon.methods.stfm.stages import EdgeRefitConfig
 from rngcam.recon.methods.stfm.subframes import SubframesAveraged
 from rngcam.recon.problem import build_problem
 from rngcam.sim.simulate import DEFAULT_PSF_CROP, simulate
@@ -138,7 +138,7 @@ class _Fit:
         return {"self_calibration": {"mode": "gains"}}
 
 
-def _refit(problem, first_rs, later_rs):
+def _refit(problem, first_rs, later_rs, config=None):
     """An EdgeRefit over stand-ins whose fits through fitted edges end on `later_rs` in turn."""
     made = []
 
@@ -146,7 +146,7 @@ def _refit(problem, first_rs, later_rs):
         made.append((psf, report))
         return _Fit(later_rs[len(made) - 1], problem.truth)
 
-    return EdgeRefit(_Fit(first_rs, problem.truth), problem, 0.97, another), made
+    return EdgeRefit(_Fit(first_rs, problem.truth), problem, 0.97, another, config), made
 
 
 def _through_checkpoint(method, folder, iteration: int = 1) -> dict:
@@ -210,8 +210,8 @@ def test_the_refits_are_bounded(problems):
     wrong, _ = problems
     method, made = _refit(wrong, 0.03, (0.029, 0.028, 0.027))
     _run(method)
-    assert len(made) == edge_refit.MAX_REFITS and method.report["kept"] == 2
-    assert method.report["why"] == f"{edge_refit.MAX_REFITS} fits through a fitted edge made"
+    assert len(made) == EdgeRefitConfig().max_refits and method.report["kept"] == 2
+    assert method.report["why"] == f"{EdgeRefitConfig().max_refits} fits through a fitted edge made"
 
 
 @pytest.mark.parametrize("running_rs, shown", [(0.05, 0.03), (0.02, 0.02)])
@@ -272,10 +272,9 @@ def test_no_second_fit_where_the_first_explains_the_data(problems):
     assert "within 1.15x its noise level" in method.notes[-1] and method.notes[-1].startswith("PSF edge not fitted")
 
 
-def test_no_second_fit_where_the_edge_does_not_pay(problems, monkeypatch):
+def test_no_second_fit_where_the_edge_does_not_pay(problems):
     wrong, _ = problems
-    monkeypatch.setattr(edge_refit, "EDGE_MIN_DROP", 0.999)
-    method, made = _refit(wrong, 0.03, (0.001,))
+    method, made = _refit(wrong, 0.03, (0.001,), EdgeRefitConfig(min_drop=0.999))
     _run(method)
     assert not made
     assert "(< 99.9 %)" in edge_line(method.report)
@@ -299,7 +298,7 @@ def test_the_verdict_names_the_shrink_the_output_was_fitted_through():
 
 
 def test_stfm_is_wrapped_only_where_the_key_rows_find_the_psf_too_large(problems):
-    from rngcam.recon.methods.stfm.ensemble import make_stfm
+    from rngcam.recon.methods.stfm.recipe import make_stfm
     from rngcam.recon.methods.stfm.settings import STFMSettings
 
     wrong, matched = problems

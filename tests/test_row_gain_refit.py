@@ -72,7 +72,7 @@ def test_a_run_resumed_in_the_second_run_makes_it_again_and_a_tampered_one_is_re
 
 
 def test_stfm_is_wrapped_where_the_key_rows_find_the_psf_too_large_and_the_motion_is_searched(problems):  # noqa: F811
-    from rngcam.recon.methods.stfm.ensemble import make_stfm
+    from rngcam.recon.methods.stfm.recipe import make_stfm
     from rngcam.recon.methods.stfm.settings import STFMSettings
 
     wrong, matched = problems

@@ -781,7 +781,7 @@ def test_fits_of_one_base_are_let_go_where_the_deadline_cannot_hold_them_and_a_r
     import dataclasses
 
     import rngcam.recon.methods.stfm.ensemble as ensemble
-    from rngcam.recon.methods.stfm.ensemble import _make_stfm
+    from rngcam.recon.methods.stfm.build_fit import make_fit as _make_stfm
 
     monkeypatch.setattr(ensemble, "AFFORD_CHECK_STEPS", 2)
     settings = small_settings(preset="prior", dynamic_base=None, track_refit=False, start_floor=False)

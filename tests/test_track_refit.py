@@ -11,6 +11,7 @@ from rngcam.errors import RngcamError
 from rngcam.recon.methods.stfm import motion_search, track_refit
 from rngcam.recon.methods.stfm.edge_refit import EdgeRefit
 from rngcam.recon.methods.stfm.row_gain_refit import RowGainRefit
+from rngcam.recon.methods.stfm.stages import TrackRefitConfig
 from rngcam.recon.methods.stfm.track_refit import TrackRefit
 
 NOISE = 0.01
@@ -30,7 +31,7 @@ def _refit(first_rs, second_rs):
 def test_a_run_left_unexplained_is_made_again_with_a_smaller_turn_penalty_and_the_better_one_kept(second_rs, kept):
     method, made = _refit(0.0143, second_rs)
     method.step()
-    assert method.converged() is None and len(made) == 1 and made[0][0] == track_refit.TURN_SCALE
+    assert method.converged() is None and len(made) == 1 and made[0][0] == TrackRefitConfig().turn_scale
     assert made[0][1]["refits"][0]["ratio"] == pytest.approx(1.43)
     _run(method)
     assert len(made) == 1 and method.report["kept"] == kept
@@ -64,7 +65,7 @@ def test_a_run_resumed_in_the_second_run_makes_it_again_and_a_tampered_one_is_re
     state = _through_checkpoint(method, tmp_path)
     again, made = _refit(0.0143, 0.0102)
     again.load_state_dict(state)
-    assert len(made) == 1 and made[0][0] == track_refit.TURN_SCALE and again.residuals()["rs"] == 0.0102
+    assert len(made) == 1 and made[0][0] == TrackRefitConfig().turn_scale and again.residuals()["rs"] == 0.0102
     _run(again)
     assert again.report["kept"] == 1
     for bad in ({"track_made": {1: 0.0}}, {"track_made": {1: "import os"}}, {"track_made": {}}, {"track_best": 3}):
@@ -73,14 +74,14 @@ def test_a_run_resumed_in_the_second_run_makes_it_again_and_a_tampered_one_is_re
 
 
 def test_stfm_is_wrapped_where_the_motion_is_searched_and_the_row_gain_stage_does_not_apply(problems):  # noqa: F811
-    from rngcam.recon.methods.stfm.ensemble import make_stfm
+    from rngcam.recon.methods.stfm.recipe import make_stfm
     from rngcam.recon.methods.stfm.settings import STFMSettings
 
     wrong, matched = problems
     settings = STFMSettings(self_calibrate="gains", preset="prior", subframes=1)  # the stages themselves
     method = make_stfm(matched, settings)
     assert isinstance(method, TrackRefit) and method._fits[0].settings.search_turn_scale == 1
-    second = method._make_refit(track_refit.TURN_SCALE, {"refits": [], "kept": 0})
+    second = method._make_refit(TrackRefitConfig().turn_scale, {"refits": [], "kept": 0})
     assert not isinstance(second, TrackRefit)  # the whole run again, never a third
     assert second.settings.search_turn_scale == 0.5 and not second.settings.track_refit
     assert "motion search: turn penalty x0.5" in second.notes
@@ -97,7 +98,7 @@ def test_stfm_is_wrapped_where_the_motion_is_searched_and_the_row_gain_stage_doe
 
 
 def test_the_search_charges_turns_by_the_runs_scale(problems, monkeypatch):  # noqa: F811
-    from rngcam.recon.methods.stfm.ensemble import make_stfm
+    from rngcam.recon.methods.stfm.recipe import make_stfm
     from rngcam.recon.methods.stfm.settings import STFMSettings
 
     _, matched = problems

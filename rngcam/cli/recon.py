@@ -51,6 +51,34 @@ def budget_option(ctx, param, value):
     return positive_option(ctx, param, seconds)
 
 
+def with_stages(method: str, settings, assignments: tuple[str, ...], recipe_file: Path | None):
+    """`settings` with the stage settings of --recipe, then --set (one usage line for a bad one)."""
+    if not assignments and recipe_file is None:
+        return settings
+    entry = registry.get(method)
+    if entry.with_stages is None:
+        raise click.UsageError(f"--set and --recipe do not apply to --method {method} (it has no stages)")
+    from rngcam.errors import ConfigError
+    from rngcam.recon.methods.stfm.recipe import MAX_RECIPE_CHARS, recipe_from_yaml
+
+    overrides: dict = {}
+    try:
+        if recipe_file is not None:
+            from rngcam.untrusted import read_untrusted
+
+            text = read_untrusted(recipe_file, MAX_RECIPE_CHARS).decode("utf-8", "replace")
+            overrides = recipe_from_yaml(text, str(recipe_file))
+        for item in assignments:
+            name, eq, value = item.partition("=")
+            stage, dot, field = name.strip().partition(".")
+            if not (eq and dot and stage and field):
+                raise click.BadParameter(f"{item!r} is not STAGE.FIELD=VALUE", param_hint="--set")
+            overrides.setdefault(stage, {})[field] = value.strip()
+        return entry.with_stages(settings, overrides)
+    except ConfigError as exc:
+        raise click.UsageError(str(exc).removeprefix("stfm: ")) from None
+
+
 @method_command("recon")
 @click.argument("bundle", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
@@ -84,23 +112,37 @@ def budget_option(ctx, param, value):
               help="Hold this fraction of RS row bins out of the fit and report the residual on them.")
 @click.option("--quiet", is_flag=True,
               help="No progress (bar or lines: set-up stages, the fit's progress); events and the summary still print.")
+@click.option("--set", "stage_values", multiple=True, metavar="STAGE.FIELD=VALUE",
+              help="stfm: set one number of one stage of the recipe (repeatable; --explain lists the stages and "
+                   "their settings), e.g. --set line_refit.max_refits=1.")
+@click.option("--recipe", "recipe_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="stfm: a YAML file of stage settings (stage: {field: value}), applied before --set.")
+@click.option("--explain", is_flag=True,
+              help="Print the recipe a run would follow on BUNDLE (each stage with its settings, and why a stage "
+                   "is left out) and exit without fitting.")
 def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memory, resume, overwrite,
-              checkpoint_every, device, threads, grid_bin, holdout, quiet, **opts):
+              checkpoint_every, device, threads, grid_bin, holdout, quiet, stage_values, recipe_file, explain, **opts):
     """Reconstruct the high-speed video in BUNDLE and report error against run time.
 
     Ctrl-C (SIGINT) or SIGTERM ends the run with the current estimate written as the result
     ("status": "interrupted") and a checkpoint that --resume continues.
     """
     from rngcam.recon.runlog import append_lines
-    from rngcam.recon.runner import Source, solve
+    from rngcam.recon.runner import Source, explain_run, solve
 
     out = out_dir or default_out_dir(bundle, method)
-    settings = ReconSettings(method=method, method_settings=settings_from_options(method, pop_method_values(opts)),
+    method_settings = with_stages(method, settings_from_options(method, pop_method_values(opts)), stage_values,
+                                  recipe_file)
+    settings = ReconSettings(method=method, method_settings=method_settings,
                              time_budget_s="auto" if time_budget in (None, "auto") else time_budget,
                              max_iters=iters, device=device, threads=threads, grid_bin=grid_bin, resume=resume,
                              overwrite=overwrite, checkpoint_every_s=checkpoint_every, holdout=holdout,
                              max_frames=max_frames, progress=not quiet,
                              max_memory_bytes=None if max_memory is None else int(max_memory * 2**30))
+    if explain:
+        for line in explain_run(Source(path=Path(bundle)), settings, click.echo):
+            click.echo(f"recipe: {line}")
+        return
     result = solve(Source(path=Path(bundle)), settings, out, click.echo, started())  # the clock: the command's
     log = Path(out) / "recon.log"
 

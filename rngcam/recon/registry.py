@@ -69,6 +69,10 @@ class MethodEntry:
     # Raised when the method's model changes what a saved state means: a checkpoint of another
     # revision is not resumed (rngcam.recon.settings.ReconSettings.fitted).
     model_revision: int = 1
+    # `explain(problem, settings) -> lines`: the stages a run would follow and why each is left out (--explain)
+    explain: Callable[..., list[str]] | None = None
+    # `with_stages(settings, {stage: {field: value}}) -> settings`: --set / --recipe (None: the method has no stages)
+    with_stages: Callable[..., Any] | None = None
 
     def __post_init__(self):
         if self.kind not in (ITERATIVE, GS_ONLY):
@@ -186,7 +190,19 @@ def settings_for(label: str, **overrides) -> tuple[str, Any]:
 def _make_stfm(problem, settings, device="cpu", clock=None, stage=None):
     from rngcam.recon.methods.stfm import make_stfm
 
-    return make_stfm(problem, settings, device=device, clock=clock, stage=stage)
+    return make_stfm(problem, settings, device=device, clock=clock, stage=stage, trace=True)
+
+
+def _explain_stfm(problem, settings) -> list[str]:
+    from rngcam.recon.methods.stfm import explain
+
+    return explain(problem, settings)
+
+
+def _stfm_with_stages(settings, overrides: dict):
+    from rngcam.recon.methods.stfm.recipe import with_stage_settings
+
+    return with_stage_settings(settings, overrides)
 
 
 def _make_tv3d(problem, settings, device="cpu", clock=None, stage=None):
@@ -251,7 +267,8 @@ STFM_MEMORY = MemoryModel(bytes_per_element=13.64, fixed_bytes=333e6, bytes_per_
 register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=600.0, model_revision=5,
                      presets={p: preset_settings(p)
                               for p in ("auto", "fast", *(p for p in STFM_PRESETS if p not in ("auto", "fast")))},
-                     benchmarked=("fast", "paper"), memory=STFM_MEMORY, fits_holdout=True))
+                     benchmarked=("fast", "paper"), memory=STFM_MEMORY, fits_holdout=True,
+                     explain=_explain_stfm, with_stages=_stfm_with_stages))
 # tv3d and pnp: the earlier 228x342 fits (bench/large_grids.md) (their full level at 8x was not reached when measured)
 register(MethodEntry("tv3d", ITERATIVE, TV3DSettings, _make_tv3d,
                      presets={"haar": TV3DSettings(prox="haar"), "exact": TV3DSettings(prox="exact")},

@@ -85,6 +85,15 @@ def make_method(problem: Problem, run_: Run, stage=None) -> Method:
     return method
 
 
+def explain_run(source: Source, settings: ReconSettings, say=lambda line: None) -> list[str]:
+    """What `settings`' method would do on the bundle, one line a stage, without fitting (`--explain`)."""
+    entry = registry.get(settings.method)
+    if entry.explain is None:
+        return [f"{settings.method}: one stage (no recipe to explain)"]
+    problem, _ = _read(source, settings, say, lambda message: None)
+    return entry.explain(method_view(problem, settings.method_settings).to(torch.float32), settings.method_settings)
+
+
 def fit_checkpointed(problem: Problem, run_: Run, folder: Path, meta: dict,
                      saved: dict | None) -> tuple[torch.Tensor, RunResult]:
     """`run_`'s method on `problem`, iterated with checkpoints in `folder` (identity `meta`), resumed
@@ -385,6 +394,8 @@ def _iterate(problem: Problem, run_: Run, method: Method, made: dict, rows: _Row
         job.say(f"note: {note}")
     for comp, why in made["left_out"]:
         job.say(f"left out: {comp} ({why})")
+    for line in getattr(method, "recipe", None) or []:  # STFM: each stage, what it did or why it was left out
+        job.log.write(f"recipe: {line}")
     loop = LoopSettings(clock=run_.clock, max_iters=settings.max_iters, log_every_s=settings.log_every_s,
                         checkpoint_dir=job.out, checkpoint_every_s=settings.checkpoint_every_s, resume_from=job.saved,
                         checkpoint_meta=job.want or {}, stop_requested=job.guard.stop_reason,

@@ -10,11 +10,13 @@ fields and their transfer between grids), bases (the dynamic field's base videos
 terms through rngcam.physics.operators, TV), init (from the GS frames), stopping (noise and stall
 tests), motion_search (the prior preset's motion start), method (STFM: one fit), ensemble
 (STFMEnsemble, make_stfm), multilevel (coarse to fine), auto (`preset="auto"`'s per-scene choice),
-guard (the GS-only floor of the output), components (which parts a scene needs).
+floor (the GS-only floor of the output), components (which parts a scene needs); stage, stages and
+recipe (the stages every build runs, make_stfm), build_fit (the fit stage).
 """
 
-from rngcam.recon.methods.stfm.ensemble import STFMEnsemble, make_stfm
+from rngcam.recon.methods.stfm.ensemble import STFMEnsemble
 from rngcam.recon.methods.stfm.method import STFM
+from rngcam.recon.methods.stfm.recipe import RECIPE, explain, make_stfm
 from rngcam.recon.methods.stfm.settings import (
     ALL_BASES,
     ENSEMBLE_BASES,
@@ -27,5 +29,5 @@ from rngcam.recon.methods.stfm.settings import (
     STFMSettings,
 )
 
-__all__ = ["ALL_BASES", "ENSEMBLE_BASES", "INIT_STEPS", "NOISE_CHECK_STEPS", "PRESETS", "REFINE_LR_RATIO",
-           "REFINE_STALL_PASSES", "STALL_PASSES", "STFM", "STFMEnsemble", "STFMSettings", "make_stfm"]
+__all__ = ["ALL_BASES", "ENSEMBLE_BASES", "INIT_STEPS", "NOISE_CHECK_STEPS", "PRESETS", "RECIPE", "REFINE_LR_RATIO",
+           "REFINE_STALL_PASSES", "explain", "STALL_PASSES", "STFM", "STFMEnsemble", "STFMSettings", "make_stfm"]

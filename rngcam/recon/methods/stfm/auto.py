@@ -16,7 +16,7 @@ differently, the camera pans), it is not. The test: for each other key frame g,
     misfit_g = min over shifts d of ||F(d) - key_g||^2 / ||median - key_g||^2
 
 (F(d): the layer shifted by d over the median; the denominator is what moved in key frame g).
-The prior preset is chosen when their mean is below LAYER_MISFIT_MAX. It costs one
+The prior preset is chosen when their mean is below the auto_preset stage's layer_misfit_max. It costs one
 composite per candidate shift and key frame (about a second at 64 px), no fit. Key frames larger
 than LAYER_TEST_SIDE are binned down to about it first: the threshold was set at 32-64 px, and at
 228x342 the test at full size took 8 s of the set-up (0.3 s binned).
@@ -31,8 +31,8 @@ from torch import Tensor
 
 from rngcam.recon.methods.coarse_to_fine import bin_video
 from rngcam.recon.methods.stfm.motion_search import candidate_shifts, key_frame_layer, shifted_frames
+from rngcam.recon.methods.stfm.stages import AutoPresetConfig
 
-LAYER_MISFIT_MAX = 0.5  # mean misfit: sineball 0.29 (64 px), 0.39 (32 px); smoke 0.68, 0.60; real clips 0.72-1.0
 CHUNK_ELEMENTS = 8_000_000  # composited values held at once (32 MB of float32 per temporary)
 LAYER_TEST_SIDE = 64  # key frames are binned by an integer factor to no less than this (their longer side)
 
@@ -44,10 +44,11 @@ class PresetChoice:
     preset: str
     reason: str
     misfits: list[float] = field(default_factory=list)  # per key frame other than the middle one
+    misfit_max: float = AutoPresetConfig.layer_misfit_max
 
     def as_dict(self) -> dict:
         return {"preset": self.preset, "reason": self.reason, "layer_misfits": self.misfits,
-                "layer_misfit_max": LAYER_MISFIT_MAX}
+                "layer_misfit_max": self.misfit_max}
 
 
 @torch.no_grad()
@@ -88,7 +89,7 @@ def _binned(keys: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor | None]:
     return bin_video(keys, shape, 1), mask
 
 
-def choose_preset(problem) -> PresetChoice:
+def choose_preset(problem, misfit_max: float = AutoPresetConfig.layer_misfit_max) -> PresetChoice:
     """The preset for `problem` (see the module docstring); it looks at the GS key frames only
     (held-out GS pixels filled from fitted ones, as every initialisation does)."""
     if problem.b_gs is None or problem.b_gs.shape[1] < 2:
@@ -98,8 +99,9 @@ def choose_preset(problem) -> PresetChoice:
         return PresetChoice("fast", "non-finite key frames: no layer test")
     misfits = [round(m, 4) for m in layer_misfits(keys, problem.mask)]
     mean = sum(misfits) / len(misfits)
-    if mean < LAYER_MISFIT_MAX:
+    if mean < misfit_max:
         return PresetChoice("prior", f"one translating layer explains the key frames (mean misfit {mean:.2f} "
-                                     f"< {LAYER_MISFIT_MAX}): the paper's prior", misfits)
+                                     f"< {misfit_max}): the paper's prior", misfits, misfit_max)
     return PresetChoice("fast", f"one translating layer does not explain the key frames (mean misfit "
-                                f"{mean:.2f} >= {LAYER_MISFIT_MAX}): the prior preset would collapse there", misfits)
+                                f"{mean:.2f} >= {misfit_max}): the prior preset would collapse there", misfits,
+                        misfit_max)

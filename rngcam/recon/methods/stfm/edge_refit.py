@@ -4,8 +4,9 @@ Self-calibration's key rows find a PSF measured too large (rngcam.recon.methods.
 shrunk on the grid it lacks the edge its measurement lost, and applied it never paid. Here the
 first fit runs through the PSF as handed; where it stops clearly above its noise level and the
 key rows found the PSF too large, its video fits that edge (rngcam.recon.methods.psf_edge), and
-where the edge lowers the RS residual by EDGE_MIN_DROP another fit runs through that PSF; then
-again from the best fit's video (a better video fits a better edge), at most MAX_REFITS times.
+where the edge lowers the RS residual by `min_drop` another fit runs through that PSF; then
+again from the best fit's video (a better video fits a better edge), at most `max_refits` times
+(the psf_edge stage's config: stages.EdgeRefitConfig).
 The output is the fit that explains the RS image best (each through its own PSF; `refits`).
 Figures: bench/realistic.md, "A PSF measured too large: its edge fitted".
 """
@@ -19,21 +20,19 @@ from torch import Tensor
 
 from rngcam.recon.methods.stfm.refits import Refits, nth
 from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
+from rngcam.recon.methods.stfm.stages import EdgeRefitConfig
 
 # The best fit's RS residual / its noise level at or above which an edge is fitted: the fit is not
 # explained (settings.EXPLAINED_RATIO), where the key rows point at a PSF scale (rngcam.recon.misfit.POINTED_RATIO)
 EDGE_RATIO = EXPLAINED_RATIO
-EDGE_MAX_SCALE = 0.99  # the key rows' PSF scale at or below which the PSF is taken as measured too large
-EDGE_MIN_DROP = 0.15  # the share by which the fitted edge must lower the best video's RS residual
-MAX_REFITS = 2  # fits after the first
 
 
-def edge_scale(selfcal: dict | None) -> float | None:
-    """The key rows' PSF scale where it says the PSF was measured too large (not applied, <= EDGE_MAX_SCALE),
+def edge_scale(selfcal: dict | None, max_scale: float = EdgeRefitConfig.max_scale) -> float | None:
+    """The key rows' PSF scale where it says the PSF was measured too large (not applied, <= `max_scale`),
     whether or not it lowered their residual: without its edge a shrunk PSF may not (smoke, PSF 5 % large)."""
     psf = ((selfcal or {}).get("scales") or {}).get("psf") or {}
     est = psf.get("estimate")
-    if psf.get("applied") or not isinstance(est, float) or not 0 < est <= EDGE_MAX_SCALE:
+    if psf.get("applied") or not isinstance(est, float) or not 0 < est <= max_scale:
         return None
     return est
 
@@ -45,8 +44,9 @@ class EdgeRefit(Refits):
     SETTING, RESULT, VALUE = "psf_edge", "edge_refits", "scale"
     STATE, STAGE_NAME = "edge", "PSF-edge"
 
-    def __init__(self, first, problem, scale: float, refit: Callable):
+    def __init__(self, first, problem, scale: float, refit: Callable, config: EdgeRefitConfig | None = None):
         super().__init__(first, problem, refit, {"key_rows_scale": scale})
+        self._config = config or EdgeRefitConfig()
 
     def _propose(self, best, res: float) -> tuple[Tensor, dict] | None:
         """Fit the edge to the best fit's video; the PSF for another fit where it pays."""
@@ -58,8 +58,8 @@ class EdgeRefit(Refits):
             self.report["why"] = (f"the {nth(self._best)} fit's RS residual is within {EDGE_RATIO}x its noise "
                                   "level" if noise else "no noise level")
             return None
-        if n >= MAX_REFITS:
-            self.report["why"] = f"{MAX_REFITS} fits through a fitted edge made"
+        if n >= self._config.max_refits:
+            self.report["why"] = f"{self._config.max_refits} fits through a fitted edge made"
             return None
         if any(r["from_fit"] == self._best for r in self.report["refits"]):  # the same video, the same edge
             self.report["why"] = f"the fit through the edge the {nth(self._best)} fit's video gave did not do better"
@@ -74,9 +74,9 @@ class EdgeRefit(Refits):
         drop = 1 - found["residual"] / max(res, 1e-30)
         attempt = {k: v for k, v in found.items() if k not in ("psf", "searched")}
         attempt.update(drop=drop, from_fit=self._best, from_rs=res)
-        if not drop >= EDGE_MIN_DROP:
+        if not drop >= self._config.min_drop:
             self.report["why"] = (f"an edge fitted to the {nth(self._best)} fit's video (x{found['scale']:.4f}) lowers "
-                                  f"its RS residual by {100 * drop:.1f} % (< {100 * EDGE_MIN_DROP:g} %)")
+                                  f"its RS residual by {100 * drop:.1f} % (< {100 * self._config.min_drop:g} %)")
             self.report["not_refitted"] = attempt  # what the search found, reported though not fitted through
             return None
         return found["psf"], attempt

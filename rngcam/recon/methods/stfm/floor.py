@@ -20,8 +20,9 @@ from rngcam.recon.metrics import relative_residual
 class StartFloor(Wrapped):
     """`method` (an STFM, ensemble or coarse-to-fine run) with the start as the floor of its output."""
 
-    def __init__(self, method, problem):
+    def __init__(self, method, problem, candidates: tuple = ("blend", "interp")):
         self._method = method
+        self._candidates = tuple(candidates)
         self._problem = problem.to(torch.float32)
         self._rs_op = self._problem.rs_op()
         self._line_factor = 1.0  # the line-time factor _rs_op's rows are at (a fit may learn one)
@@ -57,7 +58,7 @@ class StartFloor(Wrapped):
         if p.b_rs is None or p.b_gs is None or p.b_gs.shape[1] < 1:
             return None, float("inf")
         best = (None, float("inf"))
-        for name in ("blend", "interp"):
+        for name in self._candidates:
             try:
                 video = self._start(name)
             except Exception:  # noqa: BLE001 - a start that cannot be made is no floor

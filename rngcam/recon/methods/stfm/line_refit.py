@@ -6,10 +6,10 @@ early steps placed by the wrong timing stays off in the last rows' frames. Start
 factor and learning on from there, a later fit places the ball by nearly the right timing from its
 first step and closes most of what is left (sineball +2 %: x1.0142, then x1.0187, 40.2 dB; with the
 line time's step at 8, x1.0098, x1.0174, x1.0189; bench/realistic.md, stop 70). Where the fit that
-explains the RS image best so far learned a factor more than REFIT_LINE_TIME off where it started,
+explains the RS image best so far learned a factor more than `refit_line_time` off where it started,
 one more whole fit runs with the problem's RS timing stretched by the factor learned (calibrated
-again), up to MAX_LINE_REFITS; from a fit that ended unexplained (settings.EXPLAINED_RATIO), one, from
-REFIT_LINE_TIME_UNEXPLAINED.
+again), up to `max_refits`; from a fit that ended unexplained (settings.EXPLAINED_RATIO), one, from
+`refit_line_time_unexplained` (the line_refit stage's config: stages.LineRefitConfig).
 The output is the fit that explains the RS image best (`refits`).
 """
 
@@ -21,19 +21,7 @@ from collections.abc import Callable
 from rngcam.recon.methods.stfm.line_time import MAX_LINE_CHANGE
 from rngcam.recon.methods.stfm.refits import Refits, nth
 from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
-
-# A fit that learned its factor further than this from where it started makes another: past what the
-# lab family's +-0.5 % is learned as. At 0.5 %, once fits ran 4 half-lives of their step (stopping.py), lab
-# captures whose first fits had learned it within 0.07 % made later fits that drifted past their truth at
-# an RS residual 0.02-0.14 % lower (seed 8: x1.0051, then x1.0092 for 1.005, -3.0 dB; bench/realistic.md,
-# stop 71); the first fit learns a 2 % error as 1.78 %, a 3 % one as 2.6 %
-REFIT_LINE_TIME = 0.01
-# Later fits at most: each closes most of what the one before left (a 2 % error in three)
-MAX_LINE_REFITS = 3
-# From a fit that ended unexplained (settings.EXPLAINED_RATIO), one later fit, where its factor is this far
-# off: another error moves its line time (the "together" capture's first fit, through a PSF 5 % large: x1.0028
-# at stop 70, and three later fits from 0.25 % took the budget before the PSF's edge was fitted)
-REFIT_LINE_TIME_UNEXPLAINED = 0.007
+from rngcam.recon.methods.stfm.stages import LineRefitConfig
 
 
 class LineRefit(Refits):
@@ -44,8 +32,10 @@ class LineRefit(Refits):
     SETTING, RESULT, VALUE = "line_refit", "line_refits", "factor"
     STATE, STAGE_NAME = "line", "line-time refit"
 
-    def __init__(self, first, problem, refit: Callable, settings: dict | None = None):
+    def __init__(self, first, problem, refit: Callable, settings: dict | None = None,
+                 config: LineRefitConfig | None = None):
         super().__init__(first, problem, refit, {"factor": 1.0}, settings)
+        self._config = config or LineRefitConfig()
 
     def _propose(self, best, res: float) -> tuple[float, dict] | None:
         made, k = len(self.report["refits"]), self._best
@@ -55,7 +45,7 @@ class LineRefit(Refits):
             return None
         over = self._over_noise(best, res)
         explained = over is not None and over < EXPLAINED_RATIO
-        if made >= (MAX_LINE_REFITS if explained else 1):
+        if made >= (self._config.max_refits if explained else 1):
             self.report["why"] = f"{made} later fit{'s' if made > 1 else ''} made" + (
                 "" if explained else f" (the {nth(k)} fit ended at {EXPLAINED_RATIO}x its noise level or more)")
             return None
@@ -65,7 +55,7 @@ class LineRefit(Refits):
             return None
         start = self._made.get(k, 1.0)
         factor = start * learned
-        near = REFIT_LINE_TIME if explained else REFIT_LINE_TIME_UNEXPLAINED
+        near = self._config.refit_line_time if explained else self._config.refit_line_time_unexplained
         if not abs(learned - 1) > near:
             where = "the recorded one" if k == 0 else f"where it started (x{start:.4f})"
             self.report["why"] = (f"the {nth(k)} fit learned the line time at x{factor:.4f}, within {100 * near:g} % "

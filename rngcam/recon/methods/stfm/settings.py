@@ -147,6 +147,7 @@ class STFMSettings:
                "real cameras): on, off, or auto (on with the prior preset, one moving layer whose motion times "
                "the rows; off with fast, where spread motion let it drift); needs both cameras, soft GS "
                "anchoring and the bundle's RS timing", choices=LINE_TIME_MODES)
+    stages: dict | None = field(default=None, metadata={"internal": True})  # --set / --recipe: {stage: {field: value}}
     start_floor: bool = setting(False, "output the best GS-only video (cross-fade or flow interpolation) "
                                       "instead of the fit when the fit's RS residual is not below its own")
 
@@ -197,6 +198,10 @@ class STFMSettings:
             raise ConfigError(f"stfm: rows_per_step must be >= 1, got {self.rows_per_step}")
         if self.gs_windows_per_step is not None and self.gs_windows_per_step < 0:
             raise ConfigError(f"stfm: gs_windows_per_step must be >= 0, got {self.gs_windows_per_step}")
+        if self.stages:
+            from rngcam.recon.methods.stfm.recipe import check_stage_settings
+
+            self.stages = check_stage_settings(self.stages)
         if self.tv_frames_per_step < 1 or (self.frame_chunk is not None and self.frame_chunk < 1):
             raise ConfigError("tv_frames_per_step and frame_chunk must be >= 1")
 

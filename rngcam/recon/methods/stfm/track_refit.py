@@ -9,8 +9,9 @@ residual well above its noise level (sineball lab seed 1: 1.43x, ball p90 13 px)
 capture searched at half the penalty ends at 1.02x with the ball kept (bench/realistic.md, "stop 68").
 So where a run whose motion came from the search ends at RATIO x its noise level or more, and the
 row-gain stage (a PSF found too large) does not apply, it is made again with the search's turn
-penalty times TURN_SCALE; the run whose RS residual is lower is the output. `make_stfm` wraps the
-whole run this way; the second run has its own edge and line-time stages and wraps nothing more.
+penalty times `turn_scale` (the track_refit stage's config); the run whose RS residual is lower is
+the output. The recipe wraps the whole run this way; the second run has its own edge and line-time
+stages and wraps nothing more.
 """
 
 from __future__ import annotations
@@ -20,12 +21,12 @@ from collections.abc import Callable
 
 from rngcam.recon.methods.stfm.refits import Refits, nth
 from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
+from rngcam.recon.methods.stfm.stages import TrackRefitConfig
 
 # The first run's RS residual / noise level at or above which the second run is made: the row-gain
 # stage's, where the fit is not explained (a lost ball ended at 1.24x-1.43x, kept ones at 1.0x-1.13x;
 # settings.EXPLAINED_RATIO)
 RATIO = EXPLAINED_RATIO
-TURN_SCALE = 0.5  # the second run's turn penalty, of the search's (motion_search.SEARCH_TURN)
 
 
 class TrackRefit(Refits):
@@ -35,17 +36,19 @@ class TrackRefit(Refits):
     SETTING, RESULT, VALUE = "track_refit", "track_refits", "turn_scale"
     STATE, STAGE_NAME = "track", "track refit"
 
-    def __init__(self, first, problem, refit: Callable):
+    def __init__(self, first, problem, refit: Callable, turn_scale: float = TrackRefitConfig.turn_scale):
         super().__init__(first, problem, refit, {"turn_scale": 1.0})
+        self.turn_scale = turn_scale
 
     def _propose(self, best, res: float) -> tuple[float, dict] | None:
         ratio = self._unexplained_once(best, res, RATIO, "one run from a search with a smaller turn penalty made")
-        return None if ratio is None else (TURN_SCALE, {"turn_scale": TURN_SCALE, "from_fit": 0, "from_rs": res,
-                                                        "ratio": ratio})
+        if ratio is None:
+            return None
+        return self.turn_scale, {"turn_scale": self.turn_scale, "from_fit": 0, "from_rs": res, "ratio": ratio}
 
     def _check_made(self, made: dict) -> bool:
         """What each later run was made with: the turn penalty's scale this stage uses, nothing else."""
-        return all(isinstance(s, float) and math.isclose(s, TURN_SCALE) for s in made.values())
+        return all(isinstance(s, float) and math.isclose(s, self.turn_scale) for s in made.values())
 
     def _line(self, report: dict) -> str:
         refits = report.get("refits") or []

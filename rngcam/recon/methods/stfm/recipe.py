@@ -1,0 +1,116 @@
+"""STFM's recipe: the ordered stages every build runs, `make_stfm` (one loop over them) and `explain`.
+
+Every preset runs this recipe; the preset decides the fit's fields and schedule (settings._preset) and
+each stage decides, from the build, whether it applies and says why not. A stage's numbers are set with
+`--set stage.field=value` or `--recipe FILE.yaml` (STFMSettings.stages), checked against its config.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from torch import Tensor
+
+from rngcam.errors import ConfigError
+from rngcam.recon.loop import Wrapped
+from rngcam.recon.methods.stfm.settings import STFMSettings
+from rngcam.recon.methods.stfm.stage import Build, config_dict, configs_for, run_recipe
+from rngcam.recon.methods.stfm.stages import (
+    AutoPreset,
+    EdgeRefitStage,
+    Fit,
+    LineRefitStage,
+    RowGainRefitStage,
+    SelfCalibration,
+    StartFloorStage,
+    Subframes,
+    SubframesAverage,
+    TrackRefitStage,
+)
+
+RECIPE = (SelfCalibration(), AutoPreset(), Subframes(), Fit(), StartFloorStage(), LineRefitStage(),
+          EdgeRefitStage(), RowGainRefitStage(), TrackRefitStage(), SubframesAverage())
+
+
+MAX_RECIPE_CHARS = 65_536  # a recipe file names a few stages' numbers
+
+
+def stage_names() -> list[str]:
+    return [s.name for s in RECIPE]
+
+
+def check_stage_settings(overrides: dict | None) -> dict:
+    """`overrides` ({stage: {field: value}}) checked and typed against the recipe's configs; the
+    changed values only (one line for an unknown name or a wrong type)."""
+    configs = configs_for(RECIPE, overrides)
+    return {name: {key: config_dict(configs[name])[key] for key in (overrides or {}).get(name) or {}}
+            for name in (overrides or {})}
+
+
+def _build(problem, settings: STFMSettings | None, device, initial_video, clock, stage) -> Build:
+    settings = settings or STFMSettings()
+    return Build(handed=problem, problem=problem, settings=settings, device=device, clock=clock, stage=stage,
+                 initial_video=initial_video, configs=configs_for(RECIPE, settings.stages))
+
+
+def make_stfm(problem, settings: STFMSettings | None = None, device="cpu", initial_video: Tensor | None = None,
+              clock=None, stage=None, trace: bool = False):
+    """The STFM run for `problem` (see STFM and STFMSettings): RECIPE's stages, each that applies in turn.
+
+    `initial_video` (C, K, H, W), on the RS scale without GS gains (e.g. a coarser level's estimate,
+    upsampled): one fit whose dynamic base is that video, with none of the stages around a whole run.
+    `clock` (the run's: rngcam.recon.loop.Clock) and `stage(message)` as in make_tv3d. With `trace` the
+    method carries `recipe`, one line a stage (what it did or why it was left out), which the runner
+    writes to recon.log and the resolved settings keep."""
+    build = _build(problem, settings, device, initial_video, clock, stage)
+    method = run_recipe(RECIPE, build)
+    return Traced(method, [r.line() for r in build.trace]) if trace else method
+
+
+def explain(problem, settings: STFMSettings | None = None) -> list[str]:
+    """The recipe a run on `problem` would follow, one line a stage, without fitting: the stages that
+    decide from the data before the fit (self-calibration, the preset's choice) run, the others say
+    what they would do or why they are left out."""
+    build = _build(problem, settings, "cpu", None, None, None)
+    run_recipe(RECIPE, build, dry=True)
+    return [r.line() for r in build.trace]
+
+
+def recipe_from_yaml(text: str, source: str) -> dict:
+    """A recipe file's stage settings ({stage: {field: value}}), checked (one line naming `source`)."""
+    import yaml
+
+    if len(text) > MAX_RECIPE_CHARS:
+        raise ConfigError(f"{source}: a recipe file of {len(text):,} characters (at most {MAX_RECIPE_CHARS:,})")
+    try:
+        data = yaml.safe_load(text)
+    except (yaml.YAMLError, RecursionError) as exc:
+        raise ConfigError(f"{source}: not valid YAML ({getattr(exc, 'problem', None) or type(exc).__name__})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict) or not all(isinstance(v, dict) or v is None for v in data.values()):
+        raise ConfigError(f"{source}: a recipe file maps stage names to their settings (stage: {{field: value}})")
+    try:
+        return check_stage_settings({str(k): dict(v or {}) for k, v in data.items()})
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+class Traced(Wrapped):
+    """A whole run with the recipe it followed (`recipe`: one line a stage)."""
+
+    def __init__(self, method, recipe: list[str]):
+        self._method = method
+        self.recipe = recipe
+
+    def resolved_settings(self) -> dict | None:
+        out = self._method.resolved_settings()
+        return None if out is None else {**out, "recipe": list(self.recipe)}
+
+
+def with_stage_settings(settings: STFMSettings, overrides: dict) -> STFMSettings:
+    """`settings` with stage settings `overrides` merged over its own (checked)."""
+    merged = {k: dict(v) for k, v in (settings.stages or {}).items()}
+    for name, values in overrides.items():
+        merged.setdefault(name, {}).update(values)
+    return replace(settings, stages=check_stage_settings(merged))

@@ -1,0 +1,357 @@
+"""STFM's stages, in the order the recipe runs them (rngcam.recon.methods.stfm.recipe.RECIPE).
+
+Each stage says itself whether it applies to a build and why not; its config holds the numbers it
+decides by, each with the reason and the bench/ table that measured it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from rngcam.errors import ConfigError
+from rngcam.recon import ablation
+from rngcam.recon.methods.stfm.settings import _setting_or_preset
+from rngcam.recon.methods.stfm.stage import Build, NoConfig, Stage
+
+
+def _both_cameras(build: Build) -> str | None:
+    """Why a stage that needs both cameras' data is left out, or None."""
+    p = build.problem
+    if ablation.removed(build.settings):
+        return "an ablation removed a camera"
+    if p.b_rs is None or p.b_gs is None:
+        return "the problem lacks the RS image or the GS frames"
+    return None
+
+
+def _whole_run(build: Build) -> str | None:
+    """Why a stage that wraps a whole run is left out of this build (a level or a fit from a video)."""
+    return "a fit started from a given video (a level or a refinement)" if build.initial_video is not None else None
+
+
+class SelfCalibration(Stage):
+    name = "self_calibration"
+    about = "refine the calibration (gains; shift, rotation, scale, the PSF's scale) from the RS rows the GS frames saw"
+
+    def applies(self, build: Build) -> str | None:
+        s = build.settings
+        if s.selfcal_report is not None:
+            return "calibrated already (a later fit carries its run's calibration)"
+        if s.self_calibrate == "off":
+            return "self_calibrate off"
+        if ablation.removed(s):
+            return "an ablation removed a camera: nothing to calibrate against"
+        return None
+
+    def run(self, build: Build) -> str:
+        from rngcam.recon.methods.selfcal import calibrate_problem
+
+        build.problem, report = calibrate_problem(build.problem, build.settings.self_calibrate,
+                                                  build.settings.self_calibrate_psf_scale)
+        build.settings = replace(build.settings, selfcal_report=report or {})
+        applied = bool((report or {}).get("applied"))
+        return f"mode {build.settings.self_calibrate}; " + ("refined values applied" if applied else "nothing applied")
+
+    def plan(self, build: Build) -> str:
+        return self.run(build)  # seconds: the later stages decide from what it finds
+
+
+@dataclass(frozen=True)
+class AutoPresetConfig:
+    # mean layer misfit under which one translating layer explains the key frames: sineball 0.29 (64 px),
+    # 0.39 (32 px); smoke 0.68, 0.60; real clips 0.72-1.0 (bench/stfm_motion.md)
+    layer_misfit_max: float = 0.5
+
+    def __post_init__(self):
+        if not 0 < self.layer_misfit_max:
+            raise ConfigError(f"stfm: auto_preset.layer_misfit_max must be > 0, got {self.layer_misfit_max!r}")
+
+
+class AutoPreset(Stage):
+    name = "auto_preset"
+    about = "choose prior (one translating layer explains the key frames) or fast, from the key frames"
+    Config = AutoPresetConfig
+
+    def applies(self, build: Build) -> str | None:
+        return None if build.settings.preset == "auto" else f"preset {build.settings.preset} given"
+
+    def run(self, build: Build) -> str:
+        from rngcam.recon.methods.stfm.auto import choose_preset
+
+        choice = choose_preset(build.problem, build.config(self.name).layer_misfit_max)
+        if build.settings.no_gs:  # say why there are no key frames to test
+            choice = replace(choice, reason=f"--no-gs: {choice.reason}")
+        build.settings = replace(build.settings, preset=choice.preset, preset_choice=choice.as_dict())
+        return f"chose {choice.preset}: {choice.reason}"
+
+    def plan(self, build: Build) -> str:
+        return self.run(build)  # a second at 64 px: what it chooses decides the rest
+
+
+class Subframes(Stage):
+    name = "subframes"
+    about = "fit each output frame as shorter subframes (exposures begin and end inside frames)"
+
+    def _steps(self, build: Build) -> int:
+        s = build.settings
+        steps = _setting_or_preset(s, "subframes")
+        if steps == 1 or not build.problem.can_subdivide():
+            if steps != 1 and s.subframes is not None:
+                raise ConfigError(f"stfm: subframes {steps} needs the cameras' timing, which this problem does not "
+                                  "carry (a problem built from a bundle does)")
+            return 1
+        return steps
+
+    def applies(self, build: Build) -> str | None:
+        if build.initial_video is not None:
+            return "a fit started from a given video keeps its frames"
+        if self._steps(build) == 1:
+            timed = build.problem.can_subdivide()
+            return "subframes 1 (the preset's or the setting)" if timed else "the problem lacks the cameras' timing"
+        return None
+
+    def run(self, build: Build) -> str:
+        steps = self._steps(build)
+        build.handed, build.problem = build.handed.in_subframes(steps), build.problem.in_subframes(steps)
+        build.settings = replace(build.settings, subframes=1)
+        build.subframes = steps
+        return f"{steps} subframes a frame: {build.problem.shape[1]} frames fitted"
+
+    def plan(self, build: Build) -> str:
+        return self.run(build)  # no fit: the problem on shorter frames
+
+
+class Fit(Stage):
+    name = "fit"
+    about = "fit the fields: one fit, fits of several bases or seeds averaged, coarse to fine where the grid is large"
+
+    def run(self, build: Build) -> str:
+        from rngcam.recon.methods.stfm.build_fit import make_fit
+
+        build.method = make_fit(build.problem, replace(build.settings, start_floor=False), build.device,
+                                build.initial_video, build.clock, build.stage)
+        return self.plan(build)
+
+    def plan(self, build: Build) -> str:
+        from rngcam.recon.methods.stfm.build_fit import describe_fit
+
+        return describe_fit(build.problem, build.settings, build.initial_video)
+
+
+@dataclass(frozen=True)
+class StartFloorConfig:
+    # the GS-only videos the fit must explain the RS image better than (bench/stfm_compare.md)
+    candidates: tuple = ("blend", "interp")
+
+    def __post_init__(self):
+        bad = [c for c in self.candidates if c not in ("blend", "interp")]
+        if bad or not self.candidates:
+            raise ConfigError(f"stfm: start_floor.candidates must be blend and/or interp, got {self.candidates!r}")
+
+
+class StartFloorStage(Stage):
+    name = "start_floor"
+    about = "output the best GS-only video where the fit explains the RS image no better"
+    Config = StartFloorConfig
+
+    def applies(self, build: Build) -> str | None:
+        if not build.settings.start_floor:
+            return "start_floor off"
+        return _whole_run(build)
+
+    def run(self, build: Build) -> str:
+        from rngcam.recon.methods.stfm.floor import StartFloor
+
+        floor = StartFloor(build.method, build.problem, build.config(self.name).candidates)
+        build.method = floor
+        if floor.start_name is None:
+            return "no GS-only video to compare with"
+        return f"best GS-only video {floor.start_name} (RS residual {floor.start_rs:.4f})"
+
+
+@dataclass(frozen=True)
+class LineRefitConfig:
+    # a learned factor further than this from where the fit started makes another fit: past what the lab
+    # family's +-0.5 % is learned as; the first fit learns a 2 % error as 1.78 % (bench/realistic.md, stop 71)
+    refit_line_time: float = 0.01
+    # later fits at most: each closes most of what the one before left (a 2 % error in three; bench/realistic.md)
+    max_refits: int = 3
+    # from a fit that ended unexplained, one later fit where its factor is this far off: another error moves
+    # its line time ("together" capture, bench/realistic.md, stop 70)
+    refit_line_time_unexplained: float = 0.007
+
+    def __post_init__(self):
+        if not (self.refit_line_time > 0 and self.refit_line_time_unexplained > 0 and self.max_refits >= 0):
+            raise ConfigError("stfm: line_refit's thresholds must be > 0 and max_refits >= 0")
+
+
+class LineRefitStage(Stage):
+    name = "line_refit"
+    about = "where the fit learned the line time off where it started, fit again from there"
+    Config = LineRefitConfig
+
+    def applies(self, build: Build) -> str | None:
+        from rngcam.recon.methods.stfm.line_time import learns_line_time
+
+        s = build.settings
+        if not s.line_refit:
+            return "line_refit off"
+        if not learns_line_time(s):
+            return "the fit does not learn the line time"
+        if build.problem.rs_timing is None:
+            return "the problem has no RS timing"
+        return _whole_run(build) or _both_cameras(build)
+
+    def run(self, build: Build) -> str:
+        from rngcam.recon.methods.stfm.build_fit import another_fit
+        from rngcam.recon.methods.stfm.line_refit import LineRefit
+
+        s, handed = build.settings, build.handed
+
+        def later(factor: float, report: dict):
+            return another_fit(build, handed.at_line_time(factor),
+                               {"line_refit": report, "through": f"the RS line time at x{factor:.4f}"},
+                               s.self_calibrate_psf_scale, line_refit=False, psf_edge=False, line_time_from=factor)
+
+        build.method = LineRefit(build.method, build.problem, later, {"psf_edge": s.psf_edge},
+                                 build.config(self.name))
+        return self.about
+
+
+@dataclass(frozen=True)
+class EdgeRefitConfig:
+    # the key rows' PSF scale at or below which the PSF is taken as measured too large (bench/realistic.md)
+    max_scale: float = 0.99
+    # the share by which the fitted edge must lower the best video's RS residual (bench/realistic.md)
+    min_drop: float = 0.15
+    # fits through a fitted edge after the first
+    max_refits: int = 2
+
+    def __post_init__(self):
+        if not (0 < self.max_scale <= 1 and 0 <= self.min_drop < 1 and self.max_refits >= 0):
+            raise ConfigError("stfm: psf_edge needs 0 < max_scale <= 1, 0 <= min_drop < 1, max_refits >= 0")
+
+
+def _edge_scale(build: Build) -> float | None:
+    from rngcam.recon.methods.stfm.edge_refit import edge_scale
+
+    return edge_scale(build.settings.selfcal_report, build.config(EdgeRefitStage.name).max_scale)
+
+
+class EdgeRefitStage(Stage):
+    name = "psf_edge"
+    about = "where the key rows found the PSF measured too large and the fit ends unexplained, fit its lost edge"
+    Config = EdgeRefitConfig
+
+    def applies(self, build: Build) -> str | None:
+        if not build.settings.psf_edge:
+            return "psf_edge off"
+        if _edge_scale(build) is None:
+            return "the key rows did not find the PSF measured too large"
+        return _both_cameras(build)
+
+    def run(self, build: Build) -> str:
+        from rngcam.recon.methods.stfm.build_fit import another_fit
+        from rngcam.recon.methods.stfm.edge_refit import EdgeRefit
+
+        s, handed = build.settings, build.handed
+
+        def second(psf, report: dict):
+            shrink = ((report.get("refits") or [report])[-1]).get("scale")
+            through = "the PSF with its lost edge fitted" + ("" if shrink is None else f" (shrunk x{shrink:.4f})")
+            found = {"scales": s.selfcal_report.get("scales"), "psf_edge": report, "through": through}
+            return another_fit(build, replace(handed, psf=psf.to(handed.psf)), found, False, psf_edge=False)
+
+        build.method = EdgeRefit(build.method, build.problem, _edge_scale(build), second, build.config(self.name))
+        return f"key rows' PSF scale x{_edge_scale(build):.4f}: {self.about}"
+
+
+class RowGainRefitStage(Stage):
+    name = "row_gain_refit"
+    about = "where a searched motion ends unexplained with the PSF found too large, search again with row gains"
+
+    def applies(self, build: Build) -> str | None:
+        s = build.settings
+        if not s.row_gain_refit:
+            return "row_gain_refit off"
+        if s.row_gain_search:
+            return "this is the row-gain run"
+        if _setting_or_preset(s, "motion_init") != "search":
+            return "the motion does not start from the search"
+        if _edge_scale(build) is None:
+            return "the key rows did not find the PSF measured too large"
+        return _both_cameras(build)
+
+    def run(self, build: Build) -> str:
+        from rngcam.recon.methods.stfm.build_fit import another_fit
+        from rngcam.recon.methods.stfm.row_gain_refit import RowGainRefit
+
+        s, handed = build.settings, build.handed
+        through = (s.selfcal_report or {}).get("through")  # a later fit of another stage: what it is made through
+        through = through if isinstance(through, str) else None
+
+        def second(_row_gains: bool, report: dict):
+            label = "the motion search with row gains" + ("" if through is None else f" and {through}")
+            return another_fit(build, handed, {"row_gain_refit": report, "through": label},
+                               s.self_calibrate_psf_scale, row_gain_refit=False, row_gain_search=True)
+
+        build.method = RowGainRefit(build.method, build.problem, _edge_scale(build), second, through)
+        return self.about
+
+
+@dataclass(frozen=True)
+class TrackRefitConfig:
+    # the second run's turn penalty, of the search's: half the penalty kept the ball where the first lost
+    # it (sineball lab seed 1: 1.43x -> 1.02x its noise level; bench/realistic.md, stop 68)
+    turn_scale: float = 0.5
+
+    def __post_init__(self):
+        if not 0 < self.turn_scale:
+            raise ConfigError(f"stfm: track_refit.turn_scale must be > 0, got {self.turn_scale!r}")
+
+
+class TrackRefitStage(Stage):
+    name = "track_refit"
+    about = "where a searched motion ends unexplained, search again with a smaller turn penalty"
+    Config = TrackRefitConfig
+
+    def applies(self, build: Build) -> str | None:
+        s = build.settings
+        if not s.track_refit:
+            return "track_refit off (or a later fit of another stage)"
+        if s.row_gain_refit and _edge_scale(build) is not None:
+            return "the row-gain stage applies instead"
+        if _setting_or_preset(s, "motion_init") != "search":
+            return "the motion does not start from the search"
+        return _both_cameras(build)
+
+    def run(self, build: Build) -> str:
+        from rngcam.recon.methods.stfm.build_fit import another_fit
+        from rngcam.recon.methods.stfm.track_refit import TrackRefit
+
+        s, handed = build.settings, build.handed
+
+        def second(scale: float, report: dict):
+            found = {"track_refit": report, "through": f"the motion search with its turn penalty x{scale:g}"}
+            return another_fit(build, handed, found, s.self_calibrate_psf_scale, search_turn_scale=scale)
+
+        build.method = TrackRefit(build.method, build.problem, second, build.config(self.name).turn_scale)
+        return self.about
+
+
+class SubframesAverage(Stage):
+    name = "subframes_average"
+    about = "average the subframes into the output's frames"
+    Config = NoConfig
+
+    def applies(self, build: Build) -> str | None:
+        return None if build.subframes > 1 else "fitted on the output's frames"
+
+    def run(self, build: Build) -> str:
+        from rngcam.recon.methods.stfm.subframes import SubframesAveraged
+
+        build.method = SubframesAveraged(build.method, build.subframes, build.problem.shape[1])
+        return f"{build.subframes} subframes to a frame"
+
+    def plan(self, build: Build) -> str:
+        return f"{build.subframes} subframes to a frame"
