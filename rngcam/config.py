@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from rngcam.backends import CAMERAS, GENERATORS, camera_backend, generator_transport
 from rngcam.errors import ConfigError
 from rngcam.physics.timing import DEFAULT_READOUT, check_readout
+from rngcam.untrusted import MAX_YAML_CHARS, check_yaml_shape, read_untrusted
 
 Dialect = Literal["keysight_33500b", "rigol_dg", "siglent_sdg"]
 FakeFault = Literal["none", "silent", "garbage", "scpi_error"]
@@ -391,6 +392,7 @@ def parse_rig(text: str, path: str | Path = "<rig>") -> Rig:
     """Validate rig YAML text; `path` names it in errors and anchors relative paths."""
     path = Path(path)
     try:
+        check_yaml_shape(text, str(path), error=ConfigError)  # size and nesting first: nothing built yet
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
@@ -409,10 +411,11 @@ def parse_rig(text: str, path: str | Path = "<rig>") -> Rig:
 def load_rig(path: str | Path) -> Rig:
     """Read and validate a rig file; ConfigError (one line) when it is missing or invalid."""
     path = Path(path)
-    if not path.is_file():
+    if not (path.exists() or path.is_symlink()):
         raise ConfigError(f"{path}: rig file not found")
+    data = read_untrusted(path, MAX_YAML_CHARS * 4, what="rig file", error=ConfigError)  # no link, FIFO, device
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
         raise ConfigError(f"{path}: cannot read rig file ({exc})") from None
     return parse_rig(text, path)

@@ -130,6 +130,71 @@ def read_untrusted_text(path: str | os.PathLike, max_bytes: int, *, what: str = 
     return read_untrusted(path, max_bytes, what=what, within=within, error=error).decode("utf-8", "replace")
 
 
+MAX_NESTING = 64  # levels of lists and mappings in JSON or YAML from a file (rngcam writes < 10)
+MAX_YAML_CHARS = 256 * 2**10  # a rig's YAML: rigs are a few KiB; PyYAML takes seconds per MiB
+
+
+def load_json(text: str | bytes, what: str, *, max_nesting: int = MAX_NESTING,
+              error: type[RngcamError] = UntrustedFileError):
+    """JSON text from a file parsed, and its nesting checked (`error`, one line naming `what`,
+    when it is not JSON or nests deeper than `max_nesting`)."""
+    import json
+
+    try:
+        value = json.loads(text)
+    except (ValueError, RecursionError) as exc:  # RecursionError: deeper than Python's stack
+        reason = str(exc).splitlines()[0] if str(exc) else "nested too deeply"
+        raise error(f"{printable(what)} is not valid JSON ({printable(reason, 200)})") from None
+    if nesting(value) > max_nesting:
+        raise error(f"{printable(what)} nests deeper than {max_nesting} levels; refused")
+    return value
+
+
+def nesting(value) -> int:
+    """How deeply lists, tuples and dicts nest in `value` (0: a scalar), without recursion."""
+    deepest, stack = 0, [(value, 1)]
+    while stack:
+        item, depth = stack.pop()
+        children = item.values() if isinstance(item, dict) else item if isinstance(item, (list, tuple)) else None
+        if children is None:
+            continue
+        deepest = max(deepest, depth)
+        stack.extend((c, depth + 1) for c in children)
+    return deepest
+
+
+def check_yaml_shape(text: str, what: str, *, max_chars: int = MAX_YAML_CHARS, max_nesting: int = MAX_NESTING,
+                     error: type[RngcamError] = UntrustedFileError) -> None:
+    """`error` (one line naming `what`) when YAML `text` is longer than `max_chars` or nests deeper
+    than `max_nesting`, found from the parser's events (no recursion, nothing built); a syntax
+    error raises yaml.YAMLError, for the caller to say where."""
+    import yaml
+
+    if len(text) > max_chars:
+        raise error(f"{printable(what)}: {len(text):,} characters of YAML, above the limit of {max_chars:,}")
+    depth = 0
+    for event in yaml.parse(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
+        if isinstance(event, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
+            depth += 1
+            if depth > max_nesting:
+                raise error(f"{printable(what)}: YAML nested deeper than {max_nesting} levels; refused")
+        elif isinstance(event, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
+            depth -= 1
+
+
+def load_yaml(text: str, what: str, *, error: type[RngcamError] = UntrustedFileError):
+    """YAML text from a file (a rig, a bundle's rig text) parsed safely after `check_yaml_shape`;
+    `error` (one line) when it is too long, too deep or not YAML."""
+    import yaml
+
+    try:
+        check_yaml_shape(text, what, error=error)
+        return yaml.safe_load(text)
+    except (yaml.YAMLError, RecursionError) as exc:
+        problem = getattr(exc, "problem", None) or (str(exc).splitlines() or ["nested too deeply"])[0]
+        raise error(f"{printable(what)}: not valid YAML ({printable(problem, 200)})") from None
+
+
 def same_open_file(fh, path: str | os.PathLike) -> bool:
     """True when `path` (not following a link at its name) is still the file open as `fh`."""
     try:

@@ -1,5 +1,6 @@
 """Reading files from others: links, special files, sizes and swaps end in one line, by descriptor."""
 
+import json
 import os
 import threading
 
@@ -261,3 +262,167 @@ def test_an_hdf5_file_swapped_while_opened_reads_what_was_checked(tmp_path):
     finally:
         h5safe.open_untrusted_file = real_open
     assert h5safe.file_format(theirs) == ""  # now a link: refused, not followed
+
+
+# --- result folders from others: links, special files, types, references, checkpoints ---------
+
+SECRET = "-----BEGIN OPENSSH PRIVATE KEY----- the reader's own"
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    """A small recon folder (blend, one iteration) of a simulated bundle with truth."""
+    from bench import fuzz
+
+    return fuzz.make_seeds(tmp_path_factory.mktemp("seeds"))
+
+
+def _copy(folder, tmp_path):
+    import shutil
+
+    target = tmp_path / "r"
+    shutil.copytree(folder[1], target, symlinks=True)
+    (target / "report.html").unlink()
+    return target
+
+
+@pytest.mark.parametrize("name", ["metrics.json", "errors.csv", "recon.h5"])
+def test_a_link_in_a_result_folder_is_refused_and_never_shown(folder, tmp_path, name):
+    r = _copy(folder, tmp_path)
+    secret = tmp_path / "secret"
+    secret.write_text(SECRET)
+    if name == "recon.h5":
+        import shutil
+
+        shutil.move(r / name, secret)  # the reader's own reconstruction
+    (r / name).unlink(missing_ok=True)
+    (r / name).symlink_to(secret)
+    _one_line(_cli("report", r), name, "it is a link")
+    if name != "errors.csv":  # inspect reads no errors.csv
+        _one_line(_cli("inspect", r), name)
+    assert not (r / "report.html").exists()
+
+
+@pytest.mark.parametrize("name", ["metrics.json", "errors.csv"])
+def test_a_fifo_in_a_result_folder_neither_blocks_nor_is_read(folder, tmp_path, name):
+    r = _copy(folder, tmp_path)
+    (r / name).unlink()
+    os.mkfifo(r / name)
+    _one_line(_cli("report", r), name, "not a regular file")
+
+
+@pytest.mark.parametrize("field,value", [("psnr_db", "30"), ("warnings", "one"), ("events", [3]),
+                                         ("left_out", [{"component": 1}]), ("misfit", {"line": []}),
+                                         ("peak_rss_bytes", "x"), ("status", 0)])
+def test_a_wrong_typed_metrics_field_is_one_line_naming_it(folder, tmp_path, field, value):
+    r = _copy(folder, tmp_path)
+    m = json.loads((r / "metrics.json").read_text())
+    m[field] = value
+    (r / "metrics.json").write_text(json.dumps(m))
+    _one_line(_cli("report", r), "metrics.json", f"field '{field}")
+    _one_line(_cli("inspect", r), "metrics.json", f"field '{field}")
+
+
+def test_deep_json_in_metrics_is_one_line(folder, tmp_path):
+    r = _copy(folder, tmp_path)
+    (r / "metrics.json").write_text('{"notes_x": ' + "[" * 100 + "]" * 100 + "}")
+    _one_line(_cli("report", r), "metrics.json", "nests deeper")
+
+
+def test_what_a_run_writes_fits_the_schema_the_readers_check(folder):
+    from rngcam.recon.metrics_schema import check_metrics
+
+    m = json.loads((folder[1] / "metrics.json").read_text())
+    assert check_metrics(m, "metrics.json") is m and m["method"] == "blend"
+
+
+def test_a_recorded_bundle_path_is_a_hint_never_a_reason_to_read(folder, tmp_path):
+    """recon.h5 naming another bundle: its truth is shown only when its sha256 is the recorded one,
+    even with --no-hash-check; a bundle the user names is read."""
+    import shutil
+
+    from tests.test_untrusted_bundles import tiny_bundle
+
+    r = _copy(folder, tmp_path)
+    other = tmp_path / "other.h5"
+    shutil.copy(folder[0], other)
+    with h5py.File(other, "a") as f:
+        f["truth/video"][...] = 0.123  # another truth, same shape
+    with h5py.File(r / "recon.h5", "a") as f:
+        f.attrs["bundle_path"] = str(other)
+    for extra in ([], ["--no-hash-check"]):
+        res = _cli("report", r, *extra)
+        assert res.exit_code == 0, res.output
+        page = (r / "report.html").read_text()
+        assert '"name":"truth"' not in page and "No truth shown" in page, extra
+    res = _cli("report", r, "--bundle", folder[0])
+    assert res.exit_code == 0, res.output
+    assert '"name":"truth"' in (r / "report.html").read_text()
+    tiny = tiny_bundle(tmp_path / "tiny.h5")
+    with h5py.File(r / "recon.h5", "a") as f:
+        f.attrs["bundle_path"] = str(tiny)
+    assert _cli("report", r).exit_code == 0 and '"name":"truth"' not in (r / "report.html").read_text()
+
+
+def _checkpoint(tmp_path):
+    import io
+    import zipfile
+
+    import torch
+
+    buf = io.BytesIO()
+    torch.save({"format": 3, "x": torch.zeros(1000)}, buf)
+    return zipfile.ZipFile(io.BytesIO(buf.getvalue()))
+
+
+def test_a_compressed_checkpoint_record_is_refused_before_torch_reads_it(tmp_path):
+    import zipfile
+
+    from rngcam.recon.checkpoint import load
+
+    src = _checkpoint(tmp_path)
+    path = tmp_path / "checkpoint.pt"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as out:
+        for info in src.infolist():
+            out.writestr(info.filename, src.read(info) + (b"\0" * 2**22 if info.filename.endswith("/0") else b""))
+    assert path.stat().st_size < 2**20  # 4 MiB of zeros compressed
+    with pytest.raises(RngcamError, match=r"cannot resume from .*checkpoint.pt: .*is compressed"):
+        load(path)
+
+
+def test_a_checkpoint_declaring_more_than_it_holds_or_not_a_zip_is_refused(tmp_path):
+    from rngcam.recon.checkpoint import load
+
+    path = tmp_path / "checkpoint.pt"
+    path.write_bytes(b"\x80\x02}q\x00.")  # a bare pickle: torch's legacy format
+    with pytest.raises(RngcamError, match="not a zip archive"):
+        load(path)
+    os.unlink(path)
+    os.mkfifo(path)
+    with pytest.raises(RngcamError, match="not a regular file"):
+        load(path)
+
+
+def test_deep_or_huge_yaml_in_a_rig_is_one_line(tmp_path):
+    from rngcam.config import load_rig, parse_rig
+    from rngcam.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="nested deeper than 64"):
+        parse_rig("a: " + "[" * 100 + "]" * 100, tmp_path / "r.yaml")
+    with pytest.raises(ConfigError, match="nest"):  # libyaml's own limit, or ours
+        parse_rig("a: " + "[" * 50_000 + "]" * 50_000, tmp_path / "r.yaml")
+    with pytest.raises(ConfigError, match="characters of YAML"):
+        parse_rig("a: " + "x" * 300_000, tmp_path / "r.yaml")
+    (tmp_path / "deep.yaml").write_text("- " * 3000 + "x")
+    with pytest.raises(ConfigError, match="nested deeper"):
+        load_rig(tmp_path / "deep.yaml")
+    os.mkfifo(tmp_path / "fifo.yaml")
+    with pytest.raises(ConfigError, match="not a regular file"):
+        load_rig(tmp_path / "fifo.yaml")
+
+
+def test_deep_rig_text_in_a_bundle_costs_recon_nothing():
+    from rngcam.recon.metrics import one_object_scene
+
+    assert one_object_scene("mock:\n  scene: sineball\n")
+    assert not one_object_scene("a: " + "[" * 100_000)

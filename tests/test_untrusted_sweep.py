@@ -54,3 +54,23 @@ def test_links_planted_in_a_sweep_folder_are_neither_followed_nor_read(tmp_path)
     assert "1 fit(s) run, 1 reused" in again.output  # the linked result was not read: that trial ran again
     assert not cached[0].is_symlink() and json.loads(cached[0].read_text())["heldout"] != -1.0
     assert json.loads(secret.read_text())["heldout"] == -1.0
+
+
+def test_a_fifo_or_a_mistyped_result_in_the_trial_cache_is_run_again_not_waited_on(tmp_path):
+    """A FIFO at a cached trial's name would block a reader by name forever, and a result with a
+    text where a score stands would end in a traceback: both are treated as not cached."""
+    import os
+
+    bundle = _bundle(tmp_path)
+    out = tmp_path / "sweep"
+    args = ["sweep", str(bundle), "--method", "tv3d", "--beta", "1,10", "--tau", "1e-3", "--iters", "5",
+            "--holdout", "0.2", "--folds", "1", "--no-ray", "-o", str(out)]
+    assert CliRunner().invoke(main, args).exit_code == 0
+    cached = sorted(out.rglob("result-*.json"))
+    cached[0].unlink()
+    os.mkfifo(cached[0])
+    cached[1].write_text(json.dumps({"status": "ok", "heldout": "x", "iterations": [], "seconds": 0.0}))
+    again = CliRunner().invoke(main, args)
+    assert again.exit_code == 0, again.output
+    assert "2 fit(s) run, 0 reused" in again.output
+    assert cached[0].is_file() and json.loads(cached[1].read_text())["heldout"] != "x"

@@ -38,11 +38,15 @@ def _refuse_an_input(target: Path, folders: list[Path]) -> None:
 @click.option("-o", "--output", type=click.Path(dir_okay=True), default=None,
               help="Where to write the page [one DIR: DIR/report.html; several: report.html in their "
                    "common parent folder].")
+@click.option("--bundle", "bundle", type=click.Path(dir_okay=False), default=None,
+              help="The bundle whose truth to show [the one recon.h5 records, read only when its sha256 matches].")
 @click.option("--no-hash-check", is_flag=True,
-              help="Show the bundle's truth without checking its sha256 against recon.h5 (faster on big bundles).")
+              help="Do not hash the bundle recon.h5 records (faster on big bundles): its truth is then shown "
+                   "only from a bundle --bundle names.")
 @click.option("--overwrite", is_flag=True,
               help="Replace the file -o names if it exists (without it, an existing file is refused).")
-def report_cmd(dirs: tuple[str, ...], output: str | None, no_hash_check: bool, overwrite: bool) -> None:
+def report_cmd(dirs: tuple[str, ...], output: str | None, bundle: str | None, no_hash_check: bool,
+               overwrite: bool) -> None:
     """Write report.html for the reconstructions in DIR...: one page, one frame slider, every
     method's video beside the truth (when the bundle has one), figures, settings and notes.
 
@@ -51,14 +55,14 @@ def report_cmd(dirs: tuple[str, ...], output: str | None, no_hash_check: bool, o
 
     folders = _folders(dirs)
     if output is None and len(folders) == 1:
-        path = write_report(folders[0], check_hash=not no_hash_check)
+        path = write_report(folders[0], check_hash=not no_hash_check, bundle=bundle)
     else:
         replace = output is None or overwrite  # the default page is the folders' own; -o's file may be anything
         if output is None:
             output = Path(os.path.commonpath([str(f.resolve()) for f in folders])) / "report.html"
         target = Path(output) / "report.html" if Path(output).is_dir() else Path(output)
         _refuse_an_input(target, folders)
-        path = write_comparison(folders, target, check_hash=not no_hash_check, replace=replace)
+        path = write_comparison(folders, target, check_hash=not no_hash_check, replace=replace, bundle=bundle)
     click.echo(f"report: {path}")
 
 

@@ -18,13 +18,25 @@ import math
 import os
 import pickle
 import stat
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from rngcam.errors import RngcamError
-from rngcam.untrusted import clean_temps, open_own, printable, same_file, temp_beside
+from rngcam.h5safe import memory_limit_bytes
+from rngcam.untrusted import (
+    UntrustedFileError,
+    clean_temps,
+    load_json,
+    open_own,
+    open_untrusted,
+    printable,
+    read_untrusted,
+    same_file,
+    temp_beside,
+)
 
 CHECKPOINT_NAME = "checkpoint.pt"
 LOG_NAME = "recon.log"
@@ -105,11 +117,14 @@ def load(path: Path, map_location=None, hint: str = "use --overwrite to start ag
     is not shaped as rngcam writes one; the line ends with `hint`."""
     where = f"cannot resume from {path}"
     try:
-        if not stat.S_ISREG(os.lstat(path).st_mode):
-            raise RngcamError(f"{where}: it is a link or not a regular file; {hint}")
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0))
-        with os.fdopen(fd, "rb") as f:
+        with open_untrusted(path, memory_limit_bytes(), what="checkpoint") as f:
+            why = _archive_problem(f)
+            if why:
+                raise RngcamError(f"{where}: it is not a checkpoint as rngcam writes one ({why}); {hint}")
+            f.seek(0)
             saved = torch.load(f, weights_only=True, map_location=map_location)
+    except UntrustedFileError as exc:
+        raise RngcamError(f"{where}: {str(exc).split(': ', 1)[-1]}; {hint}") from None
     except RngcamError:
         raise
     except pickle.UnpicklingError:
@@ -128,6 +143,35 @@ def load(path: Path, map_location=None, hint: str = "use --overwrite to start ag
         raise RngcamError(f"{where}: it is not a checkpoint as rngcam writes one ({why}); "
                           f"{hint}")
     return saved
+
+
+MAX_RECORDS = 100_000  # records in one checkpoint archive (a state of a few hundred tensors)
+
+
+def _archive_problem(f) -> str:
+    """'' when the open file is a zip archive as torch.save writes one: every record stored, not
+    compressed (so nothing inflates before the checkpoint's identity is checked), its declared
+    sizes equal and inside the file, in its central directory and its local header alike."""
+    size = os.fstat(f.fileno()).st_size
+    try:
+        infos = zipfile.ZipFile(f).infolist()
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError):
+        return "not a zip archive"
+    if len(infos) > MAX_RECORDS:
+        return f"{len(infos):,} records"
+    total = 0
+    for info in infos:
+        name = printable(info.filename, 60)
+        if info.compress_type != zipfile.ZIP_STORED or info.file_size != info.compress_size:
+            return f"record {name} is compressed (method {info.compress_type}); rngcam stores records as they are"
+        f.seek(info.header_offset)
+        local = f.read(30)
+        if len(local) < 30 or local[:4] != b"PK\x03\x04" or int.from_bytes(local[8:10], "little") != 0:
+            return f"record {name} has a damaged or compressed local header"
+        total += info.file_size
+        if info.header_offset + info.file_size > size or total > size:
+            return f"record {name} declares more bytes than the file holds"
+    return ""
 
 
 _NUMBER = (int, float)
@@ -183,8 +227,9 @@ def _differences(a: dict, b: dict, prefix: str = "") -> list[tuple[str, object, 
 def folder_method(out: Path) -> str | None:
     """The method whose outputs are in `out` (its metrics.json), or None."""
     try:
-        method = json.loads((out / "metrics.json").read_text()).get("method")
-    except (OSError, ValueError, AttributeError):
+        text = read_untrusted(out / "metrics.json", 16 * 2**20, what="metrics.json", within=out)
+        method = load_json(text, "metrics.json").get("method")
+    except (RngcamError, AttributeError):
         return None
     return printable(method, 40) if method is not None else None
 

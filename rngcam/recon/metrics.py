@@ -244,11 +244,12 @@ ONE_OBJECT_SCENES = ("sineball",)  # simulated scenes with one moving object ove
 
 def one_object_scene(rig_yaml: str) -> bool:
     """True for a bundle simulated from a one-object scene (its rig's mock scene, ONE_OBJECT_SCENES)."""
-    import yaml
+    from rngcam.errors import RngcamError
+    from rngcam.untrusted import load_yaml
 
     try:
-        rig = yaml.safe_load(rig_yaml or "") or {}
-    except yaml.YAMLError:
+        rig = load_yaml(rig_yaml or "", "the bundle's rig text") or {}  # sized and depth-checked first
+    except RngcamError:
         return False
     mock = rig.get("mock") if isinstance(rig, dict) else None
     return isinstance(mock, dict) and mock.get("scene") in ONE_OBJECT_SCENES

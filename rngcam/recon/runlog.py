@@ -14,7 +14,7 @@ from pathlib import Path
 
 from rngcam.errors import RngcamError
 from rngcam.recon import checkpoint
-from rngcam.untrusted import open_own, printable, write_new
+from rngcam.untrusted import open_own, open_untrusted, printable, write_new
 
 LINE_LIMIT = 20_000  # characters of one logged line
 
@@ -51,9 +51,8 @@ def append_lines(path: Path, lines: list[str]) -> None:
 
 
 def open_own_reading(path: Path):
-    """`path` opened for reading without following a link at its name."""
-    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0))
-    return os.fdopen(fd, "rb")
+    """`path` opened for reading by descriptor: no link, FIFO or device (`open_untrusted`)."""
+    return open_untrusted(path, what="log")
 
 
 class RunLog:

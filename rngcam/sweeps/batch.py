@@ -18,10 +18,11 @@ from pathlib import Path
 from rngcam.api import keywords, reconstruct
 from rngcam.errors import RngcamError
 from rngcam.formats.bundle import bundle_checksum
+from rngcam.recon.metrics_schema import check_metrics
 from rngcam.recon.settings import ReconSettings
 from rngcam.sweeps import tables
 from rngcam.sweeps.backend import Backend, make_backend
-from rngcam.untrusted import write_new
+from rngcam.untrusted import load_json, read_untrusted, write_new
 
 DONE_NAME = "batch-done.json"
 SKIPPED_NOTE = "done before (skipped)"
@@ -102,8 +103,8 @@ def recon_batch(bundles: list[str | Path], out_dir: str | Path, settings: ReconS
             row.update(status="failed", note=str(exc))
             continue
         done = _read_json(dest / DONE_NAME)
-        if done == stamp and (dest / "metrics.json").is_file():
-            metrics = _read_json(dest / "metrics.json") or {}
+        metrics = _read_json(dest / "metrics.json") if done == stamp else None
+        if metrics is not None:
             row.update(status="ok", note=SKIPPED_NOTE, **{k: metrics.get(k) for k in METRIC_KEYS})
             continue
         todo.append((len(rows) - 1, {"bundle": str(path), "out": str(dest), "stamp": stamp,
@@ -139,7 +140,11 @@ def recon_batch(bundles: list[str | Path], out_dir: str | Path, settings: ReconS
 
 
 def _read_json(path: Path):
+    """A JSON file of an output folder (by descriptor: a link, FIFO or device is None, never
+    followed or waited on); None when absent or unreadable. metrics.json's fields are checked
+    against its schema (None when one is off: the bundle is reconstructed again)."""
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
+        value = load_json(read_untrusted(path, 16 << 20, what="JSON file", within=path.parent), str(path))
+        return check_metrics(value, str(path)) if path.name == "metrics.json" else value
+    except (RngcamError, ValueError):
         return None

@@ -31,11 +31,12 @@ from rngcam.api import reconstruct
 from rngcam.errors import ConfigError, RngcamError
 from rngcam.formats.bundle import bundle_checksum, read_bundle
 from rngcam.recon import registry
+from rngcam.recon.metrics_schema import check_metrics
 from rngcam.recon.problem import build_problem
 from rngcam.sweeps import tables
 from rngcam.sweeps.backend import Backend, make_backend
 from rngcam.sweeps.trial import TRUTH_KEYS, TrialSpec, run_trial
-from rngcam.untrusted import replacing, write_new
+from rngcam.untrusted import load_json, read_untrusted, replacing, write_new
 
 SCORE_KEYS = ("heldout", "heldout_rs", "heldout_gs", "residual_rs", "residual_gs")
 DEFAULT_TIME_BUDGET_S = 30.0
@@ -270,14 +271,30 @@ def _summary(res: dict) -> str:
 
 
 def _load_cached(path: Path) -> dict | None:
-    """A trial's cached result, or None (missing, unreadable, not a dict, or a link someone planted)."""
+    """A trial's cached result, or None (missing, unreadable, too large or deep, not a dict of a
+    result's types, or a link, FIFO or device someone planted: read by descriptor, never blocking)."""
     try:
-        if path.is_symlink() or path.stat().st_size > 1 << 20:
-            return None
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
+        data = load_json(read_untrusted(path, 1 << 20, what="trial result"), str(path))
+    except RngcamError:
         return None
-    return data if isinstance(data, dict) else None
+    return data if isinstance(data, dict) and _result_types_ok(data) else None
+
+
+def _result_types_ok(data: dict) -> bool:
+    """True when a cached result's fields that the sweep computes with have their types."""
+    numbers = (*SCORE_KEYS, *TRUTH_KEYS, "iterations", "seconds")
+    number_ok = all(data.get(k) is None or (isinstance(data[k], (int, float)) and not isinstance(data[k], bool))
+                    for k in numbers)
+    return number_ok and all(isinstance(data.get(k, ""), str) for k in ("status", "message", "key"))
+
+
+def _read_metrics(out: Path) -> dict | None:
+    """`out`/metrics.json, every field of its type; None when absent or unreadable (then refit)."""
+    try:
+        text = read_untrusted(out / "metrics.json", 16 << 20, what="metrics.json", within=out)
+        return check_metrics(load_json(text, str(out / "metrics.json")), str(out / "metrics.json"))
+    except (RngcamError, ValueError):
+        return None
 
 
 def _save_cached(path: Path, res: dict) -> None:
@@ -380,9 +397,9 @@ def _refit(bundle_path: Path, out: Path, settings: SweepSettings, trial: dict,
     """Refit the chosen setting on every measurement; skipped when already done for it."""
     marker = out / "sweep-refit.json"
     stamp = {"key": trial["key"], "max_iters": settings.max_iters, "time_budget_s": settings.time_budget_s}
-    if _load_cached(marker) == stamp and (out / "metrics.json").is_file():
+    if _load_cached(marker) == stamp and (metrics := _read_metrics(out)) is not None:
         echo(f"refit of the chosen setting already in {out}")
-        return json.loads((out / "metrics.json").read_text()), True
+        return metrics, True
     echo(f"refitting {_describe(trial['values'])} on all measurements into {out}")
     t0 = time.perf_counter()
     result = reconstruct(bundle_path, settings.method, out=out, progress=echo, bar=False,

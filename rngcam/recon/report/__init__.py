@@ -132,14 +132,14 @@ def _details(runs: list[Run], labels: list[str], truth_note: str) -> str:
 
 
 def build_report(runs: list[Run], title: str | None = None, check_hash: bool = True,
-                 truth: np.ndarray | None = None) -> str:
+                 truth: np.ndarray | None = None, bundle: str | Path | None = None) -> str:
     """The report page (HTML text) for runs of one bundle on one grid. `truth`: the bundle's truth
     on that grid (an array or a host tensor), where the caller holds it already (else it is read
-    from the bundle)."""
+    from `bundle`, or from the bundle recon.h5 records when its sha256 matches: `load_truth`)."""
     first = runs[0]
     labels = [_label(r, runs) for r in runs]
     if truth is None:
-        truth, truth_note = load_truth(first, check_hash)
+        truth, truth_note = load_truth(first, check_hash, bundle)
     else:  # a host tensor or array: a view, not a copy
         truth, truth_note = np.asarray(truth), f"truth from {first.attrs.get('bundle_path') or 'the bundle'}"
     c, k, h, w = first.video.shape
@@ -196,16 +196,18 @@ def _write_atomic(path: Path, text: str, replace: bool = True) -> Path:
     return path
 
 
-def write_report(folder: str | Path, check_hash: bool = True, truth: np.ndarray | None = None) -> Path:
-    """Write `folder`/report.html for the reconstruction in `folder`; returns its path. `truth`: as
-    in build_report."""
+def write_report(folder: str | Path, check_hash: bool = True, truth: np.ndarray | None = None,
+                 bundle: str | Path | None = None) -> Path:
+    """Write `folder`/report.html for the reconstruction in `folder`; returns its path. `truth`,
+    `bundle`: as in build_report."""
     folder = Path(folder)
     runs = load_runs([folder])
-    return _write_atomic(folder / "report.html", build_report(runs, check_hash=check_hash, truth=truth))
+    page_text = build_report(runs, check_hash=check_hash, truth=truth, bundle=bundle)
+    return _write_atomic(folder / "report.html", page_text)
 
 
 def write_comparison(folders: list[str | Path], out: str | Path, check_hash: bool = True,
-                     replace: bool = True) -> Path:
+                     replace: bool = True, bundle: str | Path | None = None) -> Path:
     """One page with several reconstructions of one bundle side by side, written to `out` (a
     folder: its report.html); without `replace` an existing page there is refused in one line,
     before the page is built."""
@@ -216,15 +218,16 @@ def write_comparison(folders: list[str | Path], out: str | Path, check_hash: boo
     if not replace and os.path.lexists(out):
         raise RngcamError(f"refusing to replace {out}: it exists (pass --overwrite to replace it)")
     out.parent.mkdir(parents=True, exist_ok=True)
-    return _write_atomic(out, build_report(runs, check_hash=check_hash), replace=replace)
+    return _write_atomic(out, build_report(runs, check_hash=check_hash, bundle=bundle), replace=replace)
 
 
 def write_report_or_warn(folder: Path, echo=print, truth: np.ndarray | None = None) -> Path | None:
     """write_report at the end of a reconstruction (whose bundle was just read and hashed, so it is
     not hashed again; `truth`: the run's, on its grid, not read again); a failure is one warning
     line: the reconstruction's outputs stand."""
-    try:
-        path = write_report(folder, check_hash=False, truth=truth)
+    try:  # recon.h5 was just written by this run: the bundle it records is the one the run read
+        bundle = read_recon_h5(Path(folder) / "recon.h5", video=False)["attrs"].get("bundle_path") or None
+        path = write_report(folder, check_hash=False, truth=truth, bundle=bundle)
     except Exception as exc:  # a page must never cost the reconstruction it shows
         echo(f"warning: report.html not written ({type(exc).__name__}: {exc}); the other outputs are complete")
         return None

@@ -4,8 +4,10 @@ truth, from the bundle whose path and sha256 recon.h5 records."""
 from __future__ import annotations
 
 import csv
-import json
+import hashlib
+import io
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,7 +16,8 @@ import numpy as np
 
 from rngcam import h5safe
 from rngcam.errors import ConfigError, RngcamError
-from rngcam.untrusted import printable
+from rngcam.recon.metrics_schema import check_metrics
+from rngcam.untrusted import load_json, open_untrusted, printable, read_untrusted
 
 RECON_FORMAT = "rngcam-recon"
 MAX_TEXT_BYTES = 16 * 2**20  # metrics.json, errors.csv: far above what a run writes
@@ -90,21 +93,40 @@ def _dataset(f: h5py.Group, name: str) -> h5py.Dataset:
     return d
 
 
-def read_json_file(path: Path, default):
-    """A JSON file of a recon folder (metrics.json), `default` when absent; RngcamError (one line)
-    when it is too large or not JSON."""
+def read_json_file(path: Path, default, within: Path | None = None):
+    """A JSON file of a recon folder, `default` when absent; RngcamError (one line) when it is a
+    link or not a regular file, too large, nested too deeply or not JSON of `default`'s type.
+    Read by descriptor (`read_untrusted`); `within`: the folder the user named."""
     path = Path(path)
-    if not path.is_file():
+    if not os.path.lexists(path):
         return default
-    if path.stat().st_size > MAX_TEXT_BYTES:
-        raise RngcamError(f"{path} is larger than {MAX_TEXT_BYTES // 2**20} MiB; refused")
-    try:
-        value = json.loads(path.read_bytes())
-    except (ValueError, RecursionError, UnicodeDecodeError) as exc:
-        raise RngcamError(f"{path} is not valid JSON ({printable(str(exc).splitlines()[0], 200)})") from None
+    text = read_untrusted(path, MAX_TEXT_BYTES, what="JSON file", within=within, error=RngcamError)
+    value = load_json(text, str(path), error=RngcamError)
     if not isinstance(value, type(default)):
         raise RngcamError(f"{path} holds a JSON {type(value).__name__}, expected a {type(default).__name__}")
     return value
+
+
+def read_metrics(folder: Path) -> dict:
+    """`folder`/metrics.json ({} when absent), every field rngcam reads of its type (the schema
+    the writer shares, `metrics_schema`); RngcamError, one line, otherwise."""
+    path = Path(folder) / "metrics.json"
+    try:
+        return check_metrics(read_json_file(path, {}, within=folder), str(path))
+    except ValueError as exc:
+        raise RngcamError(printable(exc, 300)) from None
+
+
+def read_errors_csv(folder: Path) -> list[dict]:
+    """`folder`/errors.csv as rows of numbers ([] when absent), read by descriptor."""
+    path = Path(folder) / "errors.csv"
+    if not os.path.lexists(path):
+        return []
+    data = read_untrusted(path, MAX_TEXT_BYTES, what="CSV file", within=folder, error=RngcamError)
+    try:
+        return [_floats(r) for r in csv.DictReader(io.StringIO(data.decode("utf-8", "replace")))]
+    except csv.Error as exc:
+        raise RngcamError(f"{path} is not a readable CSV ({printable(exc, 200)})") from None
 
 
 class H5Frames:
@@ -119,7 +141,7 @@ class H5Frames:
     def __getitem__(self, key) -> np.ndarray:
         key = key if isinstance(key, tuple) else (key,)
         frames = key[1] if len(key) > 1 else slice(None)
-        with h5safe.open_untrusted(self.path, "recon file") as f:
+        with h5safe.open_untrusted(self.path, "recon file", within=self.path.parent) as f:
             d = _dataset(f, self.name)
             if tuple(d.shape) != self.shape:
                 raise RngcamError(f"{self.path} changed while it was being read")
@@ -139,9 +161,9 @@ def read_recon_h5(path: str | Path, video: bool = True, lazy: bool = False) -> d
     """recon.h5's attributes (settings and left_out decoded) and arrays (`video` False: no video;
     `lazy`: the video and the components as `H5Frames`, read a chunk of frames at a time)."""
     path = Path(path)
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise RngcamError(f"{path}: no such recon file")
-    with h5safe.open_untrusted(path, "HDF5 file") as f:
+    with h5safe.open_untrusted(path, "recon file", within=path.parent) as f:
         try:
             return _read_recon(f, path, video, lazy)
         except RngcamError as exc:
@@ -167,7 +189,8 @@ def _read_recon(f: h5py.File, path: Path, video: bool, lazy: bool) -> dict:
         if key in attrs and not (np.ndim(attrs[key]) == 0 and np.asarray(attrs[key]).dtype.kind in "uif"):
             raise RngcamError(f"attribute {key!r} is not a number")
     for key, kind in (("settings", dict), ("left_out", list)):
-        value = json.loads(attrs.get(key) or ("{}" if key == "settings" else "[]"))
+        value = load_json(attrs.get(key) or ("{}" if key == "settings" else "[]"), f"attribute {key!r}",
+                          error=RngcamError)
         if not isinstance(value, kind):
             raise RngcamError(f"attribute {key!r} is not a JSON {kind.__name__}")
         attrs[key] = value
@@ -194,16 +217,8 @@ def load_run(folder: str | Path, lazy: bool = True) -> Run:
     if folder.is_file() and folder.name.endswith(".h5"):
         folder = folder.parent
     h5 = read_recon_h5(folder / "recon.h5", lazy=lazy)
-    metrics = read_json_file(folder / "metrics.json", {})
-    log = []
-    if (folder / "errors.csv").is_file():
-        if (folder / "errors.csv").stat().st_size > MAX_TEXT_BYTES:
-            raise RngcamError(f"{folder / 'errors.csv'} is larger than {MAX_TEXT_BYTES // 2**20} MiB; refused")
-        try:
-            with open(folder / "errors.csv", encoding="utf-8", errors="replace") as fh:
-                log = [_floats(r) for r in csv.DictReader(fh)]
-        except csv.Error as exc:
-            raise RngcamError(f"{folder / 'errors.csv'} is not a readable CSV ({printable(exc, 200)})") from None
+    metrics = read_metrics(folder)
+    log = read_errors_csv(folder)
     settings = h5["attrs"]["settings"]
     method = metrics.get("method") or settings.get("method") or folder.name
     return Run(folder=folder, method=method, video=h5["video"], frame_times_s=h5["frame_times_s"],
@@ -223,29 +238,54 @@ def _to_grid(video: np.ndarray, shape: tuple) -> np.ndarray | None:
     return video.reshape(c, k, h, fy, w, fx).mean(axis=(3, 5)).astype(np.float32)
 
 
-def load_truth(run: Run, check_hash: bool = True) -> tuple[np.ndarray | None, str]:
+def load_truth(run: Run, check_hash: bool = True, bundle: str | Path | None = None) -> tuple[np.ndarray | None, str]:
     """The bundle's truth on the run's grid (None when there is none) and a line saying where it
-    came from or why it is missing. Read into float32 directly, as the bundle stores it."""
-    from rngcam.formats.bundle import bundle_checksum, open_bundle
+    came from or why it is missing. Read into float32 directly, as the bundle stores it.
 
-    path = Path(run.attrs.get("bundle_path") or "")
-    if not str(path) or str(path) == ".":
+    The truth comes only from `bundle` (one the user named) or from the bundle recon.h5 records
+    when that file's sha256 is the one recorded beside it: a path in a file from someone else is
+    a hint, never a reason to show another file's content. Without `check_hash` the recorded
+    path is not read at all."""
+    recorded = Path(str(run.attrs.get("bundle_path") or ""))
+    if bundle is None and (not str(recorded) or str(recorded) == "."):
         return None, "recon.h5 does not record its bundle's path (written by an older rngcam)"
-    if not path.is_file():
+    if bundle is None and not check_hash:
+        return None, (f"the bundle recon.h5 names ({recorded}) is read only with its sha256 checked; "
+                      "name it with --bundle")
+    path = Path(bundle) if bundle is not None else recorded
+    if not os.path.lexists(path):
         return None, f"the bundle {path} is no longer there"
-    if check_hash and bundle_checksum(path) != run.attrs.get("bundle_sha256"):
-        return None, f"the bundle at {path} has changed since this reconstruction (sha256 differs)"
     try:
-        with open_bundle(path) as bundle:
-            if bundle.truth is None:
-                return None, f"{path.name} has no ground truth (a real capture)"
-            if tuple(bundle.truth.video.shape[:2]) != tuple(run.video.shape[:2]):
-                on_grid = None
-            else:
-                on_grid = _to_grid(np.asarray(bundle.truth.video, np.float32), run.video.shape)
-            shape = tuple(bundle.truth.video.shape)
+        with open_untrusted(path, what="bundle", error=RngcamError) as fh:
+            if bundle is None and _sha256(fh) != run.attrs.get("bundle_sha256"):
+                return None, f"the bundle at {path} has changed since this reconstruction (sha256 differs)"
+            return _truth_of(path, fh, run)
     except RngcamError as exc:
         return None, f"the bundle cannot be read: {exc}"
+
+
+def _sha256(fh) -> str:
+    digest = hashlib.sha256()
+    for block in iter(lambda: fh.read(2**20), b""):
+        digest.update(block)
+    return digest.hexdigest()
+
+
+def _truth_of(path: Path, fh, run: Run) -> tuple[np.ndarray | None, str]:
+    """The truth of the bundle at `path`, which must still be the file open as `fh`."""
+    from rngcam.formats.bundle import open_bundle
+
+    with open_bundle(path) as bundle:
+        if bundle.truth is None:
+            return None, f"{path.name} has no ground truth (a real capture)"
+        video = bundle.truth.video
+        if isinstance(video, h5py.Dataset):
+            held, checked = os.fstat(video.file.id.get_vfd_handle()), os.fstat(fh.fileno())
+            if (held.st_dev, held.st_ino) != (checked.st_dev, checked.st_ino):
+                return None, f"the bundle at {path} was replaced while it was read; left out"
+        shape = tuple(video.shape)
+        on_grid = (_to_grid(np.asarray(video, np.float32), run.video.shape)
+                   if shape[:2] == tuple(run.video.shape[:2]) else None)
     if on_grid is None:
         return None, (f"the truth {shape} does not match this video's grid {run.video.shape} "
                       f"(another bin?); left out")

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rngcam.recon.report.load import read_json_file, read_recon_h5
+from rngcam.errors import RngcamError
+from rngcam.recon.report.load import read_metrics, read_recon_h5
 
 FIGURES = (("psnr_db", "PSNR {:.2f} dB"), ("psnr_intermediate_db", "intermediate {:.2f} dB"),
            ("psnr_dynamic_db", "moving region {:.2f} dB"), ("ssim", "SSIM {:.3f}"),
@@ -22,8 +23,7 @@ def recon_summary(path: str | Path, checksum: bool = False) -> dict:
     a = h5["attrs"]
     times = np.asarray(h5["frame_times_s"], np.float64)
     c, k, hh, w = h5["shape"]
-    metrics_path = path.parent / "metrics.json"
-    metrics = read_json_file(metrics_path, {})
+    metrics = read_metrics(path.parent)
     bundle = Path(a.get("bundle_path") or "")
     out = {
         "file": str(path), "format": "rngcam-recon", "created_utc": a.get("created_utc", ""),
@@ -49,7 +49,10 @@ def recon_summary(path: str | Path, checksum: bool = False) -> dict:
     if checksum and out["bundle_exists"]:
         from rngcam.formats.bundle import bundle_checksum
 
-        out["bundle_matches"] = bundle_checksum(bundle) == out["bundle_sha256"]
+        try:  # a link or a FIFO at the recorded path: no match, nothing read
+            out["bundle_matches"] = bundle_checksum(bundle) == out["bundle_sha256"]
+        except RngcamError:
+            out["bundle_matches"] = False
     return out
 
 
