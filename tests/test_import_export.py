@@ -76,6 +76,22 @@ def test_export_then_import_gives_the_bundle_back(exported):
     assert back.meta["import"]["line_time_source"] == "simulated" and back.meta["cameras"] == ["rs", "gs"]
 
 
+def test_measured_starts_and_the_field_stop_come_back(shot, tmp_path):
+    from dataclasses import replace
+
+    bundle = read_bundle(shot)
+    stop = np.ones(bundle.rs.frames.shape[1:3], bool)
+    stop[:2] = False
+    starts = bundle.gs.trigger_times_s + np.array([0.0, 3e-6, -2e-6])
+    bundle = replace(bundle, gs=replace(bundle.gs, exposure_start_s=starts, exposure_start_method="chunk timestamps"),
+                     calibration=replace(bundle.calibration, field_stop=stop))
+    export_bundle(bundle, tmp_path)
+    back = build_bundle(tmp_path / "capture.yaml")
+    assert np.array_equal(back.gs.exposure_start_s, starts) and back.gs.exposure_start_method == "chunk timestamps"
+    assert back.rs.exposure_start_s is None
+    assert back.calibration.field_stop.dtype == bool and np.array_equal(back.calibration.field_stop, stop)
+
+
 def test_the_tiffs_carry_imagej_metadata(exported):
     bundle, folder = exported
     with tifffile.TiffFile(folder / "truth.tif") as tif:

@@ -2,9 +2,11 @@
 the sidecar `rngcam import` reads, so that importing an export gives the bundle back.
 
 A bundle becomes rs.tif, gs.tif (when it has GS frames), psf.tif, truth.tif (when it has a
-truth) and capture.yaml beside them. Frames keep their dtype (ImageJ metadata where ImageJ
-reads the dtype: uint8, uint16, float32); the truth and a reconstruction are float32 ImageJ
-hyperstacks (T, C, Y, X) with their frame interval in seconds.
+truth), field_stop.tif (when it has one) and capture.yaml beside them; timestamps, frame
+counters and the trigger generator's record are not carried (nothing reconstructs from them).
+Frames keep their dtype (ImageJ metadata where ImageJ reads the dtype: uint8, uint16, float32);
+the truth and a reconstruction are float32 ImageJ hyperstacks (T, C, Y, X) with their frame
+interval in seconds.
 """
 
 from __future__ import annotations
@@ -76,6 +78,9 @@ def _camera_part(rec, name: str, simulated: bool) -> dict:
                     readout=getattr(rec, "readout", "top-down"), first_row_offset_s=0.0)
     else:
         part["frame_times_s"] = [float(t) for t in np.asarray(rec.trigger_times_s, np.float64)]
+    if rec.exposure_start_s is not None:
+        part["measured_starts_s"] = [float(t) for t in np.asarray(rec.exposure_start_s, np.float64)]
+        part["measured_starts_method"] = rec.exposure_start_method
     part["features"] = json.loads(json.dumps(features, default=_plain))
     return part
 
@@ -104,6 +109,8 @@ def sidecar_dict(bundle: Bundle) -> dict:
         "gs_to_rs": None if cal.gs_to_rs is None else np.asarray(cal.gs_to_rs, np.float64).tolist(),
         "white_balance": None if cal.white_balance is None else [float(g) for g in cal.white_balance],
         "source": "", "extra": json.loads(json.dumps(cal.extra, default=_plain))}
+    if cal.field_stop is not None:
+        side["calibration"]["field_stop_file"] = "field_stop.tif"
     if bundle.truth is not None:
         times = np.asarray(bundle.truth.frame_times_s, np.float64)
         side["truth"] = {"file": "truth.tif", "dt_s": float(bundle.truth.dt_s),
@@ -121,7 +128,8 @@ def export_bundle(bundle: Bundle, folder: Path | str, overwrite: bool = False) -
     Without `overwrite`, an existing file of the export is refused (one line) before anything is written."""
     folder = Path(folder)
     names = ["rs.tif", "psf.tif", SIDECAR_NAME] + (["gs.tif"] if bundle.gs is not None else []) \
-        + (["truth.tif"] if bundle.truth is not None else [])
+        + (["truth.tif"] if bundle.truth is not None else []) \
+        + (["field_stop.tif"] if bundle.calibration.field_stop is not None else [])
     if not overwrite:
         taken = [n for n in names if (folder / n).exists() or (folder / n).is_symlink()]
         if taken:
@@ -138,6 +146,9 @@ def export_bundle(bundle: Bundle, folder: Path | str, overwrite: bool = False) -
             written.append(folder / f"{name}.tif")
     _tiff(folder / "psf.tif", np.asarray(bundle.calibration.psf, np.float32), "CYX")
     written.append(folder / "psf.tif")
+    if bundle.calibration.field_stop is not None:
+        _tiff(folder / "field_stop.tif", np.asarray(bundle.calibration.field_stop, np.uint8), "YX")
+        written.append(folder / "field_stop.tif")
     if bundle.truth is not None:
         video = np.asarray(bundle.truth.video, np.float32)
         _tiff(folder / "truth.tif", np.moveaxis(video, 0, 1), "TCYX", float(bundle.truth.dt_s))

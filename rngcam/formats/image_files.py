@@ -8,6 +8,7 @@ elements and this machine's memory), opens no link, and ends a file it cannot re
 
 from __future__ import annotations
 
+import hashlib
 import io
 import os
 import zipfile
@@ -36,12 +37,15 @@ def _checked(where: str, shape, dtype) -> None:
         raise SidecarError(str(exc)) from None
 
 
-def _opened(path: Path, within: Path | None) -> io.BytesIO:
+def _opened(path: Path, within: Path | None, digests: dict | None) -> io.BytesIO:
     """The bytes of `path` read by descriptor: a regular file, no link followed (below `within`
     neither), at most the memory one array may take (rngcam.untrusted.read_untrusted); in memory,
-    so every library reads what was checked."""
-    limit = h5safe.memory_limit_bytes()
-    return io.BytesIO(read_untrusted(path, limit, what="capture file", within=within, error=SidecarError))
+    so every library reads what was checked, and their sha256 is that of what was read (into
+    `digests`, by path)."""
+    data = read_untrusted(path, h5safe.memory_limit_bytes(), what="capture file", within=within, error=SidecarError)
+    if digests is not None:
+        digests[str(path)] = hashlib.sha256(data).hexdigest()
+    return io.BytesIO(data)
 
 
 def _pick(names: list[str], variable: str | None, path: Path) -> str:
@@ -143,10 +147,11 @@ def _mat(path: Path, fh, variable: str | None) -> tuple[np.ndarray, str]:
     return np.asarray(arr), "mat"
 
 
-def read_array(path: Path, variable: str | None = None, within: Path | None = None) -> tuple[np.ndarray, str]:
+def read_array(path: Path, variable: str | None = None, within: Path | None = None,
+               digests: dict | None = None) -> tuple[np.ndarray, str]:
     """(the array in `path`, the axes the file says it has: 'NHW'-style letters, 'mat' for MATLAB's
     column-major order, '' when the file does not say). One line for anything unreadable; with
-    `within`, no link below that folder is followed."""
+    `within`, no link below that folder is followed; `digests` gets the sha256 of what was read."""
     path = Path(path)
     suffix = path.suffix.lower()
     readers = {".tif": _tiff, ".tiff": _tiff, ".png": _png, ".npy": _npy}
@@ -154,7 +159,7 @@ def read_array(path: Path, variable: str | None = None, within: Path | None = No
         raise SidecarError(f"{path}: unknown file type {printable(suffix, 20)!r} "
                            f"(read: {', '.join(ARRAY_SUFFIXES)}, videos {', '.join(VIDEO_SUFFIXES)})")
     try:
-        with _opened(path, within) as fh:
+        with _opened(path, within, digests) as fh:
             if suffix in readers:
                 arr, axes = readers[suffix](path, fh)
             else:
@@ -173,7 +178,7 @@ def read_array(path: Path, variable: str | None = None, within: Path | None = No
     return arr, axes
 
 
-def read_folder(folder: Path) -> tuple[np.ndarray, str]:
+def read_folder(folder: Path, digests: dict | None = None) -> tuple[np.ndarray, str]:
     """The images of `folder` (TIFF, PNG, NPY, by name order) stacked as frames."""
     try:
         names = sorted(n for n in os.listdir(folder) if Path(n).suffix.lower() in IMAGE_SUFFIXES
@@ -186,7 +191,7 @@ def read_folder(folder: Path) -> tuple[np.ndarray, str]:
         raise SidecarError(f"{folder} holds {len(names):,} images, more than {MAX_FOLDER_FILES:,}")
     frames, axes = [], None
     for name in names:
-        arr, got = read_array(folder / name, within=folder)
+        arr, got = read_array(folder / name, within=folder, digests=digests)
         got = got or ("HW" if arr.ndim == 2 else "HWC")
         if frames and (arr.shape != frames[0].shape or arr.dtype != frames[0].dtype):
             raise SidecarError(f"{folder / name} is {arr.shape} {arr.dtype}, the folder's first image "
@@ -197,13 +202,13 @@ def read_folder(folder: Path) -> tuple[np.ndarray, str]:
     return np.stack(frames), "N" + axes
 
 
-def read_video(path: Path, within: Path | None = None) -> tuple[np.ndarray, str]:
+def read_video(path: Path, within: Path | None = None, digests: dict | None = None) -> tuple[np.ndarray, str]:
     """The frames of a video file (N, H, W, 3) uint8, through PyAV."""
     import av
 
     frames = []
     try:
-        with _opened(Path(path), within) as fh, av.open(fh) as container:
+        with _opened(Path(path), within, digests) as fh, av.open(fh) as container:
             stream = container.streams.video[0]
             _checked(str(path), (max(1, stream.frames), stream.height, stream.width, 3), np.uint8)
             for frame in container.decode(stream):
@@ -219,14 +224,15 @@ def read_video(path: Path, within: Path | None = None) -> tuple[np.ndarray, str]
     return np.stack(frames), "NHWC"
 
 
-def read_frames(path: Path, variable: str | None = None, within: Path | None = None) -> tuple[np.ndarray, str]:
+def read_frames(path: Path, variable: str | None = None, within: Path | None = None,
+                digests: dict | None = None) -> tuple[np.ndarray, str]:
     """Frames from a file, a folder of images or a video (as `read_array`)."""
     path = Path(path)
     if path.is_dir() and not path.is_symlink():
-        return read_folder(path)
+        return read_folder(path, digests)
     if path.suffix.lower() in VIDEO_SUFFIXES:
-        return read_video(path, within)
-    return read_array(path, variable, within)
+        return read_video(path, within, digests)
+    return read_array(path, variable, within, digests)
 
 
 def default_axes(ndim: int, colour: bool, stack: bool, matlab: bool) -> str:

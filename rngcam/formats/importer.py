@@ -71,16 +71,14 @@ def to_rggb(frames: np.ndarray, family: str) -> np.ndarray:
     return out
 
 
-def _sha256(path: Path) -> str:
+def _digest(path: Path, digests: dict[str, str]) -> str:
+    """The sha256 of `path` as it was read; for a folder of frames, of its files' names and digests."""
+    if str(path) in digests:
+        return digests[str(path)]
     digest = hashlib.sha256()
-    if path.is_dir():
-        for child in sorted(path.iterdir()):
-            if child.is_file() and not child.is_symlink():
-                digest.update(child.name.encode() + b"\0" + _sha256(child).encode())
-        return digest.hexdigest()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(2**20), b""):
-            digest.update(block)
+    inside = sorted((k, v) for k, v in digests.items() if Path(k).parent == path)
+    for name, value in inside:
+        digest.update(Path(name).name.encode() + b"\0" + value.encode())
     return digest.hexdigest()
 
 
@@ -92,9 +90,10 @@ def _where(part: ImageFile | None, given: Path | None, folder: Path) -> Path | N
     return None
 
 
-def _frames(path: Path, part: Camera, name: str, stack: bool, within: Path | None) -> np.ndarray:
+def _frames(path: Path, part: Camera, name: str, stack: bool, within: Path | None, digests: dict) -> np.ndarray:
     """A camera's frames (N, H, W) or (N, H, W, 3) in the file's dtype, checked against the sidecar."""
-    arr, file_axes = (image_files.read_frames if stack else image_files.read_array)(path, part.variable, within)
+    read = image_files.read_frames if stack else image_files.read_array
+    arr, file_axes = read(path, part.variable, within, digests)
     family = pixel_family(part.pixel_format)
     colour = family == "rgb"
     have = part.axes or (file_axes if file_axes not in ("", "mat") else
@@ -140,8 +139,14 @@ def _check_values(frames: np.ndarray, part: Camera, name: str, path: Path) -> No
 
 
 def _camera(frames: np.ndarray, part: Camera, starts: list[float], line_time_s: float | None,
-            name: str) -> CameraRecord:
+            name: str, offset_s: float) -> CameraRecord:
     family = pixel_family(part.pixel_format)
+    measured = None
+    if part.measured_starts_s is not None:
+        if len(part.measured_starts_s) != len(starts):
+            raise SidecarError(f"{name}.measured_starts_s: {len(part.measured_starts_s)} times for {len(starts)} "
+                               "frame(s); give one per frame")
+        measured = np.asarray(part.measured_starts_s, np.float64) - offset_s
     features = dict(part.features)
     features.update(binning=part.binning, pixel_pitch_um=part.pixel_pitch_um)
     if family.startswith("Bayer") and family != "BayerRG":
@@ -150,11 +155,12 @@ def _camera(frames: np.ndarray, part: Camera, starts: list[float], line_time_s: 
                         bit_depth=part.bit_depth, black_level_dn=part.black_level_dn, exposure_s=part.exposure_s,
                         trigger_times_s=np.asarray(starts, np.float64), line_time_s=line_time_s,
                         gain_db=part.gain_db, model=part.model, serial=part.serial,
-                        frame_ids=np.arange(len(starts), dtype=np.int64), features=features)
+                        frame_ids=np.arange(len(starts), dtype=np.int64), features=features,
+                        exposure_start_s=measured, exposure_start_method=part.measured_starts_method)
 
 
-def _psf(path: Path, side: Sidecar, within: Path | None) -> tuple[np.ndarray, float]:
-    arr, file_axes = image_files.read_array(path, side.psf.variable, within)
+def _psf(path: Path, side: Sidecar, within: Path | None, digests: dict) -> tuple[np.ndarray, float]:
+    arr, file_axes = image_files.read_array(path, side.psf.variable, within, digests)
     have = side.psf.axes or (file_axes if file_axes not in ("", "mat") else "")
     if have:  # a stack's axis is the PSF's channels
         psf = image_files.to_axes(arr, have if "C" in have else have.replace("N", "C"), "CHW", f"psf: {path}")
@@ -182,7 +188,7 @@ def _psf(path: Path, side: Sidecar, within: Path | None) -> tuple[np.ndarray, fl
     return psf, bias + side.psf.subtracted_bias
 
 
-def _gs(side: Sidecar, path: Path | None, within: Path | None) -> CameraRecord | None:
+def _gs(side: Sidecar, path: Path | None, within: Path | None, digests: dict) -> CameraRecord | None:
     if side.gs is None:
         if path is not None:
             raise SidecarError("gs: GS frames were given but the sidecar has no gs: section; add one "
@@ -191,17 +197,29 @@ def _gs(side: Sidecar, path: Path | None, within: Path | None) -> CameraRecord |
     if path is None:
         raise SidecarError("gs.file: the sidecar has a gs: section but names no GS frames; put gs.file, "
                            "pass --gs, or delete the gs: section for an RS-only capture")
-    frames = _frames(path, side.gs, "gs", stack=True, within=within)
+    frames = _frames(path, side.gs, "gs", stack=True, within=within, digests=digests)
     starts = [t - side.rs.first_row_offset_s for t in side.gs.exposure_starts_s()]
     if len(starts) != frames.shape[0]:
         which = "frame_times_s" if side.gs.frame_times_s is not None else "trigger_times_s"
         raise SidecarError(f"gs.{which}: {len(starts)} times for the {frames.shape[0]} frames in {path}; "
                            "give one per frame")
-    return _camera(frames, side.gs, starts, None, "gs")
+    return _camera(frames, side.gs, starts, None, "gs", side.rs.first_row_offset_s)
+
+
+def _field_stop(side: Sidecar, folder: Path, digests: dict) -> np.ndarray | None:
+    """The field stop named in the sidecar as a bool (H, W) mask (nonzero = light reaches the pixel)."""
+    name = side.calibration.field_stop_file
+    if name is None:
+        return None
+    arr, _ = image_files.read_array(folder / name, within=folder, digests=digests)
+    if arr.ndim != 2:
+        raise SidecarError(f"calibration.field_stop_file: {folder / name} is {arr.shape}; put a 2-D mask the "
+                           "RS frame's size")
+    return arr != 0
 
 
 def _calibration(side: Sidecar, psf: np.ndarray, bias: float, psf_path: Path, rs: CameraRecord,
-                 gs: CameraRecord | None) -> tuple[Calibration, str]:
+                 gs: CameraRecord | None, field_stop: np.ndarray | None) -> tuple[Calibration, str]:
     cal = side.calibration
     h = None if cal.gs_to_rs is None else np.asarray(cal.gs_to_rs, np.float64)
     how = cal.source or ("given in the sidecar" if h is not None else "")
@@ -215,13 +233,13 @@ def _calibration(side: Sidecar, psf: np.ndarray, bias: float, psf_path: Path, rs
     wb = None if cal.white_balance is None else np.asarray(cal.white_balance, np.float64)
     source = side.psf.source or f"imported from {psf_path.name}"
     return Calibration(psf=psf, psf_source=source, psf_bias=float(bias), gs_to_rs=h, white_balance=wb,
-                       extra=dict(cal.extra)), how
+                       field_stop=field_stop, extra=dict(cal.extra)), how
 
 
-def _truth(side: Sidecar, path: Path | None, within: Path | None) -> Truth | None:
+def _truth(side: Sidecar, path: Path | None, within: Path | None, digests: dict) -> Truth | None:
     if side.truth is None or path is None:
         return None
-    arr, file_axes = image_files.read_array(path, side.truth.variable, within)
+    arr, file_axes = image_files.read_array(path, side.truth.variable, within, digests)
     have = side.truth.axes or (file_axes if file_axes not in ("", "mat") else "CNHW")
     video = image_files.to_axes(arr, have, "CNHW", f"truth: {path}").astype(np.float32)
     times = side.truth.start_s + np.arange(video.shape[1], dtype=np.float64) * side.truth.dt_s
@@ -232,7 +250,8 @@ def build_bundle(sidecar_path: Path | str, files: Files | None = None) -> Bundle
     """The bundle of the capture the sidecar at `sidecar_path` describes (not written yet);
     SidecarError, one line naming the field or file, for anything missing or inconsistent."""
     sidecar_path = Path(sidecar_path)
-    side = load_sidecar(sidecar_path)
+    digests: dict[str, str] = {}  # the sha256 of each file as it was read
+    side = load_sidecar(sidecar_path, digests)
     files = files or Files()
     folder = sidecar_path.parent
     paths = {name: _where(getattr(side, name), getattr(files, name), folder)
@@ -244,19 +263,21 @@ def build_bundle(sidecar_path: Path | str, files: Files | None = None) -> Bundle
         raise SidecarError("psf.file: missing; put the PSF's file name (in the sidecar's folder) or pass --psf")
     if side.truth is not None and paths["truth"] is None:
         raise SidecarError("truth.file: the sidecar has a truth: section but names no file; put truth.file")
-    rs_frames = _frames(paths["rs"], side.rs, "rs", stack=False, within=inside["rs"])
+    rs_frames = _frames(paths["rs"], side.rs, "rs", stack=False, within=inside["rs"], digests=digests)
     if rs_frames.shape[0] != 1:
         raise SidecarError(f"rs: {paths['rs']} holds {rs_frames.shape[0]} frames; an RS capture is one image "
                            "(put `axes:` if these are not frames)")
-    rs = _camera(rs_frames, side.rs, [0.0], side.rs.line_time_s, "rs")
+    rs = _camera(rs_frames, side.rs, [0.0], side.rs.line_time_s, "rs", side.rs.first_row_offset_s)
     rs.readout = side.rs.readout
     rs.features.update(first_row_offset_s=side.rs.first_row_offset_s, line_time_source=side.rs.line_time_source)
-    gs = _gs(side, paths["gs"], inside["gs"])
-    psf, bias = _psf(paths["psf"], side, inside["psf"])
-    calibration, gs_to_rs_how = _calibration(side, psf, bias, paths["psf"], rs, gs)
+    gs = _gs(side, paths["gs"], inside["gs"], digests)
+    psf, bias = _psf(paths["psf"], side, inside["psf"], digests)
+    truth = _truth(side, paths["truth"], inside["truth"], digests)
+    field_stop = _field_stop(side, folder, digests)
+    calibration, gs_to_rs_how = _calibration(side, psf, bias, paths["psf"], rs, gs, field_stop)
     provenance = {
-        "sidecar": {"path": str(sidecar_path.resolve()), "sha256": _sha256(sidecar_path)},
-        "files": {name: {"path": str(p.resolve()), "sha256": _sha256(p),
+        "sidecar": {"path": str(sidecar_path.resolve()), "sha256": _digest(sidecar_path, digests)},
+        "files": {name: {"path": str(p.resolve()), "sha256": _digest(p, digests),
                          "variable": getattr(getattr(side, name), "variable", None)}
                   for name, p in paths.items() if p is not None},
         "line_time_source": side.rs.line_time_source, "readout": side.rs.readout,
@@ -275,7 +296,7 @@ def build_bundle(sidecar_path: Path | str, files: Files | None = None) -> Bundle
     meta = dict(side.meta)
     meta.update(source=f"rngcam import {__version__}", cameras=["rs", "gs"] if gs is not None else ["rs"],
                 description=side.description or meta.get("description", ""), **{"import": provenance})
-    bundle = Bundle(rs=rs, gs=gs, calibration=calibration, truth=_truth(side, paths["truth"], inside["truth"]),
+    bundle = Bundle(rs=rs, gs=gs, calibration=calibration, truth=truth,
                     rig_yaml=side.rig_yaml, meta=meta)
     errors = [p for p in check_bundle(bundle) if not is_warning(p)]
     if errors:

@@ -7,6 +7,7 @@ what to put there; `TEMPLATE` is the commented file `rngcam import --template` w
 
 from __future__ import annotations
 
+import hashlib
 import math
 from pathlib import Path
 from typing import Literal
@@ -42,6 +43,14 @@ class SidecarError(RngcamError):
     """A sidecar (or the files it names) is missing, malformed or inconsistent."""
 
 
+def plain_name(v: str | None) -> str | None:
+    """`v` when it is a plain file name (no folder part), for files named in the sidecar."""
+    if v is not None and (v in ("", ".", "..") or "/" in v or "\\" in v or "\x00" in v):
+        raise ValueError("must be a plain file name in the sidecar's folder (no folders); "
+                         "name files elsewhere on the command line (--rs, --gs, --psf)")
+    return v
+
+
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
@@ -56,11 +65,8 @@ class ImageFile(_Model):
 
     @field_validator("file")
     @classmethod
-    def _plain_name(cls, v):
-        if v is not None and (v in ("", ".", "..") or "/" in v or "\\" in v or "\x00" in v):
-            raise ValueError("must be a plain file name in the sidecar's folder (no folders); "
-                             "name files elsewhere on the command line (--rs, --gs, --psf)")
-        return v
+    def _plain(cls, v):
+        return plain_name(v)
 
 
 class Camera(ImageFile):
@@ -76,6 +82,10 @@ class Camera(ImageFile):
     model: str = Field(default="", max_length=200)
     serial: str = Field(default="", max_length=200)
     features: dict = Field(default_factory=dict)  # anything else the camera reported, kept as given
+    # Each frame's exposure start as the camera's clock measured it, s on the RS trigger's timeline
+    # (bundle rs|gs/exposure_start_s), and how it was measured; the reconstruction uses them.
+    measured_starts_s: list[float] | None = Field(default=None, max_length=MAX_TIMES)
+    measured_starts_method: str = Field(default="", max_length=200)
 
     @field_validator("pixel_format")
     @classmethod
@@ -147,12 +157,19 @@ class PSF(ImageFile):
 
 
 class CalibrationPart(_Model):
-    """What is known of how the cameras map onto each other and their colours."""
+    """What is known of how the cameras map onto each other and their colours, and the field
+    stop (an image the RS frame's size, nonzero where light reaches the sensor)."""
 
     gs_to_rs: list[list[float]] | None = None
+    field_stop_file: str | None = None
     white_balance: list[float] | None = Field(default=None, max_length=4)
     source: str = Field(default="", max_length=500)
     extra: dict = Field(default_factory=dict)
+
+    @field_validator("field_stop_file")
+    @classmethod
+    def _plain(cls, v):
+        return plain_name(v)
 
     @field_validator("gs_to_rs")
     @classmethod
@@ -241,10 +258,13 @@ def parse_sidecar(text: str, path: Path | str = "<sidecar>") -> Sidecar:
         raise SidecarError(printable(describe(path, exc), 4000)) from None
 
 
-def load_sidecar(path: Path | str) -> Sidecar:
-    """Read and validate a sidecar file (a regular file of at most MAX_SIDECAR_BYTES)."""
+def load_sidecar(path: Path | str, digests: dict | None = None) -> Sidecar:
+    """Read and validate a sidecar file (a regular file of at most MAX_SIDECAR_BYTES); `digests`
+    gets the sha256 of what was read, by path."""
     path = Path(path)
     data = read_untrusted(path, MAX_SIDECAR_BYTES, what="sidecar", error=SidecarError)
+    if digests is not None:
+        digests[str(path)] = hashlib.sha256(data).hexdigest()
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError:
@@ -280,6 +300,7 @@ rs:                            # the rolling-shutter camera
   gain_db: 0.0
   binning: 1                   # sensor binning the image was recorded at
   pixel_pitch_um: null         # sensor pixel pitch (after binning), for the record
+  measured_starts_s: null      # the exposure start the camera's clock measured, if known
   model: ""
   serial: ""
 
@@ -307,5 +328,6 @@ psf:                           # the point-spread function on the RS sensor's pi
 calibration:
   gs_to_rs: null               # 3x3 homography GS pixel (x, y, 1) -> RS pixel; REQUIRED when the sizes differ
   white_balance: null          # per-channel GS/RS gains, e.g. [1.0, 1.0, 1.0]
+  field_stop_file: null        # an image the RS frame's size, nonzero where light reaches the sensor
   source: ""                   # where these came from (rngcam calibrate align, ...)
 """
