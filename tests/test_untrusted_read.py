@@ -426,3 +426,47 @@ def test_deep_rig_text_in_a_bundle_costs_recon_nothing():
 
     assert one_object_scene("mock:\n  scene: sineball\n")
     assert not one_object_scene("a: " + "[" * 100_000)
+
+
+def _npz(path, header_shape, data: bytes, dtype="|u1", compress=True):
+    """An .npz whose frames.npy declares `header_shape` of `dtype` over `data`."""
+    import zipfile
+
+    header = np.lib.format.header_data_from_array_1_0(np.zeros((1,), np.uint8))
+    header.update(shape=tuple(header_shape), descr=dtype)
+    import io
+
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, header)
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED) as z:
+        z.writestr("frames.npy", buf.getvalue() + data)
+    return path
+
+
+@pytest.mark.parametrize("case", ["object", "huge_header", "bomb", "fifo", "link", "not_zip", "no_frames"])
+def test_a_crafted_clip_archive_is_one_line(tmp_path, case):
+    """`simulate --clip` with a crafted .npz: a pickled object array, a header declaring far more
+    than the archive holds, 4 GiB of zeros behind a small header, a FIFO, a link, not a zip."""
+    from rngcam.sim.scenes import load_clip
+
+    clip = tmp_path / "clip.npz"
+    if case == "object":
+        np.savez(clip, frames=np.array([None, 1], dtype=object))
+    elif case == "huge_header":
+        _npz(clip, (10**6, 8192, 8192, 3), b"\0" * 1000)
+    elif case == "bomb":
+        _npz(clip, (2, 4, 4, 3), b"\0" * 2**28)  # 96 bytes declared, 256 MiB inflated
+    elif case == "fifo":
+        os.mkfifo(clip)
+    elif case == "link":
+        np.savez(tmp_path / "own.npz", frames=np.zeros((2, 4, 4, 3), np.uint8))
+        clip.symlink_to(tmp_path / "own.npz")
+    elif case == "not_zip":
+        clip.write_bytes(b"\x93NUMPY" + b"\0" * 100)
+    else:
+        np.savez(clip, other=np.zeros(3))
+    with pytest.raises(RngcamError) as err:
+        load_clip(clip)
+    assert "clip" in str(err.value) and "\n" not in str(err.value)
+    res = _cli("simulate", "clip", "--clip", clip, "-o", tmp_path / "s.h5", "--size", "16")
+    _one_line(res, "clip")

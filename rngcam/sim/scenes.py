@@ -254,16 +254,34 @@ def default_clip_path() -> Path:
 
 def load_clip(path: str | Path | None = None) -> np.ndarray:
     """Read `frames` (T, H, W, 3) uint8 from an npz (default: the short car clip in rngcam/data)."""
+    from rngcam.h5safe import memory_limit_bytes
+    from rngcam.untrusted import open_untrusted, printable
+
     path = Path(path) if path is not None else default_clip_path()
-    if not path.is_file():
+    if not (path.exists() or path.is_symlink()):
         raise SceneError(f"clip file not found: {path}")
-    try:
-        with np.load(path) as data:
-            frames = data["frames"]
+    try:  # by descriptor (no link, FIFO or device); the array's declared size checked before it is read
+        with open_untrusted(path, what="clip", error=SceneError) as fh, zipfile.ZipFile(fh) as archive:
+            with archive.open("frames.npy") as member:
+                version = np.lib.format.read_magic(member)
+                header = {(1, 0): np.lib.format.read_array_header_1_0,
+                          (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+                if header is None:
+                    raise ValueError(f"an .npy of version {version}")
+                shape, _, dtype = header(member)
+                header_bytes = member.tell()
+            size = np.prod(shape, dtype=float)
+            if dtype != np.uint8 or len(shape) != 4 or size > memory_limit_bytes():
+                raise ValueError(f"'frames' declares {shape} {dtype}")
+            if header_bytes + size != archive.getinfo("frames.npy").file_size:  # what zipfile inflates at most
+                raise ValueError(f"'frames' declares {shape} but the archive holds "
+                                 f"{archive.getinfo('frames.npy').file_size:,} bytes of it")
+            with archive.open("frames.npy") as member:
+                frames = np.lib.format.read_array(member, allow_pickle=False)
     except KeyError:
         raise SceneError(f"clip {path} has no 'frames' array") from None
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
-        raise SceneError(f"cannot read clip {path}: {exc}") from None
+    except (OSError, ValueError, EOFError, MemoryError, zipfile.BadZipFile, NotImplementedError) as exc:
+        raise SceneError(f"cannot read clip {path}: {printable(exc, 200)}") from None
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8 or len(frames) < 2:
         raise SceneError(f"clip {path}: 'frames' must be (T>=2, H, W, 3) uint8, "
                          f"got {frames.shape} {frames.dtype}")
