@@ -348,3 +348,23 @@ def test_the_readme_example_runs_as_written(shot, tmp_path, monkeypatch):
         assert tif.imagej_metadata["finterval"] == pytest.approx(208e-6)
     again = build_bundle(tmp_path / "capture-tiff" / "capture.yaml")
     assert np.array_equal(again.gs.frames, read_bundle(tmp_path / "capture.h5").gs.frames)
+
+
+def test_a_bayer_gs_camera_at_twice_the_size_lands_on_the_rs_grid(shot, tmp_path):
+    """A GS camera with its own Bayer pattern (GB), bit depth and resolution: each GS pixel's colours
+    as one 2x2 cell of a mosaic twice the RS size, mapped by the GS-to-RS homography of that size,
+    give the same GS measurements as the simulated GS camera."""
+    from rngcam.recon.problem import build_problem
+
+    bundle = read_bundle(shot)
+    side = lab_files(bundle, tmp_path)
+    rgb = bundle.gs.frames  # (G, H, W, 3)
+    mosaic = np.empty((rgb.shape[0], 2 * rgb.shape[1], 2 * rgb.shape[2]), rgb.dtype)
+    for k, colour in enumerate("GBRG"):
+        mosaic[:, k // 2::2, k % 2::2] = rgb[..., "RGB".index(colour)]
+    tifffile.imwrite(tmp_path / "gs_bayer.tif", mosaic, photometric="minisblack")
+    side["gs"].update(file="gs_bayer.tif", pixel_format="BayerGB", bit_depth=12, black_level_dn=64)
+    got = build_bundle(write_side(tmp_path, side))
+    assert got.gs.pixel_format == "BayerRG12" and got.meta["import"]["gs_bayer"].startswith("BayerGB reordered")
+    assert got.rs.pixel_format == "RGB12"
+    assert np.allclose(build_problem(got).b_gs, build_problem(bundle).b_gs, rtol=0, atol=1e-6)

@@ -101,7 +101,8 @@ def _frames(path: Path, part: Camera, name: str, stack: bool, within: Path | Non
     letters = "".join(image_files.AXIS.get(a, a) for a in have)
     if not colour and "C" in letters and len(letters) == arr.ndim and arr.shape[letters.index("C")] > 1:
         raise SidecarError(f"{name}.pixel_format: {part.pixel_format}, but {path} holds "
-                           f"{arr.shape[letters.index('C')]} colour channels; put pixel_format: rgb")
+                           f"{arr.shape[letters.index('C')]} colour channels; put pixel_format: rgb (or "
+                           f"{name}.axes: NHW for a stack of frames the file calls colour)")
     frames = image_files.to_axes(arr, have, "NHWC" if colour else "NHW", f"{name}: {path}")
     if colour and frames.shape[-1] != 3:
         raise SidecarError(f"{name}.pixel_format: rgb needs 3 channels, {path} has {frames.shape[-1]}; "
