@@ -321,6 +321,12 @@ def test_sidecar_yaml_is_loaded_safely():
         parse_sidecar("rs: !!python/object/apply:os.system ['true']\n")
     with pytest.raises(SidecarError, match="mapping"):
         parse_sidecar("- just\n- a list\n")
+    bomb = "a: &a [x, x, x, x, x, x, x, x, x, x]\n" + "".join(
+        f"{chr(98 + i)}: &{chr(98 + i)} [*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, "
+        f"*{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}, *{chr(97 + i)}]\n"
+        for i in range(8))
+    with pytest.raises(SidecarError, match="aliases"):
+        parse_sidecar(bomb)
 
 
 def test_the_readme_example_runs_as_written(shot, tmp_path, monkeypatch):

@@ -21,6 +21,7 @@ from rngcam.untrusted import printable, read_untrusted
 
 MAX_SIDECAR_BYTES = 4 * 2**20  # a sidecar is a few hundred lines; a larger file is not one
 MAX_TIMES = 100_000  # GS frame times in one sidecar
+MAX_NODES = 1_000_000  # values in a sidecar, aliases expanded
 PIXEL_FAMILIES = ("mono", "rgb", "BayerRG", "BayerGR", "BayerGB", "BayerBG")
 LINE_TIME_SOURCES = ("flicker", "datasheet", "register", "simulated", "other")
 
@@ -238,6 +239,23 @@ def describe(path: Path | str, exc: ValidationError) -> str:
     return f"sidecar {path}: " + "; ".join(parts)
 
 
+def _too_many_nodes(data, limit: int) -> bool:
+    """Whether `data` holds more than `limit` values counted as written out: YAML aliases repeat a
+    value without its text, so a small file can stand for a huge one (stored as JSON later)."""
+    stack, count = [data], 0
+    while stack:
+        item = stack.pop()
+        count += 1
+        if count > limit:
+            return True
+        if isinstance(item, dict):
+            stack.extend(item.keys())
+            stack.extend(item.values())
+        elif isinstance(item, (list, tuple, set)):
+            stack.extend(item)
+    return False
+
+
 def parse_sidecar(text: str, path: Path | str = "<sidecar>") -> Sidecar:
     """Validate sidecar YAML text (safe loading: nothing in it runs); SidecarError, one line."""
     try:
@@ -249,6 +267,9 @@ def parse_sidecar(text: str, path: Path | str = "<sidecar>") -> Sidecar:
         raise SidecarError(f"sidecar {path}: {where}not valid YAML ({printable(problem, 200)})") from None
     except RecursionError:
         raise SidecarError(f"sidecar {path}: nested too deeply to be a sidecar") from None
+    if _too_many_nodes(data, MAX_NODES):
+        raise SidecarError(f"sidecar {path}: more than {MAX_NODES:,} values once its aliases are expanded; "
+                           "a sidecar is a few hundred")
     if not isinstance(data, dict):
         raise SidecarError(f"sidecar {path}: must be a YAML mapping (rs:, psf:, ...), got {type(data).__name__}; "
                            "start from `rngcam import --template`")
