@@ -374,3 +374,14 @@ def test_a_bayer_gs_camera_at_twice_the_size_lands_on_the_rs_grid(shot, tmp_path
     assert got.gs.pixel_format == "BayerRG12" and got.meta["import"]["gs_bayer"].startswith("BayerGB reordered")
     assert got.rs.pixel_format == "RGB12"
     assert np.allclose(build_problem(got).b_gs, build_problem(bundle).b_gs, rtol=0, atol=1e-6)
+
+
+def test_a_bayer_bundle_exports_and_imports_back(tmp_path):
+    from rngcam.sim.simulate import simulate
+
+    bundle = simulate("sineball", tmp_path / "bayer.h5", size=8, bayer=True)
+    export_bundle(bundle, tmp_path / "out")
+    back = build_bundle(tmp_path / "out" / "capture.yaml")
+    for name in ("rs", "gs"):
+        a, b = getattr(bundle, name), getattr(back, name)
+        assert b.pixel_format == a.pixel_format == "BayerRG12" and np.array_equal(b.frames, a.frames)
