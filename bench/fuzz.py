@@ -6,6 +6,11 @@ A case passes when every command ends in a result (exit 0) or one 'error:' line 
 no traceback, within TIME_LIMIT_S and with this process's peak resident memory (VmHWM, reset
 before each case through /proc/self/clear_refs) under MEMORY_LIMIT_BYTES.
 
+The read-side families (links and special files at every name a reader opens, HDF5 filters and
+chunks, text of odd size and shape, checkpoints, calibration files, clip archives) are
+bench/fuzz_families.py's; a case of theirs also fails when the reader's secret, which a planted
+link points to, shows in any output.
+
     python -m bench.fuzz OUT_DIR --cases 1200 --seed 0
 
 Cases run in this process, the `rngcam` command loaded as its script loads it (bench.program: a
@@ -28,6 +33,8 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+
+from bench import fuzz_families as families
 
 TIME_LIMIT_S = 10.0
 MEMORY_LIMIT_BYTES = 2**30
@@ -203,7 +210,9 @@ def cases(n: int, seed: int = 0) -> list[Case]:
     out, count = [], Counter()
     for i in range(n):
         kind = "recon" if i % 10 in (0, 3, 6) else "bundle"
+        kind = families.KIND_SLOTS.get(i % 20, kind)
         mutations = RECON_MUTATIONS if kind == "recon" else BUNDLE_MUTATIONS
+        mutations = families.MUTATIONS.get(kind, mutations)
         out.append(Case(kind, mutations[count[kind] % len(mutations)], seed * 1_000_003 + i))
         count[kind] += 1
     return out
@@ -251,7 +260,11 @@ def run_case(case: Case, seeds: tuple[Path, Path], work: Path, measure_memory: b
     place = work / f"case{case.seed}"
     shutil.rmtree(place, ignore_errors=True)
     place.mkdir(parents=True)
-    if case.kind == "bundle":
+    read_side = (families.prepare(case, bundle, folder, place, rng, mutate_h5, _load_outcome)
+                 if case.kind in families.MUTATIONS else None)
+    if read_side is not None:
+        target, what, commands, _ = read_side
+    elif case.kind == "bundle":
         target = place / "b.h5"
         shutil.copy(bundle, target)
         what = mutate_h5(target, case.mutation, rng, bundle)
@@ -274,6 +287,8 @@ def run_case(case: Case, seeds: tuple[Path, Path], work: Path, measure_memory: b
             outcomes.append(_outcome(CliRunner().invoke(program(), args)))
         if case.kind == "recon":
             outcomes.append(_load_outcome(target))
+        if read_side is not None:
+            outcomes += [check() for check in read_side[3]]
     except _Timeout:
         outcomes.append(("FAILED", f"over {TIME_LIMIT_S:g} s"))
     finally:
@@ -281,6 +296,8 @@ def run_case(case: Case, seeds: tuple[Path, Path], work: Path, measure_memory: b
         signal.signal(signal.SIGALRM, old)
     seconds = time.perf_counter() - start
     peak = peak_rss_bytes()
+    if read_side is not None and families.leaked(place, [d for _, d in outcomes]):
+        outcomes.append(("FAILED", "the reader's secret is in an output"))
     if measure_memory and peak > MEMORY_LIMIT_BYTES:
         outcomes.append(("FAILED", f"peak memory {peak / 2**20:.0f} MiB"))
     shutil.rmtree(place, ignore_errors=True)
