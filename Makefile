@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 ARAVIS_DEBS := gir1.2-aravis-0.8 libgirepository1.0-dev
 SUDO := $(shell test "$$(id -u)" = 0 || echo sudo)
 
-.PHONY: demo test venv lint bench clean aravis browser
+.PHONY: demo test test-fast venv lint bench clean aravis browser
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -48,6 +48,10 @@ browser:
 
 test: $(STAMP) browser
 	$(BIN)/python -m pytest -q
+
+# The quick subset (physics, formats, the recipe, one short fit of each method): a few minutes on two cores.
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m fast
 
 lint: $(STAMP)
 	$(BIN)/ruff check rngcam tests

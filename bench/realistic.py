@@ -33,7 +33,8 @@ from rngcam.recon import registry
 from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.methods.stfm import STFMSettings
 from rngcam.recon.methods.stfm.auto import choose_preset
-from rngcam.recon.methods.stfm.ensemble import make_stfm
+from rngcam.recon.methods.stfm.recipe import make_stfm
+from rngcam.recon.methods.stfm.run_state import RunState
 from rngcam.recon.metrics import motion_metrics, video_metrics
 from rngcam.recon.misfit import learned_by_fit, learned_shift, ratio_limit, verdict
 from rngcam.recon.problem import build_problem
@@ -102,8 +103,7 @@ def stfm_settings(p, selfcal_mode: str) -> STFMSettings:
     """The default (preset auto, start floor), one fit instead of fast's ensemble so that a fixed
     step count means the same thing for every scene."""
     choice = choose_preset(p.to(torch.float32))
-    s = STFMSettings(preset=choice.preset, preset_choice=choice.as_dict(), self_calibrate=selfcal_mode,
-                     stop_at_noise=False, start_floor=True)
+    s = STFMSettings(preset=choice.preset, self_calibrate=selfcal_mode, stop_at_noise=False, start_floor=True)
     if choice.preset == "fast":
         s = replace(s, dynamic_base="interp", refine=False)
     return s
@@ -133,7 +133,8 @@ def calibration_vs_truth(report: dict | None, truth: dict | None, end: dict | No
 def run_stfm(p, scene: str, steps: int, mode: str, truth_cal: dict | None) -> dict:
     settings = stfm_settings(p, mode)
     t0 = time.perf_counter()
-    method = make_stfm(p.to(torch.float32), settings)
+    choice = choose_preset(p.to(torch.float32))  # the auto_preset stage's, recorded as a run records it
+    method = make_stfm(p.to(torch.float32), settings, state=RunState(preset_choice=choice.as_dict()))
     setup = time.perf_counter() - t0
     result = run(method, LoopSettings(time_budget_s=None, max_iters=steps, log_every_iters=steps, progress=False))
     rs = method.resolved_settings()

@@ -26,7 +26,7 @@ from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.methods import selfcal
 from rngcam.recon.methods.stfm import STFMSettings
 from rngcam.recon.methods.stfm.auto import choose_preset
-from rngcam.recon.methods.stfm.ensemble import make_stfm
+from rngcam.recon.methods.stfm.recipe import make_stfm
 from rngcam.recon.runner import method_view
 
 

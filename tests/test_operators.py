@@ -14,7 +14,7 @@ from rngcam.physics.operators import (
 )
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.device)]
 
 
 def _rand(shape, seed, dtype=torch.float64):

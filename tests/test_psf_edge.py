@@ -311,7 +311,7 @@ def test_stfm_is_wrapped_only_where_the_key_rows_find_the_psf_too_large(problems
     second = method._make_refit(wrong.psf * 0 + 1 / wrong.psf[0].numel(), {"scale": 0.95})
     assert not isinstance(second, (EdgeRefit, SubframesAveraged))  # one second fit, never a third
     assert second.problem.shape[1] == 2 * wrong.shape[1]  # on the run's half-frames, not subdivided again
-    assert second.settings.selfcal_report["psf_edge"] == {"scale": 0.95}
+    assert second.state.selfcal_report["psf_edge"] == {"scale": 0.95}
     said = [n for n in second.notes if n.startswith("self-calibration")]  # told apart from the first fit's
     assert said and said[0].startswith("self-calibration (gains) through the PSF with its lost edge fitted (shrunk x0.9500)")
     assert not isinstance(make_stfm(matched, settings), EdgeRefit)

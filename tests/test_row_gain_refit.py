@@ -79,10 +79,10 @@ def test_stfm_is_wrapped_where_the_key_rows_find_the_psf_too_large_and_the_motio
     settings = STFMSettings(self_calibrate="gains", preset="prior", subframes=1)  # the stages themselves
     method = make_stfm(wrong, settings)
     assert isinstance(method, RowGainRefit) and isinstance(method._fits[0], EdgeRefit)
-    assert not method._fits[0].settings.row_gain_search
+    assert not method._fits[0].state.row_gain_search
     second = method._make_refit(True, {"refits": [], "kept": 0})
     assert isinstance(second, EdgeRefit)  # the whole run again, its own PSF-edge stage included ...
-    assert second.settings.row_gain_search and not second.settings.row_gain_refit  # ... never a third run
+    assert second.state.row_gain_search and not second.settings.row_gain_refit  # ... never a third run
     assert "motion search: each RS row scored after its own gain" in second.notes
     assert not any("row gain" in n for n in method._fits[0].notes)
     said = [n for n in second.notes if n.startswith("self-calibration")]
@@ -90,9 +90,9 @@ def test_stfm_is_wrapped_where_the_key_rows_find_the_psf_too_large_and_the_motio
     psf = wrong.psf * 0 + 1 / wrong.psf[0].numel()
     assert not isinstance(second._make_refit(psf, {"scale": 0.95}), RowGainRefit)  # no third run
     through_edge = method._fits[0]._make_refit(psf, {"scale": 0.95})  # the first run's fit through an edge:
-    assert isinstance(through_edge, RowGainRefit) and not through_edge._fits[0].settings.row_gain_search  # wrapped
+    assert isinstance(through_edge, RowGainRefit) and not through_edge._fits[0].state.row_gain_search  # wrapped
     again = through_edge._make_refit(True, {"refits": [], "kept": 0})
-    assert again.settings.row_gain_search and not isinstance(again, (EdgeRefit, RowGainRefit))  # as one fit
+    assert again.state.row_gain_search and not isinstance(again, (EdgeRefit, RowGainRefit))  # as one fit
     assert any(n.startswith("self-calibration (gains) through the motion search with row gains and the PSF with "
                             "its lost edge fitted (shrunk x0.9500)") for n in again.notes)
     through_edge.step()

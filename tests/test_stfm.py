@@ -13,6 +13,7 @@ from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, Vid
 from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.methods.stfm import STFMSettings, make_stfm
 from rngcam.recon.methods.stfm.components import choose_components
+from rngcam.recon.methods.stfm.run_state import RunState
 from rngcam.recon.metrics import psnr
 from rngcam.recon.problem import Problem
 from rngcam.sim.scenes import render_scene
@@ -896,8 +897,8 @@ def test_the_motion_search_with_row_gains_follows_rows_whose_light_is_off_by_var
     p = replace(p, b_rs=p.b_rs * (1 + 0.3 * torch.sin(2 * math.pi * rows / 5 + 1))[None, :, None])
     errors = {}
     for row_gains in (False, True):
-        m = make_stfm(p, STFMSettings(preset="prior", components="all", row_gain_search=row_gains,
-                                      start_floor=False, fits=1))
+        m = make_stfm(p, STFMSettings(preset="prior", components="all", start_floor=False, fits=1),
+                      state=RunState(row_gain_search=row_gains))
         errors[row_gains] = _track_errors(m, xs)
         assert any("each RS row scored after its own gain" in n for n in m.notes) == row_gains
     assert max(errors[True]) <= 1.0, errors  # measured (1, 0) px

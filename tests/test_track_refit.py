@@ -11,6 +11,7 @@ from rngcam.errors import RngcamError
 from rngcam.recon.methods.stfm import motion_search, track_refit
 from rngcam.recon.methods.stfm.edge_refit import EdgeRefit
 from rngcam.recon.methods.stfm.row_gain_refit import RowGainRefit
+from rngcam.recon.methods.stfm.run_state import RunState
 from rngcam.recon.methods.stfm.stages import TrackRefitConfig
 from rngcam.recon.methods.stfm.track_refit import TrackRefit
 
@@ -80,10 +81,10 @@ def test_stfm_is_wrapped_where_the_motion_is_searched_and_the_row_gain_stage_doe
     wrong, matched = problems
     settings = STFMSettings(self_calibrate="gains", preset="prior", subframes=1)  # the stages themselves
     method = make_stfm(matched, settings)
-    assert isinstance(method, TrackRefit) and method._fits[0].settings.search_turn_scale == 1
+    assert isinstance(method, TrackRefit) and method._fits[0].state.search_turn_scale == 1
     second = method._make_refit(TrackRefitConfig().turn_scale, {"refits": [], "kept": 0})
     assert not isinstance(second, TrackRefit)  # the whole run again, never a third
-    assert second.settings.search_turn_scale == 0.5 and not second.settings.track_refit
+    assert second.state.search_turn_scale == 0.5 and not second.settings.track_refit
     assert "motion search: turn penalty x0.5" in second.notes
     assert not any("turn penalty" in n for n in method._fits[0].notes)
     said = [n for n in second.notes if n.startswith("self-calibration")]
@@ -107,5 +108,5 @@ def test_the_search_charges_turns_by_the_runs_scale(problems, monkeypatch):  # n
     monkeypatch.setattr(motion_search, "_viterbi", lambda cost, move, turn, speed: turns.append(turn) or
                         viterbi(cost, move, turn, speed))
     for scale in (1.0, 0.5):
-        make_stfm(matched, STFMSettings(preset="prior", track_refit=False, search_turn_scale=scale, fits=1))
+        make_stfm(matched, STFMSettings(preset="prior", track_refit=False, fits=1), state=RunState(search_turn_scale=scale))
     assert len(turns) == 2 and turns[1] == pytest.approx(0.5 * turns[0]) and turns[0] > 0

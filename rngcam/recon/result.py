@@ -22,14 +22,12 @@ from rngcam.untrusted import printable, write_new
 STATUSES = ("ok", "failed", "interrupted", "budget_before_first_iteration")
 
 # What a method's resolved_settings() holds that the run found rather than was asked (self-calibration,
-# auto's preset choice, the noise floor, the ensemble's and the levels' steps, the start floor's check):
+# auto's preset choice, the noise floor, the ensemble's and the levels' steps, the start floor's check,
+# STFM's recipe as it ran):
 # kept apart from the settings, in metrics.json's "method_results".
 RESULT_KEYS = ("self_calibration", "gs_geometry", "line_time", "preset_choice", "rs_noise_level", "member_steps",
                "refine_steps", "start_floor", "levels", "left_out", "edge_refits",
-               "line_refits", "row_gain_refits", "track_refits")
-# Internal settings fields that only carry a result to where it is reported (STFMSettings.selfcal_report
-# is "self_calibration" above): dropped from both.
-CARRIERS = ("selfcal_report",)
+               "line_refits", "row_gain_refits", "track_refits", "recipe")
 
 
 def split_results(resolved: dict | None) -> tuple[dict | None, dict]:
@@ -37,7 +35,7 @@ def split_results(resolved: dict | None) -> tuple[dict | None, dict]:
     if not resolved:
         return None, {}
     results = {k: resolved[k] for k in RESULT_KEYS if resolved.get(k) is not None}
-    settings = {k: v for k, v in resolved.items() if k not in RESULT_KEYS and k not in CARRIERS}
+    settings = {k: v for k, v in resolved.items() if k not in RESULT_KEYS}
     return settings, results
 
 

@@ -10,12 +10,16 @@ from torch import Tensor
 from rngcam.errors import ConfigError
 from rngcam.recon.methods.stfm.ensemble import STFMEnsemble
 from rngcam.recon.methods.stfm.method import STFM
+from rngcam.recon.methods.stfm.run_state import RunState
 from rngcam.recon.methods.stfm.settings import STFMSettings, _base_list, _setting_or_preset
 
 
-def make_fit(problem, settings: STFMSettings, device, initial_video: Tensor | None, clock=None, stage=None):
+def make_fit(problem, settings: STFMSettings, device, initial_video: Tensor | None, clock=None, stage=None,
+             state: RunState | None = None):
     """The fit of a build: coarse to fine where `stfm_levels` gives several levels, else one STFM on
-    `initial_video` (a level above the coarsest), one fit, or an ensemble of bases or seeds."""
+    `initial_video` (a level above the coarsest), one fit, or an ensemble of bases or seeds; each fit
+    carries `state` (what the build found)."""
+    state = state or RunState()
     if initial_video is None:
         from rngcam.recon.methods.stfm.multilevel import make_multilevel, stfm_levels
         from rngcam.recon.methods.stfm.recipe import make_stfm
@@ -23,18 +27,18 @@ def make_fit(problem, settings: STFMSettings, device, initial_video: Tensor | No
         factors = stfm_levels(problem, settings)
         if len(factors) > 1:
             return make_multilevel(problem, settings, device, factors,
-                                   lambda level, s: make_stfm(level, s, device), clock, stage)
+                                   lambda level, s: make_stfm(level, s, device, state=state), clock, stage)
     if initial_video is not None:
         if tuple(initial_video.shape) != tuple(problem.shape):
             raise ConfigError(f"initial_video has shape {tuple(initial_video.shape)}, the problem's video "
                               f"is {tuple(problem.shape)}")
         return STFM(problem, replace(settings, dynamic_base="video", dynamic_time=True), device,
-                    base_video=initial_video)
+                    base_video=initial_video, state=state)
     names = _base_list(_setting_or_preset(settings, "dynamic_base"))
     fits = _setting_or_preset(settings, "fits")
     if len(names) == 1 and fits == 1:
-        return STFM(problem, replace(settings, dynamic_base=names[0]), device)
-    first = STFM(problem, replace(settings, dynamic_base=names[0]), device)
+        return STFM(problem, replace(settings, dynamic_base=names[0]), device, state=state)
+    first = STFM(problem, replace(settings, dynamic_base=names[0]), device, state=state)
     if len(names) == 1:  # one base, fitted `fits` times from consecutive seeds
         return STFMEnsemble(first.problem, settings, names * fits, device, first=first, clock=clock)
     if first.base_source is None:  # no dynamic base applies (no GS frames, no motion, ...): one fit
@@ -64,19 +68,21 @@ def describe_fit(problem, settings: STFMSettings, initial_video: Tensor | None) 
     return f"{levels}{what}; preset {settings.preset}, {k} frames of {h}x{w}"
 
 
-def another_fit(build, changed, found: dict, psf_scale: bool, **off):
+def another_fit(build, changed, found: dict, psf_scale: bool, made_from: dict, **off):
     """A later fit of a refit stage: a whole STFM run on `changed` (the problem as handed, changed),
-    calibrated again as the first was (what the stage found kept in its report), the settings `off` given
-    and no track refit (that stage wraps the first whole run only)."""
+    calibrated again as the first was (what the stage found kept in its report), made from `made_from`
+    (RunState fields), with the settings `off` given and no track refit (that stage wraps the first
+    whole run only)."""
     from rngcam.recon.methods.stfm.recipe import make_stfm
 
     settings = build.settings
     changed = replace(changed, notes=list(changed.notes))
-    calibration = settings.selfcal_report
+    calibration = build.state.selfcal_report
     if settings.self_calibrate != "off":
         from rngcam.recon.methods.selfcal import calibrate_problem
 
         changed, calibration = calibrate_problem(changed, settings.self_calibrate, psf_scale)
         calibration = dict(calibration or {}, **found)
-    return make_stfm(changed, replace(settings, selfcal_report=calibration, track_refit=False, **off), build.device,
-                     clock=build.clock, stage=build.stage)
+    state = replace(build.state, selfcal_report=calibration, **made_from)
+    return make_stfm(changed, replace(settings, track_refit=False, **off), build.device, clock=build.clock,
+                     stage=build.stage, state=state)

@@ -15,6 +15,7 @@ from rngcam.recon.methods.stfm.lanes import Lanes, lane_count
 from rngcam.recon.methods.stfm.line_time import line_time_report
 from rngcam.recon.methods.stfm.method import STFM, add_learned, geometry_report, learned_notes
 from rngcam.recon.methods.stfm.model import _chunks
+from rngcam.recon.methods.stfm.run_state import RunState
 from rngcam.recon.methods.stfm.settings import (
     REFINE_LR_RATIO,
     REFINE_STALL_PASSES,
@@ -54,8 +55,9 @@ class STFMEnsemble(MethodBase):
     supports_holdout = True
 
     def __init__(self, problem, settings: STFMSettings, bases: list[str], device="cpu", first: STFM | None = None,
-                 clock=None):
+                 clock=None, state: RunState | None = None):
         self.settings = settings
+        first_state = first.state if first is not None else (state or RunState())
         self.problem = problem
         self.members: list[STFM] = []
         self._of_one_base = len(set(bases)) < len(bases)  # fits of one base from several seeds (`fits`)
@@ -66,7 +68,8 @@ class STFMEnsemble(MethodBase):
                 member = first
             else:
                 member = STFM(problem, replace(settings, dynamic_base=base, seed=settings.seed + i), device,
-                              static_from=self.members[0] if self.members and not again else None)
+                              static_from=self.members[0] if self.members and not again else None,
+                              state=self.members[0].state if self.members else first_state)
             if (member.base_source, again) in sources:  # e.g. "keys" falls back to DIS flows without RIFE
                 continue
             sources.add((member.base_source, again))
@@ -82,6 +85,11 @@ class STFMEnsemble(MethodBase):
         self._clock = clock if self._of_one_base else None  # to let the later fits go where it cannot hold them
         self._timed: tuple[float, int] | None = None  # (perf_counter, member steps) at the first step
         self._let_go: str | None = None  # why the later fits were let go
+
+    @property
+    def state(self) -> RunState:
+        """The fits' run state (one build's: rngcam.recon.methods.stfm.run_state)."""
+        return self.members[0].state
 
     @property
     def left_out(self) -> list[tuple[str, str]]:
@@ -151,7 +159,7 @@ class STFMEnsemble(MethodBase):
         base = video / torch.as_tensor(self._mean_gains(), device=self.device)[:, None, None, None]
         settings = replace(self.settings, dynamic_base="video", seed=self.settings.seed + len(self.members), lr=lr,
                            stall_passes=self.settings.stall_passes or REFINE_STALL_PASSES)
-        self.refined = STFM(self.problem, settings, self.device, static_from=first, base_video=base)
+        self.refined = STFM(self.problem, settings, self.device, static_from=first, base_video=base, state=first.state)
         if pose is not None and self.refined.learn_pose:  # the members' transform, refined further
             self.refined.start_pose(pose)
         factor = self._mean_line_factor()
@@ -212,11 +220,11 @@ class STFMEnsemble(MethodBase):
         return self.refined.line_factor() if self.refined is not None else self._mean_line_factor()
 
     def line_time_report(self) -> dict | None:
-        return line_time_report(self.members[0].rs_timing, self.line_factor(), self.members[0].settings.line_time_from)
+        return line_time_report(self.members[0].rs_timing, self.line_factor(), self.members[0].state.line_time_from)
 
     def learned_geometry(self) -> dict | None:
         m0 = self.members[0]
-        return geometry_report(self.pose(), m0.pose_radius, m0.settings.selfcal_report)
+        return geometry_report(self.pose(), m0.pose_radius, m0.state.selfcal_report)
 
     @torch.no_grad()
     def residuals(self) -> dict[str, float]:

@@ -58,11 +58,11 @@ class GSInit:
         obj = (change / (0.1 * float(background.mean()) + 1e-6)).clamp(0, 1)  # 1 on the moving object
         alpha = 1 - obj if self.parts.static else None
         _fit_image(self.fields["dynamic"], self.xs, self.ys, layer, steps, alpha)
-        row_gains = self.settings.row_gain_search
+        row_gains = self.state.row_gain_search
         if row_gains:
             self._notes.append("motion search: each RS row scored after its own gain")
-        if self.settings.search_turn_scale != 1:
-            self._notes.append(f"motion search: turn penalty x{self.settings.search_turn_scale:g}")
+        if self.state.search_turn_scale != 1:
+            self._notes.append(f"motion search: turn penalty x{self.state.search_turn_scale:g}")
         track = translation_track(self, background, layer, obj, row_gains=row_gains).to(self.device)  # (K, 2) px
         self.motion_track_px = track
         # The dynamic field is sampled at x + u: a layer moved by d has u = -d (coordinate units).

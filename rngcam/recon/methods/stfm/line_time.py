@@ -97,7 +97,7 @@ class LineTime:
         self._synced_factor = factor
 
     def line_time_report(self) -> dict | None:
-        return line_time_report(self.rs_timing, self.line_factor(), self.settings.line_time_from)
+        return line_time_report(self.rs_timing, self.line_factor(), self.state.line_time_from)
 
 
 def line_time_report(timing, factor: float | None, start: float = 1.0) -> dict | None:

@@ -22,6 +22,7 @@ from rngcam.recon.methods.stfm.init import GSInit
 from rngcam.recon.methods.stfm.line_time import LineTime, line_time_lines
 from rngcam.recon.methods.stfm.loss import DataLoss
 from rngcam.recon.methods.stfm.model import FieldModel, _chunks
+from rngcam.recon.methods.stfm.run_state import RunState
 from rngcam.recon.methods.stfm.settings import (
     _FROM_PRESET,
     LINE_HOLD_STEPS_SEARCH,
@@ -56,7 +57,8 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
 
     def __init__(self, problem, settings: STFMSettings, device="cpu", static_from: STFM | None = None,
                  base_video: Tensor | None = None, fields_from: STFM | None = None,
-                 rs_norm_start: Tensor | None = None, base_gains: Tensor | None = None):
+                 rs_norm_start: Tensor | None = None, base_gains: Tensor | None = None,
+                 state: RunState | None = None):
         """`static_from`: an STFM of the same problem and preset whose initialised static field
         this one copies instead of fitting it again (ensemble members share that start).
         `base_video` (C, K, H, W), without GS gains: the base of a "video" dynamic base, instead
@@ -67,11 +69,14 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         and gains this one starts from instead of initialising from the GS frames (coarse to fine).
         `rs_norm_start`: a start for the RS operator's power iteration (a coarser level's
         `rs_norm_vector`, upsampled); given one, the fit keeps its last iterate in `rs_norm_vector`
-        for the next level (a video-sized buffer the caller frees), else `rs_norm_vector` is None."""
+        for the next level (a video-sized buffer the caller frees), else `rs_norm_vector` is None.
+        `state`: what the build found (the preset's choice, self-calibration) and what a later fit is
+        made from (rngcam.recon.methods.stfm.run_state); a finer level takes `fields_from`'s."""
         self.settings = settings
-        choice = settings.preset_choice  # preset "auto" (make_stfm): what it chose and why
+        self.state = state or (fields_from.state if fields_from is not None else RunState())
+        choice = self.state.preset_choice  # preset "auto" (the recipe's auto_preset stage): what it chose and why
         self._notes = [f"preset auto chose {choice['preset']}: {choice['reason']}"] if choice else []
-        self._notes += report_lines(settings.selfcal_report)  # the end values: resolved_settings
+        self._notes += report_lines(self.state.selfcal_report)  # the end values: resolved_settings
         self._notes += ablation.selfcal_note(settings)  # --no-gs / --no-rs: nothing to calibrate against
         self._static_from = static_from
         self._given_base = base_video
@@ -331,7 +336,7 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         self._update_group(self.gs_pose, **self._pose_schedule())
 
     def learned_geometry(self) -> dict | None:
-        return geometry_report(self.pose(), self.pose_radius, self.settings.selfcal_report)
+        return geometry_report(self.pose(), self.pose_radius, self.state.selfcal_report)
 
     def state_dict(self) -> dict:
         return {"fields": self.fields.state_dict(), "log_gain": self.log_gain.detach().clone(),
@@ -380,9 +385,10 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         out["frame_chunk"] = self.frame_chunk
         out["base_video"] = self.base_source
         out["rs_noise_level"] = self.rs_noise_level
+        out["preset_choice"] = self.state.preset_choice
         out["fields"] = {k: [v[0], dict(v[1])] for k, v in self.resolved.fields.items()}
         out["left_out"] = [list(x) for x in self.left_out]
-        report = self.settings.selfcal_report
+        report = self.state.selfcal_report
         if ablation.selfcal_note(self.settings):
             out["self_calibration"] = {"mode": "off", "why": ablation.selfcal_off(self.settings)}
         if report:

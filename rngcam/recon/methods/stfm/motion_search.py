@@ -116,7 +116,7 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
         centres = (np.asarray(stfm._gs_centre_frames(), float) + 0.5) / sub - 0.5  # in the output's frames
         cost += _normalised(centre_weights(centres, k // sub).to(dev).t() @ g_cost)
     size = max(stfm.H, stfm.W)  # the turn penalty and speed limit scale with the image: in grid steps
-    turn = SEARCH_TURN * stfm.settings.search_turn_scale * step * 64 / size  # scaled in track_refit's run
+    turn = SEARCH_TURN * stfm.state.search_turn_scale * step * 64 / size  # scaled in track_refit's run
     speed = min(int(np.ceil(SEARCH_SPEED * size / step)), SEARCH_SPEED_STEPS)
     best = _viterbi(cost.cpu().numpy().reshape(k // sub, side, side), SEARCH_SMOOTH * step, turn, speed)
     return through_subframes(shifts.cpu()[torch.from_numpy(best)], sub)

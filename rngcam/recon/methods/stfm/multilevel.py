@@ -132,7 +132,7 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
                                          lr=_lr(single_settings, level)), device, base_video=base,
                           base_gains=coarse.base_gains, fields_from=coarse, rs_norm_start=start)
         elif with_base:
-            coarse_shape = _fit_of(previous[-1]).problem.shape
+            coarse_shape, state = _fit_of(previous[-1]).problem.shape, _fit_of(previous[-1]).state
             previous.clear()  # the coarser fit is not needed any more: free it before building
             release_free_memory()
             if pose is not None:  # the estimate is in RS coordinates; the fields' base in the GS camera's
@@ -141,7 +141,7 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
             detail = level.b_gs is not None and level.shape[-2] * level.shape[-1] <= FINE_GS_MAX_PIXELS
             if detail:
                 x0 = _with_detail(level, x0, coarse_shape)
-            method = _on_base(level, single_settings, device, x0, start, refinement=detail)
+            method = _on_base(level, single_settings, device, x0, start, refinement=detail, state=state)
             if pose is not None and method.learn_pose:  # (fields_from carries it in the other two ways)
                 method.start_pose(pose * ratio)
         else:
@@ -200,18 +200,19 @@ def _lr(settings: STFMSettings, problem) -> float:
 
 
 def _on_base(problem, settings: STFMSettings, device, x0: Tensor, norm_start: Tensor | None = None,
-             refinement: bool = False) -> STFM:
+             refinement: bool = False, state=None) -> STFM:
     """One fit on the base video x0 (C, K, H, W), the coarser level's estimate upsampled (kept as
     it is, half precision included: no copy). The base is x0 divided by the gains the fit starts
     with (on the fly), so its first video is x0 itself. `refinement`: with the ensemble refinement's
     stall window (REFINE_STALL_PASSES, unless stall_passes is set), where x0 carries the GS-only
-    detail (on the paper grid's middle level it cost 0.5 dB: that level stopped at 160 steps, not 342)."""
+    detail (on the paper grid's middle level it cost 0.5 dB: that level stopped at 160 steps, not 342).
+    `state`: the run state of the level below (rngcam.recon.methods.stfm.run_state)."""
     wb = problem.white_balance
     gains = None if wb is None or bool(torch.all(wb == 1)) else wb.float()
     fine = replace(settings, dynamic_base="video", dynamic_time=True, lr=_lr(settings, problem))
     if refinement:
         fine = replace(fine, stall_passes=settings.stall_passes or REFINE_STALL_PASSES)
-    return STFM(problem, fine, device, base_video=x0, base_gains=gains, rs_norm_start=norm_start)
+    return STFM(problem, fine, device, base_video=x0, base_gains=gains, rs_norm_start=norm_start, state=state)
 
 
 def _from_fields(problem, settings: STFMSettings, device, coarse: STFM, norm_start: Tensor | None = None) -> STFM:

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from rngcam.errors import ConfigError
 from rngcam.recon.loop import Wrapped
+from rngcam.recon.methods.stfm.run_state import RunState
 from rngcam.recon.methods.stfm.settings import STFMSettings
 from rngcam.recon.methods.stfm.stage import Build, config_dict, configs_for, run_recipe
 from rngcam.recon.methods.stfm.stages import (
@@ -47,22 +48,23 @@ def check_stage_settings(overrides: dict | None) -> dict:
             for name in (overrides or {})}
 
 
-def _build(problem, settings: STFMSettings | None, device, initial_video, clock, stage) -> Build:
+def _build(problem, settings: STFMSettings | None, device, initial_video, clock, stage, state) -> Build:
     settings = settings or STFMSettings()
     return Build(handed=problem, problem=problem, settings=settings, device=device, clock=clock, stage=stage,
-                 initial_video=initial_video, configs=configs_for(RECIPE, settings.stages))
+                 initial_video=initial_video, state=state or RunState(), configs=configs_for(RECIPE, settings.stages))
 
 
 def make_stfm(problem, settings: STFMSettings | None = None, device="cpu", initial_video: Tensor | None = None,
-              clock=None, stage=None, trace: bool = False):
+              clock=None, stage=None, trace: bool = False, state: RunState | None = None):
     """The STFM run for `problem` (see STFM and STFMSettings): RECIPE's stages, each that applies in turn.
 
     `initial_video` (C, K, H, W), on the RS scale without GS gains (e.g. a coarser level's estimate,
     upsampled): one fit whose dynamic base is that video, with none of the stages around a whole run.
     `clock` (the run's: rngcam.recon.loop.Clock) and `stage(message)` as in make_tv3d. With `trace` the
     method carries `recipe`, one line a stage (what it did or why it was left out), which the runner
-    writes to recon.log and the resolved settings keep."""
-    build = _build(problem, settings, device, initial_video, clock, stage)
+    writes to recon.log and the resolved settings keep. `state`: what an enclosing build found (a level
+    or a later fit of a refit stage: rngcam.recon.methods.stfm.run_state)."""
+    build = _build(problem, settings, device, initial_video, clock, stage, state)
     method = run_recipe(RECIPE, build)
     return Traced(method, [r.line() for r in build.trace]) if trace else method
 
@@ -71,7 +73,7 @@ def explain(problem, settings: STFMSettings | None = None) -> list[str]:
     """The recipe a run on `problem` would follow, one line a stage, without fitting: the stages that
     decide from the data before the fit (self-calibration, the preset's choice) run, the others say
     what they would do or why they are left out."""
-    build = _build(problem, settings, "cpu", None, None, None)
+    build = _build(problem, settings, "cpu", None, None, None, None)
     run_recipe(RECIPE, build, dry=True)
     return [r.line() for r in build.trace]
 

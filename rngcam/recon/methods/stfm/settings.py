@@ -109,7 +109,6 @@ class STFMSettings:
     coarse_to_fine: bool = setting(True, "reconstruct coarser grids first (1/2 from 96 px, from 64 px for the fast "
                                          "preset; 1/4 too from 192 px), each starting the next "
                                          "(else one level at the full grid)")
-    preset_choice: dict | None = field(default=None, metadata={"internal": True})  # auto's choice (make_stfm)
     self_calibrate: str = setting(
         "off", "refine the calibration from the RS rows exposed with the GS frames before the fit "
                  "(rngcam.recon.methods.selfcal): gains (GS/RS colour gains), all (and the GS-to-RS shift, rotation "
@@ -126,19 +125,15 @@ class STFMSettings:
               "it started: fit again from the start at the learned line time, learning it on from there (up to "
               "three more fits; one, from 0.7 %, after a fit that ends at 1.15x its noise level or more), and "
               "keep the fit that explains the RS image best")
-    line_time_from: float = field(default=1.0, metadata={"internal": True})  # a line refit's start, x the recorded
     row_gain_refit: bool = setting(
         True, "with self_calibrate, where the key rows find the PSF measured too large and the run (or a later fit "
               "through a fitted PSF edge or line time) ends at 1.15x its noise level or more: make it again with a "
               "motion search that scores each RS row after its own gain (a PSF that lost its edge predicts the "
               "rows' light short by varying amounts), and keep the one that explains the RS image better")
-    row_gain_search: bool = field(default=False, metadata={"internal": True})  # set in row_gain_refit's run
     track_refit: bool = setting(
         True, "where the motion starts from the translation search (the prior preset) and the run ends at 1.15x "
               "its noise level or more (and row_gain_refit does not apply): make it again from a search with half "
               "the turn penalty, and keep the one that explains the RS image better")
-    search_turn_scale: float = field(default=1.0, metadata={"internal": True})  # set in track_refit's run
-    selfcal_report: dict | None = field(default=None, metadata={"internal": True})  # what self-calibration refined
     learn_geometry: str = setting(
         "off", "learn the GS-to-RS transform with the fields: its shift, or shift, rotation and scale "
                "(similarity); needs both cameras and soft GS anchoring", choices=GEOMETRY_MODES)

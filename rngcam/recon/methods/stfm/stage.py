@@ -39,6 +39,7 @@ class Build:
     initial_video: Any = None
     method: Any = None
     subframes: int = 1
+    state: Any = None  # what the stages found (run_state.RunState)
     configs: dict = field(default_factory=dict)  # stage name -> its config (the recipe's, with --set applied)
     trace: list = field(default_factory=list)
 

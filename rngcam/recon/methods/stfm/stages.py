@@ -35,7 +35,7 @@ class SelfCalibration(Stage):
 
     def applies(self, build: Build) -> str | None:
         s = build.settings
-        if s.selfcal_report is not None:
+        if build.state.selfcal_report is not None:
             return "calibrated already (a later fit carries its run's calibration)"
         if s.self_calibrate == "off":
             return "self_calibrate off"
@@ -48,7 +48,7 @@ class SelfCalibration(Stage):
 
         build.problem, report = calibrate_problem(build.problem, build.settings.self_calibrate,
                                                   build.settings.self_calibrate_psf_scale)
-        build.settings = replace(build.settings, selfcal_report=report or {})
+        build.state = replace(build.state, selfcal_report=report or {})
         applied = bool((report or {}).get("applied"))
         return f"mode {build.settings.self_calibrate}; " + ("refined values applied" if applied else "nothing applied")
 
@@ -81,7 +81,8 @@ class AutoPreset(Stage):
         choice = choose_preset(build.problem, build.config(self.name).layer_misfit_max)
         if build.settings.no_gs:  # say why there are no key frames to test
             choice = replace(choice, reason=f"--no-gs: {choice.reason}")
-        build.settings = replace(build.settings, preset=choice.preset, preset_choice=choice.as_dict())
+        build.settings = replace(build.settings, preset=choice.preset)
+        build.state = replace(build.state, preset_choice=choice.as_dict())
         return f"chose {choice.preset}: {choice.reason}"
 
     def plan(self, build: Build) -> str:
@@ -129,7 +130,7 @@ class Fit(Stage):
         from rngcam.recon.methods.stfm.build_fit import make_fit
 
         build.method = make_fit(build.problem, replace(build.settings, start_floor=False), build.device,
-                                build.initial_video, build.clock, build.stage)
+                                build.initial_video, build.clock, build.stage, build.state)
         return self.plan(build)
 
     def plan(self, build: Build) -> str:
@@ -211,7 +212,7 @@ class LineRefitStage(Stage):
         def later(factor: float, report: dict):
             return another_fit(build, handed.at_line_time(factor),
                                {"line_refit": report, "through": f"the RS line time at x{factor:.4f}"},
-                               s.self_calibrate_psf_scale, line_refit=False, psf_edge=False, line_time_from=factor)
+                               s.self_calibrate_psf_scale, {"line_time_from": factor}, line_refit=False, psf_edge=False)
 
         build.method = LineRefit(build.method, build.problem, later, {"psf_edge": s.psf_edge},
                                  build.config(self.name))
@@ -235,7 +236,7 @@ class EdgeRefitConfig:
 def _edge_scale(build: Build) -> float | None:
     from rngcam.recon.methods.stfm.edge_refit import edge_scale
 
-    return edge_scale(build.settings.selfcal_report, build.config(EdgeRefitStage.name).max_scale)
+    return edge_scale(build.state.selfcal_report, build.config(EdgeRefitStage.name).max_scale)
 
 
 class EdgeRefitStage(Stage):
@@ -254,13 +255,13 @@ class EdgeRefitStage(Stage):
         from rngcam.recon.methods.stfm.build_fit import another_fit
         from rngcam.recon.methods.stfm.edge_refit import EdgeRefit
 
-        s, handed = build.settings, build.handed
+        handed = build.handed
 
         def second(psf, report: dict):
             shrink = ((report.get("refits") or [report])[-1]).get("scale")
             through = "the PSF with its lost edge fitted" + ("" if shrink is None else f" (shrunk x{shrink:.4f})")
-            found = {"scales": s.selfcal_report.get("scales"), "psf_edge": report, "through": through}
-            return another_fit(build, replace(handed, psf=psf.to(handed.psf)), found, False, psf_edge=False)
+            found = {"scales": build.state.selfcal_report.get("scales"), "psf_edge": report, "through": through}
+            return another_fit(build, replace(handed, psf=psf.to(handed.psf)), found, False, {}, psf_edge=False)
 
         build.method = EdgeRefit(build.method, build.problem, _edge_scale(build), second, build.config(self.name))
         return f"key rows' PSF scale x{_edge_scale(build):.4f}: {self.about}"
@@ -274,7 +275,7 @@ class RowGainRefitStage(Stage):
         s = build.settings
         if not s.row_gain_refit:
             return "row_gain_refit off"
-        if s.row_gain_search:
+        if build.state.row_gain_search:
             return "this is the row-gain run"
         if _setting_or_preset(s, "motion_init") != "search":
             return "the motion does not start from the search"
@@ -287,13 +288,13 @@ class RowGainRefitStage(Stage):
         from rngcam.recon.methods.stfm.row_gain_refit import RowGainRefit
 
         s, handed = build.settings, build.handed
-        through = (s.selfcal_report or {}).get("through")  # a later fit of another stage: what it is made through
+        through = (build.state.selfcal_report or {}).get("through")  # a later fit of another stage: made through
         through = through if isinstance(through, str) else None
 
         def second(_row_gains: bool, report: dict):
             label = "the motion search with row gains" + ("" if through is None else f" and {through}")
             return another_fit(build, handed, {"row_gain_refit": report, "through": label},
-                               s.self_calibrate_psf_scale, row_gain_refit=False, row_gain_search=True)
+                               s.self_calibrate_psf_scale, {"row_gain_search": True}, row_gain_refit=False)
 
         build.method = RowGainRefit(build.method, build.problem, _edge_scale(build), second, through)
         return self.about
@@ -333,7 +334,7 @@ class TrackRefitStage(Stage):
 
         def second(scale: float, report: dict):
             found = {"track_refit": report, "through": f"the motion search with its turn penalty x{scale:g}"}
-            return another_fit(build, handed, found, s.self_calibrate_psf_scale, search_turn_scale=scale)
+            return another_fit(build, handed, found, s.self_calibrate_psf_scale, {"search_turn_scale": scale})
 
         build.method = TrackRefit(build.method, build.problem, second, build.config(self.name).turn_scale)
         return self.about
