@@ -385,3 +385,23 @@ def test_a_bayer_bundle_exports_and_imports_back(tmp_path):
     for name in ("rs", "gs"):
         a, b = getattr(bundle, name), getattr(back, name)
         assert b.pixel_format == a.pixel_format == "BayerRG12" and np.array_equal(b.frames, a.frames)
+
+
+def test_gs_frames_from_a_video_file(shot, tmp_path):
+    import av
+
+    bundle = read_bundle(shot)
+    side = lab_files(bundle, tmp_path)
+    frames = (np.repeat(np.repeat(bundle.gs.frames, 2, axis=1), 2, axis=2) >> 4).astype(np.uint8)
+    with av.open(str(tmp_path / "gs.mp4"), "w") as out:
+        stream = out.add_stream("libx264", rate=30)
+        stream.width, stream.height, stream.pix_fmt = frames.shape[2], frames.shape[1], "yuv444p"
+        stream.options = {"qp": "0"}
+        for frame in frames:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
+                out.mux(packet)
+        for packet in stream.encode():
+            out.mux(packet)
+    got = build_bundle(write_side(tmp_path, side), Files(gs=tmp_path / "gs.mp4"))
+    assert got.gs.frames.shape == frames.shape and got.gs.frames.dtype == np.uint8
+    assert np.abs(got.gs.frames.astype(int) - frames).max() <= 2  # lossless x264 up to the colour conversion
