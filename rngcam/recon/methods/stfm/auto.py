@@ -1,8 +1,8 @@
 """`preset="auto"`: the prior preset where one translating layer explains the key frames, else fast.
 
 The prior preset (one canonical dynamic image moved by a smooth motion field) recovers an object
-that moves, turns and comes back (sineball: ball centroid ~1 px), and collapses where the scene
-is not one moving layer (smoke that appears, a street clip: 3-8 dB under the GS-only baselines).
+that moves, turns and comes back (sineball), and collapses where the scene is not one moving
+layer (smoke that appears, a street clip: under the GS-only baselines; bench/stfm_motion.md).
 The fast preset (a correction of GS-only interpolations) never falls far under those baselines
 but smears a moving object. Neither the RS residual nor held-out RS rows separate the two: both
 fit the RS image, held-out rows included, to about its noise (bench/stfm_motion.md).
@@ -17,9 +17,9 @@ differently, the camera pans), it is not. The test: for each other key frame g,
 
 (F(d): the layer shifted by d over the median; the denominator is what moved in key frame g).
 The prior preset is chosen when their mean is below the auto_preset stage's layer_misfit_max. It costs one
-composite per candidate shift and key frame (about a second at 64 px), no fit. Key frames larger
-than LAYER_TEST_SIDE are binned down to about it first: the threshold was set at 32-64 px, and at
-228x342 the test at full size took 8 s of the set-up (0.3 s binned).
+composite per candidate shift and key frame, no fit. Key frames larger than LAYER_TEST_SIDE are
+binned down to about it first: the threshold was set on 32-64 px key frames, and at full size the
+test took much of a large grid's set-up (bench/convergence.md, "stop 58").
 """
 
 from __future__ import annotations

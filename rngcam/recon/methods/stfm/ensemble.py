@@ -124,11 +124,10 @@ class STFMEnsemble(MethodBase):
 
     def _afford(self) -> None:
         """Fits of one base under a deadline: every AFFORD_CHECK_STEPS of the first fit's steps, until it
-        has run its least steps (`least_steps`: a search-started fit's 1,600 at 64 px), the steps all fits
-        still need at the pace so far; where the time left does not hold them, the later fits are let go
-        and the first runs on alone with their time. Cut at half its steps each, two fits lose more than
-        their average wins (the demo: 36.25 dB at 661 steps each, one fit 37.03 at 1,332; bench/demo.md,
-        stop 73). Fits without least steps are not let go."""
+        has run its least steps (`least_steps`), the steps all fits still need at the pace so far; where
+        the time left does not hold them, the later fits are let go and the first runs on alone with their
+        time: cut at half its steps each, two fits lose more than their average wins (bench/demo.md,
+        "stop 73"). Fits without least steps are not let go."""
         if len(self.members) < 2 or self._clock is None or self._clock.left() is None:
             return
         first = self.members[0]

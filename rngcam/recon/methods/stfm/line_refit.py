@@ -1,11 +1,10 @@
 """Fits again from the line time the fit learned, where it moved off where it started.
 
 The fit learns a factor on the RS line time with its fields (`line_time`), but from a start at the
-recorded figure it takes up only part of a large error (sineball, +2 %: x1.0142), and the ball its
-early steps placed by the wrong timing stays off in the last rows' frames. Started at the learned
-factor and learning on from there, a later fit places the ball by nearly the right timing from its
-first step and closes most of what is left (sineball +2 %: x1.0142, then x1.0187, 40.2 dB; with the
-line time's step at 8, x1.0098, x1.0174, x1.0189; bench/realistic.md, stop 70). Where the fit that
+recorded figure it takes up only part of a large error, and the ball its early steps placed by the
+wrong timing stays off in the last rows' frames. Started at the learned factor and learning on from
+there, a later fit places the ball by nearly the right timing from its first step and closes most of
+what is left (bench/realistic.md, "stop 70"). Where the fit that
 explains the RS image best so far learned a factor more than `refit_line_time` off where it started,
 one more whole fit runs with the problem's RS timing stretched by the factor learned (calibrated
 again), up to `max_refits`; from a fit that ended unexplained (settings.EXPLAINED_RATIO), one, from

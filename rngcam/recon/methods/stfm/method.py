@@ -158,7 +158,8 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
             groups.append({"params": [self.line_shift], **self._line_schedule()})
         for g in groups:
             g["lr"] = lr * self._ratio(g)
-        # fused: one kernel for all parameters (CPU and CUDA), 4x less time a step than the loop on a CPU
+        # fused: one kernel for all parameters (CPU and CUDA), a fraction of the loop's time a step on a CPU
+        # (bench/convergence.md, "stop 57")
         self.optimiser = torch.optim.Adam(groups, lr=lr, fused=self.device.type in ("cpu", "cuda"))
         self.base_lr = lr
 

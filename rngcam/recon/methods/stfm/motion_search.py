@@ -13,7 +13,7 @@ pass over frames then picks one shift per frame (costs normalised by their sprea
 small L1 penalty on each change of shift and a larger one on the change of that change:
 between key frames the RS rows often cannot tell a smooth path from a detour of 20-30 px
 (sineball), and an object's velocity changes little from frame to frame. Cost: one RS forward per
-candidate shift, in chunks; the pass is about 0.3 s at 64 px.
+candidate shift, in chunks.
 """
 
 from __future__ import annotations

@@ -53,22 +53,22 @@ from rngcam.recon.methods.stfm.settings import (
 
 MAX_LEVEL_STEPS = 3000  # a coarse level that never meets its stop test ends here
 # Under a time budget a coarse level of a base-video model (fast) may spend this share of what is
-# left when it starts (the full level gets the rest): its coarse steps are 3-5x cheaper and carry most
-# of the result (smoke 228x342x231 in 300 s: shares 0.15 / 0.3 / 0.45 / 0.6 gave 30.9 / 31.8 / 32.0 /
-# 31.8 dB). A model that carries its fields (prior) keeps CoarseToFine's 0.15: sineball at 0.45 lost
-# 1.4 dB and the ball's p90 (bench/convergence.md, stop 61).
+# left when it starts (the full level gets the rest): its coarse steps are cheaper and carry most of
+# the result, and this share scored best on the paper grid. A model that carries its fields (prior)
+# keeps CoarseToFine's 0.15: its full level carries the detail, and a larger share cost it PSNR and
+# the ball's place (bench/convergence.md, "stop 61").
 LEVEL_SHARE = 0.45
-# ... and on the half-grid-first path (below 96 px) this share: its full level is one short refinement
-# (40-80 steps, ~3-5 s at 64 px), so 0.45 cut smoke's half grid at 396 of its 610 steps under a 45 s
-# budget, above its 32-38 s own stop (28.28 dB against 28.75; bench/convergence.md, stop 64).
+# ... and on the half-grid-first path (below 96 px) this share: its full level is one short refinement,
+# so LEVEL_SHARE cut the half grid short under a budget longer than its own stop
+# (bench/convergence.md, "stop 64").
 HALF_GRID_LEVEL_SHARE = 0.85
 
 
 # Below 96 px, where default_factors gives one level, a base-video model (fast) still starts on the
 # half grid when that keeps this many pixels a side: its ensemble there, with bases from the full
-# grid's frames, then one fit on the full grid (64 px, own stop: smoke 104 -> 38 s, the clip 132 -> 54 s,
-# bench/convergence.md, stop 64; over five smoke captures the same PSNR, -0.09 dB mean, bench/realistic.md,
-# stop 65). A model that carries its fields (prior) keeps one level.
+# grid's frames, then one fit on the full grid: a fraction of the wall time for the same PSNR
+# (bench/convergence.md, "stop 64"; bench/realistic.md, "stop 65"). A model that carries its fields
+# (prior) keeps one level.
 BASE_MIN_SIDE = 32
 
 
@@ -84,9 +84,9 @@ def stfm_levels(problem, settings: STFMSettings) -> tuple[int, ...]:
 
 def stfm_time_factors(problem, factors: tuple[int, ...], with_base: bool = True) -> tuple[int, ...]:
     """The frames a coarse frame bins, per level: none on a base-video model's (fast) half-grid-first
-    path (below 96 px), whose coarse level learns the GS-to-RS shift the full level keeps (binning frames
-    in pairs, smoke fine learned +0.34 px where the truth has none, the clip 0.36 px off; keeping them
-    0.11 / 0.10; bench/convergence.md, stop 64); elsewhere the spatial factors."""
+    path (below 96 px), whose coarse level learns the GS-to-RS shift the full level keeps (binned in
+    pairs, frames taught it a shift the truth does not have; bench/convergence.md, "stop 64"); elsewhere
+    the spatial factors."""
     return (1,) * len(factors) if _half_grid_first(problem, factors, with_base) else factors
 
 
@@ -205,8 +205,8 @@ def _on_base(problem, settings: STFMSettings, device, x0: Tensor, norm_start: Te
     it is, half precision included: no copy). The base is x0 divided by the gains the fit starts
     with (on the fly), so its first video is x0 itself. `refinement`: with the ensemble refinement's
     stall window (REFINE_STALL_PASSES, unless stall_passes is set), where x0 carries the GS-only
-    detail (on the paper grid's middle level it cost 0.5 dB: that level stopped at 160 steps, not 342).
-    `state`: the run state of the level below (rngcam.recon.methods.stfm.run_state)."""
+    detail (the default window stopped the paper grid's middle level early; bench/convergence.md,
+    "stop 63"). `state`: the run state of the level below (rngcam.recon.methods.stfm.run_state)."""
     wb = problem.white_balance
     gains = None if wb is None or bool(torch.all(wb == 1)) else wb.float()
     fine = replace(settings, dynamic_base="video", dynamic_time=True, lr=_lr(settings, problem))
