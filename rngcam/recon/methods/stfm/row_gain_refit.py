@@ -5,9 +5,9 @@ The prior preset starts its moving layer on a track found by a search over trans
 (`motion_search`). Through a PSF that lost its edge off the sensor (a scene at another depth than
 the calibration's point source) each RS row's light is predicted short by an amount that varies
 across the image, and the search, scoring rows by how much light they get, puts whole stretches of
-frames at a ghost the fit never leaves (sineball, PSF 5 % large: ball p90 24-30 px). Scored after a
-least-squares gain per row and channel, the search follows the shape of the light and keeps the
-ball, but where the plain search was right it starts worse (-3 to -5 dB). So the plain search goes
+frames at a ghost the fit never leaves (sineball, PSF 5 % large). Scored after a least-squares gain
+per row and channel, the search follows the shape of the light and keeps the ball, but where the
+plain search was right it starts worse. So the plain search goes
 first; where the key rows found the PSF too large (`edge_refit.edge_scale`) and what it made ends at
 or above RATIO x its noise level, it is made again with row gains, and the one whose RS residual is
 lower is the output. `make_stfm` wraps the whole run this way (the second run has its own edge and
@@ -23,9 +23,10 @@ from collections.abc import Callable
 from rngcam.recon.methods.stfm.refits import Refits, nth
 from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
 
-# The plain run's RS residual / noise level at or above which the row-gain run is made: on five
-# flagged runs the plain search lost the ball at 1.24x-1.39x and kept it at 1.09x and 1.12x, where the
-# row-gain run did worse: the fit is not explained (settings.EXPLAINED_RATIO; rngcam.recon.misfit.POINTED_RATIO)
+# The plain run's RS residual / noise level at or above which the row-gain run is made: the flagged runs
+# that lost the ball ended above it, those that kept it (where the row-gain run did worse) below
+# (bench/realistic.md, "stop 56"): the fit is not explained (settings.EXPLAINED_RATIO;
+# rngcam.recon.misfit.POINTED_RATIO)
 RATIO = EXPLAINED_RATIO
 
 

@@ -55,7 +55,8 @@ class NoiseStop:
 
     def log_ready(self) -> bool:
         """A log row scores the video the stop test makes every `check_every()` steps: at those
-        steps it is made once for both (a row elsewhere made it again: ~60 ms at 64 px)."""
+        steps it is made once for both (a row elsewhere would make it again; bench/convergence.md,
+        "stop 57")."""
         return not (self.resolved.stop_at_noise and self.parts.rs) or self.steps % self.check_every() == 0
 
     def check_every(self) -> int:
@@ -66,12 +67,11 @@ class NoiseStop:
         """The first step either test may stop the fit at this RS `residual`. Where the learned line time
         is held at first and the residual is at the noise level, its hold's end plus a stall `window`, so
         that it has been learned before the data are called explained (on half-frames a lab capture's fit
-        reached its noise level at 200 steps with the line time still the recorded one:
-        bench/realistic.md, stop 69). A fit whose motion starts from the translation search
+        reached its noise level with the line time still the recorded one: bench/realistic.md,
+        "stop 69"). A fit whose motion starts from the translation search
         (the prior preset) and whose residual is within EXPLAINED_RATIO of its noise level runs
         SEARCH_FIT_HALF_LIVES half-lives of its step first: its residual goes flat at the noise level
-        long before its video settles (ten sineball captures: 39.5 dB mean where the tests stopped them
-        at 680-1,240 steps, 41.0 at 1,600; bench/realistic.md, stop 71). One that stalls unexplained
+        long before its video settles (bench/realistic.md, "stop 71"). One that stalls unexplained
         stops as before, for the stages that fit again from it."""
         holds = [g.get("hold_steps", 0) for g in self.optimiser.param_groups
                  if self.learn_line and g["params"][0] is self.line_shift]
@@ -99,5 +99,5 @@ def check_interval(frames: int) -> int:
     """Steps between stop tests of a fit of `frames` frames: NOISE_CHECK_STEPS up to NOISE_CHECK_FRAMES
     frames, one more interval for each further NOISE_CHECK_FRAMES. A test makes the whole video, a step
     only the frames of its rows, so at a fixed interval the tests' share of the time grows with the
-    frames (at 228x342x231, tested every 20 steps: a third of the full level's time)."""
+    frames (bench/convergence.md, "stop 61")."""
     return NOISE_CHECK_STEPS * max(1, math.ceil(frames / NOISE_CHECK_FRAMES))

@@ -4,9 +4,9 @@ cannot explain the data.
 The prior preset starts its moving layer on the track a search over translations finds
 (`motion_search`); between key frames the RS rows often cannot tell the path from a detour, and a
 penalty on each change of velocity decides. Where the penalty is too stiff for a path's turns, the
-track cuts a stretch of frames 10-30 px off and the fit never leaves it; that run ends with its RS
-residual well above its noise level (sineball lab seed 1: 1.43x, ball p90 13 px), where the same
-capture searched at half the penalty ends at 1.02x with the ball kept (bench/realistic.md, "stop 68").
+track cuts a stretch of frames off and the fit never leaves it; that run ends with its RS residual
+well above its noise level, where the same capture searched at half the penalty ends near it with the
+ball kept (bench/realistic.md, "stop 68").
 So where a run whose motion came from the search ends at RATIO x its noise level or more, and the
 row-gain stage (a PSF found too large) does not apply, it is made again with the search's turn
 penalty times `turn_scale` (the track_refit stage's config); the run whose RS residual is lower is
@@ -24,8 +24,8 @@ from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
 from rngcam.recon.methods.stfm.stages import TrackRefitConfig
 
 # The first run's RS residual / noise level at or above which the second run is made: the row-gain
-# stage's, where the fit is not explained (a lost ball ended at 1.24x-1.43x, kept ones at 1.0x-1.13x;
-# settings.EXPLAINED_RATIO)
+# stage's, where the fit is not explained: runs that lost the ball ended above it, those that kept it
+# below (bench/realistic.md, "stop 68"; settings.EXPLAINED_RATIO)
 RATIO = EXPLAINED_RATIO
 
 
