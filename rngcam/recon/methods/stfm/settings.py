@@ -13,12 +13,11 @@ INIT_STEPS = 100
 NOISE_CHECK_STEPS = 20  # steps between discrepancy-principle checks (one full RS forward each)
 NOISE_CHECK_FRAMES = 80  # ... up to this many frames; one more interval for each further 80 (stopping.py)
 STALL_PASSES = 15  # the stall test compares the RS residual with its value this many passes over the rows ago (fast)
-# The prior preset's window: over 30 passes a lull stopped some fits at 620-700 steps, 2.3 dB under
-# the same capture's other seeds (sineball 1 px shift: 34.85 dB; 37.3 / 37.8 with seeds 1 / 2;
-# 37.09 over 45 passes, at 1,220 steps; bench/realistic.md)
+# The prior preset's window: over 30 passes a lull stopped some fits early, well under the same capture's
+# other seeds (bench/convergence.md, "the prior preset's stall window 30 -> 45 passes"; bench/realistic.md)
 PRIOR_STALL_PASSES = 45
 # ... and on grids of at most SMALL_STALL_SIDE rows (the half grid of a 64 px run, whose full level refines
-# it): 15 passes took the clip's members 1,590 steps, 10 passes 1,310 (-0.06 dB; bench/convergence.md, stop 64)
+# it): fewer steps for the same result (bench/convergence.md, "stop 64")
 SMALL_STALL_PASSES, SMALL_STALL_SIDE = 10, 32
 MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow is skipped
 # A step holds one chunk of frames' autograd graph at a time. Small grids take more frames per chunk:
@@ -26,14 +25,14 @@ MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow 
 # with one (bench/convergence.md); large grids keep 4 frames.
 CHUNK_POINTS = 65_536
 MIN_FRAME_CHUNK = 4
-# On a GPU larger graphs pay: at the paper grid 32 frames a graph (2.5 M points) ran 2.05x the steps of 4
-# in the same time on an H100, 128 frames no more (bench/large_grids.md, "The third GPU session"). A
-# graph saves about 1.2 kB a point (tests/test_memory.py), so 2.9 GiB: never more than an eighth of the card.
+# On a GPU larger graphs pay: at the paper grid 32 frames a graph (2.5 M points) ran more steps than 4
+# in the same time, 128 frames no more (bench/large_grids.md, "The third GPU session"). A graph saves
+# GRAPH_BYTES_PER_POINT a point (tests/test_memory.py): never more than an eighth of the card.
 GPU_CHUNK_POINTS = 2_500_000
 GRAPH_BYTES_PER_POINT = 1_200
 # What learn_geometry learns of the GS-to-RS transform. "shift" by default: rotation and scale
-# learned alongside drifted where the truth had none (sineball 64 px: scale 1.024, 0.14 deg;
-# bench/realistic.md), as a scale trades against the PSF's magnification.
+# learned alongside drifted where the truth had none (bench/realistic.md, "the GS-to-RS shift learned
+# with the fields"), as a scale trades against the PSF's magnification.
 GEOMETRY_MODES = ("off", "shift", "similarity")
 LINE_TIME_MODES = ("off", "on", "auto")
 # The motion of the dynamic layer: a field over (x, y, t), or its mean over the frame, one translation
@@ -41,7 +40,7 @@ LINE_TIME_MODES = ("off", "on", "auto")
 MOTION_MODELS = ("field", "translation")
 # A translation's motion TV is paid at every pixel, a field's mostly where the object moves: a
 # translation's tau is a field's times this (about a small object's share of the frame).
-# At a field's tau the ball's path was cut at its turns (2-2.8 px late; sineball 64 px).
+# At a field's tau the ball's path was cut at its turns (bench/stfm_motion.md).
 TRANSLATION_TV_SHARE = 0.02
 MAX_SUBFRAMES = 8  # subframes: more would multiply the time and memory of a fit for a blur already resolved
 MAX_FITS = 4  # fits: each one more costs a whole fit's time (side by side where the run has the threads)
@@ -207,41 +206,40 @@ HDV3_SUFFIX = "_hdv3"  # "video_hdv3", "keys_hdv3": the same bases from RIFE HDv
 ALL_BASES = (*BASE_VIDEOS, *KEY_WARPS, "blend", "none", "video" + HDV3_SUFFIX, "keys" + HDV3_SUFFIX)
 # dynamic_base="ensemble": one fit on each of these bases, averaged (STFMEnsemble). Their errors
 # in what the RS image cannot see differ, so the average is closer to the truth than any one of them.
-# One pair per RIFE model (4.x and HDv3): smoke +0.55 dB over "video,keys"; with keys_interp (DIS flows)
-# too: clips 0.35-0.66 dB lower (bench/stfm_motion.md, bench/stfm_compare.md)
+# One pair per RIFE model (4.x and HDv3): the two models err differently, so the four average more away
+# than "video,keys"; a member on DIS flows (keys_interp) cost the clips (bench/stfm_motion.md,
+# bench/stfm_compare.md)
 ENSEMBLE_BASES = "video,keys,video_hdv3,keys_hdv3"
 # The learned GS-to-RS pose's step (Adam, pixels of displacement at the grid's edge) per unit of the
-# fields' learning rate: 0.02 px a step at the fast preset's start, decaying with it (0.5: smoke's x
-# shift not reached in 1,500 steps; a step that does not decay: sineball 480 steps more, no better)
+# fields' learning rate, decaying with it: a smaller ratio did not reach smoke's shift, a step that does
+# not decay cost sineball steps for nothing (bench/stfm_history.md); larger ones lost where there is no
+# shift (bench/realistic.md, "The learned shift's step size on sineball")
 POSE_LR_RATIO = 2.0
 # A fit that learns the pose from its start holds it for its first steps: while the fields are far from
 # the data, a shift along the scene's motion explains what they get wrong about its timing (smoke rises:
-# every ensemble member put +0.4 to +0.9 px in y within 50 steps, on captures with none, and kept it:
-# -1.9 dB). After the hold its step is this many times POSE_LR_RATIO, to reach a 1 px shift in the
-# steps left (bench/realistic.md, stop 66). A fit started from another's pose neither holds nor speeds up.
+# every ensemble member put a shift in y within its first steps, on captures with none, and kept it).
+# After the hold its step is this many times POSE_LR_RATIO, to reach a 1 px shift in the steps left
+# (bench/realistic.md, "stop 66"). A fit started from another's pose neither holds nor speeds up.
 POSE_HOLD_STEPS = 100
 POSE_LR_AFTER_HOLD = 3.0
 # A fit whose motion starts from the translation search (the prior preset) holds the learned line time
-# for its first steps: from the search's track the line time took up the track's timing (sineball seed 6,
-# fine: x1.034 for a truth of 1, the ball later and later, -6 dB; held 300 steps, 24 captures gained 1.26 dB
-# mean, stop 67). At 300 lab seed 6 still moved it the wrong way (x1.0047 for 0.995, -4.1 dB); held 600
-# steps, it stays near the recorded figure (x0.9995) and the thirteen lab seeds gain 0.18 dB mean
-# (bench/realistic.md, stop 72). A fit started from another's line time or fields does not hold it.
+# for its first steps: from the search's track the line time took up the track's timing, and the ball came
+# later and later (bench/realistic.md, "stop 67"). Held for a shorter time, a capture still moved it the
+# wrong way; held this long, it stays near the recorded figure (bench/realistic.md, "stop 72"). A fit
+# started from another's line time or fields does not hold it.
 LINE_HOLD_STEPS_SEARCH = 600
 # The learned line time's step (Adam, frames of displacement at the last RS row) per unit of the
-# fields' learning rate. The fit learns what it will of a line-time error in the steps after the hold:
-# at 8 the lab family's +-0.5 % came out as 0.02-0.41 %; at 32 after a 300-step hold sineball's line-time
-# family x0.995 is learned as x0.9956 (x0.9975 at 8; bench/realistic.md, stop 70)
+# fields' learning rate. The fit learns what it will of a line-time error in the steps after the hold,
+# and a smaller step learned too little of it (bench/realistic.md, "stop 70")
 LINE_LR_RATIO = 32.0
 # After LINE_HOLD_STEPS_SEARCH the step is this many times LINE_LR_RATIO: the same step at the hold's end
-# as 32 at the end of a 300-step hold (the fields' step halves every 400 steps). x1 left lab seed 8 at
-# x1.0021 for 1.005 (-1.9 dB), x4 wandered 0.37 % on exact timing (fine seed 2, -1.1 dB; stop 72). A fit
-# started from another's line time or fields neither holds nor speeds up.
+# as LINE_LR_RATIO at the end of a 300-step hold (the fields' step halves every 400 steps). x1 learned too
+# little of an error, x4 wandered on exact timing (bench/realistic.md, "stop 72"). A fit started from
+# another's line time or fields neither holds nor speeds up.
 LINE_LR_AFTER_HOLD = 2.0
 # A fit whose motion starts from the translation search, while its RS residual is within EXPLAINED_RATIO of
 # its noise level, runs this many half-lives of its step (lr_half_life_steps) before its stop tests may end
-# it: there its video still gains for ~1,000 steps after the residual has gone flat (bench/realistic.md,
-# stop 71)
+# it: there its video still gains long after the residual has gone flat (bench/realistic.md, "stop 71")
 SEARCH_FIT_HALF_LIVES = 4.0
 # A fit that ends at this many times its noise level or more is not explained: the PSF-edge, row-gain and
 # track stages fit again from it (edge_refit, row_gain_refit, track_refit), another error (a PSF at another
@@ -250,7 +248,7 @@ SEARCH_FIT_HALF_LIVES = 4.0
 EXPLAINED_RATIO = 1.15
 REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
 # ... and its stall test looks back this many passes over the rows (unless stall_passes is set): what it
-# gains, it gains in its first steps (bench/convergence.md, stop 62)
+# gains, it gains in its first steps (bench/convergence.md, "stop 62")
 REFINE_STALL_PASSES = 5
 DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
 
@@ -291,7 +289,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
         "dynamic": ("planes", {"resolutions": appearance, "time_resolutions": motion_time_for(appearance),
                                 "features": DYNAMIC_FEATURES, "hidden": 32}),
         # rows a step: 8, a quarter of the rows below 32 px (the half grid of a 64 px run: 8 rows, not the
-        # 4 of h // 8: 0.8x the time, smoke +0.5 dB, the clip +0.1; bench/convergence.md, stop 63)
+        # 4 of h // 8: less time and a better result; bench/convergence.md, "stop 63")
         "lr": 1e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
         "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 4)), "init": "gs",
         "dynamic_time": True, "dynamic_base": "ensemble", "gs_windows_per_step": 1, "time_smoothness": 0.3,
@@ -310,9 +308,9 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
                      # below 64 px an eighth of the rows a step, as before the fast preset's change (not measured
                      # on the prior preset's scenes)
                      "rows_per_step": max(1, min(8, h // 8)),
-                     # A slow stall test: 2 % over 15 passes stopped it while it was still gaining (27.7 dB
-                     # at 300 steps, 29.6 at 800); on captures its model cannot fit to the noise level it
-                     # settles by ~1,500 steps (bench/realistic.md), and without a stop the result
+                     # A slow stall test: 2 % over 15 passes stopped it while it was still gaining
+                     # (bench/stfm_motion.md); on captures its model cannot fit to the noise level it
+                     # settles later (bench/realistic.md), and without a stop the result
                      # depended on how many steps the time budget allowed, i.e. on the machine's load.
                      "stall_drop": 0.001, "stall_passes": PRIOR_STALL_PASSES,
                      # A nearly rigid motion (spatial TV 10x fast's, temporal the same): a motion that
@@ -322,13 +320,12 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
                      # whole smear: without this its edge stays as a rim and shadow (bench/stfm_motion.md).
                      "matte_l1": 0.02,
                      # Half-frames: the rows' exposures begin and end inside frames while the layer moves
-                     # up to ~6 px a frame; the output's frames alone put the ball where a row saw it
-                     # early or late in the frame (bench/realistic.md, stop 69).
+                     # several pixels a frame; the output's frames alone put the ball where a row saw it
+                     # early or late in the frame (bench/realistic.md, "stop 69").
                      "subframes": 2,
                      # Two fits from seeds 0 and 1, averaged: what the RS rows do not pin differs between
-                     # them and averages out (sineball's thirteen lab captures +0.87 dB mean over the one
-                     # fit, its ten fine ones +1.29; the lower RS residual of the two, as a pick, +0.13 and
-                     # +0.14), at twice the compute (bench/realistic.md, stop 73)
+                     # them and averages out (better than either fit, or than picking the one with the
+                     # lower RS residual), at twice the compute (bench/realistic.md, "stop 73")
                      "fits": 2})
     return fast
 
