@@ -24,24 +24,22 @@ MISFIT_RATIO = 1.2
 POINTED_RATIO = 1.15
 # A run whose last level refines a coarser level's estimate (coarse to fine: the fast preset from 64 px)
 # ends a little further from the noise level: that fit starts from the half grid's video and stops when it
-# stalls, where a fit from the GS-only bases fits the RS image from scratch. The fine family ends at 1.19x
-# (smoke) and 1.21x (the clip), the lab family at 1.17x / 1.23x, a PSF 5 % large at 1.44x / 1.62x (64 px;
-# bench/convergence.md, stop 64).
+# stalls, where a fit from the GS-only bases fits the RS image from scratch. The fine and lab families end
+# below this, a PSF 5 % large above (bench/convergence.md, "stop 64").
 MISFIT_RATIO_LEVELS = 1.35
 
 NOT_EXPLAINED = "model does not explain the data"
 NOT_FITTED = "data not fitted yet"
 FAR_OFF = "calibration far off"
 # A learned line-time factor this far from 1 says the recorded line time is wrong, not rough: on half-frames
-# exact timing wanders <= 0.38 % and the lab family's +-0.5 % is learned within 0.65 % of 1; a capture 2 %
-# long is learned as 1.9 % over later fits (stfm/line_refit.py), where one moving object times the rows
-# (bench/realistic.md, stops 69-70).
+# what exact timing wanders and what the lab family's +-0.5 % is learned as stay under it; a capture 2 %
+# long is learned nearly whole over later fits (stfm/line_refit.py), where one moving object times the rows
+# (bench/realistic.md, "stop 69" and "stop 70").
 LINE_TIME_FAR = 0.007
-# A GS-to-RS shift learned this far (px) from the calibration's: the fit pins the shift across the scene's
-# motion only (along it the shift trades against the motion's timing: exact captures learn up to 0.51 px
-# along it, sineball's fine seed 6 1.2 px), and it applies it on the grid, where detail finer than a grid
-# pixel aliases (smoke's lab captures: the true transform at the sensor's resolution +0.43 dB;
-# bench/realistic.md, stop 74). `calibrate align` on a static chart leaves 0.02 px on the mock rig.
+# A GS-to-RS shift learned this far (px) from the calibration's says the calibration is off: the fit pins
+# the shift across the scene's motion only (along it the shift trades against the motion's timing) and
+# applies it on the grid, where detail finer than a grid pixel aliases, so exact captures learn a shift
+# below this; `calibrate align` on a static chart leaves far less (bench/realistic.md, "stop 74").
 GEOMETRY_FAR_PX = 0.6
 
 
@@ -50,7 +48,7 @@ def _causes(selfcal: dict | None, gs_fitted: bool = True, learned: tuple[str, ..
     calibration values self-calibration did not apply and the fit did not learn (`learned`:
     "geometry", "line time"), a PSF scale it found off by more than 1 % and did not apply first;
     the GS-to-RS transform only where GS frames were fitted; a PSF scale it applied last (the
-    estimate can take up another error: a 3 % line-time error found as a PSF scale of 1.012), or
+    estimate can take up another error, as a line-time error did; bench/realistic.md), or
     the shrink a second fit used with the PSF's lost edge fitted (report["psf_edge"]). (The
     key rows' GS-to-RS transform is too loosely pinned to point.)"""
     report = selfcal if isinstance(selfcal, dict) else {}  # a foreign metrics.json may hold anything

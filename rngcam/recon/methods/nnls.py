@@ -1,10 +1,10 @@
 """Non-negative least squares on the normal equations, for tall designs with few active columns.
 
 The PSF-edge fit (rngcam.recon.methods.psf_edge) solves min ||A x - y|| with x >= 0 for a design of
-4,096 RS pixels by ~750 edge pixels, of which ~130 end non-zero. SciPy's `nnls` works on A itself
-(0.64 s a solve at 64 px); the same active-set method (Lawson and Hanson) on G = A'A and c = A'y,
+4,096 RS pixels by ~750 edge pixels, of which ~130 end non-zero. SciPy's `nnls` works on A itself;
+the same active-set method (Lawson and Hanson) on G = A'A and c = A'y,
 as Bro and De Jong's FNNLS does, solves only |P| x |P| systems of the active set P after one
-product that forms G (2.5-6x faster there, the same solutions; bench/realistic.md, stop 56).
+product that forms G (faster there, the same solutions; bench/realistic.md, "stop 56").
 """
 
 from __future__ import annotations

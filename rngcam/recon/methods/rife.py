@@ -38,9 +38,8 @@ _PAD_MULTIPLE = 32
 # Bisection never goes deeper than this (2^8 = 256 nodes per key-frame interval).
 MAX_DEPTH = 8
 # Frames evaluated per network call: at most _BATCH, and at most BATCH_PIXELS working pixels
-# (height x width at the network's own scale, squared) in all. A call's activations are ~450 B a
-# working pixel: at 57x86 px (RIFE 4.x's scale 4) 16 frames took 680 MiB, 4 frames 125 MiB, and
-# 4 were no slower (6.6 s against 7.5 s for 58 frames on one thread).
+# (height x width at the network's own scale, squared) in all: a call's activations grow with its
+# working pixels, and smaller calls were no slower (bench/stfm_history.md).
 _BATCH = 16
 BATCH_PIXELS = 400_000
 
@@ -221,7 +220,7 @@ def _rife4(f: np.ndarray, times_s, targets, weights, device: str) -> np.ndarray:
 
 
 # RIFE 4.x is asked no closer to a key frame than this fraction of the interval (1/8 measured as well:
-# no better next to the keys on smoke and the clip; bench/convergence.md, stop 64)
+# no better next to the keys on smoke and the clip; bench/convergence.md, "stop 64")
 NEAR_KEY = 1 / 16
 
 
@@ -229,7 +228,7 @@ def _meet_the_keys(net, f: np.ndarray, out: np.ndarray, idx, frac, exact, scale:
                    net_scale: float) -> None:
     """Frames closer than NEAR_KEY (of the interval) to a key frame, in place: linear between the key and
     the network's frame at NEAR_KEY. RIFE 4.x asked just after a key frame does not return it, a seam at
-    every key frame (smoke's bricks displaced, 0.0066 mean error 0.04 ms after a key, 0.0023 with this)."""
+    every key frame (smoke's bricks displaced; bench/convergence.md, "stop 64")."""
     from rngcam.recon.nets.rife4 import PAD_MULTIPLE
 
     c, _, h, w = f.shape

@@ -1,7 +1,7 @@
 """Self-calibration: the GS/RS gains (and, where the data pin it, the GS-to-RS transform) from the data.
 
 Calibration leaves the GS frames misregistered against the RS image by a fraction of a pixel, a
-small rotation and scale (`calibrate align`: 0.28 px median residual on the mock rig), and their
+small rotation and scale (what `calibrate align` leaves; bench/realistic.md), and their
 colour gains a few percent off. The RS row bins exposed over (nearly) the same window as a GS
 frame see the scene that frame saw; through the PSF they are rows of the GS image taken to RS
 coordinates, times the gains (`register_key_rows`). A small least-squares fit of the similarity
@@ -96,8 +96,8 @@ def _cubic_shift_matrix(n: int, shift: Tensor, dtype, device) -> Tensor:
 
 def warp_shift(images: Tensor, dx: Tensor, dy: Tensor) -> Tensor:
     """`warp` by a translation (out(p) = in(p + (dx, dy)), bicubic, border values outside), as one
-    small matrix product per axis: the same values, half grid_sample's time with its backward on a
-    CPU (bench/convergence.md). dx, dy: 0-d tensors (a gradient reaches them)."""
+    small matrix product per axis: the same values in less than grid_sample's time with its backward
+    on a CPU (bench/convergence.md). dx, dy: 0-d tensors (a gradient reaches them)."""
     c, n, h, w = images.shape
     rows = _cubic_shift_matrix(h, dy, images.dtype, images.device)
     cols = _cubic_shift_matrix(w, dx, images.dtype, images.device)
@@ -269,11 +269,11 @@ def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True):
     magnification (calibrate_psf_scale: report["scales"]["psf"]).
 
     The PSF scale is searched first with the GS frames as they are: a registration through a PSF
-    some percent off takes up its error as rotation and scale (sineball, PSF 5 % small: 10.6 deg,
-    x1.059) and a search through that registration stops short (1.042 for 1.053). The transform
+    some percent off takes up its error as rotation and scale, and a search through that registration
+    stops short (bench/realistic.md, "The PSF scale searched before the registration"). The transform
     is then fitted through the PSF so magnified, the scale searched again through it, and the gains
     and transform fitted once more through the PSF the fit will use (through the PSF as handed the
-    gains absorb its error: 0.93 / 0.95 / 1.00 for a truth of 1). mode "off": (problem, None)."""
+    gains absorb its error). mode "off": (problem, None)."""
     from dataclasses import replace
 
     if mode not in MODES:
@@ -408,7 +408,7 @@ MIN_DROP = 0.03  # a scale is applied when it lowers the key rows' residual by a
 _COARSE, _FINE = 0.02, 0.005  # search steps
 # A PSF measured too large (the point source nearer than the scene) lost its outer ring off the
 # sensor; shrunk, it lacks that edge. Applied, such shrinks lowered the RS residual and the video's
-# PSNR alike (the clip, PSF 5 % large: 24.32 dB shrunk by 0.951, 24.49 as handed; bench/realistic.md).
+# PSNR alike (the clip, PSF 5 % large; bench/realistic.md, "The PSF scale searched before the registration").
 SHRINK_WHY = "a PSF shrunk on the grid lacks the edge its measurement lost: measure the PSF at the scene's distance"
 # Magnifying the grid PSF resamples a caustic that is sharp at the grid's pixels: each candidate
 # mixes neighbouring pixels by its sub-pixel phases, the unmagnified one not at all, and that
