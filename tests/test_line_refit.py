@@ -14,7 +14,7 @@ from test_stfm_line_time import _moving_capture
 from rngcam.errors import RngcamError
 from rngcam.recon.methods.stfm import STFMSettings, make_stfm
 from rngcam.recon.methods.stfm.line_refit import LineRefit
-from rngcam.recon.methods.stfm.stages import LineRefitConfig
+from rngcam.recon.methods.stfm.stage_configs import LineRefitConfig
 
 MAX_LINE_REFITS = LineRefitConfig().max_refits
 from rngcam.recon.methods.stfm.line_time import line_time_lines, line_time_report

@@ -18,7 +18,7 @@ from rngcam.recon import checkpoint, misfit
 from rngcam.recon.methods import psf_edge
 from rngcam.recon.methods.psf_edge import edge_mask, fit_edge, search_edge
 from rngcam.recon.methods.stfm.edge_refit import EdgeRefit, edge_line, edge_scale
-from rngcam.recon.methods.stfm.stages import EdgeRefitConfig
+from rngcam.recon.methods.stfm.stage_configs import EdgeRefitConfig
 from rngcam.recon.methods.stfm.subframes import SubframesAveraged
 from rngcam.recon.problem import build_problem
 from rngcam.sim.simulate import DEFAULT_PSF_CROP, simulate

@@ -11,7 +11,7 @@ from rngcam.errors import ConfigError
 from rngcam.recon.methods.stfm.recipe import RECIPE, check_stage_settings, explain, make_stfm, stage_names
 from rngcam.recon.methods.stfm.settings import STFMSettings
 from rngcam.recon.methods.stfm.stage import Build, Stage, configs_for, run_recipe
-from rngcam.recon.methods.stfm.stages import LineRefitConfig
+from rngcam.recon.methods.stfm.stage_configs import LineRefitConfig
 
 
 @pytest.fixture(scope="module")
@@ -32,8 +32,8 @@ def test_stage_settings_are_checked_against_the_typed_configs():
         check_stage_settings({"line_refit": {"max_refits": 1.5}})
     with pytest.raises(ConfigError, match="thresholds must be > 0"):
         check_stage_settings({"line_refit": {"refit_line_time": -1}})
-    with pytest.raises(ConfigError, match="no stage"):  # the settings check them as they are made
-        STFMSettings(stages={"nope": {}})
+    with pytest.raises(ConfigError, match="no stage"):  # a build checks them before anything runs
+        make_stfm(None, STFMSettings(stages={"nope": {}}))
     assert configs_for(RECIPE, None)["line_refit"] == LineRefitConfig()
 
 

@@ -9,7 +9,7 @@ from test_stfm import scene_problem
 from rngcam.errors import ConfigError
 from rngcam.recon.methods.stfm import STFMSettings, make_stfm
 from rngcam.recon.methods.stfm.auto import choose_preset, layer_misfits
-from rngcam.recon.methods.stfm.stages import AutoPresetConfig
+from rngcam.recon.methods.stfm.stage_configs import AutoPresetConfig
 
 LAYER_MISFIT_MAX = AutoPresetConfig().layer_misfit_max
 from rngcam.recon.methods.stfm.settings import _preset

@@ -12,7 +12,7 @@ from rngcam.recon.methods.stfm import motion_search, track_refit
 from rngcam.recon.methods.stfm.edge_refit import EdgeRefit
 from rngcam.recon.methods.stfm.row_gain_refit import RowGainRefit
 from rngcam.recon.methods.stfm.run_state import RunState
-from rngcam.recon.methods.stfm.stages import TrackRefitConfig
+from rngcam.recon.methods.stfm.stage_configs import TrackRefitConfig
 from rngcam.recon.methods.stfm.track_refit import TrackRefit
 
 NOISE = 0.01

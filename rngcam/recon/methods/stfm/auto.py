@@ -31,7 +31,7 @@ from torch import Tensor
 
 from rngcam.recon.methods.coarse_to_fine import bin_video
 from rngcam.recon.methods.stfm.motion_search import candidate_shifts, key_frame_layer, shifted_frames
-from rngcam.recon.methods.stfm.stages import AutoPresetConfig
+from rngcam.recon.methods.stfm.stage_configs import AutoPresetConfig
 
 CHUNK_ELEMENTS = 8_000_000  # composited values held at once (32 MB of float32 per temporary)
 LAYER_TEST_SIDE = 64  # key frames are binned by an integer factor to no less than this (their longer side)

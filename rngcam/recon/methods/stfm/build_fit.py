@@ -15,19 +15,19 @@ from rngcam.recon.methods.stfm.settings import STFMSettings, _base_list, _settin
 
 
 def make_fit(problem, settings: STFMSettings, device, initial_video: Tensor | None, clock=None, stage=None,
-             state: RunState | None = None):
+             state: RunState | None = None, nested=None):
     """The fit of a build: coarse to fine where `stfm_levels` gives several levels, else one STFM on
     `initial_video` (a level above the coarsest), one fit, or an ensemble of bases or seeds; each fit
-    carries `state` (what the build found)."""
+    carries `state` (what the build found); `nested(problem, settings, device, state=...)` builds a
+    level (the recipe's make_stfm)."""
     state = state or RunState()
     if initial_video is None:
         from rngcam.recon.methods.stfm.multilevel import make_multilevel, stfm_levels
-        from rngcam.recon.methods.stfm.recipe import make_stfm
 
         factors = stfm_levels(problem, settings)
         if len(factors) > 1:
             return make_multilevel(problem, settings, device, factors,
-                                   lambda level, s: make_stfm(level, s, device, state=state), clock, stage)
+                                   lambda level, s: nested(level, s, device, state=state), clock, stage)
     if initial_video is not None:
         if tuple(initial_video.shape) != tuple(problem.shape):
             raise ConfigError(f"initial_video has shape {tuple(initial_video.shape)}, the problem's video "
@@ -73,8 +73,6 @@ def another_fit(build, changed, found: dict, psf_scale: bool, made_from: dict, *
     calibrated again as the first was (what the stage found kept in its report), made from `made_from`
     (RunState fields), with the settings `off` given and no track refit (that stage wraps the first
     whole run only)."""
-    from rngcam.recon.methods.stfm.recipe import make_stfm
-
     settings = build.settings
     changed = replace(changed, notes=list(changed.notes))
     calibration = build.state.selfcal_report
@@ -84,5 +82,5 @@ def another_fit(build, changed, found: dict, psf_scale: bool, made_from: dict, *
         changed, calibration = calibrate_problem(changed, settings.self_calibrate, psf_scale)
         calibration = dict(calibration or {}, **found)
     state = replace(build.state, selfcal_report=calibration, **made_from)
-    return make_stfm(changed, replace(settings, track_refit=False, **off), build.device, clock=build.clock,
-                     stage=build.stage, state=state)
+    return build.nested(changed, replace(settings, track_refit=False, **off), build.device, clock=build.clock,
+                        stage=build.stage, state=state)

@@ -6,7 +6,7 @@ first fit runs through the PSF as handed; where it stops clearly above its noise
 key rows found the PSF too large, its video fits that edge (rngcam.recon.methods.psf_edge), and
 where the edge lowers the RS residual by `min_drop` another fit runs through that PSF; then
 again from the best fit's video (a better video fits a better edge), at most `max_refits` times
-(the psf_edge stage's config: stages.EdgeRefitConfig).
+(the psf_edge stage's config: stage_configs.EdgeRefitConfig).
 The output is the fit that explains the RS image best (each through its own PSF; `refits`).
 Figures: bench/realistic.md, "A PSF measured too large: its edge fitted".
 """
@@ -20,7 +20,7 @@ from torch import Tensor
 
 from rngcam.recon.methods.stfm.refits import Refits, nth
 from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
-from rngcam.recon.methods.stfm.stages import EdgeRefitConfig
+from rngcam.recon.methods.stfm.stage_configs import EdgeRefitConfig
 
 # The best fit's RS residual / its noise level at or above which an edge is fitted: the fit is not
 # explained (settings.EXPLAINED_RATIO), where the key rows point at a PSF scale (rngcam.recon.misfit.POINTED_RATIO)

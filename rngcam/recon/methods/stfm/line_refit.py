@@ -8,7 +8,7 @@ what is left (bench/realistic.md, "stop 70"). Where the fit that
 explains the RS image best so far learned a factor more than `refit_line_time` off where it started,
 one more whole fit runs with the problem's RS timing stretched by the factor learned (calibrated
 again), up to `max_refits`; from a fit that ended unexplained (settings.EXPLAINED_RATIO), one, from
-`refit_line_time_unexplained` (the line_refit stage's config: stages.LineRefitConfig).
+`refit_line_time_unexplained` (the line_refit stage's config: stage_configs.LineRefitConfig).
 The output is the fit that explains the RS image best (`refits`).
 """
 
@@ -20,7 +20,7 @@ from collections.abc import Callable
 from rngcam.recon.methods.stfm.line_time import MAX_LINE_CHANGE
 from rngcam.recon.methods.stfm.refits import Refits, nth
 from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
-from rngcam.recon.methods.stfm.stages import LineRefitConfig
+from rngcam.recon.methods.stfm.stage_configs import LineRefitConfig
 
 
 class LineRefit(Refits):

@@ -51,7 +51,8 @@ def check_stage_settings(overrides: dict | None) -> dict:
 def _build(problem, settings: STFMSettings | None, device, initial_video, clock, stage, state) -> Build:
     settings = settings or STFMSettings()
     return Build(handed=problem, problem=problem, settings=settings, device=device, clock=clock, stage=stage,
-                 initial_video=initial_video, state=state or RunState(), configs=configs_for(RECIPE, settings.stages))
+                 initial_video=initial_video, state=state or RunState(), nested=make_stfm,
+                 configs=configs_for(RECIPE, settings.stages))
 
 
 def make_stfm(problem, settings: STFMSettings | None = None, device="cpu", initial_video: Tensor | None = None,

@@ -192,10 +192,8 @@ class STFMSettings:
             raise ConfigError(f"stfm: rows_per_step must be >= 1, got {self.rows_per_step}")
         if self.gs_windows_per_step is not None and self.gs_windows_per_step < 0:
             raise ConfigError(f"stfm: gs_windows_per_step must be >= 0, got {self.gs_windows_per_step}")
-        if self.stages:
-            from rngcam.recon.methods.stfm.recipe import check_stage_settings
-
-            self.stages = check_stage_settings(self.stages)
+        if self.stages is not None and not isinstance(self.stages, dict):
+            raise ConfigError(f"stfm: stages must map stage names to their settings, got {self.stages!r}")
         if self.tv_frames_per_step < 1 or (self.frame_chunk is not None and self.frame_chunk < 1):
             raise ConfigError("tv_frames_per_step and frame_chunk must be >= 1")
 

@@ -40,6 +40,7 @@ class Build:
     method: Any = None
     subframes: int = 1
     state: Any = None  # what the stages found (run_state.RunState)
+    nested: Callable | None = None  # make_stfm: a build of its own (a level, a later fit), as recipe.make_stfm
     configs: dict = field(default_factory=dict)  # stage name -> its config (the recipe's, with --set applied)
     trace: list = field(default_factory=list)
 

@@ -6,12 +6,19 @@ decides by, each with the reason and the bench/ table that measured it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 from rngcam.errors import ConfigError
 from rngcam.recon import ablation
 from rngcam.recon.methods.stfm.settings import _setting_or_preset
 from rngcam.recon.methods.stfm.stage import Build, NoConfig, Stage
+from rngcam.recon.methods.stfm.stage_configs import (
+    AutoPresetConfig,
+    EdgeRefitConfig,
+    LineRefitConfig,
+    StartFloorConfig,
+    TrackRefitConfig,
+)
 
 
 def _both_cameras(build: Build) -> str | None:
@@ -54,17 +61,6 @@ class SelfCalibration(Stage):
 
     def plan(self, build: Build) -> str:
         return self.run(build)  # seconds: the later stages decide from what it finds
-
-
-@dataclass(frozen=True)
-class AutoPresetConfig:
-    # mean layer misfit under which one translating layer explains the key frames: sineball 0.29 (64 px),
-    # 0.39 (32 px); smoke 0.68, 0.60; real clips 0.72-1.0 (bench/stfm_motion.md)
-    layer_misfit_max: float = 0.5
-
-    def __post_init__(self):
-        if not 0 < self.layer_misfit_max:
-            raise ConfigError(f"stfm: auto_preset.layer_misfit_max must be > 0, got {self.layer_misfit_max!r}")
 
 
 class AutoPreset(Stage):
@@ -130,24 +126,13 @@ class Fit(Stage):
         from rngcam.recon.methods.stfm.build_fit import make_fit
 
         build.method = make_fit(build.problem, replace(build.settings, start_floor=False), build.device,
-                                build.initial_video, build.clock, build.stage, build.state)
+                                build.initial_video, build.clock, build.stage, build.state, build.nested)
         return self.plan(build)
 
     def plan(self, build: Build) -> str:
         from rngcam.recon.methods.stfm.build_fit import describe_fit
 
         return describe_fit(build.problem, build.settings, build.initial_video)
-
-
-@dataclass(frozen=True)
-class StartFloorConfig:
-    # the GS-only videos the fit must explain the RS image better than (bench/stfm_compare.md)
-    candidates: tuple = ("blend", "interp")
-
-    def __post_init__(self):
-        bad = [c for c in self.candidates if c not in ("blend", "interp")]
-        if bad or not self.candidates:
-            raise ConfigError(f"stfm: start_floor.candidates must be blend and/or interp, got {self.candidates!r}")
 
 
 class StartFloorStage(Stage):
@@ -168,22 +153,6 @@ class StartFloorStage(Stage):
         if floor.start_name is None:
             return "no GS-only video to compare with"
         return f"best GS-only video {floor.start_name} (RS residual {floor.start_rs:.4f})"
-
-
-@dataclass(frozen=True)
-class LineRefitConfig:
-    # a learned factor further than this from where the fit started makes another fit: past what the lab
-    # family's +-0.5 % is learned as; the first fit learns a 2 % error as 1.78 % (bench/realistic.md, stop 71)
-    refit_line_time: float = 0.01
-    # later fits at most: each closes most of what the one before left (a 2 % error in three; bench/realistic.md)
-    max_refits: int = 3
-    # from a fit that ended unexplained, one later fit where its factor is this far off: another error moves
-    # its line time ("together" capture, bench/realistic.md, stop 70)
-    refit_line_time_unexplained: float = 0.007
-
-    def __post_init__(self):
-        if not (self.refit_line_time > 0 and self.refit_line_time_unexplained > 0 and self.max_refits >= 0):
-            raise ConfigError("stfm: line_refit's thresholds must be > 0 and max_refits >= 0")
 
 
 class LineRefitStage(Stage):
@@ -217,20 +186,6 @@ class LineRefitStage(Stage):
         build.method = LineRefit(build.method, build.problem, later, {"psf_edge": s.psf_edge},
                                  build.config(self.name))
         return self.about
-
-
-@dataclass(frozen=True)
-class EdgeRefitConfig:
-    # the key rows' PSF scale at or below which the PSF is taken as measured too large (bench/realistic.md)
-    max_scale: float = 0.99
-    # the share by which the fitted edge must lower the best video's RS residual (bench/realistic.md)
-    min_drop: float = 0.15
-    # fits through a fitted edge after the first
-    max_refits: int = 2
-
-    def __post_init__(self):
-        if not (0 < self.max_scale <= 1 and 0 <= self.min_drop < 1 and self.max_refits >= 0):
-            raise ConfigError("stfm: psf_edge needs 0 < max_scale <= 1, 0 <= min_drop < 1, max_refits >= 0")
 
 
 def _edge_scale(build: Build) -> float | None:
@@ -298,17 +253,6 @@ class RowGainRefitStage(Stage):
 
         build.method = RowGainRefit(build.method, build.problem, _edge_scale(build), second, through)
         return self.about
-
-
-@dataclass(frozen=True)
-class TrackRefitConfig:
-    # the second run's turn penalty, of the search's: half the penalty kept the ball where the first lost
-    # it (sineball lab seed 1: 1.43x -> 1.02x its noise level; bench/realistic.md, stop 68)
-    turn_scale: float = 0.5
-
-    def __post_init__(self):
-        if not 0 < self.turn_scale:
-            raise ConfigError(f"stfm: track_refit.turn_scale must be > 0, got {self.turn_scale!r}")
 
 
 class TrackRefitStage(Stage):

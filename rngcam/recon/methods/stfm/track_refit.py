@@ -21,7 +21,7 @@ from collections.abc import Callable
 
 from rngcam.recon.methods.stfm.refits import Refits, nth
 from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
-from rngcam.recon.methods.stfm.stages import TrackRefitConfig
+from rngcam.recon.methods.stfm.stage_configs import TrackRefitConfig
 
 # The first run's RS residual / noise level at or above which the second run is made: the row-gain
 # stage's, where the fit is not explained: runs that lost the ball ended above it, those that kept it
