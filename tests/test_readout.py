@@ -56,6 +56,8 @@ def test_weights_match_a_numeric_integral(readout, rows, bin_, dt_lines):
     np.testing.assert_allclose(w, _brute_weights(t, grid), atol=2e-4)
     starts, ends = _brute_windows(t)
     assert t.end_s == pytest.approx(ends.max(), rel=1e-12)
+    first = starts if readout != "global-reset" else ends - t.exposure_s
+    assert t.readout_span_s == pytest.approx(first.max() - first.min(), rel=1e-12)
     assert grid.n_frames * grid.dt_s >= ends.max() > (grid.n_frames - 1) * grid.dt_s
     # every sensor row's weight is its exposure in frames
     np.testing.assert_allclose(w.sum(1), (ends - starts).reshape(rows, bin_).mean(1) / grid.dt_s, rtol=1e-12)

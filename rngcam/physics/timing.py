@@ -156,10 +156,14 @@ class RollingShutterTiming:
         return offsets, offsets + self.exposure_s
 
     @property
+    def readout_span_s(self) -> float:
+        """From the first row's start to the last one's (global-reset: from the first end to the last)."""
+        return float(readout_lines(self.readout, self.rows * self.rows_per_bin).max()) * self.line_time_s
+
+    @property
     def end_s(self) -> float:
         """End of the last sensor row's exposure."""
-        last = float(readout_lines(self.readout, self.rows * self.rows_per_bin).max())
-        return self.trigger_s + last * self.line_time_s + self.exposure_s
+        return self.trigger_s + self.readout_span_s + self.exposure_s
 
     def stretched_weights(self, grid: VideoGrid, rows: Tensor, factor: Tensor) -> Tensor:
         """(R, n_frames) weights of grid rows `rows` (R,) when the true line time is `factor` (a

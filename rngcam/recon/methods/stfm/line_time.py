@@ -41,7 +41,7 @@ class LineTime:
         span = 0.0
         if timing is not None:
             frame_s = self.problem.grid.dt_s * self.problem.subframes
-            span = (timing.rows * timing.rows_per_bin - 1) * timing.line_time_s / frame_s
+            span = timing.readout_span_s / frame_s
         self.readout_frames = max(span, 1e-9)
         self.line_shift = nn.Parameter(torch.zeros((), device=self.device))
         self.learn_line = False
