@@ -248,6 +248,22 @@ def test_mock_rig_renders_its_readout(tmp_path, readout):
     assert np.abs(b.rs.frames[0].astype(np.int64) - expected.astype(np.int64)).max() <= 1
 
 
+def test_a_dual_readout_window_is_checked_before_arming(tmp_path):
+    """Centre-out reads the mock rig's 64 rows in 32 line times: its GS frames at 6.5 and 13 ms leave
+    the RS window, refused in one line before any hardware is touched."""
+    from rngcam.acquire.capture import capture
+    from rngcam.config import parse_rig
+    from rngcam.errors import ConfigError
+
+    rig_path = Path(__file__).resolve().parents[1] / "rigs" / "mock.yaml"
+    text = rig_path.read_text().replace("    line_time_s: 208.0e-6\n", "    line_time_s: 208.0e-6\n    readout: centre-out\n")
+    with pytest.raises(ConfigError) as err:
+        capture(parse_rig(text, rig_path), tmp_path / "m.h5", progress=lambda s: None)
+    message = str(err.value)
+    assert "\n" not in message and "not inside the RS exposure window [0, 7.098] ms" in message
+    assert not (tmp_path / "m.h5").exists()
+
+
 def test_cli_simulate_readout_inspect_and_an_unknown_order(tmp_path):
     from click.testing import CliRunner
 

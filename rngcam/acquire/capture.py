@@ -16,7 +16,7 @@ import contextlib
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
 
@@ -87,13 +87,16 @@ def verify_timing(resolved: ResolvedRig, rs_exposure_s: float, gs_exposure_s: fl
     """(summary lines, warnings). Raises ConfigError when a GS exposure leaves the RS window."""
     rig = resolved.rig
     c = rig.config
-    rows = c.cameras.rs.roi.height
+    rs_timing = resolved.timing()[0]  # the rig's readout order: its rows may be columns, read in two halves
+    rows = rs_timing.rows
     line = resolved.line_time_s
     source = resolved.described("line_time_s")
-    readout = (rows - 1) * line
+    readout = rs_timing.readout_span_s
     window_end = readout + rs_exposure_s
     t0 = c.timing.rs_trigger_s
-    lines = [(f"RS: {rows} rows x {line * 1e6:g} us line time ({source}) = {readout * 1e3:.3f} ms readout, "
+    order = "" if rs_timing.readout in ("top-down", "columns") else f" read {rs_timing.readout}"
+    lines = [(f"RS: {rows} {'columns' if rs_timing.transposed else 'rows'}{order} x {line * 1e6:g} us line time "
+              f"({source}) = {readout * 1e3:.3f} ms readout, "
               f"exposure {rs_exposure_s * 1e6:g} us, window [0, {window_end * 1e3:.3f}] ms after T0")]
     warnings: list[str] = []
     for i, t in enumerate(c.timing.gs_trigger_s):
@@ -115,7 +118,7 @@ def verify_timing(resolved: ResolvedRig, rs_exposure_s: float, gs_exposure_s: fl
         lines.append(f"line time: the camera's SensorReadoutTime suggests {reported_line_time_s * 1e6:.4g} us, a rough "
                      f"estimate; using the {line * 1e6:.4f} us measured from an LED's flicker ({source})")
     elif not math.isclose(reported_line_time_s, line, rel_tol=LINE_TIME_RTOL):
-        real_end = (rows - 1) * reported_line_time_s + rs_exposure_s
+        real_end = replace(rs_timing, line_time_s=reported_line_time_s).readout_span_s + rs_exposure_s
         late = [i for i, t in enumerate(c.timing.gs_trigger_s) if t - t0 + gs_exposure_s > real_end * (1 + 1e-9)]
         if late:
             k = late[0]
@@ -250,7 +253,7 @@ def _check_timing(rig: Rig, resolved: ResolvedRig, cams: dict[str, Camera], prog
     rs, gs = cams["rs"], cams["gs"]
     summary, warnings = verify_timing(resolved, rs.configured.exposure_s, gs.configured.exposure_s, rs.line_time_s())
     readout_s, readout_source = gs_readout(c.cameras.gs, gs.configured.features, gs.info.model if gs.info else "")
-    rs_window_s = resolved.timing()[0].end_s - resolved.timing()[0].exposure_s + rs.configured.exposure_s
+    rs_window_s = resolved.timing()[0].readout_span_s + rs.configured.exposure_s
     summary += refuse_impossible(rig, rs_window_s, gs.configured.exposure_s, readout_s, readout_source)
     if readout_s is None:
         warnings.append(f"GS readout time {readout_source}: trigger spacing checked against the exposure only")
