@@ -19,6 +19,7 @@ inflate past it (a compression bomb) is refused. Shapes and dtypes are believed 
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import math
 import os
@@ -211,6 +212,67 @@ def _unshuffle(raw: bytes, itemsize: int) -> bytes:
     return np.frombuffer(raw, np.uint8).reshape(itemsize, -1).T.tobytes()
 
 
+PROBE_SECONDS = 5.0  # a child reading a file's metadata: ample for any file rngcam writes
+_PROBED: set[tuple] = set()  # (device, inode, size, mtime) of files whose metadata a child read whole
+_HUNG: set[tuple] = set()  # ... and of those on which it hung
+
+
+def probe_metadata(fd: int, path: Path) -> None:
+    """UnsafeFileError when HDF5 itself does not finish reading the metadata of the file open as
+    `fd` (every object, attribute and chunk index) within PROBE_SECONDS: some damaged files send
+    the library into a loop no signal can break (a global heap with a zero-sized object), so a
+    forked child reads them first and is killed when it hangs. Once per file and process; where
+    there is no fork, no probe."""
+    import time
+
+    st = os.fstat(fd)
+    key = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+    hung = UnsafeFileError(f"{printable(path)}: the HDF5 library does not finish reading its metadata within "
+                           f"{PROBE_SECONDS:g} s (a damaged file); refused")
+    if key in _HUNG:
+        raise hung
+    if key in _PROBED or not hasattr(os, "fork"):
+        return
+    with h5py._objects.phil:  # h5py's lock, held across the fork: no other thread holds it in the child
+        pid = os.fork()
+    if pid == 0:  # the child: read everything HDF5 keeps about the file, then leave at once
+        try:
+            with h5py.File(f"/proc/self/fd/{fd}", "r") as f:
+                _read_metadata(f)
+        finally:
+            os._exit(0)
+    deadline = time.monotonic() + PROBE_SECONDS
+    try:
+        while not os.waitpid(pid, os.WNOHANG)[0]:
+            if time.monotonic() > deadline:
+                _HUNG.add(key)
+                raise hung
+            time.sleep(0.002)
+        pid = 0
+    finally:
+        if pid:
+            os.kill(pid, 9)
+            os.waitpid(pid, 0)
+    _PROBED.add(key)
+
+
+def _read_metadata(f: h5py.File) -> None:
+    """Every object's attributes (those `check_attr` allows) and chunk index, in the probe's child."""
+    def visit(name, obj):
+        for attr in list(obj.attrs):
+            with contextlib.suppress(Exception):
+                check_attr(obj, attr)
+                obj.attrs[attr]
+        if isinstance(obj, h5py.Dataset) and obj.chunks is not None:
+            obj.id.chunk_iter(lambda info: None)
+
+    with contextlib.suppress(Exception):
+        visit("/", f)
+        audit(f, Path("probe"))
+    with contextlib.suppress(Exception):
+        f.visititems(visit)
+
+
 def open_h5_file(path: str | Path, what: str = "HDF5 file",
                  within: str | Path | None = None) -> h5py.File:
     """`path` opened read-only by HDF5 through one descriptor (`rngcam.untrusted.open_untrusted`:
@@ -221,6 +283,7 @@ def open_h5_file(path: str | Path, what: str = "HDF5 file",
     with open_untrusted_file(path, what=what, within=within) as fh:
         proc = f"/proc/self/fd/{fh.fileno()}"
         if os.path.exists(proc):  # HDF5 opens the very file behind the descriptor (its own copy of it)
+            probe_metadata(fh.fileno(), path)
             f = h5py.File(proc, "r")
         else:
             f = h5py.File(path, "r")

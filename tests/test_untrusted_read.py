@@ -470,3 +470,38 @@ def test_a_crafted_clip_archive_is_one_line(tmp_path, case):
     assert "clip" in str(err.value) and "\n" not in str(err.value)
     res = _cli("simulate", "clip", "--clip", clip, "-o", tmp_path / "s.h5", "--size", "16")
     _one_line(res, "clip")
+
+
+def test_the_napari_reader_leaves_links_and_fifos_to_others(folder, tmp_path):
+    from rngcam.viewers.napari_reader import get_reader
+
+    assert get_reader(str(folder[1])) is not None
+    (tmp_path / "linked.h5").symlink_to(folder[1] / "recon.h5")
+    os.mkfifo(tmp_path / "fifo.h5")
+    assert get_reader(str(tmp_path / "linked.h5")) is None
+    assert get_reader(str(tmp_path / "fifo.h5")) is None
+
+
+def test_a_file_that_sends_hdf5_into_an_endless_loop_is_one_line(tmp_path, monkeypatch):
+    """A global heap object of index 0 and size 0 makes HDF5's parser loop forever when a text
+    attribute is read (no signal breaks into it): a forked child reads the metadata first and is
+    killed, and the file is refused in one line, once per file."""
+    from rngcam import h5safe
+
+    path = tmp_path / "recon.h5"
+    with h5py.File(path, "w") as f:
+        f.attrs["format"] = "rngcam-recon"
+    data = bytearray(path.read_bytes())
+    obj = data.find(b"GCOL") + 16
+    data[obj:obj + 2] = b"\0\0"
+    data[obj + 8:obj + 16] = bytes(8)
+    path.write_bytes(bytes(data))
+    _one_line(_cli("inspect", path), "recon.h5", "does not finish reading its metadata")
+
+    def no_second_probe():
+        raise AssertionError("probed again")
+
+    monkeypatch.setattr(os, "fork", no_second_probe)  # refused from memory after the first probe
+    assert h5safe.file_format(path) == ""
+    with pytest.raises(RngcamError, match="does not finish"):
+        h5safe.open_untrusted(path)
