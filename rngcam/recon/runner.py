@@ -20,7 +20,7 @@ import contextlib
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -345,23 +345,47 @@ class _Rows:
         return [{**row, **self.truth(vt)}]
 
 
-def _fit(problem: Problem, run_: Run, extra: dict, job: _Job) -> dict:
-    """Set up and run the method; what it gave (video, log, status, ...) as a dict for _finish."""
+@dataclass
+class Fitted:
+    """What a method's set-up and solve gave the finish: its video and parts, what it said, its log and
+    how it ended (`status`, `ended_by`, `message`); `cut` where set-up was cut and the start video is the
+    result (`keep_folder`: a resumed folder keeps its earlier result)."""
+
+    device: str
+    video: np.ndarray | None = None
+    components: dict = field(default_factory=dict)
+    left_out: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
+    method_settings: dict | None = None
+    events: list = field(default_factory=list)
+    status: str = "ok"
+    message: str = ""
+    log: list = field(default_factory=list)
+    iterations: int = 0
+    solve_s: float = 0.0
+    wall_s: float = 0.0
+    setup_s: float | None = None
+    ended_by: str = "iterations"
+    keep_folder: bool = False
+    cut: bool = False
+
+
+def _fit(problem: Problem, run_: Run, extra: dict, job: _Job) -> Fitted:
+    """Set up and run the method; what it gave (video, log, status, ...) for _finish."""
     clock, entry = run_.clock, registry.get(run_.method)
     c, k, h, w = problem.shape
     need = f" (about {gib(extra['need'])} estimated)" if extra.get("need") else ""
     job.say(f"{run_.method}: {k} frames of {h}x{w}x{c} at {1 / problem.grid.dt_s:,.0f} fps on {run_.device}{need}")
     rows = _Rows(problem, clock)
-    made = {"device": run_.device, "components": {}, "left_out": [], "notes": [], "method_settings": None,
-            "events": [], "status": "ok", "message": ""}
+    made = Fitted(device=run_.device)
     try:
         job.guard.enter("setup")  # raises a signal held while reading
         if not entry.iterative:
             gs_only, result = run_gs_only(problem, run_.settings)
-            made.update(video=gs_only.video, notes=list(gs_only.notes), method_settings=gs_only.resolved,
-                        log=rows.one(gs_only.video, result.solve_s, 1), iterations=1, solve_s=result.solve_s,
-                        wall_s=clock.elapsed(), ended_by=result.ended_by)
-            for note in made["notes"]:
+            made = replace(made, video=gs_only.video, notes=list(gs_only.notes), method_settings=gs_only.resolved,
+                           log=rows.one(gs_only.video, result.solve_s, 1), iterations=1, solve_s=result.solve_s,
+                           wall_s=clock.elapsed(), ended_by=result.ended_by)
+            for note in made.notes:
                 job.say(f"note: {note}")
             return made
         with _heartbeat(job.quiet(run_.settings.progress), run_.method, clock):
@@ -382,17 +406,17 @@ def _fit(problem: Problem, run_: Run, extra: dict, job: _Job) -> dict:
     return _iterate(problem, run_, method, made, rows, job)
 
 
-def _iterate(problem: Problem, run_: Run, method: Method, made: dict, rows: _Rows, job: _Job) -> dict:
+def _iterate(problem: Problem, run_: Run, method: Method, made: Fitted, rows: _Rows, job: _Job) -> Fitted:
     """The loop on the method just built, under the run's clock; `made` with what it gave."""
     from rngcam.recon.holdout import HoldoutScorer
 
     settings = run_.settings
-    setup_s = made["setup_s"] = run_.clock.elapsed()
+    setup_s = made.setup_s = run_.clock.elapsed()
     job.quiet(settings.progress)(f"set-up: {run_.method} ready ({setup_s:.1f} s)")
-    made["left_out"], made["notes"] = list(method.left_out), list(method.notes)
-    for note in made["notes"]:
+    made.left_out, made.notes = list(method.left_out), list(method.notes)
+    for note in made.notes:
         job.say(f"note: {note}")
-    for comp, why in made["left_out"]:
+    for comp, why in made.left_out:
         job.say(f"left out: {comp} ({why})")
     for line in getattr(method, "recipe", None) or []:  # STFM: each stage, what it did or why it was left out
         job.log.write(f"recipe: {line}")
@@ -410,11 +434,11 @@ def _iterate(problem: Problem, run_: Run, method: Method, made: dict, rows: _Row
     result = run(method, loop, evaluate, setup_s=setup_s)
     if problem.truth is not None and result.log and "ssim" not in result.log[-1]:
         result.log[-1].update(rows.truth(method.estimate()))  # the final row's SSIM, once
-    made.update(video=method.estimate().detach().float().cpu().numpy(), components=method.components(),
-                method_settings=method.resolved_settings(), log=result.log, iterations=result.iterations,
-                solve_s=result.solve_s, wall_s=result.wall_s, events=result.events, status=result.status,
-                message=result.message, ended_by=result.ended_by)
-    made["notes"] += [n for n in method.notes if n not in made["notes"]]  # what it learns by the end (the floor)
+    made = replace(made, video=method.estimate().detach().float().cpu().numpy(), components=method.components(),
+                   method_settings=method.resolved_settings(), log=result.log, iterations=result.iterations,
+                   solve_s=result.solve_s, wall_s=result.wall_s, events=result.events, status=result.status,
+                   message=result.message, ended_by=result.ended_by)
+    made.notes += [n for n in method.notes if n not in made.notes]  # what it learns by the end (the floor)
     # The method's state (the solve's peak) goes before the end-of-run metrics and outputs, which
     # then add to a much smaller base (bench/large_grids.md: whole-process peak).
     del method
@@ -431,19 +455,18 @@ def _start_name(problem: Problem) -> str:
     return "GS key frames cross-faded" if problem.b_gs is not None and problem.b_gs.shape[1] else "zeros: no GS frames"
 
 
-def _cut(made: dict, problem: Problem, status: str, why: str, rows: _Rows, saved: dict | None) -> dict:
+def _cut(made: Fitted, problem: Problem, status: str, why: str, rows: _Rows, saved: dict | None) -> Fitted:
     """A run ended in set-up: the start video as its result (the checkpoint, if one is resumed, is better:
     the folder then keeps what it has). `problem`: what the method may see (an ablation's camera gone)."""
     wall_s = rows.clock.elapsed()  # when it was cut; the start video and its scores come after
     video = start_video(problem)
     keep = saved is not None and saved.get("method") is not None
-    made.update(video=video, log=rows.one(video, 0.0, 0), iterations=0, solve_s=0.0,
-                wall_s=wall_s, status=status, message=f"{why}",
-                ended_by="signal" if status == "interrupted" else "budget",
-                events=[f"{why}: the start video ({_start_name(problem)}) is the result"
-                        if not keep else f"{why}: the folder keeps its earlier result and checkpoint"],
-                keep_folder=keep, cut=True)
-    return made
+    return replace(made, video=video, log=rows.one(video, 0.0, 0), iterations=0, solve_s=0.0,
+                   wall_s=wall_s, status=status, message=f"{why}",
+                   ended_by="signal" if status == "interrupted" else "budget",
+                   events=[f"{why}: the start video ({_start_name(problem)}) is the result"
+                           if not keep else f"{why}: the folder keeps its earlier result and checkpoint"],
+                   keep_folder=keep, cut=True)
 
 
 def _sensor_components(problem: Problem, components: dict) -> dict:
@@ -455,7 +478,7 @@ def _sensor_components(problem: Problem, components: dict) -> dict:
             for name, part in components.items()}
 
 
-def _finish(source: Source, problem: Problem, run_: Run, extra: dict, fit: dict, job: _Job) -> Result:
+def _finish(source: Source, problem: Problem, run_: Run, extra: dict, fit: Fitted, job: _Job) -> Result:
     """The metrics and the Result; with `job.out`, its files (and, for a run cut in set-up, a checkpoint
     that `resume` continues). The settings as they ran (`Run.record`: recon.h5, metrics.json's
     "settings", the report) are kept apart from what the run found (metrics.json's "method_results")."""
@@ -465,32 +488,32 @@ def _finish(source: Source, problem: Problem, run_: Run, extra: dict, fit: dict,
     c, k, h, w = problem.shape
     if problem.transposed:  # the outputs are in the sensor's orientation (Problem.to_sensor)
         h, w = w, h
-    video = fit["video"]
-    final = fit["log"][-1] if fit["log"] else {}
-    left_out = problem.left_out + fit["left_out"]
+    video = fit.video
+    final = fit.log[-1] if fit.log else {}
+    left_out = problem.left_out + fit.left_out
     metrics = {
         "method": settings.method,
-        "seconds": fit["solve_s"],
-        "wall_seconds": fit["wall_s"],
-        "setup_seconds": fit.get("setup_s", fit["wall_s"]),  # reading the bundle and the method's set-up
-        "iterations": fit["iterations"],
+        "seconds": fit.solve_s,
+        "wall_seconds": fit.wall_s,
+        "setup_seconds": fit.wall_s if fit.setup_s is None else fit.setup_s,  # reading the bundle and the set-up
+        "iterations": fit.iterations,
         "peak_rss_bytes": peak_rss_bytes(),  # this process only (VmHWM)
         "frames": k, "height": h, "width": w, "channels": c, "fps": 1 / problem.grid.dt_s,
-        "device": fit["device"], "threads": torch.get_num_threads(),
-        "status": fit["status"], "ended_by": fit.get("ended_by", "iterations"),
+        "device": fit.device, "threads": torch.get_num_threads(),
+        "status": fit.status, "ended_by": fit.ended_by,
         "left_out": [{"component": a, "reason": b} for a, b in left_out],
-        "events": fit["events"],
+        "events": fit.events,
         "warnings": list(extra["warnings"]),
         "masked_fraction": {name: float(1 - m.mean()) for name, m in
                             (("rs", problem.rs_valid_mask()), ("gs", problem.gs_valid_mask())) if m is not None},
-        "notes": fit["notes"],
+        "notes": fit.notes,
     }
-    if fit["status"] == "budget_before_first_iteration":
-        metrics["warnings"].append(f"the time budget ended the run in set-up ({fit['wall_s']:.0f} s), so the result is "
+    if fit.status == "budget_before_first_iteration":
+        metrics["warnings"].append(f"the time budget ended the run in set-up ({fit.wall_s:.0f} s), so the result is "
                                    "the start video, not a fit: give a larger time budget (time_budget_s; "
                                    "on the command line --time-budget), or --resume it")
-    if fit["message"]:
-        metrics["message"] = fit["message"]
+    if fit.message:
+        metrics["message"] = fit.message
     for key in ("psnr_db", "ssim", "psnr_intermediate_db", "ssim_intermediate", "residual_rs", "residual_gs",
                 *HELDOUT_KEYS):
         if key in final:
@@ -503,7 +526,7 @@ def _finish(source: Source, problem: Problem, run_: Run, extra: dict, fit: dict,
             metrics["error_visibility_caveats"] = caveats
         metrics.update(motion_metrics(vt, problem.truth, problem.intermediate_frames(),
                                       one_object=extra["one_object"]))
-    method_settings, method_results = split_results(fit["method_settings"] or asdict(settings.method_settings))
+    method_settings, method_results = split_results(fit.method_settings or asdict(settings.method_settings))
     resolved = run_.record()
     if method_settings is not None:
         metrics["method_settings"] = resolved["method_settings"] = method_settings  # the preset's values filled in
@@ -515,18 +538,18 @@ def _finish(source: Source, problem: Problem, run_: Run, extra: dict, fit: dict,
     metrics["settings"] = {k: v for k, v in resolved.items() if k != "method_settings"}  # that one is above
     video = np.ascontiguousarray(problem.to_sensor(video))
     result = Result(video=video, frame_times_s=np.asarray(problem.frame_times_s), metrics=metrics,
-                    components=_sensor_components(problem, fit["components"]), notes=fit["notes"],
+                    components=_sensor_components(problem, fit.components), notes=fit.notes,
                     warnings=list(extra["warnings"]),
-                    left_out=left_out, status=fit["status"], log=fit["log"], message=fit["message"],
+                    left_out=left_out, status=fit.status, log=fit.log, message=fit.message,
                     settings=resolved, bundle_sha256=source.checksum(), frame_interval_s=problem.grid.dt_s,
                     context=extra.get("context") or outputs.recon_context(source.path, None, problem))
-    if out is not None and not fit.get("keep_folder"):
+    if out is not None and not fit.keep_folder:
         # the truth here: the report need not read it again
         result.save(out, echo=job.say, truth=problem.to_sensor(problem.truth))
-        if fit.get("cut"):
+        if fit.cut:
             checkpoint.save(out / checkpoint.CHECKPOINT_NAME, {
-                "method": None, "iteration": 0, "solve_s": 0.0, "wall_s": fit["wall_s"], "log": [],
+                "method": None, "iteration": 0, "solve_s": 0.0, "wall_s": fit.wall_s, "log": [],
                 "events": [], "rng": torch.get_rng_state(), "identity": job.want})
-    for event in fit["events"] if fit.get("cut") else ():
+    for event in fit.events if fit.cut else ():
         job.say(f"event: {event}")
     return result
