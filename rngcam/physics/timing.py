@@ -4,8 +4,8 @@ Convention (docs/design.md): the video grid starts at the RS trigger T0 = 0; fra
 [k*dt, (k+1)*dt). An exposure interval [a, b) becomes a weight vector over frames equal to
 its overlap with each frame interval divided by dt. A grid row that bins s sensor rows is
 the *mean* of those rows, so its weight is the mean of s shifted rects (a trapezoid), and
-every row's weights sum to exposure_s / dt. When exposures align with the grid the weights
-are exactly the paper's 0/1 rect indicator.
+every row's weights sum to its exposure / dt (exposure_s, but for global-reset). When exposures
+align with the grid the weights are exactly the paper's 0/1 rect indicator.
 
 Readout orders (READOUTS; `RollingShutterTiming.readout`, docs/design.md): when each sensor row
 starts and ends exposing. With N sensor rows, line time L and trigger T, row r exposes
