@@ -8,8 +8,9 @@ from pathlib import Path
 import click
 
 from rngcam.cli import echo_line
-from rngcam.errors import RngcamError
+from rngcam.errors import RngcamError, SettingError
 from rngcam.recon import registry
+from rngcam.recon.options import check_seconds
 
 
 @click.command("bench")
@@ -57,8 +58,12 @@ def _bench(out, quick, time_budget, size, clips, scene_names, methods, threads, 
                  if v is not None}
     if methods:
         overrides["methods"] = tuple(methods)
-    if time_budget is not None and not time_budget > 0:
-        raise click.BadParameter("must be > 0", param_hint="--time-budget")
+    if time_budget is not None:
+        try:
+            check_seconds("time_budget_s", time_budget)
+        except SettingError:
+            raise click.BadParameter(f"must be a positive number of seconds, got {time_budget}",
+                                     param_hint="--time-budget") from None
     if size is not None and size < 8:
         raise click.BadParameter("must be >= 8", param_hint="--size")
     if threads is not None and threads < 1:

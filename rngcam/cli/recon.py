@@ -11,6 +11,7 @@ from rngcam.cli.method_options import method_command, pop_method_values
 from rngcam.cli.method_options import method_settings as settings_from_options
 from rngcam.errors import SettingError
 from rngcam.recon import registry
+from rngcam.recon.options import check_seconds
 from rngcam.recon.settings import ReconSettings, check_device, check_threads, default_out_dir
 from rngcam.video_plan import DEFAULT_MAX_FRAMES
 
@@ -48,7 +49,10 @@ def budget_option(ctx, param, value):
         seconds = float(value)
     except ValueError:
         raise click.BadParameter(f"{value!r} is not a number of seconds or auto") from None
-    return positive_option(ctx, param, seconds)
+    try:
+        return check_seconds("time_budget_s", seconds)
+    except SettingError:
+        raise click.BadParameter(f"must be a positive number of seconds or auto, got {value}") from None
 
 
 def with_stages(method: str, settings, assignments: tuple[str, ...], recipe_file: Path | None):

@@ -29,6 +29,7 @@ from torch import Tensor
 from rngcam.errors import RngcamError
 from rngcam.recon import checkpoint
 from rngcam.recon.checkpoint import CHECKPOINT_NAME, RESUME_HINT
+from rngcam.recon.options import check_seconds
 
 
 class Clock:
@@ -210,8 +211,8 @@ class LoopSettings:
         seconds = self.time_budget_s if self.clock is None else self.clock.seconds
         if seconds is None and self.max_iters is None:
             raise ValueError("set a time budget, an iteration count, or both")
-        if self.time_budget_s is not None and not (self.time_budget_s > 0 and math.isfinite(self.time_budget_s)):
-            raise ValueError(f"time budget must be a positive number of seconds, got {self.time_budget_s}")
+        if self.time_budget_s is not None:
+            check_seconds("time_budget_s", self.time_budget_s)
         if self.max_iters is not None and self.max_iters < 0:
             raise ValueError(f"iteration count must be >= 0, got {self.max_iters}")
 

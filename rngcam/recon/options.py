@@ -8,7 +8,18 @@ an option's help, unit and default are written once, beside the field.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import field
+
+from rngcam.errors import SettingError
+
+
+def check_seconds(name: str, value) -> float:
+    """`value` as seconds: a finite number > 0, else one SettingError line naming `name`. Every time
+    budget (recon, batches, sweeps, bench, the loop) and interval is checked here."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise SettingError(f"{name} must be a positive number of seconds, got {value!r}", name)
+    return float(value)
 
 
 def setting(default, help: str, *, unit: str = "", cli: str | None = None, choices: tuple | None = None,

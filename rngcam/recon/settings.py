@@ -26,6 +26,7 @@ import torch
 from rngcam.errors import SettingError
 from rngcam.recon import registry
 from rngcam.recon.loop import Clock
+from rngcam.recon.options import check_seconds
 
 
 @dataclass
@@ -77,9 +78,8 @@ class ReconSettings:
 
 
 def check_positive(name: str, value) -> None:
-    """SettingError (one line) unless `value` is a finite number > 0."""
-    if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0):
-        raise SettingError(f"{name} must be a positive number of seconds, got {value!r}", name)
+    """SettingError (one line) unless `value` is a finite number of seconds > 0 (options.check_seconds)."""
+    check_seconds(name, value)
 
 
 def check_settings_figures(time_budget_s, max_iters, max_frames=None, max_memory_bytes=None) -> None:

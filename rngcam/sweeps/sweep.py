@@ -32,6 +32,7 @@ from rngcam.errors import ConfigError, RngcamError
 from rngcam.formats.bundle import bundle_checksum, read_bundle
 from rngcam.recon import registry
 from rngcam.recon.metrics_schema import check_metrics
+from rngcam.recon.options import check_seconds
 from rngcam.recon.problem import build_problem
 from rngcam.sweeps import tables
 from rngcam.sweeps.backend import Backend, make_backend
@@ -76,8 +77,8 @@ class SweepSettings:
                     raise ConfigError(f"--{name} values must be finite and >= 0, got {v!r}")
         if self.time_budget_s is None and self.max_iters is None:
             self.time_budget_s = DEFAULT_TIME_BUDGET_S
-        if self.time_budget_s is not None and not (math.isfinite(self.time_budget_s) and self.time_budget_s > 0):
-            raise ConfigError(f"time budget must be a positive number of seconds, got {self.time_budget_s}")
+        if self.time_budget_s is not None:
+            check_seconds("time_budget_s", self.time_budget_s)
         if self.max_iters is not None and self.max_iters < 1:
             raise ConfigError(f"iterations per trial must be >= 1, got {self.max_iters}")
         if not 0 < self.holdout < 1:
