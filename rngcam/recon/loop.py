@@ -218,7 +218,8 @@ class LoopSettings:
 
 
 # A log row comes after at least this many times its own cost in steps, so rows take at most ~5 %
-# of a run (a row is a whole video, or four for the fast preset's ensemble: bench/convergence.md, stop 62).
+# of a run (a row is a whole video, or four for the fast preset's ensemble: bench/convergence.md, "log rows
+# and the refinement's stall window").
 LOG_COST_RATIO = 19
 
 # What ended a run (metrics.json's "ended_by"): the method's own stop, the time budget, the

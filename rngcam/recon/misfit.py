@@ -25,7 +25,7 @@ POINTED_RATIO = 1.15
 # A run whose last level refines a coarser level's estimate (coarse to fine: the fast preset from 64 px)
 # ends a little further from the noise level: that fit starts from the half grid's video and stops when it
 # stalls, where a fit from the GS-only bases fits the RS image from scratch. The fine and lab families end
-# below this, a PSF 5 % large above (bench/convergence.md, "stop 64").
+# below this, a PSF 5 % large above (bench/convergence.md, "the half grid first again").
 MISFIT_RATIO_LEVELS = 1.35
 
 NOT_EXPLAINED = "model does not explain the data"
@@ -34,12 +34,12 @@ FAR_OFF = "calibration far off"
 # A learned line-time factor this far from 1 says the recorded line time is wrong, not rough: on half-frames
 # what exact timing wanders and what the lab family's +-0.5 % is learned as stay under it; a capture 2 %
 # long is learned nearly whole over later fits (stfm/line_refit.py), where one moving object times the rows
-# (bench/realistic.md, "stop 69" and "stop 70").
+# (bench/realistic.md, "the prior preset fits half-frames" and "the line time learned on over later fits").
 LINE_TIME_FAR = 0.007
 # A GS-to-RS shift learned this far (px) from the calibration's says the calibration is off: the fit pins
 # the shift across the scene's motion only (along it the shift trades against the motion's timing) and
 # applies it on the grid, where detail finer than a grid pixel aliases, so exact captures learn a shift
-# below this; `calibrate align` on a static chart leaves far less (bench/realistic.md, "stop 74").
+# below this; `calibrate align` on a static chart leaves far less (bench/realistic.md, "what the fit cannot learn").
 GEOMETRY_FAR_PX = 0.6
 
 

@@ -87,7 +87,8 @@ class Problem:
     subframes: int = 1
     # A coarse-to-fine level's GS frames as video intensity (C, G, H', W') on the finer grid it was
     # binned from: GS-only videos and flows are computed there and binned to this grid (RIFE on a
-    # 32 px clip's frames lost 2 dB against RIFE at 64 px binned; bench/convergence.md, stop 63).
+    # 32 px clip's frames lost 2 dB against RIFE at 64 px binned; bench/convergence.md, "the fast preset on
+    # the half grid first").
     fine_gs: Tensor | None = None
     # The cameras the capture has (its bundle's meta.cameras): ("rs",) for an RS-only bundle, whose
     # missing GS camera is listed in left_out (rngcam.recon.ablation.no_camera).

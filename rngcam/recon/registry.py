@@ -260,10 +260,13 @@ STFM_MEMORY = MemoryModel(bytes_per_element=13.64, fixed_bytes=333e6, bytes_per_
 # The default method first. STFM's default preset is auto (prior or fast, chosen per scene from the
 # key frames, rngcam.recon.methods.stfm.auto); both stop by themselves (fast after 1-3 min at 64 px on one
 # CPU thread), so the auto budget only guards against a fit that never settles.
-# STFM's model_revision: 2, the prior preset's canonical image decoded on a grid (stop 59); 3, motion
-# fields decoded on knots 2 px apart, a base video's correction read on the pixel grid (stop 60); 4, the
-# prior preset's fit on half-frames (subframes, stop 69); 5, a line refit's later fits learn the line time on
-# from where they start (stop 70: a checkpoint of a held one would resume learning).
+# STFM's model_revision: 2, the prior preset's canonical image decoded on a grid (bench/convergence.md,
+# "the prior preset decodes its canonical image once a step"); 3, motion fields decoded on knots 2 px
+# apart, a base video's correction read on the pixel grid (bench/convergence.md, "the fast preset's motion
+# on knots"); 4, the prior preset's fit on half-frames (subframes; bench/realistic.md, "the prior preset
+# fits half-frames"); 5, a line refit's later fits learn the line time on from where they start (a
+# checkpoint of a held one would resume learning; bench/realistic.md, "the line time learned on over
+# later fits").
 register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=600.0, model_revision=5,
                      presets={p: preset_settings(p)
                               for p in ("auto", "fast", *(p for p in STFM_PRESETS if p not in ("auto", "fast")))},

@@ -139,7 +139,7 @@ AUTO_MAX_S = 1800.0
 # Of a time budget, this fraction (at most FINISH_MAX_S) is kept for what follows the solve (the
 # final metrics, recon.h5, the TIFF, MP4 and plots), so a whole run ends near its budget; on grids
 # whose outputs take longer, FINISH_S_PER_MVOXEL of the video's size (at 456x684x459, 429 M values,
-# they took 187 s on two cores: bench/large_grids.md, stop 61), at most half the budget.
+# they took 187 s on two cores: bench/large_grids.md, "8x in 20 minutes"), at most half the budget.
 FINISH_FRACTION = 0.1
 FINISH_MAX_S = 60.0
 FINISH_S_PER_MVOXEL = 0.45

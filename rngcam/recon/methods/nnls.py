@@ -4,7 +4,8 @@ The PSF-edge fit (rngcam.recon.methods.psf_edge) solves min ||A x - y|| with x >
 4,096 RS pixels by ~750 edge pixels, of which ~130 end non-zero. SciPy's `nnls` works on A itself;
 the same active-set method (Lawson and Hanson) on G = A'A and c = A'y,
 as Bro and De Jong's FNNLS does, solves only |P| x |P| systems of the active set P after one
-product that forms G (faster there, the same solutions; bench/realistic.md, "stop 56").
+product that forms G (faster there, the same solutions; bench/realistic.md, "the row-gain search where a
+fit through a PSF too large ends unexplained").
 """
 
 from __future__ import annotations

@@ -220,7 +220,7 @@ def _rife4(f: np.ndarray, times_s, targets, weights, device: str) -> np.ndarray:
 
 
 # RIFE 4.x is asked no closer to a key frame than this fraction of the interval (1/8 measured as well:
-# no better next to the keys on smoke and the clip; bench/convergence.md, "stop 64")
+# no better next to the keys on smoke and the clip; bench/convergence.md, "the half grid first again")
 NEAR_KEY = 1 / 16
 
 
@@ -228,7 +228,7 @@ def _meet_the_keys(net, f: np.ndarray, out: np.ndarray, idx, frac, exact, scale:
                    net_scale: float) -> None:
     """Frames closer than NEAR_KEY (of the interval) to a key frame, in place: linear between the key and
     the network's frame at NEAR_KEY. RIFE 4.x asked just after a key frame does not return it, a seam at
-    every key frame (smoke's bricks displaced; bench/convergence.md, "stop 64")."""
+    every key frame (smoke's bricks displaced; bench/convergence.md, "the half grid first again")."""
     from rngcam.recon.nets.rife4 import PAD_MULTIPLE
 
     c, _, h, w = f.shape

@@ -19,7 +19,7 @@ differently, the camera pans), it is not. The test: for each other key frame g,
 The prior preset is chosen when their mean is below the auto_preset stage's layer_misfit_max. It costs one
 composite per candidate shift and key frame, no fit. Key frames larger than LAYER_TEST_SIDE are
 binned down to about it first: the threshold was set on 32-64 px key frames, and at full size the
-test took much of a large grid's set-up (bench/convergence.md, "stop 58").
+test took much of a large grid's set-up (bench/convergence.md, "the layer test binned").
 """
 
 from __future__ import annotations

@@ -127,7 +127,7 @@ class STFMEnsemble(MethodBase):
         has run its least steps (`least_steps`), the steps all fits still need at the pace so far; where
         the time left does not hold them, the later fits are let go and the first runs on alone with their
         time: cut at half its steps each, two fits lose more than their average wins (bench/demo.md,
-        "stop 73"). Fits without least steps are not let go."""
+        "the prior preset's two fits"). Fits without least steps are not let go."""
         if len(self.members) < 2 or self._clock is None or self._clock.left() is None:
             return
         first = self.members[0]

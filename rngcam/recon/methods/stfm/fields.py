@@ -203,7 +203,8 @@ def translate_image(image: Tensor, axes: Sequence[Tensor], shifts: Tensor) -> Te
     """An image (R_y, R_x, out) on linspace(-1, 1) knots, interpolated bilinearly (border clamp) at
     the pixel grid (x, y) moved by `shifts` (n, 2) in coordinate units: (n, n_y, n_x, out). One
     interpolation matrix per frame and axis, two matrix products. (STFM's prior preset decodes its
-    canonical image once a step on `knots` half a pixel apart and moves it so; bench/convergence.md, "stop 59".)"""
+    canonical image once a step on `knots` half a pixel apart and moves it so; bench/convergence.md, "the
+    prior preset decodes its canonical image once a step".)"""
     xs, ys = axes
     n, nx, ny = shifts.shape[0], xs.shape[0], ys.shape[0]
     ry, rx, out = image.shape
@@ -235,7 +236,8 @@ def interpolate_grid(values: Tensor, knots: Sequence[Tensor], axes: Sequence[Ten
         return values
     m_x = _interp_matrix(axes[0], knots[0].shape[0], values.dtype)  # (n_x, R_x)
     m_y = _interp_matrix(axes[1], knots[1].shape[0], values.dtype)  # (n_y, R_y)
-    return torch.einsum("yj,...jic,xi->...yxc", m_y, values, m_x)  # beats two matmuls (bench/convergence.md, "stop 60")
+    # beats two matmuls (bench/convergence.md, "the fast preset's motion on knots")
+    return torch.einsum("yj,...jic,xi->...yxc", m_y, values, m_x)
 
 
 # id(coordinate vector) -> (weak reference, its version, {(size, dtype): matrix}): the pixel and

@@ -4,7 +4,7 @@ The fit learns a factor on the RS line time with its fields (`line_time`), but f
 recorded figure it takes up only part of a large error, and the ball its early steps placed by the
 wrong timing stays off in the last rows' frames. Started at the learned factor and learning on from
 there, a later fit places the ball by nearly the right timing from its first step and closes most of
-what is left (bench/realistic.md, "stop 70"). Where the fit that
+what is left (bench/realistic.md, "the line time learned on over later fits"). Where the fit that
 explains the RS image best so far learned a factor more than `refit_line_time` off where it started,
 one more whole fit runs with the problem's RS timing stretched by the factor learned (calibrated
 again), up to `max_refits`; from a fit that ended unexplained (settings.EXPLAINED_RATIO), one, from

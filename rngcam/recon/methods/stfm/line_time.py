@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from rngcam.recon.methods.stfm.model import _to_device
 
 # A learned factor further than this from 1 says the recorded line time is off: above what the fit
-# wanders on exact timing (bench/realistic.md, "stop 69")
+# wanders on exact timing (bench/realistic.md, "the prior preset fits half-frames")
 SUSPECT_LINE_TIME = 0.005
 # The factor is held within 1 +- this: a recorded line time further off is not a rough figure but
 # a wrong one (the readout would not fit the capture), and a factor near 0 would fold the rows

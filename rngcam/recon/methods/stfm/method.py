@@ -159,7 +159,7 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         for g in groups:
             g["lr"] = lr * self._ratio(g)
         # fused: one kernel for all parameters (CPU and CUDA), a fraction of the loop's time a step on a CPU
-        # (bench/convergence.md, "stop 57")
+        # (bench/convergence.md, "a fifth off the prior preset's step")
         self.optimiser = torch.optim.Adam(groups, lr=lr, fused=self.device.type in ("cpu", "cuda"))
         self.base_lr = lr
 

@@ -28,14 +28,15 @@ def _to_device(idx: Tensor, device: torch.device) -> Tensor:
 
 # A translation is the motion field's mean over this many points per axis of the frame (at most),
 # not over every pixel: the same family of motions (the mean of a field over a grid) for a fraction
-# of the field's evaluations (bench/convergence.md, "stop 55").
+# of the field's evaluations (bench/convergence.md, "the prior preset's translation averaged over 16 x 16 points").
 TRANSLATION_MEAN_POINTS = 16
 # A motion field is decoded on knots about this many pixels apart and interpolated bilinearly
 # between them: its finest planes have knots 4 px apart, so a quarter of the decoder's points cut a
-# fast step's time and not its result (bench/convergence.md, "stop 60").
+# fast step's time and not its result (bench/convergence.md, "the fast preset's motion on knots").
 MOTION_KNOT_PX = 2
 # The prior preset's canonical image is decoded on knots this many pixels apart, the pixel centres
-# on them, and moved by bilinear interpolation (bench/convergence.md, "stop 59").
+# on them, and moved by bilinear interpolation (bench/convergence.md, "the prior preset decodes its
+# canonical image once a step").
 CANONICAL_KNOT_PX = 0.5
 
 
@@ -191,7 +192,7 @@ class FieldModel:
         gain = self._gain()[:, None, None, None]
         if self._key_warps or (self.base_source is not None and self.resolved.dynamic_time):
             # On the pixel grid: read at the moved points (grid_sample's backward) it cost a video
-            # member's step more, for the same video (bench/convergence.md, "stop 60").
+            # member's step more, for the same video (bench/convergence.md, "the fast preset's motion on knots").
             raw = field_on_grid(self.fields["dynamic"], [self.xs, self.ys, self.ts], idx).permute(3, 0, 1, 2)
             base = self._keys_at(u, raw[self.C + 1], idx) if self._key_warps else self._base_at(x, y, idx)
             return F.softplus(raw[:self.C] + _inverse_softplus(base * gain)), torch.sigmoid(raw[self.C:self.C + 1])

@@ -56,19 +56,19 @@ MAX_LEVEL_STEPS = 3000  # a coarse level that never meets its stop test ends her
 # left when it starts (the full level gets the rest): its coarse steps are cheaper and carry most of
 # the result, and this share scored best on the paper grid. A model that carries its fields (prior)
 # keeps CoarseToFine's 0.15: its full level carries the detail, and a larger share cost it PSNR and
-# the ball's place (bench/convergence.md, "stop 61").
+# the ball's place (bench/convergence.md, "the large grids' budget spent where it pays").
 LEVEL_SHARE = 0.45
 # ... and on the half-grid-first path (below 96 px) this share: its full level is one short refinement,
 # so LEVEL_SHARE cut the half grid short under a budget longer than its own stop
-# (bench/convergence.md, "stop 64").
+# (bench/convergence.md, "the half grid first again").
 HALF_GRID_LEVEL_SHARE = 0.85
 
 
 # Below 96 px, where default_factors gives one level, a base-video model (fast) still starts on the
 # half grid when that keeps this many pixels a side: its ensemble there, with bases from the full
 # grid's frames, then one fit on the full grid: a fraction of the wall time for the same PSNR
-# (bench/convergence.md, "stop 64"; bench/realistic.md, "stop 65"). A model that carries its fields
-# (prior) keeps one level.
+# (bench/convergence.md, "the half grid first again"; bench/realistic.md, "the lab-to-fine gap and the
+# learned shift"). A model that carries its fields (prior) keeps one level.
 BASE_MIN_SIDE = 32
 
 
@@ -85,8 +85,8 @@ def stfm_levels(problem, settings: STFMSettings) -> tuple[int, ...]:
 def stfm_time_factors(problem, factors: tuple[int, ...], with_base: bool = True) -> tuple[int, ...]:
     """The frames a coarse frame bins, per level: none on a base-video model's (fast) half-grid-first
     path (below 96 px), whose coarse level learns the GS-to-RS shift the full level keeps (binned in
-    pairs, frames taught it a shift the truth does not have; bench/convergence.md, "stop 64"); elsewhere
-    the spatial factors."""
+    pairs, frames taught it a shift the truth does not have; bench/convergence.md, "the half grid first
+    again"); elsewhere the spatial factors."""
     return (1,) * len(factors) if _half_grid_first(problem, factors, with_base) else factors
 
 
@@ -206,7 +206,8 @@ def _on_base(problem, settings: STFMSettings, device, x0: Tensor, norm_start: Te
     with (on the fly), so its first video is x0 itself. `refinement`: with the ensemble refinement's
     stall window (REFINE_STALL_PASSES, unless stall_passes is set), where x0 carries the GS-only
     detail (the default window stopped the paper grid's middle level early; bench/convergence.md,
-    "stop 63"). `state`: the run state of the level below (rngcam.recon.methods.stfm.run_state)."""
+    "the fast preset on the half grid first"). `state`: the run state of the level below
+    (rngcam.recon.methods.stfm.run_state)."""
     wb = problem.white_balance
     gains = None if wb is None or bool(torch.all(wb == 1)) else wb.float()
     fine = replace(settings, dynamic_base="video", dynamic_time=True, lr=_lr(settings, problem))

@@ -13,7 +13,8 @@ or above RATIO x its noise level, it is made again with row gains, and the one w
 lower is the output. `make_stfm` wraps the whole run this way (the second run has its own edge and
 line-time stages, row gains in every fit) and, inside the first run, each later fit those stages
 make (through a fitted edge, at a learned line time): each is one fit, made again as one fit. The
-second run wraps nothing more (bench/realistic.md, "stop 55" and "stop 56").
+second run wraps nothing more (bench/realistic.md, "psf+5's ball is lost by the motion search" and "the
+row-gain search where a fit through a PSF too large ends unexplained").
 """
 
 from __future__ import annotations
@@ -25,8 +26,8 @@ from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
 
 # The plain run's RS residual / noise level at or above which the row-gain run is made: the flagged runs
 # that lost the ball ended above it, those that kept it (where the row-gain run did worse) below
-# (bench/realistic.md, "stop 56"): the fit is not explained (settings.EXPLAINED_RATIO;
-# rngcam.recon.misfit.POINTED_RATIO)
+# (bench/realistic.md, "the row-gain search where a fit through a PSF too large ends unexplained"): the fit
+# is not explained (settings.EXPLAINED_RATIO; rngcam.recon.misfit.POINTED_RATIO)
 RATIO = EXPLAINED_RATIO
 
 

@@ -17,7 +17,7 @@ STALL_PASSES = 15  # the stall test compares the RS residual with its value this
 # other seeds (bench/convergence.md, "the prior preset's stall window 30 -> 45 passes"; bench/realistic.md)
 PRIOR_STALL_PASSES = 45
 # ... and on grids of at most SMALL_STALL_SIDE rows (the half grid of a 64 px run, whose full level refines
-# it): fewer steps for the same result (bench/convergence.md, "stop 64")
+# it): fewer steps for the same result (bench/convergence.md, "the half grid first again")
 SMALL_STALL_PASSES, SMALL_STALL_SIDE = 10, 32
 MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow is skipped
 # A step holds one chunk of frames' autograd graph at a time. Small grids take more frames per chunk:
@@ -217,27 +217,30 @@ POSE_LR_RATIO = 2.0
 # the data, a shift along the scene's motion explains what they get wrong about its timing (smoke rises:
 # every ensemble member put a shift in y within its first steps, on captures with none, and kept it).
 # After the hold its step is this many times POSE_LR_RATIO, to reach a 1 px shift in the steps left
-# (bench/realistic.md, "stop 66"). A fit started from another's pose neither holds nor speeds up.
+# (bench/realistic.md, "the learned pose held while the fields settle"). A fit started from another's pose
+# neither holds nor speeds up.
 POSE_HOLD_STEPS = 100
 POSE_LR_AFTER_HOLD = 3.0
 # A fit whose motion starts from the translation search (the prior preset) holds the learned line time
 # for its first steps: from the search's track the line time took up the track's timing, and the ball came
-# later and later (bench/realistic.md, "stop 67"). Held for a shorter time, a capture still moved it the
-# wrong way; held this long, it stays near the recorded figure (bench/realistic.md, "stop 72"). A fit
-# started from another's line time or fields does not hold it.
+# later and later (bench/realistic.md, "the motion search charges turns"). Held for a shorter time, a
+# capture still moved it the wrong way; held this long, it stays near the recorded figure
+# (bench/realistic.md, "a search-started fit holds its line time 600 steps"). A fit started from another's
+# line time or fields does not hold it.
 LINE_HOLD_STEPS_SEARCH = 600
 # The learned line time's step (Adam, frames of displacement at the last RS row) per unit of the
 # fields' learning rate. The fit learns what it will of a line-time error in the steps after the hold,
-# and a smaller step learned too little of it (bench/realistic.md, "stop 70")
+# and a smaller step learned too little of it (bench/realistic.md, "the line time learned on over later fits")
 LINE_LR_RATIO = 32.0
 # After LINE_HOLD_STEPS_SEARCH the step is this many times LINE_LR_RATIO: the same step at the hold's end
 # as LINE_LR_RATIO at the end of a 300-step hold (the fields' step halves every 400 steps). x1 learned too
-# little of an error, x4 wandered on exact timing (bench/realistic.md, "stop 72"). A fit started from
-# another's line time or fields neither holds nor speeds up.
+# little of an error, x4 wandered on exact timing (bench/realistic.md, "a search-started fit holds its line
+# time 600 steps"). A fit started from another's line time or fields neither holds nor speeds up.
 LINE_LR_AFTER_HOLD = 2.0
 # A fit whose motion starts from the translation search, while its RS residual is within EXPLAINED_RATIO of
 # its noise level, runs this many half-lives of its step (lr_half_life_steps) before its stop tests may end
-# it: there its video still gains long after the residual has gone flat (bench/realistic.md, "stop 71")
+# it: there its video still gains long after the residual has gone flat (bench/realistic.md, "a
+# search-started fit runs four half-lives of its step")
 SEARCH_FIT_HALF_LIVES = 4.0
 # A fit that ends at this many times its noise level or more is not explained: the PSF-edge, row-gain and
 # track stages fit again from it (edge_refit, row_gain_refit, track_refit), another error (a PSF at another
@@ -246,7 +249,7 @@ SEARCH_FIT_HALF_LIVES = 4.0
 EXPLAINED_RATIO = 1.15
 REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
 # ... and its stall test looks back this many passes over the rows (unless stall_passes is set): what it
-# gains, it gains in its first steps (bench/convergence.md, "stop 62")
+# gains, it gains in its first steps (bench/convergence.md, "log rows and the refinement's stall window")
 REFINE_STALL_PASSES = 5
 DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
 
@@ -287,7 +290,7 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
         "dynamic": ("planes", {"resolutions": appearance, "time_resolutions": motion_time_for(appearance),
                                 "features": DYNAMIC_FEATURES, "hidden": 32}),
         # rows a step: 8, a quarter of the rows below 32 px (the half grid of a 64 px run: 8 rows, not the
-        # 4 of h // 8: less time and a better result; bench/convergence.md, "stop 63")
+        # 4 of h // 8: less time and a better result; bench/convergence.md, "the fast preset on the half grid first")
         "lr": 1e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
         "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 4)), "init": "gs",
         "dynamic_time": True, "dynamic_base": "ensemble", "gs_windows_per_step": 1, "time_smoothness": 0.3,
@@ -319,11 +322,12 @@ def _preset(name: str, h: int, w: int, k: int) -> dict:
                      "matte_l1": 0.02,
                      # Half-frames: the rows' exposures begin and end inside frames while the layer moves
                      # several pixels a frame; the output's frames alone put the ball where a row saw it
-                     # early or late in the frame (bench/realistic.md, "stop 69").
+                     # early or late in the frame (bench/realistic.md, "the prior preset fits half-frames").
                      "subframes": 2,
                      # Two fits from seeds 0 and 1, averaged: what the RS rows do not pin differs between
                      # them and averages out (better than either fit, or than picking the one with the
-                     # lower RS residual), at twice the compute (bench/realistic.md, "stop 73")
+                     # lower RS residual), at twice the compute (bench/realistic.md, "the prior preset
+                     # averages two fits")
                      "fits": 2})
     return fast
 

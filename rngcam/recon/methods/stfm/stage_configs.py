@@ -33,12 +33,13 @@ class StartFloorConfig:
 @dataclass(frozen=True)
 class LineRefitConfig:
     # a learned factor further than this from where the fit started makes another fit: past what the lab
-    # family's +-0.5 % is learned as; the first fit learns a 2 % error as 1.78 % (bench/realistic.md, stop 71)
+    # family's +-0.5 % is learned as; the first fit learns a 2 % error as 1.78 % (bench/realistic.md, "a
+    # search-started fit runs four half-lives of its step")
     refit_line_time: float = 0.01
     # later fits at most: each closes most of what the one before left (a 2 % error in three; bench/realistic.md)
     max_refits: int = 3
     # from a fit that ended unexplained, one later fit where its factor is this far off: another error moves
-    # its line time ("together" capture, bench/realistic.md, stop 70)
+    # its line time ("together" capture, bench/realistic.md, "the line time learned on over later fits")
     refit_line_time_unexplained: float = 0.007
 
     def __post_init__(self):
@@ -63,7 +64,8 @@ class EdgeRefitConfig:
 @dataclass(frozen=True)
 class TrackRefitConfig:
     # the second run's turn penalty, of the search's: half the penalty kept the ball where the first lost
-    # it (sineball lab seed 1: 1.43x -> 1.02x its noise level; bench/realistic.md, stop 68)
+    # it (sineball lab seed 1: 1.43x -> 1.02x its noise level; bench/realistic.md, "a run left unexplained
+    # is made again from a softer motion search")
     turn_scale: float = 0.5
 
     def __post_init__(self):

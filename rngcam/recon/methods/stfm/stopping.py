@@ -56,7 +56,7 @@ class NoiseStop:
     def log_ready(self) -> bool:
         """A log row scores the video the stop test makes every `check_every()` steps: at those
         steps it is made once for both (a row elsewhere would make it again; bench/convergence.md,
-        "stop 57")."""
+        "the rows ride on the stop test")."""
         return not (self.resolved.stop_at_noise and self.parts.rs) or self.steps % self.check_every() == 0
 
     def check_every(self) -> int:
@@ -68,11 +68,11 @@ class NoiseStop:
         is held at first and the residual is at the noise level, its hold's end plus a stall `window`, so
         that it has been learned before the data are called explained (on half-frames a lab capture's fit
         reached its noise level with the line time still the recorded one: bench/realistic.md,
-        "stop 69"). A fit whose motion starts from the translation search
+        "the prior preset fits half-frames"). A fit whose motion starts from the translation search
         (the prior preset) and whose residual is within EXPLAINED_RATIO of its noise level runs
         SEARCH_FIT_HALF_LIVES half-lives of its step first: its residual goes flat at the noise level
-        long before its video settles (bench/realistic.md, "stop 71"). One that stalls unexplained
-        stops as before, for the stages that fit again from it."""
+        long before its video settles (bench/realistic.md, "a search-started fit runs four half-lives of
+        its step"). One that stalls unexplained stops as before, for the stages that fit again from it."""
         holds = [g.get("hold_steps", 0) for g in self.optimiser.param_groups
                  if self.learn_line and g["params"][0] is self.line_shift]
         hold = max(holds, default=0)
@@ -99,5 +99,5 @@ def check_interval(frames: int) -> int:
     """Steps between stop tests of a fit of `frames` frames: NOISE_CHECK_STEPS up to NOISE_CHECK_FRAMES
     frames, one more interval for each further NOISE_CHECK_FRAMES. A test makes the whole video, a step
     only the frames of its rows, so at a fixed interval the tests' share of the time grows with the
-    frames (bench/convergence.md, "stop 61")."""
+    frames (bench/convergence.md, "the large grids' budget spent where it pays")."""
     return NOISE_CHECK_STEPS * max(1, math.ceil(frames / NOISE_CHECK_FRAMES))

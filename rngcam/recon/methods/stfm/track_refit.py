@@ -6,7 +6,7 @@ The prior preset starts its moving layer on the track a search over translations
 penalty on each change of velocity decides. Where the penalty is too stiff for a path's turns, the
 track cuts a stretch of frames off and the fit never leaves it; that run ends with its RS residual
 well above its noise level, where the same capture searched at half the penalty ends near it with the
-ball kept (bench/realistic.md, "stop 68").
+ball kept (bench/realistic.md, "a run left unexplained is made again from a softer motion search").
 So where a run whose motion came from the search ends at RATIO x its noise level or more, and the
 row-gain stage (a PSF found too large) does not apply, it is made again with the search's turn
 penalty times `turn_scale` (the track_refit stage's config); the run whose RS residual is lower is
@@ -25,7 +25,8 @@ from rngcam.recon.methods.stfm.stage_configs import TrackRefitConfig
 
 # The first run's RS residual / noise level at or above which the second run is made: the row-gain
 # stage's, where the fit is not explained: runs that lost the ball ended above it, those that kept it
-# below (bench/realistic.md, "stop 68"; settings.EXPLAINED_RATIO)
+# below (bench/realistic.md, "a run left unexplained is made again from a softer motion search";
+# settings.EXPLAINED_RATIO)
 RATIO = EXPLAINED_RATIO
 
 
