@@ -8,8 +8,10 @@ from dataclasses import replace
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.recon.methods.selfcal import calibrate_problem
 from rngcam.recon.methods.stfm.ensemble import STFMEnsemble
 from rngcam.recon.methods.stfm.method import STFM
+from rngcam.recon.methods.stfm.multilevel import make_multilevel, stfm_levels
 from rngcam.recon.methods.stfm.run_state import RunState
 from rngcam.recon.methods.stfm.settings import STFMSettings, _base_list, _setting_or_preset
 
@@ -22,8 +24,6 @@ def make_fit(problem, settings: STFMSettings, device, initial_video: Tensor | No
     level (the recipe's make_stfm)."""
     state = state or RunState()
     if initial_video is None:
-        from rngcam.recon.methods.stfm.multilevel import make_multilevel, stfm_levels
-
         factors = stfm_levels(problem, settings)
         if len(factors) > 1:
             return make_multilevel(problem, settings, device, factors,
@@ -51,8 +51,6 @@ def describe_fit(problem, settings: STFMSettings, initial_video: Tensor | None) 
     """One clause: the fit `make_fit` makes for these, without making it."""
     if initial_video is not None:
         return "one fit on the given video"
-    from rngcam.recon.methods.stfm.multilevel import stfm_levels
-
     c, k, h, w = problem.shape
     factors = stfm_levels(problem, settings)
     levels = "" if len(factors) == 1 else f"coarse to fine at 1/{', 1/'.join(map(str, factors))} of the grid; "
@@ -77,8 +75,6 @@ def another_fit(build, changed, found: dict, psf_scale: bool, made_from: dict, *
     changed = replace(changed, notes=list(changed.notes))
     calibration = build.state.selfcal_report
     if settings.self_calibrate != "off":
-        from rngcam.recon.methods.selfcal import calibrate_problem
-
         changed, calibration = calibrate_problem(changed, settings.self_calibrate, psf_scale)
         calibration = dict(calibration or {}, **found)
     state = replace(build.state, selfcal_report=calibration, **made_from)

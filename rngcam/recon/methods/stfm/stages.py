@@ -10,6 +10,14 @@ from dataclasses import replace
 
 from rngcam.errors import ConfigError
 from rngcam.recon import ablation
+from rngcam.recon.methods.selfcal import calibrate_problem
+from rngcam.recon.methods.stfm.auto import choose_preset
+from rngcam.recon.methods.stfm.build_fit import another_fit, describe_fit, make_fit
+from rngcam.recon.methods.stfm.edge_refit import EdgeRefit, edge_scale
+from rngcam.recon.methods.stfm.floor import StartFloor
+from rngcam.recon.methods.stfm.line_refit import LineRefit
+from rngcam.recon.methods.stfm.line_time import learns_line_time
+from rngcam.recon.methods.stfm.row_gain_refit import RowGainRefit
 from rngcam.recon.methods.stfm.settings import _setting_or_preset
 from rngcam.recon.methods.stfm.stage import Build, NoConfig, Stage
 from rngcam.recon.methods.stfm.stage_configs import (
@@ -19,6 +27,8 @@ from rngcam.recon.methods.stfm.stage_configs import (
     StartFloorConfig,
     TrackRefitConfig,
 )
+from rngcam.recon.methods.stfm.subframes import SubframesAveraged
+from rngcam.recon.methods.stfm.track_refit import TrackRefit
 
 
 def _both_cameras(build: Build) -> str | None:
@@ -51,8 +61,6 @@ class SelfCalibration(Stage):
         return None
 
     def run(self, build: Build) -> str:
-        from rngcam.recon.methods.selfcal import calibrate_problem
-
         build.problem, report = calibrate_problem(build.problem, build.settings.self_calibrate,
                                                   build.settings.self_calibrate_psf_scale)
         build.state = replace(build.state, selfcal_report=report or {})
@@ -72,8 +80,6 @@ class AutoPreset(Stage):
         return None if build.settings.preset == "auto" else f"preset {build.settings.preset} given"
 
     def run(self, build: Build) -> str:
-        from rngcam.recon.methods.stfm.auto import choose_preset
-
         choice = choose_preset(build.problem, build.config(self.name).layer_misfit_max)
         if build.settings.no_gs:  # say why there are no key frames to test
             choice = replace(choice, reason=f"--no-gs: {choice.reason}")
@@ -123,15 +129,11 @@ class Fit(Stage):
     about = "fit the fields: one fit, fits of several bases or seeds averaged, coarse to fine where the grid is large"
 
     def run(self, build: Build) -> str:
-        from rngcam.recon.methods.stfm.build_fit import make_fit
-
         build.method = make_fit(build.problem, replace(build.settings, start_floor=False), build.device,
                                 build.initial_video, build.clock, build.stage, build.state, build.nested)
         return self.plan(build)
 
     def plan(self, build: Build) -> str:
-        from rngcam.recon.methods.stfm.build_fit import describe_fit
-
         return describe_fit(build.problem, build.settings, build.initial_video)
 
 
@@ -146,8 +148,6 @@ class StartFloorStage(Stage):
         return _whole_run(build)
 
     def run(self, build: Build) -> str:
-        from rngcam.recon.methods.stfm.floor import StartFloor
-
         floor = StartFloor(build.method, build.problem, build.config(self.name).candidates)
         build.method = floor
         if floor.start_name is None:
@@ -161,8 +161,6 @@ class LineRefitStage(Stage):
     Config = LineRefitConfig
 
     def applies(self, build: Build) -> str | None:
-        from rngcam.recon.methods.stfm.line_time import learns_line_time
-
         s = build.settings
         if not s.line_refit:
             return "line_refit off"
@@ -173,9 +171,6 @@ class LineRefitStage(Stage):
         return _whole_run(build) or _both_cameras(build)
 
     def run(self, build: Build) -> str:
-        from rngcam.recon.methods.stfm.build_fit import another_fit
-        from rngcam.recon.methods.stfm.line_refit import LineRefit
-
         s, handed = build.settings, build.handed
 
         def later(factor: float, report: dict):
@@ -189,8 +184,6 @@ class LineRefitStage(Stage):
 
 
 def _edge_scale(build: Build) -> float | None:
-    from rngcam.recon.methods.stfm.edge_refit import edge_scale
-
     return edge_scale(build.state.selfcal_report, build.config(EdgeRefitStage.name).max_scale)
 
 
@@ -207,9 +200,6 @@ class EdgeRefitStage(Stage):
         return _both_cameras(build)
 
     def run(self, build: Build) -> str:
-        from rngcam.recon.methods.stfm.build_fit import another_fit
-        from rngcam.recon.methods.stfm.edge_refit import EdgeRefit
-
         handed = build.handed
 
         def second(psf, report: dict):
@@ -239,9 +229,6 @@ class RowGainRefitStage(Stage):
         return _both_cameras(build)
 
     def run(self, build: Build) -> str:
-        from rngcam.recon.methods.stfm.build_fit import another_fit
-        from rngcam.recon.methods.stfm.row_gain_refit import RowGainRefit
-
         s, handed = build.settings, build.handed
         through = (build.state.selfcal_report or {}).get("through")  # a later fit of another stage: made through
         through = through if isinstance(through, str) else None
@@ -271,9 +258,6 @@ class TrackRefitStage(Stage):
         return _both_cameras(build)
 
     def run(self, build: Build) -> str:
-        from rngcam.recon.methods.stfm.build_fit import another_fit
-        from rngcam.recon.methods.stfm.track_refit import TrackRefit
-
         s, handed = build.settings, build.handed
 
         def second(scale: float, report: dict):
@@ -293,8 +277,6 @@ class SubframesAverage(Stage):
         return None if build.subframes > 1 else "fitted on the output's frames"
 
     def run(self, build: Build) -> str:
-        from rngcam.recon.methods.stfm.subframes import SubframesAveraged
-
         build.method = SubframesAveraged(build.method, build.subframes, build.problem.shape[1])
         return f"{build.subframes} subframes to a frame"
 
