@@ -145,3 +145,21 @@ def test_video_metrics_ssim_of_both_frame_sets_from_one_pass_matches_each_alone(
     c1, c2 = 0.01 ** 2, 0.03 ** 2
     direct = (((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx ** 2 + my ** 2 + c1) * (sxx + syy + c2))).mean()
     assert math.isclose(ssim(est[:1, :1], truth[:1, :1]), float(direct), rel_tol=1e-5)
+
+
+def test_metrics_json_is_strict_json_with_null_where_a_figure_is_not_a_number(tmp_path):
+    import json
+
+    import numpy as np
+    import pytest
+
+    from rngcam.recon.outputs import write_metrics
+
+    metrics = {"error_visibility": {"rs": 3.1, "gs": math.nan}, "psnr_db": np.float32(24.5),
+               "log": [{"objective": float("nan"), "wall_s": math.inf}], "steps": np.int64(3)}
+    write_metrics(tmp_path / "metrics.json", metrics)
+    text = (tmp_path / "metrics.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    back = json.loads(text, parse_constant=lambda name: pytest.fail(f"{name} in metrics.json"))
+    assert back["error_visibility"] == {"rs": 3.1, "gs": None} and back["log"][0] == {"objective": None, "wall_s": None}
+    assert back["psnr_db"] == pytest.approx(24.5) and back["steps"] == 3

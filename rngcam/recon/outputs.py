@@ -330,5 +330,18 @@ def plot_errors(png_path: Path, runs: dict[str, list[dict]], noise_level: float 
 
 
 def write_metrics(path: Path, metrics: dict) -> None:
-    """metrics.json, written beside and renamed into place."""
-    write_new(path, json.dumps(metrics, indent=2, default=float))
+    """metrics.json, written beside and renamed into place: strict JSON, a figure that is not a finite
+    number (NaN: nothing to vouch with, e.g. the error visibility of inconsistent data) written as null."""
+    write_new(path, json.dumps(finite_or_null(metrics), indent=2, allow_nan=False,
+                                default=lambda o: finite_or_null(float(o))))
+
+
+def finite_or_null(value):
+    """`value` (nested dicts, lists and numbers) with every NaN or infinite float replaced by None."""
+    if isinstance(value, dict):
+        return {k: finite_or_null(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_or_null(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    return value

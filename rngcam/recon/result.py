@@ -135,7 +135,8 @@ class Result:
             if "psnr_intermediate_db" in m:
                 line += f" (intermediate {m['psnr_intermediate_db']:.2f} dB)"
             line += f", SSIM {m['ssim']:.3f}"
-        seen = {k: v for k, v in m.get("error_visibility", {}).items() if v == v}  # nan: cannot vouch
+        seen = {k: v for k, v in m.get("error_visibility", {}).items()
+                if isinstance(v, (int, float)) and v == v}  # nan (None in metrics.json): cannot vouch
         if seen:
             line += ", error seen at " + " / ".join(f"{v:.2f}x the {k.upper()} noise" for k, v in seen.items())
         if "heldout" in m:
