@@ -501,6 +501,8 @@ def test_stall_stop_ends_a_fit_whose_residual_no_longer_falls(sineball16):
     result = run(m, LoopSettings(time_budget_s=None, max_iters=window + 3 * NOISE_CHECK_STEPS, progress=False))
     assert result.iterations == window + NOISE_CHECK_STEPS  # the first check with a residual a window back
     assert any("fell less than 99.9%" in e for e in result.events)
+    # a stop above the noise level says how far above, and where the fit is left unexplained
+    assert any("x it, more than the 1.15x a fit that explains the data ends at)" in e for e in result.events)
     m._rs_history[m.steps - window] = 1e3  # a residual that fell from far above: not a stall
     assert m.converged() is None
     m.resolved.stall_drop = 0.0  # off

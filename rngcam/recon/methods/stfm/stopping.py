@@ -49,8 +49,12 @@ class NoiseStop:
         drop = self.resolved.stall_drop
         if drop > 0 and then in self._rs_history and residual > (1 - drop) * self._rs_history[then]:
             passes = self.resolved.stall_passes
+            over = residual / self.rs_noise_level if self.rs_noise_level else float("inf")
+            unexplained = f", more than the {EXPLAINED_RATIO}x a fit that explains the data ends at" \
+                if over >= EXPLAINED_RATIO else ""
             return (f"RS residual {residual:.4f} fell less than {100 * drop:g}% in {passes} passes over the "
-                    f"rows (from {self._rs_history[then]:.4f}; noise level {self.rs_noise_level:.4f})")
+                    f"rows (from {self._rs_history[then]:.4f}; noise level {self.rs_noise_level:.4f}: stopped at "
+                    f"{over:.2f}x it{unexplained})")
         return None
 
     def log_ready(self) -> bool:
