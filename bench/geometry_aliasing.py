@@ -62,21 +62,18 @@ def alias(scene: str, size: int, seed: int) -> float:
 def fit(p, mode: str, steps: int, errors, scene: str) -> dict:
     """One fast STFM fit: mode off (transform not learned), learn (shift), fixed (the true similarity)."""
     geometry = {"off": "off", "learn": "shift", "fixed": "similarity"}[mode]
-    saved = stfm_method.POSE_LR_RATIO
-    stfm_method.POSE_LR_RATIO = 0.0 if mode == "fixed" else saved  # held where it starts
-    try:
-        settings = STFMSettings(preset="fast", dynamic_base="interp", stop_at_noise=False, learn_geometry=geometry)
-        method = stfm_method.STFM(p.to(torch.float32), settings, "cpu")
-        if mode == "fixed":
-            r = method.pose_radius
-            method.start_pose(torch.tensor([errors.shift_px[0], errors.shift_px[1],
-                                            math.radians(errors.rotation_deg) * r, math.log(errors.scale) * r]))
-        t0 = time.perf_counter()
-        for _ in range(steps):
-            method.step()
-        out = metrics(method.estimate(), p, scene)
-    finally:
-        stfm_method.POSE_LR_RATIO = saved
+    held = {"fit": {"pose_lr_ratio": 0.0}} if mode == "fixed" else None  # held where it starts
+    settings = STFMSettings(preset="fast", dynamic_base="interp", stop_at_noise=False, learn_geometry=geometry,
+                            stages=held)
+    method = stfm_method.STFM(p.to(torch.float32), settings, "cpu")
+    if mode == "fixed":
+        r = method.pose_radius
+        method.start_pose(torch.tensor([errors.shift_px[0], errors.shift_px[1],
+                                        math.radians(errors.rotation_deg) * r, math.log(errors.scale) * r]))
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        method.step()
+    out = metrics(method.estimate(), p, scene)
     return {"intermediate_db": out["psnr_intermediate_db"], "moving_db": out["psnr_dynamic_db"],
             "pose": [float(x) for x in method.gs_pose.detach()], "solve_s": time.perf_counter() - t0}
 

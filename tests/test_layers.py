@@ -203,7 +203,7 @@ def test_a_planted_violation_is_caught(tmp_path, files, rule, needle):
 # its log, result, report page).
 RECON_LAYERS = (
     ("problem", "gridding", "ablation", "defects", "loop", "checkpoint", "phases", "options", "noise", "metrics",
-     "misfit", "holdout", "outputs"),
+     "metrics_schema", "misfit", "holdout", "outputs"),
     ("nets",),
     ("methods",),
     ("registry", "settings", "runner", "runlog", "result", "report"),

@@ -55,7 +55,7 @@ def test_a_whole_run_traces_every_stage_in_order_with_why_one_is_left_out(sineba
     assert "left out: preset prior given" in by_name["auto_preset"]
     assert "left out: the key rows did not find the PSF measured too large" in by_name["psf_edge"]
     assert "[refit_line_time=0.01, max_refits=3" in by_name["line_refit"] and "left out: the fit does not learn the line time" in by_name["line_refit"]
-    assert by_name["fit"].startswith("stage fit: one fit on base none")
+    assert by_name["fit"].startswith("stage fit [pose_lr_ratio=2.0,") and "]: one fit on base none" in by_name["fit"]
     assert method.resolved_settings()["recipe"] == lines  # metrics.json and recon.h5 keep it
 
 

@@ -8,8 +8,8 @@ from tiny_scenes import tiny_sineball_problem
 from rngcam.recon import registry
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.stfm import STFMSettings
-from rngcam.recon.methods.stfm.recipe import make_stfm
 from rngcam.recon.methods.stfm.floor import StartFloor
+from rngcam.recon.methods.stfm.recipe import make_stfm
 
 
 class _Fixed(MethodBase):

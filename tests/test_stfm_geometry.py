@@ -9,7 +9,7 @@ import torch
 from rngcam.recon.methods import selfcal
 from rngcam.recon.methods.stfm import STFMSettings, make_stfm
 from rngcam.recon.methods.stfm.method import geometry_report
-from rngcam.recon.methods.stfm.settings import POSE_HOLD_STEPS
+from rngcam.recon.methods.stfm.stage_configs import FitConfig
 
 TRUTH = selfcal.similarity(0.45, -0.3)  # GS pixel p sees the scene at S p
 
@@ -98,7 +98,7 @@ def test_a_known_shift_is_learned_with_the_fields(shifted, learned):
 
 
 def test_a_fit_holds_the_pose_it_starts_while_its_fields_settle_and_not_one_it_is_given(shifted):
-    fresh = _fit(shifted, POSE_HOLD_STEPS)
+    fresh = _fit(shifted, FitConfig().pose_hold_steps)
     assert float(fresh.gs_pose.detach().abs().max()) < 1e-12
     for _ in range(10):
         fresh.step()

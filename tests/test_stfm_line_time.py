@@ -149,13 +149,14 @@ def test_auto_learns_the_line_time_with_the_prior_preset_only_and_says_so(slow_r
 
 def test_a_fit_started_by_the_motion_search_holds_the_line_time_first_and_one_given_it_does_not(
         slow_readout, monkeypatch):
-    import rngcam.recon.methods.stfm.method as stfm_method
+    from rngcam.recon.methods.stfm.stage_configs import FitConfig
 
-    monkeypatch.setattr(stfm_method, "LINE_HOLD_STEPS_SEARCH", 5)
+    fit = FitConfig(line_hold_steps_search=5)
 
     def moved_after(preset, steps, start=None):
         m = make_stfm(slow_readout.to(torch.float32), STFMSettings(preset=preset, dynamic_base="none", seed=0,
-                                                                   learn_line_time="on", fits=1))
+                                                                   learn_line_time="on", fits=1,
+                                                                   stages={"fit": {"line_hold_steps_search": 5}}))
         if start is not None:
             m.start_line_factor(start)
         before = float(m.line_shift.detach())
@@ -169,13 +170,14 @@ def test_a_fit_started_by_the_motion_search_holds_the_line_time_first_and_one_gi
     held, prior = moved_after("prior", 5)
     assert prior.resolved.motion_init == "search" and held == 0.0
     # after the hold the fields' step has decayed: the line time's steps faster than in a fit without one
-    assert line_ratio(prior) == pytest.approx(stfm_method.LINE_LR_RATIO * stfm_method.LINE_LR_AFTER_HOLD)
-    assert stfm_method.LINE_LR_AFTER_HOLD > 1
+    assert prior.fit_config == fit  # the stage setting reaches the fit
+    assert line_ratio(prior) == pytest.approx(fit.line_lr_ratio * fit.line_lr_after_hold)
+    assert fit.line_lr_after_hold > 1
     assert moved_after("prior", 8)[0] > 0  # learned once the hold is over
     moved, started = moved_after("prior", 3, start=0.99)
-    assert moved > 0 and line_ratio(started) == stfm_method.LINE_LR_RATIO  # another fit's line time: no hold
+    assert moved > 0 and line_ratio(started) == fit.line_lr_ratio  # another fit's line time: no hold
     moved, fast = moved_after("fast", 3)
-    assert moved > 0 and line_ratio(fast) == stfm_method.LINE_LR_RATIO  # no search, no hold
+    assert moved > 0 and line_ratio(fast) == fit.line_lr_ratio  # no search, no hold
 
 
 def test_a_checkpoint_carries_the_learned_line_time(slow_readout):

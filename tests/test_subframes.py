@@ -156,7 +156,10 @@ def test_on_subframes_the_motion_search_and_the_line_time_count_in_the_outputs_f
 
 def test_no_stop_test_ends_an_explained_search_started_fit_before_its_line_time_is_learned_and_its_step_has_decayed():
     from rngcam.recon.methods.stfm.method import STFM
-    from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO, LINE_HOLD_STEPS_SEARCH, SEARCH_FIT_HALF_LIVES
+    from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
+    from rngcam.recon.methods.stfm.stage_configs import FitConfig
+
+    LINE_HOLD_STEPS_SEARCH, SEARCH_FIT_HALF_LIVES = FitConfig().line_hold_steps_search, FitConfig().search_fit_half_lives
 
     p = _sineball(32, 32).to(torch.float32)
     settings = STFMSettings(preset="prior", components="all", learn_line_time="on")

@@ -25,16 +25,11 @@ from rngcam.recon.methods.stfm.model import FieldModel, _chunks
 from rngcam.recon.methods.stfm.run_state import RunState
 from rngcam.recon.methods.stfm.settings import (
     _FROM_PRESET,
-    LINE_HOLD_STEPS_SEARCH,
-    LINE_LR_AFTER_HOLD,
-    LINE_LR_RATIO,
-    POSE_HOLD_STEPS,
-    POSE_LR_AFTER_HOLD,
-    POSE_LR_RATIO,
     STFMSettings,
     chunk_frames,
     resolve,
 )
+from rngcam.recon.methods.stfm.stage_configs import fit_config
 from rngcam.recon.methods.stfm.stopping import NoiseStop
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
@@ -74,6 +69,7 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
         made from (rngcam.recon.methods.stfm.run_state); a finer level takes `fields_from`'s."""
         self.settings = settings
         self.state = state or (fields_from.state if fields_from is not None else RunState())
+        self.fit_config = fit_config(settings)  # the fit stage's schedule for what it learns of the rig
         choice = self.state.preset_choice  # preset "auto" (the recipe's auto_preset stage): what it chose and why
         self._notes = [f"preset auto chose {choice['preset']}: {choice['reason']}"] if choice else []
         self._notes += report_lines(self.state.selfcal_report)  # the end values: resolved_settings
@@ -166,18 +162,19 @@ class STFM(FieldModel, LineTime, BaseVideos, DataLoss, GSInit, NoiseStop, Method
     def _pose_schedule(self) -> dict:
         """The pose group's hold and step: a fit that learns the pose from its start holds it while its
         fields settle, then steps it faster; one started from another fit's pose neither."""
-        return held_schedule(0 if self._pose_inherited else POSE_HOLD_STEPS, POSE_LR_RATIO, POSE_LR_AFTER_HOLD)
+        f = self.fit_config
+        return held_schedule(0 if self._pose_inherited else f.pose_hold_steps, f.pose_lr_ratio, f.pose_lr_after_hold)
 
     def _line_schedule(self) -> dict:
         """The line-time group's hold and step: held while a search-started fit's fields settle, then
         stepped faster (the fields' step has decayed meanwhile); neither in other fits."""
-        return held_schedule(self._line_hold(), LINE_LR_RATIO, LINE_LR_AFTER_HOLD)
+        return held_schedule(self._line_hold(), self.fit_config.line_lr_ratio, self.fit_config.line_lr_after_hold)
 
     def _line_hold(self) -> int:
         """Steps the learned line time is held: a fit whose motion starts from the translation search,
         unless it started from another fit (its fields or its line time)."""
         inherited = self._pose_inherited or self._line_inherited
-        return LINE_HOLD_STEPS_SEARCH if self._search_started() and not inherited else 0
+        return self.fit_config.line_hold_steps_search if self._search_started() and not inherited else 0
 
     def _search_started(self) -> bool:
         """Whether this fit's motion starts from the translation search (the prior preset)."""

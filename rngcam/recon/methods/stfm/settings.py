@@ -208,40 +208,6 @@ ALL_BASES = (*BASE_VIDEOS, *KEY_WARPS, "blend", "none", "video" + HDV3_SUFFIX, "
 # than "video,keys"; a member on DIS flows (keys_interp) cost the clips (bench/stfm_motion.md,
 # bench/stfm_compare.md)
 ENSEMBLE_BASES = "video,keys,video_hdv3,keys_hdv3"
-# The learned GS-to-RS pose's step (Adam, pixels of displacement at the grid's edge) per unit of the
-# fields' learning rate, decaying with it: a smaller ratio did not reach smoke's shift, a step that does
-# not decay cost sineball steps for nothing (bench/stfm_history.md); larger ones lost where there is no
-# shift (bench/realistic.md, "The learned shift's step size on sineball")
-POSE_LR_RATIO = 2.0
-# A fit that learns the pose from its start holds it for its first steps: while the fields are far from
-# the data, a shift along the scene's motion explains what they get wrong about its timing (smoke rises:
-# every ensemble member put a shift in y within its first steps, on captures with none, and kept it).
-# After the hold its step is this many times POSE_LR_RATIO, to reach a 1 px shift in the steps left
-# (bench/realistic.md, "the learned pose held while the fields settle"). A fit started from another's pose
-# neither holds nor speeds up.
-POSE_HOLD_STEPS = 100
-POSE_LR_AFTER_HOLD = 3.0
-# A fit whose motion starts from the translation search (the prior preset) holds the learned line time
-# for its first steps: from the search's track the line time took up the track's timing, and the ball came
-# later and later (bench/realistic.md, "the motion search charges turns"). Held for a shorter time, a
-# capture still moved it the wrong way; held this long, it stays near the recorded figure
-# (bench/realistic.md, "a search-started fit holds its line time 600 steps"). A fit started from another's
-# line time or fields does not hold it.
-LINE_HOLD_STEPS_SEARCH = 600
-# The learned line time's step (Adam, frames of displacement at the last RS row) per unit of the
-# fields' learning rate. The fit learns what it will of a line-time error in the steps after the hold,
-# and a smaller step learned too little of it (bench/realistic.md, "the line time learned on over later fits")
-LINE_LR_RATIO = 32.0
-# After LINE_HOLD_STEPS_SEARCH the step is this many times LINE_LR_RATIO: the same step at the hold's end
-# as LINE_LR_RATIO at the end of a 300-step hold (the fields' step halves every 400 steps). x1 learned too
-# little of an error, x4 wandered on exact timing (bench/realistic.md, "a search-started fit holds its line
-# time 600 steps"). A fit started from another's line time or fields neither holds nor speeds up.
-LINE_LR_AFTER_HOLD = 2.0
-# A fit whose motion starts from the translation search, while its RS residual is within EXPLAINED_RATIO of
-# its noise level, runs this many half-lives of its step (lr_half_life_steps) before its stop tests may end
-# it: there its video still gains long after the residual has gone flat (bench/realistic.md, "a
-# search-started fit runs four half-lives of its step")
-SEARCH_FIT_HALF_LIVES = 4.0
 # A fit that ends at this many times its noise level or more is not explained: the PSF-edge, row-gain and
 # track stages fit again from it (edge_refit, row_gain_refit, track_refit), another error (a PSF at another
 # scale) moves its line time, so one later line fit from it at most (line_refit), and it is stopped where

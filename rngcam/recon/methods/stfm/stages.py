@@ -23,6 +23,7 @@ from rngcam.recon.methods.stfm.stage import Build, NoConfig, Stage
 from rngcam.recon.methods.stfm.stage_configs import (
     AutoPresetConfig,
     EdgeRefitConfig,
+    FitConfig,
     LineRefitConfig,
     StartFloorConfig,
     TrackRefitConfig,
@@ -126,6 +127,7 @@ class Subframes(Stage):
 
 class Fit(Stage):
     name = "fit"
+    Config = FitConfig
     about = "fit the fields: one fit, fits of several bases or seeds averaged, coarse to fine where the grid is large"
 
     def run(self, build: Build) -> str:

@@ -10,7 +10,6 @@ from rngcam.recon.methods.stfm.settings import (
     EXPLAINED_RATIO,
     NOISE_CHECK_FRAMES,
     NOISE_CHECK_STEPS,
-    SEARCH_FIT_HALF_LIVES,
 )
 from rngcam.recon.metrics import relative_residual
 
@@ -74,9 +73,10 @@ class NoiseStop:
         reached its noise level with the line time still the recorded one: bench/realistic.md,
         "the prior preset fits half-frames"). A fit whose motion starts from the translation search
         (the prior preset) and whose residual is within EXPLAINED_RATIO of its noise level runs
-        SEARCH_FIT_HALF_LIVES half-lives of its step first: its residual goes flat at the noise level
-        long before its video settles (bench/realistic.md, "a search-started fit runs four half-lives of
-        its step"). One that stalls unexplained stops as before, for the stages that fit again from it."""
+        `search_fit_half_lives` (the fit stage's config) half-lives of its step first: its residual goes
+        flat at the noise level long before its video settles (bench/realistic.md, "a search-started fit
+        runs four half-lives of its step"). One that stalls unexplained stops as before, for the stages that
+        fit again from it."""
         holds = [g.get("hold_steps", 0) for g in self.optimiser.param_groups
                  if self.learn_line and g["params"][0] is self.line_shift]
         hold = max(holds, default=0)
@@ -87,10 +87,11 @@ class NoiseStop:
 
     def least_steps(self) -> int:
         """The steps this fit runs before its stop tests may end it while its data are explained:
-        SEARCH_FIT_HALF_LIVES half-lives of its step for a fit whose motion starts from the translation
-        search, else none (0)."""
+        `search_fit_half_lives` (the fit stage's config) half-lives of its step for a fit whose motion
+        starts from the translation search, else none (0)."""
         half = self.resolved.lr_half_life_steps
-        return math.ceil(SEARCH_FIT_HALF_LIVES * half) if self._search_started() and math.isfinite(half) else 0
+        lives = self.fit_config.search_fit_half_lives
+        return math.ceil(lives * half) if self._search_started() and math.isfinite(half) else 0
 
     def _stall_window(self) -> int:
         """`stall_passes` passes over the fitted rows, in steps (a multiple of `check_every()`)."""
