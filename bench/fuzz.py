@@ -1,6 +1,7 @@
-"""Fuzz the readers of shared files (issue 42, deliverable 8): seeded mutations of a small bundle
-and of a small recon folder (its recon.h5 and metrics.json), each run through `rngcam inspect`
-and `rngcam recon` (bundles) or `rngcam inspect` and the report's loader (recon folders).
+"""Fuzz the readers of shared files (issue 42, deliverable 8): seeded mutations of a small bundle,
+of a small recon folder (its recon.h5 and metrics.json) and of a capture to import (its sidecar
+and TIFFs, issue 81), each run through `rngcam inspect` and `rngcam recon` (bundles), `rngcam
+inspect` and the report's loader (recon folders) or `rngcam import` and `inspect` (captures).
 
 A case passes when every command ends in a result (exit 0) or one 'error:' line (exit 2), with
 no traceback, within TIME_LIMIT_S and with this process's peak resident memory (VmHWM, reset
@@ -45,11 +46,12 @@ BUNDLE_MUTATIONS = ("truncate", "bitflip", "huge_shape", "wrong_dtype", "nan_inf
                     "odd_number", "drop", "link", "scale_values")
 RECON_MUTATIONS = ("truncate", "bitflip", "huge_shape", "wrong_dtype", "nan_inf", "odd_string", "odd_number",
                    "drop", "link", "metrics_json")
+IMPORT_MUTATIONS = ("sidecar_text", "sidecar_field", "truncate", "bitflip", "wrong_shape", "nan_inf", "link")
 
 
 @dataclass
 class Case:
-    kind: str  # "bundle" or "recon"
+    kind: str  # "bundle", "recon" or "import"
     mutation: str
     seed: int
 
@@ -183,11 +185,55 @@ def mutate_json(path: Path, rng: np.random.Generator) -> str:
     return f"metrics.json variant {choice}"
 
 
+def mutate_capture(folder: Path, mutation: str, rng: np.random.Generator) -> str:
+    """A mutated capture to import (capture.yaml and the TIFFs `rngcam export` wrote)."""
+    import tifffile
+    import yaml
+
+    side = folder / "capture.yaml"
+    files = sorted(p for p in folder.glob("*.tif"))
+    target = files[int(rng.integers(len(files)))]
+    if mutation == "sidecar_text":
+        data = bytearray(side.read_bytes())
+        for pos in rng.integers(0, len(data), 8):
+            data[pos] = int(rng.choice(list(b":-[]{}#&*!|>'\"\n .e9")))
+        side.write_bytes(bytes(data))
+        return "sidecar text"
+    if mutation == "sidecar_field":
+        doc = yaml.safe_load(side.read_text())
+        part = [k for k in ("rs", "gs", "psf", "calibration", "truth") if isinstance(doc.get(k), dict)]
+        section = doc[part[int(rng.integers(len(part)))]]
+        key = list(section)[int(rng.integers(len(section)))]
+        odd = [*ODD_STRINGS, *ODD_NUMBERS, None, [], [[1.0]], {"a": 1}, [float("nan")] * 3, True]
+        section[key] = odd[int(rng.integers(len(odd)))]
+        side.write_text(yaml.safe_dump(doc))
+        return f"sidecar {key} = odd value"
+    if mutation == "truncate":
+        target.write_bytes(target.read_bytes()[: int(rng.integers(0, target.stat().st_size))])
+    elif mutation == "bitflip":
+        data = bytearray(target.read_bytes())
+        for pos in rng.integers(0, len(data), 16):
+            data[pos] ^= 1 << int(rng.integers(0, 8))
+        target.write_bytes(bytes(data))
+    elif mutation == "wrong_shape":
+        shape = tuple(int(n) for n in rng.integers(1, 9, int(rng.integers(2, 6))))
+        tifffile.imwrite(target, np.ones(shape, np.uint16), photometric="minisblack")
+    elif mutation == "nan_inf":
+        arr = tifffile.imread(target).astype(np.float32)
+        arr.flat[rng.integers(0, arr.size, 3)] = [np.nan, np.inf, -np.inf]
+        tifffile.imwrite(target, arr, photometric="minisblack")
+    else:  # a link in place of the file
+        target.unlink()
+        target.symlink_to(side)
+    return f"{target.name} {mutation}"
+
+
 # ----------------------------------------------------------------------------- running
 
 
-def make_seeds(work: Path) -> tuple[Path, Path]:
-    """A 16 px simulated bundle and a recon folder of it (blend, one iteration)."""
+def make_seeds(work: Path) -> tuple[Path, Path, Path]:
+    """A 16 px simulated bundle, a recon folder of it (blend, one iteration) and its export (a
+    capture to import)."""
     from click.testing import CliRunner
 
     from bench.program import program
@@ -202,16 +248,23 @@ def make_seeds(work: Path) -> tuple[Path, Path]:
         res = CliRunner().invoke(program(), ["recon", str(bundle), "--method", "blend", "--iters", "1", "-o",
                                         str(folder), "--quiet"])
         assert res.exit_code == 0, res.output
-    return bundle, folder
+    capture = work / "seed_capture"
+    if not (capture / "capture.yaml").is_file():
+        from rngcam.formats.bundle import read_bundle
+        from rngcam.formats.exporter import export_bundle
+
+        export_bundle(read_bundle(bundle), capture, overwrite=True)
+    return bundle, folder, capture
 
 
 def cases(n: int, seed: int = 0) -> list[Case]:
-    """`n` cases: three in ten recon folders, the rest bundles, each kind's mutations in turn."""
+    """`n` cases: three in ten recon folders, two in ten captures to import, the rest bundles, each
+    kind's mutations in turn."""
     out, count = [], Counter()
     for i in range(n):
-        kind = "recon" if i % 10 in (0, 3, 6) else "bundle"
+        kind = "recon" if i % 10 in (0, 3, 6) else "import" if i % 10 in (1, 8) else "bundle"
         kind = families.KIND_SLOTS.get(i % 20, kind)
-        mutations = RECON_MUTATIONS if kind == "recon" else BUNDLE_MUTATIONS
+        mutations = {"recon": RECON_MUTATIONS, "import": IMPORT_MUTATIONS}.get(kind, BUNDLE_MUTATIONS)
         mutations = families.MUTATIONS.get(kind, mutations)
         out.append(Case(kind, mutations[count[kind] % len(mutations)], seed * 1_000_003 + i))
         count[kind] += 1
@@ -255,7 +308,7 @@ def run_case(case: Case, seeds: tuple[Path, Path], work: Path, measure_memory: b
     from bench.program import program
     from rngcam.memory import peak_rss_bytes
 
-    bundle, folder = seeds
+    bundle, folder, capture = seeds
     rng = np.random.default_rng(case.seed)
     place = work / f"case{case.seed}"
     shutil.rmtree(place, ignore_errors=True)
@@ -270,6 +323,12 @@ def run_case(case: Case, seeds: tuple[Path, Path], work: Path, measure_memory: b
         what = mutate_h5(target, case.mutation, rng, bundle)
         commands = [["inspect", str(target)],
                     ["recon", str(target), "--method", "blend", "--iters", "1", "-o", str(place / "out"), "--quiet"]]
+    elif case.kind == "import":
+        target = place / "c"
+        shutil.copytree(capture, target)
+        what = mutate_capture(target, case.mutation, rng)
+        commands = [["import", str(target / "capture.yaml"), "-o", str(place / "imported.h5")],
+                    ["inspect", str(place / "imported.h5")]]
     else:
         target = place / "r"
         shutil.copytree(folder, target)
@@ -284,6 +343,8 @@ def run_case(case: Case, seeds: tuple[Path, Path], work: Path, measure_memory: b
     signal.setitimer(signal.ITIMER_REAL, TIME_LIMIT_S)
     try:
         for args in commands:
+            if args[0] == "inspect" and case.kind == "import" and not (place / "imported.h5").is_file():
+                continue  # the import refused: nothing to inspect
             outcomes.append(_outcome(CliRunner().invoke(program(), args)))
         if case.kind == "recon":
             outcomes.append(_load_outcome(target))

@@ -1,4 +1,5 @@
-"""Issue 42, deliverable 8: a quick sample of bench/fuzz.py's mutated bundles and recon folders.
+"""Issue 42, deliverable 8: a quick sample of bench/fuzz.py's mutated bundles, recon folders and
+captures to import (issue 81).
 
 Every case (truncation, bit flips, huge declared shapes, wrong dtypes, NaN/Inf, odd strings and
 numbers, dropped objects, links and external storage, a mutated metrics.json) must end in a
@@ -19,10 +20,11 @@ def seeds(tmp_path_factory):
     return fuzz.make_seeds(tmp_path_factory.mktemp("fuzz_seeds"))
 
 
-def test_the_sample_covers_every_mutation_of_both_kinds():
+def test_the_sample_covers_every_mutation_of_every_kind():
     seen = {(c.kind, c.mutation) for c in CASES}
     assert {m for k, m in seen if k == "bundle"} == set(fuzz.BUNDLE_MUTATIONS)
     assert {m for k, m in seen if k == "recon"} == set(fuzz.RECON_MUTATIONS)
+    assert {m for k, m in seen if k == "import"} == set(fuzz.IMPORT_MUTATIONS)
 
 
 @pytest.mark.parametrize("case", CASES, ids=lambda c: f"{c.kind}-{c.mutation}-{c.seed}")
