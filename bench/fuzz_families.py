@@ -353,3 +353,14 @@ def prepare(case, bundle: Path, folder: Path, place: Path, rng: np.random.Genera
     what = mutate_clip(target, m, rng, secret)
     return target, what, [["simulate", "clip", "--clip", str(target), "-o", str(place / "s.h5"), "--size", "16",
                            "--span", "4"]], []
+
+
+def main(argv: list[str] | None = None) -> int:
+    """These families are kinds among bench/fuzz.py's cases (`fuzz.cases`): running this runs that fuzzer."""
+    from bench.fuzz import main as fuzz_main
+
+    return fuzz_main(argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
