@@ -208,3 +208,24 @@ def test_binned_psf_is_exact_for_a_scene_constant_over_each_grid_pixel(factor, s
 def test_binning_a_psf_by_a_non_integer_is_a_clear_error():
     with pytest.raises(ValueError, match="positive integer"):
         P.bin_psf(np.ones((1, 8, 8)), 1.5)
+
+
+def test_a_psf_file_is_read_by_descriptor_a_link_or_fifo_at_its_name_is_refused(tmp_path):
+    import os
+
+    from rngcam.errors import RngcamError
+    from rngcam.physics.psf import load_psf
+
+    real = tmp_path / "psf.tif"
+    tifffile.imwrite(real, np.arange(12, dtype=np.uint16).reshape(3, 4))
+    np.testing.assert_array_equal(load_psf(real)[0], np.arange(12).reshape(3, 4))
+    secret = tmp_path / "secret.tif"
+    tifffile.imwrite(secret, np.ones((3, 4), np.uint16))
+    link = tmp_path / "linked.tif"
+    link.symlink_to(secret)
+    with pytest.raises(RngcamError, match="link"):
+        load_psf(link)
+    fifo = tmp_path / "fifo.png"
+    os.mkfifo(fifo)
+    with pytest.raises((RngcamError, FileNotFoundError)):  # never opened, so never blocks
+        load_psf(fifo)

@@ -7,6 +7,7 @@ RS measurement of a static scene is I * exposure_s / dt, the same scale as the G
 
 from __future__ import annotations
 
+import io
 import math
 from pathlib import Path
 
@@ -14,6 +15,7 @@ import cv2
 import numpy as np
 
 SUFFIXES = (".tif", ".tiff", ".png", ".npy", ".h5", ".hdf5")
+MAX_PSF_FILE_BYTES = 1 << 30  # a raw PSF image of a large sensor in float64 is a few hundred MB
 
 
 def load_psf(path: str | Path) -> np.ndarray:
@@ -22,18 +24,23 @@ def load_psf(path: str | Path) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"PSF file not found: {path}")
     suffix = path.suffix.lower()
+    if suffix in (".tif", ".tiff", ".png", ".npy"):
+        # a rig's PSF file may come from elsewhere: read by descriptor (no link, FIFO or device), bounded
+        from rngcam.untrusted import read_untrusted
+
+        data = read_untrusted(path, MAX_PSF_FILE_BYTES, what="PSF file")
     if suffix in (".tif", ".tiff"):
         import tifffile
 
-        arr = tifffile.imread(path)
+        arr = tifffile.imread(io.BytesIO(data))
     elif suffix == ".png":
-        arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if arr is None:
             raise ValueError(f"cannot decode PNG PSF: {path}")
         if arr.ndim == 3:
             arr = cv2.cvtColor(arr[..., :3], cv2.COLOR_BGR2RGB)
     elif suffix == ".npy":
-        arr = np.load(path)
+        arr = np.load(io.BytesIO(data), allow_pickle=False)
     elif suffix in (".h5", ".hdf5"):
         from rngcam import h5safe  # a rig's PSF file may come from elsewhere: no links, sizes checked
 
