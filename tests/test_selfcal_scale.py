@@ -256,16 +256,19 @@ def test_the_run_says_it_in_metrics_the_summary_and_the_report(bundles, tmp_path
     folder = r.save(tmp_path / "out")
     assert json.loads((folder / "metrics.json").read_text())["misfit"]["verdict"] == said["verdict"]
     assert "misfit: " in (folder / "report.html").read_text()
-    # a folder from elsewhere: its misfit line is text to show, escaped, and anything else is skipped
+    # a folder from elsewhere: its misfit line is text to show, escaped; one of another type is one line
+    from rngcam.errors import RngcamError
     from rngcam.recon.report import write_report
 
     metrics = json.loads((folder / "metrics.json").read_text())
-    for line, shown in (("<script>alert(1)</script>", "&lt;script&gt;alert(1)&lt;/script&gt;"), (["x"], None)):
-        metrics["misfit"] = {"line": line}
-        (folder / "metrics.json").write_text(json.dumps(metrics))
-        page = write_report(folder).read_text()
-        assert "<script>alert(1)" not in page
-        assert (shown in page) if shown else "<b>misfit</b>" not in page
+    metrics["misfit"] = {"line": "<script>alert(1)</script>"}
+    (folder / "metrics.json").write_text(json.dumps(metrics))
+    page = write_report(folder).read_text()
+    assert "<script>alert(1)" not in page and "&lt;script&gt;alert(1)&lt;/script&gt;" in page
+    metrics["misfit"] = {"line": ["x"]}
+    (folder / "metrics.json").write_text(json.dumps(metrics))
+    with pytest.raises(RngcamError, match=r"field 'misfit.line' is of the wrong type"):
+        write_report(folder)
 
 
 def test_without_gs_frames_the_verdict_does_not_blame_the_geometry():

@@ -29,6 +29,8 @@ ALLOWED = {
         "pnp's `init` values: the GS-only functions its start calls directly, plus `video`",
     ("rngcam/recon/methods/stfm/floor.py", ("blend", "interp")):
         "the start floor's candidate videos, made by calling the baselines' functions directly",
+    ("rngcam/recon/methods/stfm/stage_configs.py", ("blend", "interp")):
+        "the start floor's candidates as a stage setting: the videos floor.py can make",
     ("rngcam/recon/methods/stfm/settings.py", ("interp", "rife")):
         "STFM's base videos (`dynamic_base` values), not method names",
     ("rngcam/evaluate/stress_cases.py", ("stfm", "tv3d")):

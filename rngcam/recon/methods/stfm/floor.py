@@ -14,13 +14,14 @@ from torch import Tensor
 
 from rngcam.memory import release_free_memory
 from rngcam.recon.loop import Wrapped
+from rngcam.recon.methods.stfm.stage_configs import StartFloorConfig
 from rngcam.recon.metrics import relative_residual
 
 
 class StartFloor(Wrapped):
     """`method` (an STFM, ensemble or coarse-to-fine run) with the start as the floor of its output."""
 
-    def __init__(self, method, problem, candidates: tuple = ("blend", "interp")):
+    def __init__(self, method, problem, candidates: tuple = StartFloorConfig.candidates):
         self._method = method
         self._candidates = tuple(candidates)
         self._problem = problem.to(torch.float32)

@@ -20,13 +20,16 @@ class AutoPresetConfig:
             raise ConfigError(f"stfm: auto_preset.layer_misfit_max must be > 0, got {self.layer_misfit_max!r}")
 
 
+FLOOR_VIDEOS = ("blend", "interp")  # the GS-only videos the start floor can make (the baselines' functions)
+
+
 @dataclass(frozen=True)
 class StartFloorConfig:
     # the GS-only videos the fit must explain the RS image better than (bench/stfm_compare.md)
-    candidates: tuple = ("blend", "interp")
+    candidates: tuple = FLOOR_VIDEOS
 
     def __post_init__(self):
-        bad = [c for c in self.candidates if c not in ("blend", "interp")]
+        bad = [c for c in self.candidates if c not in FLOOR_VIDEOS]
         if bad or not self.candidates:
             raise ConfigError(f"stfm: start_floor.candidates must be blend and/or interp, got {self.candidates!r}")
 
