@@ -40,6 +40,31 @@ def split_results(resolved: dict | None) -> tuple[dict | None, dict]:
 
 
 @dataclass
+class Fitted:
+    """What a method's set-up and solve gave the finish: its video and parts, what it said, its log and
+    how it ended (`status`, `ended_by`, `message`); `cut` where set-up was cut and the start video is the
+    result (`keep_folder`: a resumed folder keeps its earlier result)."""
+
+    device: str
+    video: np.ndarray | None = None
+    components: dict = field(default_factory=dict)
+    left_out: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
+    method_settings: dict | None = None
+    events: list = field(default_factory=list)
+    status: str = "ok"
+    message: str = ""
+    log: list = field(default_factory=list)
+    iterations: int = 0
+    solve_s: float = 0.0
+    wall_s: float = 0.0
+    setup_s: float | None = None
+    ended_by: str = "iterations"
+    keep_folder: bool = False
+    cut: bool = False
+
+
+@dataclass
 class Result:
     """`video` (C, T, H, W) float32 linear intensity at `frame_times_s`; `metrics` as in
     metrics.json; `components` the method's named parts (e.g. STFM's static image); `notes` the

@@ -20,7 +20,7 @@ import contextlib
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +45,7 @@ from rngcam.recon.metrics import (
 from rngcam.recon.misfit import for_metrics
 from rngcam.recon.phases import BudgetCut, RunPhases
 from rngcam.recon.problem import Problem, build_problem
-from rngcam.recon.result import Result, split_results
+from rngcam.recon.result import Fitted, Result, split_results
 from rngcam.recon.runlog import RunLog
 from rngcam.recon.settings import (  # noqa: F401 - their home before settings.py; callers import them here
     AUTO_MAX_S,
@@ -343,31 +343,6 @@ class _Rows:
         row = {"iteration": iteration, "wall_s": self.clock.elapsed(), "solve_s": seconds, "objective": float("nan")}
         row.update({f"residual_{key}": v for key, v in _residuals(self.problem, vt).items()})
         return [{**row, **self.truth(vt)}]
-
-
-@dataclass
-class Fitted:
-    """What a method's set-up and solve gave the finish: its video and parts, what it said, its log and
-    how it ended (`status`, `ended_by`, `message`); `cut` where set-up was cut and the start video is the
-    result (`keep_folder`: a resumed folder keeps its earlier result)."""
-
-    device: str
-    video: np.ndarray | None = None
-    components: dict = field(default_factory=dict)
-    left_out: list = field(default_factory=list)
-    notes: list = field(default_factory=list)
-    method_settings: dict | None = None
-    events: list = field(default_factory=list)
-    status: str = "ok"
-    message: str = ""
-    log: list = field(default_factory=list)
-    iterations: int = 0
-    solve_s: float = 0.0
-    wall_s: float = 0.0
-    setup_s: float | None = None
-    ended_by: str = "iterations"
-    keep_folder: bool = False
-    cut: bool = False
 
 
 def _fit(problem: Problem, run_: Run, extra: dict, job: _Job) -> Fitted:
