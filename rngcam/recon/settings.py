@@ -59,7 +59,7 @@ class ReconSettings:
             raise SettingError(f"{self.method} takes {entry.settings_type.__name__}, not "
                                f"{type(self.method_settings).__name__} (method_settings)", "method_settings")
         check_settings_figures(self.time_budget_s, self.max_iters, self.max_frames, self.max_memory_bytes)
-        check_positive("checkpoint_every_s", self.checkpoint_every_s)
+        check_seconds("checkpoint_every_s", self.checkpoint_every_s)
         check_device(self.device)
         check_threads(self.threads)
         if self.holdout is not None:
@@ -77,15 +77,10 @@ class ReconSettings:
                 "holdout_seed": self.holdout_seed if self.holdout else None, "max_frames": self.max_frames}
 
 
-def check_positive(name: str, value) -> None:
-    """SettingError (one line) unless `value` is a finite number of seconds > 0 (options.check_seconds)."""
-    check_seconds(name, value)
-
-
 def check_settings_figures(time_budget_s, max_iters, max_frames=None, max_memory_bytes=None) -> None:
     """SettingError (one line) for a budget (seconds, "auto" or None), iteration count or limit that cannot be meant."""
     if time_budget_s is not None and time_budget_s != "auto":
-        check_positive("time_budget_s", time_budget_s)
+        check_seconds("time_budget_s", time_budget_s)
     for name, value in (("max_iters", max_iters), ("max_frames", max_frames),
                         ("max_memory_bytes", max_memory_bytes)):
         if value is not None and not (isinstance(value, (int, float)) and value >= 1):
