@@ -67,7 +67,7 @@ def fit(p, mode: str, steps: int, errors, scene: str) -> dict:
                             stages=held)
     method = stfm_method.STFM(p.to(torch.float32), settings, "cpu")
     if mode == "fixed":
-        r = method.pose_radius
+        r = method.learned_pose.radius
         method.start_pose(torch.tensor([errors.shift_px[0], errors.shift_px[1],
                                         math.radians(errors.rotation_deg) * r, math.log(errors.scale) * r]))
     t0 = time.perf_counter()
@@ -75,7 +75,7 @@ def fit(p, mode: str, steps: int, errors, scene: str) -> dict:
         method.step()
     out = metrics(method.estimate(), p, scene)
     return {"intermediate_db": out["psnr_intermediate_db"], "moving_db": out["psnr_dynamic_db"],
-            "pose": [float(x) for x in method.gs_pose.detach()], "solve_s": time.perf_counter() - t0}
+            "pose": [float(x) for x in method.learned_pose.parameter.detach()], "solve_s": time.perf_counter() - t0}
 
 
 def main() -> None:

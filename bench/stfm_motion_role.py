@@ -33,7 +33,7 @@ def learned_motion_px(fit) -> np.ndarray:
     """|u| (K, H, W) in pixels: the fitted motion without the key-frame flows it corrects."""
     u = fit.components()["motion"]  # (2, K, H, W), key flows included
     if fit._key_warps:
-        u = u - (fit.key_flow[..., :2] * fit.px_per_unit).permute(3, 0, 1, 2).cpu().numpy()
+        u = u - (fit.base.key_flow[..., :2] * fit.grid.px_per_unit).permute(3, 0, 1, 2).cpu().numpy()
     return np.sqrt((u ** 2).sum(0))
 
 

@@ -99,8 +99,8 @@ def test_a_fine_stfm_level_keeps_its_start_once_in_half_precision(monkeypatch):
     while not m.final:
         m.step()
     fine = m.method
-    assert fine.base_video.dtype == torch.float16 and fine.base_video.shape == p.shape
-    assert fine.base_video.data_ptr() == m._x0.data_ptr()  # the level's start and its base: one buffer
+    assert fine.base.video.dtype == torch.float16 and fine.base.video.shape == p.shape
+    assert fine.base.video.data_ptr() == m._x0.data_ptr()  # the level's start and its base: one buffer
     assert fine.rs_norm_vector is None  # the full grid keeps no power-iteration vector
     state = copy.deepcopy(m.state_dict())  # what the loop keeps as its last good state
     assert state["x0"].tensor is m._x0  # shared, not copied
@@ -119,11 +119,11 @@ def test_a_fine_level_divides_the_start_by_the_gains_on_the_fly(monkeypatch):
     while not m.final:
         m.step()
     fine = m.method
-    assert fine.base_video.data_ptr() == m._x0.data_ptr()
+    assert fine.base.video.data_ptr() == m._x0.data_ptr()
     idx = torch.arange(p.shape[1])
-    xs, ys = fine.xs.view(1, 1, -1).expand(len(idx), p.shape[2], -1), fine.ys.view(1, -1, 1).expand(len(idx), -1,
+    xs, ys = fine.grid.xs.view(1, 1, -1).expand(len(idx), p.shape[2], -1), fine.grid.ys.view(1, -1, 1).expand(len(idx), -1,
                                                                                                       p.shape[3])
-    base = fine._base_at(xs, ys, idx)
+    base = fine.base.at(xs, ys, idx)
     expected = m._x0.float() / torch.tensor([1.1, 1.0, 0.9])[:, None, None, None]
     torch.testing.assert_close(base, expected, rtol=1e-5, atol=1e-6)
 
@@ -218,7 +218,7 @@ def test_an_stfm_step_holds_one_chunk_of_frames_in_its_graph_at_a_time():
                                       gs_windows_per_step=1))
         saved = _SavedBytes()
         with torch.autograd.graph.saved_tensors_hooks(saved.pack, saved.unpack):
-            m.loss_terms(torch.arange(6, 12), torch.tensor([1, 5]), backward=True, gs_windows=torch.tensor([1]))
+            m.loss.loss_terms(torch.arange(6, 12), torch.tensor([1, 5]), backward=True, gs_windows=torch.tensor([1]))
         peaks[chunk] = saved.peak
         assert saved.alive == 0  # every graph freed by the end of the step
     assert peaks[2] < 0.6 * peaks[64], peaks  # the chunks' graphs are not kept until the last one
@@ -231,7 +231,7 @@ def test_a_graph_saves_what_the_gpu_chunk_assumes_per_point():
     m = make_stfm(p, STFMSettings(dynamic_base="video", refine=False, frame_chunk=8))
     saved = _SavedBytes()
     with torch.autograd.graph.saved_tensors_hooks(saved.pack, saved.unpack):
-        m.frames(torch.arange(8), m._static()).sum().backward()
+        m.model.frames(torch.arange(8), m.model.static()).sum().backward()
     per_point = saved.peak / (8 * 48 * 64)
     assert 0.3 * GRAPH_BYTES_PER_POINT < per_point < 1.25 * GRAPH_BYTES_PER_POINT, per_point
 

@@ -87,14 +87,14 @@ def sineball16():
 
 def test_gradient_reaches_every_field(sineball16):
     m = make_stfm(sineball16, small_settings())
-    assert set(m.fields) == {"static", "motion", "dynamic"}
+    assert set(m.model.fields) == {"static", "motion", "dynamic"}
     m.optimiser.zero_grad()
-    m.loss_terms(torch.arange(16), torch.arange(4), backward=True)
-    for name, field in m.fields.items():
+    m.loss.loss_terms(torch.arange(16), torch.arange(4), backward=True)
+    for name, field in m.model.fields.items():
         grads = [p.grad for p in field.parameters()]
         assert all(g is not None for g in grads), name
         assert sum(float(g.abs().sum()) for g in grads) > 0, name
-    assert m.log_gain.grad is not None and float(m.log_gain.grad.abs().sum()) > 0
+    assert m.learned_gains.parameter.grad is not None and float(m.learned_gains.parameter.grad.abs().sum()) > 0
 
 
 @pytest.mark.parametrize("preset", ["fast", "paper"])
@@ -136,10 +136,10 @@ def test_stochastic_loss_is_unbiased():
     full = m.full_objective()
     assert full["rs"] > 0 and full["gs"] > 0 and full["tv"] > 0
     with torch.no_grad():
-        rs = [m.loss_terms((s + torch.arange(3)) % 10, None)["rs"] for s in range(10)]
-        tv = [m.loss_terms(None, torch.tensor([k]))["tv"] for k in range(m.K)]
-        gs = [m.loss_terms(None, None, gs_windows=torch.tensor([g]))["gs"] for g in range(3)]
-        gs_pairs = [m.loss_terms(None, None, gs_windows=torch.tensor(g))["gs"] for g in ([0, 1], [0, 2], [1, 2])]
+        rs = [m.loss.loss_terms((s + torch.arange(3)) % 10, None)["rs"] for s in range(10)]
+        tv = [m.loss.loss_terms(None, torch.tensor([k]))["tv"] for k in range(m.K)]
+        gs = [m.loss.loss_terms(None, None, gs_windows=torch.tensor([g]))["gs"] for g in range(3)]
+        gs_pairs = [m.loss.loss_terms(None, None, gs_windows=torch.tensor(g))["gs"] for g in ([0, 1], [0, 2], [1, 2])]
     assert np.mean(rs) == pytest.approx(full["rs"], rel=1e-5)
     assert np.mean(tv) == pytest.approx(full["tv"], rel=1e-5)
     assert np.mean(gs) == pytest.approx(full["gs"], rel=1e-5)
@@ -153,7 +153,7 @@ def test_sampled_rows_cover_each_row_equally():
     m = make_stfm(p, small_settings(rows_per_step=4))
     counts = np.zeros(10)
     for _ in range(2000):
-        counts[m.sample_rows().numpy()] += 1
+        counts[m.loss.sample_rows().numpy()] += 1
     assert counts.sum() == 8000
     assert np.allclose(counts / 800, 1, atol=0.15)
 
@@ -164,11 +164,11 @@ def test_chunked_backpropagation_gives_the_same_gradient(sineball16, preset):
     grads = []
     for chunk in (64, 2):  # one graph for all frames vs. two-pass chunk-wise
         m = make_stfm(sineball16, small_settings(frame_chunk=chunk, init="random", **preset))
-        assert m._translated_dynamic() == bool(preset)
+        assert m.model.translated_dynamic() == bool(preset)
         m.optimiser.zero_grad()
-        terms = m.loss_terms(torch.arange(2, 10), torch.tensor([1, 5]), backward=True)
-        assert all(float(p.grad.abs().sum()) > 0 for p in m.fields["dynamic"].parameters())
-        grads.append(([p.grad.clone() for p in m.fields.parameters()], terms))
+        terms = m.loss.loss_terms(torch.arange(2, 10), torch.tensor([1, 5]), backward=True)
+        assert all(float(p.grad.abs().sum()) > 0 for p in m.model.fields["dynamic"].parameters())
+        grads.append(([p.grad.clone() for p in m.model.fields.parameters()], terms))
     (g1, t1), (g2, t2) = grads
     assert t1 == pytest.approx(t2, rel=1e-5)
     for a, b in zip(g1, g2):
@@ -183,12 +183,12 @@ def test_a_translated_canonical_image_is_decoded_once_per_video(sineball16, monk
     for _ in range(3):
         m.step()
     decodes = []
-    original = m._canonical
+    original = m.model.canonical
     monkeypatch.setattr(m, "_canonical", lambda *a, **k: decodes.append(1) or original(*a, **k))
     video = m.estimate()
-    assert len(decodes) == 1 and m._canonical_now is None
+    assert len(decodes) == 1 and m.model._canonical_now is None
     with torch.no_grad():
-        each = torch.cat([m._video_frames(torch.arange(k, min(k + 2, m.K))) for k in range(0, m.K, 2)], dim=1)
+        each = torch.cat([m.model.video_frames(torch.arange(k, min(k + 2, m.K))) for k in range(0, m.K, 2)], dim=1)
     assert len(decodes) == 1 + (m.K + 1) // 2
     assert torch.allclose(video, each, rtol=0, atol=1e-6)
 
@@ -219,7 +219,7 @@ def test_memory_per_step_does_not_grow_with_the_frame_count():
         m.frames = counting
         for _ in range(6):
             m.step()
-        return grid.n_frames, len(m.gs_frames), max(sizes)
+        return grid.n_frames, len(m.grid.gs_frames), max(sizes)
 
     k1, gs1, n1 = max_graph_frames(1)
     k2, gs2, n2 = max_graph_frames(2)
@@ -240,7 +240,7 @@ def test_held_out_measurements_are_never_fitted(sineball16):
         assert a.supports_holdout
         fitted = set(torch.nonzero(split.rs_train_rows).flatten().tolist())
         probe = make_stfm(split, small_settings(init="random"))
-        assert all(set(probe.sample_rows().tolist()) <= fitted for _ in range(20))
+        assert all(set(probe.loss.sample_rows().tolist()) <= fitted for _ in range(20))
         assert a.full_objective() == pytest.approx(b.full_objective(), rel=1e-6)
         for _ in range(2):
             a.step()
@@ -300,12 +300,12 @@ def test_gains_start_from_the_white_balance(sineball16):
 def test_data_terms_are_normalised_by_operator_norms(sineball16):
     m = make_stfm(sineball16, small_settings(psi=2.0))
     # a few power iterations (from a near-constant start) suffice for a normalising constant
-    assert m.rs_norm == pytest.approx(sineball16.rs_op().norm(), rel=3e-2)
-    assert m.rs_norm <= sineball16.rs_op().norm() * (1 + 1e-6)
+    assert m.loss.rs_norm == pytest.approx(sineball16.rs_op().norm(), rel=3e-2)
+    assert m.loss.rs_norm <= sineball16.rs_op().norm() * (1 + 1e-6)
     pixels = 3 * 16 * 16
-    assert m.c_rs == pytest.approx(2.0 / (m.rs_norm ** 2 * pixels))
+    assert m.loss.c_rs == pytest.approx(2.0 / (m.loss.rs_norm ** 2 * pixels))
     gs_norm = sineball16.gs_op().norm()
-    assert m.c_gs == pytest.approx(1.0 / (gs_norm ** 2 * pixels), rel=1e-4)
+    assert m.loss.c_gs == pytest.approx(1.0 / (gs_norm ** 2 * pixels), rel=1e-4)
 
 
 # ----------------------------------------------------------------------------- leave-out
@@ -336,7 +336,7 @@ def test_leave_out_no_rs_is_gs_only():
     p = video_problem(moving_dot(), with_rs=False)
     m = make_stfm(p, STFMSettings())
     assert ("rs", "no RS measurement: GS-only fit") in m.left_out
-    assert not any(f.learn_gain for f in fits(m))  # gains are only identifiable with both sensors
+    assert not any(f.learned_gains.learned for f in fits(m))  # gains are only identifiable with both sensors
     m.step()
     assert set(m.residuals()) == {"gs"}
 
@@ -345,7 +345,7 @@ def test_leave_out_dark_background_drops_the_static_field():
     p = video_problem(moving_dot(background=0.0), noise=0.002)
     m = make_stfm(p, STFMSettings())
     assert [c for c, _ in m.left_out] == ["static"]
-    assert all("static" not in f.fields for f in fits(m)) and "dark background" in m.left_out[0][1]
+    assert all("static" not in f.model.fields for f in fits(m)) and "dark background" in m.left_out[0][1]
 
 
 def test_leave_out_static_scene_keeps_only_the_static_field():
@@ -355,7 +355,7 @@ def test_leave_out_static_scene_keeps_only_the_static_field():
     p = video_problem(still, noise=0.002)
     m = make_stfm(p, STFMSettings())
     assert {c for c, _ in m.left_out} == {"motion", "dynamic"}
-    assert set(m.fields) == {"static"}
+    assert set(m.model.fields) == {"static"}
     for _ in range(30):
         m.step()
     assert psnr(m.estimate(), p.truth.float()) > 30
@@ -444,10 +444,10 @@ def test_dynamic_field_on_a_base_starts_exactly_at_that_base(sineball16):
     for base, baseline in (("blend", blend), ("interp", interp)):
         video = torch.from_numpy(np.asarray(baseline(_key_frames(p), p.gs_times_s, p.frame_times_s)))
         m = make_stfm(p, small_settings(dynamic_base=base, no_static=True))
-        assert m.base_source == base
+        assert m.base.source == base
         assert psnr(m.estimate(), video) > 60  # zero correction, zero motion: the base itself
     paper = make_stfm(p, small_settings(preset="paper"))
-    assert paper.base_source is None and not paper.resolved.dynamic_time
+    assert paper.base.source is None and not paper.resolved.dynamic_time
 
 
 def test_fast_preset_corrects_the_rife_video_when_rife_is_installed(sineball16):
@@ -459,7 +459,7 @@ def test_fast_preset_corrects_the_rife_video_when_rife_is_installed(sineball16):
     except RifeUnavailableError as exc:
         pytest.skip(f"RIFE weights not installed: {exc}")
     m = make_stfm(p, small_settings(no_static=True))
-    assert m.base_source == "rife" and m.resolved_settings()["base_video"] == "rife"
+    assert m.base.source == "rife" and m.resolved_settings()["base_video"] == "rife"
     assert psnr(m.estimate(), video) > 60
 
 
@@ -467,7 +467,7 @@ def test_a_moving_base_video_needs_the_motion_field():
     p = scene_problem("sineball", 16, noise=0.0)
     m = make_stfm(p, small_settings(dynamic_base="interp", no_static=True))
     m.step()
-    assert all(param.grad is not None for param in m.fields["motion"].parameters())
+    assert all(param.grad is not None for param in m.model.fields["motion"].parameters())
 
 
 def test_discrepancy_stop_ends_the_fit_at_the_noise_level(sineball16):
@@ -494,19 +494,19 @@ def test_stall_stop_ends_a_fit_whose_residual_no_longer_falls(sineball16):
 
     m = make_stfm(sineball16, small_settings(stall_drop=0.999))  # demands a 99.9 % fall: stalls at once
     m.rs_noise_level = 0.0  # the noise test never fires
-    window = m._stall_window()
+    window = m.stop.stall_window()
     assert window % NOISE_CHECK_STEPS == 0
     assert m.resolved.stall_passes == SMALL_STALL_PASSES  # a 16 px grid: the small grids' window
-    assert window >= SMALL_STALL_PASSES * len(m.rs_rows_fit) / m.resolved.rows_per_step
+    assert window >= SMALL_STALL_PASSES * len(m.grid.rs_rows_fit) / m.resolved.rows_per_step
     result = run(m, LoopSettings(time_budget_s=None, max_iters=window + 3 * NOISE_CHECK_STEPS, progress=False))
     assert result.iterations == window + NOISE_CHECK_STEPS  # the first check with a residual a window back
     assert any("fell less than 99.9%" in e for e in result.events)
     # a stop above the noise level says how far above, and where the fit is left unexplained
     assert any("x it, more than the 1.15x a fit that explains the data ends at)" in e for e in result.events)
-    m._rs_history[m.steps - window] = 1e3  # a residual that fell from far above: not a stall
+    m.stop.history[m.steps - window] = 1e3  # a residual that fell from far above: not a stall
     assert m.converged() is None
     m.resolved.stall_drop = 0.0  # off
-    m._rs_history[m.steps - window] = 0.0
+    m.stop.history[m.steps - window] = 0.0
     assert m.converged() is None
 
 
@@ -518,10 +518,10 @@ def test_prior_preset_stops_itself_on_a_slower_stall_test(sineball16):
     prior = make_stfm(sineball16, STFMSettings(preset="prior", components="all", track_refit=False, fits=1))
     assert prior.resolved.stop_at_noise and prior.resolved.stall_drop == 0.001
     # a longer window than the fast preset's (whose rows per step may differ)
-    assert prior._stall_window() >= PRIOR_STALL_PASSES * len(prior.rs_rows_fit) / prior.resolved.rows_per_step
-    assert fast._stall_window() < STALL_PASSES * len(fast.rs_rows_fit) / fast.resolved.rows_per_step + NOISE_CHECK_STEPS
+    assert prior.stop.stall_window() >= PRIOR_STALL_PASSES * len(prior.grid.rs_rows_fit) / prior.resolved.rows_per_step
+    assert fast.stop.stall_window() < STALL_PASSES * len(fast.grid.rs_rows_fit) / fast.resolved.rows_per_step + NOISE_CHECK_STEPS
     prior.rs_noise_level = 0.0  # a model that cannot reach the noise level: only the stall test can stop it
-    window = prior._stall_window()
+    window = prior.stop.stall_window()
     result = run(prior, LoopSettings(time_budget_s=None, max_iters=40 * window, progress=False))
     assert window < result.iterations < 40 * window
     assert any(f"fell less than 0.1% in {PRIOR_STALL_PASSES} passes" in e for e in result.events)
@@ -558,7 +558,7 @@ def _reordering_tolerance(m, video: torch.Tensor) -> float:
     """How far two evaluations of a fit that differ only in batch shape may differ: the order of
     float32 sums changes, by at most about eps per term of each dot product along the way (the
     fields' Linear layers, chained), at the output's scale; x4 for the grids' interpolation."""
-    terms = sum(layer.in_features for field in m.fields.values() for layer in field.modules()
+    terms = sum(layer.in_features for field in m.model.fields.values() for layer in field.modules()
                 if isinstance(layer, torch.nn.Linear))
     return 4 * terms * torch.finfo(video.dtype).eps * max(float(video.abs().max()), 1.0)
 
@@ -571,7 +571,7 @@ def test_outputs_use_the_moving_average_and_training_keeps_its_weights(sineball1
     assert any(not torch.equal(q, a) for q, a in zip(current, m._ema, strict=True))
     averaged = m.estimate()
     assert all(torch.equal(q, c) for q, c in zip(m._params, current, strict=True))  # restored
-    with m._averaged():
+    with m.averaged():
         assert all(torch.equal(q, a) for q, a in zip(m._params, m._ema, strict=True))
     raw = make_stfm(sineball16, small_settings(ema_decay=0.0))
     for _ in range(5):
@@ -595,10 +595,10 @@ def test_keys_base_starts_exactly_at_the_flow_interpolation(sineball16):
     p = sineball16
     video = torch.from_numpy(interp(_key_frames(p), p.gs_times_s, p.frame_times_s))
     m = make_stfm(p, small_settings(dynamic_base="keys_interp", no_static=True))
-    assert m.base_source == "keys_interp" and m.fields["motion"].decoder[-1].out_features == 4
+    assert m.base.source == "keys_interp" and m.model.fields["motion"].decoder[-1].out_features == 4
     assert psnr(m.estimate(), video) > 60  # zero flow corrections and blend logit: interp itself
     m.step()
-    assert all(param.grad is not None for param in m.fields["motion"].parameters())
+    assert all(param.grad is not None for param in m.model.fields["motion"].parameters())
 
 
 def test_ensemble_averages_fits_on_distinct_bases(sineball16):
@@ -607,7 +607,7 @@ def test_ensemble_averages_fits_on_distinct_bases(sineball16):
     assert not isinstance(make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video")), STFMEnsemble)
     m = make_stfm(sineball16, STFMSettings(components="all"))  # the fast preset's default
     assert isinstance(m, STFMEnsemble) and m.resolved_settings()["dynamic_base"].count(",") >= 1
-    sources = [f.base_source for f in fits(m)]
+    sources = [f.base.source for f in fits(m)]
     assert len(set(sources)) == len(sources) >= 2
     for _ in range(2 * len(sources)):
         m.step()
@@ -628,7 +628,7 @@ def test_ensemble_without_rife_drops_the_duplicate_base(sineball16, monkeypatch)
     monkeypatch.setattr(rife_mod, "rife", unavailable)
     monkeypatch.setattr(rife_mod, "rife_warps", unavailable)
     m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="ensemble"))
-    assert [f.base_source for f in fits(m)] == ["interp", "keys_interp"]  # "keys" fell back to DIS flows
+    assert [f.base.source for f in fits(m)] == ["interp", "keys_interp"]  # "keys" fell back to DIS flows
 
 
 def test_ensemble_stops_only_when_every_member_reached_the_noise_level(sineball16):
@@ -676,7 +676,7 @@ def test_ensemble_refines_the_members_average_once_they_have_stopped(sineball16)
     refined = m.refined
     assert refined is not None and refined.steps == 1 and [f.steps for f in fits(m)] == [NOISE_CHECK_STEPS] * 2
     gains = torch.as_tensor(np.mean([f.gains() for f in fits(m)], axis=0))[:, None, None, None]
-    assert torch.allclose(refined.base_video * gains, average, atol=1e-6)  # its base is the average
+    assert torch.allclose(refined.base.video * gains, average, atol=1e-6)  # its base is the average
     assert refined.resolved.lr == pytest.approx(REFINE_LR_RATIO * fits(m)[0].resolved.lr)
     assert refined.resolved.stall_passes == REFINE_STALL_PASSES < fits(m)[0].resolved.stall_passes
     assert torch.equal(m.estimate(), refined.estimate()) and m.converged() is None
@@ -759,8 +759,8 @@ def test_the_prior_preset_averages_two_fits_from_consecutive_seeds_each_initiali
     first, second = fits(m)
     assert (first.settings.seed, second.settings.seed) == (0, 1)
     # the second's static field is fitted from its own start, not copied from the first's
-    assert not all(torch.equal(a, b) for a, b in zip(first.fields["static"].parameters(),
-                                                      second.fields["static"].parameters(), strict=True))
+    assert not all(torch.equal(a, b) for a, b in zip(first.model.fields["static"].parameters(),
+                                                      second.model.fields["static"].parameters(), strict=True))
     while min(first.steps, second.steps) < 4:  # one at a time on one thread, side by side on more
         m.step()
     assert first.steps == second.steps == 4 == m.resolved_settings()["member_steps"][1]
@@ -859,7 +859,7 @@ def _turning_square(size: int = 20):
 
 def _track_errors(m, xs) -> tuple[float, float]:
     """Median |error| in px of the motion search's track of the turning square: in x, and in y (where it stays)."""
-    middle = int(round(m._gs_centre_frames()[1]))
+    middle = int(round(m.grid.gs_centre_frames()[1]))
     found = xs[middle] + m.motion_track_px[:, 0].numpy()
     return float(np.median(np.abs(found - xs))), float(np.median(np.abs(m.motion_track_px[:, 1].numpy())))
 
@@ -871,11 +871,11 @@ def test_prior_preset_keeps_one_canonical_image_and_finds_the_turning_object():
     k = len(xs)
     m = make_stfm(p, STFMSettings(preset="prior", components="all", fits=1))
     assert not m.resolved.dynamic_time and m.resolved.motion_init == "search"
-    assert m.fields["dynamic"].in_dims == 2  # one canonical image: the dynamics live in the motion
+    assert m.model.fields["dynamic"].in_dims == 2  # one canonical image: the dynamics live in the motion
     error_x, error_y = _track_errors(m, xs)
     assert error_x <= 1.0
     assert error_y <= 1.0
-    keys = np.round(m._gs_centre_frames()).astype(int)
+    keys = np.round(m.grid.gs_centre_frames()).astype(int)
     between = np.interp(np.arange(k), keys, xs[keys])  # what the key frames alone suggest
     assert np.median(np.abs(between - xs)) >= 3.0
 
@@ -919,14 +919,14 @@ def test_without_rife_weights_stfm_says_what_it_uses_instead(sineball16, monkeyp
     said = dict(m.left_out)
     assert said["RIFE base video"] == "optical-flow interpolation used instead (no RIFE weights installed)"
     assert said["RIFE flows"].startswith("DIS optical flow used instead")
-    assert [f.base_source for f in fits(m)] == ["interp", "keys_interp"]  # "keys" fell back onto keys_interp
+    assert [f.base.source for f in fits(m)] == ["interp", "keys_interp"]  # "keys" fell back onto keys_interp
 
 
 def test_a_fit_can_start_from_a_given_video(sineball16):
     start = sineball16.truth.float() * 0.9
     m = make_stfm(sineball16, STFMSettings(components="all"), initial_video=start)
-    assert m.base_source == "given" and m.resolved.dynamic_base == "video"
-    assert torch.equal(m.base_video, start)
+    assert m.base.source == "given" and m.resolved.dynamic_base == "video"
+    assert torch.equal(m.base.video, start)
     with pytest.raises(ConfigError, match="initial_video"):
         make_stfm(sineball16, STFMSettings(), initial_video=start[:, :3])
 
@@ -941,7 +941,7 @@ def test_key_warps_below_the_flow_size_run_no_network(monkeypatch):
 
     monkeypatch.setattr(rife_module, "rife_warps", no_network)
     m = make_stfm(scene_problem("sineball", 8), small_settings(preset="fast", dynamic_base="keys"))
-    assert m.base_source == "interp"
+    assert m.base.source == "interp"
     m.step()
 
 
@@ -954,5 +954,5 @@ def test_stop_tests_are_spaced_by_the_frames_a_test_makes(sineball16):
         [NOISE_CHECK_STEPS * n for n in (1, 1, 1, 2, 2, 3, 6)]
     m = make_stfm(sineball16, small_settings())
     m.K = 231  # what the interval reads (the fit's frames); the stall window is a whole number of intervals
-    assert m.check_every() == 60 and m._stall_window() % 60 == 0
-    assert m._stall_window() >= m.resolved.stall_passes * len(m.rs_rows_fit) / m.resolved.rows_per_step
+    assert m.stop.check_every() == 60 and m.stop.stall_window() % 60 == 0
+    assert m.stop.stall_window() >= m.resolved.stall_passes * len(m.grid.rs_rows_fit) / m.resolved.rows_per_step

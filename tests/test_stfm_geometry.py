@@ -8,7 +8,7 @@ import torch
 
 from rngcam.recon.methods import selfcal
 from rngcam.recon.methods.stfm import STFMSettings, make_stfm
-from rngcam.recon.methods.stfm.method import geometry_report
+from rngcam.recon.methods.stfm.learned import geometry_report
 from rngcam.recon.methods.stfm.stage_configs import FitConfig
 
 TRUTH = selfcal.similarity(0.45, -0.3)  # GS pixel p sees the scene at S p
@@ -87,7 +87,7 @@ def test_a_known_shift_is_learned_with_the_fields(shifted, learned):
     assert geometry["end"]["rotation_deg"] == 0 and geometry["end"]["scale"] == pytest.approx(1, abs=1e-12)  # held
     # the output is in RS coordinates: it matches the truth better than the same fit without the pose
     without = _fit(shifted, 300, learn_geometry="off")
-    assert without.learned_geometry() is None and not without.learn_pose
+    assert without.learned_geometry() is None and not without.learned_pose.learned
 
     def error(m):
         inner = (..., slice(4, -4), slice(4, -4))
@@ -99,15 +99,15 @@ def test_a_known_shift_is_learned_with_the_fields(shifted, learned):
 
 def test_a_fit_holds_the_pose_it_starts_while_its_fields_settle_and_not_one_it_is_given(shifted):
     fresh = _fit(shifted, FitConfig().pose_hold_steps)
-    assert float(fresh.gs_pose.detach().abs().max()) < 1e-12
+    assert float(fresh.learned_pose.parameter.detach().abs().max()) < 1e-12
     for _ in range(10):
         fresh.step()
-    assert float(fresh.gs_pose.detach()[:2].abs().max()) > 0.02
+    assert float(fresh.learned_pose.parameter.detach()[:2].abs().max()) > 0.02
     given = _fit(shifted, 0)
     given.start_pose(torch.tensor([0.2, 0.0, 0.0, 0.0]))
     for _ in range(10):
         given.step()
-    assert float((given.gs_pose.detach()[:2] - torch.tensor([0.2, 0.0])).abs().max()) > 0.005  # not held
+    assert float((given.learned_pose.parameter.detach()[:2] - torch.tensor([0.2, 0.0])).abs().max()) > 0.005  # not held
 
 
 def test_it_is_reported_in_the_settings_the_notes_and_carried_by_a_checkpoint(shifted, learned):
@@ -142,5 +142,5 @@ def test_similarity_learns_rotation_and_scale_too(shifted):
 def test_no_pose_is_learned_without_both_cameras_or_with_hard_anchoring(shifted):
     for kw in ({"no_gs": True}, {"no_rs": True}, {"gs_anchor": "hard"}):
         method = _fit(shifted, 2, **kw)
-        assert not method.learn_pose and method.learned_geometry() is None
-        assert float(method.gs_pose.detach().abs().max()) == 0
+        assert not method.learned_pose.learned and method.learned_geometry() is None
+        assert float(method.learned_pose.parameter.detach().abs().max()) == 0

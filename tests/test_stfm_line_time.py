@@ -159,13 +159,13 @@ def test_a_fit_started_by_the_motion_search_holds_the_line_time_first_and_one_gi
                                                                    stages={"fit": {"line_hold_steps_search": 5}}))
         if start is not None:
             m.start_line_factor(start)
-        before = float(m.line_shift.detach())
+        before = float(m.learned_line_time.parameter.detach())
         for _ in range(steps):
             m.step()
-        return abs(float(m.line_shift.detach()) - before), m
+        return abs(float(m.learned_line_time.parameter.detach()) - before), m
 
     def line_ratio(m):
-        return next(g["lr_ratio"] for g in m.optimiser.param_groups if g["params"][0] is m.line_shift)
+        return next(g["lr_ratio"] for g in m.optimiser.param_groups if g["params"][0] is m.learned_line_time.parameter)
 
     held, prior = moved_after("prior", 5)
     assert prior.resolved.motion_init == "search" and held == 0.0
@@ -223,7 +223,7 @@ def test_the_factor_is_held_within_twenty_percent_and_a_readout_under_a_frame_le
     method = _fit(slow_readout, 0)
     method.start_line_factor(3.0)  # as a diverging fit would push it
     assert method.line_factor() == pytest.approx(1.2)
-    w = method._row_weights(torch.arange(4)).detach()
+    w = method.learned_line_time.row_weights(torch.arange(4)).detach()
     assert torch.isfinite(w).all()
     assert float(w.sum(1).min()) == pytest.approx(EXPOSURE / slow_readout.grid.dt_s, rel=1e-5)
     short = replace(slow_readout.rs_timing, line_time_s=slow_readout.rs_timing.line_time_s / 100)
@@ -236,8 +236,8 @@ def test_the_factor_gets_the_same_gradient_in_one_graph_and_frame_chunk_by_chunk
         method.start_line_factor(0.985)
         rows = torch.arange(8, 16)
         method.optimiser.zero_grad(set_to_none=True)
-        method.loss_terms(rows, None, backward=True)
-        return float(method.line_shift.grad)
+        method.loss.loss_terms(rows, None, backward=True)
+        return float(method.learned_line_time.parameter.grad)
 
     whole, chunked = grad(64), grad(2)  # 2: the sampled rows' frames in several graphs
     # float32 sums in another order: 1.05e-4 apart on one x86-64 host (near a stationary point the

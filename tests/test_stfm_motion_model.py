@@ -50,9 +50,9 @@ def test_a_translation_is_the_same_at_every_pixel_and_a_field_is_not():
     for model in ("translation", "field"):
         m = STFM(p, STFMSettings(preset="prior", motion_model=model, components="all"))
         with torch.no_grad():
-            for q in m.fields["motion"].parameters():
+            for q in m.model.fields["motion"].parameters():
                 q.uniform_(-0.5, 0.5)
-            u = m._motion(idx)  # (n, H, W, 2)
+            u = m.model.motion(idx)  # (n, H, W, 2)
         spread = float((u - u.mean(dim=(1, 2), keepdim=True)).abs().amax())
         if model == "translation":
             assert spread < 1e-6
@@ -89,18 +89,18 @@ def test_a_translation_is_the_fields_mean_over_a_coarse_grid_of_the_frame():
     """The translation averages the motion field over TRANSLATION_MEAN_POINTS points per axis (a 16th
     of a 64 px frame's evaluations), spanning the whole frame."""
     from rngcam.recon.methods.stfm.fields import field_on_grid
-    from rngcam.recon.methods.stfm.model import TRANSLATION_MEAN_POINTS
+    from rngcam.recon.methods.stfm.grid import TRANSLATION_MEAN_POINTS
 
     p = _sineball(40, 40)
     m = STFM(p, STFMSettings(preset="prior", components="all"))
     idx = torch.tensor([0, 7, 20])
     with torch.no_grad():
-        for q in m.fields["motion"].parameters():
+        for q in m.model.fields["motion"].parameters():
             q.uniform_(-0.5, 0.5)
-        u = m._motion(idx)
+        u = m.model.motion(idx)
         axis = torch.linspace(-1, 1, TRANSLATION_MEAN_POINTS)
-        coarse = field_on_grid(m.fields["motion"], [axis, axis, m.ts], idx).mean(dim=(1, 2))
-        every_pixel = field_on_grid(m.fields["motion"], [m.xs, m.ys, m.ts], idx).mean(dim=(1, 2))
+        coarse = field_on_grid(m.model.fields["motion"], [axis, axis, m.grid.ts], idx).mean(dim=(1, 2))
+        every_pixel = field_on_grid(m.model.fields["motion"], [m.grid.xs, m.grid.ys, m.grid.ts], idx).mean(dim=(1, 2))
     assert TRANSLATION_MEAN_POINTS < 40 and u.shape == (3, 40, 40, 2)
     assert torch.allclose(u[:, 5, 9], coarse, atol=1e-6)
     assert float((coarse - every_pixel).abs().amax()) > 1e-5  # a different average than every pixel's
@@ -113,11 +113,11 @@ def test_a_translations_tv_is_what_every_pixel_of_it_pays():
     m = STFM(p, STFMSettings(preset="prior", components="all"))
     idx = torch.tensor([0, 3, 9, p.shape[1] - 1])
     with torch.no_grad():
-        for q in m.fields["motion"].parameters():
+        for q in m.model.fields["motion"].parameters():
             q.uniform_(-0.5, 0.5)
-        got = float(m.tv_term(idx))
+        got = float(m.loss.tv_term(idx))
         nxt = (idx + 1).clamp(max=m.K - 1)
-        u = m._motion(torch.cat([idx, nxt])) * m._motion_px()  # (8, H, W, 2), every pixel
+        u = m.model.motion(torch.cat([idx, nxt])) * m.model.motion_px()  # (8, H, W, 2), every pixel
     u0, u1 = u[:4], u[4:]
     spatial = (u0[:, 1:] - u0[:, :-1]).abs().sum() + (u0[:, :, 1:] - u0[:, :, :-1]).abs().sum()
     every_pixel = m.resolved.tau * (spatial + m.resolved.beta * (u1 - u0).abs().sum()) / (m.H * m.W) / len(idx)
@@ -128,17 +128,17 @@ def test_a_motion_field_is_decoded_on_knots_two_pixels_apart():
     """The field model's motion is the field decoded on knots about every MOTION_KNOT_PX pixels,
     interpolated bilinearly: at a pixel on a knot, the field itself."""
     from rngcam.recon.methods.stfm.fields import field_on_grid
-    from rngcam.recon.methods.stfm.model import MOTION_KNOT_PX
+    from rngcam.recon.methods.stfm.grid import MOTION_KNOT_PX
 
     p = _sineball(17, 33)  # 17 x 33 px: knots 9 x 17, on every other pixel
     m = STFM(p, STFMSettings(preset="fast", dynamic_base="interp", components="all"))
-    assert MOTION_KNOT_PX == 2 and (len(m.xs_knots), len(m.ys_knots)) == (17, 9)
+    assert MOTION_KNOT_PX == 2 and (len(m.grid.xs_knots), len(m.grid.ys_knots)) == (17, 9)
     idx = torch.tensor([0, 5, 11])
     with torch.no_grad():
-        for q in m.fields["motion"].parameters():
+        for q in m.model.fields["motion"].parameters():
             q.uniform_(-0.5, 0.5)
-        u = m._motion(idx)
-        on_knots = field_on_grid(m.fields["motion"], [m.xs_knots, m.ys_knots, m.ts], idx)
+        u = m.model.motion(idx)
+        on_knots = field_on_grid(m.model.fields["motion"], [m.grid.xs_knots, m.grid.ys_knots, m.grid.ts], idx)
     assert u.shape == (3, 17, 33, 2)
     assert torch.allclose(u[:, ::2, ::2], on_knots, atol=1e-6)
     between = (u[:, ::2, 1::2] - 0.5 * (on_knots[:, :, :-1] + on_knots[:, :, 1:])).abs().amax()
@@ -150,14 +150,14 @@ def test_a_base_video_is_moved_and_its_correction_stays_where_it_is():
     alpha) is read on the pixel grid, not at the moved points."""
     p = _sineball(16, 16)
     m = STFM(p, STFMSettings(preset="fast", dynamic_base="interp", components="all"))
-    assert m.base_source is not None and m.resolved.dynamic_time
+    assert m.base.source is not None and m.resolved.dynamic_time
     idx = torch.tensor([3, 9])
     with torch.no_grad():
-        for q in m.fields["dynamic"].parameters():
+        for q in m.model.fields["dynamic"].parameters():
             q.uniform_(-0.5, 0.5)
         still = torch.zeros(2, 16, 16, 2)
         moved = torch.full((2, 16, 16, 2), 0.2)
-        colour0, alpha0 = m._dynamic_at(still, idx)
-        colour1, alpha1 = m._dynamic_at(moved, idx)
+        colour0, alpha0 = m.model.dynamic_at(still, idx)
+        colour1, alpha1 = m.model.dynamic_at(moved, idx)
     assert torch.allclose(alpha0, alpha1)
     assert (colour0 - colour1).abs().amax() > 1e-3  # the base moved under it

@@ -37,7 +37,7 @@ def _matte(m) -> float:
     from rngcam.recon.methods.stfm.fields import field_on_grid
 
     with torch.no_grad():
-        raw = field_on_grid(m.fields["dynamic"], [m.xs, m.ys])
+        raw = field_on_grid(m.model.fields["dynamic"], [m.grid.xs, m.grid.ys])
         return float((1 - torch.sigmoid(raw[..., m.C])).mean())
 
 

@@ -72,7 +72,7 @@ def test_prior_preset_fine_level_starts_from_the_coarse_model():
     up = upsample(coarse.estimate(), p.shape, m.time_factors[0])
     first = fine.estimate()
     assert float((first - up).norm() / up.norm()) < 0.1
-    torch.testing.assert_close(fine.log_gain, coarse.log_gain)
+    torch.testing.assert_close(fine.learned_gains.parameter, coarse.learned_gains.parameter)
 
 
 def test_fast_preset_fine_level_fits_on_the_coarse_estimate_and_runs_to_the_end():
@@ -84,8 +84,8 @@ def test_fast_preset_fine_level_fits_on_the_coarse_estimate_and_runs_to_the_end(
     result = run(m, LoopSettings(time_budget_s=None, max_iters=60, progress=False))
     assert m.final and result.status == "ok" and any("level 2 of 2" in s for s in stages)
     fine = m.method
-    assert fine.base_source == "given" and fine.resolved.dynamic_time is True
-    assert fine.base_video.shape == p.shape
+    assert fine.base.source == "given" and fine.resolved.dynamic_time is True
+    assert fine.base.video.shape == p.shape
     video = m.estimate()
     assert video.shape == p.shape and torch.isfinite(video).all()
     assert _psnr(video, p.truth) > start - 0.5  # not worse than the GS-only start it came from
@@ -104,7 +104,7 @@ def test_finer_level_rs_norm_is_warm_started_and_matches_a_converged_norm():
     fine = m.method
     assert isinstance(fine, STFM) and fine.rs_norm_vector is None  # the full grid keeps none
     converged = p.rs_op().norm(iters=300, tol=1e-12, dtype=torch.float64)
-    assert fine.rs_norm == pytest.approx(converged, rel=0.01) and fine.rs_norm <= converged * (1 + 1e-5)
+    assert fine.loss.rs_norm == pytest.approx(converged, rel=0.01) and fine.loss.rs_norm <= converged * (1 + 1e-5)
 
 
 def test_rs_norm_start_is_used_and_its_last_iterate_kept():
@@ -115,9 +115,9 @@ def test_rs_norm_start_is_used_and_its_last_iterate_kept():
     top = torch.ones(p.shape)  # near the top singular vector (the PSF is a low-pass filter)
     warm = STFM(p, s, rs_norm_start=top)
     assert warm.rs_norm_vector is not None and warm.rs_norm_vector.shape == p.shape
-    assert warm.rs_norm == pytest.approx(cold.rs_norm, rel=0.01)
+    assert warm.loss.rs_norm == pytest.approx(cold.loss.rs_norm, rel=0.01)
     worse = STFM(p, s, rs_norm_start=torch.randn(p.shape, generator=torch.Generator().manual_seed(1)))
-    assert worse.rs_norm < warm.rs_norm  # six iterations from noise fall short: the start was used
+    assert worse.loss.rs_norm < warm.loss.rs_norm  # six iterations from noise fall short: the start was used
 
 
 def test_power_norm_from_a_zero_or_nan_start_is_the_operators_norm():
@@ -149,10 +149,10 @@ def test_the_learned_gs_to_rs_shift_goes_to_the_finer_level_in_its_pixels(preset
     assert torch.allclose(coarse.pose(), torch.tensor([0.3, -0.2, 0.0, 0.0]), atol=1e-6)
     run(m, LoopSettings(time_budget_s=None, max_iters=11, progress=False))  # the coarse level's end, one fine step
     fine = m.method
-    assert fine.H == p.shape[2] and fine.learn_pose and fine.steps == 1
+    assert fine.H == p.shape[2] and fine.learned_pose.learned and fine.steps == 1
     np.testing.assert_allclose(fine.learned_geometry()["end"]["shift_px"], [0.6, -0.4], atol=0.05)  # 2x the pixels
     assert torch.isfinite(fine.estimate()).all()
-    assert selfcal.describe(fine.gs_matrix().detach().double().numpy())["scale"] == pytest.approx(1.0)
+    assert selfcal.describe(fine.learned_pose.matrix().detach().double().numpy())["scale"] == pytest.approx(1.0)
 
 
 @pytest.mark.parametrize("preset", ["fast", "prior"])
@@ -234,13 +234,13 @@ def test_a_coarse_levels_base_video_and_key_flows_come_from_the_finer_grid():
     fine = p.gs_images().numpy()
     video = STFM(q, STFMSettings(preset="fast", dynamic_base="interp"), "cpu")
     expected = bin_space(torch.from_numpy(np.asarray(interp(fine, p.gs_times_s, q.frame_times_s), np.float32)), 16, 24)
-    assert video.base_source == "interp" and torch.allclose(video.base_video, expected, atol=1e-5)
+    assert video.base.source == "interp" and torch.allclose(video.base.video, expected, atol=1e-5)
     keys = STFM(q, STFMSettings(preset="fast", dynamic_base="keys_interp"), "cpu")
     warps = interp_warps(fine, p.gs_times_s, q.frame_times_s)
     flows = torch.from_numpy(np.concatenate([warps.flow0, warps.flow1], axis=-1)) / torch.tensor([23.5, 15.5] * 2)
-    assert keys.key_images.shape == (3, 3, 16, 24)  # the coarse grid's key frames, warped by the fine flows
+    assert keys.base.key_images.shape == (3, 3, 16, 24)  # the coarse grid's key frames, warped by the fine flows
     binned = bin_space(flows.permute(0, 3, 1, 2), 16, 24).permute(0, 2, 3, 1)  # coordinate units on both grids
-    assert torch.allclose(keys.key_flow, binned, atol=1e-5) and float(binned.abs().max()) > 0
+    assert torch.allclose(keys.base.key_flow, binned, atol=1e-5) and float(binned.abs().max()) > 0
 
 
 def test_the_full_levels_start_has_the_gs_only_videos_detail():

@@ -40,7 +40,7 @@ def test_a_video_hdv3_fit_starts_exactly_at_rife_hdv3(sineball16):
     hdv3, default = _rife_or_skip(p, "hdv3"), _rife_or_skip(p, None)
     assert psnr(hdv3, default) < 60  # the two models interpolate differently here
     m = make_stfm(p, small_settings(dynamic_base="video_hdv3", no_static=True))
-    assert (m.base_source, m.base_model) == ("rife_hdv3", "hdv3")
+    assert (m.base.source, m.base.model) == ("rife_hdv3", "hdv3")
     assert psnr(m.estimate(), hdv3) > 60
 
 
@@ -48,7 +48,7 @@ def test_ensemble_keeps_one_member_per_rife_model(sineball16):
     p = sineball16
     _rife_or_skip(p, "hdv3"), _rife_or_skip(p, "4")
     m = make_stfm(p, STFMSettings(components="all", dynamic_base="video,video_hdv3,keys,keys_hdv3", refine=False))
-    assert [(f.base_source, f.base_model) for f in fits(m)] == [
+    assert [(f.base.source, f.base.model) for f in fits(m)] == [
         ("rife", "4"), ("rife_hdv3", "hdv3"), ("keys_rife", "4"), ("keys_rife_hdv3", "hdv3")]
     starts = [f.estimate() for f in fits(m)]
     assert psnr(starts[0], starts[1]) < 60 and psnr(starts[2], starts[3]) < 60
@@ -65,7 +65,7 @@ def test_without_hdv3_weights_the_pinned_member_falls_back_to_interpolation(sine
 
     monkeypatch.setattr(rife_mod, "find_weights", no_hdv3)
     m = make_stfm(sineball16, STFMSettings(components="all", dynamic_base="video,video_hdv3", refine=False))
-    assert [(f.base_source, f.base_model) for f in fits(m)] == [("rife", "4"), ("interp", None)]
+    assert [(f.base.source, f.base.model) for f in fits(m)] == [("rife", "4"), ("interp", None)]
     assert np.isfinite(m.estimate().numpy()).all()
 
 

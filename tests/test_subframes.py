@@ -143,7 +143,7 @@ def test_on_subframes_the_motion_search_and_the_line_time_count_in_the_outputs_f
     assert (coarsen(q, 2, 1).subframes, coarsen(q, 2, 2).subframes) == (2, 1)  # a coarser level's frames count too
     settings = STFMSettings(preset="prior", components="all", learn_line_time="on")
     one, two = STFM(p, settings), STFM(q, settings)
-    assert two.readout_frames == pytest.approx(one.readout_frames)  # the factor learns at one rate in time
+    assert two.learned_line_time.readout_frames == pytest.approx(one.learned_line_time.readout_frames)  # the factor learns at one rate in time
     tracks = []
     for fit in (one, two):
         keys = fit.problem.gs_images(gains=True).float()
@@ -164,8 +164,8 @@ def test_no_stop_test_ends_an_explained_search_started_fit_before_its_line_time_
     p = _sineball(32, 32).to(torch.float32)
     settings = STFMSettings(preset="prior", components="all", learn_line_time="on")
     fit = STFM(p, settings)
-    every, window = fit.check_every(), fit._stall_window()
-    assert fit._line_hold() == LINE_HOLD_STEPS_SEARCH
+    every, window = fit.stop.check_every(), fit.stop.stall_window()
+    assert fit.learned_line_time.schedule(fit.learned_pose.inherited)["hold_steps"] == LINE_HOLD_STEPS_SEARCH
     first = max(LINE_HOLD_STEPS_SEARCH + window, math.ceil(SEARCH_FIT_HALF_LIVES * fit.resolved.lr_half_life_steps))
     first = every * math.ceil(first / every)  # the first check from there
     assert first > LINE_HOLD_STEPS_SEARCH + window  # the step's decay, not the hold, sets it here
@@ -176,15 +176,15 @@ def test_no_stop_test_ends_an_explained_search_started_fit_before_its_line_time_
     assert "reached the noise level" in fit.converged()
     residual = fit.residuals()["rs"]
     fit.rs_noise_level = residual / 1.1  # explained, not at the noise level: the stall test waits as well
-    fit._rs_history = {first - every - window: 0.0}  # a residual that has not fallen at all
+    fit.stop.history = {first - every - window: 0.0}  # a residual that has not fallen at all
     fit.steps = first - every
     assert fit.converged() is None
-    fit._rs_history, fit.steps = {first - window: 0.0}, first
+    fit.stop.history, fit.steps = {first - window: 0.0}, first
     assert "fell less than" in fit.converged()
     fit.rs_noise_level = residual / (EXPLAINED_RATIO + 0.05)  # unexplained: stopped where it stalls, for the stages after
-    fit._rs_history, fit.steps = {every: 0.0}, every + window
+    fit.stop.history, fit.steps = {every: 0.0}, every + window
     assert fit.steps < first
     assert "fell less than" in fit.converged()
     plain = STFM(p, replace(settings, motion_init="flow"))  # motion not searched, nothing held: stopped at once
-    plain.rs_noise_level, plain.steps = 1.0, plain.check_every()
+    plain.rs_noise_level, plain.steps = 1.0, plain.stop.check_every()
     assert "reached the noise level" in plain.converged()

@@ -1,9 +1,10 @@
-"""STFM's dynamic bases: the GS-only video or warped key frames that the dynamic field corrects."""
+"""STFM's dynamic base: the GS-only video or warped key frames that the dynamic field corrects."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from rngcam.errors import ConfigError
@@ -11,48 +12,57 @@ from rngcam.recon.methods.coarse_to_fine import bin_space
 from rngcam.recon.methods.stfm.settings import BASE_VIDEOS, HDV3_SUFFIX, KEY_WARPS, MIN_FLOW_SIZE_PX
 
 
-class BaseVideos:
-    """Part of STFM: builds the dynamic base of a fit (see the package docstring)."""
+class DynamicBase:
+    """The GS-only start a dynamic field corrects, built for one fit: a video (`video`, without GS gains;
+    divided by `gains` on the fly where they are given), the key frames warped by interpolation flows
+    (`key_images`, `key_left`, `key_flow`, `key_logit`), the key frames' cross-fade (`keys`, `weights`),
+    or none (`source` None). `substitutes`: (what was preferred, what is used instead and why)."""
 
-    def _build_base(self) -> None:
-        """Key frames (without gains) and cross-fade weights for a dynamic field on a base."""
-        self.base_keys = self.base_weights = self.base_video = None
-        self.base_source = None
-        self.substitutes: list[tuple[str, str]] = []  # (what was preferred, what is used instead and why)
-        kind, self.base_model = _rife_model_of(self.resolved.dynamic_base)
-        if not (kind != "none" and self.resolved.dynamic_time and self.parts.gs and self.parts.motion):
+    def __init__(self, grid, problem, resolved, parts, given: Tensor | None = None, gains: Tensor | None = None):
+        self.grid, self.device = grid, grid.device
+        self.keys = self.weights = self.video = None
+        self.source = None
+        self.gains = None if gains is None else gains.to(self.device, torch.float32)
+        self.substitutes: list[tuple[str, str]] = []
+        kind, self.model = _rife_model_of(resolved.dynamic_base)
+        if not (kind != "none" and resolved.dynamic_time and parts.gs and parts.motion):
             return
-        p = self.problem
-        if self._given_base is not None:
+        p, H, W = problem, grid.H, grid.W
+        if given is not None:
             if kind not in BASE_VIDEOS:
                 raise ConfigError(f"a given base video needs a video dynamic base ({', '.join(BASE_VIDEOS)}), "
                                   f"not {kind!r}")
-            self.base_video, self.base_source = self._given_base.to(self.device), "given"  # no cast copy
+            self.video, self.source = given.to(self.device), "given"  # no cast copy
             return
         keys = p.gs_images()  # without gains: the current Lambda multiplies the base
         # GS-only videos and flows come from the finer grid's frames where a coarse level has them
         source = keys if p.fine_gs is None else p.fine_gs
         if kind in KEY_WARPS:
-            if self._build_key_warps(keys, kind, source):
+            if self._build_key_warps(problem, keys, kind, source):
                 return
             kind = "interp"  # too few key frames or too small for flow
         if kind in BASE_VIDEOS:
-            video, self.base_source, why = _base_video(source, p.gs_times_s, p.frame_times_s, kind,
-                                                       self.base_model, _network_device(self.device))
+            video, self.source, why = _base_video(source, p.gs_times_s, p.frame_times_s, kind,
+                                                  self.model, _network_device(self.device))
             if source is not keys:
-                video = bin_space(video, self.H, self.W)
-            self.base_video = video.to(self.device, torch.float32)
-            self.base_model = _resolved_model(self.base_model) if self.base_source == "rife" else None
-            self.base_source += HDV3_SUFFIX if self.base_model == "hdv3" else ""
+                video = bin_space(video, H, W)
+            self.video = video.to(self.device, torch.float32)
+            self.model = _resolved_model(self.model) if self.source == "rife" else None
+            self.source += HDV3_SUFFIX if self.model == "hdv3" else ""
             if why:
                 self.substitutes.append(("RIFE base video", f"optical-flow interpolation used instead ({why})"))
             return
-        self.base_source = "blend"
-        self.base_keys = keys.reshape(1, -1, self.H, self.W).to(self.device, torch.float32)
-        times = torch.as_tensor(self._gs_centre_frames(), device=self.device).float()
-        self.base_weights = self._blend_weights(times)
+        self.source = "blend"
+        self.keys = keys.reshape(1, -1, H, W).to(self.device, torch.float32)
+        times = torch.as_tensor(grid.gs_centre_frames(), device=self.device).float()
+        self.weights = grid.blend_weights(times)
 
-    def _build_key_warps(self, keys: Tensor, kind: str, source: Tensor) -> bool:
+    @property
+    def key_warps(self) -> bool:
+        """Whether the base is the key frames warped by flows (which the motion field corrects)."""
+        return self.source in ("keys_rife", "keys_rife_hdv3", "keys_interp")
+
+    def _build_key_warps(self, problem, keys: Tensor, kind: str, source: Tensor) -> bool:
         """Per frame, the flows to its two key frames and their blend weights, from RIFE's midpoint
         flows ("keys_rife"; "keys" when RIFE is installed) or DIS optical-flow interpolation
         ("keys_interp"), that the motion and dynamic fields correct; computed on the key frames
@@ -63,12 +73,12 @@ class BaseVideos:
 
         if min(source.shape[-2:]) < MIN_FLOW_SIZE_PX:  # as _base_video: no flow of either kind that small
             return False
-        args = (source.detach().float().cpu().numpy(), self.problem.gs_times_s, self.problem.frame_times_s)
+        args = (source.detach().float().cpu().numpy(), problem.gs_times_s, problem.frame_times_s)
         warps = None
         if kind != "keys_interp" and keys.shape[0] in (1, 3):
             try:
                 with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
-                    warps, name = rife_warps(*args, model=self.base_model,
+                    warps, name = rife_warps(*args, model=self.model,
                                              device=_network_device(self.device)), "keys_rife"
             except (RifeUnavailableError, BaselineInputError) as exc:
                 if kind == "keys_rife":
@@ -79,9 +89,9 @@ class BaseVideos:
                 warps, name = interp_warps(*args), "keys_interp"
         except BaselineInputError:
             return False
-        self.base_model = _resolved_model(self.base_model) if name == "keys_rife" else None
-        name += HDV3_SUFFIX if self.base_model == "hdv3" else ""
-        order = np.argsort(self.problem.gs_times_s, kind="stable")  # the warps' keys are sorted by time
+        self.model = _resolved_model(self.model) if name == "keys_rife" else None
+        name += HDV3_SUFFIX if self.model == "hdv3" else ""
+        order = np.argsort(problem.gs_times_s, kind="stable")  # the warps' keys are sorted by time
         self.key_images = keys[:, order].permute(1, 0, 2, 3).to(self.device, torch.float32).contiguous()  # (G, C, H, W)
         self.key_left = torch.from_numpy(warps.left).to(self.device)
         flows = torch.from_numpy(np.concatenate([warps.flow0, warps.flow1], axis=-1))
@@ -89,14 +99,43 @@ class BaseVideos:
         px = torch.tensor([(w - 1) / 2, (h - 1) / 2]).clamp_min(0.5).repeat(2)  # the source grid's pixels
         flows, w0 = flows / px, torch.from_numpy(warps.weight0)  # coordinate units: the same on every grid
         if source is not keys:
-            flows = bin_space(flows.permute(0, 3, 1, 2), self.H, self.W).permute(0, 2, 3, 1)
-            w0 = bin_space(w0, self.H, self.W)
+            flows = bin_space(flows.permute(0, 3, 1, 2), self.grid.H, self.grid.W).permute(0, 2, 3, 1)
+            w0 = bin_space(w0, self.grid.H, self.grid.W)
         self.key_flow = flows.to(self.device, torch.float32).contiguous()  # (K, H, W, 4)
         w0 = w0.to(self.device, torch.float32).clamp(1e-6, 1 - 1e-6)
         self.key_logit = torch.log(w0) - torch.log1p(-w0)
-        self.base_source = name
+        self.source = name
         return True
 
+    def keys_at(self, u: Tensor, blend_logit: Tensor, idx: Tensor) -> Tensor:
+        """Base "keys": the two key frames around each frame idx warped by the interpolation's
+        flows plus u (n, H, W, 4) and blended with its weights plus blend_logit (n, H, W)."""
+        flow = self.key_flow.index_select(0, idx) + u
+        left = self.key_left.index_select(0, idx)
+        gx, gy = self.grid.xs.view(1, 1, -1), self.grid.ys.view(1, -1, 1)
+
+        def warped(keys, f):
+            grid = torch.stack([gx + f[..., 0], gy + f[..., 1]], dim=-1)
+            return F.grid_sample(keys, grid, mode="bilinear", padding_mode="border", align_corners=True)
+
+        w0 = warped(self.key_images.index_select(0, left), flow[..., :2])
+        w1 = warped(self.key_images.index_select(0, left + 1), flow[..., 2:])
+        m = torch.sigmoid(self.key_logit.index_select(0, idx) + blend_logit)[:, None]
+        return (m * w0 + (1 - m) * w1).permute(1, 0, 2, 3)
+
+    def at(self, x: Tensor, y: Tensor, idx: Tensor) -> Tensor:
+        """The base video (C, n, H, W) of frames idx sampled at the points (x, y) (n, H, W)."""
+        n, C, H, W = len(idx), self.grid.C, self.grid.H, self.grid.W
+        if self.video is not None:
+            grid = torch.stack([x, y], dim=-1)  # (n, H, W, 2)
+            frames = self.video.index_select(1, idx).permute(1, 0, 2, 3).to(grid.dtype)  # (n, C, H, W)
+            out = F.grid_sample(frames, grid, mode="bilinear", padding_mode="border", align_corners=True)
+            out = out.permute(1, 0, 2, 3)
+            return out if self.gains is None else out / self.gains[:, None, None, None]
+        grid = torch.stack([x, y], dim=-1).reshape(1, n * H, W, 2)
+        keys = F.grid_sample(self.keys, grid, mode="bilinear", padding_mode="border",
+                             align_corners=True).view(C, -1, n, H, W)
+        return torch.einsum("cgnhw,ng->cnhw", keys, self.weights[idx])
 
 
 def _rife_model_of(kind: str) -> tuple[str, str | None]:

@@ -41,7 +41,7 @@ def make_fit(problem, settings: STFMSettings, device, initial_video: Tensor | No
     first = STFM(problem, replace(settings, dynamic_base=names[0]), device, state=state)
     if len(names) == 1:  # one base, fitted `fits` times from consecutive seeds
         return STFMEnsemble(first.problem, settings, names * fits, device, first=first, clock=clock)
-    if first.base_source is None:  # no dynamic base applies (no GS frames, no motion, ...): one fit
+    if first.base.source is None:  # no dynamic base applies (no GS frames, no motion, ...): one fit
         return first
     # first.problem is float32 on the device: the other fits share its tensors instead of casting again
     return STFMEnsemble(first.problem, settings, names, device, first=first)

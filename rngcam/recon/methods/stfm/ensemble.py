@@ -11,10 +11,11 @@ import torch
 from torch import Tensor
 
 from rngcam.recon.loop import MethodBase
+from rngcam.recon.methods.stfm.grid import chunks
 from rngcam.recon.methods.stfm.lanes import Lanes, lane_count
+from rngcam.recon.methods.stfm.learned import geometry_report
 from rngcam.recon.methods.stfm.line_time import line_time_report
-from rngcam.recon.methods.stfm.method import STFM, add_learned, geometry_report, learned_notes
-from rngcam.recon.methods.stfm.model import _chunks
+from rngcam.recon.methods.stfm.method import STFM, add_learned, learned_notes
 from rngcam.recon.methods.stfm.run_state import RunState
 from rngcam.recon.methods.stfm.settings import (
     REFINE_LR_RATIO,
@@ -70,9 +71,9 @@ class STFMEnsemble(MethodBase):
                 member = STFM(problem, replace(settings, dynamic_base=base, seed=settings.seed + i), device,
                               static_from=self.members[0] if self.members and not again else None,
                               state=self.members[0].state if self.members else first_state)
-            if (member.base_source, again) in sources:  # e.g. "keys" falls back to DIS flows without RIFE
+            if (member.base.source, again) in sources:  # e.g. "keys" falls back to DIS flows without RIFE
                 continue
-            sources.add((member.base_source, again))
+            sources.add((member.base.source, again))
             self.members.append(member)
         self.device = self.members[0].device
         self.steps = 0
@@ -135,7 +136,7 @@ class STFMEnsemble(MethodBase):
         if self._timed is None:
             self._timed = (time.perf_counter(), steps)
             return
-        least = first.least_steps()
+        least = first.stop.least_steps()
         if first.steps % AFFORD_CHECK_STEPS or first.steps >= least:
             return
         pace = (time.perf_counter() - self._timed[0]) / max(1, steps - self._timed[1])  # seconds a member step
@@ -159,10 +160,10 @@ class STFMEnsemble(MethodBase):
         settings = replace(self.settings, dynamic_base="video", seed=self.settings.seed + len(self.members), lr=lr,
                            stall_passes=self.settings.stall_passes or REFINE_STALL_PASSES)
         self.refined = STFM(self.problem, settings, self.device, static_from=first, base_video=base, state=first.state)
-        if pose is not None and self.refined.learn_pose:  # the members' transform, refined further
+        if pose is not None and self.refined.learned_pose.learned:  # the members' transform, refined further
             self.refined.start_pose(pose)
         factor = self._mean_line_factor()
-        if factor is not None and self.refined.learn_line:
+        if factor is not None and self.refined.learned_line_time.learned:
             self.refined.start_line_factor(factor)
 
     def converged(self) -> str | None:
@@ -183,9 +184,9 @@ class STFMEnsemble(MethodBase):
         m0 = self.members[0]
         video = torch.zeros(m0.C, m0.K, m0.H, m0.W, device=self.device)
         for member in self.members:
-            with member._averaged():
-                for idx in _chunks(torch.arange(m0.K, device=self.device), m0.frame_chunk):
-                    video[:, idx] += member._video_frames(idx, native)
+            with member.averaged():
+                for idx in chunks(torch.arange(m0.K, device=self.device), m0.frame_chunk):
+                    video[:, idx] += member.model.video_frames(idx, native)
         return video / len(self.members)
 
     @torch.no_grad()
@@ -219,11 +220,12 @@ class STFMEnsemble(MethodBase):
         return self.refined.line_factor() if self.refined is not None else self._mean_line_factor()
 
     def line_time_report(self) -> dict | None:
-        return line_time_report(self.members[0].rs_timing, self.line_factor(), self.members[0].state.line_time_from)
+        first = self.members[0]
+        return line_time_report(first.learned_line_time.timing, self.line_factor(), first.state.line_time_from)
 
     def learned_geometry(self) -> dict | None:
         m0 = self.members[0]
-        return geometry_report(self.pose(), m0.pose_radius, m0.state.selfcal_report)
+        return geometry_report(self.pose(), m0.learned_pose.radius, m0.state.selfcal_report)
 
     @torch.no_grad()
     def residuals(self) -> dict[str, float]:
@@ -280,7 +282,7 @@ class STFMEnsemble(MethodBase):
     def resolved_settings(self) -> dict:
         out = self.members[0].resolved_settings()
         out["dynamic_base"] = ",".join(m.resolved.dynamic_base for m in self.members)
-        out["base_video"] = [m.base_source for m in self.members]
+        out["base_video"] = [m.base.source for m in self.members]
         out["member_steps"] = [m.steps for m in self.members]
         out["refine"] = self.use_refine
         out["refine_steps"] = None if self.refined is None else self.refined.steps
@@ -291,4 +293,4 @@ class STFMEnsemble(MethodBase):
         seeds = [m.settings.seed for m in self.members]
         fits = ([f"{len(seeds)} fits from seeds {', '.join(map(str, seeds))}, their videos averaged"]
                 if self._of_one_base and len(seeds) > 1 else [])
-        return self.members[0]._notes + fits + ([self._let_go] if self._let_go else []) + learned_notes(self)
+        return self.members[0].notes_at_build + fits + ([self._let_go] if self._let_go else []) + learned_notes(self)

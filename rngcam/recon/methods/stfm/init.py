@@ -13,24 +13,29 @@ from rngcam.recon.methods.stfm.settings import INIT_STEPS, MIN_FLOW_SIZE_PX
 
 
 class GSInit:
-    """Part of STFM: fits the fields to what the GS frames say before the main fit."""
+    """Fits a new fit's fields to what the GS frames say before the main fit (`run`)."""
 
-    # ------------------------------------------------------------------ initialisation from GS
+    def __init__(self, fit):
+        self.fit, self.model, self.grid = fit, fit.model, fit.grid
+        self.parts, self.resolved, self.settings = fit.parts, fit.resolved, fit.settings
+        self.fields, self.K, self.H, self.W, self.C = fit.model.fields, fit.K, fit.H, fit.W, fit.C
+        self.device, self.xs, self.ys = fit.device, fit.grid.xs, fit.grid.ys
 
-    def _init_from_gs(self, steps: int = INIT_STEPS) -> None:
-        """Fit the fields to what the GS frames say before the main fit (see module docstring).
+    def run(self, steps: int = INIT_STEPS) -> None:
+        """Fit the fields to what the GS frames say before the main fit.
 
         Static field: the per-pixel median of the key frames (the background). Alpha: one where
         every key frame agrees with that background. With a time-dependent dynamic field, its
         colour is fitted to the cross-fade of the key frames (the fit starts at the blend
         baseline); otherwise to the key frame nearest the middle, and the motion field to DIS
         optical flow between that frame and the others, linearly interpolated in time."""
-        v = self.problem.gs_images(gains=True).float()  # (C, G, H, W): Lambda b_G / exposure
+        v = self.fit.problem.gs_images(gains=True).float()  # (C, G, H, W): Lambda b_G / exposure
         background = v.median(dim=1).values
-        times = torch.as_tensor(self._gs_centre_frames(), device=self.device).float()
+        times = torch.as_tensor(self.grid.gs_centre_frames(), device=self.device).float()
         middle = int(torch.argmin((times - (self.K - 1) / 2).abs()))
-        if self.parts.static and self._static_from is not None and "static" in self._static_from.fields:
-            self.fields["static"].load_state_dict(self._static_from.fields["static"].state_dict())
+        static_from = self.fit.static_from
+        if self.parts.static and static_from is not None and "static" in static_from.model.fields:
+            self.fields["static"].load_state_dict(static_from.model.fields["static"].state_dict())
         elif self.parts.static:
             _fit_image(self.fields["static"], self.xs, self.ys, background, steps)
         if not self.parts.motion:
@@ -58,45 +63,28 @@ class GSInit:
         obj = (change / (0.1 * float(background.mean()) + 1e-6)).clamp(0, 1)  # 1 on the moving object
         alpha = 1 - obj if self.parts.static else None
         _fit_image(self.fields["dynamic"], self.xs, self.ys, layer, steps, alpha)
-        row_gains = self.state.row_gain_search
+        row_gains = self.fit.state.row_gain_search
         if row_gains:
-            self._notes.append("motion search: each RS row scored after its own gain")
-        if self.state.search_turn_scale != 1:
-            self._notes.append(f"motion search: turn penalty x{self.state.search_turn_scale:g}")
-        track = translation_track(self, background, layer, obj, row_gains=row_gains).to(self.device)  # (K, 2) px
-        self.motion_track_px = track
+            self.fit.notes_at_build.append("motion search: each RS row scored after its own gain")
+        if self.fit.state.search_turn_scale != 1:
+            self.fit.notes_at_build.append(f"motion search: turn penalty x{self.fit.state.search_turn_scale:g}")
+        track = translation_track(self.fit, background, layer, obj, row_gains=row_gains).to(self.device)  # (K, 2) px
+        self.fit.motion_track_px = track
         # The dynamic field is sampled at x + u: a layer moved by d has u = -d (coordinate units).
-        target = (-track / self.px_per_unit)[:, None, None, :].expand(self.K, self.H, self.W, 2)
+        target = (-track / self.grid.px_per_unit)[:, None, None, :].expand(self.K, self.H, self.W, 2)
         self._fit_motion_to(target, 3 * steps, frames_per_step=8)  # a track that turns round: more steps
 
-    def _blend_weights(self, times: Tensor) -> Tensor:
-        """(K, G) cross-fade weights of the key frames (centres `times`, in frames) per frame."""
-        order = torch.argsort(times)
-        t = times[order]
-        k = torch.arange(self.K, device=self.device, dtype=torch.float32)
-        weights = torch.zeros(self.K, len(t), device=self.device)
-        if len(t) == 1:
-            weights[:, 0] = 1
-        else:
-            right = torch.searchsorted(t, k).clamp(1, len(t) - 1)
-            left = right - 1
-            a = ((k - t[left]) / (t[right] - t[left]).clamp_min(1e-6)).clamp(0, 1)
-            rows = torch.arange(self.K, device=self.device)
-            weights[rows, order[left]] = 1 - a
-            weights[rows, order[right]] += a
-        return weights
-
     def _fit_dynamic_to_blend(self, v: Tensor, times: Tensor, alpha: Tensor | None, steps: int) -> None:
-        weights = self._blend_weights(times)  # (K, G)
+        weights = self.grid.blend_weights(times)  # (K, G)
         field = self.fields["dynamic"]
         opt = torch.optim.Adam(field.parameters(), lr=2e-2)
         gen = torch.Generator(device="cpu").manual_seed(self.settings.seed + 2)
         for _ in range(steps):
             idx = torch.randperm(self.K, generator=gen)[:4].to(self.device)
             opt.zero_grad()
-            raw = field_on_grid(field, [self.xs, self.ys, self.ts], idx).permute(3, 0, 1, 2)
-            if self.base_source is not None:  # the colour is already the base video: keep it
-                loss = raw[self._correction_channels()].square().mean()
+            raw = field_on_grid(field, [self.xs, self.ys, self.grid.ts], idx).permute(3, 0, 1, 2)
+            if self.model.base.source is not None:  # the colour is already the base video: keep it
+                loss = raw[self.model.correction_channels()].square().mean()
             else:
                 target = torch.einsum("kg,cghw->ckhw", weights[idx], v)
                 loss = (F.softplus(raw[:self.C]) - target).square().mean()
@@ -104,12 +92,6 @@ class GSInit:
                 loss = loss + 0.1 * (torch.sigmoid(raw[self.C]) - alpha).square().mean()
             loss.backward()
             opt.step()
-
-    def _gs_centre_frames(self) -> np.ndarray:
-        """Fractional frame index of each GS exposure's centre of mass."""
-        w = self.w_gs.double().cpu()
-        k = torch.arange(self.K, dtype=torch.float64) + 0.5
-        return ((w * k).sum(1) / w.sum(1).clamp_min(1e-12) - 0.5).numpy()
 
     def _key_flows(self, v: Tensor, middle: int) -> Tensor:
         """(G, H, W, 2) displacement (coordinate units) with frame_g(x) ~ frame_middle(x + u)."""
@@ -127,14 +109,14 @@ class GSInit:
                     f = dis.calc(grey[i], grey[middle], None)
                 except cv2.error:  # DIS refuses some tiny images: start without motion
                     return flows.zero_()
-                flows[i] = torch.from_numpy(f).to(self.device) / self.px_per_unit
+                flows[i] = torch.from_numpy(f).to(self.device) / self.grid.px_per_unit
         return flows
 
     def _fit_motion(self, flows: Tensor, times: Tensor, steps: int) -> None:
         """Fit the motion field to the key-frame flows, linearly interpolated in time."""
         if float(flows.abs().max()) == 0:
             return
-        self._fit_motion_to(torch.einsum("kg,ghwc->khwc", self._blend_weights(times), flows), steps)
+        self._fit_motion_to(torch.einsum("kg,ghwc->khwc", self.grid.blend_weights(times), flows), steps)
 
     def _fit_motion_to(self, target: Tensor, steps: int, frames_per_step: int = 4) -> None:
         """Fit the motion field to a displacement (K, H, W, 2) in coordinate units."""
@@ -144,7 +126,7 @@ class GSInit:
         for _ in range(steps):
             idx = torch.randperm(self.K, generator=gen)[:frames_per_step].to(self.device)
             opt.zero_grad()
-            loss = (self._motion(idx) - target[idx]).square().mean()
+            loss = (self.model.motion(idx) - target[idx]).square().mean()
             loss.backward()
             opt.step()
 

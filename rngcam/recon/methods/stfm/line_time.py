@@ -13,7 +13,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from rngcam.recon.methods.stfm.model import _to_device
+from rngcam.recon.methods.stfm.grid import to_device
+from rngcam.recon.methods.stfm.learned import Learned, held_schedule
 
 # A learned factor further than this from 1 says the recorded line time is off: above what the fit
 # wanders on exact timing (bench/realistic.md, "the prior preset fits half-frames")
@@ -30,74 +31,74 @@ def learns_line_time(settings) -> bool:
     return mode == "on" or (mode == "auto" and settings.preset == "prior")
 
 
-class LineTime:
-    """Part of STFM: the line-time factor (`learn_line_time`)."""
+class LineTime(Learned):
+    """The RS line-time factor f (`learn_line_time`) as the last row's displacement in the output's
+    frames, (f - 1) x the readout span (a fit on subframes learns it at the same rate in time). It
+    enters the model through the sampled rows' stretched weights (`row_weights`, differentiable) and,
+    for full evaluations, the RS operator rebuilt at the factor (`sync`). Prior: the recorded line
+    time, held while a search-started fit's fields settle (FitConfig)."""
 
-    def _build_line_time(self) -> None:
-        """The parameter: the last row's displacement in the output's frames, (f - 1) x the readout span
-        (a fit on subframes learns it at the same rate in time)."""
-        timing = self.problem.rs_timing
-        self.rs_timing = timing
+    name = "line_time"
+
+    def __init__(self, problem, device):
+        self.problem, self.device = problem, device
+        self.timing = timing = problem.rs_timing
         span = 0.0
         if timing is not None:
-            frame_s = self.problem.grid.dt_s * self.problem.subframes
-            span = timing.readout_span_s / frame_s
+            span = timing.readout_span_s / (problem.grid.dt_s * problem.subframes)
         self.readout_frames = max(span, 1e-9)
-        self.line_shift = nn.Parameter(torch.zeros((), device=self.device))
-        self.learn_line = False
-        self._line_inherited = False  # started from another fit's line time (start_line_factor)
-        self._synced_factor = 1.0
+        self.parameter = nn.Parameter(torch.zeros((), device=device))
+        self.synced_factor = 1.0
+        self.config, self.search_hold = None, False
 
-    def _line_time_wanted(self) -> bool:
-        """`learn_line_time` resolved (auto: with the prior preset, one moving layer) where the RS
-        timing is known; auto leaving it off says why in the notes."""
-        if self.settings.learn_line_time == "auto" and not learns_line_time(self.settings):
-            self._notes.append(f"RS line time not learned (learn_line_time auto, preset {self.settings.preset}): "
-                               "without one moving layer the motion does not time the rows (smoke: 0.7 % drift "
-                               "on exact timing)")
-            return False
+    def wanted(self, settings) -> tuple[bool, str | None]:
+        """`learn_line_time` resolved (auto: with the prior preset, one moving layer) where the RS timing
+        is known, and the note auto leaving it off makes (None: no note)."""
+        if settings.learn_line_time == "auto" and not learns_line_time(settings):
+            return False, (f"RS line time not learned (learn_line_time auto, preset {settings.preset}): "
+                           "without one moving layer the motion does not time the rows (smoke: 0.7 % drift "
+                           "on exact timing)")
         # a readout shorter than a frame: no factor moves a row's window by a measurable share
-        return learns_line_time(self.settings) and self.rs_timing is not None and self.readout_frames >= 1
+        return learns_line_time(settings) and self.timing is not None and self.readout_frames >= 1, None
 
-    def _line_factor_tensor(self) -> Tensor:
-        change = (self.line_shift.double() / self.readout_frames).clamp(-MAX_LINE_CHANGE, MAX_LINE_CHANGE)
+    def enable(self, learned: bool, config, search_hold: bool) -> None:
+        """Learn the factor (`learned`) on the fit stage's schedule `config` (FitConfig), held at first
+        where `search_hold` (a fit whose motion starts from the translation search)."""
+        self.learned, self.config, self.search_hold = learned, config, search_hold
+
+    def schedule(self, pose_inherited: bool = False) -> dict:
+        """Held while a search-started fit's fields settle, then stepped faster (the fields' step has
+        decayed meanwhile); neither in a fit started from another (its fields or its line time)."""
+        inherited = pose_inherited or self.inherited
+        hold = self.config.line_hold_steps_search if self.search_hold and not inherited else 0
+        return held_schedule(hold, self.config.line_lr_ratio, self.config.line_lr_after_hold)
+
+    def factor_tensor(self) -> Tensor:
+        change = (self.parameter.double() / self.readout_frames).clamp(-MAX_LINE_CHANGE, MAX_LINE_CHANGE)
         return 1 + change
 
-    def line_factor(self) -> float | None:
-        """The learned line-time factor (averaged weights), None where the fit does not learn it."""
-        if not self.learn_line:
-            return None
-        with self._averaged():
-            return float(self._line_factor_tensor().detach())
-
-    def _row_weights(self, rows: Tensor) -> Tensor | None:
+    def row_weights(self, rows: Tensor) -> Tensor | None:
         """(R, K) weights of rows `rows` at the current factor, with its gradient (None: not learned)."""
-        if not self.learn_line:
+        if not self.learned:
             return None
-        rows = _to_device(rows, self.device)
-        return self.rs_timing.stretched_weights(self.problem.grid, rows, self._line_factor_tensor()).float()
+        rows = to_device(rows, self.device)
+        return self.timing.stretched_weights(self.problem.grid, rows, self.factor_tensor()).float()
 
-    def start_line_factor(self, factor: float) -> None:
-        """Start the learned factor (and its moving average) at `factor` (another fit's), and learn
-        it from the next step on (no hold)."""
-        self._start_param(self.line_shift, torch.tensor((factor - 1) * self.readout_frames))
-        self._line_inherited = True
-        self._update_group(self.line_shift, **self._line_schedule())
+    def start_value(self, factor: float) -> Tensor:
+        """The parameter's value at line-time factor `factor`."""
+        return torch.tensor((factor - 1) * self.readout_frames)
 
     @torch.no_grad()
-    def _sync_rs_op(self, factor: float | None = None) -> None:
-        """Rebuild the RS operator at `factor` (default: the averaged learned one) where it moved,
-        before full evaluations (the stop test, residuals)."""
-        factor = self.line_factor() if factor is None else factor
-        if factor is None or abs(factor - self._synced_factor) < 1e-7 or self.rs_timing is None:
+    def sync(self, grid, factor: float | None) -> None:
+        """Rebuild `grid`'s RS weights and operator at `factor` where it moved, before full evaluations
+        (the stop test, residuals)."""
+        if factor is None or abs(factor - self.synced_factor) < 1e-7 or self.timing is None:
             return
-        self.w_rs_host = self.problem.rs_weights_at(factor).to("cpu", torch.float32)
-        self.w_rs = self.w_rs_host.to(self.device)
-        self.rs_op = self.rs_op.with_weights(self.w_rs)
-        self._synced_factor = factor
+        grid.set_rs_weights(self.problem.rs_weights_at(factor))
+        self.synced_factor = factor
 
-    def line_time_report(self) -> dict | None:
-        return line_time_report(self.rs_timing, self.line_factor(), self.state.line_time_from)
+    def report(self, factor: float | None, start: float = 1.0) -> dict | None:
+        return line_time_report(self.timing, factor, start)
 
 
 def line_time_report(timing, factor: float | None, start: float = 1.0) -> dict | None:

@@ -83,17 +83,17 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
     sub = p.subframes
     cost = torch.zeros(k // sub, n, device=dev)
     if stfm.parts.rs:
-        rows = stfm.rs_rows_fit.to(dev)
-        w = stfm.w_rs.index_select(0, rows)  # (R, K)
+        rows = stfm.grid.rs_rows_fit.to(dev)
+        w = stfm.grid.w_rs.index_select(0, rows)  # (R, K)
         s_r = w.sum(1).clamp_min(1e-12)
-        valid = None if stfm.rs_valid is None else stfm.rs_valid.index_select(1, rows)
+        valid = None if stfm.grid.rs_valid is None else stfm.grid.rs_valid.index_select(1, rows)
         target = p.b_rs.index_select(1, rows) * (1 if valid is None else valid)
         target_sq = target.square().sum(-1)[:, None] if row_gains else None  # (C, 1, R)
         rs_cost = torch.zeros(len(rows), n, device=dev)
         for i in range(0, n, SEARCH_CHUNK):
             frames = shifted_frames(background, layer, obj, shifts[i:i + SEARCH_CHUNK])
             # The frame held over a row's whole exposure: the row sees s_r times its convolution.
-            conv = stfm.rs_op.conv.A(frames.permute(1, 0, 2, 3)).index_select(2, rows)  # (C, n, R, W)
+            conv = stfm.grid.rs_op.conv.A(frames.permute(1, 0, 2, 3)).index_select(2, rows)  # (C, n, R, W)
             pred = conv * s_r[None, None, :, None] * (1 if valid is None else valid[:, None])
             if row_gains:  # ||b - a pred||^2 at the best a >= 0
                 dot = (pred * target[:, None]).sum(-1).clamp_min(0)
@@ -108,12 +108,12 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
         for i in range(0, n, SEARCH_CHUNK):
             frames = shifted_frames(background, layer, obj, shifts[i:i + SEARCH_CHUNK])  # (n, C, H, W)
             miss = frames[None] - keys.permute(1, 0, 2, 3)[:, None]
-            if stfm.mask is not None:
-                miss = miss * stfm.mask
+            if stfm.grid.mask is not None:
+                miss = miss * stfm.grid.mask
             g_cost[:, i:i + SEARCH_CHUNK] = miss.square().sum((2, 3, 4))
         # Charged to the exposure's centre only: charged to every frame it touches (as the RS rows'
         # misfits are) it held the layer still there, 5-10 px off (bench/stfm_motion.md).
-        centres = (np.asarray(stfm._gs_centre_frames(), float) + 0.5) / sub - 0.5  # in the output's frames
+        centres = (np.asarray(stfm.grid.gs_centre_frames(), float) + 0.5) / sub - 0.5  # in the output's frames
         cost += _normalised(centre_weights(centres, k // sub).to(dev).t() @ g_cost)
     size = max(stfm.H, stfm.W)  # the turn penalty and speed limit scale with the image: in grid steps
     turn = SEARCH_TURN * stfm.state.search_turn_scale * step * 64 / size  # scaled in track_refit's run

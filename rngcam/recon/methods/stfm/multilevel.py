@@ -127,10 +127,10 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
             del coarse
         if with_base and carry == "fields":
             coarse = _fit_of(previous[-1])
-            base = upsample(coarse.base_video.float(), level.shape, level.shape[1] / coarse.K)
+            base = upsample(coarse.base.video.float(), level.shape, level.shape[1] / coarse.K)
             method = STFM(level, replace(single_settings, dynamic_base="video", dynamic_time=True,
                                          lr=_lr(single_settings, level)), device, base_video=base,
-                          base_gains=coarse.base_gains, fields_from=coarse, rs_norm_start=start)
+                          base_gains=coarse.base.gains, fields_from=coarse, rs_norm_start=start)
         elif with_base:
             coarse_shape, state = _fit_of(previous[-1]).problem.shape, _fit_of(previous[-1]).state
             previous.clear()  # the coarser fit is not needed any more: free it before building
@@ -142,7 +142,7 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
             if detail:
                 x0 = _with_detail(level, x0, coarse_shape)
             method = _on_base(level, single_settings, device, x0, start, refinement=detail, state=state)
-            if pose is not None and method.learn_pose:  # (fields_from carries it in the other two ways)
+            if pose is not None and method.learned_pose.learned:  # (fields_from carries it in the other two ways)
                 method.start_pose(pose * ratio)
         else:
             method = _from_fields(level, single_settings, device, _fit_of(previous[-1]), start)

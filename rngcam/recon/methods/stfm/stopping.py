@@ -15,7 +15,12 @@ from rngcam.recon.metrics import relative_residual
 
 
 class NoiseStop:
-    """Part of STFM: when to stop a fit (fast preset, `stop_at_noise`)."""
+    """When a fit stops (`stop_at_noise`): the discrepancy principle and the stall test on its RS residual,
+    whose recent values (`history`, step -> relative RS residual) it keeps."""
+
+    def __init__(self, fit):
+        self.fit = fit
+        self.history: dict[int, float] = {}
 
     @torch.no_grad()
     def converged(self) -> str | None:
@@ -25,34 +30,37 @@ class NoiseStop:
         stall test: once the residual fell by less than `stall_drop` over the last `stall_passes`
         passes over the rows, further steps buy little residual with structure the data do not
         demand (on the benchmark clips the truth-PSNR peaked there, then fell)."""
-        if not (self.resolved.stop_at_noise and self.parts.rs and self.steps % self.check_every() == 0):
+        fit = self.fit
+        if not (fit.resolved.stop_at_noise and fit.parts.rs and fit.steps % self.check_every() == 0):
             return None
-        self._sync_rs_op()
-        rows = self.rs_rows_fit.to(self.device)
-        video = self.estimate()  # cached per step: a log at this step reuses it
-        pred = self._rs_apply(lambda idx: video[:, idx], rows)
-        target = self.problem.b_rs.index_select(1, rows)
-        if self.rs_valid is not None:  # saturated pixels say nothing
-            valid = self.rs_valid.index_select(1, rows)
+        fit.sync_line_time()
+        grid = fit.grid
+        rows = grid.rs_rows_fit.to(grid.device)
+        video = fit.estimate()  # cached per step: a log at this step reuses it
+        pred = fit.loss.rs_apply(lambda idx: video[:, idx], rows)
+        target = fit.problem.b_rs.index_select(1, rows)
+        if grid.rs_valid is not None:  # saturated pixels say nothing
+            valid = grid.rs_valid.index_select(1, rows)
             pred, target = pred * valid, target * valid
         residual = relative_residual(pred, target)
-        window = self._stall_window()
-        self._rs_history = {s: r for s, r in self._rs_history.items() if s >= self.steps - window}
-        self._rs_history[self.steps] = residual  # only the last window is kept (and checkpointed)
-        if self.steps < self._stop_from(window, residual):
+        window = self.stall_window()
+        steps, noise = fit.steps, fit.rs_noise_level
+        self.history = {s: r for s, r in self.history.items() if s >= steps - window}
+        self.history[steps] = residual  # only the last window is kept (and checkpointed)
+        if steps < self._stop_from(window, residual):
             return None
-        if residual <= self.rs_noise_level:
+        if residual <= noise:
             return (f"RS residual {residual:.4f} reached the noise level estimated from the RS image "
-                    f"({self.rs_noise_level:.4f}): more steps would fit noise")
-        then = self.steps - window
-        drop = self.resolved.stall_drop
-        if drop > 0 and then in self._rs_history and residual > (1 - drop) * self._rs_history[then]:
-            passes = self.resolved.stall_passes
-            over = residual / self.rs_noise_level if self.rs_noise_level else float("inf")
+                    f"({noise:.4f}): more steps would fit noise")
+        then = steps - window
+        drop = fit.resolved.stall_drop
+        if drop > 0 and then in self.history and residual > (1 - drop) * self.history[then]:
+            passes = fit.resolved.stall_passes
+            over = residual / noise if noise else float("inf")
             unexplained = f", more than the {EXPLAINED_RATIO}x a fit that explains the data ends at" \
                 if over >= EXPLAINED_RATIO else ""
             return (f"RS residual {residual:.4f} fell less than {100 * drop:g}% in {passes} passes over the "
-                    f"rows (from {self._rs_history[then]:.4f}; noise level {self.rs_noise_level:.4f}: stopped at "
+                    f"rows (from {self.history[then]:.4f}; noise level {noise:.4f}: stopped at "
                     f"{over:.2f}x it{unexplained})")
         return None
 
@@ -60,11 +68,12 @@ class NoiseStop:
         """A log row scores the video the stop test makes every `check_every()` steps: at those
         steps it is made once for both (a row elsewhere would make it again; bench/convergence.md,
         "the rows ride on the stop test")."""
-        return not (self.resolved.stop_at_noise and self.parts.rs) or self.steps % self.check_every() == 0
+        fit = self.fit
+        return not (fit.resolved.stop_at_noise and fit.parts.rs) or fit.steps % self.check_every() == 0
 
     def check_every(self) -> int:
         """Steps between this fit's stop tests (`check_interval` of its frames)."""
-        return check_interval(self.K)
+        return check_interval(self.fit.K)
 
     def _stop_from(self, window: int, residual: float) -> int:
         """The first step either test may stop the fit at this RS `residual`. Where the learned line time
@@ -77,11 +86,13 @@ class NoiseStop:
         flat at the noise level long before its video settles (bench/realistic.md, "a search-started fit
         runs four half-lives of its step"). One that stalls unexplained stops as before, for the stages that
         fit again from it."""
-        holds = [g.get("hold_steps", 0) for g in self.optimiser.param_groups
-                 if self.learn_line and g["params"][0] is self.line_shift]
+        fit = self.fit
+        line = fit.learned_line_time
+        holds = [g.get("hold_steps", 0) for g in fit.optimiser.param_groups
+                 if line.learned and g["params"][0] is line.parameter]
         hold = max(holds, default=0)
-        start = hold + window if hold > 0 and residual <= self.rs_noise_level else 0
-        if residual < EXPLAINED_RATIO * self.rs_noise_level:
+        start = hold + window if hold > 0 and residual <= fit.rs_noise_level else 0
+        if residual < EXPLAINED_RATIO * fit.rs_noise_level:
             start = max(start, self.least_steps())
         return start
 
@@ -89,13 +100,15 @@ class NoiseStop:
         """The steps this fit runs before its stop tests may end it while its data are explained:
         `search_fit_half_lives` (the fit stage's config) half-lives of its step for a fit whose motion
         starts from the translation search, else none (0)."""
-        half = self.resolved.lr_half_life_steps
-        lives = self.fit_config.search_fit_half_lives
-        return math.ceil(lives * half) if self._search_started() and math.isfinite(half) else 0
+        fit = self.fit
+        half = fit.resolved.lr_half_life_steps
+        lives = fit.fit_config.search_fit_half_lives
+        return math.ceil(lives * half) if fit.search_started() and math.isfinite(half) else 0
 
-    def _stall_window(self) -> int:
+    def stall_window(self) -> int:
         """`stall_passes` passes over the fitted rows, in steps (a multiple of `check_every()`)."""
-        steps = self.resolved.stall_passes * len(self.rs_rows_fit) / self.resolved.rows_per_step
+        fit = self.fit
+        steps = fit.resolved.stall_passes * len(fit.grid.rs_rows_fit) / fit.resolved.rows_per_step
         every = self.check_every()
         return every * max(1, math.ceil(steps / every))
 
