@@ -41,7 +41,7 @@ def learned_motion_px(fit) -> np.ndarray:
 def without_motion(fit) -> torch.Tensor:
     """The fit's video with its motion field replaced by zero."""
     width = 4 if fit._key_warps else 2
-    fit._motion = lambda idx: torch.zeros(len(idx), fit.H, fit.W, width, device=fit.device)
+    fit.model.motion = lambda idx: torch.zeros(len(idx), fit.H, fit.W, width, device=fit.device)
     fit._cache = None
     return fit.estimate().detach()
 

@@ -133,7 +133,7 @@ def test_stochastic_loss_is_unbiased():
     m = make_stfm(p, small_settings(rows_per_step=3, tv_frames_per_step=1, tau=0.05, beta=3.0))
     for _ in range(3):  # move away from the initialisation so every term is non-trivial
         m.step()
-    full = m.full_objective()
+    full = m.loss.full_objective()
     assert full["rs"] > 0 and full["gs"] > 0 and full["tv"] > 0
     with torch.no_grad():
         rs = [m.loss.loss_terms((s + torch.arange(3)) % 10, None)["rs"] for s in range(10)]
@@ -184,7 +184,7 @@ def test_a_translated_canonical_image_is_decoded_once_per_video(sineball16, monk
         m.step()
     decodes = []
     original = m.model.canonical
-    monkeypatch.setattr(m, "_canonical", lambda *a, **k: decodes.append(1) or original(*a, **k))
+    monkeypatch.setattr(m.model, "canonical", lambda *a, **k: decodes.append(1) or original(*a, **k))
     video = m.estimate()
     assert len(decodes) == 1 and m.model._canonical_now is None
     with torch.no_grad():
@@ -208,7 +208,7 @@ def test_memory_per_step_does_not_grow_with_the_frame_count():
                     w_rs, w_gs, psf, grid, gs.centres_s(), truth)
         m = make_stfm(p, small_settings(rows_per_step=4, frame_chunk=6, init="random"))
         sizes = []
-        original = m.frames
+        original = m.model.frames
 
         def counting(idx, static=None):
             out = original(idx, static)
@@ -216,7 +216,7 @@ def test_memory_per_step_does_not_grow_with_the_frame_count():
                 sizes.append(len(idx))
             return out
 
-        m.frames = counting
+        m.model.frames = counting
         for _ in range(6):
             m.step()
         return grid.n_frames, len(m.grid.gs_frames), max(sizes)
@@ -241,7 +241,7 @@ def test_held_out_measurements_are_never_fitted(sineball16):
         fitted = set(torch.nonzero(split.rs_train_rows).flatten().tolist())
         probe = make_stfm(split, small_settings(init="random"))
         assert all(set(probe.loss.sample_rows().tolist()) <= fitted for _ in range(20))
-        assert a.full_objective() == pytest.approx(b.full_objective(), rel=1e-6)
+        assert a.loss.full_objective() == pytest.approx(b.loss.full_objective(), rel=1e-6)
         for _ in range(2):
             a.step()
             b.step()
@@ -262,14 +262,14 @@ def test_saturated_pixels_are_not_fitted(sineball16):
         # No GS initialisation or GS-made base: those read the GS frames (saturated or not).
         settings = small_settings(gs_anchor=anchor, init="random", dynamic_base="none")
         a, b = make_stfm(masked, settings), make_stfm(spoiled, settings)
-        assert a.full_objective() == pytest.approx(b.full_objective(), rel=1e-6)
+        assert a.loss.full_objective() == pytest.approx(b.loss.full_objective(), rel=1e-6)
         for _ in range(2):
             a.step()
             b.step()
         assert torch.allclose(a.estimate(), b.estimate(), atol=1e-6)
         assert a.residuals() == pytest.approx(b.residuals(), rel=1e-6)
     unmasked = make_stfm(dataclasses.replace(spoiled, rs_valid=None, gs_valid=None), settings)
-    assert unmasked.full_objective()["rs"] > 10 * a.full_objective()["rs"]  # the garbage counts without masks
+    assert unmasked.loss.full_objective()["rs"] > 10 * a.loss.full_objective()["rs"]  # the garbage counts without masks
 
 
 # ----------------------------------------------------------------------------- hard anchoring, gains
@@ -580,7 +580,7 @@ def test_outputs_use_the_moving_average_and_training_keeps_its_weights(sineball1
     # other orders, so equal only to rounding (bitwise on some CPUs, not on others).
     video = raw.estimate()
     tol = _reordering_tolerance(raw, video)
-    assert raw._ema is None and float((video - raw.frames(torch.arange(raw.K)).detach()).abs().max()) <= tol
+    assert raw._ema is None and float((video - raw.model.frames(torch.arange(raw.K)).detach()).abs().max()) <= tol
     assert float((averaged - video).abs().max()) > 10 * tol  # the average is another video, beyond rounding
     with pytest.raises(ConfigError, match="ema_decay"):
         STFMSettings(ema_decay=1.0)

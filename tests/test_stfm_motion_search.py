@@ -47,9 +47,9 @@ def test_matte_l1_shrinks_the_moving_layer_to_what_the_data_need():
     p = _sineball()
     plain = make_stfm(p, STFMSettings(preset="prior", matte_l1=0.0, components="all", fits=1))
     sparse = make_stfm(p, STFMSettings(preset="prior", components="all", fits=1))  # the preset's matte_l1
-    assert sparse.resolved.matte_l1 > 0 and plain.full_objective()["matte"] == 0.0
+    assert sparse.resolved.matte_l1 > 0 and plain.loss.full_objective()["matte"] == 0.0
     start = _matte(sparse)
-    assert sparse.full_objective()["matte"] == pytest.approx(sparse.resolved.matte_l1 * start, rel=1e-4)
+    assert sparse.loss.full_objective()["matte"] == pytest.approx(sparse.resolved.matte_l1 * start, rel=1e-4)
     for _ in range(150):
         plain.step()
         sparse.step()
@@ -63,6 +63,6 @@ def test_matte_l1_is_left_out_where_there_is_no_canonical_image():
 
     p = _sineball(16, 16)
     fast = STFM(p, STFMSettings(dynamic_base="blend", matte_l1=1.0))  # time-dependent dynamic field
-    assert fast.full_objective()["matte"] == 0.0
+    assert fast.loss.full_objective()["matte"] == 0.0
     with pytest.raises(ConfigError):
         STFMSettings(matte_l1=-1.0)
