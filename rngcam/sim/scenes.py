@@ -16,6 +16,8 @@ interpolation use them (default: first, middle and last grid frame centres).
   stretched over the capture, in-between frames made by bidirectional optical-flow
   interpolation. sRGB is linearised with a plain power law, linear = (u8 / 255) ** 2.2
   (close to the sRGB curve; exactness does not matter for simulation), then area-resized.
+- MOTION_KINDS: scenes of distinct motion kinds kept apart from the three above, for judging
+  quality where nothing was tuned (rngcam.sim.motion_kinds).
 """
 
 from __future__ import annotations
@@ -32,7 +34,9 @@ from rngcam.errors import RngcamError
 from rngcam.paths import SHORT_CLIP, package_data
 from rngcam.physics.timing import VideoGrid
 
-SCENES = ("sineball", "smoke", "clip")
+MOTION_KINDS = ("enter_leave", "rotation", "occlusion", "crossing", "shake", "deform", "low_light",
+                "small_fast", "textured")  # rendered by rngcam.sim.motion_kinds
+SCENES = ("sineball", "smoke", "clip", *MOTION_KINDS)
 GAMMA = 2.2
 
 
@@ -386,9 +390,14 @@ _RENDERERS = {"sineball": render_sineball, "smoke": render_smoke, "clip": render
 
 def render_scene(name: str, grid: VideoGrid, size: Size, seed: int = 0, **opts) -> np.ndarray:
     """Render scene `name` on `grid` at `size` (N or (H, W)): (3, K, H, W) float32 in [0, 1]."""
-    if name not in _RENDERERS:
+    if name not in SCENES:
         raise SceneError(f"unknown scene {name!r} (choose from {', '.join(SCENES)})")
-    renderer = _RENDERERS[name]
+    if name in MOTION_KINDS:
+        from rngcam.sim.motion_kinds import RENDERERS  # that module builds on this one's helpers
+
+        renderer = RENDERERS[name]
+    else:
+        renderer = _RENDERERS[name]
     accepted = set(inspect.signature(renderer).parameters) - {"grid", "size", "seed"}
     unknown = sorted(set(opts) - accepted)
     if unknown:
