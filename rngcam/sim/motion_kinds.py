@@ -29,14 +29,14 @@ import cv2
 import numpy as np
 
 from rngcam.physics.timing import VideoGrid
-from rngcam.sim.scenes import Size, _check_size, _key_times, _smoothstep, _value_noise
+from rngcam.sim.scene_base import Size, check_size, key_times, smoothstep, value_noise
 
 EDGE_PX = 1.5  # soft edge of the shapes, in render pixels
 
 
 def progress(grid: VideoGrid, key_times_s: Sequence[float] | None = None) -> np.ndarray:
     """Each grid frame's centre as the capture's progress: 0 at the first key frame, 1 at the last."""
-    keys = _key_times(grid, key_times_s)
+    keys = key_times(grid, key_times_s)
     return (grid.centres_s() - keys[0]) / (keys[-1] - keys[0])
 
 
@@ -51,13 +51,13 @@ def _backdrop(rng: np.random.Generator, h: int, w: int, level: float = 1.0) -> n
     c0 = np.array([0.12, 0.18, 0.28]) + rng.uniform(-0.04, 0.04, 3)
     c1 = np.array([0.36, 0.34, 0.24]) + rng.uniform(-0.04, 0.04, 3)
     ramp = ((xx / w + yy / h) / 2)[None]
-    texture = _value_noise(rng, (h, w), cell_px=min(h, w) / 5, octaves=3)[None]
+    texture = value_noise(rng, (h, w), cell_px=min(h, w) / 5, octaves=3)[None]
     return level * (c0[:, None, None] * (1 - ramp) + c1[:, None, None] * ramp) * (0.8 + 0.4 * texture)
 
 
 def _disc(yy: np.ndarray, xx: np.ndarray, cx: float, cy: float, radius: float) -> np.ndarray:
     """Coverage (H, W) in [0, 1] of a soft-edged disc."""
-    return _smoothstep((radius + EDGE_PX / 2 - np.hypot(xx - cx, yy - cy)) / EDGE_PX)
+    return smoothstep((radius + EDGE_PX / 2 - np.hypot(xx - cx, yy - cy)) / EDGE_PX)
 
 
 def _over(frame: np.ndarray, colour, alpha: np.ndarray) -> np.ndarray:
@@ -73,7 +73,7 @@ def _over(frame: np.ndarray, colour, alpha: np.ndarray) -> np.ndarray:
 
 def enter_leave_paths(grid: VideoGrid, size: Size, key_times_s=None) -> dict[str, np.ndarray]:
     """Centres (x, y) of the entering disc and the leaving square per frame, and their sizes."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     u = progress(grid, key_times_s)
     r = 0.12 * min(h, w)
     half = 0.1 * min(h, w)
@@ -84,7 +84,7 @@ def enter_leave_paths(grid: VideoGrid, size: Size, key_times_s=None) -> dict[str
 
 def render_enter_leave(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None) -> np.ndarray:
     """A disc enters after the first key frame and a square leaves before the middle one."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     rng = np.random.default_rng([seed, 11])
     back = _backdrop(rng, h, w)
     yy, xx = _pixels(h, w)
@@ -95,8 +95,8 @@ def render_enter_leave(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=N
     video = np.empty((3, grid.n_frames, h, w), np.float32)
     for k in range(grid.n_frames):
         (ax, ay), (bx, by) = paths["enter"][k], paths["leave"][k]
-        square = (_smoothstep((half + EDGE_PX / 2 - np.abs(xx - bx)) / EDGE_PX)
-                  * _smoothstep((half + EDGE_PX / 2 - np.abs(yy - by)) / EDGE_PX))
+        square = (smoothstep((half + EDGE_PX / 2 - np.abs(xx - bx)) / EDGE_PX)
+                  * smoothstep((half + EDGE_PX / 2 - np.abs(yy - by)) / EDGE_PX))
         frame = _over(back, square_colour, square)
         video[:, k] = _over(frame, disc_colour, _disc(yy, xx, ax, ay, r))
     return np.clip(video, 0.0, 1.0)
@@ -114,7 +114,7 @@ def rotation_angle(grid: VideoGrid, key_times_s=None) -> np.ndarray:
 
 def render_rotation(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None) -> np.ndarray:
     """A disc of coloured sectors and rings turning about the frame's centre over a still backdrop."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     rng = np.random.default_rng([seed, 12])
     back = _backdrop(rng, h, w)
     yy, xx = _pixels(h, w)
@@ -140,7 +140,7 @@ def render_rotation(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None
 
 def occlusion_layout(grid: VideoGrid, size: Size, key_times_s=None) -> dict[str, np.ndarray]:
     """The bar's x range and the disc's centre x per frame (y fixed) and radius."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     u = progress(grid, key_times_s)
     r = 0.08 * min(h, w)
     # Left to right and back once per half of the capture: behind the bar around u = 0.25 and 0.75.
@@ -150,13 +150,13 @@ def occlusion_layout(grid: VideoGrid, size: Size, key_times_s=None) -> dict[str,
 
 def render_occlusion(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None) -> np.ndarray:
     """A disc passing behind a static textured foreground bar, twice over the capture."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     rng = np.random.default_rng([seed, 13])
     back = _backdrop(rng, h, w)
     yy, xx = _pixels(h, w)
     lay = occlusion_layout(grid, (h, w), key_times_s)
     (x0, x1), r = lay["bar"], float(lay["radius"])
-    bar = _smoothstep((xx - x0) / EDGE_PX + 0.5) * _smoothstep((x1 - xx) / EDGE_PX + 0.5)
+    bar = smoothstep((xx - x0) / EDGE_PX + 0.5) * smoothstep((x1 - xx) / EDGE_PX + 0.5)
     stripes = 0.55 + 0.3 * (np.floor(yy / (0.08 * h)) % 2)
     bar_colour = np.stack([0.55 * stripes, 0.45 * stripes, 0.35 * stripes])
     disc_colour = np.array([0.95, 0.85, 0.25]) + rng.uniform(-0.04, 0.04, 3)
@@ -177,7 +177,7 @@ def crossing_paths(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None)
 
     Each disc passes the centre at its own time between the first and the middle key frame or
     between the middle and the last one, so paths cross between key frames."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     u = progress(grid, key_times_s)
     rng = np.random.default_rng([seed, 14])
     headings = np.pi * (np.arange(N_CROSSING) / N_CROSSING + rng.uniform(-0.08, 0.08, N_CROSSING))
@@ -193,7 +193,7 @@ def crossing_paths(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None)
 
 def render_crossing(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None) -> np.ndarray:
     """Four coloured discs crossing each other's paths near the centre."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     rng = np.random.default_rng([seed, 15])
     back = _backdrop(rng, h, w)
     yy, xx = _pixels(h, w)
@@ -213,7 +213,7 @@ def render_crossing(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None
 
 def shake_offsets(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None) -> np.ndarray:
     """The camera's offset (dx, dy) in pixels per frame: a slow pan plus a fast shake."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     u = progress(grid, key_times_s)
     rng = np.random.default_rng([seed, 16])
     phases = rng.uniform(0, 2 * np.pi, 4)
@@ -227,18 +227,18 @@ def shake_offsets(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None) 
 
 def render_shake(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None) -> np.ndarray:
     """A textured still world (noise, discs and bars) seen through a panning, shaking camera."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     rng = np.random.default_rng([seed, 17])
     margin = int(np.ceil(0.4 * min(h, w)))
     big_h, big_w = h + 2 * margin, w + 2 * margin
-    world = _backdrop(rng, big_h, big_w) * (0.5 + _value_noise(rng, (big_h, big_w), min(h, w) / 10, 2))[None]
+    world = _backdrop(rng, big_h, big_w) * (0.5 + value_noise(rng, (big_h, big_w), min(h, w) / 10, 2))[None]
     yy, xx = _pixels(big_h, big_w)
     for _ in range(16):  # discs and bars make edges in every direction
         cx, cy = rng.uniform(0, big_w), rng.uniform(0, big_h)
         world = _over(world, rng.uniform(0.1, 0.95, 3), _disc(yy, xx, cx, cy, rng.uniform(0.04, 0.1) * min(h, w)))
     for axis in (yy, xx, yy, xx):
         at = rng.uniform(0.2, 0.8) * axis.max()
-        world = _over(world, rng.uniform(0.1, 0.9, 3), _smoothstep(0.03 * min(h, w) - np.abs(axis - at)))
+        world = _over(world, rng.uniform(0.1, 0.9, 3), smoothstep(0.03 * min(h, w) - np.abs(axis - at)))
     world = world.astype(np.float32)
     gy, gx = np.mgrid[0:h, 0:w].astype(np.float32)
     video = np.empty((3, grid.n_frames, h, w), np.float32)
@@ -254,7 +254,7 @@ def render_shake(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None) -
 
 def deform_axes(grid: VideoGrid, size: Size, key_times_s=None) -> np.ndarray:
     """The blob's semi-axes (a, b) in pixels and its orientation (radians) per frame, (K, 3)."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     u = progress(grid, key_times_s)
     base = 0.2 * min(h, w)
     pulse = np.sin(2 * np.pi * 2.6 * u)
@@ -265,7 +265,7 @@ def deform_axes(grid: VideoGrid, size: Size, key_times_s=None) -> np.ndarray:
 
 def render_deform(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None) -> np.ndarray:
     """A bright blob at the centre that pulses and stretches (its outline changes, its centre stays)."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     rng = np.random.default_rng([seed, 18])
     back = _backdrop(rng, h, w)
     yy, xx = _pixels(h, w)
@@ -276,7 +276,7 @@ def render_deform(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None) 
         along = px * np.cos(theta) + py * np.sin(theta)
         across = -px * np.sin(theta) + py * np.cos(theta)
         rho = np.hypot(along / a, across / b)  # 1 on the outline
-        alpha = _smoothstep((1 - rho) * min(a, b) / EDGE_PX + 0.5)
+        alpha = smoothstep((1 - rho) * min(a, b) / EDGE_PX + 0.5)
         shade = 1.0 - 0.3 * np.clip(rho, 0, 1) ** 2
         video[:, k] = _over(back, colour[:, None, None] * shade[None], alpha)
     return np.clip(video, 0.0, 1.0)
@@ -289,7 +289,7 @@ LOW_LIGHT_PEAK = 0.03  # the brightest pixel, as a fraction of full scale
 
 def render_low_light(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None) -> np.ndarray:
     """A disc on a curved path over a dim backdrop; the whole scene at most 3 % of full scale."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     rng = np.random.default_rng([seed, 19])
     back = _backdrop(rng, h, w, level=0.25 * LOW_LIGHT_PEAK / 0.5)
     yy, xx = _pixels(h, w)
@@ -309,7 +309,7 @@ def render_low_light(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=Non
 
 def small_fast_path(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None) -> tuple[np.ndarray, float]:
     """The dot's centre (K, 2) in pixels, bouncing off the frame's edges, and its radius."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     u = progress(grid, key_times_s)
     rng = np.random.default_rng([seed, 20])
     r = 1.5 * min(h, w) / 64  # 3 px across at 64 px
@@ -329,7 +329,7 @@ def small_fast_path(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None
 
 def render_small_fast(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None) -> np.ndarray:
     """A bright 3-pixel dot moving about 2 px per frame, bouncing off the edges, over a still backdrop."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     rng = np.random.default_rng([seed, 21])
     back = _backdrop(rng, h, w)
     yy, xx = _pixels(h, w)
@@ -346,7 +346,7 @@ def render_small_fast(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=No
 
 def render_textured(grid: VideoGrid, size: Size, seed: int = 0, key_times_s=None) -> np.ndarray:
     """A striped disc moving on a diagonal path over dense random grey cells of 2 pixels (at 64 px)."""
-    h, w = _check_size(size)
+    h, w = check_size(size)
     rng = np.random.default_rng([seed, 22])
     cell = max(min(h, w) // 32, 1)
     cells = rng.random((h // cell + 1, w // cell + 1))
