@@ -110,3 +110,18 @@ def test_stage_values_fill_what_the_preset_decides():
     assert values["tau"] == pytest.approx(2e-5) and values["base"] == "none" and values["fits"] == 2
     assert stage_values(STFMSettings(preset="auto"), "fit", (1, 19, 16, 16))["tau"] == "the preset's"
     assert stage_values(STFMSettings(), "auto_preset") == {}
+
+
+def test_recon_batch_takes_set_and_recipe_to_each_bundles_settings(shot, tmp_path):
+    import json
+
+    recipe = tmp_path / "recipe.yaml"
+    recipe.write_text("line_refit:\n  enabled: false\n")
+    res = CliRunner().invoke(main, ["recon-batch", str(shot), "--method", "stfm", "--preset", "fast", "--iters", "1",
+                                    "--set", "fit.base=blend", "--set", "fit.tau=0.002", "--recipe", str(recipe),
+                                    "--no-ray", "-o", str(tmp_path / "b")])
+    assert res.exit_code == 0, res.output
+    used = json.loads(next((tmp_path / "b").glob("*/metrics.json")).read_text())["method_settings"]
+    assert (used["tau"], used["dynamic_base"], used["line_refit"]) == (0.002, "blend", False)
+    res = CliRunner().invoke(main, ["recon-batch", str(shot), "--method", "blend", "--set", "fit.tau=1", "--no-ray"])
+    assert res.exit_code == 2 and "--set and --recipe do not apply to --method blend" in res.output
