@@ -17,6 +17,7 @@ from pathlib import Path
 
 import click
 
+from rngcam.errors import ConfigError
 from rngcam.recon import registry
 from rngcam.recon.options import cli_name, documented_fields
 
@@ -232,8 +233,6 @@ def method_settings(method: str, given: dict, assignments: tuple[str, ...] = (),
         if entry.set_names.get(fields[dest]) in named:
             raise click.UsageError(f"--{dest.replace('_', '-')} and --set {entry.set_names[fields[dest]]} both set "
                                    f"{fields[dest]}: give one")
-    from rngcam.errors import ConfigError
-
     try:
         if recipe_file is not None:  # the file under the options: the command line has the last word
             settings = dataclasses.replace(entry.with_stages(entry.settings(preset), _recipe(recipe_file)), **flags)
