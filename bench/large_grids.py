@@ -263,7 +263,7 @@ def main():
     r.add_argument("bundles", nargs="+")
     r.add_argument("--method", default="tv3d")
     r.add_argument("--budget", default="240", help="seconds, or auto")
-    r.add_argument("--extra", default="", help="more recon arguments, e.g. '--base video --iters 5'")
+    r.add_argument("--extra", default="", help="more recon arguments, e.g. '--set fit.base=video --iters 5'")
     r.add_argument("--work", type=Path, default=Path("scale-runs"))
     r.add_argument("--json", type=Path, default=None)
     r.add_argument("--tag", default="", help="appended to each output folder's name (e.g. -single)")

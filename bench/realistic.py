@@ -148,8 +148,8 @@ def run_stfm(p, scene: str, steps: int, mode: str, truth_cal: dict | None) -> di
 
 def run_default(p, scene: str, max_steps: int, truth_cal: dict | None, variant: str = "default") -> dict:
     """`rngcam recon BUNDLE`'s STFM (the registry's default preset and options) to its own stop,
-    or `max_steps`; variant "default-fixed": with `--learn-geometry off` (the transform as handed
-    over), "default-line" / "default-noline": with `--learn-line-time on` / `off`."""
+    or `max_steps`; variant "default-fixed": with `--set fit.learn_geometry=off` (the transform as
+    handed over), "default-line" / "default-noline": with `--set fit.learn_line_time=on` / `off`."""
     name, settings = registry.settings_for("stfm")
     changes = {"default-fixed": dict(learn_geometry="off"), "default-line": dict(learn_line_time="on"),
                "default-noline": dict(learn_line_time="off")}.get(variant, {})
@@ -380,8 +380,8 @@ def main() -> None:
     ap.add_argument("--families", default=",".join(FAMILIES))
     ap.add_argument("--methods", default="stfm,blend,interp",
                     help="stfm (one fit, --steps), default (rngcam recon's STFM to its own stop, at most "
-                         "--max-steps), default-fixed (the same with --learn-geometry off), default-line / default-noline (with "
-                         "--learn-line-time on / off), default-true-geometry (the default on the GS frames "
+                         "--max-steps), default-fixed (the same with --set fit.learn_geometry=off), default-line / default-noline "
+                         "(with --set fit.learn_line_time=on / off), default-true-geometry (the default on the GS frames "
                          "registered by the true GS-to-RS transform at the sensor's resolution), tv3d, pnp, "
                          "tv3d:gains, blend, interp")
     ap.add_argument("--max-steps", type=int, default=3500, help="the default's cap")

@@ -19,7 +19,9 @@ FAST_TESTS = ("test_recon_cli.py::test_recon_writes_every_output",  # tv3d, blen
               "test_stfm.py::test_short_fit_improves_psnr_on_average",
               "test_stfm.py::test_checkpoint_and_resume_reproduce_an_uninterrupted_run",
               "test_pnp.py::test_pnp_improves_on_its_start_fits_the_data_and_anchors_the_key_frames",
-              "test_rife4.py::test_rife4_recovers_a_shifted_real_frame_better_than_a_cross_fade")
+              "test_rife4.py::test_rife4_recovers_a_shifted_real_frame_better_than_a_cross_fade",
+              "test_recipe_settings.py::test_every_settings_field_has_one_spelling_under_a_stage_of_the_recipe",
+              "test_recipe_settings.py::test_a_set_on_a_settings_field_reaches_the_settings_checked_and_typed")
 
 
 def pytest_collection_modifyitems(config, items):

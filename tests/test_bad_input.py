@@ -210,7 +210,7 @@ def test_a_saturated_rs_patch_costs_tv3d_at_most_2_db(clean, tmp_path):
 
 def test_stfm_a_saturated_rs_patch_costs_at_most_2_db(clean, tmp_path):
     patch = _patch_pair(clean, tmp_path)
-    opts = ("--base", "video", "--time-budget", "60")
+    opts = ("--set", "fit.base=video", "--time-budget", "60")
     m_clean, _ = recon(clean, tmp_path / "clean", "stfm", *opts)
     m_patch, _ = recon(patch, tmp_path / "patch", "stfm", *opts)
     assert m_clean["psnr_db"] - m_patch["psnr_db"] <= 2.0, (m_clean["psnr_db"], m_patch["psnr_db"])

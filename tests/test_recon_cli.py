@@ -90,7 +90,7 @@ def test_clear_errors(tmp_path, mock_bundle):
 def test_stfm_base_and_stop_options_reach_the_method(mock_bundle, tmp_path):
     out = tmp_path / "s"
     res = CliRunner().invoke(main, ["recon", str(mock_bundle), "-o", str(out), "--quiet", "--iters", "2",
-                                    "--preset", "fast", "--base", "interp", "--no-stop-at-noise"])
+                                    "--preset", "fast", "--set", "fit.base=interp", "--set", "fit.stop_at_noise=false"])
     assert res.exit_code == 0, res.output
     with h5py.File(out / "recon.h5") as f:
         settings = json.loads(f.attrs["settings"])
@@ -111,14 +111,15 @@ def test_stfm_base_and_stop_options_reach_the_method(mock_bundle, tmp_path):
 def test_stfm_base_list_runs_an_ensemble_and_a_bad_base_is_a_clear_error(mock_bundle, tmp_path):
     out = tmp_path / "e"
     res = CliRunner().invoke(main, ["recon", str(mock_bundle), "-o", str(out), "--quiet", "--iters", "4",
-                                    "--preset", "fast", "--base", "interp,keys_interp"])
+                                    "--preset", "fast", "--set", "fit.base=interp,keys_interp"])
     assert res.exit_code == 0, res.output
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["method_settings"]["base_video"] == ["interp", "keys_interp"]
     assert metrics["method_results"]["member_steps"] == [2, 2]  # what the run did, apart from the settings
     bad = CliRunner().invoke(main, ["recon", str(mock_bundle), "-o", str(tmp_path / "b"), "--quiet", "--iters", "1",
-                                    "--base", "interp,warp"])
-    assert bad.exit_code == 2 and "--base must be one of" in bad.output and "Traceback" not in bad.output
+                                    "--set", "fit.base=interp,warp"])
+    assert bad.exit_code == 2 and "fit.base=interp,warp: dynamic_base must be one of" in bad.output
+    assert "Traceback" not in bad.output
 
 
 @pytest.mark.parametrize("method,args,budget", [("stfm", [], "auto"), ("tv3d", [], "auto"),

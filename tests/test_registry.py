@@ -140,9 +140,14 @@ def test_every_option_of_every_command_has_help():
 def test_recon_help_gives_each_method_its_meaning_unit_and_default():
     text = CliRunner().invoke(main, ["recon", "--help"], terminal_width=400).output
     beta = next(ln for ln in text.splitlines() if ln.strip().startswith("--beta"))
+    assert "tv3d: weight of the TV along time relative to along x and y (relative) [1]" in beta
+    assert "stfm" not in beta  # stfm's beta is --set fit.beta=...
+    swept = CliRunner().invoke(main, ["sweep", "--help"], terminal_width=400).output  # a sweep grids stfm's too
+    beta = next(ln for ln in swept.splitlines() if ln.strip().startswith("--beta"))
     per_preset = ", ".join(f"{name} {preset_settings(name).beta:g}" for name in ("fast", "paper", "prior"))
     assert "stfm: weight of the motion field's change along time" in beta and f"[{per_preset}]" in beta
-    assert "tv3d: weight of the TV along time relative to along x and y (relative) [1]" in beta
+    fits = next(ln for ln in text.splitlines() if ln.strip().startswith("--fits"))
+    assert "stfm: independent fits of one dynamic base" in fits and "(fits) [the preset's]" in fits
     for flag in ("--no-rs", "--no-gs", "--no-static", "--no-motion-reg", "--gs-anchor"):
         assert next(ln for ln in text.splitlines() if ln.strip().startswith(flag)).split(flag, 1)[1].strip()
 
@@ -150,8 +155,8 @@ def test_recon_help_gives_each_method_its_meaning_unit_and_default():
 def test_one_option_sets_one_field_per_method():
     tv3d, stfm = method_settings("tv3d", {"no_rs": True}), method_settings("stfm", {"no_rs": True})
     assert isinstance(tv3d, TV3DSettings) and tv3d.no_rs and isinstance(stfm, STFMSettings) and stfm.no_rs
-    prior = method_settings("stfm", {"preset": "prior", "base": "interp"})
-    assert prior == dataclasses.replace(preset_settings("prior"), dynamic_base="interp") and prior.preset == "prior"
+    prior = method_settings("stfm", {"preset": "prior", "fits": 1})
+    assert prior == dataclasses.replace(preset_settings("prior"), fits=1) and prior.preset == "prior"
     assert method_settings("tv3d", {"preset": "exact"}).prox == "exact"
     with pytest.raises(click.UsageError, match="--preset does not apply to --method pnp"):
         method_settings("pnp", {"preset": "fast"})

@@ -8,9 +8,9 @@ import pytest
 from test_psf_edge import _Fit, _run, _through_checkpoint, problems  # noqa: F401 (the fixture)
 
 from rngcam.errors import RngcamError
-from rngcam.recon.methods.stfm import row_gain_refit
 from rngcam.recon.methods.stfm.edge_refit import EdgeRefit
 from rngcam.recon.methods.stfm.row_gain_refit import RowGainRefit
+from rngcam.recon.methods.stfm.stage_configs import StopConfig
 
 NOISE = 0.01
 
@@ -53,7 +53,7 @@ def test_no_second_run_where_the_first_ends_near_its_noise_level():
     _run(method)
     assert not made and method.report["kept"] == 0
     assert method.notes[-1] == ("motion search with row gains not tried (the whole run; the key rows' PSF scale x0.9800): the first "
-                                f"run's RS residual is within {row_gain_refit.RATIO}x its noise level")
+                                f"run's RS residual is within {StopConfig.explained_ratio}x its noise level")
 
 
 def test_a_run_resumed_in_the_second_run_makes_it_again_and_a_tampered_one_is_refused(tmp_path):

@@ -780,14 +780,13 @@ class _Deadline:
         return self._left
 
 
-def test_fits_of_one_base_are_let_go_where_the_deadline_cannot_hold_them_and_a_resume_knows(sineball16, monkeypatch):
+def test_fits_of_one_base_are_let_go_where_the_deadline_cannot_hold_them_and_a_resume_knows(sineball16):
     import dataclasses
 
-    import rngcam.recon.methods.stfm.ensemble as ensemble
     from rngcam.recon.methods.stfm.build_fit import make_fit as _make_stfm
 
-    monkeypatch.setattr(ensemble, "AFFORD_CHECK_STEPS", 2)
-    settings = small_settings(preset="prior", dynamic_base=None, track_refit=False, start_floor=False)
+    settings = small_settings(preset="prior", dynamic_base=None, track_refit=False, start_floor=False,
+                              stages={"fit": {"afford_check_steps": 2}})  # the stage setting reaches the check
     roomy = _make_stfm(sineball16, settings, "cpu", None, clock=_Deadline(1e9))
     tight = _make_stfm(sineball16, settings, "cpu", None, clock=_Deadline(1e-3))
     for m in (roomy, tight):

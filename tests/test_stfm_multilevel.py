@@ -171,14 +171,14 @@ def test_only_the_full_level_learns_the_line_time(preset):
 
 def test_a_coarse_level_under_a_budget_may_spend_its_share_of_what_is_left():
     from rngcam.recon.loop import Clock
-    from rngcam.recon.methods.stfm.multilevel import HALF_GRID_LEVEL_SHARE
+    from rngcam.recon.methods.stfm.stage_configs import MultilevelConfig
 
     p = _toy_problem()  # 32 x 48: the fast preset's half-grid-first path
     clock = Clock(seconds=1000.0)
     m = make_multilevel(p, STFMSettings(rows_per_step=4), "cpu", (2, 1), lambda q, s: make_stfm(q, s),
                         clock=clock, max_level_steps=10_000)
     left = clock.left()
-    assert m.level_share_s == pytest.approx(HALF_GRID_LEVEL_SHARE * left, rel=0.05)
+    assert m.level_share_s == pytest.approx(MultilevelConfig.half_grid_level_share * left, rel=0.05)
     m.level_step_s, m.level_steps = m.level_share_s, 10**6  # many cheap steps have used the share: the
     # next step moves on (the finer level fits in what is left)
     m.step()
@@ -187,16 +187,20 @@ def test_a_coarse_level_under_a_budget_may_spend_its_share_of_what_is_left():
 
 def test_the_half_grid_first_takes_most_of_a_budget():
     """Below 96 px the fast preset's full level is one short refinement: its half grid may spend
-    HALF_GRID_LEVEL_SHARE of a budget, not the larger grids' LEVEL_SHARE (which cut smoke's half grid
-    under a budget longer than its own stop); the prior preset keeps CoarseToFine's."""
+    `fit.half_grid_level_share` of a budget, not the larger grids' `fit.level_share` (which cut smoke's
+    half grid under a budget longer than its own stop); the prior preset keeps CoarseToFine's; a stage
+    setting changes the share."""
     from rngcam.recon.methods.coarse_to_fine import LEVEL_SHARE as DEFAULT_SHARE
-    from rngcam.recon.methods.stfm.multilevel import HALF_GRID_LEVEL_SHARE, LEVEL_SHARE
+    from rngcam.recon.methods.stfm.stage_configs import MultilevelConfig
 
     p = _toy_problem()
     fast = make_multilevel(p, STFMSettings(preset="fast"), "cpu", (2, 1), lambda q, s: make_stfm(q, s))
     prior = make_multilevel(p, STFMSettings(preset="prior"), "cpu", (2, 1), lambda q, s: make_stfm(q, s))
-    assert fast.time_factors == (1, 1) and fast.level_share == HALF_GRID_LEVEL_SHARE > LEVEL_SHARE
+    config = MultilevelConfig()
+    assert fast.time_factors == (1, 1) and fast.level_share == config.half_grid_level_share > config.level_share
     assert prior.time_factors == (2, 1) and prior.level_share == DEFAULT_SHARE
+    set_share = STFMSettings(preset="fast", stages={"fit": {"half_grid_level_share": 0.6}})
+    assert make_multilevel(p, set_share, "cpu", (2, 1), lambda q, s: make_stfm(q, s)).level_share == 0.6
 
 
 def test_the_fast_preset_starts_on_the_half_grid_from_64_px():

@@ -8,11 +8,11 @@ import pytest
 from test_psf_edge import _Fit, _run, _through_checkpoint, problems  # noqa: F401 (the fixture)
 
 from rngcam.errors import RngcamError
-from rngcam.recon.methods.stfm import motion_search, track_refit
+from rngcam.recon.methods.stfm import motion_search
 from rngcam.recon.methods.stfm.edge_refit import EdgeRefit
 from rngcam.recon.methods.stfm.row_gain_refit import RowGainRefit
 from rngcam.recon.methods.stfm.run_state import RunState
-from rngcam.recon.methods.stfm.stage_configs import TrackRefitConfig
+from rngcam.recon.methods.stfm.stage_configs import StopConfig, TrackRefitConfig
 from rngcam.recon.methods.stfm.track_refit import TrackRefit
 
 NOISE = 0.01
@@ -55,7 +55,7 @@ def test_no_second_run_where_the_first_ends_near_its_noise_level():
     _run(method)
     assert not made and method.report["kept"] == 0
     assert method.notes == ["a note"]  # nothing said where nothing was made
-    assert method.report["why"] == f"the first run's RS residual is within {track_refit.RATIO}x its noise level"
+    assert method.report["why"] == f"the first run's RS residual is within {StopConfig.explained_ratio}x its noise level"
     assert method.resolved_settings()["track_refits"]["refits"] == []
 
 

@@ -31,7 +31,7 @@ SETTING_FLAGS = {"time_budget_s": "--time-budget", "max_iters": "--iters", "max_
 
 def flag_of(setting: str) -> str:
     """The command line's flag for the API setting `setting` (a method's option by its own name,
-    e.g. dynamic_base -> --base)."""
+    e.g. prox -> --prox; one a method sets only with --set, its spelling: dynamic_base -> --set fit.base)."""
     if setting in SETTING_FLAGS:
         return SETTING_FLAGS[setting]
     from rngcam.recon import registry
@@ -39,8 +39,11 @@ def flag_of(setting: str) -> str:
 
     for entry in registry.REGISTRY.values():
         for f in documented_fields(entry.settings_type):
-            if f.name == setting:
+            if f.name == setting and entry.flagged(f.name):
                 return "--" + cli_name(f)
+    for entry in registry.REGISTRY.values():
+        if setting in entry.set_names:
+            return f"--set {entry.set_names[setting]}"
     return "--" + setting.replace("_", "-")
 
 

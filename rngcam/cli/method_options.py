@@ -1,9 +1,11 @@
 """Command-line options generated from the registry's settings dataclasses.
 
-Each documented settings field (rngcam.recon.options.setting) becomes one option; a name shared
-by several methods (--beta, --psi, ...) is one option whose help says what it means for each.
-The options are made when a command parses or shows its help, so a method registered later
-(a plug-in, a test's toy method) has its options too.
+Each documented settings field (rngcam.recon.options.setting) that its method offers as a flag
+(registry.MethodEntry.flags) becomes one option; a name shared by several methods (--beta, --psi, ...)
+is one option whose help says what it means for each. A method's other settings are `--set STAGE.KEY=VALUE`
+(and `--recipe FILE.yaml`), stfm's every one (rngcam.recon.methods.stfm.setting_names). The options are made
+when a command parses or shows its help, so a method registered later (a plug-in, a test's toy method) has
+its options too.
 """
 
 from __future__ import annotations
@@ -11,9 +13,11 @@ from __future__ import annotations
 import dataclasses
 import math
 import typing
+from pathlib import Path
 
 import click
 
+from rngcam.errors import ConfigError
 from rngcam.recon import registry
 from rngcam.recon.options import cli_name, documented_fields
 
@@ -60,12 +64,15 @@ def _entries(kinds: tuple[str, ...]) -> list[registry.MethodEntry]:
     return [registry.REGISTRY[n] for n in registry.names() if registry.REGISTRY[n].kind in kinds]
 
 
-def option_fields(kinds: tuple[str, ...]) -> dict[str, list[tuple[registry.MethodEntry, dataclasses.Field]]]:
-    """Option name -> the (method, field) pairs it sets, over the methods of `kinds`."""
+def option_fields(kinds: tuple[str, ...], sweep: bool = False) -> dict[str, list[tuple[registry.MethodEntry,
+                                                                                      dataclasses.Field]]]:
+    """Option name -> the (method, field) pairs it sets, over the methods of `kinds`: the fields each
+    method offers as flags, or with `sweep` every sweepable one (a sweep grids them; --set sets one)."""
     out: dict[str, list] = {}
     for entry in _entries(kinds):
         for f in documented_fields(entry.settings_type):
-            out.setdefault(cli_name(f), []).append((entry, f))
+            if f.metadata.get("sweep") if sweep else entry.flagged(f.name):
+                out.setdefault(cli_name(f), []).append((entry, f))
     return out
 
 
@@ -128,8 +135,7 @@ def _values(ctx, param, text: str | None) -> list[float] | None:
 def sweep_options(kinds: tuple[str, ...]) -> list[click.Option]:
     """--preset and one comma-separated list option per sweepable setting."""
     out = []
-    for name, pairs in option_fields(kinds).items():
-        pairs = [(e, f) for e, f in pairs if f.metadata.get("sweep")]
+    for name, pairs in option_fields(kinds, sweep=True).items():
         if pairs:
             out.append(click.Option([f"--{name}", name.replace("-", "_")], callback=_values, default=None,
                                     help=f"{_help(pairs, listed=True)} (e.g. 10,100,1000)"))
@@ -151,6 +157,28 @@ class MethodCommand(click.Command):
         made = sweep_options(self.kinds) if self.sweep else generated_options(self.kinds)
         return [*arguments, method_option(self.kinds), *options, *made, *super().get_params(ctx)[len(self.params):]]
 
+    def parse_args(self, ctx, args):
+        try:
+            return super().parse_args(ctx, args)
+        except click.NoSuchOption as exc:  # a setting that is not a flag: say its --set spelling
+            instead = None if self.sweep else set_instead(exc.option_name, self.kinds)
+            if instead is None:
+                raise
+            raise click.UsageError(f"no option {exc.option_name}: {instead}", ctx) from None
+
+
+def set_instead(option: str, kinds: tuple[str, ...]) -> str | None:
+    """How to give the setting of an option a method does not offer (--base -> 'set stfm's dynamic_base with
+    --set fit.base=VALUE'); None if no method has such a setting."""
+    for entry in _entries(kinds):
+        for f in documented_fields(entry.settings_type):
+            name = cli_name(f)
+            if entry.flagged(f.name) or f.name not in entry.set_names or option not in (f"--{name}", f"--no-{name}"):
+                continue
+            value = ("false" if option.startswith("--no-") else "true") if _field_type(entry, f) is bool else "VALUE"
+            return f"set {entry.name}'s {f.name} with --set {entry.set_names[f.name]}={value}"
+    return None
+
 
 def method_command(name: str, **kwargs):
     """`@method_command("recon")`: a click command with the registry's options (see MethodCommand)."""
@@ -164,17 +192,70 @@ def pop_method_values(params: dict) -> dict:
     return given
 
 
-def method_settings(method: str, given: dict):
-    """The settings of `method` from its preset and the options given (by option destination);
-    an option that does not apply to it is one usage line."""
+def stage_options(f):
+    """--set and --recipe (`stage_values`, `recipe_file`): a method's settings by stage (see method_settings)."""
+    f = click.option("--recipe", "recipe_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+                     help="stfm: a YAML file of stage settings (stage: {key: value}), applied before the "
+                          "options and --set.")(f)
+    return click.option(
+        "--set", "stage_values", multiple=True, metavar="STAGE.KEY=VALUE",
+        help="stfm: set one setting of one stage of the recipe, a number of the stage's own or a setting it owns "
+             "(repeatable; --explain lists each stage's), e.g. --set fit.tau=1e-4, --set line_refit.enabled=false, "
+             "--set self_calibration.mode=all.")(f)
+
+
+def method_settings(method: str, given: dict, assignments: tuple[str, ...] = (), recipe_file: Path | None = None):
+    """The settings of `method` from its preset, a --recipe file, the options given (by option destination)
+    and --set STAGE.KEY=VALUE, each over the one before; an option that does not apply to it, or a bad
+    --set or recipe, is one usage line."""
     entry = registry.get(method)
     preset = given.pop("preset", None)
-    fields = {cli_name(f).replace("-", "_"): f.name for f in documented_fields(entry.settings_type)}
+    documented = {cli_name(f).replace("-", "_"): f.name for f in documented_fields(entry.settings_type)}
+    fields = {dest: name for dest, name in documented.items() if entry.flagged(name)}
     bad = sorted(set(given) - set(fields))
     if preset is not None and (not entry.named_presets or preset not in entry.presets):
         bad.insert(0, "preset")
     if bad:
         names = ", ".join("--" + b.replace("_", "-") for b in bad)
         choices = f" (its presets: {', '.join(entry.presets)})" if bad[0] == "preset" and entry.named_presets else ""
-        raise click.UsageError(f"{names} does not apply to --method {method}{choices}")
-    return entry.settings(preset, **{fields[k]: v for k, v in given.items()})
+        spelled = [f"--set {entry.set_names[documented[b]]}=..." for b in bad if documented.get(b) in entry.set_names]
+        instead = f"; use {', '.join(spelled)}" if spelled else ""
+        raise click.UsageError(f"{names} does not apply to --method {method}{choices}{instead}")
+    flags = {fields[k]: v for k, v in given.items()}
+    settings = entry.settings(preset, **flags)
+    if not assignments and recipe_file is None:
+        return settings
+    if entry.with_stages is None:
+        raise click.UsageError(f"--set and --recipe do not apply to --method {method} (it has no stages)")
+    overrides = _assigned(assignments)
+    named = {f"{stage}.{key}" for stage, keys in overrides.items() for key in keys}
+    for dest in given:
+        if entry.set_names.get(fields[dest]) in named:
+            raise click.UsageError(f"--{dest.replace('_', '-')} and --set {entry.set_names[fields[dest]]} both set "
+                                   f"{fields[dest]}: give one")
+    try:
+        if recipe_file is not None:  # the file under the options: the command line has the last word
+            settings = dataclasses.replace(entry.with_stages(entry.settings(preset), _recipe(recipe_file)), **flags)
+        return entry.with_stages(settings, overrides) if overrides else settings
+    except ConfigError as exc:
+        raise click.UsageError(str(exc).removeprefix("stfm: ")) from None
+
+
+def _assigned(assignments: tuple[str, ...]) -> dict:
+    """--set STAGE.KEY=VALUE ... -> {stage: {key: value}} (one usage line for one not so spelled)."""
+    overrides: dict = {}
+    for item in assignments:
+        name, eq, value = item.partition("=")
+        stage, dot, key = name.strip().partition(".")
+        if not (eq and dot and stage and key):
+            raise click.BadParameter(f"{item!r} is not STAGE.KEY=VALUE", param_hint="--set")
+        overrides.setdefault(stage, {})[key] = value.strip()
+    return overrides
+
+
+def _recipe(path: Path) -> dict:
+    """A --recipe file's stage settings (read as untrusted input; one line naming it when bad)."""
+    from rngcam.recon.methods.stfm.recipe import MAX_RECIPE_CHARS, recipe_from_yaml
+    from rngcam.untrusted import read_untrusted
+
+    return recipe_from_yaml(read_untrusted(path, MAX_RECIPE_CHARS).decode("utf-8", "replace"), str(path))

@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from rngcam.cli import error_line, started
-from rngcam.cli.method_options import method_command, pop_method_values
+from rngcam.cli.method_options import method_command, pop_method_values, stage_options
 from rngcam.cli.method_options import method_settings as settings_from_options
 from rngcam.errors import SettingError
 from rngcam.recon import registry
@@ -55,34 +55,6 @@ def budget_option(ctx, param, value):
         raise click.BadParameter(f"must be a positive number of seconds or auto, got {value}") from None
 
 
-def with_stages(method: str, settings, assignments: tuple[str, ...], recipe_file: Path | None):
-    """`settings` with the stage settings of --recipe, then --set (one usage line for a bad one)."""
-    if not assignments and recipe_file is None:
-        return settings
-    entry = registry.get(method)
-    if entry.with_stages is None:
-        raise click.UsageError(f"--set and --recipe do not apply to --method {method} (it has no stages)")
-    from rngcam.errors import ConfigError
-    from rngcam.recon.methods.stfm.recipe import MAX_RECIPE_CHARS, recipe_from_yaml
-
-    overrides: dict = {}
-    try:
-        if recipe_file is not None:
-            from rngcam.untrusted import read_untrusted
-
-            text = read_untrusted(recipe_file, MAX_RECIPE_CHARS).decode("utf-8", "replace")
-            overrides = recipe_from_yaml(text, str(recipe_file))
-        for item in assignments:
-            name, eq, value = item.partition("=")
-            stage, dot, field = name.strip().partition(".")
-            if not (eq and dot and stage and field):
-                raise click.BadParameter(f"{item!r} is not STAGE.FIELD=VALUE", param_hint="--set")
-            overrides.setdefault(stage, {})[field] = value.strip()
-        return entry.with_stages(settings, overrides)
-    except ConfigError as exc:
-        raise click.UsageError(str(exc).removeprefix("stfm: ")) from None
-
-
 @method_command("recon")
 @click.argument("bundle", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
@@ -116,11 +88,7 @@ def with_stages(method: str, settings, assignments: tuple[str, ...], recipe_file
               help="Hold this fraction of RS row bins out of the fit and report the residual on them.")
 @click.option("--quiet", is_flag=True,
               help="No progress (bar or lines: set-up stages, the fit's progress); events and the summary still print.")
-@click.option("--set", "stage_values", multiple=True, metavar="STAGE.FIELD=VALUE",
-              help="stfm: set one number of one stage of the recipe (repeatable; --explain lists the stages and "
-                   "their settings), e.g. --set line_refit.max_refits=1.")
-@click.option("--recipe", "recipe_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="stfm: a YAML file of stage settings (stage: {field: value}), applied before --set.")
+@stage_options
 @click.option("--explain", is_flag=True,
               help="Print the recipe a run would follow on BUNDLE (each stage with its settings, and why a stage "
                    "is left out) and exit without fitting.")
@@ -135,8 +103,7 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memor
     from rngcam.recon.runner import Source, explain_run, solve
 
     out = out_dir or default_out_dir(bundle, method)
-    method_settings = with_stages(method, settings_from_options(method, pop_method_values(opts)), stage_values,
-                                  recipe_file)
+    method_settings = settings_from_options(method, pop_method_values(opts), stage_values, recipe_file)
     settings = ReconSettings(method=method, method_settings=method_settings,
                              time_budget_s="auto" if time_budget in (None, "auto") else time_budget,
                              max_iters=iters, device=device, threads=threads, grid_bin=grid_bin, resume=resume,

@@ -51,7 +51,7 @@ SIM_BYTES_PER_ELEMENT = 23
               help="Refuse a simulation estimated to need more memory, in GiB [80 % of this machine's].")
 def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start, bayer, fidelity, readout,
                  overwrite, max_memory):
-    """Simulate SCENE (sineball, smoke or clip) through the RS+GS physics into a bundle."""
+    """Simulate SCENE (sineball, smoke, clip or a motion kind) through the RS+GS physics into a bundle."""
     from rngcam.errors import SettingError
     from rngcam.sim.simulate import SimulationError, grid_shape, simulate, simulation_timing, summary
     from rngcam.video_plan import BASE_BYTES, DEFAULT_MAX_FRAMES, check_memory

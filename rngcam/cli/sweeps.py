@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from rngcam.cli import echo_line, echo_text
-from rngcam.cli.method_options import method_command, method_settings, pop_method_values
+from rngcam.cli.method_options import method_command, method_settings, pop_method_values, stage_options
 from rngcam.cli.recon import budget_option, device_option
 from rngcam.errors import RngcamError
 from rngcam.recon import registry
@@ -102,14 +102,17 @@ def sweep_cmd(bundle, method, time_budget, iters, holdout, holdout_gs, holdout_s
 @click.option("--device", default="cpu", show_default=True, callback=device_option,
               help="cpu or cuda[:N] (one GPU per bundle).")
 @click.option("--bin", "grid_bin", type=int, default=None, help="Sensor pixels per grid pixel.")
+@stage_options
 @_with(_ray_options)
-def recon_batch_cmd(bundles, method, out_dir, time_budget, iters, device, grid_bin, address, no_ray, **opts):
+def recon_batch_cmd(bundles, method, out_dir, time_budget, iters, device, grid_bin, stage_values, recipe_file,
+                    address, no_ray, **opts):
     """Reconstruct every bundle in BUNDLES (one task each); finished ones are skipped on a re-run."""
     from rngcam.sweeps.batch import recon_batch
 
     settings = ReconSettings(method=method, time_budget_s="auto" if time_budget in (None, "auto") else time_budget,
                              max_iters=iters, device=device, grid_bin=grid_bin, progress=False,
-                             method_settings=method_settings(method, pop_method_values(opts)))
+                             method_settings=method_settings(method, pop_method_values(opts), stage_values,
+                                                             recipe_file))
     result = recon_batch(bundles, out_dir, settings, backend_factory=_backend_factory(address, no_ray, device),
                          echo=echo_line)
     echo_text((result.out_dir / "batch.md").read_text().split("\n\n", 1)[-1].rstrip())

@@ -21,6 +21,7 @@ import numpy as np
 from rngcam.errors import ConfigError, SettingError
 from rngcam.recon.methods.baselines import BlendSettings, InterpSettings, RifeSettings
 from rngcam.recon.methods.pnp import PnPSettings
+from rngcam.recon.methods.stfm.setting_names import SETTING_NAMES as STFM_SETTING_NAMES
 from rngcam.recon.methods.stfm.settings import PRESETS as STFM_PRESETS
 from rngcam.recon.methods.stfm.settings import STFMSettings, preset_settings
 from rngcam.recon.methods.tv3d import TV3DSettings
@@ -73,12 +74,23 @@ class MethodEntry:
     explain: Callable[..., list[str]] | None = None
     # `with_stages(settings, {stage: {field: value}}) -> settings`: --set / --recipe (None: the method has no stages)
     with_stages: Callable[..., Any] | None = None
+    # The documented settings the command line offers as options (None: all of them); `set_names` spells
+    # each settings field as --set STAGE.KEY (stfm: every field but the preset; the flags are shortcuts)
+    flags: tuple[str, ...] | None = None
+    set_names: dict[str, str] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         if self.kind not in (ITERATIVE, GS_ONLY):
             raise ValueError(f"method kind must be {ITERATIVE!r} or {GS_ONLY!r}, got {self.kind!r}")
         if not self.presets:
             object.__setattr__(self, "presets", {"default": self.settings_type()})
+        documented = {f.name for f in documented_fields(self.settings_type)}
+        if self.flags is not None and not set(self.flags) <= documented:
+            raise ValueError(f"{self.name}'s flags {sorted(set(self.flags) - documented)} are not documented settings")
+
+    def flagged(self, field_name: str) -> bool:
+        """Whether the command line offers the documented setting `field_name` as an option."""
+        return self.flags is None or field_name in self.flags
 
     @property
     def iterative(self) -> bool:
@@ -260,6 +272,10 @@ STFM_MEMORY = MemoryModel(bytes_per_element=13.64, fixed_bytes=333e6, bytes_per_
 # The default method first. STFM's default preset is auto (prior or fast, chosen per scene from the
 # key frames, rngcam.recon.methods.stfm.auto); both stop by themselves (fast after 1-3 min at 64 px on one
 # CPU thread), so the auto budget only guards against a fit that never settles.
+# STFM's command-line options: the daily ones (the preset, the number of fits) and the paper's ablation switches;
+# every other setting is `--set STAGE.KEY=VALUE` (rngcam.recon.methods.stfm.setting_names).
+STFM_FLAGS = ("fits", "no_static", "no_motion_reg", "no_rs", "no_gs", "gs_anchor")
+
 # STFM's model_revision: 2, the prior preset's canonical image decoded on a grid (bench/convergence.md,
 # "the prior preset decodes its canonical image once a step"); 3, motion fields decoded on knots 2 px
 # apart, a base video's correction read on the pixel grid (bench/convergence.md, "the fast preset's motion
@@ -271,7 +287,8 @@ register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=
                      presets={p: preset_settings(p)
                               for p in ("auto", "fast", *(p for p in STFM_PRESETS if p not in ("auto", "fast")))},
                      benchmarked=("fast", "paper"), memory=STFM_MEMORY, fits_holdout=True,
-                     explain=_explain_stfm, with_stages=_stfm_with_stages))
+                     explain=_explain_stfm, with_stages=_stfm_with_stages, flags=STFM_FLAGS,
+                     set_names={name: f"{stage}.{key}" for (stage, key), name in STFM_SETTING_NAMES.items()}))
 # tv3d and pnp: the earlier 228x342 fits (bench/large_grids.md) (their full level at 8x was not reached when measured)
 register(MethodEntry("tv3d", ITERATIVE, TV3DSettings, _make_tv3d,
                      presets={"haar": TV3DSettings(prox="haar"), "exact": TV3DSettings(prox="exact")},

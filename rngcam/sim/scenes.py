@@ -16,6 +16,8 @@ interpolation use them (default: first, middle and last grid frame centres).
   stretched over the capture, in-between frames made by bidirectional optical-flow
   interpolation. sRGB is linearised with a plain power law, linear = (u8 / 255) ** 2.2
   (close to the sRGB curve; exactness does not matter for simulation), then area-resized.
+- MOTION_KINDS: scenes of distinct motion kinds kept apart from the three above, for judging
+  quality where nothing was tuned (rngcam.sim.motion_kinds).
 """
 
 from __future__ import annotations
@@ -28,66 +30,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from rngcam.errors import RngcamError
 from rngcam.paths import SHORT_CLIP, package_data
 from rngcam.physics.timing import VideoGrid
+from rngcam.sim.motion_kinds import RENDERERS as MOTION_KIND_RENDERERS
+from rngcam.sim.scene_base import SceneError, Size
+from rngcam.sim.scene_base import check_size as _check_size
+from rngcam.sim.scene_base import key_times as _key_times
+from rngcam.sim.scene_base import smoothstep as _smoothstep
+from rngcam.sim.scene_base import value_noise as _value_noise
 
-SCENES = ("sineball", "smoke", "clip")
+MOTION_KINDS = tuple(MOTION_KIND_RENDERERS)
+SCENES = ("sineball", "smoke", "clip", *MOTION_KINDS)
 GAMMA = 2.2
-
-
-class SceneError(RngcamError):
-    """A scene cannot be rendered from the given options or clip file."""
-
-
-# --------------------------------------------------------------------------- helpers
-
-
-def default_key_times(grid: VideoGrid) -> np.ndarray:
-    """Centres of the first, middle and last grid frames."""
-    c = grid.centres_s()
-    return c[[0, (len(c) - 1) // 2, len(c) - 1]]
-
-
-def _key_times(grid: VideoGrid, key_times_s: Sequence[float] | None) -> np.ndarray:
-    keys = default_key_times(grid) if key_times_s is None else np.sort(np.asarray(key_times_s, float))
-    if keys.ndim != 1 or len(keys) < 2 or not np.all(np.isfinite(keys)) or np.any(np.diff(keys) <= 0):
-        raise SceneError(f"key_times_s must be >= 2 distinct finite times, got {key_times_s!r}")
-    return keys
-
-
-Size = int | tuple[int, int]
-
-
-def _check_size(size: Size) -> tuple[int, int]:
-    """N (square) or (H, W) -> (H, W), each an integer >= 8."""
-    hw = (size, size) if not isinstance(size, (tuple, list)) else tuple(size)
-    if len(hw) != 2 or any(int(n) != n or n < 8 for n in hw):
-        raise SceneError(f"scene size must be an integer >= 8 or (H, W) of such, got {size!r}")
-    return int(hw[0]), int(hw[1])
-
-
-def _value_noise(rng: np.random.Generator, shape: tuple[int, int], cell_px: float,
-                 octaves: int = 3) -> np.ndarray:
-    """Fractal value noise (H, W) in [0, 1]: random lattices, cubic-upsampled, summed over octaves."""
-    h, w = shape
-    total = np.zeros(shape, np.float64)
-    norm = 0.0
-    for o in range(octaves):
-        cell = max(cell_px / 2 ** o, 1.0)
-        lattice = rng.random((int(np.ceil(h / cell)) + 3, int(np.ceil(w / cell)) + 3))
-        big = cv2.resize(lattice, (int(lattice.shape[1] * cell), int(lattice.shape[0] * cell)),
-                         interpolation=cv2.INTER_CUBIC)
-        total += 0.5 ** o * big[int(cell):int(cell) + h, int(cell):int(cell) + w]
-        norm += 0.5 ** o
-    total /= norm
-    lo, hi = total.min(), total.max()
-    return (total - lo) / (hi - lo) if hi > lo else np.zeros(shape)
-
-
-def _smoothstep(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * (3 - 2 * x)
 
 
 def srgb_to_linear(frames_u8: np.ndarray) -> np.ndarray:
@@ -386,9 +340,9 @@ _RENDERERS = {"sineball": render_sineball, "smoke": render_smoke, "clip": render
 
 def render_scene(name: str, grid: VideoGrid, size: Size, seed: int = 0, **opts) -> np.ndarray:
     """Render scene `name` on `grid` at `size` (N or (H, W)): (3, K, H, W) float32 in [0, 1]."""
-    if name not in _RENDERERS:
+    if name not in SCENES:
         raise SceneError(f"unknown scene {name!r} (choose from {', '.join(SCENES)})")
-    renderer = _RENDERERS[name]
+    renderer = _RENDERERS[name] if name in _RENDERERS else MOTION_KIND_RENDERERS[name]
     accepted = set(inspect.signature(renderer).parameters) - {"grid", "size", "seed"}
     unknown = sorted(set(opts) - accepted)
     if unknown:

@@ -17,7 +17,7 @@ differently, the camera pans), it is not. The test: for each other key frame g,
 
 (F(d): the layer shifted by d over the median; the denominator is what moved in key frame g).
 The prior preset is chosen when their mean is below the auto_preset stage's layer_misfit_max. It costs one
-composite per candidate shift and key frame, no fit. Key frames larger than LAYER_TEST_SIDE are
+composite per candidate shift and key frame, no fit. Key frames larger than `layer_test_side` are
 binned down to about it first: the threshold was set on 32-64 px key frames, and at full size the
 test took much of a large grid's set-up (bench/convergence.md, "the layer test binned").
 """
@@ -34,7 +34,7 @@ from rngcam.recon.methods.stfm.motion_search import candidate_shifts, key_frame_
 from rngcam.recon.methods.stfm.stage_configs import AutoPresetConfig
 
 CHUNK_ELEMENTS = 8_000_000  # composited values held at once (32 MB of float32 per temporary)
-LAYER_TEST_SIDE = 64  # key frames are binned by an integer factor to no less than this (their longer side)
+MISFIT_DIGITS = 4  # the misfits as a run records them (metrics.json), and as the test compares them
 
 
 @dataclass
@@ -52,10 +52,11 @@ class PresetChoice:
 
 
 @torch.no_grad()
-def layer_misfits(keys: Tensor, mask: Tensor | None = None) -> list[float]:
+def layer_misfits(keys: Tensor, mask: Tensor | None = None,
+                  test_side: int = AutoPresetConfig.layer_test_side) -> list[float]:
     """misfit_g (module docstring) of every key frame but the middle one; keys (C, G, H, W), binned
-    first where larger than LAYER_TEST_SIDE."""
-    keys, mask = _binned(keys.float(), mask)
+    first where larger than `test_side`."""
+    keys, mask = _binned(keys.float(), mask, test_side)
     c, g, h, w = keys.shape
     middle = g // 2
     background, layer, obj = key_frame_layer(keys, middle)
@@ -76,11 +77,11 @@ def layer_misfits(keys: Tensor, mask: Tensor | None = None) -> list[float]:
     return out
 
 
-def _binned(keys: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor | None]:
+def _binned(keys: Tensor, mask: Tensor | None, test_side: int) -> tuple[Tensor, Tensor | None]:
     """Key frames (C, G, H, W) and mask (H, W) binned by area as `coarsen` bins a problem, by
-    f = the longer side // LAYER_TEST_SIDE (as they are where f < 2); the mask becomes a weight."""
+    f = the longer side // `test_side` (as they are where f < 2); the mask becomes a weight."""
     c, g, h, w = keys.shape
-    f = max(h, w) // LAYER_TEST_SIDE
+    f = max(h, w) // test_side
     if f < 2:
         return keys, mask
     shape = (c, g, max(1, round(h / f)), max(1, round(w / f)))
@@ -89,15 +90,18 @@ def _binned(keys: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor | None]:
     return bin_video(keys, shape, 1), mask
 
 
-def choose_preset(problem, misfit_max: float = AutoPresetConfig.layer_misfit_max) -> PresetChoice:
+def choose_preset(problem, config: AutoPresetConfig | None = None) -> PresetChoice:
     """The preset for `problem` (see the module docstring); it looks at the GS key frames only
-    (held-out GS pixels filled from fitted ones, as every initialisation does)."""
+    (held-out GS pixels filled from fitted ones, as every initialisation does). `config`: the
+    auto_preset stage's (its defaults where None)."""
+    config = config or AutoPresetConfig()
+    misfit_max = config.layer_misfit_max
     if problem.b_gs is None or problem.b_gs.shape[1] < 2:
         return PresetChoice("fast", "fewer than two GS key frames: no layer test")
     keys = problem.gs_images(gains=True)
     if not torch.isfinite(keys).all():
         return PresetChoice("fast", "non-finite key frames: no layer test")
-    misfits = [round(m, 4) for m in layer_misfits(keys, problem.mask)]
+    misfits = [round(m, MISFIT_DIGITS) for m in layer_misfits(keys, problem.mask, config.layer_test_side)]
     mean = sum(misfits) / len(misfits)
     if mean < misfit_max:
         return PresetChoice("prior", f"one translating layer explains the key frames (mean misfit {mean:.2f} "

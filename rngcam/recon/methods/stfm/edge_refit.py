@@ -19,12 +19,9 @@ import torch
 from torch import Tensor
 
 from rngcam.recon.methods.stfm.refits import Refits, nth
-from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
-from rngcam.recon.methods.stfm.stage_configs import EdgeRefitConfig
+from rngcam.recon.methods.stfm.stage_configs import EdgeRefitConfig, StopConfig
 
-# The best fit's RS residual / its noise level at or above which an edge is fitted: the fit is not
-# explained (settings.EXPLAINED_RATIO), where the key rows point at a PSF scale (rngcam.recon.misfit.POINTED_RATIO)
-EDGE_RATIO = EXPLAINED_RATIO
+DROP_EPS = 1e-30  # the share the edge lowers the residual by stays finite where the residual is 0
 
 
 def edge_scale(selfcal: dict | None, max_scale: float = EdgeRefitConfig.max_scale) -> float | None:
@@ -44,8 +41,11 @@ class EdgeRefit(Refits):
     SETTING, RESULT, VALUE = "psf_edge", "edge_refits", "scale"
     STATE, STAGE_NAME = "edge", "PSF-edge"
 
-    def __init__(self, first, problem, scale: float, refit: Callable, config: EdgeRefitConfig | None = None):
-        super().__init__(first, problem, refit, {"key_rows_scale": scale})
+    def __init__(self, first, problem, scale: float, refit: Callable, config: EdgeRefitConfig | None = None,
+                 explained_ratio: float = StopConfig.explained_ratio):
+        """An edge is fitted where the best fit's RS residual is `explained_ratio` x its noise level or more:
+        the fit is not explained, where the key rows point at a PSF scale (rngcam.recon.misfit.POINTED_RATIO)."""
+        super().__init__(first, problem, refit, {"key_rows_scale": scale}, explained_ratio=explained_ratio)
         self._config = config or EdgeRefitConfig()
 
     def _propose(self, best, res: float) -> tuple[Tensor, dict] | None:
@@ -54,9 +54,9 @@ class EdgeRefit(Refits):
 
         noise = getattr(best, "rs_noise_level", None)
         n = len(self.report["refits"])
-        if not noise or not res >= EDGE_RATIO * noise:
-            self.report["why"] = (f"the {nth(self._best)} fit's RS residual is within {EDGE_RATIO}x its noise "
-                                  "level" if noise else "no noise level")
+        if not noise or not res >= self.explained_ratio * noise:
+            within = f"within {self.explained_ratio}x its noise level"
+            self.report["why"] = f"the {nth(self._best)} fit's RS residual is {within}" if noise else "no noise level"
             return None
         if n >= self._config.max_refits:
             self.report["why"] = f"{self._config.max_refits} fits through a fitted edge made"
@@ -71,7 +71,7 @@ class EdgeRefit(Refits):
             self.report["why"] = ("no edge could be fitted (on a large grid the edge has more pixels than the RS "
                                   "rows a fit affords can pin: psf_edge.MAX_DESIGN)")
             return None
-        drop = 1 - found["residual"] / max(res, 1e-30)
+        drop = 1 - found["residual"] / max(res, DROP_EPS)
         attempt = {k: v for k, v in found.items() if k not in ("psf", "searched")}
         attempt.update(drop=drop, from_fit=self._best, from_rs=res)
         if not drop >= self._config.min_drop:

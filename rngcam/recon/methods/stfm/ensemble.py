@@ -17,15 +17,10 @@ from rngcam.recon.methods.stfm.learned import geometry_report
 from rngcam.recon.methods.stfm.line_time import line_time_report
 from rngcam.recon.methods.stfm.method import STFM, add_learned, learned_notes
 from rngcam.recon.methods.stfm.run_state import RunState
-from rngcam.recon.methods.stfm.settings import (
-    REFINE_LR_RATIO,
-    REFINE_STALL_PASSES,
-    STFMSettings,
-    _setting_or_preset,
-)
+from rngcam.recon.methods.stfm.settings import STFMSettings, _setting_or_preset
+from rngcam.recon.methods.stfm.stage_configs import fit_config
 
-# Fits of one base under a deadline: how often (the first fit's steps) the time they still need is checked
-AFFORD_CHECK_STEPS = 100
+MAX_NOTE_CHARS = 300  # a note read back from a checkpoint is cut to one line's length
 
 
 class STFMEnsemble(MethodBase):
@@ -42,8 +37,8 @@ class STFMEnsemble(MethodBase):
     (rngcam.recon.methods.stfm.lanes): an iteration is one round, `member_steps` counts each fit's.
 
     Refinement (`refine`, fast preset): once every member has stopped, one more fit takes their
-    average as its base video, with REFINE_LR_RATIO of the learning rate, until its own stop test
-    fires (its stall test over REFINE_STALL_PASSES passes unless `stall_passes` is set); it is then the
+    average as its base video, with `fit.refine_lr_ratio` of the learning rate, until its own stop test
+    fires (its stall test over `fit.refine_stall_passes` passes unless `stall_passes` is set); it is then the
     output. Like every fit it starts from the GS frames' static composition
     (alpha * static + (1 - alpha) * base, alpha where every key frame agrees with their median),
     which the members' fits had eroded; the RS image keeps that composition where it fits the data
@@ -58,6 +53,7 @@ class STFMEnsemble(MethodBase):
     def __init__(self, problem, settings: STFMSettings, bases: list[str], device="cpu", first: STFM | None = None,
                  clock=None, state: RunState | None = None):
         self.settings = settings
+        self._fit_config = fit_config(settings)  # the refinement's and the deadline check's numbers
         first_state = first.state if first is not None else (state or RunState())
         self.problem = problem
         self.members: list[STFM] = []
@@ -124,7 +120,7 @@ class STFMEnsemble(MethodBase):
         return value
 
     def _afford(self) -> None:
-        """Fits of one base under a deadline: every AFFORD_CHECK_STEPS of the first fit's steps, until it
+        """Fits of one base under a deadline: every `fit.afford_check_steps` of the first fit's steps, until it
         has run its least steps (`least_steps`), the steps all fits still need at the pace so far; where
         the time left does not hold them, the later fits are let go and the first runs on alone with their
         time: cut at half its steps each, two fits lose more than their average wins (bench/demo.md,
@@ -137,7 +133,7 @@ class STFMEnsemble(MethodBase):
             self._timed = (time.perf_counter(), steps)
             return
         least = first.stop.least_steps()
-        if first.steps % AFFORD_CHECK_STEPS or first.steps >= least:
+        if first.steps % self._fit_config.afford_check_steps or first.steps >= least:
             return
         pace = (time.perf_counter() - self._timed[0]) / max(1, steps - self._timed[1])  # seconds a member step
         need = pace * sum(max(0.0, least - m.steps) for j, m in enumerate(self.members) if self._done[j] is None)
@@ -153,12 +149,13 @@ class STFMEnsemble(MethodBase):
 
     def _start_refinement(self) -> None:
         first = self.members[0]
-        lr = REFINE_LR_RATIO * first.resolved.lr
+        config = self._fit_config
+        lr = config.refine_lr_ratio * first.resolved.lr
         pose = self._mean_pose()
         video = self.estimate() if pose is None else self.average(native=True)  # the refinement's fields are native
         base = video / torch.as_tensor(self._mean_gains(), device=self.device)[:, None, None, None]
         settings = replace(self.settings, dynamic_base="video", seed=self.settings.seed + len(self.members), lr=lr,
-                           stall_passes=self.settings.stall_passes or REFINE_STALL_PASSES)
+                           stall_passes=self.settings.stall_passes or config.refine_stall_passes)
         self.refined = STFM(self.problem, settings, self.device, static_from=first, base_video=base, state=first.state)
         if pose is not None and self.refined.learned_pose.learned:  # the members' transform, refined further
             self.refined.start_pose(pose)
@@ -249,7 +246,8 @@ class STFMEnsemble(MethodBase):
 
     def load_state_dict(self, state: dict) -> None:
         if state.get("let_go") and 1 == len(state["members"]) < len(self.members):  # the later fits let go
-            self.members, self._done, self._let_go = self.members[:1], self._done[:1], str(state["let_go"])[:300]
+            self.members, self._done = self.members[:1], self._done[:1]
+            self._let_go = str(state["let_go"])[:MAX_NOTE_CHARS]
         for m, saved in zip(self.members, state["members"], strict=True):
             m.load_state_dict(saved)
         self.steps = int(state["steps"])

@@ -17,6 +17,8 @@ from rngcam.recon.loop import Wrapped
 from rngcam.recon.methods.stfm.stage_configs import StartFloorConfig
 from rngcam.recon.metrics import relative_residual
 
+FACTOR_MOVED = 1e-6  # a line-time factor that moved less is the same: the starts' RS operator is kept
+
 
 class StartFloor(Wrapped):
     """`method` (an STFM, ensemble or coarse-to-fine run) with the start as the floor of its output."""
@@ -86,7 +88,7 @@ class StartFloor(Wrapped):
         get = getattr(self._method, "line_factor", None)
         factor = get() if callable(get) else None
         p = self._problem
-        if factor is None or abs(factor - self._line_factor) < 1e-6 or p.rs_timing is None:
+        if factor is None or abs(factor - self._line_factor) < FACTOR_MOVED or p.rs_timing is None:
             return False
         self._rs_op = self._rs_op.with_weights(p.rs_weights_at(factor))
         self._line_factor = factor

@@ -19,8 +19,7 @@ from collections.abc import Callable
 
 from rngcam.recon.methods.stfm.line_time import MAX_LINE_CHANGE
 from rngcam.recon.methods.stfm.refits import Refits, nth
-from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
-from rngcam.recon.methods.stfm.stage_configs import LineRefitConfig
+from rngcam.recon.methods.stfm.stage_configs import LineRefitConfig, StopConfig
 
 
 class LineRefit(Refits):
@@ -32,8 +31,8 @@ class LineRefit(Refits):
     STATE, STAGE_NAME = "line", "line-time refit"
 
     def __init__(self, first, problem, refit: Callable, settings: dict | None = None,
-                 config: LineRefitConfig | None = None):
-        super().__init__(first, problem, refit, {"factor": 1.0}, settings)
+                 config: LineRefitConfig | None = None, explained_ratio: float = StopConfig.explained_ratio):
+        super().__init__(first, problem, refit, {"factor": 1.0}, settings, explained_ratio)
         self._config = config or LineRefitConfig()
 
     def _propose(self, best, res: float) -> tuple[float, dict] | None:
@@ -43,10 +42,10 @@ class LineRefit(Refits):
                                   f"less well than the {nth(k)}")
             return None
         over = self._over_noise(best, res)
-        explained = over is not None and over < EXPLAINED_RATIO
+        explained = over is not None and over < self.explained_ratio
         if made >= (self._config.max_refits if explained else 1):
             self.report["why"] = f"{made} later fit{'s' if made > 1 else ''} made" + (
-                "" if explained else f" (the {nth(k)} fit ended at {EXPLAINED_RATIO}x its noise level or more)")
+                "" if explained else f" (the {nth(k)} fit ended at {self.explained_ratio}x its noise level or more)")
             return None
         learned = best.line_factor() if hasattr(best, "line_factor") else None
         if learned is None:
@@ -59,7 +58,7 @@ class LineRefit(Refits):
             where = "the recorded one" if k == 0 else f"where it started (x{start:.4f})"
             self.report["why"] = (f"the {nth(k)} fit learned the line time at x{factor:.4f}, within {100 * near:g} % "
                                   f"of {where}" + ("" if explained else
-                                                   f", and ended at {EXPLAINED_RATIO}x its noise level or more"))
+                                                   f", and ended at {self.explained_ratio}x its noise level or more"))
             return None
         if not abs(factor - 1) <= MAX_LINE_CHANGE:
             self.report["why"] = f"the {nth(k)} fit learned the line time at x{factor:.4f}, out of range"

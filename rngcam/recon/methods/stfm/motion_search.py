@@ -13,7 +13,8 @@ pass over frames then picks one shift per frame (costs normalised by their sprea
 small L1 penalty on each change of shift and a larger one on the change of that change:
 between key frames the RS rows often cannot tell a smooth path from a detour of 20-30 px
 (sineball), and an object's velocity changes little from frame to frame. Cost: one RS forward per
-candidate shift, in chunks.
+candidate shift, in chunks. What it tries and charges are the fit stage's numbers
+(stage_configs.MotionSearchConfig: `--set fit.search_turn=...`).
 """
 
 from __future__ import annotations
@@ -23,24 +24,34 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from rngcam.recon.methods.stfm.stage_configs import MotionSearchConfig
 from rngcam.recon.methods.stfm.subframes import subframes_averaged
 
-SEARCH_CHUNK = 64  # candidate shifts through the RS operator at once
-SEARCH_REACH = 0.6  # shifts up to this fraction of the image side each way
-SEARCH_SMOOTH = 1e-3  # L1 penalty per pixel of shift change between frames (normalised costs)
-SEARCH_TURN = 0.1  # L1 penalty per px/frame of change in velocity at a 64 px side (normalised costs)
-SEARCH_SPEED = 0.125  # fastest motion searched: this share of the image side per frame, per axis,
-SEARCH_SPEED_STEPS = 5  # and at most this many grid steps (the pass keeps K x S^2 x (2 x 5 + 1)^2 bytes)
-SEARCH_POINTS = 64  # about this many candidate positions per axis (step 1 px up to ~107 px images)
+SEARCH_CHUNK = 64  # candidate shifts through the RS operator at once (memory: n frames of the grid at a time)
+# At most this many grid steps a frame, per axis, whatever the speed: the Viterbi pass keeps
+# K x S^2 x (2 x 5 + 1)^2 bytes of back-pointers (12 MB at 64 px; bench/realistic.md, "the motion search
+# charges turns")
+SEARCH_SPEED_STEPS = 5
+TURN_SIDE = 64  # the image side at which `search_turn` is the penalty per px/frame (it scales with the side)
+MASK_EPS = 1e-6  # keeps the object mask finite on a black background
+WEIGHT_EPS = 1e-12  # an RS row no frame's exposure reaches is charged nothing (not divided by 0)
+GAIN_EPS = 1e-30  # a candidate that predicts no light in a row: its best gain is 0, its misfit the row's
+INT8_STATES = 128  # back-pointers over (V, V) fit in int8 below this many states, else int16
 
 
-def key_frame_layer(keys: Tensor, index: int) -> tuple[Tensor, Tensor, Tensor]:
+def object_mask(layer: Tensor, background: Tensor, change: float = MotionSearchConfig.layer_change) -> Tensor:
+    """(H, W): 1 where `layer` (C, H, W) differs from `background` by `change` of the background's mean."""
+    diff = (layer - background).abs().mean(0)
+    return (diff / (change * float(background.mean()) + MASK_EPS)).clamp(0, 1)
+
+
+def key_frame_layer(keys: Tensor, index: int, change: float = MotionSearchConfig.layer_change
+                    ) -> tuple[Tensor, Tensor, Tensor]:
     """The key frames' median (C, H, W), key frame `index` as the dynamic layer (C, H, W), and
-    that layer's object mask (H, W): 1 where it differs from the median by 10 % of its mean."""
+    that layer's object mask (H, W): 1 where it differs from the median by `change` of its mean."""
     background = keys.median(dim=1).values
     layer = keys[:, index]
-    change = (layer - background).abs().mean(0)
-    return background, layer, (change / (0.1 * float(background.mean()) + 1e-6)).clamp(0, 1)
+    return background, layer, object_mask(layer, background, change)
 
 
 def shifted_frames(background: Tensor, layer: Tensor, obj: Tensor, shifts: Tensor) -> Tensor:
@@ -58,10 +69,11 @@ def shifted_frames(background: Tensor, layer: Tensor, obj: Tensor, shifts: Tenso
     return background[None] * (1 - o) + warped[:, :c] * o
 
 
-def candidate_shifts(h: int, w: int, device) -> tuple[Tensor, int, int]:
+def candidate_shifts(h: int, w: int, device, config: MotionSearchConfig | None = None) -> tuple[Tensor, int, int]:
     """(n, 2) candidate shifts on a square grid, and the grid's size per axis and step in px."""
-    reach = SEARCH_REACH * max(h, w)
-    step = max(1, int(np.ceil(2 * reach / SEARCH_POINTS)))
+    config = config or MotionSearchConfig()
+    reach = config.search_reach * max(h, w)
+    step = max(1, int(np.ceil(2 * reach / config.search_points)))
     r = int(reach // step)
     axis = torch.arange(-r, r + 1, device=device, dtype=torch.float32) * step
     dy, dx = torch.meshgrid(axis, axis, indexing="ij")
@@ -75,7 +87,8 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
     its light, not by how much of it the PSF predicts (rngcam.recon.methods.stfm.row_gain_refit)."""
     p, dev = stfm.problem, stfm.device
     k = stfm.K
-    shifts, side, step = candidate_shifts(stfm.H, stfm.W, dev)
+    config: MotionSearchConfig = stfm.fit_config  # the fit stage's (its MotionSearchConfig part)
+    shifts, side, step = candidate_shifts(stfm.H, stfm.W, dev, config)
     n = len(shifts)
     # On subframes the pass runs over the output's frames (each charged its subframes' mean misfit), so that
     # its velocities, turn penalty and speed limit are per output frame, as without; the track is then
@@ -85,7 +98,7 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
     if stfm.parts.rs:
         rows = stfm.grid.rs_rows_fit.to(dev)
         w = stfm.grid.w_rs.index_select(0, rows)  # (R, K)
-        s_r = w.sum(1).clamp_min(1e-12)
+        s_r = w.sum(1).clamp_min(WEIGHT_EPS)
         valid = None if stfm.grid.rs_valid is None else stfm.grid.rs_valid.index_select(1, rows)
         target = p.b_rs.index_select(1, rows) * (1 if valid is None else valid)
         target_sq = target.square().sum(-1)[:, None] if row_gains else None  # (C, 1, R)
@@ -97,7 +110,7 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
             pred = conv * s_r[None, None, :, None] * (1 if valid is None else valid[:, None])
             if row_gains:  # ||b - a pred||^2 at the best a >= 0
                 dot = (pred * target[:, None]).sum(-1).clamp_min(0)
-                miss_sq = target_sq - dot.square() / pred.square().sum(-1).clamp_min(1e-30)
+                miss_sq = target_sq - dot.square() / pred.square().sum(-1).clamp_min(GAIN_EPS)
             else:
                 miss_sq = (pred - target[:, None]).square().sum(-1)
             rs_cost[:, i:i + SEARCH_CHUNK] = miss_sq.sum(0).t()
@@ -116,9 +129,9 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
         centres = (np.asarray(stfm.grid.gs_centre_frames(), float) + 0.5) / sub - 0.5  # in the output's frames
         cost += _normalised(centre_weights(centres, k // sub).to(dev).t() @ g_cost)
     size = max(stfm.H, stfm.W)  # the turn penalty and speed limit scale with the image: in grid steps
-    turn = SEARCH_TURN * stfm.state.search_turn_scale * step * 64 / size  # scaled in track_refit's run
-    speed = min(int(np.ceil(SEARCH_SPEED * size / step)), SEARCH_SPEED_STEPS)
-    best = _viterbi(cost.cpu().numpy().reshape(k // sub, side, side), SEARCH_SMOOTH * step, turn, speed)
+    turn = config.search_turn * stfm.state.search_turn_scale * step * TURN_SIDE / size  # track_refit scales it
+    speed = min(int(np.ceil(config.search_speed * size / step)), SEARCH_SPEED_STEPS)
+    best = _viterbi(cost.cpu().numpy().reshape(k // sub, side, side), config.search_smooth * step, turn, speed)
     return through_subframes(shifts.cpu()[torch.from_numpy(best)], sub)
 
 
@@ -169,7 +182,7 @@ def _viterbi(cost: np.ndarray, move: float, turn: float, speed: int) -> np.ndarr
     v = len(steps)
     moves = move * (np.abs(steps)[:, None] + np.abs(steps)[None, :])
     total = np.repeat(np.repeat(cost[0][:, :, None, None], v, 2), v, 3)
-    came = np.zeros((k, side, side, v, v), dtype=np.int8 if v * v < 128 else np.int16)  # flat over (V, V)
+    came = np.zeros((k, side, side, v, v), dtype=np.int8 if v * v < INT8_STATES else np.int16)  # flat over (V, V)
     for t in range(1, k):
         turned, last = _turn_envelope(total, turn)
         total = np.full_like(total, np.inf)

@@ -6,8 +6,8 @@ settings (`make_stfm`: RIFE or flow bases, the fast preset's ensemble, the prior
 search), so the set-up work that does not scale with the grid (RIFE, optical flow, the motion
 search, the GS initialisation fits) runs on 1/16 of the pixels and 1/4 of the frames. A coarse
 level ends at its own stop test (noise level or stall), after `max_level_steps`, or, under a time budget,
-once its steps have used their share of what the budget had left when it started (LEVEL_SHARE for a
-base-video model, CoarseToFine's for the others).
+once its steps have used their share of what the budget had left when it started (`fit.level_share` for a
+base-video model, CoarseToFine's for the others; the numbers are the fit stage's: stage_configs.MultilevelConfig).
 
 Each finer level starts from the level below, in the preset's own model:
 - a model with a time-dependent dynamic field on a base video (fast; `dynamic_time=True`):
@@ -43,33 +43,11 @@ from rngcam.recon.methods.coarse_to_fine import LEVEL_SHARE as DEFAULT_LEVEL_SHA
 from rngcam.recon.methods.selfcal import pose_matrix, warp
 from rngcam.recon.methods.stfm.bases import _base_video, _network_device
 from rngcam.recon.methods.stfm.method import STFM
-from rngcam.recon.methods.stfm.settings import (
-    REFINE_LR_RATIO,
-    REFINE_STALL_PASSES,
-    STFMSettings,
-    _preset,
-    _setting_or_preset,
-)
+from rngcam.recon.methods.stfm.presets import preset_table
+from rngcam.recon.methods.stfm.settings import STFMSettings, _setting_or_preset
+from rngcam.recon.methods.stfm.stage_configs import fit_config
 
-MAX_LEVEL_STEPS = 3000  # a coarse level that never meets its stop test ends here
-# Under a time budget a coarse level of a base-video model (fast) may spend this share of what is
-# left when it starts (the full level gets the rest): its coarse steps are cheaper and carry most of
-# the result, and this share scored best on the paper grid. A model that carries its fields (prior)
-# keeps CoarseToFine's 0.15: its full level carries the detail, and a larger share cost it PSNR and
-# the ball's place (bench/convergence.md, "the large grids' budget spent where it pays").
-LEVEL_SHARE = 0.45
-# ... and on the half-grid-first path (below 96 px) this share: its full level is one short refinement,
-# so LEVEL_SHARE cut the half grid short under a budget longer than its own stop
-# (bench/convergence.md, "the half grid first again").
-HALF_GRID_LEVEL_SHARE = 0.85
-
-
-# Below 96 px, where default_factors gives one level, a base-video model (fast) still starts on the
-# half grid when that keeps this many pixels a side: its ensemble there, with bases from the full
-# grid's frames, then one fit on the full grid: a fraction of the wall time for the same PSNR
-# (bench/convergence.md, "the half grid first again"; bench/realistic.md, "the lab-to-fine gap and the
-# learned shift"). A model that carries its fields (prior) keeps one level.
-BASE_MIN_SIDE = 32
+NATIVE_CHUNK_FRAMES = 8  # frames warped at once into the GS camera's coordinates (the base is the largest buffer)
 
 
 def stfm_levels(problem, settings: STFMSettings) -> tuple[int, ...]:
@@ -77,7 +55,8 @@ def stfm_levels(problem, settings: STFMSettings) -> tuple[int, ...]:
     if not settings.coarse_to_fine or problem.has_holdout:
         return (1,)
     factors = default_factors(problem.shape)
-    if factors != (1,) or min(problem.shape[-2:]) < 2 * BASE_MIN_SIDE or settings.preset == "auto":
+    small = min(problem.shape[-2:]) < 2 * fit_config(settings).base_min_side
+    if factors != (1,) or small or settings.preset == "auto":
         return factors  # ("auto" is resolved before the levels are chosen: make_stfm)
     return (2, 1) if _setting_or_preset(settings, "dynamic_time") else factors
 
@@ -97,15 +76,17 @@ def _half_grid_first(problem, factors: tuple[int, ...], with_base: bool) -> bool
 
 def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int, ...], single,
                     clock=None, stage=None,
-                    max_level_steps: int = MAX_LEVEL_STEPS, carry: str = "auto") -> CoarseToFine:
+                    max_level_steps: int | None = None, carry: str = "auto") -> CoarseToFine:
     """STFM coarse to fine over `factors` (see the module docstring). `single(problem, settings)`
     builds the ordinary STFM of the coarsest level; `stage(message)` reports each level's set-up.
     `carry`: "auto" (the preset's way, above), or "fields" for a base-video model too (its base
-    upsampled, its fields resampled: bench/large_grids.py `carry` compares the two)."""
+    upsampled, its fields resampled: bench/large_grids.py `carry` compares the two). `max_level_steps`:
+    the fit stage's `max_level_steps` where None."""
+    config = fit_config(settings)
     # a level is no whole run; one fit a level (each level takes the fields of the fit before it)
     single_settings = replace(settings, coarse_to_fine=False, track_refit=False, fits=1)
     c, k, h, w = problem.shape
-    with_base = _preset(settings.preset, h, w, k)["dynamic_time"] if settings.dynamic_time is None \
+    with_base = preset_table(settings.preset, h, w, k)["dynamic_time"] if settings.dynamic_time is None \
         else settings.dynamic_time
     previous: list = []
     norm_vector: list[Tensor] = []  # the last level's power-iteration vector for ||A_R||
@@ -155,9 +136,11 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
     if not with_base:
         share = DEFAULT_LEVEL_SHARE
     else:
-        share = HALF_GRID_LEVEL_SHARE if _half_grid_first(problem, factors, with_base) else LEVEL_SHARE
+        half_grid = _half_grid_first(problem, factors, with_base)
+        share = config.half_grid_level_share if half_grid else config.level_share
     return CoarseToFine(problem, make, factors, clock=clock, stage=stage, level_stop="method",
-                        max_level_steps=max_level_steps, time_factors=stfm_time_factors(problem, factors, with_base),
+                        max_level_steps=config.max_level_steps if max_level_steps is None else max_level_steps,
+                        time_factors=stfm_time_factors(problem, factors, with_base),
                         level_share=share)
 
 
@@ -173,8 +156,9 @@ def _to_native(video: Tensor, pose: Tensor, radius: float) -> Tensor:
     """A video (C, K, H, W) in RS coordinates in the GS camera's (sampled at S p), in place, frame
     chunk by frame chunk (the full grid's base is the run's largest buffer)."""
     m = pose_matrix(pose.double().cpu(), radius).numpy()
-    for i in range(0, video.shape[1], 8):
-        video[:, i:i + 8] = warp(video[:, i:i + 8].float(), m).to(video.dtype)
+    n = NATIVE_CHUNK_FRAMES
+    for i in range(0, video.shape[1], n):
+        video[:, i:i + n] = warp(video[:, i:i + n].float(), m).to(video.dtype)
     return video
 
 
@@ -195,8 +179,8 @@ def _with_detail(problem, x0: Tensor, coarse_shape: tuple[int, int, int, int]) -
 
 def _lr(settings: STFMSettings, problem) -> float:
     c, k, h, w = problem.shape
-    base = settings.lr if settings.lr is not None else _preset(settings.preset, h, w, k)["lr"]
-    return REFINE_LR_RATIO * base
+    base = settings.lr if settings.lr is not None else preset_table(settings.preset, h, w, k)["lr"]
+    return fit_config(settings).refine_lr_ratio * base
 
 
 def _on_base(problem, settings: STFMSettings, device, x0: Tensor, norm_start: Tensor | None = None,
@@ -204,7 +188,7 @@ def _on_base(problem, settings: STFMSettings, device, x0: Tensor, norm_start: Te
     """One fit on the base video x0 (C, K, H, W), the coarser level's estimate upsampled (kept as
     it is, half precision included: no copy). The base is x0 divided by the gains the fit starts
     with (on the fly), so its first video is x0 itself. `refinement`: with the ensemble refinement's
-    stall window (REFINE_STALL_PASSES, unless stall_passes is set), where x0 carries the GS-only
+    stall window (`fit.refine_stall_passes`, unless stall_passes is set), where x0 carries the GS-only
     detail (the default window stopped the paper grid's middle level early; bench/convergence.md,
     "the fast preset on the half grid first"). `state`: the run state of the level below
     (rngcam.recon.methods.stfm.run_state)."""
@@ -212,7 +196,7 @@ def _on_base(problem, settings: STFMSettings, device, x0: Tensor, norm_start: Te
     gains = None if wb is None or bool(torch.all(wb == 1)) else wb.float()
     fine = replace(settings, dynamic_base="video", dynamic_time=True, lr=_lr(settings, problem))
     if refinement:
-        fine = replace(fine, stall_passes=settings.stall_passes or REFINE_STALL_PASSES)
+        fine = replace(fine, stall_passes=settings.stall_passes or fit_config(settings).refine_stall_passes)
     return STFM(problem, fine, device, base_video=x0, base_gains=gains, rs_norm_start=norm_start, state=state)
 
 

@@ -2,7 +2,8 @@
 
 Every preset runs this recipe; the preset decides the fit's fields and schedule (settings._preset) and
 each stage decides, from the build, whether it applies and says why not. A stage's numbers are set with
-`--set stage.field=value` or `--recipe FILE.yaml` (STFMSettings.stages), checked against its config.
+`--set stage.field=value` or `--recipe FILE.yaml` (STFMSettings.stages), checked against its config; the
+same spelling sets the STFMSettings field a stage owns (setting_names: `--set fit.tau=1e-4`).
 """
 
 from __future__ import annotations
@@ -14,8 +15,9 @@ from torch import Tensor
 from rngcam.errors import ConfigError
 from rngcam.recon.loop import Wrapped
 from rngcam.recon.methods.stfm.run_state import RunState
+from rngcam.recon.methods.stfm.setting_names import SETTING_NAMES, field_type, keys_of, stage_values
 from rngcam.recon.methods.stfm.settings import STFMSettings
-from rngcam.recon.methods.stfm.stage import Build, config_dict, configs_for, run_recipe
+from rngcam.recon.methods.stfm.stage import Build, config_dict, configs_for, run_recipe, typed_value
 from rngcam.recon.methods.stfm.stages import (
     AutoPreset,
     EdgeRefitStage,
@@ -41,11 +43,22 @@ def stage_names() -> list[str]:
 
 
 def check_stage_settings(overrides: dict | None) -> dict:
-    """`overrides` ({stage: {field: value}}) checked and typed against the recipe's configs; the
-    changed values only (one line for an unknown name or a wrong type)."""
-    configs = configs_for(RECIPE, overrides)
-    return {name: {key: config_dict(configs[name])[key] for key in (overrides or {}).get(name) or {}}
-            for name in (overrides or {})}
+    """`overrides` ({stage: {key: value}}) checked and typed against the recipe's configs and the settings
+    fields each stage owns (setting_names); the changed values only (one line for an unknown name or a
+    wrong type)."""
+    configs = configs_for(RECIPE, overrides, keys_of)
+
+    def typed(name: str, key: str):
+        value = overrides[name][key]
+        if (name, key) in SETTING_NAMES:
+            return typed_value(f"{name}.{key}", value, field_type(SETTING_NAMES[(name, key)]))
+        return config_dict(configs[name])[key]
+
+    return {name: {key: typed(name, key) for key in (overrides or {}).get(name) or {}} for name in (overrides or {})}
+
+
+def _owned(build: Build, name: str) -> dict:
+    return stage_values(build.settings, name, build.problem.shape if build.problem is not None else None)
 
 
 def _build(problem, settings: STFMSettings | None, device, initial_video, clock, stage, state) -> Build:
@@ -73,10 +86,12 @@ def make_stfm(problem, settings: STFMSettings | None = None, device="cpu", initi
 def explain(problem, settings: STFMSettings | None = None) -> list[str]:
     """The recipe a run on `problem` would follow, one line a stage, without fitting: the stages that
     decide from the data before the fit (self-calibration, the preset's choice) run, the others say
-    what they would do or why they are left out."""
+    what they would do or why they are left out. A stage that owns settings fields has a second line,
+    `  settings: stage.key=value, ...`, with the values the build resolves."""
     build = _build(problem, settings, "cpu", None, None, None, None)
+    build.owned = _owned
     run_recipe(RECIPE, build, dry=True)
-    return [r.line() for r in build.trace]
+    return [line for r in build.trace for line in (r.line(), r.settings_line()) if line is not None]
 
 
 def recipe_from_yaml(text: str, source: str) -> dict:
@@ -112,8 +127,22 @@ class Traced(Wrapped):
 
 
 def with_stage_settings(settings: STFMSettings, overrides: dict) -> STFMSettings:
-    """`settings` with stage settings `overrides` merged over its own (checked)."""
+    """`settings` with `overrides` ({stage: {key: value}}): a settings field a stage owns (setting_names)
+    set on `settings` (checked by STFMSettings; one line naming STAGE.KEY), a stage config's value merged
+    over `settings.stages` (checked)."""
+    checked = check_stage_settings(overrides)
     merged = {k: dict(v) for k, v in (settings.stages or {}).items()}
-    for name, values in overrides.items():
-        merged.setdefault(name, {}).update(values)
-    return replace(settings, stages=check_stage_settings(merged))
+    for name, values in checked.items():
+        for key, value in values.items():
+            if (name, key) in SETTING_NAMES:
+                settings = _with_field(settings, f"{name}.{key}", SETTING_NAMES[(name, key)], value)
+            else:
+                merged.setdefault(name, {})[key] = value
+    return replace(settings, stages=check_stage_settings(merged) or None)
+
+
+def _with_field(settings: STFMSettings, label: str, name: str, value) -> STFMSettings:
+    try:
+        return replace(settings, **{name: value})
+    except ConfigError as exc:
+        raise ConfigError(f"stfm: {label}={value}: {str(exc).removeprefix('stfm: ')}") from None

@@ -15,6 +15,9 @@ from collections.abc import Callable
 from torch import Tensor
 
 from rngcam.recon.loop import MethodBase
+from rngcam.recon.methods.stfm.stage_configs import StopConfig
+
+NO_RESIDUAL = 1e30  # an ended fit's RS residual where it has none (non-finite): never the best, and a float
 
 
 class Refits(MethodBase):
@@ -23,12 +26,15 @@ class Refits(MethodBase):
     report, which the misfit verdict reads; `settings`: others a later fit turns off, as the run had
     them), RESULT (the report's name in the results), VALUE (the attempt's figure shown as the kept
     one), STATE (the checkpoint's key prefix) and STAGE_NAME, and write `_propose`, `_check_made` and
-    `_line`."""
+    `_line`. `explained_ratio`: the RS residual over the noise level under which a fit explains the data
+    (the fit stage's, StopConfig)."""
 
     SETTING = RESULT = VALUE = STATE = STAGE_NAME = ""
 
-    def __init__(self, first, problem, refit: Callable, report: dict, settings: dict | None = None):
+    def __init__(self, first, problem, refit: Callable, report: dict, settings: dict | None = None,
+                 explained_ratio: float = StopConfig.explained_ratio):
         self._problem, self._make_refit = problem, refit
+        self.explained_ratio = explained_ratio
         self._settings = {self.SETTING: True, **(settings or {})}  # the run's: later fits turn stages off
         self._flags = (first.supports_holdout, first.stops_itself)  # kept: the first fit may be let go
         self._fits: dict[int, object] = {0: first}  # the current fit and the best so far, by index
@@ -158,7 +164,7 @@ class Refits(MethodBase):
         """Fit k has stopped: its residual, and whether it is the best so far (the other is let go)."""
         self.report["tried"] = True
         res = self._fits[k].residuals().get("rs")
-        self._rs[k] = res = res if isinstance(res, float) and math.isfinite(res) else 1e30  # kept in the state
+        self._rs[k] = res = res if isinstance(res, float) and math.isfinite(res) else NO_RESIDUAL  # kept in the state
         if k:
             self.report["refits"][-1]["rs"] = res
         if k == self._best or not res < self._rs[self._best]:
@@ -244,5 +250,8 @@ def _copy(report: dict) -> dict:
     return {**report, "refits": [dict(r) for r in report.get("refits", [])]}
 
 
+_ORDINALS = ("first", "second", "third", "fourth")
+
+
 def nth(k: int) -> str:
-    return ("first", "second", "third", "fourth")[k] if k < 4 else f"#{k + 1}"
+    return _ORDINALS[k] if k < len(_ORDINALS) else f"#{k + 1}"

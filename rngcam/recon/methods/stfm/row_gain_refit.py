@@ -9,8 +9,8 @@ frames at a ghost the fit never leaves (sineball, PSF 5 % large). Scored after a
 per row and channel, the search follows the shape of the light and keeps the ball, but where the
 plain search was right it starts worse. So the plain search goes
 first; where the key rows found the PSF too large (`edge_refit.edge_scale`) and what it made ends at
-or above RATIO x its noise level, it is made again with row gains, and the one whose RS residual is
-lower is the output. `make_stfm` wraps the whole run this way (the second run has its own edge and
+or above the fit's `explained_ratio` x its noise level, it is made again with row gains, and the one
+whose RS residual is lower is the output. `make_stfm` wraps the whole run this way (the second run has its own edge and
 line-time stages, row gains in every fit) and, inside the first run, each later fit those stages
 make (through a fitted edge, at a learned line time): each is one fit, made again as one fit. The
 second run wraps nothing more (bench/realistic.md, "psf+5's ball is lost by the motion search" and "the
@@ -22,13 +22,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from rngcam.recon.methods.stfm.refits import Refits, nth
-from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
-
-# The plain run's RS residual / noise level at or above which the row-gain run is made: the flagged runs
-# that lost the ball ended above it, those that kept it (where the row-gain run did worse) below
-# (bench/realistic.md, "the row-gain search where a fit through a PSF too large ends unexplained"): the fit
-# is not explained (settings.EXPLAINED_RATIO; rngcam.recon.misfit.POINTED_RATIO)
-RATIO = EXPLAINED_RATIO
+from rngcam.recon.methods.stfm.stage_configs import StopConfig
 
 
 class RowGainRefit(Refits):
@@ -38,13 +32,19 @@ class RowGainRefit(Refits):
     SETTING, RESULT, VALUE = "row_gain_refit", "row_gain_refits", "row_gains"
     STATE, STAGE_NAME = "row_gain", "row-gain refit"
 
-    def __init__(self, first, problem, scale: float, refit: Callable, through: str | None = None):
+    def __init__(self, first, problem, scale: float, refit: Callable, through: str | None = None,
+                 explained_ratio: float = StopConfig.explained_ratio):
         """`through`: what the run is made through where it is a later fit of another stage (e.g. "the
-        PSF with its lost edge fitted"), said in the note; None for the whole run."""
-        super().__init__(first, problem, refit, {"key_rows_scale": scale, "row_gains": False, "through": through})
+        PSF with its lost edge fitted"), said in the note; None for the whole run. The row-gain run is
+        made where the plain run ends at `explained_ratio` x its noise level or more: the flagged runs that
+        lost the ball ended above it, those that kept it (where the row-gain run did worse) below
+        (bench/realistic.md, "the row-gain search where a fit through a PSF too large ends unexplained";
+        rngcam.recon.misfit.POINTED_RATIO)."""
+        super().__init__(first, problem, refit, {"key_rows_scale": scale, "row_gains": False, "through": through},
+                         explained_ratio=explained_ratio)
 
     def _propose(self, best, res: float) -> tuple[bool, dict] | None:
-        ratio = self._unexplained_once(best, res, RATIO, "one run with row gains made")
+        ratio = self._unexplained_once(best, res, self.explained_ratio, "one run with row gains made")
         return None if ratio is None else (True, {"row_gains": True, "from_fit": 0, "from_rs": res, "ratio": ratio})
 
     def _check_made(self, made: dict) -> bool:

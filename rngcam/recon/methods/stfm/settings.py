@@ -1,4 +1,4 @@
-"""STFM settings, presets and the settings as resolved against a preset."""
+"""STFM settings and the settings as resolved against a preset (the presets themselves: presets.py)."""
 
 from __future__ import annotations
 
@@ -6,19 +6,25 @@ import math
 from dataclasses import dataclass, field, fields, replace
 
 from rngcam.errors import ConfigError
+from rngcam.recon.methods.stfm.presets import (  # noqa: F401 (the presets' windows, named here too)
+    PRIOR_STALL_PASSES,
+    SMALL_STALL_PASSES,
+    STALL_PASSES,
+    TRANSLATION_TV_SHARE,
+)
+from rngcam.recon.methods.stfm.presets import preset_table as _preset
+from rngcam.recon.methods.stfm.stage_configs import FitConfig
 from rngcam.recon.options import setting
 
 PRESETS = ("paper", "fast", "prior", "auto")  # auto: prior or fast per scene (rngcam.recon.methods.stfm.auto)
-INIT_STEPS = 100
-NOISE_CHECK_STEPS = 20  # steps between discrepancy-principle checks (one full RS forward each)
-NOISE_CHECK_FRAMES = 80  # ... up to this many frames; one more interval for each further 80 (stopping.py)
-STALL_PASSES = 15  # the stall test compares the RS residual with its value this many passes over the rows ago (fast)
-# The prior preset's window: over 30 passes a lull stopped some fits early, well under the same capture's
-# other seeds (bench/convergence.md, "the prior preset's stall window 30 -> 45 passes"; bench/realistic.md)
-PRIOR_STALL_PASSES = 45
-# ... and on grids of at most SMALL_STALL_SIDE rows (the half grid of a 64 px run, whose full level refines
-# it): fewer steps for the same result (bench/convergence.md, "the half grid first again")
-SMALL_STALL_PASSES, SMALL_STALL_SIDE = 10, 32
+# The fit stage's defaults under the names the fit's modules import (set per run: `--set fit.init_steps=...`;
+# stage_configs.FitConfig holds each one's reason)
+INIT_STEPS = FitConfig.init_steps
+NOISE_CHECK_STEPS = FitConfig.noise_check_steps
+NOISE_CHECK_FRAMES = FitConfig.noise_check_frames
+EXPLAINED_RATIO = FitConfig.explained_ratio
+REFINE_LR_RATIO = FitConfig.refine_lr_ratio
+REFINE_STALL_PASSES = FitConfig.refine_stall_passes
 MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow is skipped
 # A step holds one chunk of frames' autograd graph at a time. Small grids take more frames per chunk:
 # a step's RS frames then fit in one graph, evaluated once instead of a pass without a graph and a pass
@@ -30,6 +36,7 @@ MIN_FRAME_CHUNK = 4
 # GRAPH_BYTES_PER_POINT a point (tests/test_memory.py): never more than an eighth of the card.
 GPU_CHUNK_POINTS = 2_500_000
 GRAPH_BYTES_PER_POINT = 1_200
+GPU_GRAPH_SHARE = 8  # ... a graph takes at most 1 / this of the card's memory
 # What learn_geometry learns of the GS-to-RS transform. "shift" by default: rotation and scale
 # learned alongside drifted where the truth had none (bench/realistic.md, "the GS-to-RS shift learned
 # with the fields"), as a scale trades against the PSF's magnification.
@@ -38,10 +45,6 @@ LINE_TIME_MODES = ("off", "on", "auto")
 # The motion of the dynamic layer: a field over (x, y, t), or its mean over the frame, one translation
 # per frame (the prior preset's: one rigid layer; a field varying across the object tore the ball).
 MOTION_MODELS = ("field", "translation")
-# A translation's motion TV is paid at every pixel, a field's mostly where the object moves: a
-# translation's tau is a field's times this (about a small object's share of the frame).
-# At a field's tau the ball's path was cut at its turns (bench/stfm_motion.md).
-TRANSLATION_TV_SHARE = 0.02
 MAX_SUBFRAMES = 8  # subframes: more would multiply the time and memory of a fit for a blur already resolved
 MAX_FITS = 4  # fits: each one more costs a whole fit's time (side by side where the run has the threads)
 
@@ -208,95 +211,6 @@ ALL_BASES = (*BASE_VIDEOS, *KEY_WARPS, "blend", "none", "video" + HDV3_SUFFIX, "
 # than "video,keys"; a member on DIS flows (keys_interp) cost the clips (bench/stfm_motion.md,
 # bench/stfm_compare.md)
 ENSEMBLE_BASES = "video,keys,video_hdv3,keys_hdv3"
-# A fit that ends at this many times its noise level or more is not explained: the PSF-edge, row-gain and
-# track stages fit again from it (edge_refit, row_gain_refit, track_refit), another error (a PSF at another
-# scale) moves its line time, so one later line fit from it at most (line_refit), and it is stopped where
-# it stalls, not run on (stopping.py)
-EXPLAINED_RATIO = 1.15
-REFINE_LR_RATIO = 0.25  # the ensemble's refinement fit moves an already good video: a quarter of the lr
-# ... and its stall test looks back this many passes over the rows (unless stall_passes is set): what it
-# gains, it gains in its first steps (bench/convergence.md, "log rows and the refinement's stall window")
-REFINE_STALL_PASSES = 5
-DYNAMIC_FEATURES = 4  # features per plane of the fast dynamic field (8 was slower and no better)
-
-
-def _preset(name: str, h: int, w: int, k: int) -> dict:
-    """Field configurations and schedule of a preset for an H x W x K video."""
-    if name == "auto":
-        raise ConfigError("preset 'auto' chooses another preset: build the method with make_stfm")
-    side = max(h, w)
-    if name == "paper":
-        siren = {"w0": 30.0, "n_freqs": 6}
-        return {
-            "static": ("siren", dict(hidden=32, layers=2, **siren)),
-            "motion": ("siren", dict(hidden=32, layers=2, **siren)),
-            "dynamic": ("siren", dict(hidden=128, layers=3, **siren)),
-            "lr": 5e-6, "decoder_lr_ratio": 1.0, "gain_lr_ratio": 1.0, "lr_half_life_steps": math.inf,
-            "beta": 10.0, "tau": 1e-3, "rows_per_step": max(1, h // 4), "init": "random",
-            "dynamic_time": False, "dynamic_base": "none", "gs_windows_per_step": 0, "time_smoothness": 0.0,
-            "stop_at_noise": False, "stall_drop": 0.0, "stall_passes": STALL_PASSES, "ema_decay": 0.0,
-            "refine": False, "motion_init": "flow", "motion_model": "field",
-            "matte_l1": 0.0, "subframes": 1, "fits": 1}
-
-    def scales(fractions, n):
-        return tuple(sorted({max(2, round(n * f)) for f in fractions}))
-
-    appearance = scales((0.25, 0.5, 1.0), side)
-    motion_space = scales((1 / 16, 1 / 8, 1 / 4), side)
-
-    def motion_time_for(space):
-        t = tuple(max(2, round(k * f)) for f in (0.25, 0.5, 1.0))[:len(space)]
-        return t + (t[-1],) * (len(space) - len(t))
-
-    motion_time = motion_time_for(motion_space)
-    fast = {
-        "static": ("planes", {"resolutions": appearance, "features": 8, "hidden": 32}),
-        "motion": ("planes", {"resolutions": motion_space, "time_resolutions": motion_time,
-                               "features": 8, "hidden": 32}),
-        "dynamic": ("planes", {"resolutions": appearance, "time_resolutions": motion_time_for(appearance),
-                                "features": DYNAMIC_FEATURES, "hidden": 32}),
-        # rows a step: 8, a quarter of the rows below 32 px (the half grid of a 64 px run: 8 rows, not the
-        # 4 of h // 8: less time and a better result; bench/convergence.md, "the fast preset on the half grid first")
-        "lr": 1e-2, "decoder_lr_ratio": 0.25, "gain_lr_ratio": 0.01, "lr_half_life_steps": 400.0,
-        "beta": 1.0, "tau": 1e-4, "rows_per_step": max(1, min(8, h // 4)), "init": "gs",
-        "dynamic_time": True, "dynamic_base": "ensemble", "gs_windows_per_step": 1, "time_smoothness": 0.3,
-        "stop_at_noise": True, "stall_drop": 0.02, "ema_decay": 0.95, "refine": True,
-        "stall_passes": SMALL_STALL_PASSES if h <= SMALL_STALL_SIDE else STALL_PASSES,
-        "motion_init": "flow", "motion_model": "field",
-        "matte_l1": 0.0, "subframes": 1, "fits": 1}
-    if name == "prior":  # the paper's prior on the fast fields: one canonical dynamic image that the motion moves
-        fast.update({"dynamic": ("planes", {"resolutions": appearance, "features": DYNAMIC_FEATURES, "hidden": 32}),
-                     "dynamic_time": False, "dynamic_base": "none", "refine": False, "motion_init": "search",
-                     # One translation per frame: the scenes auto gives prior are those one translating
-                     # layer explains, and a motion field, even 10x stiffer in space, tore the canonical
-                     # image (sineball 64 px: a round ball in every frame; bench/stfm_motion.md). Its tau
-                     # below is a translation's: TRANSLATION_TV_SHARE of the field's 1e-3.
-                     "motion_model": "translation",
-                     # below 64 px an eighth of the rows a step, as before the fast preset's change (not measured
-                     # on the prior preset's scenes)
-                     "rows_per_step": max(1, min(8, h // 8)),
-                     # A slow stall test: 2 % over 15 passes stopped it while it was still gaining
-                     # (bench/stfm_motion.md); on captures its model cannot fit to the noise level it
-                     # settles later (bench/realistic.md), and without a stop the result
-                     # depended on how many steps the time budget allowed, i.e. on the machine's load.
-                     "stall_drop": 0.001, "stall_passes": PRIOR_STALL_PASSES,
-                     # A nearly rigid motion (spatial TV 10x fast's, temporal the same): a motion that
-                     # varies across the object tears the canonical image (bench/stfm_motion.md).
-                     "beta": 0.1, "tau": 1e-3 * TRANSLATION_TV_SHARE,
-                     # The canonical image starts from a motion-blurred key frame whose matte covers the
-                     # whole smear: without this its edge stays as a rim and shadow (bench/stfm_motion.md).
-                     "matte_l1": 0.02,
-                     # Half-frames: the rows' exposures begin and end inside frames while the layer moves
-                     # several pixels a frame; the output's frames alone put the ball where a row saw it
-                     # early or late in the frame (bench/realistic.md, "the prior preset fits half-frames").
-                     "subframes": 2,
-                     # Two fits from seeds 0 and 1, averaged: what the RS rows do not pin differs between
-                     # them and averages out (better than either fit, or than picking the one with the
-                     # lower RS residual), at twice the compute (bench/realistic.md, "the prior preset
-                     # averages two fits")
-                     "fits": 2})
-    return fast
-
 
 
 # ----------------------------------------------------------------------------- the method
@@ -344,7 +258,7 @@ def chunk_frames(settings: STFMSettings, h: int, w: int, device: str | None = No
         import torch
 
         card = torch.cuda.get_device_properties(torch.device(device)).total_memory
-        points = max(CHUNK_POINTS, min(GPU_CHUNK_POINTS, card // (8 * GRAPH_BYTES_PER_POINT)))
+        points = max(CHUNK_POINTS, min(GPU_CHUNK_POINTS, card // (GPU_GRAPH_SHARE * GRAPH_BYTES_PER_POINT)))
     return max(MIN_FRAME_CHUNK, points // max(1, h * w))
 
 

@@ -43,6 +43,8 @@ class Build:
     nested: Callable | None = None  # make_stfm: a build of its own (a level, a later fit), as recipe.make_stfm
     configs: dict = field(default_factory=dict)  # stage name -> its config (the recipe's, with --set applied)
     trace: list = field(default_factory=list)
+    # `owned(build, stage name) -> {key: value}`: the settings fields a stage owns, for its record (--explain)
+    owned: Callable | None = None
 
     def config(self, name: str):
         return self.configs[name]
@@ -56,11 +58,18 @@ class StageRecord:
     ran: bool
     what: str
     config: dict
+    settings: dict = field(default_factory=dict)  # the settings fields the stage owns, by their --set keys
 
     def line(self) -> str:
         values = ", ".join(f"{k}={v}" for k, v in self.config.items())
         settings = f" [{values}]" if values else ""
         return f"stage {self.name}{settings}: " + (self.what if self.ran else f"left out: {self.what}")
+
+    def settings_line(self) -> str | None:
+        """`STAGE.KEY=VALUE` of each setting the stage owns (None: it owns none)."""
+        if not self.settings:
+            return None
+        return "  settings: " + ", ".join(f"{self.name}.{k}={v}" for k, v in self.settings.items())
 
 
 class Stage:
@@ -92,18 +101,18 @@ def run_recipe(recipe: Iterable[Stage], build: Build, dry: bool = False):
     """Run (or with `dry`, plan) each stage of `recipe` that applies, in order; a record of each in
     `build.trace`. Returns `build.method`."""
     for stage in recipe:
+        owned = build.owned(build, stage.name) if build.owned is not None else {}  # as the stage finds them
         why_not = stage.applies(build)
-        if why_not is None:
-            what = stage.plan(build) if dry else stage.run(build)
-            build.trace.append(StageRecord(stage.name, True, what, config_dict(build.config(stage.name))))
-        else:
-            build.trace.append(StageRecord(stage.name, False, why_not, config_dict(build.config(stage.name))))
+        ran = why_not is None
+        what = (stage.plan(build) if dry else stage.run(build)) if ran else why_not
+        build.trace.append(StageRecord(stage.name, ran, what, config_dict(build.config(stage.name)), owned))
     return build.method
 
 
-def configs_for(recipe: Iterable[Stage], overrides: dict | None) -> dict:
+def configs_for(recipe: Iterable[Stage], overrides: dict | None, named: Callable[[str], tuple] | None = None) -> dict:
     """Each stage's config: its defaults with `overrides` ({stage: {field: value}}) applied, checked
-    against the typed configs (an unknown stage or field, or a value of the wrong type, is one line)."""
+    against the typed configs (an unknown stage or field, or a value of the wrong type, is one line).
+    `named(stage)`: further keys a stage takes (its settings fields), left out of its config here."""
     stages = {s.name: s for s in recipe}
     overrides = dict(overrides or {})
     unknown = sorted(set(overrides) - set(stages))
@@ -115,19 +124,25 @@ def configs_for(recipe: Iterable[Stage], overrides: dict | None) -> dict:
         changes = overrides.get(name) or {}
         if not isinstance(changes, dict):
             raise ConfigError(f"stfm: stage {name!r} takes field=value settings, got {changes!r}")
-        known = {f.name: f for f in dataclasses.fields(config)}
+        known = [f.name for f in dataclasses.fields(config)]
+        others = named(name) if named is not None else ()
+        typed = {}
         for key, value in changes.items():
+            if key in others:
+                continue
             if key not in known:
-                listed = ", ".join(known) or "none"
+                listed = ", ".join([*known, *others]) or "none"
                 raise ConfigError(f"stfm: stage {name!r} has no setting {key!r} (its settings: {listed})")
-            changes[key] = _typed(f"{name}.{key}", value, type(getattr(config, key)))
-        out[name] = dataclasses.replace(config, **changes)
+            typed[key] = typed_value(f"{name}.{key}", value, type(getattr(config, key)))
+        out[name] = dataclasses.replace(config, **typed)
     return out
 
 
-def _typed(label: str, value, kind: type):
+def typed_value(label: str, value, kind: type):
     """`value` as a `kind` (bool, int, float, str, tuple of str) or one line saying why not."""
     try:
+        if kind is str and isinstance(value, bool):  # YAML 1.1 reads a bare on/off as a boolean
+            return "on" if value else "off"
         if kind is bool:
             if isinstance(value, str) and value.lower() in ("true", "on", "yes", "1", "false", "off", "no", "0"):
                 return value.lower() in ("true", "on", "yes", "1")

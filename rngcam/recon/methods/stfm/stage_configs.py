@@ -14,10 +14,15 @@ class AutoPresetConfig:
     # mean layer misfit under which one translating layer explains the key frames: sineball 0.29 (64 px),
     # 0.39 (32 px); smoke 0.68, 0.60; real clips 0.72-1.0 (bench/stfm_motion.md)
     layer_misfit_max: float = 0.5
+    # key frames are binned by a whole factor to no less than this longer side first: the scale the misfits
+    # above were measured at (32 and 64 px), and a test in a second at any grid (bench/stfm_motion.md)
+    layer_test_side: int = 64
 
     def __post_init__(self):
         if not 0 < self.layer_misfit_max:
             raise ConfigError(f"stfm: auto_preset.layer_misfit_max must be > 0, got {self.layer_misfit_max!r}")
+        if self.layer_test_side < 2:
+            raise ConfigError(f"stfm: auto_preset.layer_test_side must be >= 2, got {self.layer_test_side!r}")
 
 
 FLOOR_VIDEOS = ("blend", "interp")  # the GS-only videos the start floor can make (the baselines' functions)
@@ -67,9 +72,9 @@ class EdgeRefitConfig:
 
 @dataclass(frozen=True)
 class TrackRefitConfig:
-    # the second run's turn penalty, of the search's: half the penalty kept the ball where the first lost
-    # it (sineball lab seed 1: 1.43x -> 1.02x its noise level; bench/realistic.md, "a run left unexplained
-    # is made again from a softer motion search")
+    # the second run's turn penalty, of the search's: half the penalty kept the ball where the first run lost
+    # it, and that run ended near its noise level (bench/realistic.md, "a run left unexplained is made again
+    # from a softer motion search")
     turn_scale: float = 0.5
 
     def __post_init__(self):
@@ -77,10 +82,152 @@ class TrackRefitConfig:
             raise ConfigError(f"stfm: track_refit.turn_scale must be > 0, got {self.turn_scale!r}")
 
 
+class _Checked:
+    """A config assembled from parts: each part's `_check` runs on the whole (FitConfig's parts)."""
+
+    def __post_init__(self):
+        for cls in reversed(type(self).__mro__):
+            check = vars(cls).get("_check")
+            if check is not None:
+                check(self)
+
+
+def _finite(config, names: tuple[str, ...], low: float = 0.0) -> bool:
+    return all(math.isfinite(getattr(config, n)) and getattr(config, n) >= low for n in names)
+
+
 @dataclass(frozen=True)
-class FitConfig:
-    """The fit's schedule for what it learns of the rig with its fields (the GS-to-RS pose and the RS line
-    time) and for a search-started fit's least steps."""
+class StopConfig(_Checked):
+    """When a fit's stop tests run and what they call explained (stopping.py)."""
+
+    # A fit that ends at this many times its noise level or more is not explained: the PSF-edge, row-gain and
+    # track stages fit again from it, another error (a PSF at another scale) moves its line time, so one later
+    # line fit from it at most (line_refit), and it is stopped where it stalls, not run on (bench/realistic.md,
+    # "a run left unexplained is made again from a softer motion search")
+    explained_ratio: float = 1.15
+    # Steps between stop tests (each makes the whole video: one full RS forward) up to noise_check_frames
+    # frames, one more interval for each further noise_check_frames (bench/convergence.md, "the large grids'
+    # budget spent where it pays")
+    noise_check_steps: int = 20
+    noise_check_frames: int = 80
+
+    def _check(self):
+        if not (self.explained_ratio >= 1 and self.noise_check_steps >= 1 and self.noise_check_frames >= 1):
+            raise ConfigError("stfm: fit.explained_ratio must be >= 1, noise_check_steps and noise_check_frames >= 1")
+
+
+@dataclass(frozen=True)
+class RefineConfig(_Checked):
+    """The ensemble's refinement fit (and a finer level's fit on the level below): what it starts from
+    is already good (ensemble.py, multilevel.py); and the ensemble's deadline check."""
+
+    # Its learning rate, of the members': it moves an already good video (bench/convergence.md, "the half
+    # grid first again": more steps at 4x the learning rate did not help)
+    refine_lr_ratio: float = 0.25
+    # Its stall test looks back this many passes over the rows (unless stall_passes is set): what it gains,
+    # it gains in its first steps (bench/convergence.md, "log rows and the refinement's stall window")
+    refine_stall_passes: int = 5
+    # Fits of one base under a deadline: how often (the first fit's steps) the time they still need is checked
+    # (bench/demo.md, "the prior preset's two fits; the demo's budget lets the second go")
+    afford_check_steps: int = 100
+
+    def _check(self):
+        if not (_finite(self, ("refine_lr_ratio",)) and self.refine_lr_ratio > 0 and self.refine_stall_passes >= 1
+                and self.afford_check_steps >= 1):
+            raise ConfigError("stfm: fit.refine_lr_ratio must be > 0, refine_stall_passes and afford_check_steps >= 1")
+
+
+@dataclass(frozen=True)
+class MultilevelConfig(_Checked):
+    """Coarse to fine (multilevel.py): the levels' steps and budget shares, and where a small grid
+    still starts on its half grid."""
+
+    # A coarse level that never meets its stop test ends here (bench/large_grids.md, "Tried after the issue
+    # was blocked: a lower cap on the coarse levels")
+    max_level_steps: int = 3000
+    # Under a time budget a coarse level of a base-video model (fast) may spend this share of what is left
+    # when it starts (the full level gets the rest): its coarse steps are cheaper and carry most of the result,
+    # and this share scored best on the paper grid. A model that carries its fields (prior) keeps
+    # CoarseToFine's: its full level carries the detail, and a larger share cost it PSNR and the ball's place
+    # (bench/convergence.md, "the large grids' budget spent where it pays")
+    level_share: float = 0.45
+    # ... and on the half-grid-first path (below 96 px) this share: its full level is one short refinement,
+    # so level_share cut the half grid short under a budget longer than its own stop (bench/convergence.md,
+    # "the half grid first again")
+    half_grid_level_share: float = 0.85
+    # Below 96 px, where the default levels are one, a base-video model (fast) still starts on the half grid
+    # when that keeps this many pixels a side: its ensemble there, with bases from the full grid's frames,
+    # then one fit on the full grid: a fraction of the wall time for the same PSNR (bench/convergence.md,
+    # "the half grid first again"; bench/realistic.md, "the lab-to-fine gap and the learned shift"). A model
+    # that carries its fields (prior) keeps one level.
+    base_min_side: int = 32
+
+    def _check(self):
+        shares = (self.level_share, self.half_grid_level_share)
+        if not (all(0 < s <= 1 for s in shares) and self.max_level_steps >= 1 and self.base_min_side >= 1):
+            raise ConfigError("stfm: fit's level shares must be in (0, 1], max_level_steps and base_min_side >= 1")
+
+
+@dataclass(frozen=True)
+class MotionSearchConfig(_Checked):
+    """The prior preset's motion start (motion_search.py): which shifts it tries and what its
+    Viterbi pass charges."""
+
+    # Shifts up to this fraction of the image side each way: every integer shift a layer can take and stay
+    # partly in the frame (bench/stfm_motion.md, "What the prior preset is")
+    search_reach: float = 0.6
+    # About this many candidate positions per axis: 1 px steps up to about 107 px images, coarser above
+    # (the search's cost is one RS forward per candidate)
+    search_points: int = 64
+    # L1 penalty per pixel of shift change between frames (normalised costs; bench/realistic.md, "the motion
+    # search charges turns")
+    search_smooth: float = 1e-3
+    # L1 penalty per px/frame of change in velocity at a 64 px side (normalised costs): the RS rows often
+    # cannot tell a smooth path from a detour between key frames (bench/realistic.md, "the motion search
+    # charges turns")
+    search_turn: float = 0.1
+    # Fastest motion searched: this share of the image side per frame, per axis (bench/realistic.md, "the
+    # motion search charges turns")
+    search_speed: float = 0.125
+    # A key frame's object mask: 1 where it differs from the key frames' median by this share of the median's
+    # mean (the layer the search moves; not tuned alone: the search as a whole is in bench/stfm_motion.md,
+    # "What the prior preset is")
+    layer_change: float = 0.1
+
+    def _check(self):
+        names = ("search_reach", "search_smooth", "search_turn", "search_speed", "layer_change")
+        if not (_finite(self, names) and self.search_reach > 0 and self.search_points >= 2
+                and self.search_speed > 0 and self.layer_change > 0):
+            raise ConfigError("stfm: fit's search_* and layer_change must be finite and > 0 (search_points >= 2)")
+
+
+@dataclass(frozen=True)
+class ComponentsConfig(_Checked):
+    """Which parts a scene needs (components.py): a dark background needs no static field, a static
+    scene no motion. Detection thresholds on the data's own noise."""
+
+    # the background (the GS frames' median) is dark below this share of the GS frames' peak
+    dark_fraction: float = 0.02
+    # a change beyond this many noise sigmas is real (the RS residual of a static scene: within half as many
+    # of its own noise estimate)
+    static_noise_factor: float = 5.0
+    # ... plus this share of the signal (model and calibration slack)
+    static_relative_tol: float = 0.002
+    # the share of a GS frame's pixels allowed to change beyond noise in a static scene
+    static_outlier_fraction: float = 1e-3
+
+    def _check(self):
+        names = ("dark_fraction", "static_noise_factor", "static_relative_tol", "static_outlier_fraction")
+        if not _finite(self, names):
+            raise ConfigError("stfm: fit's dark_fraction and static_* thresholds must be finite and >= 0")
+
+
+@dataclass(frozen=True)
+class FitConfig(ComponentsConfig, MotionSearchConfig, MultilevelConfig, RefineConfig, StopConfig):
+    """The fit stage's numbers: its schedule for what it learns of the rig with its fields (the GS-to-RS
+    pose and the RS line time), a search-started fit's least steps and the GS initialisation's steps, and
+    its parts' (StopConfig, RefineConfig, MultilevelConfig, MotionSearchConfig, ComponentsConfig), all set
+    as `--set fit.field=value`."""
 
     # The learned GS-to-RS pose's step (Adam, pixels of displacement at the grid's edge) per unit of the
     # fields' learning rate, decaying with it: a smaller ratio did not reach smoke's shift, a step that does
@@ -115,10 +262,14 @@ class FitConfig:
     # half-lives of its step before its stop tests may end it: its video still gains long after the residual
     # has gone flat (bench/realistic.md, "a search-started fit runs four half-lives of its step")
     search_fit_half_lives: float = 4.0
+    # Steps of the fit to the GS frames alone that initialises the fields (init="gs"): the key frames' own
+    # detail before the RS term joins (a set-up cost, not tuned alone; its seconds are in bench/convergence.md,
+    # "the large grids' budget spent where it pays")
+    init_steps: int = 100
 
-    def __post_init__(self):
+    def _check(self):
         figures = (self.pose_lr_ratio, self.pose_lr_after_hold, self.line_lr_ratio, self.line_lr_after_hold,
-                   self.search_fit_half_lives, self.pose_hold_steps, self.line_hold_steps_search)
+                   self.search_fit_half_lives, self.pose_hold_steps, self.line_hold_steps_search, self.init_steps)
         if not all(math.isfinite(v) and v >= 0 for v in figures):
             raise ConfigError("stfm: the fit stage's ratios, holds and half-lives must be finite and >= 0")
 

@@ -42,6 +42,11 @@ def _both_cameras(build: Build) -> str | None:
     return None
 
 
+def _explained(build: Build) -> float:
+    """The RS residual over the noise level under which a fit explains the data (the fit stage's)."""
+    return build.config(Fit.name).explained_ratio
+
+
 def _whole_run(build: Build) -> str | None:
     """Why a stage that wraps a whole run is left out of this build (a level or a fit from a video)."""
     return "a fit started from a given video (a level or a refinement)" if build.initial_video is not None else None
@@ -81,7 +86,7 @@ class AutoPreset(Stage):
         return None if build.settings.preset == "auto" else f"preset {build.settings.preset} given"
 
     def run(self, build: Build) -> str:
-        choice = choose_preset(build.problem, build.config(self.name).layer_misfit_max)
+        choice = choose_preset(build.problem, build.config(self.name))
         if build.settings.no_gs:  # say why there are no key frames to test
             choice = replace(choice, reason=f"--no-gs: {choice.reason}")
         build.settings = replace(build.settings, preset=choice.preset)
@@ -181,7 +186,7 @@ class LineRefitStage(Stage):
                                s.self_calibrate_psf_scale, {"line_time_from": factor}, line_refit=False, psf_edge=False)
 
         build.method = LineRefit(build.method, build.problem, later, {"psf_edge": s.psf_edge},
-                                 build.config(self.name))
+                                 build.config(self.name), _explained(build))
         return self.about
 
 
@@ -210,7 +215,8 @@ class EdgeRefitStage(Stage):
             found = {"scales": build.state.selfcal_report.get("scales"), "psf_edge": report, "through": through}
             return another_fit(build, replace(handed, psf=psf.to(handed.psf)), found, False, {}, psf_edge=False)
 
-        build.method = EdgeRefit(build.method, build.problem, _edge_scale(build), second, build.config(self.name))
+        build.method = EdgeRefit(build.method, build.problem, _edge_scale(build), second, build.config(self.name),
+                                 _explained(build))
         return f"key rows' PSF scale x{_edge_scale(build):.4f}: {self.about}"
 
 
@@ -240,7 +246,7 @@ class RowGainRefitStage(Stage):
             return another_fit(build, handed, {"row_gain_refit": report, "through": label},
                                s.self_calibrate_psf_scale, {"row_gain_search": True}, row_gain_refit=False)
 
-        build.method = RowGainRefit(build.method, build.problem, _edge_scale(build), second, through)
+        build.method = RowGainRefit(build.method, build.problem, _edge_scale(build), second, through, _explained(build))
         return self.about
 
 
@@ -266,7 +272,8 @@ class TrackRefitStage(Stage):
             found = {"track_refit": report, "through": f"the motion search with its turn penalty x{scale:g}"}
             return another_fit(build, handed, found, s.self_calibrate_psf_scale, {"search_turn_scale": scale})
 
-        build.method = TrackRefit(build.method, build.problem, second, build.config(self.name).turn_scale)
+        build.method = TrackRefit(build.method, build.problem, second, build.config(self.name).turn_scale,
+                                  _explained(build))
         return self.about
 
 

@@ -7,8 +7,8 @@ penalty on each change of velocity decides. Where the penalty is too stiff for a
 track cuts a stretch of frames off and the fit never leaves it; that run ends with its RS residual
 well above its noise level, where the same capture searched at half the penalty ends near it with the
 ball kept (bench/realistic.md, "a run left unexplained is made again from a softer motion search").
-So where a run whose motion came from the search ends at RATIO x its noise level or more, and the
-row-gain stage (a PSF found too large) does not apply, it is made again with the search's turn
+So where a run whose motion came from the search ends at the fit's `explained_ratio` x its noise level
+or more, and the row-gain stage (a PSF found too large) does not apply, it is made again with the search's turn
 penalty times `turn_scale` (the track_refit stage's config); the run whose RS residual is lower is
 the output. The recipe wraps the whole run this way; the second run has its own edge and line-time
 stages and wraps nothing more.
@@ -20,14 +20,7 @@ import math
 from collections.abc import Callable
 
 from rngcam.recon.methods.stfm.refits import Refits, nth
-from rngcam.recon.methods.stfm.settings import EXPLAINED_RATIO
-from rngcam.recon.methods.stfm.stage_configs import TrackRefitConfig
-
-# The first run's RS residual / noise level at or above which the second run is made: the row-gain
-# stage's, where the fit is not explained: runs that lost the ball ended above it, those that kept it
-# below (bench/realistic.md, "a run left unexplained is made again from a softer motion search";
-# settings.EXPLAINED_RATIO)
-RATIO = EXPLAINED_RATIO
+from rngcam.recon.methods.stfm.stage_configs import StopConfig, TrackRefitConfig
 
 
 class TrackRefit(Refits):
@@ -37,12 +30,17 @@ class TrackRefit(Refits):
     SETTING, RESULT, VALUE = "track_refit", "track_refits", "turn_scale"
     STATE, STAGE_NAME = "track", "track refit"
 
-    def __init__(self, first, problem, refit: Callable, turn_scale: float = TrackRefitConfig.turn_scale):
-        super().__init__(first, problem, refit, {"turn_scale": 1.0})
+    def __init__(self, first, problem, refit: Callable, turn_scale: float = TrackRefitConfig.turn_scale,
+                 explained_ratio: float = StopConfig.explained_ratio):
+        """The second run is made where the first ends at `explained_ratio` x its noise level or more: runs
+        that lost the ball ended above it, those that kept it below (bench/realistic.md, "a run left
+        unexplained is made again from a softer motion search")."""
+        super().__init__(first, problem, refit, {"turn_scale": 1.0}, explained_ratio=explained_ratio)
         self.turn_scale = turn_scale
 
     def _propose(self, best, res: float) -> tuple[float, dict] | None:
-        ratio = self._unexplained_once(best, res, RATIO, "one run from a search with a smaller turn penalty made")
+        ratio = self._unexplained_once(best, res, self.explained_ratio,
+                                       "one run from a search with a smaller turn penalty made")
         if ratio is None:
             return None
         return self.turn_scale, {"turn_scale": self.turn_scale, "from_fit": 0, "from_rs": res, "ratio": ratio}
