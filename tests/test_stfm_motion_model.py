@@ -89,7 +89,9 @@ def test_a_translation_is_the_fields_mean_over_a_coarse_grid_of_the_frame():
     """The translation averages the motion field over TRANSLATION_MEAN_POINTS points per axis (a 16th
     of a 64 px frame's evaluations), spanning the whole frame."""
     from rngcam.recon.methods.stfm.fields import field_on_grid
-    from rngcam.recon.methods.stfm.grid import TRANSLATION_MEAN_POINTS
+    from rngcam.recon.methods.stfm.stage_configs import FitConfig
+
+    TRANSLATION_MEAN_POINTS = FitConfig.translation_mean_points
 
     p = _sineball(40, 40)
     m = STFM(p, STFMSettings(preset="prior", components="all"))
@@ -128,7 +130,9 @@ def test_a_motion_field_is_decoded_on_knots_two_pixels_apart():
     """The field model's motion is the field decoded on knots about every MOTION_KNOT_PX pixels,
     interpolated bilinearly: at a pixel on a knot, the field itself."""
     from rngcam.recon.methods.stfm.fields import field_on_grid
-    from rngcam.recon.methods.stfm.grid import MOTION_KNOT_PX
+    from rngcam.recon.methods.stfm.stage_configs import FitConfig
+
+    MOTION_KNOT_PX = FitConfig.motion_knot_px
 
     p = _sineball(17, 33)  # 17 x 33 px: knots 9 x 17, on every other pixel
     m = STFM(p, STFMSettings(preset="fast", dynamic_base="interp", components="all"))

@@ -21,7 +21,13 @@ import math
 # family end below it, a PSF a few percent off above (bench/realistic.md, "Misfit verdict").
 # Where self-calibration's key rows found a PSF scale it did not apply, the lower one.
 MISFIT_RATIO = 1.2
-POINTED_RATIO = 1.15
+# A fit that ends at this many times its noise level or more is not explained: STFM's PSF-edge, row-gain and
+# track stages fit again from it, another error (a PSF at another scale) moves its line time, so one later
+# line fit from it at most, and it is stopped where it stalls, not run on (the fit reads it as
+# `--set fit.explained_ratio`; bench/realistic.md, "a run left unexplained is made again from a softer motion
+# search"). Where the key rows pointed at a cause, the verdict speaks from it too.
+EXPLAINED_RATIO = 1.15
+POINTED_RATIO = EXPLAINED_RATIO
 # A run whose last level refines a coarser level's estimate (coarse to fine: the fast preset from 64 px)
 # ends a little further from the noise level: that fit starts from the half grid's video and stops when it
 # stalls, where a fit from the GS-only bases fits the RS image from scratch. The fine and lab families end
@@ -36,6 +42,9 @@ FAR_OFF = "calibration far off"
 # long is learned nearly whole over later fits (stfm/line_refit.py), where one moving object times the rows
 # (bench/realistic.md, "the prior preset fits half-frames" and "the line time learned on over later fits").
 LINE_TIME_FAR = 0.007
+# ... and one this far from 1 makes the fit's note suggest measuring the line time: above what the fit wanders
+# on exact timing (bench/realistic.md, "the prior preset fits half-frames")
+LINE_TIME_SUSPECT = 0.005
 # A GS-to-RS shift learned this far (px) from the calibration's says the calibration is off: the fit pins
 # the shift across the scene's motion only (along it the shift trades against the motion's timing) and
 # applies it on the grid, where detail finer than a grid pixel aliases, so exact captures learn a shift

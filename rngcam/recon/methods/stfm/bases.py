@@ -8,7 +8,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.recon.methods.baselines import BaselineInputError, interp, interp_warps
 from rngcam.recon.methods.coarse_to_fine import bin_space
+from rngcam.recon.methods.rife import RifeUnavailableError, resolve_model, rife, rife_warps
 from rngcam.recon.methods.stfm.settings import BASE_VIDEOS, HDV3_SUFFIX, KEY_WARPS, MIN_FLOW_SIZE_PX
 
 
@@ -68,9 +70,6 @@ class DynamicBase:
         ("keys_interp"), that the motion and dynamic fields correct; computed on the key frames
         `source` (a finer grid's: binned to this one) and applied to `keys`. False where no flow can
         be computed (fewer than two key frames, images under MIN_FLOW_SIZE_PX)."""
-        from rngcam.recon.methods.baselines import BaselineInputError, interp_warps
-        from rngcam.recon.methods.rife import RifeUnavailableError, rife_warps
-
         if min(source.shape[-2:]) < MIN_FLOW_SIZE_PX:  # as _base_video: no flow of either kind that small
             return False
         args = (source.detach().float().cpu().numpy(), problem.gs_times_s, problem.frame_times_s)
@@ -146,8 +145,6 @@ def _rife_model_of(kind: str) -> tuple[str, str | None]:
 
 
 def _resolved_model(model: str | None) -> str:
-    from rngcam.recon.methods.rife import resolve_model
-
     return resolve_model(model)[0]
 
 
@@ -166,12 +163,8 @@ def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str, model: str |
     """The GS-only video (C, K, H, W) a dynamic field corrects, which baseline made it, and why
     RIFE was not used where it was preferred ("" otherwise). `model`: the RIFE model (None: the default);
     `device`: where RIFE's network runs."""
-    from rngcam.recon.methods.baselines import interp
-
     frames = keys.detach().float().cpu().numpy()
     if kind in ("video", "rife") and frames.shape[0] in (1, 3) and min(frames.shape[-2:]) >= MIN_FLOW_SIZE_PX:
-        from rngcam.recon.methods.rife import RifeUnavailableError, rife
-
         try:
             with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
                 return torch.from_numpy(rife(frames, gs_times_s, frame_times_s, model=model, device=device)), "rife", ""

@@ -9,19 +9,6 @@ from torch import Tensor
 from rngcam.physics.operators import GlobalShutter, RollingShutter
 from rngcam.recon.methods.stfm.fields import knots
 
-# A translation is the motion field's mean over this many points per axis of the frame (at most),
-# not over every pixel: the same family of motions (the mean of a field over a grid) for a fraction
-# of the field's evaluations (bench/convergence.md, "the prior preset's translation averaged over 16 x 16 points").
-TRANSLATION_MEAN_POINTS = 16
-# A motion field is decoded on knots about this many pixels apart and interpolated bilinearly
-# between them: its finest planes have knots 4 px apart, so a quarter of the decoder's points cut a
-# fast step's time and not its result (bench/convergence.md, "the fast preset's motion on knots").
-MOTION_KNOT_PX = 2
-# The prior preset's canonical image is decoded on knots this many pixels apart, the pixel centres
-# on them, and moved by bilinear interpolation (bench/convergence.md, "the prior preset decodes its
-# canonical image once a step").
-CANONICAL_KNOT_PX = 0.5
-
 
 def chunks(idx: Tensor, size: int) -> list[Tensor]:
     """`idx` in pieces of at most `size` (frames evaluated with one autograd graph)."""
@@ -47,14 +34,16 @@ class FitGrid:
     saturated pixels, which carry no linear information. The RS weights and operator are rebuilt where
     the fit learns the line time (rngcam.recon.methods.stfm.learned.LineTime.sync)."""
 
-    def __init__(self, problem, parts, gs_anchor: str, frame_chunk: int, device: torch.device):
+    def __init__(self, problem, parts, gs_anchor: str, frame_chunk: int, device: torch.device, config):
+        """`config`: the fit stage's (stage_configs.EvaluationConfig: where the fields are decoded)."""
         p, dev = problem, device
         self.problem, self.device, self.frame_chunk = p, dev, frame_chunk
         self.C, self.K, self.H, self.W = p.shape
         self.xs, self.ys, self.ts = _axis(self.W, dev), _axis(self.H, dev), _axis(self.K, dev)
-        self.xs_mean, self.ys_mean = (_axis(min(n, TRANSLATION_MEAN_POINTS), dev) for n in (self.W, self.H))
-        self.xs_knots, self.ys_knots = (knots(a, MOTION_KNOT_PX) for a in (self.xs, self.ys))
-        self.canonical_knots = [knots(a, CANONICAL_KNOT_PX) for a in (self.xs, self.ys)]
+        self.xs_mean, self.ys_mean = (_axis(min(n, config.translation_mean_points), dev) for n in (self.W, self.H))
+        self.xs_knots, self.ys_knots = (knots(a, config.motion_knot_px) for a in (self.xs, self.ys))
+        self.canonical_knots = [knots(a, config.canonical_knot_px) for a in (self.xs, self.ys)]
+        self.canonical_stride = round(1 / config.canonical_knot_px)  # pixels lie on every this-many knots
         self.mask = None if p.mask is None else p.mask.to(dev, torch.float32)
         self.px_per_unit = torch.tensor([(self.W - 1) / 2, (self.H - 1) / 2], device=dev).clamp_min(0.5)
         self.w_rs_host = p.rs_weights.to("cpu", torch.float32)

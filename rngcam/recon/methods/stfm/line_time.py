@@ -15,10 +15,8 @@ from torch import Tensor, nn
 
 from rngcam.recon.methods.stfm.grid import to_device
 from rngcam.recon.methods.stfm.learned import Learned, held_schedule
+from rngcam.recon.misfit import LINE_TIME_SUSPECT
 
-# A learned factor further than this from 1 says the recorded line time is off: above what the fit
-# wanders on exact timing (bench/realistic.md, "the prior preset fits half-frames")
-SUSPECT_LINE_TIME = 0.005
 # The factor is held within 1 +- this: a recorded line time further off is not a rough figure but
 # a wrong one (the readout would not fit the capture), and a factor near 0 would fold the rows
 MAX_LINE_CHANGE = 0.2
@@ -121,6 +119,6 @@ def line_time_lines(report: dict | None, steps: int) -> list[str]:
           f"{report['recorded_s'] * 1e6:.4f} us)")
     start = report.get("started_at")
     line = f"RS line time learned with the fields{'' if start is None else f' from x{start:.4f}'}: {us}"
-    if abs(report["factor"] - 1) > SUSPECT_LINE_TIME:
+    if abs(report["factor"] - 1) > LINE_TIME_SUSPECT:
         line += ("; the recorded line time looks off: measure it with `rngcam calibrate linetime --flicker`")
     return [line]

@@ -93,7 +93,7 @@ class STFM(MethodBase):
             raise ConfigError(f"dynamic_base {self.resolved.dynamic_base!r} is an ensemble: build it with make_stfm")
         torch.manual_seed(settings.seed)
         self.generator = torch.Generator(device="cpu").manual_seed(settings.seed)
-        self.grid = FitGrid(p, self.parts, settings.gs_anchor, self.frame_chunk, self.device)
+        self.grid = FitGrid(p, self.parts, settings.gs_anchor, self.frame_chunk, self.device, self.fit_config)
         self.learned_line_time = LineTime(p, self.device)
         self.base = DynamicBase(self.grid, p, self.resolved, self.parts, base_video, base_gains)
         self.learned_gains = Gains(p.white_balance, self.C, preset["gain_lr_ratio"], self.parts.rs and self.parts.gs,
@@ -185,7 +185,7 @@ class STFM(MethodBase):
 
     def _lr_now(self) -> float:
         half = self.resolved.lr_half_life_steps
-        decay = 1.0 if not math.isfinite(half) else max(0.5 ** (self.steps / half), 0.05)
+        decay = 1.0 if not math.isfinite(half) else max(0.5 ** (self.steps / half), self.fit_config.lr_floor_share)
         return self.base_lr * decay
 
     def step(self) -> float:

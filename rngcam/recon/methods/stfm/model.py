@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from rngcam.recon.methods.stfm.fields import field_on_grid, interpolate_grid, make_field, translate_image
-from rngcam.recon.methods.stfm.grid import CANONICAL_KNOT_PX, chunks
+from rngcam.recon.methods.stfm.grid import chunks
 
 
 def _inverse_softplus(y: Tensor) -> Tensor:
@@ -127,7 +127,7 @@ class FieldModel:
     def canonical_at_pixels(self) -> Tensor | None:
         """The decoded canonical image at the pixels, which lie on its knots (None: none decoded now,
         or an axis of one pixel, whose centre is not on the knots' stride)."""
-        image, step = self._canonical_now, round(1 / CANONICAL_KNOT_PX)
+        image, step = self._canonical_now, self.grid.canonical_stride
         if image is None or min(self.H, self.W) < 2:
             return None
         return image[::step, ::step]

@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass
 
 from rngcam.errors import ConfigError
+from rngcam.recon.misfit import EXPLAINED_RATIO
 
 
 @dataclass(frozen=True)
@@ -104,7 +105,7 @@ class StopConfig(_Checked):
     # track stages fit again from it, another error (a PSF at another scale) moves its line time, so one later
     # line fit from it at most (line_refit), and it is stopped where it stalls, not run on (bench/realistic.md,
     # "a run left unexplained is made again from a softer motion search")
-    explained_ratio: float = 1.15
+    explained_ratio: float = EXPLAINED_RATIO  # its reason: rngcam.recon.misfit
     # Steps between stop tests (each makes the whole video: one full RS forward) up to noise_check_frames
     # frames, one more interval for each further noise_check_frames (bench/convergence.md, "the large grids'
     # budget spent where it pays")
@@ -223,7 +224,60 @@ class ComponentsConfig(_Checked):
 
 
 @dataclass(frozen=True)
-class FitConfig(ComponentsConfig, MotionSearchConfig, MultilevelConfig, RefineConfig, StopConfig):
+class InitConfig(_Checked):
+    """How a fit's fields start from the GS frames before the fit (init.py, init="gs")."""
+
+    # Adam's step for the fits to the key frames, the flows and the search's track: a set-up fit, not tuned
+    # alone (its seconds are in bench/convergence.md, "the large grids' budget spent where it pays")
+    init_lr: float = 0.02
+    # A pixel is background (alpha 1) where every key frame is within this share of the background's mean
+    # of the key frames' median; a pixel that changes more belongs to the moving layer
+    init_change_share: float = 0.1
+    # Weight of the alpha target against the colour target in those fits
+    init_alpha_weight: float = 0.1
+    # Frames a step of the motion field's fit to the key-frame flows; the search's track (one that turns
+    # round) takes init_search_step_factor times the steps with init_search_frames frames a step
+    init_frames_per_step: int = 4
+    init_search_frames: int = 8
+    init_search_step_factor: int = 3
+
+    def _check(self):
+        if not (_finite(self, ("init_lr", "init_change_share", "init_alpha_weight")) and self.init_lr > 0
+                and self.init_change_share > 0 and min(self.init_frames_per_step, self.init_search_frames,
+                                                       self.init_search_step_factor) >= 1):
+            raise ConfigError("stfm: fit.init_* must be > 0 (frames and step factors whole numbers >= 1)")
+
+
+@dataclass(frozen=True)
+class EvaluationConfig(_Checked):
+    """Where a fit decodes its fields (grid.FitGrid): fewer points than pixels where the field is smooth."""
+
+    # A translation is the motion field's mean over this many points per axis of the frame (at most), not
+    # over every pixel: the same family of motions for a fraction of the field's evaluations
+    # (bench/convergence.md, "the prior preset's translation averaged over 16 x 16 points")
+    translation_mean_points: int = 16
+    # A motion field is decoded on knots this many pixels apart and interpolated bilinearly between them:
+    # its finest planes have knots 4 px apart, so a quarter of the decoder's points cut a fast step's time
+    # and not its result (bench/convergence.md, "the fast preset's motion on knots")
+    motion_knot_px: float = 2.0
+    # The prior preset's canonical image is decoded on knots this many pixels apart, the pixel centres on
+    # them (1 / this a whole number), and moved by bilinear interpolation (bench/convergence.md, "the prior
+    # preset decodes its canonical image once a step")
+    canonical_knot_px: float = 0.5
+    # The fields' step decays by half every lr_half_life_steps down to this share of its start
+    lr_floor_share: float = 0.05
+
+    def _check(self):
+        inverse = 1 / self.canonical_knot_px if self.canonical_knot_px > 0 else 0.5
+        if not (self.translation_mean_points >= 1 and self.motion_knot_px > 0 and 0 < self.canonical_knot_px <= 1
+                and float(inverse).is_integer() and 0 < self.lr_floor_share <= 1):
+            raise ConfigError("stfm: fit.translation_mean_points >= 1, motion_knot_px > 0, canonical_knot_px in (0, 1] "
+                              "with 1 / it whole, 0 < lr_floor_share <= 1")
+
+
+@dataclass(frozen=True)
+class FitConfig(EvaluationConfig, InitConfig, ComponentsConfig, MotionSearchConfig, MultilevelConfig, RefineConfig,
+                StopConfig):
     """The fit stage's numbers: its schedule for what it learns of the rig with its fields (the GS-to-RS
     pose and the RS line time), a search-started fit's least steps and the GS initialisation's steps, and
     its parts' (StopConfig, RefineConfig, MultilevelConfig, MotionSearchConfig, ComponentsConfig), all set

@@ -6,11 +6,7 @@ import math
 
 import torch
 
-from rngcam.recon.methods.stfm.settings import (
-    EXPLAINED_RATIO,
-    NOISE_CHECK_FRAMES,
-    NOISE_CHECK_STEPS,
-)
+from rngcam.recon.methods.stfm.stage_configs import StopConfig
 from rngcam.recon.metrics import relative_residual
 
 
@@ -57,8 +53,8 @@ class NoiseStop:
         if drop > 0 and then in self.history and residual > (1 - drop) * self.history[then]:
             passes = fit.resolved.stall_passes
             over = residual / noise if noise else float("inf")
-            unexplained = f", more than the {EXPLAINED_RATIO}x a fit that explains the data ends at" \
-                if over >= EXPLAINED_RATIO else ""
+            ratio = fit.fit_config.explained_ratio
+            unexplained = f", more than the {ratio:g}x a fit that explains the data ends at" if over >= ratio else ""
             return (f"RS residual {residual:.4f} fell less than {100 * drop:g}% in {passes} passes over the "
                     f"rows (from {self.history[then]:.4f}; noise level {noise:.4f}: stopped at "
                     f"{over:.2f}x it{unexplained})")
@@ -73,7 +69,8 @@ class NoiseStop:
 
     def check_every(self) -> int:
         """Steps between this fit's stop tests (`check_interval` of its frames)."""
-        return check_interval(self.fit.K)
+        config = self.fit.fit_config
+        return check_interval(self.fit.K, config.noise_check_steps, config.noise_check_frames)
 
     def _stop_from(self, window: int, residual: float) -> int:
         """The first step either test may stop the fit at this RS `residual`. Where the learned line time
@@ -81,7 +78,7 @@ class NoiseStop:
         that it has been learned before the data are called explained (on half-frames a lab capture's fit
         reached its noise level with the line time still the recorded one: bench/realistic.md,
         "the prior preset fits half-frames"). A fit whose motion starts from the translation search
-        (the prior preset) and whose residual is within EXPLAINED_RATIO of its noise level runs
+        (the prior preset) and whose residual is within `explained_ratio` of its noise level runs
         `search_fit_half_lives` (the fit stage's config) half-lives of its step first: its residual goes
         flat at the noise level long before its video settles (bench/realistic.md, "a search-started fit
         runs four half-lives of its step"). One that stalls unexplained stops as before, for the stages that
@@ -92,7 +89,7 @@ class NoiseStop:
                  if line.learned and g["params"][0] is line.parameter]
         hold = max(holds, default=0)
         start = hold + window if hold > 0 and residual <= fit.rs_noise_level else 0
-        if residual < EXPLAINED_RATIO * fit.rs_noise_level:
+        if residual < fit.fit_config.explained_ratio * fit.rs_noise_level:
             start = max(start, self.least_steps())
         return start
 
@@ -113,9 +110,10 @@ class NoiseStop:
         return every * max(1, math.ceil(steps / every))
 
 
-def check_interval(frames: int) -> int:
-    """Steps between stop tests of a fit of `frames` frames: NOISE_CHECK_STEPS up to NOISE_CHECK_FRAMES
-    frames, one more interval for each further NOISE_CHECK_FRAMES. A test makes the whole video, a step
+def check_interval(frames: int, every: int = StopConfig.noise_check_steps,
+                   per: int = StopConfig.noise_check_frames) -> int:
+    """Steps between stop tests of a fit of `frames` frames: `every` up to `per` frames (the fit stage's
+    config), one more interval for each further `per`. A test makes the whole video, a step
     only the frames of its rows, so at a fixed interval the tests' share of the time grows with the
     frames (bench/convergence.md, "the large grids' budget spent where it pays")."""
-    return NOISE_CHECK_STEPS * max(1, math.ceil(frames / NOISE_CHECK_FRAMES))
+    return every * max(1, math.ceil(frames / per))
