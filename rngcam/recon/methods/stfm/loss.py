@@ -11,6 +11,10 @@ from torch import Tensor
 from rngcam.recon.methods.stfm.fields import field_on_grid
 from rngcam.recon.methods.stfm.grid import chunks, to_device
 
+# The RS operator's norm only scales the RS term: power iteration to three digits is plenty, from near a
+# constant video (close to the top singular vector: the PSF is a low-pass filter) with a little noise
+POWER_ITERATIONS, POWER_TOL, POWER_START_NOISE = 6, 1e-3, 0.1
+
 
 def _cols(w_rows: Tensor | None, frames: Tensor) -> Tensor | None:
     """Columns `frames` of the sampled rows' weights (None stays None: the operator's own)."""
@@ -52,14 +56,16 @@ class DataLoss:
             self.rs_norm_vector = vector.half() if rs_norm_start is not None else None
             self.c_rs = settings.psi / (max(self.rs_norm ** 2, 1e-12) * pixels)
 
-    def _rs_norm(self, start: Tensor | None = None, iters: int = 6, tol: float = 1e-3) -> tuple[float, Tensor]:
+    def _rs_norm(self, start: Tensor | None = None, iters: int = POWER_ITERATIONS,
+                 tol: float = POWER_TOL) -> tuple[float, Tensor]:
         """(||A_R||, the last iterate) by power iteration on A_R^T A_R, applied frame chunk by frame
         chunk. It starts at `start` (a coarser level's vector, upsampled; consumed: scaled in
         place), else near a constant video (close to the top singular vector: the PSF is a
         low-pass filter). Two video-sized buffers: the iterate and its image, swapped."""
         if start is None:
             gen = torch.Generator(device="cpu").manual_seed(0)
-            x = 1 + 0.1 * torch.randn((self.C, self.K, self.H, self.W), generator=gen).to(self.grid.device)
+            noise = torch.randn((self.C, self.K, self.H, self.W), generator=gen).to(self.grid.device)
+            x = 1 + POWER_START_NOISE * noise
         else:
             x = start.to(self.grid.device, torch.float32)
         x.div_(x.norm().clamp_min(1e-30))

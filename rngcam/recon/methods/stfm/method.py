@@ -36,6 +36,9 @@ from rngcam.recon.methods.stfm.stopping import NoiseStop
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import relative_noise_level
 
+# The moving average's decay warms up as TF's ExponentialMovingAverage(num_updates): min(decay, (1 + n) / (this + n))
+EMA_WARMUP_STEPS = 10
+
 
 def _group_ratio(group: dict, steps: int) -> float:
     """A parameter group's learning rate per unit of the fields' at `steps` (0 while it is held)."""
@@ -205,8 +208,8 @@ class STFM(MethodBase):
             terms = self.loss.loss_terms(rows, tv_frames, backward=True, gs_windows=windows)
             self.optimiser.step()
         self.steps += 1
-        if self._ema is not None:  # warm-up as in TF's ExponentialMovingAverage(num_updates)
-            decay = min(self.resolved.ema_decay, (1 + self.steps) / (10 + self.steps))
+        if self._ema is not None:
+            decay = min(self.resolved.ema_decay, (1 + self.steps) / (EMA_WARMUP_STEPS + self.steps))
             with torch.no_grad():
                 for a, q in zip(self._ema, self._params, strict=True):
                     a.lerp_(q, 1 - decay)
