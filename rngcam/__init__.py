@@ -16,7 +16,7 @@ _API = frozenset(__all__) - {"__version__"}
 
 def __getattr__(name: str):
     if name in _API:
-        from rngcam import api
+        from rngcam import api  # heavy: api loads cv2, h5py, torch
 
         return getattr(api, name)
     raise AttributeError(f"module 'rngcam' has no attribute {name!r}")

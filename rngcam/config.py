@@ -20,8 +20,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from rngcam.backends import CAMERAS, GENERATORS, camera_backend, generator_transport
 from rngcam.errors import ConfigError
+from rngcam.paths import PACKAGE_PREFIX
 from rngcam.physics.timing import DEFAULT_READOUT, check_readout
-from rngcam.untrusted import MAX_YAML_CHARS, check_yaml_shape, read_untrusted
+from rngcam.untrusted import MAX_YAML_CHARS, check_yaml_shape, printable, read_untrusted
 
 Dialect = Literal["keysight_33500b", "rigol_dg", "siglent_sdg"]
 FakeFault = Literal["none", "silent", "garbage", "scpi_error"]
@@ -335,8 +336,6 @@ class Rig:
     def paths_outside(self) -> list[tuple[str, Path]]:
         """(rig field, path) of each file the rig names to read that lies outside its folder
         (`package:` names stay inside rngcam/data: rngcam.paths)."""
-        from rngcam.paths import PACKAGE_PREFIX
-
         cal = self.config.calibration
         named = [("calibration.file", cal.file)]
         if cal.psf is not None and not cal.psf.path.startswith(PACKAGE_PREFIX):
@@ -345,8 +344,6 @@ class Rig:
 
     def outside_warnings(self) -> list[str]:
         """One warning line for each file the rig reads from outside its folder (`paths_outside`)."""
-        from rngcam.untrusted import printable
-
         return [f"warning: {printable(self.path)}: {key} reads {printable(p)}, outside the rig's folder "
                 f"{printable(self.path.parent)} (check a rig from elsewhere before using it)"
                 for key, p in self.paths_outside()]

@@ -1,5 +1,7 @@
 """Errors that the command line reports as one clear line (no traceback)."""
 
+import re
+
 
 class RngcamError(Exception):
     """A user-facing failure: bad input, bad file, missing hardware. Message is one line."""
@@ -28,8 +30,6 @@ class SettingError(ConfigError):
 
     def flagged(self, flags: dict[str, str]) -> str:
         """The message with each setting's name replaced by its flag in `flags` (setting -> flag)."""
-        import re
-
         text = str(self)
         for name in self.settings:
             if name in flags:

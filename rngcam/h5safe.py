@@ -23,6 +23,7 @@ import contextlib
 import ctypes
 import math
 import os
+import time
 import zlib
 from pathlib import Path
 
@@ -30,6 +31,7 @@ import h5py
 import numpy as np
 
 from rngcam.errors import RngcamError
+from rngcam.memory import total_memory_bytes
 from rngcam.untrusted import UntrustedFileError, printable
 from rngcam.untrusted import open_untrusted as open_untrusted_file
 
@@ -49,8 +51,6 @@ class UnsafeFileError(RngcamError):
 
 def memory_limit_bytes() -> int:
     """The most bytes one array of a shared file may declare: a fraction of this machine's memory."""
-    from rngcam.memory import total_memory_bytes
-
     return int(MEMORY_FRACTION * total_memory_bytes())
 
 
@@ -223,8 +223,6 @@ def probe_metadata(fd: int, path: Path) -> None:
     the library into a loop no signal can break (a global heap with a zero-sized object), so a
     forked child reads them first and is killed when it hangs. Once per file and process; where
     there is no fork, no probe."""
-    import time
-
     st = os.fstat(fd)
     key = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
     hung = UnsafeFileError(f"{printable(path)}: the HDF5 library does not finish reading its metadata within "

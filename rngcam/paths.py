@@ -7,6 +7,9 @@ import importlib.metadata
 import os
 from pathlib import Path
 
+from rngcam.errors import ConfigError
+from rngcam.untrusted import printable
+
 DATA_DIR = Path(__file__).resolve().parent / "data"
 PACKAGE_PREFIX = "package:"  # a rig file names a packaged file as package:NAME
 
@@ -34,9 +37,6 @@ def resolve_data_ref(ref: str | Path, base: Path) -> Path:
     if text.startswith(PACKAGE_PREFIX):
         path = (DATA_DIR / text[len(PACKAGE_PREFIX):]).resolve()
         if not path.is_relative_to(DATA_DIR):
-            from rngcam.errors import ConfigError
-            from rngcam.untrusted import printable
-
             raise ConfigError(f"{printable(text)}: {PACKAGE_PREFIX}NAME names a file inside {DATA_DIR}; "
                               "this one leaves it")
         return path

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import os
 import re
 import stat
@@ -138,8 +139,6 @@ def load_json(text: str | bytes, what: str, *, max_nesting: int = MAX_NESTING,
               error: type[RngcamError] = UntrustedFileError):
     """JSON text from a file parsed, and its nesting checked (`error`, one line naming `what`,
     when it is not JSON or nests deeper than `max_nesting`)."""
-    import json
-
     try:
         value = json.loads(text)
     except (ValueError, RecursionError) as exc:  # RecursionError: deeper than Python's stack
@@ -168,7 +167,7 @@ def check_yaml_shape(text: str, what: str, *, max_chars: int = MAX_YAML_CHARS, m
     """`error` (one line naming `what`) when YAML `text` is longer than `max_chars` or nests deeper
     than `max_nesting`, found from the parser's events (no recursion, nothing built); a syntax
     error raises yaml.YAMLError, for the caller to say where."""
-    import yaml
+    import yaml  # heavy: yaml, kept off the command line's start (every command imports this module)
 
     if len(text) > max_chars:
         raise error(f"{printable(what)}: {len(text):,} characters of YAML, above the limit of {max_chars:,}")
@@ -185,7 +184,7 @@ def check_yaml_shape(text: str, what: str, *, max_chars: int = MAX_YAML_CHARS, m
 def load_yaml(text: str, what: str, *, error: type[RngcamError] = UntrustedFileError):
     """YAML text from a file (a rig, a bundle's rig text) parsed safely after `check_yaml_shape`;
     `error` (one line) when it is too long, too deep or not YAML."""
-    import yaml
+    import yaml  # heavy: yaml, kept off the command line's start (every command imports this module)
 
     try:
         check_yaml_shape(text, what, error=error)

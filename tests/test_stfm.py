@@ -889,16 +889,15 @@ def test_the_motion_search_with_row_gains_follows_rows_whose_light_is_off_by_var
 
     import rngcam.recon.methods.stfm.motion_search as search
 
-    monkeypatch.setattr(search, "SEARCH_TURN", 0.0)
-    monkeypatch.setattr(search, "SEARCH_SPEED", 1.0)
     monkeypatch.setattr(search, "SEARCH_SPEED_STEPS", 64)
+    path_off = {"fit": {"search_turn": 0.0, "search_speed": 1.0}}
     size = 20
     p, xs = _turning_square(size)
     rows = torch.arange(size, dtype=torch.float64)
     p = replace(p, b_rs=p.b_rs * (1 + 0.3 * torch.sin(2 * math.pi * rows / 5 + 1))[None, :, None])
     errors = {}
     for row_gains in (False, True):
-        m = make_stfm(p, STFMSettings(preset="prior", components="all", start_floor=False, fits=1),
+        m = make_stfm(p, STFMSettings(preset="prior", components="all", start_floor=False, fits=1, stages=path_off),
                       state=RunState(row_gain_search=row_gains))
         errors[row_gains] = _track_errors(m, xs)
         assert any("each RS row scored after its own gain" in n for n in m.notes) == row_gains

@@ -23,12 +23,12 @@ INSTALL = "apt-get install gir1.2-aravis-0.8 libgirepository1.0-dev, then `make 
 def aravis():
     """The Aravis 0.8 module; HardwareError (one line: what is missing, how to get it)."""
     try:
-        import gi
+        import gi  # optional: aravis extra
     except ImportError:
         raise HardwareError(f"the aravis backend needs PyGObject: {INSTALL}") from None
     try:
         gi.require_version("Aravis", "0.8")
-        from gi.repository import Aravis
+        from gi.repository import Aravis  # optional: aravis extra
     except (ValueError, ImportError):
         raise HardwareError(f"the aravis backend needs Aravis 0.8's introspection data: {INSTALL}") from None
     return Aravis

@@ -21,6 +21,7 @@ import time
 from rngcam.acquire import netns
 from rngcam.acquire.aravis_camera import AravisCamera, aravis
 from rngcam.acquire.aravis_camera import check as _aravis_check
+from rngcam.acquire.aravis_camera import list_cameras as by_address
 from rngcam.acquire.camera import CameraInfo, Frame
 from rngcam.errors import HardwareError
 
@@ -151,8 +152,6 @@ def make_camera(cfg, role: str) -> AravisFakeCamera:
 
 def list_cameras(rig=None, **_options) -> list[CameraInfo]:
     """The fake GigE cameras a rig serves, opened by address (only inside a private namespace)."""
-    from rngcam.acquire.aravis_camera import list_cameras as by_address
-
     if rig is None:
         return []
     cams = [getattr(rig.config.cameras, r) for r in ("rs", "gs")]

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from rngcam.acquire.camera import CameraInfo
+from rngcam.backends import CAMERAS
 from rngcam.errors import HardwareError
 
 
@@ -22,7 +23,7 @@ class SerialPortInfo:
 
 
 def list_serial_ports() -> list[SerialPortInfo]:
-    from serial.tools import list_ports
+    from serial.tools import list_ports  # heavy: pyserial, kept off the capture commands' start
 
     return [SerialPortInfo(p.device, p.description or "", p.hwid or "")
             for p in sorted(list_ports.comports(), key=lambda p: p.device)]
@@ -41,8 +42,7 @@ def list_mock_cameras(rig=None) -> list[CameraInfo]:
 def list_cameras(backend: str, rig=None, **options) -> list[CameraInfo]:
     """Cameras of one backend (rngcam.backends); HardwareError (one line) when it is unknown or
     unavailable. `options` go to the backend's lister (cti, pylon_transport, address ...)."""
-    from rngcam.acquire.factory import load_backend
-    from rngcam.backends import CAMERAS
+    from rngcam.acquire.factory import load_backend  # heavy: factory loads cv2, h5py, torch
 
     spec = CAMERAS.get(backend)
     if spec is None:

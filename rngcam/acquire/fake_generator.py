@@ -27,6 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from rngcam.acquire.instruments import dialects, instrument
+from rngcam.acquire.scpi import SerialTransport
 
 TTL_THRESHOLD_V = 2.0  # a camera's opto-coupled input needs about this much to switch
 
@@ -239,8 +240,6 @@ def open_transport(cfg, stack, progress, channels: tuple[int, int] | None = None
     """The factory's entry point (rngcam.backends): serve a fake instrument on a pty and open
     the real serial driver on it; (transport, fake). `channels` (RS, GS): with `link:
     trigger_out` the fake has the RS channel's trigger output cabled into the GS channel."""
-    from rngcam.acquire.scpi import SerialTransport
-
     links = {channels[0]: channels[1]} if cfg.link == "trigger_out" and channels else {}
     fake = stack.enter_context(FakeGenerator(cfg.dialect, cfg.fake_fault, links))
     progress(f"generator: fake {cfg.dialect} instrument serving on {fake.port}")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +44,7 @@ def resolve_cti(cti: str | Path | None, key: str | None = None) -> Path:
 
 def _acquire_harvester(cti: Path):
     try:
-        from harvesters.core import Harvester
+        from harvesters.core import Harvester  # heavy: harvesters
     except ImportError:
         raise HardwareError("the genicam backend needs harvesters: pip install harvesters") from None
     key = str(cti)
@@ -92,7 +93,7 @@ def list_genicam_cameras(cti: str | Path | None = None, key: str | None = None) 
 
 class HarvestersFeatures(FeatureMap):
     def __init__(self, node_map):
-        from genicam import genapi
+        from genicam import genapi  # optional: genicam extra
 
         self.nm, self.genapi = node_map, genapi
 
@@ -191,8 +192,6 @@ class GenicamCamera(Camera):
 
     def wait_ready(self, timeout_s: float = 1.0) -> None:
         """Poll AcquisitionStatus(FrameTriggerWait) where the camera has it (SFNC)."""
-        import time
-
         fm = self.features
         if not (fm.writable("AcquisitionStatusSelector") and fm.readable("AcquisitionStatus")):
             return

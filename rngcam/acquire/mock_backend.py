@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from rngcam.acquire.camera import Camera
+from rngcam.acquire.devices import list_mock_cameras
 from rngcam.acquire.mock_camera import MockCamera, MockDevice, MockWorld
 from rngcam.acquire.mock_clock import MockTiming
 from rngcam.acquire.resolve import ROLES, ResolvedRig
@@ -97,6 +98,4 @@ def make_devices(resolved: ResolvedRig) -> MockDevices:
 
 def list_cameras(rig=None, **_options):
     """The mock cameras a rig plugs in (those of rigs/mock.yaml without a rig)."""
-    from rngcam.acquire.devices import list_mock_cameras
-
     return list_mock_cameras(rig)

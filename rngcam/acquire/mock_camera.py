@@ -52,8 +52,11 @@ from rngcam.acquire.mock_clock import TICK_S, MockTiming
 from rngcam.acquire.mock_features import MockFeatures
 from rngcam.errors import HardwareError
 from rngcam.physics.operators import GlobalShutter, PSFConvolution, rolling_shutter_for
+from rngcam.physics.psf import bin_psf
 from rngcam.physics.sensor import SensorModel
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid, readout_lines
+from rngcam.sim.scenes import render_scene
+from rngcam.sim.targets import chart_image, point_source
 
 TRIGGER_LINES = ("Line1", "Line2", "Line3", "Line4")
 EXPOSURE_STEP_S = 1e-6  # exposure is set in whole microseconds, like a Basler ace
@@ -113,8 +116,6 @@ class MockWorld:
     def grid_psf(self) -> np.ndarray:
         """The PSF on the grid, binned from the sensor PSF as the reconstruction does."""
         if self._grid_psf is None:
-            from rngcam.physics.psf import bin_psf
-
             self._grid_psf = self.psf if self.bin == 1 else bin_psf(self.psf, self.bin)
         return self._grid_psf
 
@@ -125,8 +126,6 @@ class MockWorld:
         """The truth video (3, K, H, W) float32 on `grid` (H, W = sensor size / bin), rendered once."""
         with self._lock:
             if self._video is None:
-                from rngcam.sim.scenes import render_scene
-
                 opts = dict(self.options)
                 if self.key_times_s is not None:
                     opts.setdefault("key_times_s", self.key_times_s)
@@ -136,8 +135,6 @@ class MockWorld:
     def static_image(self, device: MockDevice) -> np.ndarray:
         """(3, N, N) intensity of the static `target` as `device` sees it (scene coordinates
         are RS pixels; a GS device with gs_to_rs sees the scene point H p at pixel p)."""
-        from rngcam.sim.targets import chart_image, point_source
-
         if self.target not in STATIC_TARGETS:
             raise HardwareError(f"unknown mock target {self.target!r} (choose from {', '.join(STATIC_TARGETS)})")
         n = self.size

@@ -19,7 +19,7 @@ EMULATOR_TL = "BaslerCamEmu"
 
 def _pylon():
     try:
-        from pypylon import genicam, pylon
+        from pypylon import genicam, pylon  # optional: pylon extra
     except ImportError:
         raise HardwareError("the pylon backend needs pypylon: pip install 'rngcam[pylon]'") from None
     return pylon, genicam

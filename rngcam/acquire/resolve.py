@@ -28,6 +28,7 @@ from rngcam.config import CameraConfig, MockSceneConfig, MockSensor, Rig
 from rngcam.errors import ConfigError
 from rngcam.formats.bundle import Calibration
 from rngcam.formats.calibration import StoredCalibration, rig_calibration
+from rngcam.paths import resolve_data_ref
 from rngcam.physics.geometry import similarity_matrix
 from rngcam.physics.psf import load_psf, normalise, prepare_psf, resample, spectral_support, subtract_bias
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
@@ -101,8 +102,6 @@ class ResolvedRig:
 def resolve_psf_path(rig: Rig) -> Path:
     """The rig's PSF file: `package:NAME` is a file shipped in rngcam/data, a relative path is
     relative to the rig file."""
-    from rngcam.paths import resolve_data_ref
-
     cfg = rig.config.calibration.psf
     if cfg is None:
         raise ConfigError(f"{rig.path}: calibration.psf: a PSF file is required for capture")

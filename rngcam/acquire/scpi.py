@@ -7,9 +7,14 @@ absent, instrument silent (timeout), or answering garbage (bytes that are not pr
 
 from __future__ import annotations
 
+import ctypes.util
 import time
 
+import serial
+from serial.tools import list_ports
+
 from rngcam.acquire import libraries
+from rngcam.acquire.instruments import DEFINITIONS
 from rngcam.errors import HardwareError
 
 TERMINATOR = "\n"
@@ -17,8 +22,6 @@ TERMINATOR = "\n"
 
 def available_serial_ports() -> list[str]:
     """Device names of the serial ports the OS reports (serial.tools.list_ports)."""
-    from serial.tools import list_ports
-
     return sorted(p.device for p in list_ports.comports())
 
 
@@ -42,8 +45,6 @@ class SerialTransport:
     """SCPI over a serial port (USB-serial adapters, RS-232, or a pseudo-terminal in tests)."""
 
     def __init__(self, port: str, baudrate: int = 9600, timeout_s: float = 1.0):
-        import serial
-
         self.name = f"generator on {port}"
         self.port = port
         self.baudrate = int(baudrate)
@@ -59,8 +60,6 @@ class SerialTransport:
                                 f"available ports: {listed}") from None
 
     def write(self, command: str) -> None:
-        import serial
-
         try:
             self._serial.write((command + TERMINATOR).encode("ascii"))
             self._serial.flush()
@@ -73,8 +72,6 @@ class SerialTransport:
 
     def read_line(self, command: str) -> str:
         """Read one answer line within timeout_s (the answer to `command`)."""
-        import serial
-
         deadline = time.monotonic() + self.timeout_s
         buf = bytearray()
         try:
@@ -106,8 +103,6 @@ class SerialTransport:
 
 def sim_library() -> str:
     """pyvisa's library spec for rngcam's instrument definitions (pyvisa-sim)."""
-    from rngcam.acquire.instruments import DEFINITIONS
-
     return f"{DEFINITIONS}@sim"
 
 
@@ -121,7 +116,7 @@ class VisaTransport:
 
     def __init__(self, resource: str, timeout_s: float = 1.0, library: str | None = None):
         try:
-            import pyvisa
+            import pyvisa  # optional: visa extra
         except ImportError:
             raise HardwareError("VISA transport needs pyvisa: pip install 'rngcam[visa]'") from None
         self.name = f"generator at {resource}"
@@ -177,9 +172,8 @@ def open_transport(cfg, stack, progress, channels=None):
 def _only_pyvisa_py() -> bool:
     """True when no system VISA library is installed but pyvisa-py is."""
     try:
-        import pyvisa_py  # noqa: F401
+        import pyvisa_py  # noqa: F401  # optional: visa extra
     except ImportError:
         return False
-    import ctypes.util
 
     return ctypes.util.find_library("visa") is None

@@ -79,7 +79,7 @@ def warp_exact(img: np.ndarray, h: np.ndarray, shape: tuple[int, int]) -> np.nda
     """Like `warp_to` but with cubic-spline interpolation at exact (unquantised) positions.
     OpenCV's warps resolve positions to 1/32 pixel, which leaves the least-squares refinement
     with a piecewise-constant objective."""
-    from scipy.ndimage import map_coordinates
+    from scipy.ndimage import map_coordinates  # heavy: scipy
 
     yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
     src = apply_homography(np.linalg.inv(np.asarray(h, np.float64)), np.c_[xx.ravel(), yy.ravel()])
@@ -215,7 +215,7 @@ def refine_forward(fit: ForwardFit, h0: np.ndarray, model: str,
     """Least-squares transform parameters (module docstring, step 4). Returns the transform and
     its 1-sigma position uncertainty (pixels; the largest over `points`, GS coordinates), from
     the fit's covariance sigma^2 (J^T J)^-1 with sigma^2 from the residual."""
-    from scipy.optimize import least_squares
+    from scipy.optimize import least_squares  # heavy: scipy
 
     p0 = _params(h0, model)
     scale = np.abs(p0).clip(1e-3) if model == "homography" else np.array([1e-2, 1e-2, 1.0, 1.0])

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -86,8 +87,6 @@ def deconvolve(b: np.ndarray, psf: np.ndarray, tau_rel: float = 1e-3, iters: int
 
 
 def _deconvolve(b, psf, tau_rel, iters, wiener_nsr, prox) -> DeconvResult:
-    import time
-
     t0 = time.perf_counter()
     if not (math.isfinite(tau_rel) and tau_rel >= 0):
         raise RngcamError(f"tau_rel must be finite and >= 0, got {tau_rel}")

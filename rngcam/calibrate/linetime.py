@@ -188,7 +188,7 @@ def _solve(r, y, f, n):
 
 def fit_bands(ratio: np.ndarray) -> BandFit:
     """The bands' frequency along the rows (module doc): periodogram peak, then least squares."""
-    from scipy.optimize import minimize_scalar
+    from scipy.optimize import minimize_scalar  # heavy: scipy
 
     y_all = np.asarray(ratio, np.float64)
     r = np.flatnonzero(np.isfinite(y_all)).astype(np.float64)

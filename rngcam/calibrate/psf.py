@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rngcam.errors import RngcamError
-from rngcam.physics.psf import normalise
+from rngcam.physics.psf import figure_line, normalise, resample, resolvable_fraction, snr_of_mean_signal
 from rngcam.physics.sensor import BAYER_FORMATS, demosaic_bin
 
 MIN_SNR = 10.0  # below this the PSF is refused
@@ -144,8 +144,6 @@ def frame_snr(frame: np.ndarray, pixel_format: str, black_level_dn: float) -> fl
 def psf_figure(psf: np.ndarray, snr_px: float, shape: tuple[int, int] | None = None) -> tuple[float, str]:
     """(fraction, report line): the PSF (resampled to `shape` when given) against the RS noise
     floor of per-pixel SNR `snr_px` (rngcam.physics.psf.resolvable_fraction)."""
-    from rngcam.physics.psf import figure_line, resample, resolvable_fraction
-
     psf = np.clip(np.nan_to_num(np.asarray(psf, np.float64)), 0, None)
     if shape is not None and psf.shape[-2:] != tuple(shape):
         psf = resample(psf, tuple(shape))
@@ -155,7 +153,7 @@ def psf_figure(psf: np.ndarray, snr_px: float, shape: tuple[int, int] | None = N
 
 def bundle_psf_figure(path) -> str:
     """The PSF figure of a capture bundle, at the noise floor of its own RS image."""
-    from rngcam.formats.bundle import read_bundle
+    from rngcam.formats.bundle import read_bundle  # heavy: bundle loads h5py, torch
 
     b = read_bundle(path)
     if b.calibration is None or b.calibration.psf is None or b.rs is None:
@@ -169,8 +167,6 @@ def bundle_psf_figure(path) -> str:
 def rig_snr(camera) -> tuple[float, str]:
     """(per-pixel SNR, how it was set) of an RS image at half full scale for a rig's camera
     config: its mock sensor's full well and read noise, else a typical 10,000 e- / 3 e- sensor."""
-    from rngcam.physics.psf import snr_of_mean_signal
-
     mock = getattr(camera, "mock", None)
     full_well, read = (mock.full_well_e, mock.read_noise_e) if mock is not None else (10_000.0, 3.0)
     how = "mock sensor" if mock is not None else "assumed sensor"

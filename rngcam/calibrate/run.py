@@ -31,7 +31,7 @@ from rngcam.calibrate.linetime import (
     readout_samples,
     row_ratio,
 )
-from rngcam.calibrate.psf import PsfEstimate, estimate_psf
+from rngcam.calibrate.psf import PsfEstimate, correlation, estimate_psf, psf_figure, rig_snr
 from rngcam.calibrate.shots import Bench
 from rngcam.calibrate.whitebalance import WhiteBalance, estimate_white_balance
 from rngcam.config import Rig
@@ -134,8 +134,6 @@ def calibrate_psf(rig: Rig, out=None, frames: int = 16, dark_frames: int = 0, ma
               f"{est.saturated_pixels} saturated pixel(s); spectral support {spectral_support(est.psf):.2%}")]
     lines.append(_psf_figure_line(est.psf, cfg))
     if resolved.mock is not None:
-        from rngcam.calibrate.psf import correlation
-
         truth = resolved.rig_psf  # the mock's optics
         est_grid = est.psf if est.psf.shape == truth.shape else normalise(resample(est.psf, truth.shape[-2:]))
         lines.append(f"mock truth: correlation of the PSF with the mock's PSF {correlation(est_grid, truth):.4f}")
@@ -278,8 +276,6 @@ def _flicker_outcome(rig, out, resolved, plan: FlickerPlan, result: FlickerResul
 
 def _psf_figure_line(psf: np.ndarray, camera) -> str:
     """The PSF figure against the noise floor of an RS image with this camera (calibrate.psf)."""
-    from rngcam.calibrate.psf import psf_figure, rig_snr
-
     snr, how = rig_snr(camera)
     return f"{psf_figure(psf, snr)[1]}; {how}"
 

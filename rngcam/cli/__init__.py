@@ -12,6 +12,7 @@ import time
 import click
 
 from rngcam.errors import RngcamError, SettingError
+from rngcam.recon.options import cli_name, documented_fields
 from rngcam.untrusted import printable
 from rngcam.version import __version__
 
@@ -34,8 +35,7 @@ def flag_of(setting: str) -> str:
     e.g. prox -> --prox; one a method sets only with --set, its spelling: dynamic_base -> --set fit.base)."""
     if setting in SETTING_FLAGS:
         return SETTING_FLAGS[setting]
-    from rngcam.recon import registry
-    from rngcam.recon.options import cli_name, documented_fields
+    from rngcam.recon import registry  # heavy: registry loads cv2, h5py, torch
 
     for entry in registry.REGISTRY.values():
         for f in documented_fields(entry.settings_type):

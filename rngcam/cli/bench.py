@@ -6,9 +6,14 @@ import time
 from pathlib import Path
 
 import click
+import torch
 
 from rngcam.cli import echo_line
 from rngcam.errors import RngcamError, SettingError
+from rngcam.evaluate.compare import BenchSettings, run_bench
+from rngcam.evaluate.scenes import bench_scenes
+from rngcam.evaluate.stress import run_stress, summary_counts
+from rngcam.paths import DATA_HINT, external_data
 from rngcam.recon import registry
 from rngcam.recon.options import check_seconds
 
@@ -31,8 +36,6 @@ from rngcam.recon.options import check_seconds
 @click.option("--threads", type=int, default=None, help="CPU threads per run [1].")
 def bench_cmd(quick, stress, out_dir, time_budget, size, clips, scene_names, methods, threads):
     """Benchmark every method on every scene under one time budget (results.md/.csv, plots)."""
-    from rngcam.paths import DATA_HINT, external_data
-
     data_dir = external_data()
     if data_dir is None and not stress:
         click.echo(f"bench: RNGCAM_DATA is not set, so the only clip is the short one in rngcam/data; {DATA_HINT}")
@@ -51,9 +54,6 @@ def bench_cmd(quick, stress, out_dir, time_budget, size, clips, scene_names, met
 
 
 def _bench(out, quick, time_budget, size, clips, scene_names, methods, threads, data_dir) -> None:
-    from rngcam.evaluate.compare import BenchSettings, run_bench
-    from rngcam.evaluate.scenes import bench_scenes
-
     overrides = {k: v for k, v in (("time_budget_s", time_budget), ("size", size), ("threads", threads))
                  if v is not None}
     if methods:
@@ -78,10 +78,6 @@ def _bench(out, quick, time_budget, size, clips, scene_names, methods, threads, 
 
 
 def _stress(out: Path) -> None:
-    import torch
-
-    from rngcam.evaluate.stress import run_stress, summary_counts
-
     torch.set_num_threads(1)  # tiny tensors: extra threads only add overhead
     rows = run_stress(out, echo=echo_line)
     counts = summary_counts(rows)

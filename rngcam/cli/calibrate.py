@@ -8,6 +8,7 @@ import click
 
 from rngcam.cli import echo_line
 from rngcam.cli.capture import allow_library_option
+from rngcam.errors import ConfigError
 
 _RIG = click.option("--rig", "rig_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
                     help="Rig file (YAML), e.g. rigs/mock.yaml.")
@@ -29,7 +30,7 @@ def _ask(yes: bool):
 
 
 def _finish(rig, outcome) -> None:
-    from rngcam.calibrate.run import rig_hint
+    from rngcam.calibrate.run import rig_hint  # heavy: run loads cv2, h5py, torch
 
     for line in outcome.lines:
         echo_line(line)
@@ -61,8 +62,8 @@ def calibrate_group():
 @_YES
 def psf_cmd(rig_path, out, frames, dark_frames, max_saturated, yes):
     """PSF from a point source on the RS camera (averaged, dark-subtracted, checked)."""
-    from rngcam.calibrate.run import calibrate_psf
-    from rngcam.config import load_rig
+    from rngcam.calibrate.run import calibrate_psf  # heavy: run loads cv2, h5py, torch
+    from rngcam.config import load_rig  # heavy: config loads torch
 
     rig = load_rig(rig_path)
     _finish(rig, calibrate_psf(rig, out, frames, dark_frames, max_saturated, echo_line, _ask(yes)))
@@ -90,9 +91,8 @@ def psf_cmd(rig_path, out, frames, dark_frames, max_saturated, yes):
 @_YES
 def linetime_cmd(rig_path, out, flicker, heights, rows_per_period, frames, led_channel, yes):
     """RS line time: measured from an LED's flicker (--flicker), or estimated from SensorReadoutTime."""
-    from rngcam.calibrate.run import calibrate_linetime, calibrate_linetime_flicker
-    from rngcam.config import load_rig
-    from rngcam.errors import ConfigError
+    from rngcam.calibrate.run import calibrate_linetime, calibrate_linetime_flicker  # heavy: run loads cv2, h5py, torch
+    from rngcam.config import load_rig  # heavy: config loads torch
 
     rig = load_rig(rig_path)
     if flicker:
@@ -125,8 +125,8 @@ def linetime_cmd(rig_path, out, flicker, heights, rows_per_period, frames, led_c
 @_YES
 def align_cmd(rig_path, out, frames, model, max_side, no_refine, yes):
     """GS-to-RS transform (and white balance) from a static target seen by both cameras."""
-    from rngcam.calibrate.run import calibrate_align
-    from rngcam.config import load_rig
+    from rngcam.calibrate.run import calibrate_align  # heavy: run loads cv2, h5py, torch
+    from rngcam.config import load_rig  # heavy: config loads torch
 
     rig = load_rig(rig_path)
     _finish(rig, calibrate_align(rig, out, frames, model, max_side, not no_refine, echo_line, _ask(yes)))
@@ -143,8 +143,8 @@ def align_cmd(rig_path, out, frames, model, max_side, no_refine, yes):
 @_YES
 def whitebalance_cmd(rig_path, out, frames, max_side, yes):
     """Per-channel GS/RS gains for the stored GS-to-RS transform (the recon's starting Lambda)."""
-    from rngcam.calibrate.run import calibrate_whitebalance
-    from rngcam.config import load_rig
+    from rngcam.calibrate.run import calibrate_whitebalance  # heavy: run loads cv2, h5py, torch
+    from rngcam.config import load_rig  # heavy: config loads torch
 
     rig = load_rig(rig_path)
     _finish(rig, calibrate_whitebalance(rig, out, frames, max_side, echo_line, _ask(yes)))

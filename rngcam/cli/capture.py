@@ -3,18 +3,23 @@
 from __future__ import annotations
 
 import json
+import os
+import sys
 from dataclasses import asdict
 from pathlib import Path
 
 import click
 
+from rngcam.acquire import netns
+from rngcam.acquire.devices import list_cameras, list_serial_ports
+from rngcam.acquire.genicam_camera import CTI_ENV
+from rngcam.acquire.libraries import allow, check_rig
+from rngcam.backends import CAMERAS
 from rngcam.cli import echo_line
 
 
 def _allow(ctx, param, value):
     if value:
-        from rngcam.acquire.libraries import allow
-
         allow(value)  # into the environment: a rerun in a private network inherits it
     return value
 
@@ -29,10 +34,7 @@ allow_library_option = click.option(
 def _rerun_in_private_network(rig, args: list[str]) -> None:
     """Simulated GigE cameras are served in a network namespace of their own (loopback only):
     run this same command there and exit with its status."""
-    import sys
-
-    from rngcam.acquire import netns
-    from rngcam.acquire.factory import needs_private_network
+    from rngcam.acquire.factory import needs_private_network  # heavy: factory loads cv2, h5py, torch
 
     if netns.inside() or not needs_private_network(rig):
         return
@@ -52,8 +54,8 @@ def _rerun_in_private_network(rig, args: list[str]) -> None:
 @allow_library_option
 def capture_cmd(rig_path: Path, out: Path | None, count: int):
     """Trigger the rig's cameras once (or N times) and write a capture bundle."""
-    from rngcam.acquire.capture import capture
-    from rngcam.config import load_rig
+    from rngcam.acquire.capture import capture  # heavy: capture loads cv2, h5py, torch
+    from rngcam.config import load_rig  # heavy: config loads torch
 
     rig = load_rig(rig_path)
     echo_line(f"rig: {rig.config.name} ({rig_path})")
@@ -66,8 +68,6 @@ def capture_cmd(rig_path: Path, out: Path | None, count: int):
 
 
 def _camera_backends() -> list[str]:
-    from rngcam.backends import CAMERAS
-
     return list(CAMERAS)
 
 
@@ -88,16 +88,10 @@ def _camera_backends() -> list[str]:
 @allow_library_option
 def devices_cmd(backend, cti, pylon_tl, addresses, rig_path, as_json):
     """List cameras (model, serial, interface) and serial ports."""
-    import os
-
-    from rngcam.acquire.devices import list_cameras, list_serial_ports
-    from rngcam.acquire.genicam_camera import CTI_ENV
-    from rngcam.config import load_rig
+    from rngcam.config import load_rig  # heavy: config loads torch
 
     rig = load_rig(rig_path) if rig_path else None
     if rig is not None:
-        from rngcam.acquire.libraries import check_rig
-
         check_rig(rig)  # the rig's producer is what is listed: a vendor's or one the user named
     if rig is not None and backend in (None, rig.config.cameras.rs.backend):
         _rerun_in_private_network(rig, ["devices", "--rig", str(rig_path)] + (["--backend", backend] if backend else [])

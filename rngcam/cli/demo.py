@@ -48,8 +48,8 @@ FINISH_S = 18.0  # the reports take 2-5 s on a busy 2-core machine
 
 
 def _capture(out: Path) -> Path:
-    from rngcam.acquire.capture import capture
-    from rngcam.config import load_rig
+    from rngcam.acquire.capture import capture  # heavy: capture loads cv2, h5py, torch
+    from rngcam.config import load_rig  # heavy: config loads torch
 
     bundle = out / "mock.h5"
     if bundle.exists():
@@ -60,12 +60,12 @@ def _capture(out: Path) -> Path:
 
 def main(out: Path = OUT, plan: list | None = None) -> int:
     """Run `plan` (default PLAN) on a fresh mock-rig capture in `out`; print the summary table."""
-    import torch
+    import torch  # heavy: torch
 
-    from rngcam.api import reconstruct
-    from rngcam.formats.bundle import read_bundle
-    from rngcam.recon.outputs import plot_errors
-    from rngcam.recon.report import write_comparison
+    from rngcam.api import reconstruct  # heavy: api loads cv2, h5py, torch
+    from rngcam.formats.bundle import read_bundle  # heavy: bundle loads h5py, torch
+    from rngcam.recon.outputs import plot_errors  # heavy: outputs loads h5py
+    from rngcam.recon.report import write_comparison  # heavy: report loads h5py, torch
 
     out.mkdir(exist_ok=True)
     t0 = time.perf_counter()

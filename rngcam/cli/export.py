@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from rngcam.cli import echo_line
+from rngcam.errors import RngcamError
 
 
 @click.command("export")
@@ -18,17 +19,16 @@ from rngcam.cli import echo_line
 def export_cmd(source, out, overwrite):
     """Write SOURCE (a bundle, or a recon folder or its recon.h5) as TIFF files with ImageJ metadata
     (frame interval in seconds) and a YAML sidecar; `rngcam import` reads a bundle's export back."""
-    from rngcam.errors import RngcamError
-    from rngcam.formats.bundle import read_bundle
-    from rngcam.formats.exporter import export_bundle, export_video
-    from rngcam.h5safe import file_format
+    from rngcam.formats.bundle import read_bundle  # heavy: bundle loads h5py, torch
+    from rngcam.formats.exporter import export_bundle, export_video  # heavy: exporter loads torch
+    from rngcam.h5safe import file_format  # heavy: h5safe loads h5py
 
     recon_file = source / "recon.h5" if source.is_dir() else source
     kind = file_format(recon_file)
     if kind == "rngcam-bundle":
         written = export_bundle(read_bundle(source), out, overwrite=overwrite)
     elif kind == "rngcam-recon":
-        from rngcam.recon.report.load import read_recon_h5
+        from rngcam.recon.report.load import read_recon_h5  # heavy: load loads h5py, torch
 
         run = read_recon_h5(recon_file)
         attrs = run["attrs"]

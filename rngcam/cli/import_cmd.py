@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from rngcam.cli import echo_line
+from rngcam.untrusted import write_new
 
 
 @click.command("import")
@@ -28,9 +29,8 @@ from rngcam.cli import echo_line
 def import_cmd(sidecar, out, rs, gs, psf, truth, template, overwrite):
     """Build a bundle from a capture made elsewhere: an RS image, optional GS frames, a PSF and a
     SIDECAR (YAML) with what the pixels cannot say (line time, exposures, times, bit depths ...)."""
-    from rngcam.formats.importer import Files, import_capture
-    from rngcam.formats.sidecar import TEMPLATE
-    from rngcam.untrusted import write_new
+    from rngcam.formats.importer import Files, import_capture  # heavy: importer loads cv2, h5py, torch
+    from rngcam.formats.sidecar import TEMPLATE  # heavy: sidecar loads torch
 
     if template:
         if out is None:

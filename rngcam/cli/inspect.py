@@ -7,10 +7,14 @@ from pathlib import Path
 
 import click
 
+from rngcam.calibrate.psf import bundle_psf_figure
 from rngcam.cli import error_line
 from rngcam.errors import ConfigError, RngcamError
 from rngcam.formats.bundle import WARNING_PREFIX, inspect_bundle, open_bundle, render_summary
+from rngcam.formats.calibration import calibration_summary, is_calibration_file
 from rngcam.recon import registry
+from rngcam.recon.report import is_recon_file
+from rngcam.recon.report.summary import recon_summary, render_recon_summary
 from rngcam.untrusted import printable
 from rngcam.video_plan import DEFAULT_MAX_FRAMES, check_size, default_max_memory_bytes, method_bytes, plan_grid
 
@@ -85,17 +89,12 @@ def inspect_cmd(bundle_path: str, as_json: bool, checksum: bool) -> None:
 
 
 def _inspect(bundle_path: str, as_json: bool, checksum: bool) -> None:
-    from rngcam.recon.report import is_recon_file
-
     if Path(bundle_path).is_dir() and (Path(bundle_path) / "recon.h5").is_file():  # a reconstruction's folder
         bundle_path = str(Path(bundle_path) / "recon.h5")
     if is_recon_file(bundle_path):
-        from rngcam.recon.report.summary import recon_summary, render_recon_summary
-
         s = _clean(recon_summary(bundle_path, checksum=checksum))
         _echo(json.dumps(s, indent=2) if as_json else render_recon_summary(s))
         return
-    from rngcam.formats.calibration import calibration_summary, is_calibration_file
 
     if is_calibration_file(bundle_path):  # rngcam calibrate's file: its parts, line time and provenance
         s = _clean(calibration_summary(bundle_path))
@@ -110,8 +109,6 @@ def _inspect(bundle_path: str, as_json: bool, checksum: bool) -> None:
     summary = _clean(summary)
     _echo(json.dumps(summary, indent=2) if as_json else render_summary(summary))
     if not as_json:
-        from rngcam.calibrate.psf import bundle_psf_figure  # the PSF against this RS image's noise floor
-
         _echo(bundle_psf_figure(bundle_path))
 
 

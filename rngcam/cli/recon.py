@@ -10,8 +10,10 @@ from rngcam.cli import error_line, started
 from rngcam.cli.method_options import method_command, pop_method_values, stage_options
 from rngcam.cli.method_options import method_settings as settings_from_options
 from rngcam.errors import SettingError
-from rngcam.recon import registry
+from rngcam.recon import registry, runner
 from rngcam.recon.options import check_seconds
+from rngcam.recon.runlog import append_lines
+from rngcam.recon.runner import Source, explain_run
 from rngcam.recon.settings import ReconSettings, check_device, check_threads, default_out_dir
 from rngcam.video_plan import DEFAULT_MAX_FRAMES
 
@@ -99,9 +101,6 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memor
     Ctrl-C (SIGINT) or SIGTERM ends the run with the current estimate written as the result
     ("status": "interrupted") and a checkpoint that --resume continues.
     """
-    from rngcam.recon.runlog import append_lines
-    from rngcam.recon.runner import Source, explain_run, solve
-
     out = out_dir or default_out_dir(bundle, method)
     method_settings = settings_from_options(method, pop_method_values(opts), stage_values, recipe_file)
     settings = ReconSettings(method=method, method_settings=method_settings,
@@ -114,7 +113,7 @@ def recon_cmd(bundle, method, out_dir, time_budget, iters, max_frames, max_memor
         for line in explain_run(Source(path=Path(bundle)), settings, click.echo):
             click.echo(f"recipe: {line}")
         return
-    result = solve(Source(path=Path(bundle)), settings, out, click.echo, started())  # the clock: the command's
+    result = runner.solve(Source(path=Path(bundle)), settings, out, click.echo, started())  # the clock: the command's
     log = Path(out) / "recon.log"
 
     def say(line: str, err: bool = False) -> None:  # the run's last lines go to its recon.log too

@@ -51,7 +51,7 @@ def report_cmd(dirs: tuple[str, ...], output: str | None, bundle: str | None, no
     method's video beside the truth (when the bundle has one), figures, settings and notes.
 
     The page is one self-contained file (no network); open it in any browser."""
-    from rngcam.recon.report import write_comparison, write_report
+    from rngcam.recon.report import write_comparison, write_report  # heavy: report loads h5py, torch
 
     folders = _folders(dirs)
     if output is None and len(folders) == 1:
@@ -80,8 +80,8 @@ def preview_cmd(folder: str, fps: float | None, slowdown: float | None, output: 
                 no_stamp: bool) -> None:
     """Re-encode DIR's preview.mp4 from recon.h5 at a chosen playback rate, each frame stamped
     with its time in µs (and GS where a key frame sits)."""
-    from rngcam.recon.outputs import write_mp4
-    from rngcam.recon.report import read_recon_h5
+    from rngcam.recon.outputs import write_mp4  # heavy: outputs loads h5py
+    from rngcam.recon.report import read_recon_h5  # heavy: report loads h5py, torch
 
     (path,) = _folders((folder,))
     if fps is not None and slowdown is not None:

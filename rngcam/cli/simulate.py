@@ -7,10 +7,12 @@ from pathlib import Path
 import click
 
 from rngcam.cli import echo_line, error_line
+from rngcam.errors import SettingError
 from rngcam.physics.timing import DEFAULT_READOUT, READOUTS
 from rngcam.sim.fidelity import FIDELITIES, SPACE, TIME
 from rngcam.sim.scenes import SCENES
-from rngcam.sim.simulate import DEFAULT_PSF_CROP
+from rngcam.sim.simulate import DEFAULT_PSF_CROP, SimulationError, grid_shape, simulate, simulation_timing, summary
+from rngcam.video_plan import BASE_BYTES, DEFAULT_MAX_FRAMES, check_memory
 
 # Peak memory per video element (3 x frames x H x W) of `simulate` above the interpreter: 20 bytes
 # measured with /usr/bin/time (sineball: 551 MB at 128 px, 1,458 MB at 256 px), plus about 15 %.
@@ -52,10 +54,6 @@ SIM_BYTES_PER_ELEMENT = 23
 def simulate_cmd(scene, out, size, seed, psf, psf_crop, noise, clip, span, start, bayer, fidelity, readout,
                  overwrite, max_memory):
     """Simulate SCENE (sineball, smoke, clip or a motion kind) through the RS+GS physics into a bundle."""
-    from rngcam.errors import SettingError
-    from rngcam.sim.simulate import SimulationError, grid_shape, simulate, simulation_timing, summary
-    from rngcam.video_plan import BASE_BYTES, DEFAULT_MAX_FRAMES, check_memory
-
     try:
         size = grid_shape(size)
     except SimulationError as exc:

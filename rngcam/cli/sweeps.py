@@ -13,6 +13,8 @@ from rngcam.errors import RngcamError
 from rngcam.recon import registry
 from rngcam.recon.settings import ReconSettings
 from rngcam.sweeps.backend import make_backend
+from rngcam.sweeps.batch import recon_batch
+from rngcam.sweeps.sweep import SweepSettings, sweep
 
 
 def _backend_factory(address: str | None, no_ray: bool, device: str):
@@ -60,8 +62,6 @@ def _with(options):
 def sweep_cmd(bundle, method, time_budget, iters, holdout, holdout_gs, holdout_seed, folds,
               eta, rungs, device, grid_bin, no_refit, out_dir, address, no_ray, **lists):
     """Fit a grid of settings (e.g. beta/tau/psi) on BUNDLE, choose by held-out residual, refit the best."""
-    from rngcam.sweeps.sweep import SweepSettings, sweep
-
     given = pop_method_values(lists)
     if not registry.get(method).fits_holdout:
         raise click.UsageError(f"--method {method} cannot leave held-out measurements out of its fit, so a sweep "
@@ -107,8 +107,6 @@ def sweep_cmd(bundle, method, time_budget, iters, holdout, holdout_gs, holdout_s
 def recon_batch_cmd(bundles, method, out_dir, time_budget, iters, device, grid_bin, stage_values, recipe_file,
                     address, no_ray, **opts):
     """Reconstruct every bundle in BUNDLES (one task each); finished ones are skipped on a re-run."""
-    from rngcam.sweeps.batch import recon_batch
-
     settings = ReconSettings(method=method, time_budget_s="auto" if time_budget in (None, "auto") else time_budget,
                              max_iters=iters, device=device, grid_bin=grid_bin, progress=False,
                              method_settings=method_settings(method, pop_method_values(opts), stage_values,

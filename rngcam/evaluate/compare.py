@@ -24,6 +24,7 @@ from pathlib import Path
 from rngcam.evaluate import report
 from rngcam.evaluate.scenes import BenchScene, make_scene_bundle
 from rngcam.recon import registry
+from rngcam.recon.outputs import plot_errors
 
 LEVEL_OFFSETS_DB = (0.0, 1.0, 3.0)  # above the best GS-only PSNR of the scene
 KILL_GRACE_S = 300.0  # extra time a run may take beyond its budget before it is stopped
@@ -159,8 +160,6 @@ def add_level_times(rows: list[dict]) -> dict[str, float]:
 def plot_scene(png: Path, rows: list[dict], budget_s: float) -> None:
     """Every method's error against solve time on one figure; a one-shot baseline is drawn
     as a flat line from when it finished to the end of the budget."""
-    from rngcam.recon.outputs import plot_errors
-
     runs = {}
     for r in rows:
         log = [x for x in r.get("log", []) if isinstance(x.get("solve_s"), float)]

@@ -6,10 +6,14 @@ clips live in `$RNGCAM_DATA/videos/` (rngcam.paths.DATA_HINT says where they com
 
 from __future__ import annotations
 
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from rngcam.errors import RngcamError
+from rngcam.paths import DATA_HINT, MEASURED_PSF, external_data, package_data
 
 PROCEDURAL = ("sineball", "smoke")
 CLIP_FOLDER = "videos"
@@ -31,7 +35,7 @@ def bench_scenes(data_dir: Path | None, extra_clips: tuple[Path, ...] = (),
     and any extra clip.
 
     `only` keeps the scenes with those names (clip scenes are named after the file stem)."""
-    from rngcam.sim.scenes import default_clip_path
+    from rngcam.sim.scenes import default_clip_path  # heavy: scenes loads cv2, torch
 
     scenes = [BenchScene(n, n) for n in PROCEDURAL]
     clips = sorted((data_dir / CLIP_FOLDER).glob("*.npz")) if data_dir and (data_dir / CLIP_FOLDER).is_dir() else []
@@ -57,7 +61,7 @@ def bench_scenes(data_dir: Path | None, extra_clips: tuple[Path, ...] = (),
 def make_scene_bundle(scene: BenchScene, path: Path, size: int, seed: int = 0) -> str:
     """Simulate `scene` at size x size into the bundle `path` (replaced); returns a one-line
     description (frames, frame rate, PSF and how much of its spectrum survives)."""
-    from rngcam.sim.simulate import simulate
+    from rngcam.sim.simulate import simulate  # heavy: simulate loads cv2, h5py, torch
 
     opts = {"clip": scene.clip, "span": CLIP_SPAN} if scene.kind == "clip" else {}
     bundle = simulate(scene.kind, path, size=size, seed=seed, overwrite=True, **opts)
@@ -80,8 +84,6 @@ DT_S, EXPOSURE_S = 208e-6, 650e-6  # the reference rig scaled to the grid (rngca
 
 def clip_path(scene: str) -> Path:
     """The clip scene's npz under $RNGCAM_DATA (the larger clips do not ship with rngcam)."""
-    from rngcam.paths import DATA_HINT, external_data
-
     if external_data() is None:
         raise RngcamError(f"scene {scene}: {DATA_HINT}")
     return external_data() / CLIPS[scene]
@@ -91,10 +93,8 @@ def scene_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1):
     """(Problem with truth, how it was made) of a named scene: simulated into a bundle by
     rngcam.sim.simulate and built as `rngcam recon` builds it; `dt_factor` > 1 (a finer grid than
     the simulator's) uses `inline_problem`."""
-    import tempfile
-
-    from rngcam.formats.bundle import read_bundle
-    from rngcam.recon.problem import build_problem
+    from rngcam.formats.bundle import read_bundle  # heavy: bundle loads h5py, torch
+    from rngcam.recon.problem import build_problem  # heavy: problem loads cv2, h5py, torch
 
     if dt_factor != 1:
         problem = inline_problem(scene, size, seed, dt_factor)
@@ -113,14 +113,13 @@ def scene_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1):
 def inline_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1, noise: float = 0.003,
                    psf_crop: float = 0.25):
     """The simulator's timing and forward model without the bundle (and with Gaussian noise)."""
-    import torch
+    import torch  # heavy: torch
 
-    from rngcam.paths import MEASURED_PSF, package_data
-    from rngcam.physics import psf as psf_mod
-    from rngcam.physics.operators import GlobalShutter, RollingShutter
-    from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
-    from rngcam.recon.problem import Problem
-    from rngcam.sim.scenes import render_scene
+    from rngcam.physics import psf as psf_mod  # heavy: psf loads cv2
+    from rngcam.physics.operators import GlobalShutter, RollingShutter  # heavy: operators loads torch
+    from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid  # heavy: timing loads torch
+    from rngcam.recon.problem import Problem  # heavy: problem loads cv2, h5py, torch
+    from rngcam.sim.scenes import render_scene  # heavy: scenes loads cv2, torch
 
     rs = RollingShutterTiming(line_time_s=DT_S, exposure_s=EXPOSURE_S, rows=size)
     end = (size - 1) * DT_S
@@ -144,10 +143,8 @@ def inline_problem(scene: str, size: int, seed: int = 0, dt_factor: int = 1, noi
 def gs_only_video(label: str, problem):
     """A GS-only baseline's video (through rngcam.api.reconstruct); "gs_mean" is the plain average
     of the GS-only methods' videos (those installed: RIFE needs its weights)."""
-    import numpy as np
-
-    from rngcam.api import reconstruct
-    from rngcam.recon import registry
+    from rngcam.api import reconstruct  # heavy: api loads cv2, h5py, torch
+    from rngcam.recon import registry  # heavy: registry loads cv2, h5py, torch
 
     if label == "gs_mean":
         videos = [gs_only_video(n, problem) for n in registry.labels(registry.GS_ONLY) if not registry.unavailable(n)]

@@ -28,10 +28,11 @@ import torch
 from rngcam.api import reconstruct
 from rngcam.errors import RngcamError
 from rngcam.evaluate import report
-from rngcam.evaluate.stress_cases import StressCase, stress_cases
+from rngcam.evaluate.stress_cases import ALL_METHODS, StressCase, stress_cases
 from rngcam.formats.bundle import read_bundle
 from rngcam.physics.operators import inner
 from rngcam.recon import registry
+from rngcam.recon.metrics import psnr
 from rngcam.recon.problem import Problem, build_problem
 
 ADJOINT_TOL = 1e-9  # relative, float64
@@ -52,8 +53,6 @@ class StressSettings:
 
 def available_methods() -> list[str]:
     """Methods installed here (RIFE needs its weights)."""
-    from rngcam.evaluate.stress_cases import ALL_METHODS
-
     return [m for m in ALL_METHODS if not registry.unavailable(m)]
 
 
@@ -201,7 +200,6 @@ def classify(expect: str, method: str, outcome_of: Callable[[], dict], clear: tu
 def _psnr(problem: Problem | None, video) -> float | None:
     if problem is None or problem.truth is None or not bool(torch.isfinite(video).all()):
         return None
-    from rngcam.recon.metrics import psnr
 
     return psnr(video.double(), problem.truth)
 

@@ -12,12 +12,12 @@ def strip_png(png: Path, truth: np.ndarray, videos: dict[str, np.ndarray], frame
               titles: list[str] | None = None) -> None:
     """Rows: truth and each method; columns: the chosen frames (gamma-encoded), titled by `titles`
     (default "frame k")."""
-    import matplotlib
+    import matplotlib  # heavy: matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy: matplotlib
 
-    from rngcam.recon.outputs import to_display
+    from rngcam.recon.outputs import to_display  # heavy: outputs loads h5py
 
     rows = {"truth": truth, **videos}
     fig, axes = plt.subplots(len(rows), len(frames), figsize=(1.6 * len(frames), 1.7 * len(rows)),

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from rngcam.formats.bundle import Bundle, Calibration, CameraRecord, Truth, write_bundle
+from rngcam.paths import MEASURED_PSF, package_data
 from rngcam.physics import psf as psf_mod
 from rngcam.physics.sensor import SensorModel
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
@@ -92,8 +93,6 @@ def make_psf(kind: str, height: int, width: int, seed: int = 0) -> np.ndarray:
         img = cv2.GaussianBlur(img, (3, 3), 0.6)
         return (img / img.sum())[None]
     if kind == "real":
-        from rngcam.paths import MEASURED_PSF, package_data
-
         raw = psf_mod.load_psf(package_data(MEASURED_PSF))
         psf, _ = psf_mod.prepare_psf(raw, (height, width), crop=0.5, bias="auto")
         return psf.mean(axis=0, keepdims=True) / psf.mean(axis=0).sum()

@@ -21,12 +21,12 @@ from rngcam.memory import current_rss_bytes, peak_rss_bytes
 
 def _import_output_writers() -> None:
     """Load what writing the outputs loads, so the base figure holds every library."""
-    import av  # noqa: F401
-    import matplotlib
+    import av  # noqa: F401  # heavy: av
+    import matplotlib  # heavy: matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot
-    import tifffile  # noqa: F401
+    import matplotlib.pyplot  # heavy: matplotlib
+    import tifffile  # noqa: F401  # heavy: tifffile
 
 
 def main(job_path: str) -> int:
@@ -35,10 +35,10 @@ def main(job_path: str) -> int:
     out.mkdir(parents=True, exist_ok=True)
     report = {"error": ""}
     try:
-        import cv2
-        import torch
+        import cv2  # heavy: cv2
+        import torch  # heavy: torch
 
-        from rngcam.api import reconstruct
+        from rngcam.api import reconstruct  # heavy: api loads cv2, h5py, torch
 
         torch.set_num_threads(int(job.get("threads", 1)))
         cv2.setNumThreads(int(job.get("threads", 1)))

@@ -62,7 +62,7 @@ def summary_dict(bundle: Bundle, path: str | os.PathLike | None = None,
                  stats: dict[str, list[pixels.FrameStats]] | None = None) -> dict:
     """The facts `summarise` prints, as a JSON-able dict (times in ms/us for reading); with
     `stats` (pixel_stats), each frame's saturated and dark fractions under 'pixels'."""
-    from rngcam.physics.psf import spectral_support  # lazy: pulls in OpenCV
+    from rngcam.physics.psf import spectral_support  # heavy: psf loads cv2
 
     out: dict[str, Any] = {}
     if path is not None:

@@ -32,7 +32,7 @@ def _tiff(path: Path, planes: np.ndarray, axes: str, frame_interval_s: float | N
           overwrite: bool = True) -> None:
     """`planes` to `path`: an ImageJ hyperstack with `axes` (e.g. TYX, TCYX) where ImageJ reads
     the dtype, else a plain TIFF whose axes tifffile records."""
-    import tifffile
+    import tifffile  # heavy: tifffile
 
     planes = np.ascontiguousarray(planes)
     imagej = planes.dtype.name in _IMAGEJ_DTYPES

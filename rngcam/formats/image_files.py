@@ -14,6 +14,7 @@ import os
 import zipfile
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from rngcam import h5safe
@@ -61,7 +62,7 @@ def _pick(names: list[str], variable: str | None, path: Path) -> str:
 
 
 def _tiff(path: Path, fh) -> tuple[np.ndarray, str]:
-    import tifffile
+    import tifffile  # heavy: tifffile
 
     with tifffile.TiffFile(fh) as tif:
         if not tif.series:
@@ -73,8 +74,8 @@ def _tiff(path: Path, fh) -> tuple[np.ndarray, str]:
 
 
 def _png(path: Path, fh) -> tuple[np.ndarray, str]:
-    import cv2
-    from PIL import Image
+    import cv2  # heavy: cv2
+    from PIL import Image  # optional: Pillow, not declared
 
     with Image.open(fh) as img:  # the header only: the size before anything is decoded
         w, h = img.size
@@ -115,8 +116,6 @@ def _npz(path: Path, fh, variable: str | None) -> tuple[np.ndarray, str]:
 
 
 def _mat(path: Path, fh, variable: str | None) -> tuple[np.ndarray, str]:
-    import h5py
-
     if fh.read(8) == b"\x89HDF\r\n\x1a\n" or (fh.seek(512) == 512 and fh.read(8) == b"\x89HDF\r\n\x1a\n"):
         fh.seek(0)  # MATLAB v7.3: HDF5 (after a 512-byte header), arrays stored with their axes reversed
         with h5py.File(fh, "r") as f:
@@ -132,7 +131,7 @@ def _mat(path: Path, fh, variable: str | None) -> tuple[np.ndarray, str]:
             except h5safe.UnsafeFileError as exc:
                 raise SidecarError(f"{path}: {exc}") from None
             return np.ascontiguousarray(d[()].T), "mat"
-    import scipy.io
+    import scipy.io  # heavy: scipy
 
     fh.seek(0)
     found = scipy.io.whosmat(fh)
@@ -204,7 +203,7 @@ def read_folder(folder: Path, digests: dict | None = None) -> tuple[np.ndarray, 
 
 def read_video(path: Path, within: Path | None = None, digests: dict | None = None) -> tuple[np.ndarray, str]:
     """The frames of a video file (N, H, W, 3) uint8, through PyAV."""
-    import av
+    import av  # heavy: av
 
     frames = []
     try:

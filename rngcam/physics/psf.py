@@ -14,6 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from rngcam.untrusted import read_untrusted
+
 SUFFIXES = (".tif", ".tiff", ".png", ".npy", ".h5", ".hdf5")
 MAX_PSF_FILE_BYTES = 1 << 30  # a raw PSF image of a large sensor in float64 is a few hundred MB
 
@@ -26,11 +28,9 @@ def load_psf(path: str | Path) -> np.ndarray:
     suffix = path.suffix.lower()
     if suffix in (".tif", ".tiff", ".png", ".npy"):
         # a rig's PSF file may come from elsewhere: read by descriptor (no link, FIFO or device), bounded
-        from rngcam.untrusted import read_untrusted
-
         data = read_untrusted(path, MAX_PSF_FILE_BYTES, what="PSF file")
     if suffix in (".tif", ".tiff"):
-        import tifffile
+        import tifffile  # heavy: tifffile
 
         arr = tifffile.imread(io.BytesIO(data))
     elif suffix == ".png":
@@ -42,7 +42,8 @@ def load_psf(path: str | Path) -> np.ndarray:
     elif suffix == ".npy":
         arr = np.load(io.BytesIO(data), allow_pickle=False)
     elif suffix in (".h5", ".hdf5"):
-        from rngcam import h5safe  # a rig's PSF file may come from elsewhere: no links, sizes checked
+        # a rig's PSF file may come from elsewhere: no links, sizes checked
+        from rngcam import h5safe  # heavy: h5safe loads h5py
 
         with h5safe.open_untrusted(path, "PSF file") as f:
             for group, name in ((f, "psf"), (f.get("calibration"), "psf")):
@@ -225,7 +226,7 @@ def bin_sum(img: np.ndarray, binning: int) -> np.ndarray:
 def render_spots(sensor_shape: tuple[int, int], centres: np.ndarray, energy: np.ndarray,
                  spot_fwhm_px: float) -> np.ndarray:
     """(H, W) float64: Gaussian spots integrated over each pixel (each spot's pixels sum to its energy)."""
-    from scipy.special import erf
+    from scipy.special import erf  # heavy: scipy
 
     img = np.zeros(sensor_shape)
     sigma = spot_fwhm_px / (2 * np.sqrt(2 * np.log(2)))

@@ -118,7 +118,7 @@ def sensor_defects(name: str, frames: np.ndarray, factor: int, notes: list[str])
     """Hot and dead pixels of a camera's frames (C, F, h, w) at the sensor's resolution
     (rngcam.recon.defects). Binned (factor > 1), each is replaced by its neighbours' median in place
     and the returned mask is empty; unbinned, the mask (h, w) marks them invalid. A note either way."""
-    from rngcam.recon.defects import fill, outliers
+    from rngcam.recon.defects import fill, outliers  # heavy: defects loads scipy
 
     bad = outliers(frames)
     if not bad.any():

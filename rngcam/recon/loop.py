@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Protocol
 
 import torch
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from torch import Tensor
 
 from rngcam.errors import RngcamError
@@ -472,8 +473,6 @@ class _progress:
 
     def __enter__(self):
         if self.settings.progress and not self._lines:
-            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
             self._bar = Progress(TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(),
                                  TextColumn("{task.fields[figures]}"), transient=False)
             total = self.budget_s or self.settings.max_iters

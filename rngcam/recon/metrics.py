@@ -12,6 +12,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from rngcam.errors import RngcamError
+from rngcam.recon.noise import image_noise_std, row_noise_std
+from rngcam.untrusted import load_yaml
+
 
 def psnr(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range: float = 1.0,
          frames: np.ndarray | None = None) -> float:
@@ -172,8 +176,6 @@ def _masked(y: Tensor, mask: Tensor | None) -> Tensor:
 
 def _noise_estimate_norm(name: str, meas: Tensor, mask: Tensor | None) -> float:
     """||noise|| expected on the measurement, from the measurement alone (rngcam.recon.noise)."""
-    from rngcam.recon.noise import image_noise_std, row_noise_std
-
     if name == "rs":
         std = row_noise_std(meas)
     else:
@@ -244,9 +246,6 @@ ONE_OBJECT_SCENES = ("sineball",)  # simulated scenes with one moving object ove
 
 def one_object_scene(rig_yaml: str) -> bool:
     """True for a bundle simulated from a one-object scene (its rig's mock scene, ONE_OBJECT_SCENES)."""
-    from rngcam.errors import RngcamError
-    from rngcam.untrusted import load_yaml
-
     try:
         rig = load_yaml(rig_yaml or "", "the bundle's rig text") or {}  # sized and depth-checked first
     except RngcamError:

@@ -11,6 +11,7 @@ import json
 import math
 import os
 from datetime import datetime, timezone
+from fractions import Fraction
 from pathlib import Path
 
 import h5py
@@ -31,7 +32,7 @@ def recon_context(bundle_path: Path | None, bundle, problem) -> dict:
     capture time, the grid's frame interval, the GS key frames and their times, the RS image
     (grid units), its relative noise level (where STFM's and pnp's stop aims) and, when the bundle
     states it (meta `pixel_size_m`: the scene's size of one RS sensor pixel), that of one grid pixel."""
-    from rngcam.recon.noise import relative_noise_level
+    from rngcam.recon.noise import relative_noise_level  # heavy: noise loads torch
 
     ctx = {"bundle_path": str(Path(bundle_path).resolve()) if bundle_path is not None else "",
            "capture_utc": (bundle.created_utc or "") if bundle is not None else "",
@@ -137,7 +138,7 @@ def stamp_frames(frames: np.ndarray, times_s: np.ndarray, key_times_s: np.ndarra
                  dt_s: float | None = None) -> np.ndarray:
     """(K, H, W, 3) uint8 display frames with each frame's time (µs from T0) written in its top
     left corner, and "GS" after it on the frames whose interval holds a key frame's centre."""
-    import cv2
+    import cv2  # heavy: cv2
 
     out = frames.copy()
     h = out.shape[1]
@@ -167,9 +168,7 @@ def write_mp4(path: Path, video: np.ndarray, fps: float = 30.0, capture_fps: flo
     read MP4 metadata. Both are written beside and renamed into place; without `replace` an
     existing file of either name is refused in one line (before anything is written).
     """
-    from fractions import Fraction
-
-    import av
+    import av  # heavy: av
 
     if not (math.isfinite(fps) and fps > 0):
         raise ConfigError(f"playback fps must be a positive number, got {fps}")
@@ -218,7 +217,7 @@ def write_tiff(path: Path, video: np.ndarray, frame_interval_s: float | None = N
     """Linear float32 ImageJ hyperstack (T, C, Y, X): frames as time, colour as channels, and
     with `frame_interval_s` the frame interval in seconds, so Fiji shows the capture's time;
     with `pixel_size_m` (one grid pixel in the scene) a spatial scale in µm, else pixels."""
-    import tifffile
+    import tifffile  # heavy: tifffile
 
     meta = {"axes": "TCYX", "mode": "composite" if video.shape[0] > 1 else "grayscale", "unit": "pixel"}
     if frame_interval_s is not None and math.isfinite(frame_interval_s) and frame_interval_s > 0:
@@ -263,10 +262,10 @@ def plot_errors(png_path: Path, runs: dict[str, list[dict]], noise_level: float 
     baseline, or a fit stopped before its first iteration) is one large marker with a note.
     `noise_level` (the RS image's relative noise level, where STFM's and pnp's stop aims) is a
     horizontal line."""
-    import matplotlib
+    import matplotlib  # heavy: matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy: matplotlib
 
     has_psnr = any("psnr_db" in r for log in runs.values() for r in log)
     fig, axes = plt.subplots(1, 2 if has_psnr else 1, figsize=(11 if has_psnr else 6.5, 4.2), squeeze=False)

@@ -12,6 +12,7 @@ import numpy as np
 from rngcam.memory import release_free_memory
 from rngcam.recon import outputs
 from rngcam.recon.checkpoint import LOG_NAME
+from rngcam.recon.report import write_report_or_warn
 from rngcam.recon.runlog import LINE_LIMIT
 from rngcam.untrusted import printable, write_new
 
@@ -104,8 +105,6 @@ class Result:
         `folder` (created if needed; files of the same names are replaced); returns the folder.
         `echo(line)` hears where the report went, or why it was not written [silent]. `truth`: the
         bundle's truth on the video's grid where the caller holds it (else the report reads it)."""
-        from rngcam.recon.report import write_report_or_warn
-
         out = Path(folder)
         out.mkdir(parents=True, exist_ok=True)
         fps = 1 / self.frame_interval_s if self.frame_interval_s else None

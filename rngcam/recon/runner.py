@@ -32,7 +32,9 @@ from rngcam.formats.bundle import Bundle, bundle_checksum, is_warning, open_chec
 from rngcam.memory import peak_rss_bytes, release_before, release_free_memory
 from rngcam.physics.operators import drop_scratch
 from rngcam.recon import ablation, checkpoint, outputs, registry
+from rngcam.recon.holdout import HELDOUT_KEYS, HoldoutScorer
 from rngcam.recon.loop import LoopSettings, Method, RunResult, run, stage_printer
+from rngcam.recon.methods.baselines import blend
 from rngcam.recon.metrics import (
     error_visibility,
     error_visibility_caveats,
@@ -128,8 +130,6 @@ def run_gs_only(problem: Problem, settings: ReconSettings) -> tuple[registry.GSO
 def start_video(problem: Problem) -> np.ndarray:
     """The video a run that never iterated reports: the GS key frames cross-faded, else zeros."""
     if problem.b_gs is not None and problem.b_gs.shape[1]:
-        from rngcam.recon.methods.baselines import blend
-
         return np.asarray(blend(gs_key_frames(problem), problem.gs_times_s, problem.frame_times_s), np.float32)
     return np.zeros(problem.shape, np.float32)
 
@@ -383,8 +383,6 @@ def _fit(problem: Problem, run_: Run, extra: dict, job: _Job) -> Fitted:
 
 def _iterate(problem: Problem, run_: Run, method: Method, made: Fitted, rows: _Rows, job: _Job) -> Fitted:
     """The loop on the method just built, under the run's clock; `made` with what it gave."""
-    from rngcam.recon.holdout import HoldoutScorer
-
     settings = run_.settings
     setup_s = made.setup_s = run_.clock.elapsed()
     job.quiet(settings.progress)(f"set-up: {run_.method} ready ({setup_s:.1f} s)")
@@ -457,8 +455,6 @@ def _finish(source: Source, problem: Problem, run_: Run, extra: dict, fit: Fitte
     """The metrics and the Result; with `job.out`, its files (and, for a run cut in set-up, a checkpoint
     that `resume` continues). The settings as they ran (`Run.record`: recon.h5, metrics.json's
     "settings", the report) are kept apart from what the run found (metrics.json's "method_results")."""
-    from rngcam.recon.holdout import HELDOUT_KEYS
-
     settings, out = run_.settings, job.out
     c, k, h, w = problem.shape
     if problem.transposed:  # the outputs are in the sensor's orientation (Problem.to_sensor)

@@ -24,8 +24,11 @@ from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
+import torch
 
 from rngcam.physics.geometry import similarity_matrix
+from rngcam.physics.operators import GlobalShutter, rolling_shutter_for
+from rngcam.physics.psf import magnify
 from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 
 FIDELITIES = ("grid", "fine", "lab")
@@ -154,10 +157,6 @@ def fine_measure(video: np.ndarray, psf_fine: np.ndarray, grid: VideoGrid, fgrid
     operator units, from a video (C, Kf, Hs, Ws) on the sub-frame grid `fgrid` (Hs = SPACE H);
     `line_time_s` is a sensor row's, as recorded (the true one is errors.line_time_scale x it);
     `readout` the RS readout order (physics.timing.READOUTS)."""
-    import torch  # here: the CLI imports this module for its choices
-
-    from rngcam.physics.operators import GlobalShutter, rolling_shutter_for
-
     v = torch.from_numpy(np.asarray(video, np.float64))
     c, _, hf, wf = v.shape
     true_line = line_time_s * errors.line_time_scale
@@ -185,8 +184,6 @@ def psf_measured(psf_sensor: np.ndarray, errors: LabErrors, seed: int) -> np.nda
     """The PSF as calibration hands it over: magnified by `psf_scale` (rngcam.physics.psf.magnify),
     noise and a background relative to the peak (float32)."""
     if errors.psf_scale != 1:
-        from rngcam.physics.psf import magnify
-
         psf_sensor = magnify(psf_sensor, errors.psf_scale).astype(np.float32)
     if errors.psf_noise == 0 and errors.psf_background == 0:
         return psf_sensor

@@ -38,6 +38,7 @@ from rngcam.sim.scene_base import check_size as _check_size
 from rngcam.sim.scene_base import key_times as _key_times
 from rngcam.sim.scene_base import smoothstep as _smoothstep
 from rngcam.sim.scene_base import value_noise as _value_noise
+from rngcam.untrusted import open_untrusted, printable
 
 MOTION_KINDS = tuple(MOTION_KIND_RENDERERS)
 SCENES = ("sineball", "smoke", "clip", *MOTION_KINDS)
@@ -119,7 +120,7 @@ def _texture_background(size: tuple[int, int], rng: np.random.Generator) -> np.n
     """A dense brick texture (scikit-image's bundled image; procedural if unavailable), (3, H, W)."""
     h, w = size
     try:
-        from skimage import data as skdata
+        from skimage import data as skdata  # heavy: skimage
 
         gray = np.asarray(skdata.brick(), np.float32) / 255.0
         crop = 3 * min(gray.shape) // 4
@@ -208,8 +209,7 @@ def default_clip_path() -> Path:
 
 def load_clip(path: str | Path | None = None) -> np.ndarray:
     """Read `frames` (T, H, W, 3) uint8 from an npz (default: the short car clip in rngcam/data)."""
-    from rngcam.h5safe import memory_limit_bytes
-    from rngcam.untrusted import open_untrusted, printable
+    from rngcam.h5safe import memory_limit_bytes  # heavy: h5safe loads h5py
 
     path = Path(path) if path is not None else default_clip_path()
     if not (path.exists() or path.is_symlink()):

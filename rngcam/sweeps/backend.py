@@ -12,6 +12,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 from rngcam.errors import RngcamError
+from rngcam.sweeps.ray_backend import RayBackend
 from rngcam.sweeps.tasks import OnResult, TaskFn, failed
 
 
@@ -51,7 +52,7 @@ class SequentialBackend:
 
 def ray_available() -> bool:
     try:
-        import ray  # noqa: F401
+        import ray  # noqa: F401  # optional: cluster extra
     except ImportError:
         return False
     return True
@@ -69,6 +70,5 @@ def make_backend(use_ray: bool | None = None, address: str | None = None, num_cp
             raise RngcamError("Ray is not installed: pip install 'rngcam[cluster]' (or run without --address)")
         echo("Ray is not installed (pip install 'rngcam[cluster]'): running tasks one after another in this process")
         return SequentialBackend()
-    from rngcam.sweeps.ray_backend import RayBackend
 
     return RayBackend(address=address, num_cpus=num_cpus, gpus_per_task=gpus_per_task)

@@ -63,7 +63,7 @@ class LocalRay:
         self._set_env(_local_env(self._refuser.getsockname()[1]))
         # Unset, a local Ray turns token authentication on (and reloads its own settings to see it).
         self._saved.setdefault("RAY_AUTH_MODE", os.environ.pop("RAY_AUTH_MODE", None))
-        import ray
+        import ray  # optional: cluster extra
 
         constants = ray._private.ray_constants
         # Read once at `import ray`: set here too where this process imported Ray before.
@@ -115,7 +115,7 @@ class RayBackend:
 
     def __init__(self, address: str | None = None, num_cpus: int | None = None, max_retries: int = 3,
                  gpus_per_task: float = 0.0):
-        import ray
+        import ray  # optional: cluster extra
 
         self._ray, self.max_retries, self.gpus_per_task = ray, int(max_retries), float(gpus_per_task)
         self._local: LocalRay | None = None

@@ -357,10 +357,10 @@ def _write_outputs(out: Path, rows: list[dict], has_truth: bool, settings: Sweep
 
 def plot_sweep(png_path: Path, rows: list[dict], has_truth: bool, title: str = "") -> None:
     """Held-out score per trial (filled: reached the last rung) and, with truth, PSNR per trial."""
-    import matplotlib
+    import matplotlib  # heavy: matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy: matplotlib
 
     swept = _swept(rows)
     labels = [", ".join(f"{p}={r[p]:g}" for p in swept) or f"trial {i + 1}" for i, r in enumerate(rows)]

@@ -7,6 +7,7 @@ channels (`channel_axis`); a spatial scale is used where recon.h5 knows the pixe
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -18,7 +19,7 @@ CHANNEL_MAPS = {3: ["red", "green", "blue"], 1: ["gray"]}
 
 
 def _format(path: Path) -> str:
-    from rngcam.h5safe import file_format
+    from rngcam.h5safe import file_format  # heavy: h5safe loads h5py
 
     return file_format(path)
 
@@ -77,7 +78,8 @@ def _key_layer(frames: np.ndarray, times_s: np.ndarray, all_times_s: np.ndarray 
 
 def read_recon(path: Path) -> list[LayerData]:
     """The reconstruction, its GS key frames and RS image (as recon.h5 records them)."""
-    from rngcam.recon.report.load import read_recon_h5  # checks links, shapes and sizes first
+    # read_recon_h5 checks links, shapes and sizes first
+    from rngcam.recon.report.load import read_recon_h5  # heavy: load loads h5py, torch
 
     h5 = read_recon_h5(path, video=True)
     video, times, attrs = h5["video"], h5["frame_times_s"], h5["attrs"]
@@ -98,8 +100,6 @@ def read_recon(path: Path) -> list[LayerData]:
 
 
 def json_method(settings) -> str:
-    import json
-
     try:
         return str(json.loads(settings).get("method", "recon"))
     except (ValueError, AttributeError):
@@ -116,7 +116,7 @@ def _raw_to_cthw(frames: np.ndarray, bit_depth: int, black: float) -> np.ndarray
 def read_bundle_layers(path: Path) -> list[LayerData]:
     """A capture bundle: the truth (simulated bundles), the GS key frames at their mid-exposure
     times and the RS frame, raw frames scaled to 0..1 of full scale above black."""
-    from rngcam.formats.bundle import open_bundle
+    from rngcam.formats.bundle import open_bundle  # heavy: bundle loads h5py, torch
 
     layers = []
     with open_bundle(path) as b:

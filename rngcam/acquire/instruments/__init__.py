@@ -16,6 +16,8 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import yaml
+
 DEFINITIONS = Path(__file__).with_name("generators.yaml")
 
 
@@ -90,8 +92,6 @@ def _template(text: str) -> re.Pattern:
 
 @functools.cache
 def _load() -> dict:
-    import yaml
-
     return yaml.safe_load(DEFINITIONS.read_text(encoding="utf-8"))
 
 

@@ -31,7 +31,7 @@ or at any iteration; and once the schedule has ended, when the residual falls by
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import torch
@@ -41,9 +41,20 @@ from rngcam.errors import ConfigError
 from rngcam.memory import release_free_memory
 from rngcam.physics.operators import LinearOperator
 from rngcam.recon.loop import MethodBase
-from rngcam.recon.methods.coarse_to_fine import Kept, kept
+from rngcam.recon.methods.baselines import BaselineInputError, blend, interp
+from rngcam.recon.methods.coarse_to_fine import (
+    CoarseToFine,
+    Kept,
+    bin_video,
+    default_factors,
+    kept,
+    power_norm,
+    upsample,
+)
 from rngcam.recon.methods.pnp_denoiser import Denoiser
+from rngcam.recon.methods.rife import resolve_model, rife
 from rngcam.recon.metrics import relative_residual
+from rngcam.recon.nets.rife_hdv3 import RifeUnavailableError, find_weights
 from rngcam.recon.noise import relative_noise_level
 from rngcam.recon.options import setting
 from rngcam.recon.problem import Problem
@@ -99,8 +110,6 @@ class PnPSettings:
 
 
 def _hdv3_installed() -> bool:
-    from rngcam.recon.nets.rife_hdv3 import RifeUnavailableError, find_weights
-
     try:
         find_weights()
         return True
@@ -152,8 +161,6 @@ class PnP(MethodBase):
         if rs_norm_start is None:
             n_r = 1.02 * self.rs.norm(iters=20, tol=1e-3, dtype=dt, device=dev) ** 2
         else:
-            from rngcam.recon.methods.coarse_to_fine import power_norm
-
             norm, self.rs_norm_vector = power_norm(self.rs, rs_norm_start.to(dtype=dt, device=dev))
             n_r = 1.02 * norm ** 2
         self.rs_norm_sq = n_r
@@ -188,8 +195,6 @@ class PnP(MethodBase):
     # ------------------------------------------------------------------ set-up
 
     def _initial(self) -> Tensor:
-        from rngcam.recon.methods.baselines import blend, interp
-
         p = self.p
         if not self.use_gs:
             return torch.zeros(p.shape)
@@ -197,9 +202,6 @@ class PnP(MethodBase):
         args = (keys, p.gs_times_s, p.frame_times_s)
         kind = self.s.init
         if kind in ("video", "rife") and keys.shape[0] in (1, 3):
-            from rngcam.recon.methods.baselines import BaselineInputError
-            from rngcam.recon.methods.rife import RifeUnavailableError, resolve_model, rife
-
             try:
                 model, note = resolve_model()
                 with torch.random.fork_rng(devices=[]):
@@ -376,8 +378,6 @@ def fine_level_settings(settings: PnPSettings) -> PnPSettings:
     """A finer level's schedule: it starts from a coarser level's denoised estimate, so it takes up
     the noise-level schedule half way (geometric mid-point of sigma_start and sigma_end) and runs
     the second half of it."""
-    from dataclasses import replace
-
     mid = math.sqrt(settings.sigma_start * settings.sigma_end)
     return replace(settings, sigma_start=mid, schedule_iters=max(1, settings.schedule_iters // 2))
 
@@ -385,9 +385,6 @@ def fine_level_settings(settings: PnPSettings) -> PnPSettings:
 def key_frame_detail(problem: Problem, coarse_shape: tuple[int, int, int, int]) -> Tensor | None:
     """The detail of the GS key frames' cross-fade B on `problem`'s grid that a grid of
     `coarse_shape` cannot hold: B - up(bin(B)) (None without GS frames)."""
-    from rngcam.recon.methods.baselines import blend
-    from rngcam.recon.methods.coarse_to_fine import bin_video, upsample
-
     if problem.b_gs is None or problem.b_gs.shape[1] == 0:
         return None
     keys = problem.gs_images().detach().float().cpu().numpy()
@@ -416,8 +413,6 @@ def make_pnp(problem: Problem, settings: PnPSettings | None = None, device: str 
     own stop (noise level or stall), at the end of its schedule, or at its share of the budget.
     `stage(message)` reports set-up; `factors`: the levels' spatial factors (default:
     coarse_to_fine.default_factors)."""
-    from rngcam.recon.methods.coarse_to_fine import CoarseToFine, default_factors, upsample
-
     settings = settings or PnPSettings()
     factors = tuple(factors or default_factors(problem.shape))
     if not settings.coarse_to_fine or len(factors) == 1 or problem.has_holdout:

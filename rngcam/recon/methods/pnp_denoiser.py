@@ -6,6 +6,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from rngcam.physics import tv_prox as tv
+from rngcam.recon.nets import ffdnet
+
 
 def _srgb(x: Tensor) -> Tensor:
     x = x.clamp(0, 1)
@@ -25,13 +28,11 @@ class Denoiser:
     FFDNet when its weights are installed, else 2-D TV (tv.prox_tv_nonneg without a time term)."""
 
     def __init__(self, device: str, chunk: int):
-        from rngcam.recon.nets.ffdnet import DenoiserUnavailableError, load_ffdnet
-
         self.chunk, self.note = chunk, ""
         try:
-            self.net = load_ffdnet(device=device)
+            self.net = ffdnet.load_ffdnet(device=device)
             self.name = "ffdnet"
-        except DenoiserUnavailableError as missing:
+        except ffdnet.DenoiserUnavailableError as missing:
             self.net, self.name = None, "tv2d"
             self.note = (f"{missing}; pnp denoises with 2-D TV instead ({TV_FALLBACK_COST})")
 
@@ -53,8 +54,6 @@ class Denoiser:
 
     def _denoise(self, images: Tensor, sigma: float, scale: float, c: int) -> Tensor:
         if self.net is None:
-            from rngcam.physics import tv_prox as tv
-
             # TV weight ~ noise std: a rough match of strength in linear units
             return tv.prox_tv_nonneg(images.transpose(0, 1), sigma * scale, 0.0).transpose(0, 1)
         x = _srgb(images / scale)

@@ -17,7 +17,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from rngcam.physics.operators import RollingShutter
 from rngcam.recon.methods.nnls import nnls_normal
+from rngcam.recon.methods.selfcal import line_search
 from rngcam.recon.metrics import relative_residual
 
 MAX_DESIGN = 4_000_000  # design-matrix entries per PSF channel: sensor rows beyond it are subsampled
@@ -29,7 +31,7 @@ def edge_mask(shape: tuple[int, int], scale: float) -> np.ndarray:
     fully cover, with their neighbours: its lost edge (none for scale >= 1). A grid pixel of a PSF
     binned from the sensor (physics.psf.bin_psf) gathers sensor pixels up to one grid pixel past its
     own square, so the light the sensor lost reaches one pixel further in than the shrink shows."""
-    from rngcam.physics.psf import magnify_matrix
+    from rngcam.physics.psf import magnify_matrix  # heavy: psf loads cv2
 
     if scale >= 1:
         return np.zeros(shape, bool)
@@ -66,8 +68,7 @@ def fit_edge(problem, video: Tensor, scale: float, seed: int = 0) -> dict | None
     "residual_shrunk" (the shrunk PSF with the best factor), "residual" (the fitted PSF)}, the
     residuals relative, over the rows the fit used; None without an RS image or an edge, or where
     the rows the design affords (MAX_DESIGN) give fewer than MIN_EQUATIONS pixels per unknown."""
-    from rngcam.physics.operators import RollingShutter
-    from rngcam.physics.psf import magnify
+    from rngcam.physics.psf import magnify  # heavy: psf loads cv2
 
     if problem.b_rs is None or not (math.isfinite(scale) and 0 < scale < 1):
         return None
@@ -132,8 +133,6 @@ def search_edge(problem, video: Tensor, scales: tuple[float, float] = EDGE_SCALE
     one around the best and a parabola through the lowest three (the key rows alone place it short:
     sineball with its PSF 5 % large, 0.978 for 0.952; with the edge fitted, the residual is lowest
     at 0.952). fit_edge's dict with "searched" [(scale, residual), ...]; None where none fits."""
-    from rngcam.recon.methods.selfcal import line_search
-
     tried: dict[float, dict | None] = {}
 
     def at(s: float) -> float:

@@ -15,6 +15,7 @@ target is the linear blend of the two tree nodes around it.
 
 from __future__ import annotations
 
+import hashlib
 import math
 
 import numpy as np
@@ -24,12 +25,15 @@ import torch.nn.functional as F
 from rngcam.errors import RngcamError
 from rngcam.recon.methods.baselines import (
     BaselineInputError,
+    KeyWarps,
     bracket,
     encoding_scale,
     linear_to_srgb,
     srgb_to_linear,
     validate_key_frames,
 )
+from rngcam.recon.nets import rife4
+from rngcam.recon.nets.rife4 import PAD_MULTIPLE, load_ifnet4, working_scale
 from rngcam.recon.nets.rife_common import RifeUnavailableError
 from rngcam.recon.nets.rife_hdv3 import IFNet, find_weights, load_ifnet
 
@@ -58,7 +62,6 @@ def resolve_model(model: str | None = None) -> tuple[str, str]:
     if model == "hdv3":
         find_weights()
         return "hdv3", ""
-    from rngcam.recon.nets import rife4
 
     try:
         rife4.find_weights()
@@ -201,8 +204,6 @@ def _targets_by_pair(f, times_s, targets):
 @torch.inference_mode()
 def _rife4(f: np.ndarray, times_s, targets, weights, device: str) -> np.ndarray:
     """RIFE 4.x: each target frame in one pass at its own fraction t, batched per key-frame pair."""
-    from rngcam.recon.nets.rife4 import load_ifnet4, working_scale
-
     net = load_ifnet4(weights, device)
     c, g, h, w = f.shape
     net_scale = working_scale(h, w)
@@ -229,8 +230,6 @@ def _meet_the_keys(net, f: np.ndarray, out: np.ndarray, idx, frac, exact, scale:
     """Frames closer than NEAR_KEY (of the interval) to a key frame, in place: linear between the key and
     the network's frame at NEAR_KEY. RIFE 4.x asked just after a key frame does not return it, a seam at
     every key frame (smoke's bricks displaced; bench/convergence.md, "the half grid first again")."""
-    from rngcam.recon.nets.rife4 import PAD_MULTIPLE
-
     c, _, h, w = f.shape
     for i in np.unique(idx[~exact]):  # per key-frame pair with frames next to either key
         sel = np.flatnonzero((idx == i) & ~exact & ((frac < NEAR_KEY) | (frac > 1 - NEAR_KEY)))
@@ -259,8 +258,6 @@ def _shared_flows4(net, weights, f: np.ndarray, idx, frac, exact, scale: float, 
     """[(target indices, first, second key frames as the network takes them, flow, mask)] of each of
     `_pair_batches`' batches: `net.flows` at each target's time, or the previous call's where it asked
     for the same (the same frames, targets, weights, device and scale)."""
-    import hashlib
-
     key = (hashlib.sha256(np.ascontiguousarray(f).tobytes()).hexdigest(), f.shape, idx.tobytes(),
            np.asarray(frac, np.float64).tobytes(), str(weights), str(device), net_scale)
     found = _last_flows4.pop("entry", None)
@@ -278,8 +275,6 @@ def _pair_batches(f: np.ndarray, idx, frac, exact, scale: float, device: str, ne
     """For RIFE 4.x: (target indices, first key frames, second key frames, fractions t) in batches
     of at most `batch_size` targets between the same two key frames, encoded for the network
     (`net_scale`: the network's working scale)."""
-    from rngcam.recon.nets.rife4 import PAD_MULTIPLE
-
     for i in np.unique(idx[~exact]):
         sel = np.flatnonzero((idx == i) & ~exact)
         ends = _to_network(f[:, [i, i + 1]], scale, device, PAD_MULTIPLE)
@@ -295,9 +290,6 @@ def _pair_batches(f: np.ndarray, idx, frac, exact, scale: float, device: str, ne
 def _rife4_warps(f: np.ndarray, times_s, targets, weights, device: str):
     """RIFE 4.x's flows from each target time to its two key frames and the blend weight, as
     `baselines.KeyWarps` (exact: the network is asked at each target's own time)."""
-    from rngcam.recon.methods.baselines import KeyWarps
-    from rngcam.recon.nets.rife4 import load_ifnet4, working_scale
-
     net = load_ifnet4(weights, device)
     c, g, h, w = f.shape
     net_scale = working_scale(h, w)
@@ -322,8 +314,6 @@ def rife_warps(gs, gs_times_s, frame_times_s, weights=None, device: str = "cpu",
     target time assuming linear motion (flow to key 0: 2a f0, to key 1: 2(1 - a) f1 at fraction
     a; weight of key 0: (1 - a) m / ((1 - a) m + a (1 - m))), as `baselines.KeyWarps`. One
     network pass per key-frame pair (no bisection), so the frames are close to, not equal to, `rife`'s."""
-    from rngcam.recon.methods.baselines import KeyWarps
-
     keys, targets = validate_key_frames(gs, gs_times_s, frame_times_s)
     f = keys.frames
     c, g, h, w = f.shape

@@ -20,10 +20,13 @@ Transforms are 3x3 matrices acting on pixel coordinates (x, y) measured from the
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from rngcam.errors import ConfigError
 
 
 def similarity(dx: float = 0.0, dy: float = 0.0, rotation_rad: float = 0.0, scale: float = 1.0) -> np.ndarray:
@@ -274,11 +277,7 @@ def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True):
     is then fitted through the PSF so magnified, the scale searched again through it, and the gains
     and transform fitted once more through the PSF the fit will use (through the PSF as handed the
     gains absorb its error). mode "off": (problem, None)."""
-    from dataclasses import replace
-
     if mode not in MODES:
-        from rngcam.errors import ConfigError
-
         raise ConfigError(f"self_calibrate must be one of {', '.join(MODES)}, got {mode!r}")
     if mode == "off" or problem.b_rs is None or problem.b_gs is None:
         return problem, None
@@ -313,7 +312,7 @@ def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True):
 
 def _magnified(psf: Tensor, scale: float) -> Tensor:
     """The PSF magnified by `scale` about its centre (rngcam.physics.psf.magnify), in its dtype."""
-    from rngcam.physics.psf import magnify
+    from rngcam.physics.psf import magnify  # heavy: psf loads cv2
 
     return torch.from_numpy(magnify(psf.double().cpu().numpy(), scale)).to(psf.dtype)
 
@@ -352,8 +351,6 @@ def _register(problem, mode: str) -> tuple[dict, np.ndarray, np.ndarray] | None:
 
 def _apply(problem, matrix: np.ndarray, gains: np.ndarray):
     """The problem with b_gs := gains * b_gs sampled at S^-1 (valid pixels likewise), white balance 1."""
-    from dataclasses import replace
-
     b_gs = problem.b_gs
     inv = np.linalg.inv(matrix)
     gs_valid = problem.gs_valid
@@ -421,8 +418,6 @@ def key_row_misfit(problem, matrix=None):
     """A function psf (C or 1, Hp, Wp) -> (the key rows' relative residual, the GS/RS gains (C,))
     with that PSF, the gains fitted in closed form, the GS frames taken to RS coordinates by
     `matrix` (3x3, GS-to-RS; identity by default); None without key rows."""
-    from dataclasses import replace
-
     data = _key_row_data(problem)
     if data is None:
         return None
@@ -482,7 +477,7 @@ def estimate_psf_scale(problem, matrix=None, scales: tuple[float, float] = PSF_S
     parabola through the lowest three, candidates compared at one blur (EVEN_BLUR). Returns
     {"estimate", "residual_before" (the PSF as it is), "residual_after" (magnified by the
     estimate), "at_bound"} or None without key rows."""
-    from rngcam.physics.psf import magnify
+    from rngcam.physics.psf import magnify  # heavy: psf loads cv2
 
     misfit = key_row_misfit(problem, matrix)
     if misfit is None:
@@ -506,8 +501,6 @@ def calibrate_psf_scale(problem, matrix=None, min_drop: float = MIN_DROP):
     min_drop, within the search's bounds), "applied", "end" (the scale the fit uses), "why" (where not
     applied)} (None without key rows). A scale below 1 that fits is reported, never applied
     (SHRINK_WHY)."""
-    from dataclasses import replace
-
     found = estimate_psf_scale(problem, matrix)
     if found is None:
         return problem, None

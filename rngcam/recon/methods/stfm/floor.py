@@ -14,6 +14,7 @@ from torch import Tensor
 
 from rngcam.memory import release_free_memory
 from rngcam.recon.loop import Wrapped
+from rngcam.recon.methods.baselines import blend, interp
 from rngcam.recon.methods.stfm.stage_configs import StartFloorConfig
 from rngcam.recon.metrics import relative_residual
 
@@ -48,8 +49,6 @@ class StartFloor(Wrapped):
 
     def _start(self, name: str) -> Tensor:
         """The GS-only video `name` (blend or interp) of the key frames, on the RS scale."""
-        from rngcam.recon.methods.baselines import blend, interp
-
         p = self._problem
         make = {"blend": blend, "interp": interp}[name]
         keys = p.gs_images(gains=True).cpu().numpy()

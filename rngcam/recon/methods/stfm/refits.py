@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 from torch import Tensor
 
+from rngcam.errors import RngcamError
 from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.stfm.stage_configs import StopConfig
 
@@ -219,8 +220,6 @@ class Refits(MethodBase):
         """A checkpoint's stage as this class writes it: the fits it names present (the first is let
         go once a later one does better), what they were made from as the stage makes it; one line
         otherwise."""
-        from rngcam.errors import RngcamError
-
         s = self.STATE
         fits, made = state.get("fits"), state.get(f"{s}_made")
         ok = (isinstance(fits, dict) and isinstance(made, dict) and isinstance(state.get(f"{s}_rs"), dict)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields, replace
 
+import torch
+
 from rngcam.errors import ConfigError
 from rngcam.recon.methods.stfm.presets import (  # noqa: F401 (the presets' windows, named here too)
     PRIOR_STALL_PASSES,
@@ -255,8 +257,6 @@ def chunk_frames(settings: STFMSettings, h: int, w: int, device: str | None = No
         return settings.frame_chunk
     points = CHUNK_POINTS
     if device is not None and str(device).startswith("cuda"):
-        import torch
-
         card = torch.cuda.get_device_properties(torch.device(device)).total_memory
         points = max(CHUNK_POINTS, min(GPU_CHUNK_POINTS, card // (GPU_GRAPH_SHARE * GRAPH_BYTES_PER_POINT)))
     return max(MIN_FRAME_CHUNK, points // max(1, h * w))
