@@ -7,7 +7,7 @@ there, a later fit places the ball by nearly the right timing from its first ste
 what is left (bench/realistic.md, "the line time learned on over later fits"). Where the fit that
 explains the RS image best so far learned a factor more than `refit_line_time` off where it started,
 one more whole fit runs with the problem's RS timing stretched by the factor learned (calibrated
-again), up to `max_refits`; from a fit that ended unexplained (settings.EXPLAINED_RATIO), one, from
+again), up to `max_refits`; from a fit that ended unexplained (the fit stage's `explained_ratio`), one, from
 `refit_line_time_unexplained` (the line_refit stage's config: stage_configs.LineRefitConfig).
 The output is the fit that explains the RS image best (`refits`).
 """

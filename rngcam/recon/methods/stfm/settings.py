@@ -19,11 +19,10 @@ from rngcam.recon.methods.stfm.stage_configs import FitConfig
 from rngcam.recon.options import setting
 
 PRESETS = ("paper", "fast", "prior", "auto")  # auto: prior or fast per scene (rngcam.recon.methods.stfm.auto)
-# The fit stage's defaults under the names the fit's modules import (set per run: `--set fit.init_steps=...`;
+# The fit stage's defaults under the names the package exports (a run sets them with `--set fit.init_steps=...`;
 # stage_configs.FitConfig holds each one's reason)
 INIT_STEPS = FitConfig.init_steps
 NOISE_CHECK_STEPS = FitConfig.noise_check_steps
-NOISE_CHECK_FRAMES = FitConfig.noise_check_frames
 EXPLAINED_RATIO = FitConfig.explained_ratio
 REFINE_LR_RATIO = FitConfig.refine_lr_ratio
 REFINE_STALL_PASSES = FitConfig.refine_stall_passes
