@@ -20,6 +20,7 @@ import click
 from rngcam.errors import ConfigError
 from rngcam.recon import registry
 from rngcam.recon.options import cli_name, documented_fields
+from rngcam.untrusted import read_untrusted
 
 
 def _field_type(entry: registry.MethodEntry, f: dataclasses.Field):
@@ -255,7 +256,6 @@ def _assigned(assignments: tuple[str, ...]) -> dict:
 
 def _recipe(path: Path) -> dict:
     """A --recipe file's stage settings (read as untrusted input; one line naming it when bad)."""
-    from rngcam.recon.methods.stfm.recipe import MAX_RECIPE_CHARS, recipe_from_yaml
-    from rngcam.untrusted import read_untrusted
+    from rngcam.recon.methods.stfm.recipe import MAX_RECIPE_CHARS, recipe_from_yaml  # heavy: torch
 
     return recipe_from_yaml(read_untrusted(path, MAX_RECIPE_CHARS).decode("utf-8", "replace"), str(path))

@@ -86,9 +86,9 @@ class Problem:
     # Frames of this grid to each frame of the output's (`in_subframes`): what a rate per frame counts in.
     subframes: int = 1
     # A coarse-to-fine level's GS frames as video intensity (C, G, H', W') on the finer grid it was
-    # binned from: GS-only videos and flows are computed there and binned to this grid (RIFE on a
-    # 32 px clip's frames lost 2 dB against RIFE at 64 px binned; bench/convergence.md, "the fast preset on
-    # the half grid first").
+    # binned from: GS-only videos and flows are computed there and binned to this grid (RIFE on the coarse
+    # grid's own frames did worse than RIFE on the finer ones binned; bench/convergence.md, "the fast preset
+    # on the half grid first").
     fine_gs: Tensor | None = None
     # The cameras the capture has (its bundle's meta.cameras): ("rs",) for an RS-only bundle, whose
     # missing GS camera is listed in left_out (rngcam.recon.ablation.no_camera).

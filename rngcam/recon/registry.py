@@ -200,50 +200,50 @@ def settings_for(label: str, **overrides) -> tuple[str, Any]:
 
 
 def _make_stfm(problem, settings, device="cpu", clock=None, stage=None):
-    from rngcam.recon.methods.stfm import make_stfm
+    from rngcam.recon.methods.stfm import make_stfm  # heavy: torch
 
     return make_stfm(problem, settings, device=device, clock=clock, stage=stage, trace=True)
 
 
 def _explain_stfm(problem, settings) -> list[str]:
-    from rngcam.recon.methods.stfm import explain
+    from rngcam.recon.methods.stfm import explain  # heavy: torch
 
     return explain(problem, settings)
 
 
 def _stfm_with_stages(settings, overrides: dict):
-    from rngcam.recon.methods.stfm.recipe import with_stage_settings
+    from rngcam.recon.methods.stfm.recipe import with_stage_settings  # heavy: torch
 
     return with_stage_settings(settings, overrides)
 
 
 def _make_tv3d(problem, settings, device="cpu", clock=None, stage=None):
-    from rngcam.recon.methods.tv3d import make_tv3d
+    from rngcam.recon.methods.tv3d import make_tv3d  # heavy: torch
 
     return make_tv3d(problem, settings, clock=clock, stage=stage)
 
 
 def _make_pnp(problem, settings, device="cpu", clock=None, stage=None):
-    from rngcam.recon.methods.pnp import make_pnp
+    from rngcam.recon.methods.pnp import make_pnp  # heavy: torch
 
     return make_pnp(problem, settings, device=device, clock=clock, stage=stage)
 
 
 def _blend(key, gs_times_s, frame_times_s, settings: BlendSettings) -> GSOnlyVideo:
-    from rngcam.recon.methods.baselines import blend
+    from rngcam.recon.methods.baselines import blend  # heavy: torch
 
     return GSOnlyVideo(blend(key, gs_times_s, frame_times_s))
 
 
 def _interp(key, gs_times_s, frame_times_s, settings: InterpSettings) -> GSOnlyVideo:
-    from rngcam.recon.methods.baselines import interp
+    from rngcam.recon.methods.baselines import interp  # heavy: torch
 
     return GSOnlyVideo(interp(key, gs_times_s, frame_times_s, method=settings.flow, occlusion=settings.occlusion))
 
 
 def _rife(key, gs_times_s, frame_times_s, settings: RifeSettings) -> GSOnlyVideo:
-    from rngcam.recon.methods.baselines import MIN_FLOW_SIZE_PX, blend
-    from rngcam.recon.methods.rife import resolve_model, rife
+    from rngcam.recon.methods.baselines import MIN_FLOW_SIZE_PX, blend  # heavy: torch
+    from rngcam.recon.methods.rife import resolve_model, rife  # heavy: torch
 
     h, w = np.shape(key)[-2:]
     if min(h, w) < MIN_FLOW_SIZE_PX:  # as interp: no flow that small (RIFE would pad it to 64 px and guess)
@@ -255,7 +255,7 @@ def _rife(key, gs_times_s, frame_times_s, settings: RifeSettings) -> GSOnlyVideo
 
 
 def _rife_unavailable() -> str:
-    from rngcam.recon.methods.rife import resolve_model
+    from rngcam.recon.methods.rife import resolve_model  # heavy: torch
 
     try:
         resolve_model()  # RIFE 4.x, else HDv3

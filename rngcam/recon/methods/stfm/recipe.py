@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import yaml
 from torch import Tensor
 
 from rngcam.errors import ConfigError
@@ -96,8 +97,6 @@ def explain(problem, settings: STFMSettings | None = None) -> list[str]:
 
 def recipe_from_yaml(text: str, source: str) -> dict:
     """A recipe file's stage settings ({stage: {field: value}}), checked (one line naming `source`)."""
-    import yaml
-
     if len(text) > MAX_RECIPE_CHARS:
         raise ConfigError(f"{source}: a recipe file of {len(text):,} characters (at most {MAX_RECIPE_CHARS:,})")
     try:
