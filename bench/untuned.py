@@ -183,12 +183,32 @@ def table(results: dict) -> list[str]:
     return lines
 
 
+def summary(results: dict) -> list[str]:
+    """Per family: how often STFM holds the best GS-only method, the gaps, mean ghosts, median walls."""
+    lines = ["| family | scenes | STFM >= best - 0.1 | STFM - best GS-only: min / median / max (dB) | "
+             "mean ghost STFM / blend / interp / rife | median wall STFM (s) |", "|---|---|---|---|---|---|"]
+    for family in FAMILIES:
+        cells = [c[family] for c in results.values() if family in c and "psnr_intermediate_db" in c[family].get("stfm", {})]
+        gaps = [c["stfm"]["psnr_intermediate_db"] - best_gs(c)[1] for c in cells if best_gs(c)[1] is not None]
+        if not gaps:
+            continue
+        ghosts = " / ".join(f"{np.mean([c[m]['ghost_mean'] for c in cells if c.get(m, {}).get('ghost_mean') is not None]):.2f}"
+                            for m in METHODS)
+        wall = np.median([c["stfm"]["wall_s"] for c in cells])
+        lines.append(f"| {family} | {len(gaps)} | {sum(g >= -MARGIN_DB for g in gaps)} of {len(gaps)} | "
+                     f"{min(gaps):+.2f} / {np.median(gaps):+.2f} / {max(gaps):+.2f} | {ghosts} | {wall:.0f} |")
+    return lines
+
+
 def write_report(results: dict, md: Path, meta: dict) -> None:
     text = md.read_text() if md.exists() else ""
     marker = "<!-- untuned table -->"
     head = text.split(marker)[0] if marker in text else "# Quality where nobody tuned\n\n"
-    body = [marker, "", f"Machine load at the start of this table's runs: {meta.get('uptime', '?')}", "",
-            *table(results), "", marker]
+    loads = [r["load_1min"] for c in results.values() for f in c.values() for r in f.values() if "load_1min" in r]
+    load = f"{min(loads):.1f}-{max(loads):.1f}" if loads else "?"
+    body = [marker, "", f"Machine: 2 cores shared by four agents; the 1-minute load average at the start of the runs "
+            f"ranged {load} (first: `{meta.get('uptime', '?')}`). Walls are this machine's under that load.", "",
+            *summary(results), "", *table(results), "", marker]
     tail = text.split(marker)[2] if text.count(marker) >= 2 else ""
     md.write_text(head + "\n".join(body) + tail)
 
