@@ -10,7 +10,7 @@ from torch import Tensor, nn
 
 from rngcam.recon.methods.baselines import linear_to_srgb
 from rngcam.recon.methods.stfm.fields import field_on_grid
-from rngcam.recon.methods.stfm.motion_search import translation_track
+from rngcam.recon.methods.stfm.motion_search import object_mask, translation_track
 from rngcam.recon.methods.stfm.settings import MIN_FLOW_SIZE_PX
 
 
@@ -48,7 +48,7 @@ class GSInit:
         alpha = None
         if self.parts.static:
             change = (v - background[:, None]).abs().mean(0).amax(0)  # (H, W)
-            thr = c.init_change_share * float(background.mean()) + 1e-6
+            thr = c.layer_change * float(background.mean()) + 1e-6  # as motion_search.object_mask
             alpha = (1 - change / thr).clamp(0, 1)
         if self.resolved.dynamic_time:
             self._fit_dynamic_to_blend(v, times, alpha, steps)
@@ -62,9 +62,7 @@ class GSInit:
         """The canonical dynamic image is the middle key frame; alpha is where that frame (not every
         key frame: the image moves) differs from the background; the motion is the per-frame
         translation of that image found by rngcam.recon.methods.stfm.motion_search."""
-        change = (layer - background).abs().mean(0)
-        share = self.config.init_change_share
-        obj = (change / (share * float(background.mean()) + 1e-6)).clamp(0, 1)  # 1 on the moving object
+        obj = object_mask(layer, background, self.config.layer_change)  # 1 on the moving object
         alpha = 1 - obj if self.parts.static else None
         _fit_image(self.fields["dynamic"], self.xs, self.ys, layer, steps, self.config, alpha)
         row_gains = self.fit.state.row_gain_search

@@ -91,7 +91,8 @@ class STFM(MethodBase):
         self.frame_chunk = chunk_frames(settings, self.H, self.W, str(self.device))
         self.parts: Components = choose_components(
             problem, auto=settings.components == "auto", no_static=settings.no_static,
-            no_motion_reg=settings.no_motion_reg, no_rs=settings.no_rs, no_gs=settings.no_gs, tau=self.resolved.tau)
+            no_motion_reg=settings.no_motion_reg, no_rs=settings.no_rs, no_gs=settings.no_gs, tau=self.resolved.tau,
+            config=self.fit_config)
         if "," in self.resolved.dynamic_base or self.resolved.dynamic_base == "ensemble":
             raise ConfigError(f"dynamic_base {self.resolved.dynamic_base!r} is an ensemble: build it with make_stfm")
         torch.manual_seed(settings.seed)

@@ -230,9 +230,6 @@ class InitConfig(_Checked):
     # Adam's step for the fits to the key frames, the flows and the search's track: a set-up fit, not tuned
     # alone (its seconds are in bench/convergence.md, "the large grids' budget spent where it pays")
     init_lr: float = 0.02
-    # A pixel is background (alpha 1) where every key frame is within this share of the background's mean
-    # of the key frames' median; a pixel that changes more belongs to the moving layer
-    init_change_share: float = 0.1
     # Weight of the alpha target against the colour target in those fits
     init_alpha_weight: float = 0.1
     # Frames a step of the motion field's fit to the key-frame flows; the search's track (one that turns
@@ -242,9 +239,8 @@ class InitConfig(_Checked):
     init_search_step_factor: int = 3
 
     def _check(self):
-        if not (_finite(self, ("init_lr", "init_change_share", "init_alpha_weight")) and self.init_lr > 0
-                and self.init_change_share > 0 and min(self.init_frames_per_step, self.init_search_frames,
-                                                       self.init_search_step_factor) >= 1):
+        counts = (self.init_frames_per_step, self.init_search_frames, self.init_search_step_factor)
+        if not (_finite(self, ("init_lr", "init_alpha_weight")) and self.init_lr > 0 and min(counts) >= 1):
             raise ConfigError("stfm: fit.init_* must be > 0 (frames and step factors whole numbers >= 1)")
 
 
