@@ -1,6 +1,6 @@
 """STFM's recipe: the ordered stages every build runs, `make_stfm` (one loop over them) and `explain`.
 
-Every preset runs this recipe; the preset decides the fit's fields and schedule (settings._preset) and
+Every preset runs this recipe; the preset decides the fit's fields and schedule (presets.preset_table) and
 each stage decides, from the build, whether it applies and says why not. A stage's numbers are set with
 `--set stage.field=value` or `--recipe FILE.yaml` (STFMSettings.stages), checked against its config; the
 same spelling sets the STFMSettings field a stage owns (setting_names: `--set fit.tau=1e-4`).
