@@ -37,7 +37,7 @@ METHODS = ("stfm", "blend", "interp", "rife")
 GS_ONLY = ("blend", "interp", "rife")
 MARGIN_DB = 0.1  # STFM passes where it is within this of the best GS-only method
 # The real clips: file under $RNGCAM_DATA/videos and the first of 8 source frames. bikes_car's frames
-# 18-29 are the packaged development clip, so its window is frames 2-9 (before the car's fastest pass);
+# 18-29 are the packaged development clip, so its window is frames 2-9 (a car passing a cyclist);
 # the other two windows avoid the most-motion windows that a default `--clip` run picks (walk 8, vtest 56).
 CLIPS = {"clip_car": ("bikes_car_256.npz", 2), "clip_walk": ("bikes_walk_256.npz", 0),
          "clip_vtest": ("vtest_256.npz", 8)}
