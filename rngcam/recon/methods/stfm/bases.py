@@ -8,9 +8,10 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.recon.methods import rife as rife_method  # looked up at each call: a test may replace them
 from rngcam.recon.methods.baselines import BaselineInputError, interp, interp_warps
 from rngcam.recon.methods.coarse_to_fine import bin_space
-from rngcam.recon.methods.rife import RifeUnavailableError, resolve_model, rife, rife_warps
+from rngcam.recon.methods.rife import RifeUnavailableError
 from rngcam.recon.methods.stfm.settings import BASE_VIDEOS, HDV3_SUFFIX, KEY_WARPS, MIN_FLOW_SIZE_PX
 
 
@@ -77,7 +78,7 @@ class DynamicBase:
         if kind != "keys_interp" and keys.shape[0] in (1, 3):
             try:
                 with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
-                    warps, name = rife_warps(*args, model=self.model,
+                    warps, name = rife_method.rife_warps(*args, model=self.model,
                                              device=_network_device(self.device)), "keys_rife"
             except (RifeUnavailableError, BaselineInputError) as exc:
                 if kind == "keys_rife":
@@ -145,7 +146,7 @@ def _rife_model_of(kind: str) -> tuple[str, str | None]:
 
 
 def _resolved_model(model: str | None) -> str:
-    return resolve_model(model)[0]
+    return rife_method.resolve_model(model)[0]
 
 
 def _first_line(exc: Exception) -> str:
@@ -167,7 +168,8 @@ def _base_video(keys: Tensor, gs_times_s, frame_times_s, kind: str, model: str |
     if kind in ("video", "rife") and frames.shape[0] in (1, 3) and min(frames.shape[-2:]) >= MIN_FLOW_SIZE_PX:
         try:
             with torch.random.fork_rng(devices=[]):  # building the network draws random numbers
-                return torch.from_numpy(rife(frames, gs_times_s, frame_times_s, model=model, device=device)), "rife", ""
+                video = rife_method.rife(frames, gs_times_s, frame_times_s, model=model, device=device)
+                return torch.from_numpy(video), "rife", ""
         except RifeUnavailableError as exc:
             if kind == "rife":
                 raise
