@@ -128,6 +128,10 @@ class Pose(Learned):
         """The pose as learned (4,), None where the fit does not learn it."""
         return (self.parameter * self.free).detach().clone() if self.learned else None
 
+    def report(self, value: Tensor | None, selfcal: dict | None = None) -> dict | None:
+        """geometry_report of `value` (a reading), counted from the transform self-calibration applied."""
+        return geometry_report(value, self.radius, selfcal)
+
 
 def geometry_report(pose: Tensor | None, radius: float, selfcal: dict | None) -> dict | None:
     """{"start" (the transform the GS frames were taken to RS coordinates by before the fit),

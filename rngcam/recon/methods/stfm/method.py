@@ -20,7 +20,7 @@ from rngcam.recon.methods.stfm.components import Components, choose_components
 from rngcam.recon.methods.stfm.fields import transfer_fields
 from rngcam.recon.methods.stfm.grid import FitGrid, chunks
 from rngcam.recon.methods.stfm.init import GSInit
-from rngcam.recon.methods.stfm.learned import Gains, Pose, geometry_lines, geometry_report
+from rngcam.recon.methods.stfm.learned import Gains, Pose, geometry_lines
 from rngcam.recon.methods.stfm.line_time import LineTime, line_time_lines
 from rngcam.recon.methods.stfm.loss import DataLoss
 from rngcam.recon.methods.stfm.model import FieldModel
@@ -326,7 +326,7 @@ class STFM(MethodBase):
         self._start_learned(line, line.start_value(factor), line.schedule(self.learned_pose.inherited))
 
     def learned_geometry(self) -> dict | None:
-        return geometry_report(self.pose(), self.learned_pose.radius, self.state.selfcal_report)
+        return self.learned_pose.report(self.pose(), self.state.selfcal_report)
 
     def line_time_report(self) -> dict | None:
         return self.learned_line_time.report(self.line_factor(), self.state.line_time_from)
