@@ -32,10 +32,12 @@ def _psnr(video, truth):
 def test_levels_follow_the_grid_and_the_setting():
     p = _toy_problem()
     assert stfm_levels(p, STFMSettings()) == (1,)  # 32 px: one level
-    big = type("P", (), {"shape": (3, 231, 228, 342), "has_holdout": False})()
+    big = type("P", (), {"shape": (3, 231, 228, 342), "gs_train_mask": None})()
     assert stfm_levels(big, STFMSettings()) == (4, 2, 1)
     assert stfm_levels(big, STFMSettings(coarse_to_fine=False)) == (1,)
-    big.has_holdout = True
+    assert stfm_levels(p.with_holdout(0.1), STFMSettings(coarse_to_fine=True, preset="fast")) == \
+        stfm_levels(p, STFMSettings(coarse_to_fine=True, preset="fast"))  # held-out RS rows reach every level
+    big.gs_train_mask = torch.ones(228, 342, dtype=torch.bool)  # held-out GS pixels: one level
     assert stfm_levels(big, STFMSettings()) == (1,)
 
 
@@ -205,7 +207,7 @@ def test_the_half_grid_first_takes_most_of_a_budget():
 
 def test_the_fast_preset_starts_on_the_half_grid_from_64_px():
     def shaped(h, w):
-        return type("P", (), {"shape": (3, 67, h, w), "has_holdout": False})()
+        return type("P", (), {"shape": (3, 67, h, w), "gs_train_mask": None})()
 
     assert stfm_levels(shaped(64, 64), STFMSettings(preset="fast")) == (2, 1)
     assert stfm_levels(shaped(64, 64), STFMSettings(preset="fast", coarse_to_fine=False)) == (1,)

@@ -167,4 +167,17 @@ class Result:
             line += f", held-out residual {m['heldout']:.4g}"
         if self.misfit:
             line += f"; {self.misfit['line']}"
+        above = self.metrics.get("above_noise")
+        if isinstance(above, dict) and isinstance(above.get("line"), str):
+            line += f"; {above['line']}"
+        check = self.self_check_line
+        if check:
+            line += f"; {check}"
         return line
+
+    @property
+    def self_check_line(self) -> str | None:
+        """The line saying the output is a GS-only video, not the fit (rngcam.recon.methods.stfm.floor), or None."""
+        floor = (self.metrics.get("method_results") or {}).get("start_floor")
+        line = floor.get("line") if isinstance(floor, dict) else None
+        return line if isinstance(line, str) else None

@@ -17,6 +17,7 @@ log rows, errors.csv and metrics.json carry the residual on the held-out part (r
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -44,7 +45,7 @@ from rngcam.recon.metrics import (
     relative_residual,
     video_metrics,
 )
-from rngcam.recon.misfit import for_metrics
+from rngcam.recon.misfit import above_noise, for_metrics
 from rngcam.recon.phases import BudgetCut, RunPhases
 from rngcam.recon.problem import Problem, build_problem
 from rngcam.recon.result import Fitted, Result, split_results
@@ -491,7 +492,8 @@ def _finish(source: Source, problem: Problem, run_: Run, extra: dict, fit: Fitte
             metrics[key] = final[key]
     if problem.truth is not None:  # is the remaining error visible above each measurement's noise?
         vt = torch.from_numpy(np.asarray(video))
-        metrics["error_visibility"] = error_visibility(problem, vt)
+        # a sensor whose data cannot vouch (nan) is left out: the caveats below say why, and no NaN is written
+        metrics["error_visibility"] = {k: v for k, v in error_visibility(problem, vt).items() if not math.isnan(v)}
         caveats = error_visibility_caveats(problem)
         if caveats:
             metrics["error_visibility_caveats"] = caveats
@@ -506,6 +508,9 @@ def _finish(source: Source, problem: Problem, run_: Run, extra: dict, fit: Fitte
     misfit = for_metrics(metrics)  # the RS residual clearly above the noise level: said, with its likely causes
     if misfit:
         metrics["misfit"] = misfit
+    above = above_noise(metrics)  # stopped above the noise level, no verdict: said too
+    if above:
+        metrics["above_noise"] = above
     metrics["settings"] = {k: v for k, v in resolved.items() if k != "method_settings"}  # that one is above
     video = np.ascontiguousarray(problem.to_sensor(video))
     result = Result(video=video, frame_times_s=np.asarray(problem.frame_times_s), metrics=metrics,

@@ -77,10 +77,12 @@ FINE_GS_MAX_PIXELS = 128 * 128
 
 def coarsen(problem: Problem, factor: int, time_factor: int | None = None) -> Problem:
     """The problem on a grid `factor` times coarser in space and `time_factor` (default: the same)
-    in time. Held-out splits are not carried over (a coarse fit would see the held-out data). The
-    source grid's GS frames go along as `fine_gs` where it has at most FINE_GS_MAX_PIXELS."""
-    if problem.has_holdout:
-        raise ValueError("coarse-to-fine does not support a held-out split")
+    in time. A held-out split of RS rows is carried over: a coarse row is fitted only where every
+    source row it bins is (so no coarse fit sees a held-out row); held-out GS pixels are not (the
+    coarse level's GS-only videos are made from the source grid's frames). The source grid's GS
+    frames go along as `fine_gs` where it has at most FINE_GS_MAX_PIXELS."""
+    if problem.gs_train_mask is not None:
+        raise ValueError("coarse-to-fine does not support held-out GS pixels")
     s, t = int(factor), int(time_factor or factor)
     c, k, h, w = problem.shape
     h2, w2, k2 = max(1, round(h / s)), max(1, round(w / s)), math.ceil(k / t)
@@ -102,7 +104,16 @@ def coarsen(problem: Problem, factor: int, time_factor: int | None = None) -> Pr
         mask=None if problem.mask is None else _bin2(problem.mask.double(), r, x) > 0.5,
         white_balance=problem.white_balance, notes=[], time_origin_s=problem.time_origin_s,
         rs_valid=bin_valid(problem.rs_valid), gs_valid=bin_valid(problem.gs_valid), fine_gs=_fine_gs(problem),
-        subframes=max(1, problem.subframes // t))  # frames t x longer: fewer of them to an output frame
+        subframes=max(1, problem.subframes // t),  # frames t x longer: fewer of them to an output frame
+        rs_train_rows=_coarse_train_rows(problem.rs_train_rows, r))
+
+
+def _coarse_train_rows(rows: Tensor | None, r: Tensor) -> Tensor | None:
+    """The coarse rows (binned by `r`) that bin fitted source rows only; None without a split."""
+    if rows is None:
+        return None
+    held = r.to(torch.float64) @ (~rows).to(torch.float64).cpu()
+    return (held <= 0).to(rows.device)
 
 
 def _fine_gs(problem: Problem) -> Tensor | None:
@@ -237,6 +248,8 @@ class CoarseToFine(MethodBase):
         self.level, self._x0, self.held_back = 0, None, False
         self._start_level(0, None)
         self.name, self.stops_itself = self.method.name, self.method.stops_itself
+        # a split of RS rows reaches every level (coarsen): the levels' methods fit only its training rows
+        self.supports_holdout = bool(self.method.supports_holdout)
 
     # --- levels ---
     def _describe(self, i: int) -> str:

@@ -52,7 +52,7 @@ NATIVE_CHUNK_FRAMES = 8  # frames warped at once into the GS camera's coordinate
 
 def stfm_levels(problem, settings: STFMSettings) -> tuple[int, ...]:
     """Spatial factors of the levels (coarse to fine); (1,) means a single level."""
-    if not settings.coarse_to_fine or problem.has_holdout:
+    if not settings.coarse_to_fine or problem.gs_train_mask is not None:
         return (1,)
     factors = default_factors(problem.shape)
     small = min(problem.shape[-2:]) < 2 * fit_config(settings).base_min_side

@@ -23,6 +23,7 @@ from rngcam.recon.methods.stfm.stages import (
     AutoPreset,
     EdgeRefitStage,
     Fit,
+    HoldOut,
     LineRefitStage,
     RowGainRefitStage,
     SelfCalibration,
@@ -32,7 +33,7 @@ from rngcam.recon.methods.stfm.stages import (
     TrackRefitStage,
 )
 
-RECIPE = (SelfCalibration(), AutoPreset(), Subframes(), Fit(), StartFloorStage(), LineRefitStage(),
+RECIPE = (HoldOut(), SelfCalibration(), AutoPreset(), Subframes(), Fit(), StartFloorStage(), LineRefitStage(),
           EdgeRefitStage(), RowGainRefitStage(), TrackRefitStage(), SubframesAverage())
 
 

@@ -26,18 +26,36 @@ class AutoPresetConfig:
             raise ConfigError(f"stfm: auto_preset.layer_test_side must be >= 2, got {self.layer_test_side!r}")
 
 
-FLOOR_VIDEOS = ("blend", "interp")  # the GS-only videos the start floor can make (the baselines' functions)
+FLOOR_VIDEOS = ("blend", "interp", "rife")  # the GS-only videos the check can make (RIFE where its weights are)
+
+
+@dataclass(frozen=True)
+class HoldOutConfig:
+    # the share of RS rows no fit sees, in blocks one exposure long, so the check judges on data the fit did
+    # not fit (bench/untuned.md, "the self-check"); 0: none held out (the check reads the fitted rows)
+    fraction: float = 0.1
+    seed: int = 0  # where the blocks fall (Problem.with_holdout)
+
+    def __post_init__(self):
+        if not 0 <= self.fraction <= 0.3:
+            raise ConfigError(f"stfm: hold_out.fraction must be in [0, 0.3], got {self.fraction!r}")
 
 
 @dataclass(frozen=True)
 class StartFloorConfig:
-    # the GS-only videos the fit must explain the RS image better than (bench/stfm_compare.md)
+    # the GS-only videos the fit is checked against; the best on the judged rows is the reference
     candidates: tuple = FLOOR_VIDEOS
+    # the fit gives way to the reference only where it explains the held-out rows worse by this many standard
+    # deviations of the noise's share of the difference (two: one false alarm in 44 where both are as good)
+    significance: float = 2.0
 
     def __post_init__(self):
         bad = [c for c in self.candidates if c not in FLOOR_VIDEOS]
         if bad or not self.candidates:
-            raise ConfigError(f"stfm: start_floor.candidates must be blend and/or interp, got {self.candidates!r}")
+            raise ConfigError(f"stfm: start_floor.candidates must be of {', '.join(FLOOR_VIDEOS)}, "
+                              f"got {self.candidates!r}")
+        if not self.significance >= 0:
+            raise ConfigError(f"stfm: start_floor.significance must be >= 0, got {self.significance!r}")
 
 
 @dataclass(frozen=True)

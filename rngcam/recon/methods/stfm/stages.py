@@ -24,6 +24,7 @@ from rngcam.recon.methods.stfm.stage_configs import (
     AutoPresetConfig,
     EdgeRefitConfig,
     FitConfig,
+    HoldOutConfig,
     LineRefitConfig,
     StartFloorConfig,
     TrackRefitConfig,
@@ -50,6 +51,40 @@ def _explained(build: Build) -> float:
 def _whole_run(build: Build) -> str | None:
     """Why a stage that wraps a whole run is left out of this build (a level or a fit from a video)."""
     return "a fit started from a given video (a level or a refinement)" if build.initial_video is not None else None
+
+
+class HoldOut(Stage):
+    name = "hold_out"
+    about = "keep a share of the RS rows out of every fit, for the self-check against the GS-only videos"
+    Config = HoldOutConfig
+
+    def applies(self, build: Build) -> str | None:
+        fraction = build.config(self.name).fraction
+        if not build.settings.start_floor:
+            return "start_floor off: nothing checks the fit"
+        if fraction == 0:
+            return "hold_out.fraction 0"
+        if build.problem.has_holdout:
+            return "the problem has its split already (the check reads it)"
+        return _whole_run(build) or _both_cameras(build) or self._too_few_rows(build, fraction)
+
+    @staticmethod
+    def _too_few_rows(build: Build, fraction: float) -> str | None:
+        rows, block = build.problem.b_rs.shape[-2], build.problem.rows_per_exposure()
+        if block > 2 * fraction * rows:
+            return (f"one exposure spans {block} of {rows} RS rows, over twice the share held out "
+                    f"({fraction:g}): the check reads the fitted rows")
+        return None
+
+    def run(self, build: Build) -> str:
+        config = build.config(self.name)
+        build.problem = build.problem.with_holdout(config.fraction, 0.0, config.seed)
+        build.handed = build.handed.with_holdout(config.fraction, 0.0, config.seed)
+        held = int((~build.problem.rs_train_rows).sum())
+        return f"{held} of {build.problem.b_rs.shape[-2]} RS rows held out"
+
+    def plan(self, build: Build) -> str:
+        return self.run(build)  # no fit: the split
 
 
 class SelfCalibration(Stage):
@@ -146,7 +181,7 @@ class Fit(Stage):
 
 class StartFloorStage(Stage):
     name = "start_floor"
-    about = "output the best GS-only video where the fit explains the RS image no better"
+    about = "check the fit against the best GS-only video on held-out RS rows; that video where the fit is worse"
     Config = StartFloorConfig
 
     def applies(self, build: Build) -> str | None:
@@ -155,11 +190,13 @@ class StartFloorStage(Stage):
         return _whole_run(build)
 
     def run(self, build: Build) -> str:
-        floor = StartFloor(build.method, build.problem, build.config(self.name).candidates)
+        config = build.config(self.name)
+        floor = StartFloor(build.method, build.problem, config.candidates, config.significance)
         build.method = floor
         if floor.start_name is None:
             return "no GS-only video to compare with"
-        return f"best GS-only video {floor.start_name} (RS residual {floor.start_rs:.4f})"
+        rows = "held-out RS rows" if floor.heldout else "fitted RS rows"
+        return f"reference: GS-only video {floor.start_name} (residual {floor.start_rs:.4f} on the {rows})"
 
 
 class LineRefitStage(Stage):
