@@ -41,7 +41,10 @@ MARGIN_DB = 0.1  # STFM passes where it is within this of the best GS-only metho
 # the other two windows avoid the most-motion windows that a default `--clip` run picks (walk 8, vtest 56).
 CLIPS = {"clip_car": ("bikes_car_256.npz", 2), "clip_walk": ("bikes_walk_256.npz", 0),
          "clip_vtest": ("vtest_256.npz", 8)}
-SCENES = (*MOTION_KINDS, *CLIPS)
+# A real clip of dense rigid motion, made here: one source frame (a street and shop front) panned by a
+# camera at constant speed, (32, 12) px across the 8 frames at 256 px, cropped inside its reflected border.
+PANS = {"clip_pan": ("bikes_car_256.npz", 40, (32.0, 12.0))}
+SCENES = (*MOTION_KINDS, *CLIPS, *PANS)
 SPAN = 8
 
 
@@ -55,13 +58,35 @@ def make_bundle(scene: str, family: str, size: int, seed: int, path: Path) -> No
     errors = None if family == "grid" else family_errors(family, seed)
     fidelity = "grid" if family == "grid" else ("fine" if errors is None else "lab")
     opts = {}
-    if scene in CLIPS:
+    if scene in CLIPS or scene in PANS:
         if external_data() is None:
             raise SystemExit(f"scene {scene}: {DATA_HINT}")
+    if scene in CLIPS:
         name, start = CLIPS[scene]
         opts = {"clip": external_data() / "videos" / name, "span": SPAN, "start": start}
-    simulate("clip" if scene in CLIPS else scene, path, size=size, seed=seed, fidelity=fidelity,
+    elif scene in PANS:
+        source = path.parent / f"{scene}_source.npz"
+        np.savez(source, frames=panned(*PANS[scene]))
+        opts = {"clip": source, "span": SPAN, "start": 0}
+    real = scene in CLIPS or scene in PANS
+    simulate("clip" if real else scene, path, size=size, seed=seed, fidelity=fidelity,
              lab_errors=errors, overwrite=True, **opts)
+
+
+def panned(name: str, frame: int, travel_px: tuple[float, float], side: int = 256, crop: int = 24) -> np.ndarray:
+    """SPAN uint8 frames (T, side, side, 3) of one frame of $RNGCAM_DATA/videos/`name` seen by a camera
+    panning `travel_px` (x, y) at constant speed (bicubic, the border reflected, then `crop` px cut off each
+    side and the rest resized back to `side`)."""
+    import cv2  # heavy: OpenCV only for this scene
+
+    src = np.load(external_data() / "videos" / name)["frames"][frame]
+    out = []
+    for i in range(SPAN):
+        s = i / (SPAN - 1) - 0.5
+        move = np.float32([[1, 0, -travel_px[0] * s], [0, 1, -travel_px[1] * s]])
+        seen = cv2.warpAffine(src, move, (side, side), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+        out.append(cv2.resize(seen[crop:side - crop, crop:side - crop], (side, side), interpolation=cv2.INTER_AREA))
+    return np.stack(out).astype(np.uint8)
 
 
 def truth_and_frames(bundle: Path) -> tuple[np.ndarray, list[int], list[int]]:
