@@ -22,7 +22,7 @@ def sineball16():
 def test_stage_settings_are_checked_against_the_typed_configs():
     assert check_stage_settings({"line_refit": {"max_refits": "1"}}) == {"line_refit": {"max_refits": 1}}
     assert check_stage_settings({"auto_preset": {"layer_misfit_max": "0.3"}})["auto_preset"]["layer_misfit_max"] == 0.3
-    with pytest.raises(ConfigError, match=r"no stage 'nope' in the recipe \(stages: self_calibration, auto_preset"):
+    with pytest.raises(ConfigError, match=r"no stage 'nope' in the recipe \(stages: hold_out, self_calibration, auto_preset"):
         check_stage_settings({"nope": {"x": 1}})
     with pytest.raises(ConfigError, match=r"has no setting 'maxrefits' \(its settings: refit_line_time, max_refits"):
         check_stage_settings({"line_refit": {"maxrefits": 1}})

@@ -71,8 +71,8 @@ class HoldOut(Stage):
     @staticmethod
     def _too_few_rows(build: Build, fraction: float) -> str | None:
         rows, block = build.problem.b_rs.shape[-2], build.problem.rows_per_exposure()
-        if block > 2 * fraction * rows:
-            return (f"one exposure spans {block} of {rows} RS rows, over twice the share held out "
+        if block > 3 * fraction * rows:
+            return (f"one exposure spans {block} of {rows} RS rows, over three times the share held out "
                     f"({fraction:g}): the check reads the fitted rows")
         return None
 
