@@ -288,3 +288,16 @@ def test_per_frame_figures_agree_with_metrics_json(recons):
     err = pf["centroid_error_px"][away]
     assert np.median(err) == pytest.approx(run.metrics["centroid_error_median_px"], rel=1e-3)
     assert np.percentile(err, 90) == pytest.approx(run.metrics["centroid_error_p90_px"], rel=1e-3)
+
+
+def test_the_page_says_a_run_stopped_above_the_noise_level(recons, tmp_path):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(recons / "blend", run)
+    m = json.loads((run / "metrics.json").read_text())
+    m["above_noise"] = {"ratio": 1.3, "line": "stopped at 1.30x the RS noise level: part of the RS image is left"}
+    (run / "metrics.json").write_text(json.dumps(m))
+    res = _cli("report", run)
+    assert res.exit_code == 0, res.output
+    assert "stopped at 1.30x the RS noise level" in (run / "report.html").read_text()

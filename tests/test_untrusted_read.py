@@ -313,6 +313,7 @@ def test_a_fifo_in_a_result_folder_neither_blocks_nor_is_read(folder, tmp_path, 
 
 @pytest.mark.parametrize("field,value", [("psnr_db", "30"), ("warnings", "one"), ("events", [3]),
                                          ("left_out", [{"component": 1}]), ("misfit", {"line": []}),
+                                         ("above_noise", {"line": 3}),
                                          ("peak_rss_bytes", "x"), ("status", 0)])
 def test_a_wrong_typed_metrics_field_is_one_line_naming_it(folder, tmp_path, field, value):
     r = _copy(folder, tmp_path)

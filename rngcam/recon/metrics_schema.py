@@ -73,6 +73,7 @@ class Metrics(_Open):
     error_visibility: dict[Text, Number | None] = {}
     masked_fraction: dict[Text, Number | None] = {}
     misfit: Misfit | None = None
+    above_noise: Misfit | None = None  # a run stopped above the noise level without a verdict: its line
     method_results: dict | None = None
     settings: dict = {}
     resumed: StrictBool | None = None

@@ -110,8 +110,8 @@ def _details(runs: list[Run], labels: list[str], truth_note: str) -> str:
     for lab, r in zip(labels, runs):
         m = r.metrics
         items = []
-        said = m.get("misfit")
-        misfit = [said["line"]] if isinstance(said, dict) and isinstance(said.get("line"), str) else []
+        misfit = [said["line"] for said in (m.get("misfit"), m.get("above_noise"))
+                  if isinstance(said, dict) and isinstance(said.get("line"), str)]
         for name, values in (("misfit", misfit), ("warnings", m.get("warnings", [])), ("events", m.get("events", [])),
                              ("notes", m.get("notes", [])),
                              ("left out", [f"{x['component']} ({x['reason']})" for x in m.get("left_out", [])]),
