@@ -203,11 +203,11 @@ class PlaneField(nn.Module):
     def forward_grid(self, axes: Sequence[Tensor], t_index: Tensor | None = None) -> Tensor:
         """The field on the Cartesian product of 1-D coordinate vectors (x, y[, t]).
 
-        Returns (n_y, n_x, out) or (n_t, n_y, n_x, out) (a view of channels-first storage). Same
+        Returns (n_y, n_x, out) or (n_t, n_y, n_x, out). Same
         values as `forward` on the meshgrid, but each plane is sampled with two small
         interpolation matrices instead of grid_sample: much faster, forward and backward, on a CPU.
         Every scale's planes of a kind are sampled in one batched product (scale by scale on a
-        CPU past CPU_BATCHED_MAX_SIDE), the decoder is two matrix products on all points: a call is
+        CPU past CPU_BATCHED_MAX_SIDE), the decoder two matrix products on all points: a call is
         a few dozen operations. `t_index`: the frames
         axes[2][t_index] only (the time axis's matrix is built once and its rows picked).
         """
@@ -215,8 +215,8 @@ class PlaneField(nn.Module):
             raise ValueError(f"expected {self.in_dims} coordinate vectors, got {len(axes)}")
         batched = self.planes_space.device.type != "cpu" or max(self.space_sizes) <= CPU_BATCHED_MAX_SIDE
         feats = self._features_batched(axes, t_index) if batched else self._features_by_scale(axes, t_index)
-        out = self._decode(feats.view(feats.shape[0], -1))  # (out, points)
-        return out.view(-1, *feats.shape[1:]).movedim(0, -1)
+        # decoded on the features' transposed view, (points, S F): no copy, and faster than from the left
+        return self.decoder(feats.view(feats.shape[0], -1).t()).view(*feats.shape[1:], -1)
 
     def _features_batched(self, axes: Sequence[Tensor], t_index: Tensor | None) -> Tensor:
         """Features (S F, [n_t,] n_y, n_x): every scale's planes of a kind in one product."""
@@ -260,13 +260,6 @@ class PlaneField(nn.Module):
             outs.append(feat)
         return torch.cat(outs)
 
-    def _decode(self, features: Tensor) -> Tensor:
-        """The decoder on features (S F, N), channels first: (out, N)."""
-        x = features
-        for layer in self.decoder:
-            x = torch.addmm(layer.bias[:, None], layer.weight, x) if isinstance(layer, nn.Linear) else layer(x)
-        return x
-
 
 def translate_image(image: Tensor, axes: Sequence[Tensor], shifts: Tensor) -> Tensor:
     """An image (R_y, R_x, out) on linspace(-1, 1) knots, interpolated bilinearly (border clamp) at
@@ -306,8 +299,8 @@ def interpolate_grid(values: Tensor, knots: Sequence[Tensor], axes: Sequence[Ten
     m_x = _interp_matrix(axes[0], knots[0].shape[0], values.dtype)  # (n_x, R_x)
     m_y = _interp_matrix(axes[1], knots[1].shape[0], values.dtype)  # (n_y, R_y)
     *lead, ry, rx, out = values.shape
-    # channels first (a view where the values are a field's output), then two batched products with the
-    # matrices broadcast: fewer operations and less time than one einsum (bench/step_ops.md)
+    # channels first, then two batched products with the matrices broadcast: fewer operations and no more
+    # time than one einsum (bench/step_ops.md)
     v = values.movedim(-1, -3).reshape(-1, ry, rx)
     along_x = torch.bmm(v, m_x.t().expand(v.shape[0], rx, m_x.shape[0]))
     moved = torch.bmm(m_y.expand(v.shape[0], *m_y.shape), along_x)
