@@ -282,8 +282,8 @@ STFM_FLAGS = ("fits", "no_static", "no_motion_reg", "no_rs", "no_gs", "gs_anchor
 # on knots"); 4, the prior preset's fit on half-frames (subframes; bench/realistic.md, "the prior preset
 # fits half-frames"); 5, a line refit's later fits learn the line time on from where they start (a
 # checkpoint of a held one would resume learning; bench/realistic.md, "the line time learned on over
-# later fits").
-register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=600.0, model_revision=5,
+# later fits"); 6, a plane field's planes of a kind one zero-padded parameter (bench/step_ops.md).
+register(MethodEntry("stfm", ITERATIVE, STFMSettings, _make_stfm, auto_budget_s=600.0, model_revision=6,
                      presets={p: preset_settings(p)
                               for p in ("auto", "fast", *(p for p in STFM_PRESETS if p not in ("auto", "fast")))},
                      benchmarked=("fast", "paper"), memory=STFM_MEMORY, fits_holdout=True,

@@ -19,6 +19,7 @@ Transforms are 3x3 matrices acting on pixel coordinates (x, y) measured from the
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import replace
 
@@ -78,23 +79,29 @@ def warp(images: Tensor, matrix: Tensor | np.ndarray) -> Tensor:
 _CUBIC_A = -0.75
 
 
+# The four taps' weights at a fraction t (taps at floor - 1 ... floor + 2), cubic in t: rows times (1, t, t^2, t^3)
+_CUBIC_TAPS = ((0.0, _CUBIC_A, -2 * _CUBIC_A, _CUBIC_A), (1.0, 0.0, -(_CUBIC_A + 3), _CUBIC_A + 2),
+               (0.0, -_CUBIC_A, 2 * _CUBIC_A + 3, -(_CUBIC_A + 2)), (0.0, 0.0, _CUBIC_A, -_CUBIC_A))
+
+
 def _cubic_shift_matrix(n: int, shift: Tensor, dtype, device) -> Tensor:
-    """(n, n): row i samples a line at i + shift with grid_sample's bicubic taps, clamped to the border."""
-    a = _CUBIC_A
-    pos = torch.arange(n, dtype=dtype, device=device) + shift.to(dtype)
-    left = pos.detach().floor()
-    t = pos - left
+    """(n, n): row i samples a line at i + shift with grid_sample's bicubic taps, clamped to the border.
+    Every row has the same four weights (the shift's fraction): they times the 0/1 matrices that pick
+    each row's clamped taps, a few operations whatever n (STFM builds two a step; bench/step_ops.md)."""
+    taps_poly, line, offsets = _cubic_constants(n, dtype, torch.device(device))
+    s = shift.to(dtype)
+    whole = s.detach().floor()
+    t = s - whole
+    weights = taps_poly @ torch.stack([torch.ones_like(t), t, t * t, t * t * t])  # (4,)
+    picks = ((line + whole.long() + offsets).clamp(0, n - 1)[:, :, None] == line).to(dtype)  # (4, n, n)
+    return (weights @ picks.view(4, n * n)).view(n, n)
 
-    def near(x):  # |x| <= 1
-        return ((a + 2) * x - (a + 3)) * x * x + 1
 
-    def far(x):  # 1 < |x| < 2
-        return ((a * x - 5 * a) * x + 8 * a) * x - 4 * a
-
-    weights = torch.stack([far(t + 1), near(t), near(1 - t), far(2 - t)], dim=1)  # (n, 4)
-    taps = (left.long()[:, None] + torch.arange(-1, 3, device=device)).clamp(0, n - 1)
-    rows = torch.arange(n, device=device)[:, None].expand(n, 4)
-    return torch.zeros(n, n, dtype=dtype, device=device).index_put((rows, taps), weights, accumulate=True)
+@functools.lru_cache(maxsize=32)
+def _cubic_constants(n: int, dtype, device) -> tuple[Tensor, Tensor, Tensor]:
+    """(_CUBIC_TAPS as a tensor, the line's indices (n,), the taps' offsets (4, 1)) on `device`."""
+    return (torch.tensor(_CUBIC_TAPS, dtype=dtype, device=device), torch.arange(n, device=device),
+            torch.arange(-1, 3, device=device)[:, None])
 
 
 def warp_shift(images: Tensor, dx: Tensor, dy: Tensor) -> Tensor:
@@ -104,7 +111,8 @@ def warp_shift(images: Tensor, dx: Tensor, dy: Tensor) -> Tensor:
     c, n, h, w = images.shape
     rows = _cubic_shift_matrix(h, dy, images.dtype, images.device)
     cols = _cubic_shift_matrix(w, dx, images.dtype, images.device)
-    return rows @ images @ cols.t()
+    along_x = (images.reshape(c * n * h, w) @ cols.t()).view(c * n, h, w)
+    return torch.matmul(rows, along_x).view(c, n, h, w)
 
 
 def inside(matrix: Tensor, h: int, w: int) -> Tensor:

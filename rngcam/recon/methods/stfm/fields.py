@@ -30,6 +30,11 @@ from torch import Tensor, nn
 from rngcam.errors import ConfigError
 
 FIELD_KINDS = ("siren", "planes")
+# A plane field's scales are sampled in one product, their planes zero-padded to the largest (a few
+# operations a call: what a GPU and a small grid want), on a GPU always and on a CPU where the largest
+# plane side is at most this; larger grids on a CPU sample scale by scale, where the padded arithmetic
+# would cost more than the operations saved (bench/step_ops.md).
+CPU_BATCHED_MAX_SIDE = 96
 
 
 class PositionalEncoding(nn.Module):
@@ -103,6 +108,12 @@ class PlaneField(nn.Module):
 
     `resolutions` are the spatial plane sizes per scale; `time_resolutions` the sizes of the
     t axis per scale (default: the same as `resolutions`). `hidden` = 0 gives a linear decoder.
+
+    Every scale's planes of a kind are one parameter, zero-padded to the largest scale's size, so that
+    a grid evaluation is a few batched matrix products whatever the scales: `planes_space` (S, F, R, R),
+    the xy planes (y, x), and for a 3-D field `planes_time` (S, 2, F, T, R), the xt and yt planes (t,
+    space). The padding stays zero: the interpolation matrices' padded columns are zero, so no gradient
+    reaches it. `planes` lists each plane as a view (1, F, R_b, R_a), scale by scale and pair by pair.
     """
 
     def __init__(self, in_dims: int, out_dims: int, resolutions: Sequence[int] = (8, 16, 32),
@@ -115,18 +126,19 @@ class PlaneField(nn.Module):
         if not resolutions or min(resolutions) < 2 or len(time_resolutions) != len(resolutions):
             raise ConfigError(f"plane resolutions must be >= 2 (one time resolution per scale), got "
                               f"{list(resolutions)} and {time_resolutions}")
-        self.planes = nn.ParameterList()
         self.scale_count = len(resolutions)
-        for res, t_res in zip(resolutions, time_resolutions):
-            for _a, b in self.pairs:
-                size_a = int(res)  # a is always a space axis (x or y)
-                size_b = int(res) if b < 2 else max(int(t_res), 2)
-                plane = torch.empty(1, features, size_b, size_a)
+        self.space_sizes = [int(res) for res in resolutions]  # a is always a space axis (x or y)
+        self.time_sizes = [max(int(t_res), 2) for t_res in time_resolutions]
+        r, t, s = max(self.space_sizes), max(self.time_sizes), self.scale_count
+        self.planes_space = nn.Parameter(torch.zeros(s, features, r, r))
+        self.register_parameter("planes_time", nn.Parameter(torch.zeros(s, 2, features, t, r)) if in_dims == 3
+                                else None)
+        with torch.no_grad():
+            for plane, (_a, b) in zip(self.planes, self.pairs * s):  # drawn plane by plane, as one parameter each
                 if b == 2:  # a time plane: start at one, so the field is constant in time
-                    nn.init.ones_(plane)
+                    plane.fill_(1.0)
                 else:
-                    nn.init.uniform_(plane, *init_range)
-                self.planes.append(nn.Parameter(plane))
+                    plane.copy_(nn.init.uniform_(torch.empty(plane.shape), *init_range))
         width = features * len(resolutions)
         layers: list[nn.Module] = []
         for _ in range(decoder_layers if hidden > 0 else 0):
@@ -134,15 +146,27 @@ class PlaneField(nn.Module):
             width = hidden
         layers.append(nn.Linear(width, out_dims))
         self.decoder = nn.Sequential(*layers)
+        self.register_buffer("_roughness", self._roughness_weights(), persistent=False)
+
+    @property
+    def planes(self) -> list[Tensor]:
+        """Each plane (1, F, R_b, R_a), a view of its parameter, scale by scale and pair by pair."""
+        out = []
+        for s, (res, t_res) in enumerate(zip(self.space_sizes, self.time_sizes)):
+            for j, (_a, b) in enumerate(self.pairs):
+                out.append(self.planes_space[s:s + 1, :, :res, :res] if b < 2
+                           else self.planes_time[s, j - 1:j, :, :t_res, :res])
+        return out
 
     def encode(self, p: Tensor) -> Tensor:
         """Plane features (N, features * scales) at coordinates p (N, in_dims)."""
         n = p.shape[0]
         outs = []
+        planes = self.planes
         for s in range(self.scale_count):
             feat = None
             for j, (a, b) in enumerate(self.pairs):
-                plane = self.planes[s * len(self.pairs) + j]
+                plane = planes[s * len(self.pairs) + j]
                 grid = torch.stack([p[:, a], p[:, b]], dim=-1).view(1, n, 1, 2).to(plane.dtype)
                 sampled = F.grid_sample(plane, grid, mode="bilinear", padding_mode="border",
                                         align_corners=True).view(self.features, n)
@@ -155,48 +179,86 @@ class PlaneField(nn.Module):
 
     def time_roughness(self) -> Tensor:
         """Mean squared second difference of the time planes along t (K-planes' temporal
-        smoothness); zero for a 2-D field."""
-        total = torch.zeros((), device=self.planes[0].device)
-        count = 0
-        for s in range(self.scale_count):
-            for j, (_a, b) in enumerate(self.pairs):
-                plane = self.planes[s * len(self.pairs) + j]
-                if b == 2 and plane.shape[2] >= 3:
-                    d2 = plane[:, :, 2:] - 2 * plane[:, :, 1:-1] + plane[:, :, :-2]
-                    total = total + d2.square().mean()
-                    count += 1
-        return total / max(count, 1)
+        smoothness; the mean over the time planes of at least 3 frames of each one's mean); zero
+        for a 2-D field."""
+        if self._roughness is None:
+            return torch.zeros((), device=self.planes_space.device)
+        p = self.planes_time
+        d2 = p[:, :, :, 2:] - 2 * p[:, :, :, 1:-1] + p[:, :, :, :-2]
+        return (d2.square() * self._roughness).sum()
+
+    def _roughness_weights(self) -> Tensor | None:
+        """(S, 2, 1, T - 2, R) weights of the padded time planes' squared second differences: one over
+        (the planes of >= 3 frames times a plane's differences) where a plane has them, else zero
+        (None: no such plane)."""
+        count = 2 * sum(t >= 3 for t in self.time_sizes)
+        if self.in_dims == 2 or count == 0:
+            return None
+        w = torch.zeros(self.scale_count, 2, 1, max(self.time_sizes) - 2, max(self.space_sizes))
+        for s, (res, t_res) in enumerate(zip(self.space_sizes, self.time_sizes)):
+            if t_res >= 3:
+                w[s, :, :, :t_res - 2, :res] = 1.0 / (count * self.features * (t_res - 2) * res)
+        return w
 
     def forward_grid(self, axes: Sequence[Tensor], t_index: Tensor | None = None) -> Tensor:
         """The field on the Cartesian product of 1-D coordinate vectors (x, y[, t]).
 
-        Returns (n_y, n_x, out) or (n_t, n_y, n_x, out). Same values as `forward` on the
-        meshgrid, but each plane is sampled with two small interpolation matrices instead of
-        grid_sample: much faster, forward and backward, on a CPU. `t_index`: the frames
+        Returns (n_y, n_x, out) or (n_t, n_y, n_x, out). Same
+        values as `forward` on the meshgrid, but each plane is sampled with two small
+        interpolation matrices instead of grid_sample: much faster, forward and backward, on a CPU.
+        Every scale's planes of a kind are sampled in one batched product (scale by scale on a
+        CPU past CPU_BATCHED_MAX_SIDE), the decoder two matrix products on all points: a call is
+        a few dozen operations. `t_index`: the frames
         axes[2][t_index] only (the time axis's matrix is built once and its rows picked).
         """
         if len(axes) != self.in_dims:
             raise ValueError(f"expected {self.in_dims} coordinate vectors, got {len(axes)}")
+        batched = self.planes_space.device.type != "cpu" or max(self.space_sizes) <= CPU_BATCHED_MAX_SIDE
+        feats = self._features_batched(axes, t_index) if batched else self._features_by_scale(axes, t_index)
+        # decoded on the features' transposed view, (points, S F): no copy, and faster than from the left
+        return self.decoder(feats.view(feats.shape[0], -1).t()).view(*feats.shape[1:], -1)
+
+    def _features_batched(self, axes: Sequence[Tensor], t_index: Tensor | None) -> Tensor:
+        """Features (S F, [n_t,] n_y, n_x): every scale's planes of a kind in one product."""
+        xs, ys = axes[0], axes[1]
+        s, f, (r, n_x, n_y) = self.scale_count, self.features, (self.planes_space.shape[-1], len(xs), len(ys))
+        dtype = self.planes_space.dtype
+        m_x = _stacked_interp(xs, self.space_sizes, r, n_x, dtype)  # (S, n_x, R)
+        m_y = _stacked_interp(ys, self.space_sizes, r, n_y, dtype, repeat=f)  # (S F, n_y, R)
+        along_x = torch.bmm(self.planes_space.view(s, f * r, r), m_x.mT)  # (S, F R_y, n_x)
+        feats = torch.bmm(m_y, along_x.view(s * f, r, n_x))  # (S F, n_y, n_x)
+        if self.in_dims == 2:
+            return feats
+        t_all, t = axes[2], self.planes_time.shape[3]
+        n = max(n_x, n_y)  # xt and yt in one product: the shorter space axis zero-padded
+        m_t = _stacked_interp(t_all, self.time_sizes, t, len(t_all), dtype, repeat=2 * f)  # (S 2 F, K, T)
+        if t_index is not None:
+            m_t = m_t.index_select(1, t_index)
+        n_t = m_t.shape[1]
+        m_s = torch.stack([_stacked_interp(xs, self.space_sizes, r, n, dtype),
+                           _stacked_interp(ys, self.space_sizes, r, n, dtype)], dim=1)  # (S, 2, n, R)
+        along_t = torch.bmm(m_t, self.planes_time.view(s * 2 * f, t, r))  # (S 2 F, n_t, R)
+        time = torch.bmm(along_t.view(s * 2, f * n_t, r), m_s.view(s * 2, n, r).mT).view(s, 2, f, n_t, n)
+        feats = (feats.view(s, f, 1, n_y, n_x) * time[:, 0, :, :, None, :n_x]) * time[:, 1, :, :, :n_y, None]
+        return feats.view(s * f, n_t, n_y, n_x)
+
+    def _features_by_scale(self, axes: Sequence[Tensor], t_index: Tensor | None) -> Tensor:
+        """Features (S F, [n_t,] n_y, n_x), scale by scale on the planes' own sizes (no padded work)."""
+        xs, ys = axes[0], axes[1]
+        dtype = self.planes_space.dtype
         outs = []
-        for s in range(self.scale_count):
-            feat = None
-            for j, (a, b) in enumerate(self.pairs):
-                plane = self.planes[s * len(self.pairs) + j][0]  # (F, R_b, R_a)
-                m_a = _interp_matrix(axes[a], plane.shape[2], plane.dtype)
-                m_b = _interp_matrix(axes[b], plane.shape[1], plane.dtype)
-                if b == 2 and t_index is not None:
-                    m_b = m_b.index_select(0, t_index)
-                sampled = m_b @ plane @ m_a.t()  # (F, n_b, n_a)
-                if (a, b) == (0, 1):
-                    sampled = sampled if self.in_dims == 2 else sampled[:, None]  # (F, [1,] n_y, n_x)
-                elif (a, b) == (0, 2):
-                    sampled = sampled[:, :, None, :]  # (F, n_t, 1, n_x)
-                else:
-                    sampled = sampled[:, :, :, None]  # (F, n_t, n_y, 1)
-                feat = sampled if feat is None else feat * sampled
+        for s, (res, t_res) in enumerate(zip(self.space_sizes, self.time_sizes)):
+            m_x, m_y = _interp_matrix(xs, res, dtype), _interp_matrix(ys, res, dtype)
+            feat = m_y @ self.planes_space[s, :, :res, :res] @ m_x.t()  # (F, n_y, n_x)
+            if self.in_dims == 3:
+                m_t = _interp_matrix(axes[2], t_res, dtype)
+                if t_index is not None:
+                    m_t = m_t.index_select(0, t_index)
+                xt = m_t @ self.planes_time[s, 0, :, :t_res, :res] @ m_x.t()  # (F, n_t, n_x)
+                yt = m_t @ self.planes_time[s, 1, :, :t_res, :res] @ m_y.t()  # (F, n_t, n_y)
+                feat = (feat[:, None] * xt[:, :, None, :]) * yt[:, :, :, None]
             outs.append(feat)
-        feats = torch.cat(outs, dim=0)
-        return self.decoder(feats.movedim(0, -1))
+        return torch.cat(outs)
 
 
 def translate_image(image: Tensor, axes: Sequence[Tensor], shifts: Tensor) -> Tensor:
@@ -231,13 +293,18 @@ def knots(axis: Tensor, spacing: float) -> Tensor:
 
 def interpolate_grid(values: Tensor, knots: Sequence[Tensor], axes: Sequence[Tensor]) -> Tensor:
     """values (..., R_y, R_x, out) on the knots (x, y), interpolated bilinearly (border clamp) at
-    the points of the axes (x, y): (..., n_y, n_x, out)."""
+    the points of the axes (x, y): (..., n_y, n_x, out) (a view of channels-first storage)."""
     if all(k is a for k, a in zip(knots, axes)):
         return values
     m_x = _interp_matrix(axes[0], knots[0].shape[0], values.dtype)  # (n_x, R_x)
     m_y = _interp_matrix(axes[1], knots[1].shape[0], values.dtype)  # (n_y, R_y)
-    # beats two matmuls (bench/convergence.md, "the fast preset's motion on knots")
-    return torch.einsum("yj,...jic,xi->...yxc", m_y, values, m_x)
+    *lead, ry, rx, out = values.shape
+    # channels first, then two batched products with the matrices broadcast: fewer operations and no more
+    # time than one einsum (bench/step_ops.md)
+    v = values.movedim(-1, -3).reshape(-1, ry, rx)
+    along_x = torch.bmm(v, m_x.t().expand(v.shape[0], rx, m_x.shape[0]))
+    moved = torch.bmm(m_y.expand(v.shape[0], *m_y.shape), along_x)
+    return moved.view(*lead, out, m_y.shape[0], m_x.shape[0]).movedim(-3, -1)
 
 
 # id(coordinate vector) -> (weak reference, its version, {(size, dtype): matrix}): the pixel and
@@ -251,16 +318,33 @@ def _interp_matrix(coords: Tensor, size: int, dtype) -> Tensor:
 
     Matrices for coordinate vectors that do not need a gradient are kept while the vector lives
     and is not changed in place."""
+    return _cached(coords, (size, dtype), lambda: _build_interp_matrix(coords, size, dtype))
+
+
+def _stacked_interp(coords: Tensor, sizes: Sequence[int], width: int, rows: int, dtype, repeat: int = 1) -> Tensor:
+    """(len(sizes) * repeat, rows, width): the interpolation matrix of `coords` onto each of `sizes`
+    knots (each `repeat` times in a row), zero-padded to `width` columns and `rows` rows (kept as
+    `_interp_matrix` keeps its matrices)."""
+    def build() -> Tensor:
+        m = torch.zeros(len(sizes), rows, width, dtype=dtype, device=coords.device)
+        for s, size in enumerate(sizes):
+            m[s, :coords.shape[0], :size] = _build_interp_matrix(coords, size, dtype)
+        return m[:, None].expand(len(sizes), repeat, rows, width).reshape(-1, rows, width)
+    return _cached(coords, ("stacked", tuple(sizes), width, rows, dtype, repeat), build)
+
+
+def _cached(coords: Tensor, key: tuple, build) -> Tensor:
+    """build() kept under `key` while `coords` lives unchanged (built afresh where coords need a gradient)."""
     if coords.requires_grad:
-        return _build_interp_matrix(coords, size, dtype)
-    key = id(coords)
-    entry = _MATRIX_CACHE.get(key)
+        return build()
+    entry = _MATRIX_CACHE.get(id(coords))
     if entry is None or entry[0]() is not coords or entry[1] != coords._version:
-        entry = _MATRIX_CACHE[key] = (weakref.ref(coords, lambda _ref, k=key: _MATRIX_CACHE.pop(k, None)),
-                                      coords._version, {})
-    m = entry[2].get((size, dtype))
+        ident = id(coords)
+        entry = _MATRIX_CACHE[ident] = (weakref.ref(coords, lambda _ref, k=ident: _MATRIX_CACHE.pop(k, None)),
+                                        coords._version, {})
+    m = entry[2].get(key)
     if m is None:
-        m = entry[2][(size, dtype)] = _build_interp_matrix(coords, size, dtype)
+        m = entry[2][key] = build()
     return m
 
 
@@ -316,12 +400,25 @@ def transfer_fields(target: nn.Module, source: nn.Module) -> None:
     src, dst = dict(source.named_parameters()), dict(target.named_parameters())
     if src.keys() != dst.keys():
         raise ValueError("fields differ in structure")
+    sources = dict(source.named_modules())
+    done = set()
     with torch.no_grad():
+        for name, field in target.named_modules():
+            if not isinstance(field, PlaneField):
+                continue
+            other = sources.get(name)
+            if not isinstance(other, PlaneField) or other.scale_count != field.scale_count \
+                    or other.features != field.features:
+                raise ValueError(f"plane field {name or 'field'}: its planes cannot become the target's")
+            for p, q in zip(field.planes, other.planes, strict=True):
+                q = q.to(p)
+                p.copy_(q if q.shape == p.shape else
+                        F.interpolate(q, size=p.shape[-2:], mode="bilinear", align_corners=True))
+            done.update(f"{name}.{n}" if name else n for n, _ in field.named_parameters(recurse=False))
         for name, p in dst.items():
+            if name in done:
+                continue
             q = src[name].to(p)
-            if q.shape == p.shape:
-                p.copy_(q)
-            elif q.ndim == 4 and q.shape[:2] == p.shape[:2]:
-                p.copy_(F.interpolate(q, size=p.shape[-2:], mode="bilinear", align_corners=True))
-            else:
+            if q.shape != p.shape:
                 raise ValueError(f"field parameter {name}: {tuple(q.shape)} cannot become {tuple(p.shape)}")
+            p.copy_(q)

@@ -29,8 +29,9 @@ REFINE_STALL_PASSES = FitConfig.refine_stall_passes
 MIN_FLOW_SIZE_PX = 16  # below this the motion initialisation from optical flow is skipped
 # A step holds one chunk of frames' autograd graph at a time. Small grids take more frames per chunk:
 # a step's RS frames then fit in one graph, evaluated once instead of a pass without a graph and a pass
-# with one (bench/convergence.md); large grids keep 4 frames.
-CHUNK_POINTS = 65_536
+# with one (bench/convergence.md); large grids keep 4 frames. 32 frames at 64 px: the prior preset's
+# half-frames (a step's rows touch about 21 with the GS window's) fit too (bench/step_ops.md).
+CHUNK_POINTS = 131_072
 MIN_FRAME_CHUNK = 4
 # On a GPU larger graphs pay: at the paper grid 32 frames a graph (2.5 M points) ran more steps than 4
 # in the same time, 128 frames no more (bench/large_grids.md, "The third GPU session"). A graph saves
