@@ -181,7 +181,7 @@ class Fit(Stage):
 
 class StartFloorStage(Stage):
     name = "start_floor"
-    about = "check the fit against the best GS-only video on held-out RS rows; that video where the fit is worse"
+    about = "check the fit against the best GS-only video on held-out and fitted RS rows; that video where worse"
     Config = StartFloorConfig
 
     def applies(self, build: Build) -> str | None:
@@ -195,8 +195,8 @@ class StartFloorStage(Stage):
         build.method = floor
         if floor.start_name is None:
             return "no GS-only video to compare with"
-        rows = "held-out RS rows" if floor.heldout else "fitted RS rows"
-        return f"reference: GS-only video {floor.start_name} (residual {floor.start_rs:.4f} on the {rows})"
+        parts = "the held-out and the fitted RS rows" if floor.heldout else "the RS rows (none held out)"
+        return f"reference: GS-only video {floor.start_name} (RS residual {floor.start_rs:.4f}); judged on {parts}"
 
 
 class LineRefitStage(Stage):
