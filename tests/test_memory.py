@@ -22,7 +22,7 @@ from rngcam.recon import registry, runner
 from rngcam.recon.loop import LoopSettings, run
 from rngcam.recon.methods.coarse_to_fine import Kept, upsample
 from rngcam.recon.methods.stfm import STFMSettings, make_stfm
-from rngcam.recon.methods.stfm.floor import StartFloor
+from rngcam.recon.methods.stfm.floor import MAKERS, StartFloor
 from rngcam.recon.methods.stfm.multilevel import make_multilevel
 from rngcam.recon.methods.tv3d import TV3D, TV3DSettings
 from rngcam.sim.scenes import render_scene
@@ -132,16 +132,15 @@ def test_the_start_floor_keeps_no_video_until_it_is_the_output():
     p = _toy_problem()
     fit = make_stfm(p, STFMSettings(rows_per_step=4, dynamic_base="video", refine=False))
     guard = StartFloor(fit, p)
-    assert guard.start_name in ("blend", "interp") and guard._start_video is None
-    guard.start_rs = float("inf")  # the fit is better: the output is the fit, no start video is made
+    assert guard.start_name in MAKERS and guard._start_video is None
+    real = guard._start_pred  # the reference's RS prediction: all the check keeps of it
+    guard._start_pred = torch.full_like(real, 1e3)  # a reference far off: the output is the fit, no video made
     assert guard.estimate() is fit.estimate() and guard._start_video is None
-    guard.start_rs, guard._checked = 0.0, None  # now the start wins: it is made again, exactly
+    guard._start_pred, guard._checked = real, None  # the real one, which the unfitted fit does not beat here
     out = guard.estimate()
-    from rngcam.recon.methods.baselines import blend, interp
-
+    assert guard.check["output"] == guard.start_name  # it is made again, exactly
     keys = guard._problem.gs_images(gains=True).numpy()
-    make = {"blend": blend, "interp": interp}[guard.start_name]
-    torch.testing.assert_close(out, torch.from_numpy(make(keys, p.gs_times_s, p.frame_times_s)))
+    torch.testing.assert_close(out, torch.from_numpy(MAKERS[guard.start_name](keys, p.gs_times_s, p.frame_times_s)))
 
 
 def test_tv3d_state_copies_share_the_videos_and_a_rollback_still_works():

@@ -27,10 +27,10 @@ PACKAGE = REPO / "rngcam"
 ALLOWED = {
     ("rngcam/recon/methods/pnp.py", ("blend", "interp", "rife")):
         "pnp's `init` values: the GS-only functions its start calls directly, plus `video`",
-    ("rngcam/recon/methods/stfm/floor.py", ("blend", "interp")):
-        "the start floor's candidate videos, made by calling the baselines' functions directly",
-    ("rngcam/recon/methods/stfm/stage_configs.py", ("blend", "interp")):
-        "the start floor's candidates as a stage setting: the videos floor.py can make",
+    ("rngcam/recon/methods/stfm/floor.py", ("blend", "interp", "rife")):
+        "the self-check's candidate videos, made by calling the baselines' and RIFE's functions directly",
+    ("rngcam/recon/methods/stfm/stage_configs.py", ("blend", "interp", "rife")):
+        "the self-check's candidates as a stage setting: the videos floor.py can make",
     ("rngcam/recon/methods/stfm/settings.py", ("interp", "rife")):
         "STFM's base videos (`dynamic_base` values), not method names",
     ("rngcam/evaluate/stress_cases.py", ("stfm", "tv3d")):
