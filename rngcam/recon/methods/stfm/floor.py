@@ -30,6 +30,7 @@ from rngcam.recon.loop import Wrapped
 from rngcam.recon.methods import rife as rife_method  # looked up at each call: a test may replace it
 from rngcam.recon.methods.baselines import blend, interp
 from rngcam.recon.methods.stfm.stage_configs import StartFloorConfig
+from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import row_noise_std
 
 FACTOR_MOVED = 1e-6  # a line-time factor that moved less is the same: the starts' RS operator is kept
@@ -40,6 +41,11 @@ def _rife(keys, gs_times_s, frame_times_s):
 
 
 MAKERS = {"blend": blend, "interp": interp, "rife": _rife}
+
+
+def _ratio(num: float, den: float) -> float:
+    """num / den as relative_residual takes it (0/0 -> 0, x/0 -> inf)."""
+    return num / den if den > 0 else (0.0 if num == 0 else math.inf)
 
 
 def _paired_z(gain: float, deviation: float) -> float:
@@ -120,11 +126,9 @@ class StartFloor(Wrapped):
 
     def _relative(self, pred: Tensor, mask: Tensor | None = None) -> float:
         """||pred - b|| / ||b|| over `mask`'s pixels (the valid ones where None)."""
+        mask = self._problem.rs_valid_mask() if mask is None else mask
         b = self._problem.b_rs
-        valid = self._problem.rs_valid_mask() if mask is None else mask
-        diff, target = (pred - b, b) if valid is None else ((pred - b) * valid, b * valid)
-        norm = torch.linalg.vector_norm(target.double()).clamp_min(1e-30)
-        return float(torch.linalg.vector_norm(diff.double()) / norm)
+        return relative_residual(pred, b) if mask is None else relative_residual(pred * mask, b * mask)
 
     def _start(self, name: str) -> Tensor:
         """The GS-only video `name` (blend, interp or rife) of the key frames, on the RS scale."""
@@ -183,9 +187,10 @@ class StartFloor(Wrapped):
         fit_sq = float(((pred - b) * m).double().square().sum())
         ref_sq = float(((self._start_pred - b) * m).double().square().sum())
         apart = float(torch.linalg.vector_norm(((pred - self._start_pred) * m).double()))
-        z = _paired_z(ref_sq - fit_sq, 2 * self._sigma * apart)
-        return {"fit_residual": self._relative(pred, mask),
-                "reference_residual": self._relative(self._start_pred, mask), "z": z}
+        b_norm = float(torch.linalg.vector_norm((b * m).double()))
+        return {"fit_residual": _ratio(math.sqrt(fit_sq), b_norm),
+                "reference_residual": _ratio(math.sqrt(ref_sq), b_norm),
+                "z": _paired_z(ref_sq - fit_sq, 2 * self._sigma * apart)}
 
     def _judge(self, video: Tensor) -> dict:
         """The check of `video` against the reference: per part (the held-out rows, the fitted rows) the
