@@ -12,8 +12,9 @@ from rngcam.recon.misfit import EXPLAINED_RATIO
 
 @dataclass(frozen=True)
 class AutoPresetConfig:
-    # mean layer misfit under which one translating layer explains the key frames: sineball 0.29 (64 px),
-    # 0.39 (32 px); smoke 0.68, 0.60; real clips 0.72-1.0 (bench/stfm_motion.md)
+    # largest layer misfit under which one translating layer explains the key frames: sineball 0.25-0.35
+    # (64 px, grid, fine and lab, seeds 0-2); smoke 0.77-0.87; the packaged clip 1.15-1.16
+    # (bench/untuned.md, "the layer test's worst key frame"; the means were set on in bench/stfm_motion.md)
     layer_misfit_max: float = 0.5
     # key frames are binned by a whole factor to no less than this longer side first: the scale the misfits
     # above were measured at (32 and 64 px), and a test in a second at any grid (bench/stfm_motion.md)

@@ -114,7 +114,7 @@ class SelfCalibration(Stage):
 
 class AutoPreset(Stage):
     name = "auto_preset"
-    about = "choose prior (one translating layer explains the key frames) or fast, from the key frames"
+    about = "choose prior (one translating layer explains every key frame) or fast, from the key frames"
     Config = AutoPresetConfig
 
     def applies(self, build: Build) -> str | None:
