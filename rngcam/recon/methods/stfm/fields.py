@@ -286,24 +286,33 @@ def translate_image(image: Tensor, axes: Sequence[Tensor], shifts: Tensor) -> Te
     return moved.permute(0, 1, 3, 2)
 
 
-# (size, dtype, device) -> (the knots' indices as floats, a zero): translate_image's constants
-_KNOT_INDICES: dict[tuple, tuple[Tensor, Tensor]] = {}
+# (size, dtype, device) -> translate_image's constants on that device (`_interp_constants`)
+_KNOT_CONSTANTS: dict[tuple, tuple[Tensor, ...]] = {}
+
+
+def _interp_constants(size: int, dtype, device) -> tuple[Tensor, ...]:
+    """(the knots' indices, 0, 1, -1, (size - 1) / 2, size - 1, size - 2) as tensors: a factor given as a
+    number costs a conversion each time, forward and backward."""
+    key = (size, dtype, device)
+    if key not in _KNOT_CONSTANTS:
+        _KNOT_CONSTANTS[key] = (torch.arange(size, dtype=dtype, device=device), *(
+            torch.tensor(v, dtype=dtype, device=device) for v in (0.0, 1.0, -1.0, 0.5 * (size - 1), size - 1, size - 2)))
+    return _KNOT_CONSTANTS[key]
 
 
 def _interp_weights(coords: Tensor, size: int, dtype) -> Tensor:
     """(..., size) linear interpolation weights of `coords` (...) on `size` knots, align_corners=True,
-    border clamp, with their gradient: `_build_interp_matrix`'s values from two comparisons with the
-    knots' indices (no index_put: a few operations, forward and backward, whatever the shape)."""
-    key = (size, dtype, coords.device)
-    if key not in _KNOT_INDICES:
-        _KNOT_INDICES[key] = (torch.arange(size, dtype=dtype, device=coords.device),
-                              torch.zeros((), dtype=dtype, device=coords.device))
-    knot, zero = _KNOT_INDICES[key]
-    pos = ((coords.to(dtype) + 1) * (0.5 * (size - 1))).clamp(0, size - 1)
-    left = pos.detach().floor().clamp_(max=size - 2)
-    frac = (pos - left)[..., None]
+    border clamp, with their gradient: `_build_interp_matrix`'s values as the left knot's indicator plus
+    the fraction times (right indicator - left indicator) (no index_put: a few operations, forward and
+    backward, whatever the shape)."""
+    knot, zero, one, minus_one, half_span, last, last_left = _interp_constants(size, dtype, coords.device)
+    pos = torch.clamp((coords.to(dtype) + one) * half_span, zero, last)
+    left = torch.minimum(pos.detach().floor(), last_left)
     offset = knot - left[..., None]
-    return torch.where(offset == 0, 1 - frac, torch.where(offset == 1, frac, zero))
+    at_left = offset == zero
+    indicator = torch.where(at_left, one, zero)
+    step = torch.where(offset == one, one, torch.where(at_left, minus_one, zero))
+    return torch.addcmul(indicator, (pos - left)[..., None], step)
 
 
 def knots(axis: Tensor, spacing: float) -> Tensor:
