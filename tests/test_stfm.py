@@ -210,8 +210,8 @@ def test_memory_per_step_does_not_grow_with_the_frame_count():
         sizes = []
         original = m.model.frames
 
-        def counting(idx, static=None):
-            out = original(idx, static)
+        def counting(idx, static=None, **kwargs):
+            out = original(idx, static, **kwargs)
             if out.requires_grad:
                 sizes.append(len(idx))
             return out

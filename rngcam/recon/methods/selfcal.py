@@ -84,33 +84,47 @@ _CUBIC_TAPS = ((0.0, _CUBIC_A, -2 * _CUBIC_A, _CUBIC_A), (1.0, 0.0, -(_CUBIC_A +
                (0.0, -_CUBIC_A, 2 * _CUBIC_A + 3, -(_CUBIC_A + 2)), (0.0, 0.0, _CUBIC_A, -_CUBIC_A))
 
 
-def _cubic_shift_matrix(n: int, shift: Tensor, dtype, device) -> Tensor:
-    """(n, n): row i samples a line at i + shift with grid_sample's bicubic taps, clamped to the border.
-    Every row has the same four weights (the shift's fraction): they times the 0/1 matrices that pick
-    each row's clamped taps, a few operations whatever n (STFM builds two a step; bench/step_ops.md)."""
-    taps_poly, line, offsets = _cubic_constants(n, dtype, torch.device(device))
-    s = shift.to(dtype)
+def _cubic_shift_matrix(sizes: tuple[int, ...], shifts: Tensor, dtype, device) -> Tensor:
+    """(k, n, n), n = max(sizes): matrix j's top-left (sizes[j], sizes[j]) block samples a line of
+    sizes[j] at i + shifts[j] with grid_sample's bicubic taps, clamped to the border (the rest is
+    not used). Every row has the same four weights (the shift's fraction, a cubic in it); the matrix
+    is them at the 0/1 patterns that pick each row's clamped taps: a few operations for all axes
+    whatever n (STFM builds them every step; bench/step_ops.md)."""
+    taps, line, base, last = _cubic_constants(tuple(sizes), dtype, torch.device(device))
+    s = shifts if shifts.dtype == dtype else shifts.to(dtype)
     whole = s.detach().floor()
-    t = s - whole
-    weights = taps_poly @ torch.stack([torch.ones_like(t), t, t * t, t * t * t])  # (4,)
-    picks = ((line + whole.long() + offsets).clamp(0, n - 1)[:, :, None] == line).to(dtype)  # (4, n, n)
-    return (weights @ picks.view(4, n * n)).view(n, n)
+    t = (s - whole)[:, None]
+    weights = torch.addcmul(taps[2], taps[3], t)  # Horner: the taps' cubics at t, (k, 4)
+    weights = torch.addcmul(taps[1], weights, t)
+    weights = torch.addcmul(taps[0], weights, t)
+    picks = (torch.minimum(base + whole.long()[:, None, None], last).clamp_(min=0)[..., None] == line).to(dtype)
+    n = line.shape[0]
+    return torch.bmm(weights[:, None], picks.view(len(sizes), 4, n * n)).view(len(sizes), n, n)
 
 
 @functools.lru_cache(maxsize=32)
-def _cubic_constants(n: int, dtype, device) -> tuple[Tensor, Tensor, Tensor]:
-    """(_CUBIC_TAPS as a tensor, the line's indices (n,), the taps' offsets (4, 1)) on `device`."""
-    return (torch.tensor(_CUBIC_TAPS, dtype=dtype, device=device), torch.arange(n, device=device),
-            torch.arange(-1, 3, device=device)[:, None])
+def _cubic_constants(sizes: tuple[int, ...], dtype, device) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(_CUBIC_TAPS by power (4 powers, 4 taps), the line's indices (n,), each tap's line index
+    unclamped (4, n), each axis's last index (k, 1, 1)) on `device`."""
+    line = torch.arange(max(sizes), device=device)
+    last = torch.tensor(sizes, device=device)[:, None, None] - 1
+    return (torch.tensor(_CUBIC_TAPS, dtype=dtype, device=device).T.contiguous(), line,
+            line + torch.arange(-1, 3, device=device)[:, None], last)
 
 
 def warp_shift(images: Tensor, dx: Tensor, dy: Tensor) -> Tensor:
     """`warp` by a translation (out(p) = in(p + (dx, dy)), bicubic, border values outside), as one
     small matrix product per axis: the same values in less than grid_sample's time with its backward
     on a CPU (bench/convergence.md). dx, dy: 0-d tensors (a gradient reaches them)."""
+    return warp_translate(images, torch.stack([dx, dy]))
+
+
+def warp_translate(images: Tensor, shift: Tensor) -> Tensor:
+    """`warp_shift` by shift (2,) = (dx, dy)."""
     c, n, h, w = images.shape
-    rows = _cubic_shift_matrix(h, dy, images.dtype, images.device)
-    cols = _cubic_shift_matrix(w, dx, images.dtype, images.device)
+    cols, rows = _cubic_shift_matrix((w, h), shift, images.dtype, images.device).unbind(0)
+    if h != w:
+        cols, rows = cols[:w, :w], rows[:h, :h]
     along_x = (images.reshape(c * n * h, w) @ cols.t()).view(c * n, h, w)
     return torch.matmul(rows, along_x).view(c, n, h, w)
 

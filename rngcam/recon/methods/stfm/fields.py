@@ -147,6 +147,9 @@ class PlaneField(nn.Module):
         layers.append(nn.Linear(width, out_dims))
         self.decoder = nn.Sequential(*layers)
         self.register_buffer("_roughness", self._roughness_weights(), persistent=False)
+        t = max(self.time_sizes)
+        self.register_buffer("_second_difference", None if self._roughness is None else
+                             torch.eye(t)[2:] - 2 * torch.eye(t)[1:-1] + torch.eye(t)[:-2], persistent=False)
 
     @property
     def planes(self) -> list[Tensor]:
@@ -184,8 +187,10 @@ class PlaneField(nn.Module):
         if self._roughness is None:
             return torch.zeros((), device=self.planes_space.device)
         p = self.planes_time
-        d2 = p[:, :, :, 2:] - 2 * p[:, :, :, 1:-1] + p[:, :, :, :-2]
-        return (d2.square() * self._roughness).sum()
+        s, _, f, t, r = p.shape
+        # second differences along t as one batched product (slices and their backward cost more operations)
+        d2 = torch.bmm(self._second_difference.expand(s * 2 * f, t - 2, t), p.view(s * 2 * f, t, r))
+        return (d2.view(s, 2, f, t - 2, r).square() * self._roughness).sum()
 
     def _roughness_weights(self) -> Tensor | None:
         """(S, 2, 1, T - 2, R) weights of the padded time planes' squared second differences: one over
@@ -264,17 +269,50 @@ class PlaneField(nn.Module):
 def translate_image(image: Tensor, axes: Sequence[Tensor], shifts: Tensor) -> Tensor:
     """An image (R_y, R_x, out) on linspace(-1, 1) knots, interpolated bilinearly (border clamp) at
     the pixel grid (x, y) moved by `shifts` (n, 2) in coordinate units: (n, n_y, n_x, out). One
-    interpolation matrix per frame and axis, two matrix products. (STFM's prior preset decodes its
-    canonical image once a step on `knots` half a pixel apart and moves it so; bench/convergence.md, "the
-    prior preset decodes its canonical image once a step".)"""
+    interpolation matrix per frame and axis (both axes' built at once where they have the same sizes),
+    two matrix products. (STFM's prior preset decodes its canonical image once a step on `knots` half
+    a pixel apart and moves it so; bench/convergence.md, "the prior preset decodes its canonical image
+    once a step".)"""
     xs, ys = axes
     n, nx, ny = shifts.shape[0], xs.shape[0], ys.shape[0]
     ry, rx, out = image.shape
-    m_x = _build_interp_matrix((xs[None] + shifts[:, :1]).reshape(-1), rx, image.dtype)  # (n n_x, R_x)
-    m_y = _build_interp_matrix((ys[None] + shifts[:, 1:]).reshape(-1), ry, image.dtype).view(n, ny, ry)
-    along_x = (image.permute(2, 0, 1).reshape(out * ry, rx) @ m_x.t()).view(out, ry, n, nx)
+    if rx == ry and nx == ny:
+        m_x, m_y = _interp_weights(torch.stack([xs, ys])[:, None] + shifts.t()[:, :, None], rx, image.dtype).unbind(0)
+    else:
+        m_x = _interp_weights(xs[None] + shifts[:, :1], rx, image.dtype)
+        m_y = _interp_weights(ys[None] + shifts[:, 1:], ry, image.dtype)
+    along_x = (image.permute(2, 0, 1).reshape(out * ry, rx) @ m_x.reshape(n * nx, rx).t()).view(out, ry, n, nx)
     moved = torch.bmm(m_y, along_x.permute(2, 1, 0, 3).reshape(n, ry, out * nx)).view(n, ny, out, nx)
     return moved.permute(0, 1, 3, 2)
+
+
+# (size, dtype, device) -> translate_image's constants on that device (`_interp_constants`)
+_KNOT_CONSTANTS: dict[tuple, tuple[Tensor, ...]] = {}
+
+
+def _interp_constants(size: int, dtype, device) -> tuple[Tensor, ...]:
+    """(the knots' indices, 0, 1, -1, (size - 1) / 2, size - 1, size - 2) as tensors: a factor given as a
+    number costs a conversion each time, forward and backward."""
+    key = (size, dtype, device)
+    if key not in _KNOT_CONSTANTS:
+        _KNOT_CONSTANTS[key] = (torch.arange(size, dtype=dtype, device=device), *(
+            torch.tensor(v, dtype=dtype, device=device) for v in (0.0, 1.0, -1.0, 0.5 * (size - 1), size - 1, size - 2)))
+    return _KNOT_CONSTANTS[key]
+
+
+def _interp_weights(coords: Tensor, size: int, dtype) -> Tensor:
+    """(..., size) linear interpolation weights of `coords` (...) on `size` knots, align_corners=True,
+    border clamp, with their gradient: `_build_interp_matrix`'s values as the left knot's indicator plus
+    the fraction times (right indicator - left indicator) (no index_put: a few operations, forward and
+    backward, whatever the shape)."""
+    knot, zero, one, minus_one, half_span, last, last_left = _interp_constants(size, dtype, coords.device)
+    pos = torch.clamp((coords.to(dtype) + one) * half_span, zero, last)
+    left = torch.minimum(pos.detach().floor(), last_left)
+    offset = knot - left[..., None]
+    at_left = offset == zero
+    indicator = torch.where(at_left, one, zero)
+    step = torch.where(offset == one, one, torch.where(at_left, minus_one, zero))
+    return torch.addcmul(indicator, (pos - left)[..., None], step)
 
 
 def knots(axis: Tensor, spacing: float) -> Tensor:

@@ -3,6 +3,7 @@ the physics operators (rngcam.physics.operators), on the fit's device."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -15,10 +16,18 @@ def chunks(idx: Tensor, size: int) -> list[Tensor]:
     return [idx[i:i + size] for i in range(0, len(idx), size)] if len(idx) else []
 
 
+def sorted_sample(n: int, k: int, generator: torch.Generator) -> np.ndarray:
+    """k of range(n) without replacement, sorted, on the host: torch.randperm's first k (one draw of
+    `generator`), the rest in numpy (no tensor operations)."""
+    return np.sort(torch.randperm(n, generator=generator).numpy()[:k])
+
+
 def to_device(idx: Tensor, device: torch.device) -> Tensor:
     """A host tensor (a step's sampled indices) on `device`; to a GPU through pinned memory without
     waiting (a plain copy would wait for everything queued before it)."""
-    if idx.device == device or device.type != "cuda" or idx.device.type != "cpu":
+    if idx.device == device:
+        return idx
+    if device.type != "cuda" or idx.device.type != "cpu":
         return idx.to(device)
     return idx.pin_memory().to(device, non_blocking=True)
 
@@ -47,6 +56,7 @@ class FitGrid:
         self.mask = None if p.mask is None else p.mask.to(dev, torch.float32)
         self.px_per_unit = torch.tensor([(self.W - 1) / 2, (self.H - 1) / 2], device=dev).clamp_min(0.5)
         self.w_rs_host = p.rs_weights.to("cpu", torch.float32)
+        self.w_rs_numpy = self.w_rs_host.numpy()
         self.w_rs = self.w_rs_host.to(dev)
         # Held-out split (rngcam.recon.problem): fit only the training rows and GS pixels.
         self.rs_rows_fit = (torch.arange(self.H) if p.rs_train_rows is None
@@ -75,6 +85,7 @@ class FitGrid:
     def set_rs_weights(self, weights: Tensor) -> None:
         """The RS rows' weights (H, K) as the fit now has them (a learned line time), and the operator."""
         self.w_rs_host = weights.to("cpu", torch.float32)
+        self.w_rs_numpy = self.w_rs_host.numpy()
         self.w_rs = self.w_rs_host.to(self.device)
         self.rs_op = self.rs_op.with_weights(self.w_rs)
 

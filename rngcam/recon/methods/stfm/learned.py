@@ -17,7 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from rngcam.errors import ConfigError
-from rngcam.recon.methods.selfcal import describe, inside, pose_matrix, similarity, warp, warp_shift
+from rngcam.recon.methods.selfcal import describe, inside, pose_matrix, similarity, warp, warp_translate
 
 
 def held_schedule(hold_steps: int, ratio: float, after_hold: float) -> dict:
@@ -120,8 +120,7 @@ class Pose(Learned):
         if not self.learned:
             return frames
         if self.is_shift:  # S is a translation by the pose's (dx, dy): S^-1 moves back by them
-            shift = self.parameter[:2] * self.free[:2]
-            return warp_shift(frames, -shift[0], -shift[1])
+            return warp_translate(frames, -(self.parameter[:2] * self.free[:2]))
         return warp(frames, torch.linalg.inv(self.matrix()))
 
     def reading(self) -> Tensor | None:

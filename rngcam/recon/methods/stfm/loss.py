@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from rngcam.recon.methods.stfm.fields import field_on_grid
-from rngcam.recon.methods.stfm.grid import chunks, to_device
+from rngcam.recon.methods.stfm.grid import chunks, sorted_sample, to_device
 
 # The RS operator's norm only scales the RS term: power iteration to three digits is plenty, from near a
 # constant video (close to the top singular vector: the PSF is a low-pass filter) with a little noise
@@ -19,6 +20,12 @@ POWER_ITERATIONS, POWER_TOL, POWER_START_NOISE = 6, 1e-3, 0.1
 def _cols(w_rows: Tensor | None, frames: Tensor) -> Tensor | None:
     """Columns `frames` of the sampled rows' weights (None stays None: the operator's own)."""
     return None if w_rows is None else w_rows.index_select(1, frames)
+
+
+def _sum_of_squares(x: Tensor) -> Tensor:
+    """sum(x^2) as one dot product (square and sum cost conversions, forward and backward)."""
+    flat = x.reshape(-1)
+    return torch.dot(flat, flat)
 
 
 def _leaf(graph: Tensor | None, backward: bool) -> Tensor | None:
@@ -46,6 +53,11 @@ class DataLoss:
         self.C, self.K, self.H, self.W = model.C, model.K, model.H, model.W
         pixels = self.C * self.H * self.W
         self.c_gs = self.c_rs = 0.0
+        self._rows_fit = self.grid.rs_rows_fit.numpy()
+        self._gs_frames_host = self.grid.gs_frames_host.numpy()
+        self._w_gs_host = self.grid.w_gs_host.numpy()
+        self._host_copies: dict[int, tuple[Tensor, np.ndarray]] = {}
+        self._weight_vectors: dict[tuple, Tensor] = {}
         self.rs_norm, self.rs_norm_vector = None, None
         if self.parts.gs:
             norm_sq = self.grid.gs_op.norm() ** 2
@@ -103,6 +115,11 @@ class DataLoss:
     def gs_term(self, v_win: Tensor, windows: Tensor, win_frames: Tensor) -> Tensor:
         """Normalised GS data term of GS frames `windows` from the frames their exposures touch,
         `win_frames` (values v_win (C, S, H, W)); an unbiased estimate for a uniform sample."""
+        raw, weight = self._gs_raw(v_win, windows, win_frames)
+        return raw * weight
+
+    def _gs_raw(self, v_win: Tensor, windows: Tensor, win_frames: Tensor) -> tuple[Tensor, float]:
+        """gs_term as (its sum of squares, the factor it is taken by)."""
         pred = self.grid.gs_op.A_frames(v_win, windows, win_frames)
         miss = pred - self.model.gains.value()[:, None, None, None] * self.problem.b_gs.index_select(1, windows)
         if self.grid.mask is not None:
@@ -112,7 +129,7 @@ class DataLoss:
             miss = miss * (fit if fit.shape[1] == 1 else fit.index_select(1, windows))
         if self.grid.gs_valid is not None:  # saturated GS pixels are not fitted
             miss = miss * self.grid.gs_valid.index_select(1, windows)
-        return self.c_gs * self.grid.w_gs.shape[0] / len(windows) * miss.square().sum()
+        return _sum_of_squares(miss), self.c_gs * self.grid.w_gs.shape[0] / len(windows)
 
     def rs_scale(self, n_rows: int) -> float:
         return self.c_rs * len(self.grid.rs_rows_fit) / n_rows
@@ -125,31 +142,56 @@ class DataLoss:
     def matte_term(self) -> Tensor:
         """matte_l1 times the mean of the canonical dynamic image's matte, 1 - alpha (the share of
         each pixel the moving layer covers), on the pixel grid."""
+        raw, weight, offset = self._matte_raw()
+        return raw * weight + offset
+
+    def _matte_raw(self) -> tuple[Tensor, float, float]:
+        """matte_term as (the sum of alpha, its factor, the constant added)."""
         raw = self.model.canonical_at_pixels()
         if raw is None:
             raw = field_on_grid(self.model.fields["dynamic"], [self.grid.xs, self.grid.ys])  # (H, W, C + 1)
-        return self.resolved.matte_l1 * (1 - torch.sigmoid(raw[..., self.C])).mean()
+        alpha = torch.sigmoid(raw[..., self.C])
+        return alpha.sum(), -self.resolved.matte_l1 / alpha.numel(), self.resolved.matte_l1
 
-    def tv_term(self, idx: Tensor) -> Tensor:
-        """Unbiased estimate of tau TV_S(U) from frames idx (uniform sample without replacement)."""
-        nxt = (idx + 1).clamp(max=self.K - 1)
+    def tv_term(self, idx: Tensor, motion: Tensor | None = None) -> Tensor:
+        """Unbiased estimate of tau TV_S(U) from frames idx (uniform sample without replacement); `motion`:
+        the motion at idx and their next frames (model.motion(..., per_pixel=False)), where evaluated."""
+        return sum(raw * weight for raw, weight in self._tv_raw(idx, motion))
+
+    def _tv_raw(self, idx: Tensor, motion: Tensor | None = None) -> list[tuple[Tensor, float]]:
+        """tv_term as (sum of absolute differences, its factor): along x, along y and in time."""
+        if motion is None:
+            nxt = (idx + 1).clamp(max=self.K - 1)
+            motion = self.model.motion(torch.cat([idx, nxt]), per_pixel=False)
         # a translation as one pixel: no spatial TV, its temporal TV the same at every pixel
-        u = self.model.motion(torch.cat([idx, nxt]), per_pixel=False) * self.model.motion_px()  # pixels
-        u0, u1 = u[:len(idx)], u[len(idx):]
-        spatial = (u0[:, 1:] - u0[:, :-1]).abs().sum() + (u0[:, :, 1:] - u0[:, :, :-1]).abs().sum()
-        temporal = (u1 - u0).abs().sum()  # zero for the last frame (nxt == idx)
-        per_frame = (spatial + self.resolved.beta * temporal) / (u.shape[1] * u.shape[2])
-        return self.resolved.tau * per_frame / len(idx)
+        u = motion * self.model.motion_px()  # pixels
+        u0, u1 = u.unflatten(0, (2, len(idx))).unbind(0)
+        weight = self.resolved.tau / (u.shape[1] * u.shape[2] * len(idx))
+        return [((u0[:, 1:] - u0[:, :-1]).abs().sum(), weight), ((u0[:, :, 1:] - u0[:, :, :-1]).abs().sum(), weight),
+                ((u1 - u0).abs().sum(), self.resolved.beta * weight)]  # zero for the last frame (nxt == idx)
 
     def sample_rows(self) -> Tensor:
         """A cyclic block of the fitted rows with a uniform random start (every row equally likely)."""
-        n = len(self.grid.rs_rows_fit)
+        fitted = self._rows_fit
+        n = len(fitted)
         start = int(torch.randint(n, (1,), generator=self.generator))
-        return self.grid.rs_rows_fit[(start + torch.arange(min(self.resolved.rows_per_step, n))) % n]
+        return self.step_indices(fitted[(start + np.arange(min(self.resolved.rows_per_step, n))) % n])
 
     def sample_tv_frames(self) -> Tensor:
-        n = min(self.settings.tv_frames_per_step, self.K)
-        return torch.randperm(self.K, generator=self.generator)[:n].sort().values
+        return self.step_indices(sorted_sample(self.K, min(self.settings.tv_frames_per_step, self.K), self.generator))
+
+    def step_indices(self, indices: np.ndarray) -> Tensor:
+        """`indices` as a tensor, remembered so that a step that gets it back knows it on the host."""
+        out = torch.from_numpy(indices)
+        self._host_copies[id(out)] = (out, indices)
+        while len(self._host_copies) > 4:
+            self._host_copies.pop(next(iter(self._host_copies)))
+        return out
+
+    def _host(self, indices: Tensor) -> np.ndarray:
+        """A step's indices (a host tensor, or one this loss drew) as a numpy array."""
+        entry = self._host_copies.get(id(indices))
+        return entry[1] if entry is not None and entry[0] is indices else indices.cpu().numpy()
 
     def loss_terms(self, rows: Tensor | None, tv_frames: Tensor | None, backward: bool = False,
                    gs_windows: Tensor | None = None) -> dict:
@@ -176,106 +218,165 @@ class DataLoss:
         # own backward (no graph retained across pieces), and the static field gets the summed
         # gradient once at the end.
         static = _leaf(static_graph, backward)
-        graph_loss = torch.zeros((), device=dev)
-        if self.has_canonical_matte:
-            matte = self.matte_term()
-            terms["matte"] = matte.detach()
-            graph_loss = graph_loss + matte
-        if self.resolved.time_smoothness > 0:
-            rough = [f.time_roughness() for f in self.model.fields.values() if hasattr(f, "time_roughness")]
-            if rough:
-                smooth = self.resolved.time_smoothness * sum(rough)
-                terms["smooth"] = smooth.detach()
-                graph_loss = graph_loss + smooth
-        # Frames the sampled RS rows touch, split into those inside GS windows and the rest.
-        rest = torch.zeros(0, dtype=torch.long, device=dev)
-        w_rows = w_graph = None
+        losses = self._regularisers()  # name -> [(raw sum, its factor)]
+        # Frames the sampled RS rows touch, split into those inside GS windows and the rest (host).
+        shared = rest = np.zeros(0, dtype=np.int64)
+        w_rows = w_graph = rows_host = None
         if self.parts.rs and rows is not None:
+            rows_host = self._host(rows)
             w_graph = self.line_time.row_weights(rows)  # None: the operator's (no line time learned)
             # as the static image: a leaf for every chunk's graph, its gradient taken on once at the end
             w_rows = _leaf(w_graph, backward)
-            shared, rest = self._split_rs_frames(rows, w_rows, win_host)
+            shared, rest = self._split_rs_frames(rows_host, w_rows, win_host)
             rows = to_device(rows, dev)
         pieces = chunks(rest, self.grid.frame_chunk)
         single = len(pieces) <= 1
-        # One evaluation for the GS windows and (when it fits in one chunk) the RS frames.
+        # One evaluation for the GS windows and (when it fits in one chunk) the RS frames, and one
+        # of the motion for those frames and the TV frames.
         n_gs = len(win_frames)
-        first = torch.cat([win_frames] + ([pieces[0]] if single and pieces else []))
-        v_first = self.model.frames(first, static) if len(first) else None
+        first = np.concatenate([win_host] + ([pieces[0]] if single and pieces else []))
+        tv = None if not (self.parts.motion and self.parts.motion_reg) or tv_frames is None else tv_frames
+        v_first, u_tv = self._first_frames(first, tv, static)
         v_gs = None
         if n_gs:
             v_gs = v_first[:, :n_gs]
             if self.settings.gs_anchor == "hard":
                 v_gs = self.model.anchored(v_gs)
             else:
-                gs = self.gs_term(v_gs, windows, win_frames)
-                terms["gs"] = gs.detach()
-                graph_loss = graph_loss + gs
-        if self.parts.motion and self.parts.motion_reg and tv_frames is not None:
-            tv = self.tv_term(to_device(tv_frames, dev))
-            terms["tv"] = tv.detach()
-            graph_loss = graph_loss + tv
+                losses["gs"] = [self._gs_raw(v_gs, windows, win_frames)]
+        if tv is not None:
+            losses["tv"] = self._tv_raw(to_device(tv, dev), u_tv)
         chunk_jobs = []
         if self.parts.rs and rows is not None:
             scale = self.rs_scale(len(rows))
-            pred = torch.zeros(self.C, len(rows), self.W, device=dev)
-            if len(shared):
-                pos = torch.searchsorted(win_frames, shared)
-                pred = pred + self._rs_rows(v_gs[:, pos], rows, shared, w_rows)
+            # hard anchoring: the windows' frames as anchored
+            source = torch.cat([v_gs, v_first[:, n_gs:]], dim=1) if v_gs is not None \
+                and self.settings.gs_anchor == "hard" else v_first
+            pred = self._rs_first(source, win_host, shared, pieces[0] if single and pieces else None,
+                                  rows, rows_host, w_rows)
             if single:
-                if pieces:
-                    pred = pred + self._rs_rows(v_first[:, n_gs:], rows, pieces[0], w_rows)
-                rs = scale * self.rs_miss(pred, rows).square().sum()
-                terms["rs"] = rs.detach()
-                graph_loss = graph_loss + rs
+                losses["rs"] = [(_sum_of_squares(self.rs_miss(pred, rows)), scale)]
             else:  # two passes: residual without a graph, then chunk-wise back-propagation
                 with torch.no_grad():
-                    pred_rest = sum(self._rs_rows(self.model.frames(c, static), rows, c, w_rows) for c in pieces)
+                    pred_rest = sum(self._rs_rows(self.model.frames(self._on_device(c), static), rows, rows_host, c,
+                                                  w_rows) for c in pieces)
                 residual = self.rs_miss(pred.detach() + pred_rest, rows)  # 0/1 mask: also d(loss)/d(pred) / 2
                 terms["rs"] = scale * residual.square().sum()
                 grad = 2 * scale * residual
-                graph_loss = graph_loss + (pred * grad).sum()
+                losses["rs_first"] = [((pred * grad).sum(), 1.0)]
                 chunk_jobs = [(c, grad) for c in pieces]
+        values, weights = self._weighted(losses)
         if backward:
-            if graph_loss.requires_grad:
-                graph_loss.backward()
+            if values is not None and values.requires_grad:
+                torch.dot(values, weights).backward()
             for c, grad in chunk_jobs:
-                surrogate = (self._rs_rows(self.model.frames(c, static), rows, c, w_rows) * grad).sum()
-                surrogate.backward()
+                frames = self.model.frames(self._on_device(c), static)
+                (self._rs_rows(frames, rows, rows_host, c, w_rows) * grad).sum().backward()
             _back_into(static_graph, static)
             _back_into(w_graph, w_rows)
-        names = [k for k, v in terms.items() if isinstance(v, Tensor)]
-        if names:
-            terms.update(zip(names, torch.stack([terms[k].float() for k in names]).tolist(), strict=True))
-        return terms
+        if values is not None:  # the terms as numbers: one product and one wait for them all
+            numbers = iter((values.detach() * weights).tolist())
+            for name, entries in losses.items():
+                for _raw, _weight, *offset in entries:
+                    value = next(numbers) + (offset[0] if offset else 0.0)
+                    if name in terms:
+                        terms[name] = float(terms[name]) + value
+        return {k: float(v) for k, v in terms.items()}
 
-    def _rs_rows(self, frames: Tensor, rows: Tensor, idx: Tensor, w_rows: Tensor | None) -> Tensor:
-        """RS rows `rows` (C, R, W) of frames `frames` (C, n, H, W; frames `idx`, GS coordinates) at the rows'
-        weights `w_rows` (None: the operator's)."""
-        return self.grid.rs_op.A_rows(self.model.pose.rs_view(frames), rows, idx, _cols(w_rows, idx))
+    def _regularisers(self) -> dict[str, list[tuple]]:
+        """The matte and time-smoothness terms as [(raw sum, its factor[, a constant added])], by name."""
+        losses = {}
+        if self.has_canonical_matte:
+            losses["matte"] = [self._matte_raw()]
+        if self.resolved.time_smoothness > 0:
+            rough = [f.time_roughness() for f in self.model.fields.values() if hasattr(f, "time_roughness")]
+            if rough:
+                losses["smooth"] = [(r, self.resolved.time_smoothness) for r in rough]
+        return losses
 
-    # Index sets are worked out on the host (small), so a step does not wait for a GPU to know them.
+    def _weighted(self, losses: dict[str, list[tuple]]) -> tuple[Tensor | None, Tensor | None]:
+        """(The raw sums (n,), their factors (n,)) of `losses`' entries in order (None: none): the loss is
+        their dot product, one product forward and back instead of a scalar factor on each (a factor
+        given as a number costs a conversion, forward and backward)."""
+        entries = [(raw, weight) for items in losses.values() for raw, weight, *_ in items]
+        if not entries:
+            return None, None
+        values = torch.stack([raw for raw, _ in entries])
+        key = (tuple(weight for _, weight in entries), values.dtype, values.device)
+        weights = self._weight_vectors.get(key)
+        if weights is None:
+            if len(self._weight_vectors) > 16:
+                self._weight_vectors.clear()
+            weights = self._weight_vectors[key] = torch.tensor(key[0], dtype=values.dtype, device=values.device)
+        return values, weights
 
-    def _step_windows(self, gs_windows: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    def _on_device(self, indices: np.ndarray) -> Tensor:
+        return to_device(torch.from_numpy(indices), self.grid.device)
+
+    def _first_frames(self, first: np.ndarray, tv_frames: Tensor | None, static: Tensor | None) \
+            -> tuple[Tensor | None, Tensor | None]:
+        """(Frames `first` (C, n, H, W; indices on the host), None where there are none; the motion at
+        the TV frames `tv_frames` and their next frames, in coordinate units, None without TV frames),
+        with one evaluation of the motion for both."""
+        first_dev = self._on_device(first)
+        if tv_frames is None:
+            return (self.model.frames(first_dev, static) if len(first) else None), None
+        tv = self._host(tv_frames)
+        u = self.model.motion(self._on_device(np.concatenate([first, tv, np.minimum(tv + 1, self.K - 1)])),
+                              per_pixel=False)
+        if not len(first):
+            return None, u
+        u_first, u_tv = u.split([len(first), 2 * len(tv)])
+        return self.model.frames(first_dev, static, motion=u_first), u_tv
+
+    def _rs_first(self, source: Tensor | None, win_host: np.ndarray, shared: np.ndarray, piece: np.ndarray | None,
+                  rows: Tensor, rows_host: np.ndarray, w_rows: Tensor | None) -> Tensor:
+        """RS rows `rows` (C, R, W) seen from the first evaluation's frames `source` (the GS windows'
+        frames `win_host`, then the RS frames `piece`), in one pass: the `shared` frames (inside the
+        windows) and `piece` (indices on the host)."""
+        n_gs = len(win_host)
+        count = len(piece) if piece is not None else 0
+        if not len(shared) and not count:
+            return torch.zeros(self.C, len(rows), self.W, device=self.grid.device)
+        select = np.concatenate([np.searchsorted(win_host, shared), np.arange(n_gs, n_gs + count)])
+        idx = np.concatenate([shared] + ([piece] if count else []))
+        if len(select) != source.shape[1] or not np.array_equal(select, np.arange(len(select))):
+            source = source.index_select(1, self._on_device(select))
+        return self._rs_rows(source, rows, rows_host, idx, w_rows)
+
+    def _rs_rows(self, frames: Tensor, rows: Tensor, rows_host: np.ndarray, idx: np.ndarray,
+                 w_rows: Tensor | None) -> Tensor:
+        """RS rows `rows` (C, R, W; `rows_host` on the host) of frames `frames` (C, n, H, W; frames `idx`
+        on the host, GS coordinates) at the rows' weights `w_rows` (None: the operator's)."""
+        idx_dev = self._on_device(idx)
+        weights = _cols(w_rows, idx_dev) if w_rows is not None else \
+            self._on_device(np.ascontiguousarray(self.grid.w_rs_numpy[np.ix_(rows_host, idx)]))
+        return self.grid.rs_op.A_rows(self.model.pose.rs_view(frames), rows, idx_dev, weights)
+
+    # Index sets are worked out on the host (small, in numpy), so a step does not wait for a GPU to
+    # know them, nor spends tensor operations on them.
+
+    def _step_windows(self, gs_windows: Tensor | None) -> tuple[Tensor, Tensor, np.ndarray]:
         """(GS windows, the frames their exposures touch, on the device; those frames on the host) for
         sampled windows `gs_windows` (None, or hard anchoring: all)."""
         dev = self.grid.device
         if not self.parts.gs:
-            return torch.zeros(0, dtype=torch.long, device=dev), self.grid.gs_frames, self.grid.gs_frames_host
+            return torch.zeros(0, dtype=torch.long, device=dev), self.grid.gs_frames, self._gs_frames_host
         if gs_windows is None or self.settings.gs_anchor == "hard":
-            return torch.arange(self.grid.w_gs.shape[0], device=dev), self.grid.gs_frames, self.grid.gs_frames_host
-        frames = torch.nonzero(self.grid.w_gs_host[gs_windows.cpu()].sum(0) > 0).flatten()
-        return to_device(gs_windows, dev), to_device(frames, dev), frames
+            return torch.arange(self.grid.w_gs.shape[0], device=dev), self.grid.gs_frames, self._gs_frames_host
+        frames = np.flatnonzero(self._w_gs_host[self._host(gs_windows)].sum(0) > 0)
+        return to_device(gs_windows, dev), self._on_device(frames), frames
 
-    def _split_rs_frames(self, rows: Tensor, w_rows: Tensor | None, win_host: Tensor) -> tuple[Tensor, Tensor]:
-        """The frames the RS rows see (at the learned line time where `w_rows` are given), split into
-        those inside the GS windows' frames `win_host` and the rest, on the device."""
+    def _split_rs_frames(self, rows: np.ndarray, w_rows: Tensor | None,
+                         win_host: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The frames the RS rows `rows` see (at the learned line time where `w_rows` are given), split
+        into those inside the GS windows' frames `win_host` and the rest, on the host."""
         if w_rows is None:
-            touched = self.grid.rs_frames(rows)
+            touched = np.flatnonzero(self.grid.w_rs_numpy[rows].sum(0) > 0)
         else:
-            touched = torch.nonzero(w_rows.detach().sum(0) > 0).flatten().cpu()
-        inside = torch.isin(touched, win_host)
-        return to_device(touched[inside], self.grid.device), to_device(touched[~inside], self.grid.device)
+            touched = np.flatnonzero((w_rows.detach().sum(0) > 0).cpu().numpy())
+        inside = np.isin(touched, win_host)
+        return touched[inside], touched[~inside]
 
     def full_objective(self) -> dict:
         """The exact objective terms (all rows, all frames), without gradients."""

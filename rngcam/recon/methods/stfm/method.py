@@ -18,7 +18,8 @@ from rngcam.recon.methods.selfcal import report_lines
 from rngcam.recon.methods.stfm.bases import DynamicBase
 from rngcam.recon.methods.stfm.components import Components, choose_components
 from rngcam.recon.methods.stfm.fields import transfer_fields
-from rngcam.recon.methods.stfm.grid import FitGrid, chunks
+from rngcam.recon.methods.stfm.flat_adam import FlatAdam, flatten
+from rngcam.recon.methods.stfm.grid import FitGrid, chunks, sorted_sample
 from rngcam.recon.methods.stfm.init import GSInit
 from rngcam.recon.methods.stfm.learned import Gains, Pose, geometry_lines
 from rngcam.recon.methods.stfm.line_time import LineTime, line_time_lines
@@ -43,6 +44,12 @@ EMA_WARMUP_STEPS = 10
 def _group_ratio(group: dict, steps: int) -> float:
     """A parameter group's learning rate per unit of the fields' at `steps` (0 while it is held)."""
     return 0.0 if steps < group.get("hold_steps", 0) else group["lr_ratio"]
+
+
+def _spans(params: list[Tensor]) -> list[tuple[int, int]]:
+    """(start, end) of each parameter in a buffer that holds them one after another (`flatten`)."""
+    ends = np.cumsum([0] + [q.numel() for q in params]).tolist()
+    return list(zip(ends[:-1], ends[1:], strict=True))
 
 
 class STFM(MethodBase):
@@ -119,10 +126,20 @@ class STFM(MethodBase):
         elif self.resolved.init == "gs" and self.parts.gs:
             GSInit(self).run()
         self.steps = 0
-        self._build_optimiser(preset)
         self._params = [*self.model.fields.parameters(), self.learned_gains.parameter,
                         self.learned_line_time.parameter, self.learned_pose.parameter]
-        self._ema = [q.detach().clone() for q in self._params] if self.resolved.ema_decay > 0 else None
+        # one buffer for all parameters: the optimiser's update and the moving average are a few
+        # operations a step, not a few per parameter (None: parameters of several dtypes or devices)
+        same = len({(q.dtype, q.device) for q in self._params}) == 1
+        self._flat = flatten(self._params) if same else None
+        self._build_optimiser(preset)
+        self._ema_flat, self._ema = None, None
+        if self.resolved.ema_decay > 0 and self._flat is not None:
+            self._ema_flat = self._flat.clone()
+            self._ema = [self._ema_flat[a:b].view_as(q) for q, (a, b) in zip(self._params, _spans(self._params),
+                                                                              strict=True)]
+        elif self.resolved.ema_decay > 0:
+            self._ema = [q.detach().clone() for q in self._params]
         self._cache: tuple[int, Tensor] | None = None
         rows = self.grid.rs_rows_fit.to(self.device)
         self.rs_noise_level = relative_noise_level(p.b_rs.index_select(1, rows)) if self.parts.rs else None
@@ -164,9 +181,10 @@ class STFM(MethodBase):
             groups.append({"params": [line.parameter], **line.schedule(pose.inherited)})
         for g in groups:
             g["lr"] = lr * _group_ratio(g, self.steps)
-        # fused: one kernel for all parameters (CPU and CUDA), a fraction of the loop's time a step on a CPU
-        # (bench/convergence.md, "a fifth off the prior preset's step")
-        self.optimiser = torch.optim.Adam(groups, lr=lr, fused=self.device.type in ("cpu", "cuda"))
+        if self._flat is not None:  # Adam's update on the one buffer (flat_adam)
+            self.optimiser = FlatAdam(groups, self._flat, lr=lr)
+        else:  # fused: one kernel for all parameters (CPU and CUDA; bench/convergence.md)
+            self.optimiser = torch.optim.Adam(groups, lr=lr, fused=self.device.type in ("cpu", "cuda"))
         self.base_lr = lr
 
     def search_started(self) -> bool:
@@ -202,7 +220,7 @@ class STFM(MethodBase):
         windows = None
         n_win, n_gs = self.resolved.gs_windows_per_step, self.grid.w_gs.shape[0]
         if self.parts.gs and n_win and n_win < n_gs:
-            windows = torch.randperm(n_gs, generator=self.generator)[:n_win].sort().values
+            windows = self.loss.step_indices(sorted_sample(n_gs, n_win, self.generator))
         with heap_reuse():  # a large grid's temporaries are not faulted in afresh every step
             # freed inside: outside, glibc trimmed the heap top the last step's gradients held
             self.optimiser.zero_grad(set_to_none=True)
@@ -212,8 +230,11 @@ class STFM(MethodBase):
         if self._ema is not None:
             decay = min(self.resolved.ema_decay, (1 + self.steps) / (EMA_WARMUP_STEPS + self.steps))
             with torch.no_grad():
-                for a, q in zip(self._ema, self._params, strict=True):
-                    a.lerp_(q, 1 - decay)
+                if self._ema_flat is not None:
+                    self._ema_flat.lerp_(self._flat, 1 - decay)
+                else:
+                    for a, q in zip(self._ema, self._params, strict=True):
+                        a.lerp_(q, 1 - decay)
         self._cache = None
         return sum(terms.values())
 

@@ -72,6 +72,10 @@ class FieldModel:
         u = field_on_grid(self.fields["motion"], [self.grid.xs_knots, self.grid.ys_knots, self.grid.ts], idx)
         return interpolate_grid(u, [self.grid.xs_knots, self.grid.ys_knots], [self.grid.xs, self.grid.ys])
 
+    def per_pixel(self, u: Tensor) -> Tensor:
+        """Motion (n, H, W, c) of `motion(idx, per_pixel=False)`'s (a translation's (n, 1, 1, c) expanded)."""
+        return u.expand(u.shape[0], self.H, self.W, u.shape[-1]) if u.shape[1:3] != (self.H, self.W) else u
+
     def correction_channels(self) -> list[int]:
         """Dynamic-field outputs that correct a base (zero at the start): colour, and with
         base "keys" the blend logit."""
@@ -143,17 +147,19 @@ class FieldModel:
         finally:
             self._canonical_now = previous
 
-    def frames(self, idx: Tensor, static: Tensor | None = None) -> Tensor:
+    def frames(self, idx: Tensor, static: Tensor | None = None, motion: Tensor | None = None) -> Tensor:
         """Video frames idx (C, n, H, W), before any hard GS anchoring (zero outside the mask).
 
-        `static` may pass in the static image already evaluated for this step."""
+        `static` may pass in the static image already evaluated for this step, `motion` the motion at
+        idx (`motion(idx, per_pixel=False)`)."""
         n = len(idx)
         if self.parts.static and static is None:
             static = self.static()
         if not self.parts.motion:
             v = static[:, None].expand(self.C, n, self.H, self.W)
         else:
-            colour, alpha = self.dynamic_at(self.motion(idx), idx)
+            u = self.motion(idx) if motion is None else self.per_pixel(motion)
+            colour, alpha = self.dynamic_at(u, idx)
             v = colour if not self.parts.static else alpha * static[:, None] + (1 - alpha) * colour
         return v if self.grid.mask is None else v * self.grid.mask
 
