@@ -296,3 +296,51 @@ def test_a_coarse_to_fine_run_is_held_to_its_own_threshold():
         multi = misfit.for_metrics({**base, "method_results": {"rs_noise_level": 0.02, "levels": levels}})
         assert (single is not None) == one and (multi is not None) == two
     assert multi["threshold"] == misfit.MISFIT_RATIO_LEVELS
+
+
+def _key_rows(shift, sigma, plausible=True) -> dict:
+    """A self-calibration report of rngcam's shape whose key rows measured `shift` +/- `sigma` (px)."""
+    transform = {"shift_px": list(shift), "rotation_deg": 0.1, "scale": 1.001, "gains": [1.0]}
+    return {"mode": "gains", "applied": True, "rs_residual_after": 0.025, "transform_rejected": transform,
+            "refined": {"shift_px": [0.0, 0.0], "rotation_deg": 0.0, "scale": 1.0, "gains": [1.0]},
+            "transform_not_applied": "self_calibrate=gains", "transform_plausible": plausible,
+            "sigma": {"shift_x_px": sigma[0], "shift_y_px": sigma[1], "gains_rel": [0.01]}}
+
+
+def test_the_key_rows_decide_the_shift_verdict_where_they_measured_it():
+    """The fit's shift trades against the scene's motion (a shaking camera learned 1.01 px on an exact capture);
+    the key rows, exposed with the GS frames, see the shift without the motion: where they measured it, the
+    verdict is theirs, and only where they pin it (bench/untuned.md, "the shift verdict from the key rows")."""
+    shaking = misfit.verdict(0.0250, 0.0245, _key_rows((0.05, -0.02), (0.07, 0.12)), learned_shift_px=1.01)
+    assert shaking is None
+    shifted = misfit.verdict(0.0250, 0.0245, _key_rows((0.79, 0.69), (0.05, 0.09)), learned_shift_px=0.4)
+    assert shifted["verdict"] == misfit.FAR_OFF and shifted["likely_causes"] == ["geometry"]
+    assert shifted["key_rows_shift_px"] == pytest.approx(math.hypot(0.79, 0.69))
+    assert "key rows" in shifted["line"] and "1.05 px" in shifted["line"] and "fit learned 0.40 px" in shifted["line"]
+    # a shift the key rows cannot pin (a small object: +/- 0.5 px), or through a transform no calibration leaves
+    # (a dim scene's key rows fitted a 6 deg rotation): no verdict, whatever the fit learned
+    assert misfit.verdict(0.0250, 0.0245, _key_rows((1.06, 0.47), (0.52, 0.52)), learned_shift_px=1.2) is None
+    assert misfit.verdict(0.0250, 0.0245, _key_rows((0.34, -0.84), (3.2, 5.8), plausible=False),
+                          learned_shift_px=1.36) is None
+    # under --no-gs the transform plays no part; a line time far off is said from the fit as before
+    assert misfit.verdict(0.0250, 0.0245, _key_rows((0.79, 0.69), (0.05, 0.09)), gs_fitted=False) is None
+    line = misfit.verdict(0.0250, 0.0245, _key_rows((0.05, 0.0), (0.07, 0.1)), line_factor=1.02)
+    assert line["likely_causes"] == ["line time"]
+
+
+def test_the_key_rows_pin_a_shifted_calibration_and_not_an_exact_one(tmp_path):
+    """calibrate_problem's report carries what the shift verdict reads: on an exact capture of the packaged clip
+    (32 px) a shift well under GEOMETRY_FAR_PX, with the GS camera 1.1 px off the calibration's a longer one,
+    pinned: the verdict. (The ball alone is too bare to register at 32-48 px: its key rows fit a 2.6-5.9 deg
+    rotation, not plausible, so they give no shift verdict either way.)"""
+    exact, shifted = tmp_path / "exact.h5", tmp_path / "shifted.h5"
+    simulate("clip", exact, size=32, fidelity="fine")
+    simulate("clip", shifted, size=32, fidelity="lab", lab_errors=LabErrors(shift_px=(0.8, 0.8)))
+    _, report = calibrate_problem(build_problem(read_bundle(exact)), "gains")
+    assert report["transform_plausible"] is True and {"shift_x_px", "shift_y_px"} <= set(report["sigma"])
+    length, error = misfit.key_rows_shift(report)
+    assert length < misfit.GEOMETRY_FAR_PX / 2 and error > 0 and misfit.verdict(0.0250, 0.0245, report) is None
+    _, report = calibrate_problem(build_problem(read_bundle(shifted)), "gains")
+    length, error = misfit.key_rows_shift(report)
+    assert length == pytest.approx(math.hypot(0.8, 0.8), abs=0.3) and length > misfit.KEY_ROWS_SHIFT_Z * error
+    assert misfit.verdict(0.0250, 0.0245, report)["verdict"] == misfit.FAR_OFF

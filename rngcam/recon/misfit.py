@@ -6,9 +6,10 @@ data the model does not explain: a PSF at another magnification than the calibra
 another depth), a GS-to-RS transform off, a line time off. `verdict` says so in one line and names
 the causes the run did not correct (from what self-calibration estimated and applied and what
 the fit learned with its fields); a run whose residual reached the noise level gets None, unless
-the line time or the GS-to-RS shift it learned is far off the recorded one ("calibration far off":
-the recorded calibration is wrong, and what the fit learned of it rests on the motion: the line time
-on a motion timing the rows, the shift only across the motion). The
+the line time it learned, or the GS-to-RS shift self-calibration's key rows pinned (the fit's, where
+there are no key rows), is far off the recorded one ("calibration far off": the recorded calibration
+is wrong, and what the fit learned of it rests on the motion: the line time on a motion timing the
+rows, the shift only across the motion). The
 threshold is set above what the fine simulation family ends on (the model right up to sub-grid
 detail; bench/realistic.md).
 """
@@ -53,11 +54,16 @@ LINE_TIME_FAR = 0.007
 # ... and one this far from 1 makes the fit's note suggest measuring the line time: above what the fit wanders
 # on exact timing (bench/realistic.md, "the prior preset fits half-frames")
 LINE_TIME_SUSPECT = 0.005
-# A GS-to-RS shift learned this far (px) from the calibration's says the calibration is off: the fit pins
-# the shift across the scene's motion only (along it the shift trades against the motion's timing) and
-# applies it on the grid, where detail finer than a grid pixel aliases, so exact captures learn a shift
-# below this; `calibrate align` on a static chart leaves far less (bench/realistic.md, "what the fit cannot learn").
+# A GS-to-RS shift this far (px) from the calibration's says the calibration is off; `calibrate align` on a
+# static chart leaves far less (bench/realistic.md, "what the fit cannot learn").
 GEOMETRY_FAR_PX = 0.6
+# Where self-calibration's key rows (exposed with the GS frames: no motion between them) measured the shift, they
+# decide, and only where they pin it: its length at least this many standard errors, with a rotation and scale
+# such as a calibration leaves (`transform_plausible`). The shift the fit learns trades against the scene's
+# motion: on exact captures it learned 1.01 px (a shaking camera) and 1.36 px (a dim scene), where the key rows
+# read 0.06 +/- 0.1 px and an implausible transform; over 37 exact and calibrated bundles the key rows give no
+# verdict, over 12 with a 1 px shift 10 (bench/untuned.md, "the shift verdict from the key rows").
+KEY_ROWS_SHIFT_Z = 3.0
 
 
 def _causes(selfcal: dict | None, gs_fitted: bool = True, learned: tuple[str, ...] = ()) -> tuple[list[str], bool]:
@@ -114,8 +120,9 @@ def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str
     `gs_fitted`: False under --no-gs, where the GS-to-RS transform plays no part; `learned`: the
     causes the fit corrected itself (`learned_by_fit`); `line_factor`: the line-time factor it
     learned, `learned_shift_px`: the length of the GS-to-RS shift it learned: more than LINE_TIME_FAR
-    from 1 or GEOMETRY_FAR_PX long, a residual within the limit gives the FAR_OFF verdict (explained
-    data, a recorded calibration off by more than the fit corrects reliably)."""
+    from 1, or a shift GEOMETRY_FAR_PX long (the key rows' in `selfcal` where they measured it, pinned at
+    KEY_ROWS_SHIFT_Z standard errors; else the fit's), a residual within the limit gives the FAR_OFF verdict
+    (explained data, a recorded calibration off by more than the fit corrects reliably)."""
     try:
         residual, noise = float(rs_residual), float(noise_level)
     except (TypeError, ValueError):
@@ -127,7 +134,9 @@ def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str
     causes, pointed = _causes(selfcal, gs_fitted, learned)
     limit = min(ratio_limit, POINTED_RATIO) if pointed else ratio_limit
     if ratio <= limit:
-        return _far_off(line_factor, learned_shift_px if gs_fitted else None, residual, noise, ratio, limit)
+        key_shift = key_rows_shift(selfcal) if gs_fitted else None
+        return _far_off(line_factor, learned_shift_px if gs_fitted else None, key_shift, residual, noise, ratio,
+                        limit)
     finished = ended_by == "own_stop"
     key = key_rows_ratio(selfcal, noise) if gs_fitted else None
     if finished and not pointed and key is not None and key <= KEY_ROWS_EXPLAINED:
@@ -154,12 +163,36 @@ def key_rows_ratio(selfcal, noise: float) -> float | None:
     return after / noise if after is not None and noise > 0 else None
 
 
-def _far_off(line_factor, shift_px, residual: float, noise: float, ratio: float, limit: float) -> dict | None:
-    """The verdict where the data are explained but the fit learned a line time or a GS-to-RS shift far off
-    the recorded calibration."""
+def key_rows_shift(selfcal) -> tuple[float, float] | None | bool:
+    """(length, its standard error) in px of the GS-to-RS shift self-calibration's key rows measured, where
+    their transform is plausible; False where a key-row report of rngcam's shape says nothing pins it
+    (an implausible transform, no standard errors); None without one (metrics from elsewhere, no key rows)."""
+    report = selfcal if isinstance(selfcal, dict) else {}
+    measured = report.get("transform_rejected", report.get("refined"))
+    sigma = report.get("sigma")
+    if "transform_plausible" not in report or not isinstance(measured, dict) or not isinstance(sigma, dict):
+        return None
+    shift = measured.get("shift_px")
+    if report["transform_plausible"] is not True or not (isinstance(shift, list) and len(shift) == 2):
+        return False
+    dx, dy, sx, sy = (_number(v) for v in (*shift, sigma.get("shift_x_px"), sigma.get("shift_y_px")))
+    if None in (dx, dy, sx, sy):
+        return False
+    length = math.hypot(dx, dy)
+    along = math.hypot(dx * sx, dy * sy) / length if length > 0 else max(sx, sy)  # the error along the shift
+    return length, along
+
+
+def _far_off(line_factor, shift_px, key_shift, residual: float, noise: float, ratio: float,
+             limit: float) -> dict | None:
+    """The verdict where the data are explained but the fit learned a line time, or the key rows (else the fit)
+    a GS-to-RS shift, far off the recorded calibration (`key_shift`: key_rows_shift's)."""
     line_factor, shift_px = _number(line_factor), _number(shift_px)
     line_far = line_factor is not None and abs(line_factor - 1) > LINE_TIME_FAR
-    shift_far = shift_px is not None and shift_px > GEOMETRY_FAR_PX
+    if key_shift is None:  # no key rows: the fit's shift is all there is
+        shift_far = shift_px is not None and shift_px > GEOMETRY_FAR_PX
+    else:
+        shift_far = bool(key_shift) and key_shift[0] > max(GEOMETRY_FAR_PX, KEY_ROWS_SHIFT_Z * key_shift[1])
     if not (line_far or shift_far):
         return None
     parts, causes = [], []
@@ -169,7 +202,13 @@ def _far_off(line_factor, shift_px, residual: float, noise: float, ratio: float,
                      "the rows (elsewhere moving objects may be misplaced in the last rows' frames): measure it with "
                      "`rngcam calibrate linetime --flicker`")
         causes.append("line time")
-    if shift_far:
+    if shift_far and key_shift:
+        learned = "" if shift_px is None else f"; the fit learned {shift_px:.2f} px"
+        parts.append(f"the key rows (the RS rows exposed with the GS frames) put the GS frames at a GS-to-RS shift of "
+                     f"{key_shift[0]:.2f} px (+/- {key_shift[1]:.2f}) from the calibration's{learned}: measure it with "
+                     "`rngcam calibrate align`")
+        causes.append("geometry")
+    elif shift_far:
         parts.append(f"the fit learned a GS-to-RS shift of {shift_px:.2f} px on top of the calibration's; it pins the "
                      "shift across the scene's motion only (along it the shift trades against the motion's timing) and "
                      "applies it on the reconstruction's grid, where detail finer than a grid pixel aliases: "
@@ -180,8 +219,10 @@ def _far_off(line_factor, shift_px, residual: float, noise: float, ratio: float,
              "likely_causes": causes, "line": line}
     if line_far:
         found["line_factor"] = line_factor
-    if shift_far:
+    if shift_far and shift_px is not None:
         found["learned_shift_px"] = shift_px
+    if shift_far and key_shift:
+        found["key_rows_shift_px"] = key_shift[0]
     return found
 
 

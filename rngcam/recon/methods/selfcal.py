@@ -363,7 +363,8 @@ def _register(problem, mode: str) -> tuple[dict, np.ndarray, np.ndarray] | None:
               "rs_residual_before": result["rs_residual_before"], "rs_residual_after": result["rs_residual_after"],
               "start": {**describe(np.eye(3)), "gains": wb0.tolist()},
               "refined": {**describe(result["matrix"]), "gains": gains.tolist()},
-              "sigma": result["sigma"]}
+              "sigma": result["sigma"],  # the misfit verdict reads the shift's where the transform is plausible
+              "transform_plausible": bool(abs(d["rotation_deg"]) <= MAX_ROTATION_DEG and abs(d["scale"] - 1) <= MAX_SCALE)}
     if why is not None:
         report["transform_not_applied"] = why
         report["transform_rejected"] = report["refined"]
