@@ -1,4 +1,5 @@
-"""The GPU check in one call: device tests, the default at 64 px, the paper grid and 8x, one table.
+"""The GPU check in one call: device tests, a step's operations and time, the default at 64 px, the paper
+grid and 8x, one table.
 
     python -m bench.gpu_check -o OUT                 # on a lent GPU (about 8 minutes)
     python -m bench.gpu_check -o OUT --device cpu --quick   # its CPU half: tiny sizes, a few steps
@@ -160,6 +161,28 @@ def device_tests(out: Path, limit: float) -> dict:
             "wall_s": time.perf_counter() - t0, "summary": last[0]}
 
 
+def step_figures(out: Path, runs: list[tuple], limit: float, device: str, steps: int = 10) -> dict:
+    """Operations and milliseconds a step of the default fit on `device` (bench/ops_per_step.py, one CPU
+    thread), per coarse-to-fine level, on the smallest grid's bundles of `runs`: the issue's "a 64 px
+    step <= 5 ms" and "<= 1,500 operations" in one row."""
+    size = min((r[2] for r in runs), key=lambda s: int(s.split("x")[0]))
+    bundles = [str(out / f"{scene}-{size}.h5") for scene in dict.fromkeys(r[1] for r in runs if r[2] == size)]
+    bundles = [b for b in bundles if Path(b).exists()]
+    row = {"label": f"{size} px step (ops, ms)", "load_before": _load()}
+    if not bundles:
+        return {**row, "status": "no bundle (simulate failed: see gpu_check.log)"}
+    t0 = time.perf_counter()
+    rc, text = _sh([sys.executable, "-m", "bench.ops_per_step", *bundles, "--device", device, "--steps", str(steps),
+                    "--json", str(out / "ops_per_step.json")], limit, out / "gpu_check.log")
+    found = out / "ops_per_step.json"
+    if rc != 0 or not found.exists():
+        return {**row, "status": f"ops_per_step failed ({rc})", "wall_s": time.perf_counter() - t0}
+    levels = json.loads(found.read_text())["rows"]
+    summary = "; ".join(f"{r['bundle']} {r['level']}: {r['ops']:,.0f} ops, {r['ms']:.1f} ms" for r in levels)
+    return {**row, "status": "ok", "summary": summary, "wall_s": time.perf_counter() - t0, "device": device,
+            "steps_levels": levels}
+
+
 def reconstruction(out: Path, label: str, scene: str, size: str, settings: dict, limit: float,
                    device: str) -> dict:
     """Simulate the scene and reconstruct it in a child; the row of figures."""
@@ -234,6 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--device", default="cuda", help="cuda (default) or cpu")
     p.add_argument("--quick", action="store_true", help="tiny sizes and a few steps (the CPU half, for CI)")
     p.add_argument("--skip-tests", action="store_true", help="leave out the device-parametrised tests")
+    p.add_argument("--skip-step", action="store_true", help="leave out the row of a step's operations and time")
     p.add_argument("--sweep", choices=sorted(SWEEPS), help="instead of the check: the paper grid at 8, 32 and 96 rows a "
                    "step (rows) or at 32 and 128 frames per autograd graph (chunks), 70 s each")
     p.add_argument("--only", default="", help="comma-separated labels to keep, each a whole label or a prefix "
@@ -253,6 +277,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"gpu check: {device}; {len(runs)} runs", flush=True)
     simulate_all(a.out, runs, 240)
     rows = [] if a.skip_tests else [device_tests(a.out, 120)]
+    if not a.skip_step and runs:
+        rows.append(step_figures(a.out, runs, 300, a.device, steps=2 if a.quick else 10))
+        print(json.dumps({k: v for k, v in rows[-1].items() if k != "steps_levels"}), flush=True)
     for label, scene, size, settings, limit in runs:
         rows.append(reconstruction(a.out, label, scene, size, settings, limit, a.device))
         print(json.dumps(rows[-1]), flush=True)

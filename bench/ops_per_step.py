@@ -2,6 +2,7 @@
 
     python -m bench.ops_per_step                      # smoke and sineball, simulated at 64 px
     python -m bench.ops_per_step shot.h5 --steps 20   # bundles of your own
+    python -m bench.ops_per_step --device cuda --json ops.json   # on a GPU (bench/gpu_check.py runs it)
 
 Each bundle's default STFM (`preset auto`) is built as `rngcam recon` builds it (`make_stfm` on the
 problem the runner reads) and stepped: first its coarse level (the half grid, an ensemble of fits: one
@@ -16,6 +17,7 @@ level's N most called operators per step.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import tempfile
 import time
@@ -25,8 +27,8 @@ from pathlib import Path
 SCENES = ("smoke", "sineball")
 
 
-def build_default(path: Path):
-    """The default STFM run on the bundle at `path`, as the runner makes it (float32, no truth)."""
+def build_default(path: Path, device: str = "cpu"):
+    """The default STFM run on the bundle at `path`, as the runner makes it (float32, no truth), on `device`."""
     import torch
 
     from rngcam.api import open_bundle
@@ -37,7 +39,7 @@ def build_default(path: Path):
 
     settings = registry.get("stfm").settings()  # the command's default: preset auto
     problem = method_view(build_problem(open_bundle(path).bundle), settings).to(torch.float32)
-    return make_stfm(problem, settings, "cpu")
+    return make_stfm(problem, settings, device)
 
 
 def count_ops(step, steps: int) -> tuple[float, Counter]:
@@ -51,11 +53,17 @@ def count_ops(step, steps: int) -> tuple[float, Counter]:
     return sum(names.values()) / steps, Counter({k: v / steps for k, v in names.items()})
 
 
-def time_steps(step, steps: int) -> float:
-    """Milliseconds a call of `step`, over `steps` calls."""
+def time_steps(step, steps: int, device: str = "cpu") -> float:
+    """Milliseconds a call of `step`, over `steps` calls (on CUDA, from a synchronised start to a
+    synchronised end)."""
+    import torch
+
+    sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
+    sync()
     t0 = time.perf_counter()
     for _ in range(steps):
         step()
+    sync()
     return 1000 * (time.perf_counter() - t0) / steps
 
 
@@ -68,9 +76,9 @@ def describe(method) -> str:
             f"(base {base}, motion {one.resolved.motion_model})")
 
 
-def measure(path: Path, steps: int, warmup: int, top: int) -> list[dict]:
-    """One row per level of the default fit on the bundle at `path`."""
-    run = build_default(path)
+def measure(path: Path, steps: int, warmup: int, top: int, device: str = "cpu") -> list[dict]:
+    """One row per level of the default fit on the bundle at `path`, on `device`."""
+    run = build_default(path, device)
     rows = []
     levels = getattr(run, "problems", None)
     for level in range(len(levels) if levels else 1):
@@ -80,7 +88,7 @@ def measure(path: Path, steps: int, warmup: int, top: int) -> list[dict]:
         for _ in range(warmup):
             run.step()
         ops, names = count_ops(run.step, steps)
-        ms = time_steps(run.step, steps)
+        ms = time_steps(run.step, steps, device)
         rows.append({"bundle": path.stem, "level": level + 1, "fit": describe(fit), "ops": ops, "ms": ms,
                      "top": names.most_common(top)})
     return rows
@@ -94,7 +102,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=10, help="steps profiled, and steps timed [10]")
     p.add_argument("--warmup", type=int, default=3, help="steps before the profiled ones, per level [3]")
     p.add_argument("--top", type=int, default=0, help="print each level's N most called operators [0]")
+    p.add_argument("--device", default="cpu", help="where the fit runs: cpu (one thread) or cuda [cpu]")
+    p.add_argument("--json", type=Path, default=None, help="also write the rows to this JSON file")
     a = p.parse_args(argv)
+    if a.device.startswith("cuda") and not torch.cuda.is_available():
+        p.error(f"--device {a.device}: torch sees no CUDA device")
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp:
         bundles = list(a.bundles)
@@ -104,8 +116,11 @@ def main(argv: list[str] | None = None) -> int:
             for scene in SCENES:
                 bundles.append(Path(tmp) / f"{scene}.h5")
                 simulate(scene, bundles[-1], size=64)
-        rows = [r for b in bundles for r in measure(b, a.steps, a.warmup, a.top)]
-    print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}, torch {torch.__version__}, 1 thread")
+        rows = [r for b in bundles for r in measure(b, a.steps, a.warmup, a.top, a.device)]
+    print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}, torch {torch.__version__}, "
+          f"{a.device}, 1 CPU thread")
+    if a.json is not None:
+        a.json.write_text(json.dumps({"device": a.device, "torch": torch.__version__, "rows": rows}, indent=1))
     print(f"{'bundle':<12} {'level':>5} {'ops/step':>9} {'ms/step':>8}  fit")
     for r in rows:
         print(f"{r['bundle']:<12} {r['level']:>5} {r['ops']:>9.0f} {r['ms']:>8.1f}  {r['fit']}")

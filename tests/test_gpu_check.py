@@ -17,7 +17,8 @@ def test_the_quick_check_runs_a_scene_on_its_own_device_and_writes_its_row(tmp_p
     # the run names its own device, as the check's CPU baseline does: it wins over --device
     monkeypatch.setattr(gpu_check, "QUICK", [("sineball 32 quick", "sineball", "32",
                                               {"max_iters": 10, "device": "cpu", "threads": 2}, 120)])
-    rc = gpu_check.main(["-o", str(tmp_path), "--device", "cuda", "--quick", "--skip-tests", "--only", "sineball"])
+    rc = gpu_check.main(["-o", str(tmp_path), "--device", "cuda", "--quick", "--skip-tests", "--skip-step",
+                         "--only", "sineball"])
     assert rc == 0
     rows = json.loads((tmp_path / "gpu_check.json").read_text())["rows"]
     assert [r["label"] for r in rows] == ["sineball 32 quick"]
@@ -34,7 +35,8 @@ def test_the_quick_check_runs_a_scene_on_its_own_device_and_writes_its_row(tmp_p
 
 def test_only_keeps_runs_by_label_prefix_and_a_failed_simulation_is_a_row(tmp_path, monkeypatch):
     monkeypatch.setattr(gpu_check, "simulate_all", lambda out, runs, limit: None)  # no bundle made
-    rc = gpu_check.main(["-o", str(tmp_path), "--device", "cpu", "--quick", "--skip-tests", "--only", "smoke 32"])
+    rc = gpu_check.main(["-o", str(tmp_path), "--device", "cpu", "--quick", "--skip-tests", "--skip-step",
+                         "--only", "smoke 32"])
     assert rc == 1  # a row that is not ok
     rows = json.loads((tmp_path / "gpu_check.json").read_text())["rows"]
     assert [r["label"] for r in rows] == ["smoke 32 quick"]
@@ -60,10 +62,10 @@ def test_a_whole_label_keeps_that_row_alone_and_threads_reach_every_run(tmp_path
                         or {"label": label, "status": "ok"})
     monkeypatch.setattr(gpu_check, "FULL", [("a 64", "a", "64", {}, 9), ("a 64, 2 threads", "a", "64", {"threads": 2}, 9),
                                             ("b 64", "b", "64", {}, 9), ("b 128", "b", "128", {}, 9)])
-    assert gpu_check.main(["-o", str(tmp_path), "--skip-tests", "--only", "a 64,b", "--threads", "4"]) == 0
+    assert gpu_check.main(["-o", str(tmp_path), "--skip-tests", "--skip-step", "--only", "a 64,b", "--threads", "4"]) == 0
     assert seen == [("a 64", {"threads": 4}), ("b 64", {"threads": 4}), ("b 128", {"threads": 4})]
     seen.clear()
-    assert gpu_check.main(["-o", str(tmp_path), "--skip-tests", "--only", "a 64,", "--threads", "4"]) == 0
+    assert gpu_check.main(["-o", str(tmp_path), "--skip-tests", "--skip-step", "--only", "a 64,", "--threads", "4"]) == 0
     assert [label for label, _ in seen] == ["a 64"]  # a trailing comma's empty word keeps nothing more
 
 
@@ -98,3 +100,19 @@ def test_a_profiled_run_lists_where_its_time_went(tmp_path, monkeypatch, capsys)
     gpu_check.child("b.h5", str(tmp_path / "o"), "cpu", json.dumps({"max_iters": 1, "profile": True}))
     row = json.loads(capsys.readouterr().out.split("ROW ", 1)[1])
     assert any("line_search" in line for line in row["profile_top"]), row["profile_top"]
+
+
+@pytest.mark.slow
+def test_the_step_row_counts_a_steps_operations_and_times_it_on_the_device(tmp_path, monkeypatch):
+    """The row of bench/ops_per_step.py's figures, on the smallest grid's bundles (here the quick 32 px one, on
+    the CPU): operations and milliseconds a step for each coarse-to-fine level, in the table's status."""
+    monkeypatch.setattr(gpu_check, "QUICK", [("smoke 32 quick", "smoke", "32", {"max_iters": 2}, 120)])
+    assert gpu_check.main(["-o", str(tmp_path), "--device", "cpu", "--quick", "--skip-tests", "--only", "smoke"]) == 0
+    rows = json.loads((tmp_path / "gpu_check.json").read_text())["rows"]
+    assert [r["label"] for r in rows] == ["32 px step (ops, ms)", "smoke 32 quick"]
+    step = rows[0]
+    assert step["status"] == "ok" and step["device"] == "cpu" and step["steps_levels"]
+    for level in step["steps_levels"]:
+        assert level["bundle"] == "smoke-32" and level["ops"] > 100 and level["ms"] > 0
+    assert "smoke-32 1:" in step["summary"] and " ops, " in step["summary"]
+    assert "32 px step (ops, ms)" in (tmp_path / "gpu_check.md").read_text()
