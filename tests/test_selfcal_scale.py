@@ -322,6 +322,14 @@ def test_the_key_rows_decide_the_shift_verdict_where_they_measured_it():
     assert misfit.verdict(0.0250, 0.0245, _key_rows((1.06, 0.47), (0.52, 0.52)), learned_shift_px=1.2) is None
     assert misfit.verdict(0.0250, 0.0245, _key_rows((0.34, -0.84), (3.2, 5.8), plausible=False),
                           learned_shift_px=1.36) is None
+    # above the noise level with the key rows explained (they fit the transform, so a shift leaves them
+    # explained) the verdict still names the shift they pin, first among the causes
+    report = dict(_key_rows((0.79, 0.69), (0.05, 0.09)), rs_residual_after=0.0250)
+    above = misfit.verdict(0.0350, 0.0245, report, learned=("geometry",))
+    assert above["verdict"] == misfit.NOT_EXPLAINED and above["likely_causes"][0] == "geometry"
+    assert "1.05 px" in above["line"] and "calibrate align" in above["line"]
+    assert misfit.verdict(0.0350, 0.0245, dict(_key_rows((0.05, 0.0), (0.07, 0.1)), rs_residual_after=0.0250),
+                          learned=("geometry",)) is None  # motion is what is left: above_noise says so
     # under --no-gs the transform plays no part; a line time far off is said from the fit as before
     assert misfit.verdict(0.0250, 0.0245, _key_rows((0.79, 0.69), (0.05, 0.09)), gs_fitted=False) is None
     line = misfit.verdict(0.0250, 0.0245, _key_rows((0.05, 0.0), (0.07, 0.1)), line_factor=1.02)

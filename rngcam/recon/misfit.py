@@ -133,18 +133,25 @@ def verdict(rs_residual, noise_level, selfcal: dict | None = None, ended_by: str
     ratio = residual / noise
     causes, pointed = _causes(selfcal, gs_fitted, learned)
     limit = min(ratio_limit, POINTED_RATIO) if pointed else ratio_limit
+    key_shift = key_rows_shift(selfcal) if gs_fitted else None
     if ratio <= limit:
-        key_shift = key_rows_shift(selfcal) if gs_fitted else None
         return _far_off(line_factor, learned_shift_px if gs_fitted else None, key_shift, residual, noise, ratio,
                         limit)
     finished = ended_by == "own_stop"
     key = key_rows_ratio(selfcal, noise) if gs_fitted else None
-    if finished and not pointed and key is not None and key <= KEY_ROWS_EXPLAINED:
+    # the key rows fit the transform, so a shifted GS camera leaves them explained: a shift they pin still speaks
+    shifted = _pinned(key_shift)
+    if finished and not pointed and not shifted and key is not None and key <= KEY_ROWS_EXPLAINED:
         return None  # the calibration explains the key rows: motion is what is left (above_noise says so)
+    if shifted:
+        causes = ["geometry"] + [c for c in causes if c != "geometry"]
     what = NOT_EXPLAINED if finished else NOT_FITTED
     line = (f"misfit: {what}: RS residual {residual:.4f} is {ratio:.2f}x the noise level {noise:.4f}")
     if finished:
         line += f"; likely causes not corrected: {', '.join(causes)}"
+        if shifted:
+            line += (f" (the key rows put the GS frames at a GS-to-RS shift of {key_shift[0]:.2f} px (+/- "
+                     f"{key_shift[1]:.2f}) from the calibration's: measure it with `rngcam calibrate align`)")
         if pointed:
             psf = selfcal["scales"]["psf"]
             why = f": {psf['why']}" if isinstance(psf.get("why"), str) else ""
@@ -183,6 +190,11 @@ def key_rows_shift(selfcal) -> tuple[float, float] | None | bool:
     return length, along
 
 
+def _pinned(key_shift) -> bool:
+    """Whether the key rows' shift (key_rows_shift's) is far off the calibration's and pinned."""
+    return bool(key_shift) and key_shift[0] > max(GEOMETRY_FAR_PX, KEY_ROWS_SHIFT_Z * key_shift[1])
+
+
 def _far_off(line_factor, shift_px, key_shift, residual: float, noise: float, ratio: float,
              limit: float) -> dict | None:
     """The verdict where the data are explained but the fit learned a line time, or the key rows (else the fit)
@@ -192,7 +204,7 @@ def _far_off(line_factor, shift_px, key_shift, residual: float, noise: float, ra
     if key_shift is None:  # no key rows: the fit's shift is all there is
         shift_far = shift_px is not None and shift_px > GEOMETRY_FAR_PX
     else:
-        shift_far = bool(key_shift) and key_shift[0] > max(GEOMETRY_FAR_PX, KEY_ROWS_SHIFT_Z * key_shift[1])
+        shift_far = _pinned(key_shift)
     if not (line_far or shift_far):
         return None
     parts, causes = [], []
