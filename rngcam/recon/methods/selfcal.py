@@ -263,8 +263,7 @@ def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True, flat
         if scale is not None:
             scale["first_estimate"] = None if first is None else first["estimate"]
             found["scales"] = {"psf": scale}
-    if flat:  # the PSF's background and the GS vignetting (selfcal_flat) through the PSF so magnified, the
-        # transform as applied (the one the key rows fit on their few rows can be far off: a rotation of degrees)
+    if flat:  # the PSF's background and the GS vignetting (selfcal_flat), through the PSF so magnified
         found["flat"] = calibrate_flat(calibrated)
     final = apply_flat(replace(problem, psf=calibrated.psf, notes=list(problem.notes)), found.get("flat"))
     if final.psf is not through.psf or final.b_gs is not problem.b_gs:

@@ -39,6 +39,7 @@ MIN_Z_VIGNETTING = 3.0
 MAX_BACKGROUND = 0.10  # of the PSF's sum: beyond it the key rows fitted something else
 MAX_VIGNETTING = 0.20  # falloff at the corners
 _STEPS = 8  # Gauss-Newton steps
+_MAX_CONDITION = 1e12  # of the normal matrix (columns scaled to 1): beyond it a value is not determined
 
 
 def radius2(h: int, w: int, dtype=torch.float64, device="cpu") -> Tensor:
@@ -70,17 +71,13 @@ def devignetted(b_gs: Tensor, amount: float) -> Tensor:
     return b_gs / (1 - amount * radius2(h, w, b_gs.dtype, b_gs.device))
 
 
-def _columns(problem, matrix=None):
+def _columns(problem):
     """Per channel, the key rows' measured values and three predictions (through the PSF, through a
     flat PSF, through the PSF of the GS images times r^2), each (C, n); None without key rows."""
-    from rngcam.recon.methods.selfcal import is_identity, warp  # selfcal imports this module
-
     data = key_row_data(problem)
     if data is None:
         return None
     p, images, valid, rowsum, sel, targets = data
-    if matrix is not None and not is_identity(matrix):
-        images = warp(images, np.linalg.inv(np.asarray(matrix, np.float64)))
     c, _, h, w = images.shape
     conv = p.rs_op().conv
     flat = replace(p, psf=torch.ones_like(p.psf) / (p.psf.shape[-2] * p.psf.shape[-1])).rs_op().conv
@@ -94,13 +91,14 @@ def _columns(problem, matrix=None):
     return {k: torch.cat(v, 1).cpu() for k, v in cols.items()}, int(sum(len(r) for _, r in sel))
 
 
-def _gauss_newton(t: Tensor, hh: Tensor, extras: list[Tensor]) -> tuple[np.ndarray, np.ndarray, float, float]:
+def _gauss_newton(t: Tensor, hh: Tensor, extras: list[Tensor]) -> tuple[np.ndarray, np.ndarray, float, float] | str:
     """Fit g_c (hh + sum_k theta_k extras_k) to t (each (C, n)): (theta, its standard errors, the relative
-    residual at theta = 0 and at theta), the gains g_c (one per channel) fitted alongside."""
+    residual at theta = 0 and at theta), the gains g_c (one per channel) fitted alongside; or why the
+    data cannot give them (no light, nothing finite, the extras indistinguishable from the PSF)."""
     c, k = t.shape[0], len(extras)
     norm = float(t.square().sum())
-    if not (math.isfinite(norm) and norm > 0):
-        raise ConfigError("the key rows hold no light: no background or vignetting to estimate")
+    if not (math.isfinite(norm) and norm > 0 and bool(torch.isfinite(hh).all())):
+        return "the key rows hold no light (or are not finite)"
 
     def prediction(theta: Tensor) -> Tensor:
         return hh + sum(th * x for th, x in zip(theta, extras, strict=True))
@@ -123,25 +121,38 @@ def _gauss_newton(t: Tensor, hh: Tensor, extras: list[Tensor]) -> tuple[np.ndarr
             break
         x = x + step
     r = residual(x)
+    if not (bool(torch.isfinite(x).all()) and bool(torch.isfinite(r).all())):
+        return "the fit did not converge"
     jac = jacobian(x)
-    cov = torch.linalg.pinv(jac.T @ jac) * float(r.square().sum()) / max(r.numel() - x.numel(), 1)
+    scale = jac.norm(dim=0).clamp_min(1e-300)  # columns of very different sizes: condition the normal matrix
+    normal = (jac / scale).T @ (jac / scale)
+    if not float(torch.linalg.cond(normal)) < _MAX_CONDITION:
+        return "the key rows cannot tell it from the PSF and the gains (a scene too plain)"
+    cov = torch.linalg.inv(normal) / (scale[:, None] * scale[None, :]) * float(r.square().sum()) \
+        / max(r.numel() - x.numel(), 1)
     sigma = cov.diagonal()[c:].clamp_min(0).sqrt().numpy()
     return x[c:].numpy(), sigma, math.sqrt(start / norm), math.sqrt(float(r.square().sum()) / norm)
 
 
-def estimate_flat(problem, matrix=None) -> dict | None:
+def estimate_flat(problem) -> dict | None:
     """The PSF's background (share of its sum) and the GS vignetting (falloff at the corners) the key
     rows suggest, with standard errors: {"background", "background_sigma" (fitted alone with the gains),
     "vignetting", "vignetting_sigma", "background_with", "background_with_sigma" (fitted with the
     vignetting), "residual_before" (neither), "residual_after" (background alone), "residual_both",
-    "rows"}; None without key rows. `matrix`: the GS-to-RS transform to take the GS frames through
-    first (identity by default)."""
-    found = _columns(problem, matrix)
+    "rows"} ({"rows", "why"} where the key rows cannot give them); None without key rows. The GS frames
+    are taken as they are (the transform self-calibration applied, not the one the key rows suggest: on
+    their few rows that can be far off, a rotation of degrees)."""
+    found = _columns(problem)
     if found is None:
         return None
     cols, rows = found
-    (b,), (sb,), before, after = _gauss_newton(cols["t"], cols["H"], [-cols["T"]])
-    (bw, a), (sbw, sa), _, both = _gauss_newton(cols["t"], cols["H"], [-cols["T"], cols["V"]])
+    alone = _gauss_newton(cols["t"], cols["H"], [-cols["T"]])
+    both = _gauss_newton(cols["t"], cols["H"], [-cols["T"], cols["V"]])
+    for fit in (alone, both):
+        if isinstance(fit, str):
+            return {"rows": rows, "why": fit}
+    (b,), (sb,), before, after = alone
+    (bw, a), (sbw, sa), _, both = both
     return {"background": float(b), "background_sigma": float(sb), "vignetting": float(a),
             "vignetting_sigma": float(sa), "background_with": float(bw), "background_with_sigma": float(sbw),
             "residual_before": before, "residual_after": after, "residual_both": both, "rows": rows}
@@ -161,15 +172,16 @@ def _decide(value: float, sigma: float, min_z: float, bound: float) -> str | Non
     return None
 
 
-def calibrate_flat(problem, matrix=None) -> dict | None:
+def calibrate_flat(problem) -> dict | None:
     """{"rows", "residual_before", "residual_after", "background": {...}, "vignetting": {...}}, each
-    of the last two {"estimate", "sigma", "applied", "why" (where not)}; None without key rows. The
+    of the last two {"estimate", "sigma", "applied", "why" (where not)} ({"rows", "why"} where the key
+    rows cannot give them); None without key rows. The
     vignetting is fitted with the background and applied where it is MIN_Z_VIGNETTING standard errors
     from 0; the background is fitted with it where it is applied, alone (more precisely) where not.
     Apply the report with `apply_flat`."""
-    found = estimate_flat(problem, matrix)
-    if found is None:
-        return None
+    found = estimate_flat(problem)
+    if found is None or "why" in found:
+        return found
     a, sa = found["vignetting"], found["vignetting_sigma"]
     why_a = _decide(a, sa, MIN_Z_VIGNETTING, MAX_VIGNETTING)
     with_a = why_a is None
@@ -188,7 +200,7 @@ def calibrate_flat(problem, matrix=None) -> dict | None:
 def apply_flat(problem, report: dict | None):
     """The problem with what `report` (calibrate_flat's) applies: the PSF less its background, the GS
     frames divided by their falloff; the same problem where it applies nothing."""
-    if not report:
+    if not report or "why" in report:
         return problem
     changes = {}
     if report["background"]["applied"]:
@@ -202,6 +214,8 @@ def flat_lines(report: dict | None) -> list[str]:
     """One note per flat error: the estimate, its standard error and whether it was applied."""
     if not report:
         return []
+    if "why" in report:
+        return [f"PSF background and GS vignetting not estimated: {report['why']}"]
     lines = []
     for key, what in (("background", "PSF background"), ("vignetting", "GS vignetting")):
         r = report[key]
