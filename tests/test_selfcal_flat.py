@@ -43,6 +43,9 @@ def test_a_known_background_and_vignetting_are_recovered_and_applied():
     assert report["background"]["estimate"] == pytest.approx(0.03, abs=0.003)
     assert report["vignetting"]["estimate"] == pytest.approx(0.05, abs=0.01)
     assert report["residual_after"] < 0.5 * report["residual_before"]
+    for key, z in (("background", selfcal_flat.MIN_Z), ("vignetting", selfcal_flat.MIN_Z_VIGNETTING)):
+        r = report[key]  # what is applied is the lower confidence bound, short of the estimate
+        assert r["value"] == pytest.approx(r["estimate"] - z * r["sigma"]) and 0 < r["value"] < r["estimate"]
     fixed = selfcal_flat.apply_flat(p, report)
     # the PSF less the estimated background is the true one to within the estimate's error
     off = (fixed.psf - true_psf).abs().sum() / 3
@@ -79,7 +82,8 @@ def test_calibrate_problem_fits_the_gains_through_the_corrected_psf_and_frames()
     assert float((calibrated.psf - true_psf).abs().sum()) < 0.25 * float((p.psf - true_psf).abs().sum())
     np.testing.assert_allclose(report["refined"]["gains"], gains.numpy(), rtol=0.01)
     lines = selfcal.report_lines(report)
-    assert any(line.startswith("PSF background +") and line.endswith("applied") for line in lines)
+    assert any(line.startswith("PSF background +") and line.endswith("applied (its lower confidence bound)")
+               for line in lines)
     assert any(line.startswith("GS vignetting +") and "at the corners" in line for line in lines)
 
 

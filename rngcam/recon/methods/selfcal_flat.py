@@ -16,8 +16,11 @@ A_H the key rows' operator through the PSF, A_T through a flat PSF summing to 1,
 given (b, a). A Gauss-Newton fit of the gains and one b and a shared by the channels gives both with
 standard errors (sigma^2 (J^T J)^-1, sigma^2 from the residual). Each is applied only where it lowers the
 key rows' residual by more than noise would (|estimate| >= MIN_Z standard errors: the residual's drop is
-z^2 sigma^2) and lies within what a dark frame or a lens leaves; the gains are then fitted again through
-the corrected data (rngcam.recon.methods.selfcal.calibrate_problem).
+z^2 sigma^2) and lies within what a dark frame or a lens leaves, and then only its lower confidence bound,
+estimate - MIN_Z standard errors: what the key rows pin. An estimate that clears the threshold is one that
+noise pushed up as often as not, and a PSF stripped of more background than it holds is a worse error than
+the background left in (the motion search steers through it). The gains are then fitted again through the
+corrected data (rngcam.recon.methods.selfcal.calibrate_problem).
 """
 
 from __future__ import annotations
@@ -174,11 +177,11 @@ def _decide(value: float, sigma: float, min_z: float, bound: float) -> str | Non
 
 def calibrate_flat(problem) -> dict | None:
     """{"rows", "residual_before", "residual_after", "background": {...}, "vignetting": {...}}, each
-    of the last two {"estimate", "sigma", "applied", "why" (where not)} ({"rows", "why"} where the key
-    rows cannot give them); None without key rows. The
-    vignetting is fitted with the background and applied where it is MIN_Z_VIGNETTING standard errors
-    from 0; the background is fitted with it where it is applied, alone (more precisely) where not.
-    Apply the report with `apply_flat`."""
+    of the last two {"estimate", "sigma", "applied", "value" (applied: the estimate less its threshold's
+    standard errors) or "why" (not applied)} ({"rows", "why"} where the key rows cannot give them); None
+    without key rows. The vignetting is fitted with the background and applied where it is
+    MIN_Z_VIGNETTING standard errors from 0; the background is fitted with it where it is applied, alone
+    (more precisely) where not. Apply the report with `apply_flat`."""
     found = estimate_flat(problem)
     if found is None or "why" in found:
         return found
@@ -190,9 +193,12 @@ def calibrate_flat(problem) -> dict | None:
     why_b = _decide(b, sb, MIN_Z, MAX_BACKGROUND)
     out = {"rows": found["rows"], "residual_before": found["residual_before"],
            "residual_after": found["residual_both"] if with_a else found["residual_after"]}
-    for key, value, sigma, why in (("background", b, sb, why_b), ("vignetting", a, sa, why_a)):
+    for key, value, sigma, why, z in (("background", b, sb, why_b, MIN_Z),
+                                      ("vignetting", a, sa, why_a, MIN_Z_VIGNETTING)):
         out[key] = {"estimate": value, "sigma": sigma, "applied": why is None}
-        if why is not None:
+        if why is None:
+            out[key]["value"] = value - z * sigma  # the lower confidence bound: what the key rows pin
+        else:
             out[key]["why"] = why
     return out
 
@@ -204,14 +210,14 @@ def apply_flat(problem, report: dict | None):
         return problem
     changes = {}
     if report["background"]["applied"]:
-        changes["psf"] = without_background(problem.psf, report["background"]["estimate"])
+        changes["psf"] = without_background(problem.psf, report["background"]["value"])
     if report["vignetting"]["applied"] and problem.b_gs is not None:
-        changes["b_gs"] = devignetted(problem.b_gs, report["vignetting"]["estimate"])
+        changes["b_gs"] = devignetted(problem.b_gs, report["vignetting"]["value"])
     return replace(problem, **changes, notes=list(problem.notes)) if changes else problem
 
 
 def flat_lines(report: dict | None) -> list[str]:
-    """One note per flat error: the estimate, its standard error and whether it was applied."""
+    """One note per flat error: the estimate, its standard error and what of it was applied."""
     if not report:
         return []
     if "why" in report:
@@ -219,7 +225,8 @@ def flat_lines(report: dict | None) -> list[str]:
     lines = []
     for key, what in (("background", "PSF background"), ("vignetting", "GS vignetting")):
         r = report[key]
-        outcome = "applied" if r["applied"] else f"not applied, {r['why']}"
+        outcome = f"{100 * r['value']:.2f} % applied (its lower confidence bound)" if r["applied"] \
+            else f"not applied, {r['why']}"
         where = "of the PSF's sum" if key == "background" else "at the corners"
         lines.append(f"{what} {100 * r['estimate']:+.2f} % +/- {100 * r['sigma']:.2f} % ({where}) "
                      f"estimated from the key rows: {outcome}")
