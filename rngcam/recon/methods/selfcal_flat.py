@@ -18,9 +18,10 @@ standard errors (sigma^2 (J^T J)^-1, sigma^2 from the residual). Each is applied
 key rows' residual by more than noise would (|estimate| >= MIN_Z standard errors: the residual's drop is
 z^2 sigma^2) and lies within what a dark frame or a lens leaves, and then only its lower confidence bound,
 estimate - MIN_Z standard errors: what the key rows pin. An estimate that clears the threshold is one that
-noise pushed up as often as not, and a PSF stripped of more background than it holds is a worse error than
-the background left in (the motion search steers through it). The gains are then fitted again through the
-corrected data (rngcam.recon.methods.selfcal.calibrate_problem).
+noise, or scene content a flat term also fits, pushed up; the bound over-corrects only where the estimate
+lies more than MIN_Z standard errors above the truth (bench/realistic.md, "the PSF's background and GS
+vignetting self-calibrated"). The gains are then fitted again through the corrected data
+(rngcam.recon.methods.selfcal.calibrate_problem).
 """
 
 from __future__ import annotations
@@ -36,8 +37,8 @@ from rngcam.errors import ConfigError
 from rngcam.recon.methods.key_rows import key_row_data
 
 MIN_Z = 2.0  # the background is applied where it is at least this many standard errors from 0
-# The vignetting's estimate strays further than its standard error says (on the key rows of 64 px
-# captures: up to 3.7 standard errors from the truth, scene content that a radial falloff also fits)
+# The vignetting's estimate strays further than its standard error says (scene content that a radial
+# falloff also fits: bench/realistic.md)
 MIN_Z_VIGNETTING = 3.0
 MAX_BACKGROUND = 0.10  # of the PSF's sum: beyond it the key rows fitted something else
 MAX_VIGNETTING = 0.20  # falloff at the corners
