@@ -76,7 +76,7 @@ def test_calibrate_problem_fits_the_gains_through_the_corrected_psf_and_frames()
     p, true_psf, _ = _problem(background=0.03, vignetting=0.05)
     gains = torch.tensor([1.04, 0.97, 1.02], dtype=p.b_gs.dtype)
     p = replace(p, b_gs=p.b_gs / gains[:, None, None, None])
-    calibrated, report = selfcal.calibrate_problem(p, "gains")
+    calibrated, report = selfcal.calibrate_problem(p, "all")
     flat = report["flat"]
     assert flat["background"]["applied"] and flat["vignetting"]["applied"]
     assert float((calibrated.psf - true_psf).abs().sum()) < 0.25 * float((p.psf - true_psf).abs().sum())
@@ -117,10 +117,23 @@ def test_a_plain_scene_still_pins_the_background_by_the_light_the_psf_spreads_of
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_an_exactly_calibrated_bundle_gives_estimates_within_their_errors_of_zero(tmp_path, seed):
     p = build_problem(simulate("sineball", tmp_path / "f.h5", size=32, seed=seed, fidelity="fine"))
-    calibrated, report = selfcal.calibrate_problem(p, "gains")
+    calibrated, report = selfcal.calibrate_problem(p, "all")
     flat = report["flat"]
     for key in ("background", "vignetting"):
         assert abs(flat[key]["estimate"]) < 3 * flat[key]["sigma"]
     if seed > 0:  # seed 0's background estimate is 2.0 standard errors from 0: a false alarm at MIN_Z
         assert not flat["background"]["applied"] and not flat["vignetting"]["applied"]
         assert calibrated.psf is p.psf
+
+
+def test_the_default_mode_reports_the_flat_errors_and_applies_neither():
+    p, _, _ = _problem(background=0.03, vignetting=0.05)
+    calibrated, report = selfcal.calibrate_problem(p, "gains")
+    flat = report["flat"]
+    for key in ("background", "vignetting"):
+        r = flat[key]
+        assert not r["applied"] and "value" not in r and 0 < r["would_apply"] < r["estimate"]
+        assert "mode all applies it" in r["why"]
+    assert calibrated.psf is p.psf
+    assert any(line.startswith("PSF background +") and "not applied, self_calibrate=gains" in line
+               for line in selfcal.report_lines(report))

@@ -29,7 +29,7 @@ from torch import Tensor
 
 from rngcam.errors import ConfigError
 from rngcam.recon.methods.key_rows import KEY_ROW_OVERLAP, key_row_data, key_rows  # noqa: F401 - callers import them here
-from rngcam.recon.methods.selfcal_flat import apply_flat, calibrate_flat, flat_lines
+from rngcam.recon.methods.selfcal_flat import apply_flat, calibrate_flat, flat_lines, held_back
 
 
 def similarity(dx: float = 0.0, dy: float = 0.0, rotation_rad: float = 0.0, scale: float = 1.0) -> np.ndarray:
@@ -222,7 +222,7 @@ def _uncertainty(misses, params: Tensor, log_gain: Tensor) -> dict:
 
 # ----------------------------------------------------------------------------- the problem
 
-MODES = ("off", "gains", "all")  # what calibrate_problem applies (all: gains and the GS-to-RS transform)
+MODES = ("off", "gains", "all")  # what calibrate_problem applies (all: gains, the GS-to-RS transform, the flat errors)
 MAX_SIGMA_PX = 0.1  # a transform whose shift is less certain than this is not applied
 MAX_ROTATION_DEG, MAX_SCALE = 2.0, 0.03  # beyond these the key rows fitted something else
 
@@ -233,7 +233,8 @@ def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True, flat
     The report has the start values (identity, the bundle's white balance), the refined ones,
     their standard errors, and why a transform was not applied; with `psf_scale`, then the PSF's
     magnification (calibrate_psf_scale: report["scales"]["psf"]); with `flat`, the PSF's background and
-    the GS vignetting (rngcam.recon.methods.selfcal_flat: report["flat"]).
+    the GS vignetting (rngcam.recon.methods.selfcal_flat: report["flat"]), applied in mode "all" only
+    (bench/realistic.md, "the PSF's background and GS vignetting self-calibrated").
 
     The PSF scale is searched first with the GS frames as they are: a registration through a PSF
     some percent off takes up its error as rotation and scale, and a search through that registration
@@ -265,6 +266,8 @@ def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True, flat
             found["scales"] = {"psf": scale}
     if flat:  # the PSF's background and the GS vignetting (selfcal_flat), through the PSF so magnified
         found["flat"] = calibrate_flat(calibrated)
+        if mode != "all":
+            found["flat"] = held_back(found["flat"], f"self_calibrate={mode} (mode all applies it)")
     final = apply_flat(replace(problem, psf=calibrated.psf, notes=list(problem.notes)), found.get("flat"))
     if final.psf is not through.psf or final.b_gs is not problem.b_gs:
         again = _register(final, mode)  # the gains and transform through the PSF and GS frames the fit will use

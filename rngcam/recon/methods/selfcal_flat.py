@@ -21,7 +21,9 @@ estimate - MIN_Z standard errors: what the key rows pin. An estimate that clears
 noise, or scene content a flat term also fits, pushed up; the bound over-corrects only where the estimate
 lies more than MIN_Z standard errors above the truth (bench/realistic.md, "the PSF's background and GS
 vignetting self-calibrated"). The gains are then fitted again through the corrected data
-(rngcam.recon.methods.selfcal.calibrate_problem).
+(rngcam.recon.methods.selfcal.calibrate_problem). Self-calibration applies them in its mode "all" only;
+its default reports them (`held_back`): on the captures measured they won nothing, and a PSF without its
+background lost a fit its ball (the same bench section).
 """
 
 from __future__ import annotations
@@ -204,6 +206,20 @@ def calibrate_flat(problem) -> dict | None:
     return out
 
 
+def held_back(report: dict | None, why: str) -> dict | None:
+    """`report` (calibrate_flat's) with nothing applied: what it would apply kept as "would_apply", with
+    `why` it is not."""
+    if not report or "why" in report:
+        return report
+    out = dict(report)
+    for key in ("background", "vignetting"):
+        r = {k: v for k, v in report[key].items() if k != "value"}
+        if r["applied"]:
+            r.update(applied=False, would_apply=report[key]["value"], why=why)
+        out[key] = r
+    return out
+
+
 def apply_flat(problem, report: dict | None):
     """The problem with what `report` (calibrate_flat's) applies: the PSF less its background, the GS
     frames divided by their falloff; the same problem where it applies nothing."""
@@ -226,8 +242,12 @@ def flat_lines(report: dict | None) -> list[str]:
     lines = []
     for key, what in (("background", "PSF background"), ("vignetting", "GS vignetting")):
         r = report[key]
-        outcome = f"{100 * r['value']:.2f} % applied (its lower confidence bound)" if r["applied"] \
-            else f"not applied, {r['why']}"
+        if r["applied"]:
+            outcome = f"{100 * r['value']:.2f} % applied (its lower confidence bound)"
+        elif "would_apply" in r:
+            outcome = f"{100 * r['would_apply']:.2f} % (its lower confidence bound) not applied, {r['why']}"
+        else:
+            outcome = f"not applied, {r['why']}"
         where = "of the PSF's sum" if key == "background" else "at the corners"
         lines.append(f"{what} {100 * r['estimate']:+.2f} % +/- {100 * r['sigma']:.2f} % ({where}) "
                      f"estimated from the key rows: {outcome}")
