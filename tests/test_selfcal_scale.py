@@ -68,7 +68,9 @@ def test_a_known_psf_scale_is_recovered_from_the_key_rows(bundles):
 
 def test_a_matched_psf_is_left_as_it_is(bundles):
     problem = build_problem(read_bundle(bundles[1.0]))
-    calibrated, report = calibrate_problem(problem, "gains")
+    # the scale alone: this capture's PSF background estimate lies 2.0 standard errors from 0, a false
+    # alarm of selfcal_flat's (tests/test_selfcal_flat.py)
+    calibrated, report = calibrate_problem(problem, "gains", flat=False)
     psf = report["scales"]["psf"]
     assert psf["estimate"] == pytest.approx(1.0, abs=0.005)
     assert not psf["applied"]

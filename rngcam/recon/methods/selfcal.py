@@ -28,6 +28,8 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
+from rngcam.recon.methods.key_rows import KEY_ROW_OVERLAP, key_row_data, key_rows  # noqa: F401 - callers import them here
+from rngcam.recon.methods.selfcal_flat import apply_flat, calibrate_flat, flat_lines, held_back
 
 
 def similarity(dx: float = 0.0, dy: float = 0.0, rotation_rad: float = 0.0, scale: float = 1.0) -> np.ndarray:
@@ -145,54 +147,7 @@ def is_identity(matrix, tol: float = 1e-9) -> bool:
     return bool(np.allclose(np.asarray(matrix), np.eye(3), atol=tol))
 
 
-# ----------------------------------------------------------------------------- key rows
-
-KEY_ROW_OVERLAP = 0.85  # an RS row bin whose exposure covers this share of a GS exposure sees that key frame
-
-
-def key_rows(rs_weights: Tensor, gs_weights: Tensor, overlap: float = KEY_ROW_OVERLAP) -> list[tuple[int, np.ndarray]]:
-    """(GS frame g, the RS row bins exposed over (nearly) the same window as g) for every g that has some.
-
-    Overlap of two exposures: sum_k min(w_r[k], w_g[k]) / max(sum w_r, sum w_g)."""
-    rs_w, gs_w = rs_weights.double().cpu(), gs_weights.double().cpu()
-    out = []
-    for g in range(gs_w.shape[0]):
-        shared = torch.minimum(rs_w, gs_w[g][None]).sum(1)
-        denom = torch.maximum(rs_w.sum(1), gs_w[g].sum()).clamp_min(1e-12)
-        rows = torch.nonzero(shared / denom >= overlap).flatten().cpu().numpy()
-        if len(rows):
-            out.append((g, rows))
-    return out
-
-
-def _filled(images: Tensor, valid: Tensor | None) -> Tensor:
-    """Invalid pixels (hot, dead, saturated) replaced by their 3x3 neighbourhood's median: through
-    the PSF one hot pixel reaches the whole row."""
-    if valid is None or bool(valid.all()):
-        return images
-    c, g, h, w = images.shape
-    padded = torch.nn.functional.pad(images.reshape(c * g, 1, h, w), (1, 1, 1, 1), mode="replicate")
-    med = padded.unfold(2, 3, 1).unfold(3, 3, 1).reshape(c * g, 1, h, w, 9).median(-1).values.reshape(c, g, h, w)
-    return torch.where(valid.expand_as(images), images, med)
-
-
-def _key_row_data(problem):
-    """What a fit on the key rows needs, in float64: (problem, GS images (C, G, H, W) with their
-    invalid pixels filled, the RS valid mask, each row's total weight, [(GS frame, its rows)], each
-    pair's measured rows); None without both cameras or without key rows."""
-    if problem.b_rs is None or problem.b_gs is None:
-        return None
-    pairs = key_rows(problem.rs_weights, problem.gs_weights)
-    if not pairs:
-        return None
-    p = problem.to(torch.float64)
-    images = _filled(p.gs_images(), p.gs_valid)  # video intensity, GS scale
-    valid = p.rs_valid_mask()
-    rowsum = p.rs_weights.sum(1)  # a constant video's row r is scaled by its total weight
-    sel = [(g, torch.from_numpy(rows)) for g, rows in pairs]
-    targets = [p.b_rs[:, rows] * (1 if valid is None else valid[:, rows]) for _, rows in sel]
-    return p, images, valid, rowsum, sel, targets
-
+# ----------------------------------------------------------------------------- key rows (rngcam.recon.methods.key_rows)
 
 def register_key_rows(problem, iters: int = 30, free: int = 4) -> dict | None:
     """GS-to-RS similarity S and GS/RS gains from the RS rows exposed with a GS frame.
@@ -203,7 +158,7 @@ def register_key_rows(problem, iters: int = 30, free: int = 4) -> dict | None:
     is a small least-squares problem, independent of how anything moves between key frames.
     Returns {"matrix": S (3x3), "gains": (C,), "rs_residual_before"/"after": relative, "rows": n}
     or None without such rows."""
-    data = _key_row_data(problem)
+    data = key_row_data(problem)
     if data is None:
         return None
     p, images, valid, rowsum, sel, targets = data
@@ -281,24 +236,26 @@ def _uncertainty(misses, params: Tensor, log_gain: Tensor) -> dict:
 
 # ----------------------------------------------------------------------------- the problem
 
-MODES = ("off", "gains", "all")  # what calibrate_problem applies (all: gains and the GS-to-RS transform)
+MODES = ("off", "gains", "all")  # what calibrate_problem applies (all: gains, the GS-to-RS transform, the flat errors)
 MAX_SIGMA_PX = 0.1  # a transform whose shift is less certain than this is not applied
 MAX_ROTATION_DEG, MAX_SCALE = 2.0, 0.03  # beyond these the key rows fitted something else
 
 
-def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True):
+def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True, flat: bool = True):
     """(problem with its GS frames on the RS scale and in RS coordinates, report) from the key
     rows (register_key_rows): b_gs becomes gains x b_gs sampled at S^-1 (white balance then 1).
     The report has the start values (identity, the bundle's white balance), the refined ones,
     their standard errors, and why a transform was not applied; with `psf_scale`, then the PSF's
-    magnification (calibrate_psf_scale: report["scales"]["psf"]).
+    magnification (calibrate_psf_scale: report["scales"]["psf"]); with `flat`, the PSF's background and
+    the GS vignetting (rngcam.recon.methods.selfcal_flat: report["flat"]), applied in mode "all" only
+    (bench/realistic.md, "the PSF's background and GS vignetting self-calibrated").
 
     The PSF scale is searched first with the GS frames as they are: a registration through a PSF
     some percent off takes up its error as rotation and scale, and a search through that registration
     stops short (bench/realistic.md, "The PSF scale searched before the registration"). The transform
     is then fitted through the PSF so magnified, the scale searched again through it, and the gains
-    and transform fitted once more through the PSF the fit will use (through the PSF as handed the
-    gains absorb its error). mode "off": (problem, None)."""
+    and transform fitted once more through the PSF and GS frames the fit will use (through the PSF as
+    handed the gains absorb its error). mode "off": (problem, None)."""
     if mode not in MODES:
         raise ConfigError(f"self_calibrate must be one of {', '.join(MODES)}, got {mode!r}")
     if mode == "off" or problem.b_rs is None or problem.b_gs is None:
@@ -313,23 +270,25 @@ def calibrate_problem(problem, mode: str = "gains", psf_scale: bool = True):
                          "why": "no RS row is exposed over the same window as a GS frame"}
     report, matrix, fitted = found
     calibrated = _apply(problem, matrix, np.asarray(report["refined"]["gains"], np.float64))
-    if not psf_scale:
-        return calibrated, report
-    # the key rows' transform where it was not applied to the GS frames (it steadies the search)
-    rejected = "transform_rejected" in report
-    calibrated, scale = calibrate_psf_scale(calibrated, fitted if rejected else None)
-    if scale is None:
-        return calibrated, report
-    scale["first_estimate"] = None if first is None else first["estimate"]
-    report["scales"] = {"psf": scale}
-    final = replace(problem, psf=calibrated.psf, notes=list(problem.notes))
-    if final.psf is not through.psf:  # fit the gains and transform through the PSF the fit will use
-        again = _register(final, mode)
+    # the key rows' transform where it was not applied to the GS frames (it steadies the searches)
+    held = fitted if "transform_rejected" in report else None
+    found = {}
+    if psf_scale:
+        calibrated, scale = calibrate_psf_scale(calibrated, held)
+        if scale is not None:
+            scale["first_estimate"] = None if first is None else first["estimate"]
+            found["scales"] = {"psf": scale}
+    if flat:  # the PSF's background and the GS vignetting (selfcal_flat), through the PSF so magnified
+        found["flat"] = calibrate_flat(calibrated)
+        if mode != "all":
+            found["flat"] = held_back(found["flat"], f"self_calibrate={mode} (mode all applies it)")
+    final = apply_flat(replace(problem, psf=calibrated.psf, notes=list(problem.notes)), found.get("flat"))
+    if final.psf is not through.psf or final.b_gs is not problem.b_gs:
+        again = _register(final, mode)  # the gains and transform through the PSF and GS frames the fit will use
         if again is not None:
             report, matrix, _ = again
-            report["scales"] = {"psf": scale}
             calibrated = _apply(final, matrix, np.asarray(report["refined"]["gains"], np.float64))
-    return calibrated, report
+    return calibrated, {**report, **found}
 
 
 def _magnified(psf: Tensor, scale: float) -> Tensor:
@@ -412,6 +371,7 @@ def report_lines(report: dict | None, end_gains=None) -> list[str]:
         first = "" if psf.get("first_estimate") is None else f"; x{psf['first_estimate']:.4f} before registering"
         lines.append(f"PSF scale {psf['estimate']:.4f} estimated from the key rows (residual "
                      f"{psf['residual_before']:.4f} -> {psf['residual_after']:.4f}{first}): {outcome}")
+    lines += flat_lines(report.get("flat"))
     gains = "/".join(f"{g:.3f}" for g in s["gains"]) + " -> " + "/".join(f"{g:.3f}" for g in r["gains"])
     if end_gains is not None:
         gains += " -> " + "/".join(f"{g * r0:.3f}" for g, r0 in zip(end_gains, r["gains"], strict=True)) + " (fit)"
@@ -441,7 +401,7 @@ def key_row_misfit(problem, matrix=None):
     """A function psf (C or 1, Hp, Wp) -> (the key rows' relative residual, the GS/RS gains (C,))
     with that PSF, the gains fitted in closed form, the GS frames taken to RS coordinates by
     `matrix` (3x3, GS-to-RS; identity by default); None without key rows."""
-    data = _key_row_data(problem)
+    data = key_row_data(problem)
     if data is None:
         return None
     p, images, valid, rowsum, sel, targets = data

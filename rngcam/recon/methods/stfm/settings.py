@@ -116,7 +116,8 @@ class STFMSettings:
     self_calibrate: str = setting(
         "off", "refine the calibration from the RS rows exposed with the GS frames before the fit "
                  "(rngcam.recon.methods.selfcal): gains (GS/RS colour gains), all (and the GS-to-RS shift, rotation "
-                 "and scale where the data pin them), or off", choices=("off", "gains", "all"))
+                 "and scale, the PSF's background and the GS vignetting where the data pin them), or off",
+        choices=("off", "gains", "all"))
     self_calibrate_psf_scale: bool = setting(
         True, "with self_calibrate, also search the PSF's magnification (0.9-1.1) on those rows; applied where it "
               "lowers their residual by 3 % or more (else reported)")
