@@ -52,3 +52,27 @@ def key_row_data(problem):
     sel = [(g, torch.from_numpy(rows)) for g, rows in pairs]
     targets = [p.b_rs[:, rows] * (1 if valid is None else valid[:, rows]) for _, rows in sel]
     return p, images, valid, rowsum, sel, targets
+
+
+def key_row_uncertainty(misses, params: Tensor, log_gain: Tensor) -> dict:
+    """Standard errors of a key-row fit's values (`misses(params, log_gain)`: its residuals),
+    sigma^2 (J^T J)^-1 with sigma^2 from the residual (noise only: a model error between the rows and
+    the key frames biases without showing here)."""
+    n = len(params)
+    x0 = torch.cat([params, log_gain])
+    with torch.no_grad():
+        r = misses(params, log_gain)
+        cols = []
+        for i in range(len(x0)):  # central differences: 2 evaluations per value, no per-residual backward
+            e = torch.zeros_like(x0)
+            e[i] = 1e-4
+            hi, lo = x0 + e, x0 - e
+            cols.append((misses(hi[:n], hi[n:]) - misses(lo[:n], lo[n:])) / 2e-4)
+        jac = torch.stack(cols, dim=1)
+    dof = max(len(r) - len(x0), 1)
+    cov = torch.linalg.pinv(jac.T @ jac) * float(r.square().sum()) / dof
+    std = cov.diagonal().clamp_min(0).sqrt().cpu().numpy()
+    names = ["shift_x_px", "shift_y_px", "rotation_rad", "log_scale"][:n]
+    out = {k: float(v) for k, v in zip(names, std[:n], strict=True)}
+    out["gains_rel"] = [float(v) for v in std[n:]]
+    return out

@@ -28,7 +28,12 @@ import torch
 from torch import Tensor
 
 from rngcam.errors import ConfigError
-from rngcam.recon.methods.key_rows import KEY_ROW_OVERLAP, key_row_data, key_rows  # noqa: F401 - callers import them here
+from rngcam.recon.methods.key_rows import (  # noqa: F401 - callers import them here
+    KEY_ROW_OVERLAP,
+    key_row_data,
+    key_row_uncertainty,
+    key_rows,
+)
 from rngcam.recon.methods.selfcal_flat import apply_flat, calibrate_flat, flat_lines, held_back
 
 
@@ -199,7 +204,7 @@ def register_key_rows(problem, iters: int = 30, free: int = 4) -> dict | None:
     opt.step(closure)
     with torch.no_grad():
         end = float(misfit())
-    sigma = _uncertainty(misses, params.detach(), log_gain.detach())
+    sigma = key_row_uncertainty(misses, params.detach(), log_gain.detach())
     rows_used = int(sum(len(r) for _, r in sel))
     if not (math.isfinite(end) and end < start):
         return {"matrix": np.eye(3), "gains": gain0.cpu().numpy(), "rs_residual_before": math.sqrt(start),
@@ -209,29 +214,6 @@ def register_key_rows(problem, iters: int = 30, free: int = 4) -> dict | None:
     return {"matrix": np.linalg.inv(inv), "gains": torch.exp(log_gain.detach()).cpu().numpy(),
             "rs_residual_before": math.sqrt(start), "rs_residual_after": math.sqrt(end), "rows": rows_used,
             "sigma": sigma}
-
-
-def _uncertainty(misses, params: Tensor, log_gain: Tensor) -> dict:
-    """Standard errors of the fitted values, sigma^2 (J^T J)^-1 with sigma^2 from the residual
-    (noise only: a model error between the rows and the key frames biases without showing here)."""
-    n = len(params)
-    x0 = torch.cat([params, log_gain])
-    with torch.no_grad():
-        r = misses(params, log_gain)
-        cols = []
-        for i in range(len(x0)):  # central differences: 2 evaluations per value, no per-residual backward
-            e = torch.zeros_like(x0)
-            e[i] = 1e-4
-            hi, lo = x0 + e, x0 - e
-            cols.append((misses(hi[:n], hi[n:]) - misses(lo[:n], lo[n:])) / 2e-4)
-        jac = torch.stack(cols, dim=1)
-    dof = max(len(r) - len(x0), 1)
-    cov = torch.linalg.pinv(jac.T @ jac) * float(r.square().sum()) / dof
-    std = cov.diagonal().clamp_min(0).sqrt().cpu().numpy()
-    names = ["shift_x_px", "shift_y_px", "rotation_rad", "log_scale"][:n]
-    out = {k: float(v) for k, v in zip(names, std[:n], strict=True)}
-    out["gains_rel"] = [float(v) for v in std[n:]]
-    return out
 
 
 # ----------------------------------------------------------------------------- the problem
@@ -323,7 +305,8 @@ def _register(problem, mode: str) -> tuple[dict, np.ndarray, np.ndarray] | None:
               "start": {**describe(np.eye(3)), "gains": wb0.tolist()},
               "refined": {**describe(result["matrix"]), "gains": gains.tolist()},
               "sigma": result["sigma"],  # the misfit verdict reads the shift's where the transform is plausible
-              "transform_plausible": bool(abs(d["rotation_deg"]) <= MAX_ROTATION_DEG and abs(d["scale"] - 1) <= MAX_SCALE)}
+              "transform_plausible": bool(abs(d["rotation_deg"]) <= MAX_ROTATION_DEG
+                                          and abs(d["scale"] - 1) <= MAX_SCALE)}
     if why is not None:
         report["transform_not_applied"] = why
         report["transform_rejected"] = report["refined"]

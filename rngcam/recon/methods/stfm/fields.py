@@ -295,8 +295,9 @@ def _interp_constants(size: int, dtype, device) -> tuple[Tensor, ...]:
     number costs a conversion each time, forward and backward."""
     key = (size, dtype, device)
     if key not in _KNOT_CONSTANTS:
-        _KNOT_CONSTANTS[key] = (torch.arange(size, dtype=dtype, device=device), *(
-            torch.tensor(v, dtype=dtype, device=device) for v in (0.0, 1.0, -1.0, 0.5 * (size - 1), size - 1, size - 2)))
+        values = (0.0, 1.0, -1.0, 0.5 * (size - 1), size - 1, size - 2)
+        _KNOT_CONSTANTS[key] = (torch.arange(size, dtype=dtype, device=device),
+                                *(torch.tensor(v, dtype=dtype, device=device) for v in values))
     return _KNOT_CONSTANTS[key]
 
 
