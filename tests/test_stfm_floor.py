@@ -142,6 +142,36 @@ def test_rife_is_a_candidate_where_it_runs(monkeypatch):
     assert guard.start_name == "rife"
 
 
+def test_on_a_cpu_a_large_grid_is_checked_without_rife_and_says_so(monkeypatch):
+    """RIFE's video of the paper grid costs a CPU more than the fit's set-up: above RIFE_CPU_MAX_VOXELS the
+    check's references are the other GS-only videos, with a note; on a GPU RIFE runs there, on that device."""
+    from rngcam.recon.methods.stfm import floor
+
+    p = tiny_sineball_problem(16).to(torch.float32)
+    made = []
+
+    def rife(keys, times, frames, device="cpu", **_k):
+        made.append(device)
+        return np.asarray(interp(keys, times, frames))
+
+    monkeypatch.setattr(rife_method, "rife", rife)
+    voxels = len(p.frame_times_s) * p.b_gs[0, 0].numel()
+    monkeypatch.setattr(floor, "RIFE_CPU_MAX_VOXELS", voxels - 1)
+    guard = StartFloor(_Fixed(p.truth.clone()), p)
+    assert made == [] and guard.start_name in ("blend", "interp")
+    assert any("self-check without RIFE's video" in n for n in guard.notes) and "inner note" in guard.notes
+    on_gpu = _Fixed(p.truth.clone())
+    on_gpu.device = "cuda:0"
+    monkeypatch.setattr(rife_method, "rife", lambda keys, t, f, device="cpu", **k: made.append(device) or
+                        np.asarray(interp(keys, t, f)))
+    guard = StartFloor(on_gpu, p, candidates=("rife",))
+    assert made == ["cuda:0"] and guard.start_name == "rife" and guard.left_note is None
+    monkeypatch.setattr(floor, "RIFE_CPU_MAX_VOXELS", voxels)  # at the bound: RIFE stays, on the CPU
+    made.clear()
+    StartFloor(_Fixed(p.truth.clone()), p)
+    assert made == ["cpu"]
+
+
 def test_the_default_run_holds_rows_out_of_every_fit():
     p = _noisy(tiny_sineball_problem(32).to(torch.float32), 0.002)
     name, settings = registry.settings_for("stfm")

@@ -34,10 +34,15 @@ from rngcam.recon.metrics import relative_residual
 from rngcam.recon.noise import row_noise_std
 
 FACTOR_MOVED = 1e-6  # a line-time factor that moved less is the same: the starts' RS operator is kept
+# On a CPU RIFE's video of a large grid costs more than the fit's whole set-up (the paper grid, 228x342x231:
+# 150 s of RIFE in a 502 s set-up on two loaded cores, where a 300 s budget then ran out before the first
+# step; bench/convergence.md, 2026-12-07): above this many voxels the check's references are the cross-fade
+# and the flow interpolation. On a GPU RIFE runs there and stays.
+RIFE_CPU_MAX_VOXELS = 4_000_000
 
 
-def _rife(keys, gs_times_s, frame_times_s):
-    return rife_method.rife(keys, gs_times_s, frame_times_s)
+def _rife(keys, gs_times_s, frame_times_s, device: str = "cpu"):
+    return rife_method.rife(keys, gs_times_s, frame_times_s, device=device)
 
 
 MAKERS = {"blend": blend, "interp": interp, "rife": _rife}
@@ -62,6 +67,14 @@ class StartFloor(Wrapped):
     def __init__(self, method, problem, candidates: tuple = StartFloorConfig.candidates,
                  significance: float = StartFloorConfig.significance):
         self._method = method
+        device = str(getattr(method, "device", "cpu"))
+        self._device = device if device.startswith("cuda") else "cpu"
+        self.left_note = None
+        voxels = len(problem.frame_times_s) * (0 if problem.b_gs is None else problem.b_gs[0, 0].numel())
+        if "rife" in candidates and self._device == "cpu" and voxels > RIFE_CPU_MAX_VOXELS:
+            candidates = tuple(c for c in candidates if c != "rife")
+            self.left_note = (f"self-check without RIFE's video: at {voxels / 1e6:.0f} M voxels it costs a CPU more "
+                              "than the fit's set-up; its references are the other GS-only videos")
         self._candidates = tuple(candidates)
         self._significance = float(significance)
         self._problem = problem.to(torch.float32)
@@ -134,7 +147,8 @@ class StartFloor(Wrapped):
         """The GS-only video `name` (blend, interp or rife) of the key frames, on the RS scale."""
         p = self._problem
         keys = p.gs_images(gains=True).cpu().numpy()
-        video = MAKERS[name](keys, p.gs_times_s, p.frame_times_s)
+        extra = {"device": self._device} if name == "rife" else {}
+        video = MAKERS[name](keys, p.gs_times_s, p.frame_times_s, **extra)
         return torch.from_numpy(np.ascontiguousarray(video, np.float32))
 
     @torch.no_grad()
@@ -232,7 +246,7 @@ class StartFloor(Wrapped):
 
     @property
     def notes(self) -> list[str]:
-        return list(self._method.notes) + ([self.guard_note] if self.guard_note else [])
+        return list(self._method.notes) + [n for n in (self.left_note, self.guard_note) if n]
 
     def resolved_settings(self) -> dict | None:
         out = self._method.resolved_settings()
