@@ -117,7 +117,7 @@ def test_tv3d_self_calibrates_on_request_only():
 
 @pytest.mark.parametrize("dx,dy", [(0.0, 0.0), (0.37, -0.81), (-2.6, 1.25), (7.5, -9.2)])
 def test_warp_by_a_shift_is_the_bicubic_warp_values_and_gradients(dx, dy):
-    """warp_shift (STFM's learned GS-to-RS shift) reproduces grid_sample's bicubic warp by that
+    """warp_translate (STFM's learned GS-to-RS shift) reproduces grid_sample's bicubic warp by that
     translation, border clamp included (the last shift reaches past the border), and its gradients."""
     torch.manual_seed(3)
     images = torch.rand(2, 3, 11, 13, dtype=torch.float64)
@@ -134,7 +134,7 @@ def test_warp_by_a_shift_is_the_bicubic_warp_values_and_gradients(dx, dy):
                          torch.stack([zero, zero, one])])
         return selfcal.warp(x, m)
 
-    fast, fast_grads = both(lambda x, d: selfcal.warp_shift(x, d[0], d[1]))
+    fast, fast_grads = both(selfcal.warp_translate)
     slow, slow_grads = both(by_matrix)
     assert torch.allclose(fast, slow, atol=1e-10)
     for a, b in zip(fast_grads, slow_grads, strict=True):

@@ -82,7 +82,7 @@ def warp(images: Tensor, matrix: Tensor | np.ndarray) -> Tensor:
     return out.transpose(0, 1)
 
 
-# grid_sample's bicubic kernel (Keys' cubic convolution, A = -0.75), which warp_shift reproduces.
+# grid_sample's bicubic kernel (Keys' cubic convolution, A = -0.75), which warp_translate reproduces.
 _CUBIC_A = -0.75
 
 
@@ -119,15 +119,10 @@ def _cubic_constants(sizes: tuple[int, ...], dtype, device) -> tuple[Tensor, Ten
             line + torch.arange(-1, 3, device=device)[:, None], last)
 
 
-def warp_shift(images: Tensor, dx: Tensor, dy: Tensor) -> Tensor:
-    """`warp` by a translation (out(p) = in(p + (dx, dy)), bicubic, border values outside), as one
-    small matrix product per axis: the same values in less than grid_sample's time with its backward
-    on a CPU (bench/convergence.md). dx, dy: 0-d tensors (a gradient reaches them)."""
-    return warp_translate(images, torch.stack([dx, dy]))
-
-
 def warp_translate(images: Tensor, shift: Tensor) -> Tensor:
-    """`warp_shift` by shift (2,) = (dx, dy)."""
+    """`warp` by a translation shift (2,) = (dx, dy) (out(p) = in(p + (dx, dy)), bicubic, border values
+    outside), as one small matrix product per axis: the same values in less than grid_sample's time with
+    its backward on a CPU (bench/convergence.md). A gradient reaches `shift`."""
     c, n, h, w = images.shape
     cols, rows = _cubic_shift_matrix((w, h), shift, images.dtype, images.device).unbind(0)
     if h != w:

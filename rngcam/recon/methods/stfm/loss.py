@@ -112,14 +112,10 @@ class DataLoss:
 
     # ------------------------------------------------------------------ loss terms
 
-    def gs_term(self, v_win: Tensor, windows: Tensor, win_frames: Tensor) -> Tensor:
-        """Normalised GS data term of GS frames `windows` from the frames their exposures touch,
-        `win_frames` (values v_win (C, S, H, W)); an unbiased estimate for a uniform sample."""
-        raw, weight = self._gs_raw(v_win, windows, win_frames)
-        return raw * weight
-
     def _gs_raw(self, v_win: Tensor, windows: Tensor, win_frames: Tensor) -> tuple[Tensor, float]:
-        """gs_term as (its sum of squares, the factor it is taken by)."""
+        """Normalised GS data term of GS frames `windows` from the frames their exposures touch,
+        `win_frames` (values v_win (C, S, H, W)), an unbiased estimate for a uniform sample, as (its sum
+        of squares, the factor it is taken by)."""
         pred = self.grid.gs_op.A_frames(v_win, windows, win_frames)
         miss = pred - self.model.gains.value()[:, None, None, None] * self.problem.b_gs.index_select(1, windows)
         if self.grid.mask is not None:
@@ -139,14 +135,10 @@ class DataLoss:
         return (self.resolved.matte_l1 > 0 and self.parts.static and self.parts.motion
                 and not self.resolved.dynamic_time and not self.model.base.key_warps)
 
-    def matte_term(self) -> Tensor:
-        """matte_l1 times the mean of the canonical dynamic image's matte, 1 - alpha (the share of
-        each pixel the moving layer covers), on the pixel grid."""
-        raw, weight, offset = self._matte_raw()
-        return raw * weight + offset
-
     def _matte_raw(self) -> tuple[Tensor, float, float]:
-        """matte_term as (the sum of alpha, its factor, the constant added)."""
+        """matte_l1 times the mean of the canonical dynamic image's matte, 1 - alpha (the share of each
+        pixel the moving layer covers), on the pixel grid, as (the sum of alpha, its factor, the constant
+        added)."""
         raw = self.model.canonical_at_pixels()
         if raw is None:
             raw = field_on_grid(self.model.fields["dynamic"], [self.grid.xs, self.grid.ys])  # (H, W, C + 1)
