@@ -243,3 +243,18 @@ def test_the_factor_gets_the_same_gradient_in_one_graph_and_frame_chunk_by_chunk
     # float32 sums in another order: 1.05e-4 apart on one x86-64 host (near a stationary point the
     # gradient is a small difference of large terms), so 3e-4
     assert abs(whole) > 0 and chunked == pytest.approx(whole, rel=3e-4)
+
+
+def test_an_ensemble_reports_each_members_line_time_factor(slow_readout):
+    from rngcam.recon.methods.stfm.ensemble import STFMEnsemble
+
+    settings = STFMSettings(preset="fast", dynamic_base="none", seed=0, learn_line_time="on", fits=2)
+    method = make_stfm(slow_readout.to(torch.float32), settings)
+    fits = method._fits[0]  # the first fit of the line refit's wrapper
+    assert isinstance(fits, STFMEnsemble) and len(fits.members) == 2
+    for _ in range(40):
+        method.step()
+    report = method.resolved_settings()["line_time"]
+    members = [m.line_factor() for m in fits.members]
+    assert report["members"] == pytest.approx(members) and members[0] != pytest.approx(members[1], abs=1e-9)
+    assert report["factor"] == pytest.approx(sum(members) / 2)  # no refinement yet: the members' mean

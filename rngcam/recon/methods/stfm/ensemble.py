@@ -217,8 +217,15 @@ class STFMEnsemble(MethodBase):
         return self.refined.line_factor() if self.refined is not None else self._mean_line_factor()
 
     def line_time_report(self) -> dict | None:
+        """The learned line time (line_time_report's), with each member's factor ("members"): how far the
+        fits that saw the same rows from different starts agree on it."""
         first = self.members[0]
-        return line_time_report(first.learned_line_time.timing, self.line_factor(), first.state.line_time_from)
+        start = first.state.line_time_from
+        out = line_time_report(first.learned_line_time.timing, self.line_factor(), start)
+        factors = [m.line_factor() for m in self.members]
+        if out is not None and len(factors) > 1 and None not in factors:
+            out["members"] = [start * f for f in factors]
+        return out
 
     def learned_geometry(self) -> dict | None:
         m0 = self.members[0]
