@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from rngcam.errors import ConfigError
+from rngcam.recon.methods.stfm.decoder import decode
 
 FIELD_KINDS = ("siren", "planes")
 # A plane field's scales are sampled in one product, their planes zero-padded to the largest (a few
@@ -221,7 +222,7 @@ class PlaneField(nn.Module):
         batched = self.planes_space.device.type != "cpu" or max(self.space_sizes) <= CPU_BATCHED_MAX_SIDE
         feats = self._features_batched(axes, t_index) if batched else self._features_by_scale(axes, t_index)
         # decoded on the features' transposed view, (points, S F): no copy, and faster than from the left
-        return self.decoder(feats.view(feats.shape[0], -1).t()).view(*feats.shape[1:], -1)
+        return decode(self.decoder, feats.view(feats.shape[0], -1).t()).view(*feats.shape[1:], -1)
 
     def _features_batched(self, axes: Sequence[Tensor], t_index: Tensor | None) -> Tensor:
         """Features (S F, [n_t,] n_y, n_x): every scale's planes of a kind in one product."""
