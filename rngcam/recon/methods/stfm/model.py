@@ -35,6 +35,7 @@ class FieldModel:
         self._canonical_now: Tensor | None = None  # the decoded canonical image inside decoded_once
         # constants as tensors (a number costs a conversion at every operation, forward and backward)
         self._one = torch.ones((), device=grid.device)
+        self._motion_px: Tensor | None = None
         self._mean_points = torch.tensor(float(len(grid.xs_mean) * len(grid.ys_mean)), device=grid.device)
         if parts.static:
             self.fields["static"] = make_field(kind_s, 2, self.C, **cfg_s)
@@ -86,7 +87,9 @@ class FieldModel:
 
     def motion_px(self) -> Tensor:
         """Pixels per coordinate unit for each motion component."""
-        return self.grid.px_per_unit.repeat(2) if self.base.key_warps else self.grid.px_per_unit
+        if self._motion_px is None:  # kept: a repeat is a dozen recorded operations a step
+            self._motion_px = self.grid.px_per_unit.repeat(2) if self.base.key_warps else self.grid.px_per_unit
+        return self._motion_px
 
     def dynamic_at(self, u: Tensor, idx: Tensor) -> tuple[Tensor, Tensor]:
         """Dynamic colour (C, n, H, W) and alpha (1, n, H, W) of frames idx under the motion u
