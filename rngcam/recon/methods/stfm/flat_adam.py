@@ -135,7 +135,9 @@ class FlatAdam(torch.optim.Optimizer):
         self.exp_avg.lerp_(g, 1 - beta1)
         self.exp_avg_sq.mul_(self._beta2).addcmul_(g, g, value=1 - beta2)
         if ratio is not None:
-            correction = torch.tensor(math.sqrt(1 - beta2 ** n), dtype=g.dtype, device=g.device)
+            correction = math.sqrt(1 - beta2 ** n)
+            if g.device.type == "cpu":  # a GPU takes the number as a kernel argument; a new tensor there would wait
+                correction = torch.tensor(correction, dtype=g.dtype)
             denom = self.exp_avg_sq.sqrt().div_(correction).add_(self._eps)
             self.flat.addcdiv_(self.exp_avg * ratio, denom, value=-top / (1 - beta1 ** n))
         return None
