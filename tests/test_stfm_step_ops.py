@@ -1,15 +1,18 @@
 """What a step computes with fewer operations gives what it gave: the index sets worked out in numpy,
 the motion evaluated once for the data and TV frames, the RS rows in one pass over the first
-evaluation's frames, both axes' warp and interpolation matrices built at once."""
+evaluation's frames, both axes' warp and interpolation matrices built at once, the decoder as one
+autograd function, constant interpolation matrices built in numpy."""
 
 import numpy as np
 import pytest
 import torch
 from test_stfm import scene_problem, small_settings
+from torch import nn
 
 from rngcam.recon.methods import selfcal
 from rngcam.recon.methods.stfm import make_stfm
-from rngcam.recon.methods.stfm.fields import _build_interp_matrix, translate_image
+from rngcam.recon.methods.stfm.decoder import decode
+from rngcam.recon.methods.stfm.fields import _build_interp_matrix, _stacked_interp, translate_image
 from rngcam.recon.methods.stfm.grid import sorted_sample
 
 
@@ -130,3 +133,43 @@ def test_square_translate_image_is_the_per_axis_matrices():
     for x, y in zip(grads_a, grads_b, strict=True):
         assert torch.allclose(x, y, atol=1e-10)
     assert float(grads_a[1][0].abs().sum()) > 0  # a whole-knot move still has a slope
+
+
+@pytest.mark.parametrize("widths,relu_after", [((24, 32, 4), (True, False)), ((24, 4), (False,)),
+                                               ((24, 32, 16, 3), (True, True, False))])
+def test_decoder_function_is_the_linear_layers(widths, relu_after):
+    """The decoder as one autograd function: the layers' values and every gradient, bit for bit, on the
+    features' transposed view (as forward_grid passes them) and on a row-major input."""
+    torch.manual_seed(0)
+    layers = []
+    for (a, b), relu in zip(zip(widths[:-1], widths[1:]), relu_after, strict=True):
+        layers += [nn.Linear(a, b)] + ([nn.ReLU()] if relu else [])
+    decoder = nn.Sequential(*layers)
+    for transposed in (True, False):
+        feats = torch.rand(widths[0], 300) if transposed else torch.rand(300, widths[0])
+        upstream = torch.rand(300, widths[-1])
+        results = []
+        for path in (decoder, lambda x: decode(decoder, x)):
+            decoder.zero_grad()
+            x = feats.clone().requires_grad_()
+            out = path(x.t() if transposed else x)
+            out.backward(upstream)
+            results.append([out.detach(), x.grad] + [p.grad.clone() for p in decoder.parameters()])
+        for a, b in zip(*results, strict=True):
+            assert torch.equal(a, b)
+
+
+def test_interpolation_matrices_built_on_the_host_are_the_tensor_formulas():
+    """Matrices of constant coordinates on a CPU (numpy) equal those built with tensor operations (the
+    path of coordinates with a gradient), every size, both precisions, coordinates past the border too."""
+    gen = torch.Generator().manual_seed(2)
+    for n in (1, 2, 5, 33, 67):
+        for coords in (torch.linspace(-1, 1, n), torch.rand(n, generator=gen) * 2.4 - 1.2):
+            for size in (1, 2, 3, 17, 64):
+                for dtype in (torch.float32, torch.float64):
+                    host = _build_interp_matrix(coords, size, dtype)
+                    tensor = _build_interp_matrix(coords.clone().requires_grad_(), size, dtype).detach()
+                    assert host.dtype == tensor.dtype and torch.equal(host, tensor)
+        stacked = _stacked_interp(coords, [4, 8, 16], 16, n + 2, torch.float32, repeat=3)
+        expected = _stacked_interp(coords.clone().requires_grad_(), [4, 8, 16], 16, n + 2, torch.float32, repeat=3)
+        assert torch.equal(stacked, expected.detach())

@@ -127,8 +127,9 @@ def warp_translate(images: Tensor, shift: Tensor) -> Tensor:
     cols, rows = _cubic_shift_matrix((w, h), shift, images.dtype, images.device).unbind(0)
     if h != w:
         cols, rows = cols[:w, :w], rows[:h, :h]
-    along_x = (images.reshape(c * n * h, w) @ cols.t()).view(c * n, h, w)
-    return torch.matmul(rows, along_x).view(c, n, h, w)
+    # mm and bmm on the matrices as matmul takes them (the same products, without its broadcasting views)
+    along_x = torch.mm(images.reshape(c * n * h, w), cols.transpose(0, 1)).view(c * n, h, w)
+    return torch.bmm(rows.expand(c * n, h, h), along_x).view(c, n, h, w)
 
 
 def inside(matrix: Tensor, h: int, w: int) -> Tensor:

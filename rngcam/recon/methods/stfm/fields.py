@@ -23,11 +23,13 @@ import math
 import weakref
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from rngcam.errors import ConfigError
+from rngcam.recon.methods.stfm.decoder import decode
 
 FIELD_KINDS = ("siren", "planes")
 # A plane field's scales are sampled in one product, their planes zero-padded to the largest (a few
@@ -221,7 +223,7 @@ class PlaneField(nn.Module):
         batched = self.planes_space.device.type != "cpu" or max(self.space_sizes) <= CPU_BATCHED_MAX_SIDE
         feats = self._features_batched(axes, t_index) if batched else self._features_by_scale(axes, t_index)
         # decoded on the features' transposed view, (points, S F): no copy, and faster than from the left
-        return self.decoder(feats.view(feats.shape[0], -1).t()).view(*feats.shape[1:], -1)
+        return decode(self.decoder, feats.view(feats.shape[0], -1).t()).view(*feats.shape[1:], -1)
 
     def _features_batched(self, axes: Sequence[Tensor], t_index: Tensor | None) -> Tensor:
         """Features (S F, [n_t,] n_y, n_x): every scale's planes of a kind in one product."""
@@ -365,6 +367,11 @@ def _stacked_interp(coords: Tensor, sizes: Sequence[int], width: int, rows: int,
     knots (each `repeat` times in a row), zero-padded to `width` columns and `rows` rows (kept as
     `_interp_matrix` keeps its matrices)."""
     def build() -> Tensor:
+        if _on_host(coords, dtype):
+            m = np.zeros((len(sizes), rows, width), dtype=_HOST_DTYPES[dtype])
+            for s, size in enumerate(sizes):
+                m[s, :coords.shape[0], :size] = _host_interp_matrix(coords, size, dtype)
+            return torch.from_numpy(np.repeat(m, repeat, axis=0))
         m = torch.zeros(len(sizes), rows, width, dtype=dtype, device=coords.device)
         for s, size in enumerate(sizes):
             m[s, :coords.shape[0], :size] = _build_interp_matrix(coords, size, dtype)
@@ -387,7 +394,31 @@ def _cached(coords: Tensor, key: tuple, build) -> Tensor:
     return m
 
 
+# dtypes whose interpolation matrices for constant coordinates on a CPU are built in numpy (once, kept: a
+# dozen tensor operations each, at every fit's first step, otherwise)
+_HOST_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
+
+
+def _on_host(coords: Tensor, dtype) -> bool:
+    return coords.device.type == "cpu" and not coords.requires_grad and dtype in _HOST_DTYPES
+
+
+def _host_interp_matrix(coords: Tensor, size: int, dtype) -> np.ndarray:
+    """`_build_interp_matrix`'s values, in the same arithmetic (each step rounded to `dtype`), in numpy."""
+    real = _HOST_DTYPES[dtype]
+    pos = np.clip((coords.numpy().astype(real) + real(1)) * real(0.5) * real(size - 1), real(0), real(size - 1))
+    left = np.minimum(np.floor(pos), real(size - 2)).astype(np.int64)
+    frac = pos - left.astype(real)
+    m = np.zeros((coords.shape[0], size), dtype=real)
+    rows = np.arange(coords.shape[0])
+    m[rows, left] = real(1) - frac
+    m[rows, left + 1] = frac
+    return m
+
+
 def _build_interp_matrix(coords: Tensor, size: int, dtype) -> Tensor:
+    if _on_host(coords, dtype):
+        return torch.from_numpy(_host_interp_matrix(coords, size, dtype))
     pos = ((coords.to(dtype) + 1) * 0.5 * (size - 1)).clamp(0, size - 1)
     left = pos.floor().clamp(max=size - 2).long()
     frac = pos - left

@@ -59,6 +59,9 @@ class FlatAdam(torch.optim.Optimizer):
         self.steps = [0] * len(self.params)  # per parameter, as torch's state "step"
         self._touched = [False] * len(self.params)
         self._ratios: tuple[tuple, Tensor] | None = None
+        # the update's constants as tensors: a number costs a conversion at every operation
+        self._beta2 = torch.tensor(betas[1], dtype=flat.dtype, device=flat.device)
+        self._eps = torch.tensor(eps, dtype=flat.dtype, device=flat.device)
         for i, p in enumerate(self.params):
             p.register_post_accumulate_grad_hook(lambda _p, i=i: self._touched.__setitem__(i, True))
         self._attach()
@@ -105,14 +108,15 @@ class FlatAdam(torch.optim.Optimizer):
             return 0.0, None
         shares = tuple(float(f"{lr / top:.12g}") for lr in lrs)
         if self._ratios is None or self._ratios[0] != shares:
-            ratio = torch.zeros_like(self.flat)
+            ratio = torch.zeros(self.flat.numel(), dtype=self.flat.dtype)
+            host = ratio.numpy()  # filled on the host: no tensor operation a segment
             i = 0
             for g, share in zip(self.param_groups, shares, strict=True):
                 for _ in g["params"]:
                     start, end = self.segments[i]
-                    ratio[start:end] = share
+                    host[start:end] = share
                     i += 1
-            self._ratios = (shares, ratio)
+            self._ratios = (shares, ratio.to(self.flat.device))
         return top, self._ratios[1]
 
     @torch.no_grad()
@@ -124,15 +128,17 @@ class FlatAdam(torch.optim.Optimizer):
             self._step_each()
             return None
         beta1, beta2 = self.defaults["betas"]
-        eps = self.defaults["eps"]
         self.steps = [s + 1 for s in self.steps]
         n = self.steps[0]
         top, ratio = self._lr_vector()
         g = self.grad
         self.exp_avg.lerp_(g, 1 - beta1)
-        self.exp_avg_sq.mul_(beta2).addcmul_(g, g, value=1 - beta2)
+        self.exp_avg_sq.mul_(self._beta2).addcmul_(g, g, value=1 - beta2)
         if ratio is not None:
-            denom = self.exp_avg_sq.sqrt().div_(math.sqrt(1 - beta2 ** n)).add_(eps)
+            correction = math.sqrt(1 - beta2 ** n)
+            if g.device.type == "cpu":  # a GPU takes the number as a kernel argument; a new tensor there would wait
+                correction = torch.tensor(correction, dtype=g.dtype)
+            denom = self.exp_avg_sq.sqrt().div_(correction).add_(self._eps)
             self.flat.addcdiv_(self.exp_avg * ratio, denom, value=-top / (1 - beta1 ** n))
         return None
 

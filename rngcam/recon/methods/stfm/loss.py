@@ -57,7 +57,7 @@ class DataLoss:
         self._gs_frames_host = self.grid.gs_frames_host.numpy()
         self._w_gs_host = self.grid.w_gs_host.numpy()
         self._host_copies: dict[int, tuple[Tensor, np.ndarray]] = {}
-        self._weight_vectors: dict[tuple, Tensor] = {}
+        self._weight_vectors: dict[tuple, tuple[Tensor, tuple[Tensor, ...]]] = {}
         self.rs_norm, self.rs_norm_vector = None, None
         if self.parts.gs:
             norm_sq = self.grid.gs_op.norm() ** 2
@@ -159,8 +159,11 @@ class DataLoss:
         u = motion * self.model.motion_px()  # pixels
         u0, u1 = u.unflatten(0, (2, len(idx))).unbind(0)
         weight = self.resolved.tau / (u.shape[1] * u.shape[2] * len(idx))
-        return [((u0[:, 1:] - u0[:, :-1]).abs().sum(), weight), ((u0[:, :, 1:] - u0[:, :, :-1]).abs().sum(), weight),
-                ((u1 - u0).abs().sum(), self.resolved.beta * weight)]  # zero for the last frame (nxt == idx)
+        # spatial differences only along axes longer than one point (a translation has none: they would be
+        # empty sums, whose slices still cost operations, forward and backward)
+        spatial = [((u0[:, 1:] - u0[:, :-1]).abs().sum(), weight)] if u0.shape[1] > 1 else []
+        spatial += [((u0[:, :, 1:] - u0[:, :, :-1]).abs().sum(), weight)] if u0.shape[2] > 1 else []
+        return spatial + [((u1 - u0).abs().sum(), self.resolved.beta * weight)]  # zero for the last frame (nxt == idx)
 
     def sample_rows(self) -> Tensor:
         """A cyclic block of the fitted rows with a uniform random start (every row equally likely)."""
@@ -257,17 +260,20 @@ class DataLoss:
                 grad = 2 * scale * residual
                 losses["rs_first"] = [((pred * grad).sum(), 1.0)]
                 chunk_jobs = [(c, grad) for c in pieces]
-        values, weights = self._weighted(losses)
+        raws, weights, seeds = self._weighted(losses)
         if backward:
-            if values is not None and values.requires_grad:
-                torch.dot(values, weights).backward()
+            # each term back-propagated from its factor: no stacked vector and dot product to go back through
+            roots = [(raw, seed) for raw, seed in zip(raws, seeds, strict=True) if raw.requires_grad]
+            if roots:
+                torch.autograd.backward(*zip(*roots))
             for c, grad in chunk_jobs:
                 frames = self.model.frames(self._on_device(c), static)
                 (self._rs_rows(frames, rows, rows_host, c, w_rows) * grad).sum().backward()
             _back_into(static_graph, static)
             _back_into(w_graph, w_rows)
-        if values is not None:  # the terms as numbers: one product and one wait for them all
-            numbers = iter((values.detach() * weights).tolist())
+        if raws:  # the terms as numbers: one product and one wait for them all
+            with torch.no_grad():
+                numbers = iter((torch.cat([raw.view(1) for raw in raws]) * weights).tolist())
             for name, entries in losses.items():
                 for _raw, _weight, *offset in entries:
                     value = next(numbers) + (offset[0] if offset else 0.0)
@@ -286,21 +292,23 @@ class DataLoss:
                 losses["smooth"] = [(r, self.resolved.time_smoothness) for r in rough]
         return losses
 
-    def _weighted(self, losses: dict[str, list[tuple]]) -> tuple[Tensor | None, Tensor | None]:
-        """(The raw sums (n,), their factors (n,)) of `losses`' entries in order (None: none): the loss is
-        their dot product, one product forward and back instead of a scalar factor on each (a factor
-        given as a number costs a conversion, forward and backward)."""
+    def _weighted(self, losses: dict[str, list[tuple]]) -> tuple[list[Tensor], Tensor | None, tuple[Tensor, ...]]:
+        """(The raw sums of `losses`' entries in order, their factors as a vector (None: no entries) and
+        each as a 0-d tensor): the loss is their dot product, its gradient each raw sum's back-propagated
+        from its factor (a factor given as a number costs a conversion, forward and backward)."""
         entries = [(raw, weight) for items in losses.values() for raw, weight, *_ in items]
         if not entries:
-            return None, None
-        values = torch.stack([raw for raw, _ in entries])
-        key = (tuple(weight for _, weight in entries), values.dtype, values.device)
-        weights = self._weight_vectors.get(key)
-        if weights is None:
+            return [], None, ()
+        raws = [raw for raw, _ in entries]
+        key = (tuple(weight for _, weight in entries), raws[0].dtype, raws[0].device)
+        cached = self._weight_vectors.get(key)
+        if cached is None:
             if len(self._weight_vectors) > 16:
                 self._weight_vectors.clear()
-            weights = self._weight_vectors[key] = torch.tensor(key[0], dtype=values.dtype, device=values.device)
-        return values, weights
+            vector = torch.tensor(key[0], dtype=key[1], device=key[2])
+            cached = self._weight_vectors[key] = (vector, tuple(torch.tensor(w, dtype=key[1], device=key[2])
+                                                                 for w in key[0]))
+        return raws, *cached
 
     def _on_device(self, indices: np.ndarray) -> Tensor:
         return to_device(torch.from_numpy(indices), self.grid.device)

@@ -33,6 +33,10 @@ class FieldModel:
         kind_d, cfg_d = preset["dynamic"]
         self.fields = nn.ModuleDict()
         self._canonical_now: Tensor | None = None  # the decoded canonical image inside decoded_once
+        # constants as tensors (a number costs a conversion at every operation, forward and backward)
+        self._one = torch.ones((), device=grid.device)
+        self._motion_px: Tensor | None = None
+        self._mean_points = torch.tensor(float(len(grid.xs_mean) * len(grid.ys_mean)), device=grid.device)
         if parts.static:
             self.fields["static"] = make_field(kind_s, 2, self.C, **cfg_s)
         if parts.motion:
@@ -67,7 +71,7 @@ class FieldModel:
         where not `per_pixel`."""
         if self.resolved.motion_model == "translation":  # one rigid layer: the field's mean over the frame
             u = field_on_grid(self.fields["motion"], [self.grid.xs_mean, self.grid.ys_mean, self.grid.ts], idx)
-            u = u.mean(dim=(1, 2), keepdim=True)
+            u = u.sum(dim=(1, 2), keepdim=True).div(self._mean_points)  # the mean, as torch computes it
             return u.expand(len(idx), self.H, self.W, u.shape[-1]) if per_pixel else u
         u = field_on_grid(self.fields["motion"], [self.grid.xs_knots, self.grid.ys_knots, self.grid.ts], idx)
         return interpolate_grid(u, [self.grid.xs_knots, self.grid.ys_knots], [self.grid.xs, self.grid.ys])
@@ -83,7 +87,9 @@ class FieldModel:
 
     def motion_px(self) -> Tensor:
         """Pixels per coordinate unit for each motion component."""
-        return self.grid.px_per_unit.repeat(2) if self.base.key_warps else self.grid.px_per_unit
+        if self._motion_px is None:  # kept: a repeat is a dozen recorded operations a step
+            self._motion_px = self.grid.px_per_unit.repeat(2) if self.base.key_warps else self.grid.px_per_unit
+        return self._motion_px
 
     def dynamic_at(self, u: Tensor, idx: Tensor) -> tuple[Tensor, Tensor]:
         """Dynamic colour (C, n, H, W) and alpha (1, n, H, W) of frames idx under the motion u
@@ -160,7 +166,7 @@ class FieldModel:
         else:
             u = self.motion(idx) if motion is None else self.per_pixel(motion)
             colour, alpha = self.dynamic_at(u, idx)
-            v = colour if not self.parts.static else alpha * static[:, None] + (1 - alpha) * colour
+            v = colour if not self.parts.static else alpha * static[:, None] + (self._one - alpha) * colour
         return v if self.grid.mask is None else v * self.grid.mask
 
     def anchored(self, v_gs: Tensor) -> Tensor:
