@@ -72,3 +72,22 @@ def test_a_line_time_a_fit_from_it_explained_worse_is_no_verdict():
     assert not misfit.line_time_refuted({"kept": 1, "refits": worse["refits"]})  # a later fit kept
     assert not misfit.line_time_refuted({"kept": 0, "refits": [{"rs": "nan", "from_rs": 0.2}]})  # foreign shapes
     assert not misfit.line_time_refuted(["not", "a", "report"])
+
+
+def test_a_line_time_learned_far_off_speaks_above_the_noise_level_too():
+    """Shake with its line time 2 % long, cut by the budget at 1.27x the noise, learned x1.0152 (bench/untuned.md,
+    "a line time off, on whole runs"): the verdict names it first, as it does where the data are explained."""
+    def run(factor, ended_by="budget", key=None):
+        metrics = _metrics(0.0254, 0.0200, ended_by=ended_by)
+        metrics["method_results"]["line_time"] = {"factor": factor}
+        if key is not None:
+            metrics["method_results"]["self_calibration"] = _selfcal(key)
+        return misfit.for_metrics(metrics)
+
+    cut = run(1.0152)
+    assert cut["verdict"] == misfit.NOT_FITTED and cut["likely_causes"][0] == "line time"
+    assert "learned the RS line time at x1.0152" in cut["line"] and cut["line_factor"] == 1.0152
+    assert "line time" not in run(1.003)["likely_causes"]  # learned, and near: not a cause
+    # finished with the key rows explained: no verdict for motion, but one for a line time far off
+    assert run(1.003, "own_stop", key=0.0220) is None
+    assert run(1.0152, "own_stop", key=0.0220)["verdict"] == misfit.NOT_EXPLAINED
