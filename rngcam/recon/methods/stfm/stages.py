@@ -191,7 +191,7 @@ class StartFloorStage(Stage):
 
     def run(self, build: Build) -> str:
         config = build.config(self.name)
-        floor = StartFloor(build.method, build.problem, config.candidates, config.significance)
+        floor = StartFloor(build.method, build.problem, config.candidates, config.significance, config.polish)
         build.method = floor
         if floor.start_name is None:
             return "no GS-only video to compare with"
