@@ -132,7 +132,7 @@ def test_fit_every_row_puts_the_held_out_rows_into_the_steps_and_restarts_the_st
 def test_the_default_run_judges_then_polishes_every_fit_of_the_ensemble():
     """The recipe end to end, with a stop test quick enough for a test: the two fits stop, the check keeps
     their average, both fit every row to their next stop, and the run says so."""
-    p = _problem()
+    p = _noisy(tiny_sineball_problem(24).to(torch.float32), 0.002)  # the hold_out stage holds rows out
     settings = STFMSettings(preset="prior", start_floor=True, self_calibrate="off", subframes=1,
                             lr_half_life_steps=2.0, stall_passes=1, stall_drop=0.9)
     m = make_stfm(p, settings)
@@ -151,3 +151,19 @@ def test_the_default_run_judges_then_polishes_every_fit_of_the_ensemble():
     assert floor.check["parts"]["held out"]["z"] is not None
     assert all(len(member.grid.rs_rows_fit) == p.shape[2] for member in ensemble.members)
     assert all(member.steps >= member.stop.not_before > 0 for member in ensemble.members)
+
+
+def test_a_split_handed_to_the_run_stays_held_out():
+    """A sweep scores the rows it held out: the check reads that split and no fit takes it in."""
+    p = _noisy(tiny_sineball_problem(24).to(torch.float32), 0.002)
+    settings = STFMSettings(preset="prior", start_floor=True, self_calibrate="off", subframes=1)
+    own, handed = make_stfm(p, settings, trace=True), make_stfm(p.with_holdout(0.2), settings, trace=True)
+    floors = []
+    for m in (own, handed):
+        while not isinstance(m, StartFloor):
+            m = m._method
+        floors.append(m)
+    assert floors[0]._polish_on and not floors[1]._polish_on and floors[1].heldout
+    assert any("a kept fit then fits every row" in line for line in own.recipe)
+    assert not any("a kept fit then fits every row" in line for line in handed.recipe)
+
