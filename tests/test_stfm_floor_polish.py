@@ -13,6 +13,7 @@ from rngcam.recon.methods.stfm.ensemble import STFMEnsemble
 from rngcam.recon.methods.stfm.floor import StartFloor
 from rngcam.recon.methods.stfm.method import STFM
 from rngcam.recon.methods.stfm.recipe import make_stfm
+from rngcam.recon.methods.stfm.run_state import RunState
 
 
 def _noisy(problem, sigma: float, seed: int = 0):
@@ -104,9 +105,13 @@ def test_a_kept_fit_worse_on_the_held_out_rows_is_named(monkeypatch):
 def test_the_motion_search_reads_every_row_the_fit_only_the_fitted():
     p = _problem()
     settings = STFMSettings(preset="prior", fits=1, subframes=1, self_calibrate="off")
-    split, whole = STFM(p, settings), STFM(replace(p, rs_train_rows=None), settings)
+    own = RunState(rows_held_for_check=True)  # the hold_out stage's split
+    split, whole = STFM(p, settings, state=own), STFM(replace(p, rs_train_rows=None), settings)
     assert torch.equal(split.motion_track_px, whole.motion_track_px)
     assert len(split.grid.rs_rows_fit) < p.shape[2] == len(whole.grid.rs_rows_fit)
+    # A split handed to the run (a sweep's) stays out of the search too.
+    handed = STFM(p, settings)
+    assert not torch.equal(handed.motion_track_px, whole.motion_track_px)
 
 
 def test_fit_every_row_puts_the_held_out_rows_into_the_steps_and_restarts_the_stop():
