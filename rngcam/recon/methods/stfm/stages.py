@@ -182,7 +182,8 @@ class Fit(Stage):
 
 class StartFloorStage(Stage):
     name = "start_floor"
-    about = "check the fit against the best GS-only video on held-out and fitted RS rows; that video where worse"
+    about = ("check the fit against the best GS-only video on held-out and fitted RS rows; that video where worse, "
+             "else the fit takes the held-out rows in (polish)")
     Config = StartFloorConfig
 
     def applies(self, build: Build) -> str | None:
