@@ -313,6 +313,11 @@ class CoarseToFine(MethodBase):
     def final(self) -> bool:
         return self.level == len(self.problems) - 1
 
+    def fit_every_row(self) -> bool:
+        """The final level's fit fits the held-out RS rows too (where it can: stfm.floor); False elsewhere."""
+        fit_all = getattr(self.method, "fit_every_row", None) if self.final else None
+        return bool(fit_all()) if fit_all is not None else False
+
     # --- Method protocol ---
     def step(self) -> float:
         t0 = time.perf_counter()

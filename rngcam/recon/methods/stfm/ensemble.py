@@ -163,6 +163,18 @@ class STFMEnsemble(MethodBase):
         if factor is not None and self.refined.learned_line_time.learned:
             self.refined.start_line_factor(factor)
 
+    def fit_every_row(self) -> bool:
+        """The fit that makes the output (the refinement, else every member) fits the held-out RS rows too from
+        here, until its stop test ends it again (stfm.floor); False where none had any held out."""
+        if self.refined is not None:
+            changed = self.refined.fit_every_row()
+            self._refine_done = None if changed else self._refine_done
+            return changed
+        changed = [m.fit_every_row() for m in self.members]
+        self._done = [None if c else d for c, d in zip(changed, self._done, strict=True)]
+        self._cache = None
+        return any(changed)
+
     def converged(self) -> str | None:
         if not self._members_done():
             return None

@@ -15,7 +15,13 @@ exposure long is a stretch of time no fitted row sees: a shaking camera's fit, 4
 truth, explained the held-out rows 20 deviations worse than RIFE; bench/untuned.md, "the self-check").
 Near the noise level residuals cannot tell videos apart, and a fit not clearly worse is kept.
 
-Without a split (hold_out off) the fitted rows alone decide."""
+Without a split (hold_out off) the fitted rows alone decide.
+
+Once the fit has stopped and the check has kept it, with `polish` the fit takes the held-out rows in
+and runs on until its stop test ends it again (`fit_every_row`): the judgement stands as made, and
+the output has seen every row. A fit kept although it explains the held-out rows clearly worse than
+the reference gets a note: that was a fit that had lost sineball's ball, and a shaking camera's fit
+4 dB above RIFE (bench/realistic.md, "the held-out rows"; bench/untuned.md)."""
 
 from __future__ import annotations
 
@@ -65,8 +71,10 @@ class StartFloor(Wrapped):
     """`method` (an STFM, ensemble or coarse-to-fine run) checked against the best GS-only video."""
 
     def __init__(self, method, problem, candidates: tuple = StartFloorConfig.candidates,
-                 significance: float = StartFloorConfig.significance):
+                 significance: float = StartFloorConfig.significance, polish: bool = StartFloorConfig.polish):
         self._method = method
+        self._polish_on = bool(polish)
+        self.polish: dict | None = None  # once the kept fit fits every row: {"after": its first stop, "at_step"}
         device = str(getattr(method, "device", "cpu"))
         self._device = device if device.startswith("cuda") else "cpu"
         self.left_note = None
@@ -83,6 +91,7 @@ class StartFloor(Wrapped):
         self._line_factor = 1.0  # the line-time factor _rs_op's rows are at (a fit may learn one)
         self._checked: tuple | None = None  # (id, version of the fit's estimate, the check's dict)
         self.guard_note: str | None = None
+        self.heldout_note: str | None = None
         self.check: dict = {}
         # Only the reference's name and prediction of the judged rows are kept: its video (as large as
         # the output) is made again if and when it becomes the output.
@@ -227,12 +236,40 @@ class StartFloor(Wrapped):
         return (f"self-check: the fit explains {rows} worse than the GS-only video {check['reference']} "
                 f"(residual on the {'; '.join(said)}): the output is that video ({check['reference']})")
 
+    def _kept_note(self, check: dict) -> str | None:
+        """The note on a kept fit that explains the held-out rows clearly worse than the reference."""
+        held, fitted = check["parts"].get("held out"), check["parts"].get("fitted")
+        if check["output"] != "fit" or held is None or held["z"] is None or held["z"] >= -self._significance:
+            return None
+        return (f"self-check: the fit explains the held-out RS rows worse than the GS-only video "
+                f"{check['reference']} (residual {held['fit_residual']:.4f} against {held['reference_residual']:.4f}, "
+                f"by {-held['z']:.1f} noise deviations; on the fitted rows z "
+                + ("inf" if fitted is None or fitted["z"] is None else f"{fitted['z']:+.1f}")
+                + "): kept; the video between the rows may be wrong (a lost moving object looks like this)")
+
+    def converged(self) -> str | None:
+        """The fit's stop; with `polish`, the first one that the check keeps lets the fit take the held-out
+        rows in and run on to its next stop (the check's judgement then stands as made)."""
+        done = self._method.converged()
+        if done is None:
+            return None
+        if self.polish is not None:
+            return f"{self.polish['after']}; then, with the held-out RS rows fitted in: {done}"
+        if not (self._polish_on and self.heldout):
+            return done
+        self.estimate()  # the check of the fit as it stopped
+        fit_every_row = getattr(self._method, "fit_every_row", None)
+        if self.check.get("output", "fit") != "fit" or fit_every_row is None or not fit_every_row():
+            return done
+        self.polish = {"after": done, "at_step": getattr(self._method, "steps", None)}
+        return None
+
     @torch.no_grad()
     def estimate(self) -> Tensor:
         raw = self._method.estimate()
         key = (id(raw), raw._version)
         video = self._in_range(raw)
-        if self.start_name is None:
+        if self.start_name is None or self.polish is not None:  # no reference, or judged before the polish
             return video
         if self._follow_line_time() or self._checked is None or self._checked[:2] != key:
             check = self._judge(video)
@@ -240,20 +277,37 @@ class StartFloor(Wrapped):
             self.check = check
             keep_start = check["output"] != "fit"
             self.guard_note = self._line(check) if keep_start else None
+            self.heldout_note = self._kept_note(check)
             if not keep_start:
                 self._start_video = None
         return self.start_video.to(video.device) if self._checked[2]["output"] != "fit" else video
 
     @property
     def notes(self) -> list[str]:
-        return list(self._method.notes) + [n for n in (self.left_note, self.guard_note) if n]
+        return list(self._method.notes) + [n for n in (self.left_note, self.guard_note, self.heldout_note) if n]
+
+    def state_dict(self) -> dict:
+        out = dict(self._method.state_dict())
+        if self.polish is not None:  # the judgement made before the polish, which a resume cannot make again
+            out["start_floor_polish"] = {**self.polish, "check": self.check, "heldout_note": self.heldout_note}
+        return out
+
+    def load_state_dict(self, state: dict) -> None:
+        state = dict(state)
+        polish = state.pop("start_floor_polish", None)
+        self._method.load_state_dict(state)
+        if polish is not None:
+            polish = dict(polish)
+            self.check, self.heldout_note = dict(polish.pop("check")), polish.pop("heldout_note")
+            self.polish, self.guard_note = polish, None
 
     def resolved_settings(self) -> dict | None:
         out = self._method.resolved_settings()
         out = {} if out is None else dict(out)
         out["start_floor"] = {"video": self.start_name, "rs_residual": self.start_rs,
                               "output_is_start": bool(self.check and self.check["output"] != "fit"),
-                              **({"check": dict(self.check)} if self.check else {})}
+                              **({"check": dict(self.check)} if self.check else {}),
+                              **({"polish": dict(self.polish)} if self.polish is not None else {})}
         if self.guard_note:
             out["start_floor"]["line"] = self.guard_note
         return out

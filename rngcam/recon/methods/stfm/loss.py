@@ -127,6 +127,10 @@ class DataLoss:
             miss = miss * self.grid.gs_valid.index_select(1, windows)
         return _sum_of_squares(miss), self.c_gs * self.grid.w_gs.shape[0] / len(windows)
 
+    def fit_rows(self, rows: Tensor) -> None:
+        """The RS rows the steps sample from now on (the grid's `rs_rows_fit`, changed)."""
+        self._rows_fit = rows.numpy()
+
     def rs_scale(self, n_rows: int) -> float:
         return self.c_rs * len(self.grid.rs_rows_fit) / n_rows
 

@@ -252,6 +252,21 @@ class STFM(MethodBase):
     def log_ready(self) -> bool:
         return self.stop.log_ready()
 
+    def _fits_every_row(self) -> bool:
+        return len(self.grid.rs_rows_fit) == self.H
+
+    def fit_every_row(self) -> bool:
+        """Fit the held-out RS rows too from this step on (the self-check has judged: stfm.floor), the stop
+        test started afresh on every row; False where every row is fitted already."""
+        if not self.parts.rs or self._fits_every_row():
+            return False
+        self.grid.rs_rows_fit = torch.arange(self.H)
+        self.loss.fit_rows(self.grid.rs_rows_fit)
+        self.rs_noise_level = relative_noise_level(self.problem.b_rs)
+        self.stop.restart()
+        self._cache = None
+        return True
+
     @contextmanager
     def averaged(self):
         """Inside: the weights are their moving average (outputs, residuals, the stop test)."""
@@ -358,6 +373,7 @@ class STFM(MethodBase):
                 "line_shift": self.learned_line_time.parameter.detach().clone(),
                 "optimiser": self.optimiser.state_dict(), "steps": self.steps, "base_lr": self.base_lr,
                 "generator": self.generator.get_state(), "rs_history": dict(self.stop.history),
+                "every_row": self._fits_every_row(), "stop_not_before": self.stop.not_before,
                 "ema": None if self._ema is None else [a.clone() for a in self._ema]}
 
     def load_state_dict(self, state: dict) -> None:
@@ -372,7 +388,10 @@ class STFM(MethodBase):
         self.steps = int(state["steps"])
         self.base_lr = float(state["base_lr"])
         self.generator.set_state(state["generator"])
+        if state.get("every_row"):
+            self.fit_every_row()
         self.stop.history = dict(state.get("rs_history", {}))
+        self.stop.not_before = int(state.get("stop_not_before", 0))
         if self._ema is not None and state.get("ema") is not None:
             with torch.no_grad():
                 for a, saved in zip(self._ema, state["ema"], strict=True):

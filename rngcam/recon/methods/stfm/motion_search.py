@@ -84,7 +84,10 @@ def candidate_shifts(h: int, w: int, device, config: MotionSearchConfig | None =
 def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_gains: bool = False) -> Tensor:
     """(K, 2) shift in pixels (dx, dy) of the layer in every frame of `stfm`'s problem. With
     `row_gains`, each RS row and channel is scored after its least-squares gain (>= 0): by the shape of
-    its light, not by how much of it the PSF predicts (rngcam.recon.methods.stfm.row_gain_refit)."""
+    its light, not by how much of it the PSF predicts (rngcam.recon.methods.stfm.row_gain_refit).
+    It reads the self-check's held-out RS rows too (stfm.floor; not a split handed to the run, which a sweep
+    scores): without them a fit through an accurate PSF lost sineball's ball (bench/realistic.md, "the
+    held-out rows")."""
     p, dev = stfm.problem, stfm.device
     k = stfm.K
     config: MotionSearchConfig = stfm.fit_config  # the fit stage's (its MotionSearchConfig part)
@@ -96,7 +99,7 @@ def translation_track(stfm, background: Tensor, layer: Tensor, obj: Tensor, row_
     sub = p.subframes
     cost = torch.zeros(k // sub, n, device=dev)
     if stfm.parts.rs:
-        rows = stfm.grid.rs_rows_fit.to(dev)
+        rows = torch.arange(stfm.H, device=dev) if stfm.state.rows_held_for_check else stfm.grid.rs_rows_fit.to(dev)
         w = stfm.grid.w_rs.index_select(0, rows)  # (R, K)
         s_r = w.sum(1).clamp_min(WEIGHT_EPS)
         valid = None if stfm.grid.rs_valid is None else stfm.grid.rs_valid.index_select(1, rows)

@@ -80,6 +80,7 @@ class HoldOut(Stage):
         config = build.config(self.name)
         build.problem = build.problem.with_holdout(config.fraction, 0.0, config.seed)
         build.handed = build.handed.with_holdout(config.fraction, 0.0, config.seed)
+        build.state = replace(build.state, rows_held_for_check=True)
         held = int((~build.problem.rs_train_rows).sum())
         return f"{held} of {build.problem.b_rs.shape[-2]} RS rows held out"
 
@@ -181,7 +182,8 @@ class Fit(Stage):
 
 class StartFloorStage(Stage):
     name = "start_floor"
-    about = "check the fit against the best GS-only video on held-out and fitted RS rows; that video where worse"
+    about = ("check the fit against the best GS-only video on held-out and fitted RS rows; that video where worse, "
+             "else the fit takes the held-out rows in (polish)")
     Config = StartFloorConfig
 
     def applies(self, build: Build) -> str | None:
@@ -191,12 +193,15 @@ class StartFloorStage(Stage):
 
     def run(self, build: Build) -> str:
         config = build.config(self.name)
-        floor = StartFloor(build.method, build.problem, config.candidates, config.significance)
+        polish = config.polish and build.state.rows_held_for_check  # a handed split (a sweep's) is scored
+        floor = StartFloor(build.method, build.problem, config.candidates, config.significance, polish)
         build.method = floor
         if floor.start_name is None:
             return "no GS-only video to compare with"
         parts = "the held-out and the fitted RS rows" if floor.heldout else "the RS rows (none held out)"
-        return f"reference: GS-only video {floor.start_name} (RS residual {floor.start_rs:.4f}); judged on {parts}"
+        then = "; a kept fit then fits every row to its next stop" if polish and floor.heldout else ""
+        return (f"reference: GS-only video {floor.start_name} (RS residual {floor.start_rs:.4f}); "
+                f"judged on {parts}{then}")
 
 
 class LineRefitStage(Stage):

@@ -17,6 +17,7 @@ class NoiseStop:
     def __init__(self, fit):
         self.fit = fit
         self.history: dict[int, float] = {}
+        self.not_before = 0  # no test ends the fit before this step (a restart: `restart`)
 
     @torch.no_grad()
     def converged(self) -> str | None:
@@ -60,6 +61,12 @@ class NoiseStop:
                     f"{over:.2f}x it{unexplained})")
         return None
 
+    def restart(self) -> None:
+        """Test afresh from this step, on the rows the fit now fits: its residual history goes, and neither
+        test ends the fit within a stall window (what the window's passes fit is what the test measures)."""
+        self.history = {}
+        self.not_before = self.fit.steps + self.stall_window()
+
     def log_ready(self) -> bool:
         """A log row scores the video the stop test makes every `check_every()` steps: at those
         steps it is made once for both (a row elsewhere would make it again; bench/convergence.md,
@@ -89,6 +96,7 @@ class NoiseStop:
                  if line.learned and g["params"][0] is line.parameter]
         hold = max(holds, default=0)
         start = hold + window if hold > 0 and residual <= fit.rs_noise_level else 0
+        start = max(start, self.not_before)
         if residual < fit.fit_config.explained_ratio * fit.rs_noise_level:
             start = max(start, self.least_steps())
         return start
