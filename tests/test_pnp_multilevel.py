@@ -30,6 +30,7 @@ def test_coarse_to_fine_reaches_the_full_grid_and_improves_on_its_start():
     start = _psnr(m.estimate(), p.truth)
     result = run(m, LoopSettings(time_budget_s=None, max_iters=30, progress=False))
     assert m.final and m.estimate().shape == p.shape and result.status == "ok"
+    assert m.steps == result.iterations and m.level_steps < m.steps  # counted over both levels
     assert any("level 2 of 2" in s for s in stages)
     assert m.method.init_source == "coarser level"
     assert m.method.s.sigma_start == pytest.approx(math.sqrt(0.05 * 0.01)) and m.method.s.schedule_iters == 3

@@ -318,6 +318,11 @@ class CoarseToFine(MethodBase):
         fit_all = getattr(self.method, "fit_every_row", None) if self.final else None
         return bool(fit_all()) if fit_all is not None else False
 
+    @property
+    def steps(self) -> int:
+        """Steps taken so far, over every level."""
+        return sum(int(end["steps"]) for end in self.level_ends) + self.level_steps
+
     # --- Method protocol ---
     def step(self) -> float:
         t0 = time.perf_counter()
