@@ -6,11 +6,10 @@ import pytest
 import torch
 
 from rngcam.errors import ConfigError
-from rngcam.physics.psf import lenslet_psf
-from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
 from rngcam.recon.methods import selfcal, selfcal_flat
-from rngcam.recon.problem import build_problem, problem_from_video
+from rngcam.recon.problem import build_problem
 from rngcam.sim.simulate import simulate
+from tests.tiny_scenes import static_scene_problem
 
 
 def _problem(background=0.0, vignetting=0.0, noise=0.003, seed=0, size=32, plain=False):
@@ -22,12 +21,7 @@ def _problem(background=0.0, vignetting=0.0, noise=0.003, seed=0, size=32, plain
     scene = np.stack([np.full((size, size), 0.5) if plain else
                       0.5 + 0.2 * np.sin(2 * np.pi * (3 * xx + 2 * yy) + k) + 0.1 * rng.random((size, size))
                       for k in range(3)])
-    rs = RollingShutterTiming(208e-6, 650e-6, size)
-    last = rs.end_s - 650e-6
-    gs = GlobalShutterTiming((0.0, last / 2, last), 650e-6)
-    video = torch.from_numpy(np.repeat(scene[:, None], VideoGrid.covering(rs, gs).n_frames, axis=1))
-    psf = torch.from_numpy(np.repeat(lenslet_psf((size, size), 4, 16, 3.0, seed=1), 3, axis=0))
-    p = problem_from_video(video, psf, rs, gs)
+    p, psf = static_scene_problem(scene)
     handed = psf + background / (1 - background) / psf[0].numel()  # the background: `background` of the sum
     handed = handed / handed.sum((-2, -1), keepdim=True)
     b_gs = p.b_gs * (1 - vignetting * selfcal_flat.radius2(size, size))

@@ -30,9 +30,7 @@ def _flat_border_problem(matrix, size=32, taper_px=6):
     (0.35 / 0.27 of 0.45 px): no interpolation resamples those exactly."""
     import cv2
 
-    from rngcam.physics.psf import lenslet_psf
-    from rngcam.physics.timing import GlobalShutterTiming, RollingShutterTiming, VideoGrid
-    from rngcam.recon.problem import problem_from_video
+    from tests.tiny_scenes import static_scene_problem
 
     rng = np.random.default_rng(3)
     yy, xx = np.mgrid[0:size, 0:size] / size
@@ -46,12 +44,7 @@ def _flat_border_problem(matrix, size=32, taper_px=6):
 
     scene = np.stack([0.5 + fade * (0.2 * np.sin(2 * np.pi * (3 * xx + 2 * yy) + k) + 0.1 * texture())
                       for k in range(3)])
-    rs = RollingShutterTiming(208e-6, 650e-6, size)
-    last = rs.end_s - 650e-6
-    gs = GlobalShutterTiming((0.0, last / 2, last), 650e-6)
-    video = torch.from_numpy(np.repeat(scene[:, None], VideoGrid.covering(rs, gs).n_frames, axis=1))
-    psf = torch.from_numpy(np.repeat(lenslet_psf((size, size), 4, 16, 3.0, seed=1), 3, axis=0))
-    p = problem_from_video(video, psf, rs, gs)
+    p, _ = static_scene_problem(scene)
     return replace(p, b_gs=selfcal.warp(p.b_gs, matrix))
 
 

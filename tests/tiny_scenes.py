@@ -21,3 +21,18 @@ def tiny_sineball_problem(size: int = 12, psf_seed: int = 0):
         v[:, i] = 0.2 + 0.1 * xx + 0.7 * (((xx - cx) ** 2 + (yy - 0.5) ** 2) < 0.02)
     psf = torch.rand((1, 7, 7), generator=torch.Generator().manual_seed(psf_seed), dtype=torch.float64)
     return problem_from_video(torch.from_numpy(v), psf / psf.sum(), rs, gs)
+
+
+def static_scene_problem(scene: np.ndarray):
+    """A static (3, size, size) scene seen by a 208 us/row RS camera and three GS frames (650 us
+    exposures at the start, middle and end of the readout) through a lenslet PSF."""
+    from rngcam.physics.psf import lenslet_psf
+    from rngcam.physics.timing import VideoGrid
+
+    size = scene.shape[-1]
+    rs = RollingShutterTiming(208e-6, 650e-6, size)
+    last = rs.end_s - 650e-6
+    gs = GlobalShutterTiming((0.0, last / 2, last), 650e-6)
+    video = torch.from_numpy(np.repeat(scene[:, None], VideoGrid.covering(rs, gs).n_frames, axis=1))
+    psf = torch.from_numpy(np.repeat(lenslet_psf((size, size), 4, 16, 3.0, seed=1), 3, axis=0))
+    return problem_from_video(video, psf, rs, gs), psf
