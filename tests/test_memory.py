@@ -19,7 +19,7 @@ from rngcam.cli import main
 from rngcam.errors import SettingError
 from rngcam.formats.bundle import read_bundle
 from rngcam.recon import registry, runner
-from rngcam.recon.loop import LoopSettings, run
+from rngcam.recon.loop import LoopSettings, MethodBase, run
 from rngcam.recon.methods.coarse_to_fine import Kept, upsample
 from rngcam.recon.methods.stfm import STFMSettings, make_stfm
 from rngcam.recon.methods.stfm.floor import MAKERS, StartFloor
@@ -141,6 +141,33 @@ def test_the_start_floor_keeps_no_video_until_it_is_the_output():
     assert guard.check["output"] == guard.start_name  # it is made again, exactly
     keys = guard._problem.gs_images(gains=True).numpy()
     torch.testing.assert_close(out, torch.from_numpy(MAKERS[guard.start_name](keys, p.gs_times_s, p.frame_times_s)))
+
+
+def test_the_start_floor_lets_a_coarse_levels_reference_go_before_each_step():
+    class Levels(MethodBase):  # a coarse-to-fine run at a coarse level, then at its final one
+        name, stops_itself, final = "levels", True, False
+
+        def __init__(self, video):
+            self.video, self.steps = video, 0
+
+        def step(self):
+            self.steps += 1
+            return 0.0
+
+        def estimate(self):
+            return self.video
+
+    p = _toy_problem()
+    inner = Levels(torch.zeros(p.shape))  # worse than every GS-only video: the output is the reference
+    guard = StartFloor(inner, p)
+    first = guard.estimate().clone()
+    assert guard._start_video is not None and guard.check["output"] == guard.start_name
+    guard.step()  # a coarse level's step may build the next level: the reference is not held through it
+    assert inner.steps == 1 and guard._start_video is None
+    torch.testing.assert_close(guard.estimate(), first)  # made again when asked for, the same video
+    inner.final = True  # the final level keeps it between steps (it is the output)
+    guard.step()
+    assert inner.steps == 2 and guard._start_video is not None
 
 
 def test_tv3d_state_copies_share_the_videos_and_a_rollback_still_works():

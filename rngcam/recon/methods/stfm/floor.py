@@ -247,6 +247,14 @@ class StartFloor(Wrapped):
                 + ("inf" if fitted is None or fitted["z"] is None else f"{fitted['z']:+.1f}")
                 + "): kept; the video between the rows may be wrong (a lost moving object looks like this)")
 
+    def step(self) -> float:
+        if self._start_video is not None and not getattr(self._method, "final", True):
+            # A coarse level's step may build the next level: the reference (as large as the output) is
+            # made again when asked for rather than held beside that build's buffers (bench/convergence.md,
+            # "the paper grid's peak memory")
+            self._start_video = None
+        return self._method.step()
+
     def converged(self) -> str | None:
         """The fit's stop; with `polish`, the first one that the check keeps lets the fit take the held-out
         rows in and run on to its next stop (the check's judgement then stands as made)."""
