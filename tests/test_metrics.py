@@ -7,6 +7,7 @@ import torch
 from tiny_scenes import tiny_sineball_problem
 
 from rngcam.recon.metrics import (
+    _dilate,
     dynamic_region,
     error_visibility,
     motion_metrics,
@@ -109,6 +110,13 @@ def test_dynamic_psnr_sees_only_the_moving_region():
     out = motion_metrics(ball_error, truth, np.arange(1, 6), one_object=True)
     assert set(out) == {"psnr_dynamic_db", "centroid_error_median_px", "centroid_error_p90_px", "ghost_median",
                         "ghost_max"}
+
+
+def test_the_moving_region_is_grown_the_same_in_frame_chunks():
+    gen = torch.Generator().manual_seed(0)
+    mask = torch.rand(37, 20, 24, generator=gen) > 0.97  # more frames than one chunk, a part-filled last one
+    whole = torch.nn.functional.max_pool2d(mask.float()[:, None], 5, stride=1, padding=2)[:, 0] > 0
+    assert torch.equal(_dilate(mask, 2), whole) and torch.equal(_dilate(mask, 0), mask)
 
 
 def test_one_object_scene_reads_the_simulated_rig():

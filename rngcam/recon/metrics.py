@@ -258,8 +258,11 @@ def _dilate(mask: Tensor, px: int) -> Tensor:
     """(K, H, W) boolean mask grown by px pixels (square structuring element)."""
     if px <= 0:
         return mask
-    m = mask.float()[:, None]
-    return (torch.nn.functional.max_pool2d(m, 2 * px + 1, stride=1, padding=px)[:, 0] > 0)
+    out = torch.empty_like(mask, dtype=torch.bool)
+    for i in range(0, mask.shape[0], 16):  # frame chunks: float temporaries of 16 frames, not of the video
+        m = mask[i:i + 16].float()[:, None]
+        out[i:i + 16] = torch.nn.functional.max_pool2d(m, 2 * px + 1, stride=1, padding=px)[:, 0] > 0
+    return out
 
 
 def dynamic_region(truth: Tensor, threshold: float = DYNAMIC_THRESHOLD,
