@@ -85,6 +85,7 @@ def test_stfm_is_wrapped_where_the_motion_is_searched_and_the_row_gain_stage_doe
     second = method._make_refit(TrackRefitConfig().turn_scale, {"refits": [], "kept": 0})
     assert not isinstance(second, TrackRefit)  # the whole run again, never a third
     assert second.state.search_turn_scale == 0.5 and not second.settings.track_refit
+    assert not second.settings.preset_refit  # a later fit of a stage: the preset refit wraps the whole run only
     assert "motion search: turn penalty x0.5" in second.notes
     assert not any("turn penalty" in n for n in method._fits[0].notes)
     said = [n for n in second.notes if n.startswith("self-calibration")]

@@ -28,7 +28,7 @@ STATUSES = ("ok", "failed", "interrupted", "budget_before_first_iteration")
 # kept apart from the settings, in metrics.json's "method_results".
 RESULT_KEYS = ("self_calibration", "gs_geometry", "line_time", "preset_choice", "rs_noise_level", "member_steps",
                "refine_steps", "start_floor", "levels", "left_out", "edge_refits",
-               "line_refits", "row_gain_refits", "track_refits", "recipe")
+               "line_refits", "row_gain_refits", "track_refits", "preset_refits", "recipe")
 
 
 def split_results(resolved: dict | None) -> tuple[dict | None, dict]:

@@ -69,8 +69,8 @@ def describe_fit(problem, settings: STFMSettings, initial_video: Tensor | None) 
 def another_fit(build, changed, found: dict, psf_scale: bool, made_from: dict, **off):
     """A later fit of a refit stage: a whole STFM run on `changed` (the problem as handed, changed),
     calibrated again as the first was (what the stage found kept in its report), made from `made_from`
-    (RunState fields), with the settings `off` given and no track refit (that stage wraps the first
-    whole run only)."""
+    (RunState fields), with the settings `off` given and no track or preset refit (those stages wrap the
+    first whole run only)."""
     settings = build.settings
     changed = replace(changed, notes=list(changed.notes))
     calibration = build.state.selfcal_report
@@ -78,5 +78,5 @@ def another_fit(build, changed, found: dict, psf_scale: bool, made_from: dict, *
         changed, calibration = calibrate_problem(changed, settings.self_calibrate, psf_scale)
         calibration = dict(calibration or {}, **found)
     state = replace(build.state, selfcal_report=calibration, **made_from)
-    return build.nested(changed, replace(settings, track_refit=False, **off), build.device, clock=build.clock,
-                        stage=build.stage, state=state)
+    later = replace(settings, track_refit=False, preset_refit=False, **off)
+    return build.nested(changed, later, build.device, clock=build.clock, stage=build.stage, state=state)

@@ -25,6 +25,7 @@ from rngcam.recon.methods.stfm.stages import (
     Fit,
     HoldOut,
     LineRefitStage,
+    PresetRefitStage,
     RowGainRefitStage,
     SelfCalibration,
     StartFloorStage,
@@ -34,7 +35,7 @@ from rngcam.recon.methods.stfm.stages import (
 )
 
 RECIPE = (HoldOut(), SelfCalibration(), AutoPreset(), Subframes(), Fit(), StartFloorStage(), LineRefitStage(),
-          EdgeRefitStage(), RowGainRefitStage(), TrackRefitStage(), SubframesAverage())
+          EdgeRefitStage(), RowGainRefitStage(), TrackRefitStage(), PresetRefitStage(), SubframesAverage())
 
 
 MAX_RECIPE_CHARS = 65_536  # a recipe file names a few stages' numbers

@@ -56,6 +56,7 @@ SETTING_NAMES: dict[tuple[str, str], str] = {
     ("psf_edge", "enabled"): "psf_edge",
     ("row_gain_refit", "enabled"): "row_gain_refit",
     ("track_refit", "enabled"): "track_refit",
+    ("preset_refit", "enabled"): "preset_refit",
 }
 NOT_NAMED = ("preset", "stages")  # --preset; the stages' configs
 

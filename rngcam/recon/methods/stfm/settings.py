@@ -139,6 +139,10 @@ class STFMSettings:
         True, "where the motion starts from the translation search (the prior preset) and the run ends at 1.15x "
               "its noise level or more (and row_gain_refit does not apply): make it again from a search with half "
               "the turn penalty, and keep the one that explains the RS image better")
+    preset_refit: bool = setting(
+        True, "where the prior preset's run gives way at the self-check (a GS-only video explains the RS rows, held "
+              "out and fitted, clearly better than the fit): make the run again with the fast preset, and keep the "
+              "one whose fit explains the RS image better")
     learn_geometry: str = setting(
         "off", "learn the GS-to-RS transform with the fields: its shift, or shift, rotation and scale "
                "(similarity); needs both cameras and soft GS anchoring", choices=GEOMETRY_MODES)

@@ -17,6 +17,7 @@ from rngcam.recon.methods.stfm.edge_refit import EdgeRefit, edge_scale
 from rngcam.recon.methods.stfm.floor import StartFloor
 from rngcam.recon.methods.stfm.line_refit import LineRefit
 from rngcam.recon.methods.stfm.line_time import learns_line_time
+from rngcam.recon.methods.stfm.preset_refit import PresetRefit
 from rngcam.recon.methods.stfm.row_gain_refit import RowGainRefit
 from rngcam.recon.methods.stfm.settings import _setting_or_preset
 from rngcam.recon.methods.stfm.stage import Build, NoConfig, Stage
@@ -316,6 +317,32 @@ class TrackRefitStage(Stage):
 
         build.method = TrackRefit(build.method, build.problem, second, build.config(self.name).turn_scale,
                                   _explained(build))
+        return self.about
+
+
+class PresetRefitStage(Stage):
+    name = "preset_refit"
+    about = "where the self-check gave the prior preset's run way, make it again with the fast preset"
+    Config = NoConfig
+
+    def applies(self, build: Build) -> str | None:
+        s = build.settings
+        if not s.preset_refit:
+            return "preset_refit off (or a later fit of another stage)"
+        if not s.start_floor:
+            return "start_floor off: no self-check to give way"
+        if s.preset != "prior":
+            return f"preset {s.preset}"
+        return _whole_run(build) or _both_cameras(build)
+
+    def run(self, build: Build) -> str:
+        s, handed = build.settings, build.handed
+
+        def second(preset: str, report: dict):
+            found = {"preset_refit": report, "through": f"the {preset} preset"}
+            return another_fit(build, handed, found, s.self_calibrate_psf_scale, {}, preset=preset)
+
+        build.method = PresetRefit(build.method, build.problem, second)
         return self.about
 
 
