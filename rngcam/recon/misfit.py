@@ -281,7 +281,7 @@ def line_time_refuted(refits) -> bool:
     higher; a capture 2 % long is learned nearly whole where it is: bench/untuned.md, "a line time off, on whole
     runs")."""
     made = refits.get("refits") if isinstance(refits, dict) else None
-    if refits is None or not isinstance(made, list) or refits.get("kept") != 0:
+    if not isinstance(made, list) or refits.get("kept") != 0:
         return False
     worse = [r for r in made if isinstance(r, dict) and _number(r.get("rs")) is not None
              and _number(r.get("from_rs")) is not None and r["rs"] > r["from_rs"]]

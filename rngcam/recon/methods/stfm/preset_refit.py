@@ -13,7 +13,7 @@ image better is kept; each run's own self-check stands (a kept first run's outpu
 
 from __future__ import annotations
 
-from rngcam.recon.methods.stfm.refits import Refits, nth
+from rngcam.recon.methods.stfm.refits import Refits, ended, nth
 
 
 def gave_way(fit) -> bool:
@@ -35,8 +35,7 @@ class PresetRefit(Refits):
         super().__init__(first, problem, refit, {"preset": "prior"})
 
     def _propose(self, best, res: float) -> tuple[str, dict] | None:
-        if self.report["refits"]:
-            self.report["why"] = "one run with the fast preset made"
+        if self._made_once("one run with the fast preset made"):
             return None
         if not gave_way(best):
             self.report["why"] = "the self-check kept the prior preset's fit"
@@ -51,7 +50,6 @@ class PresetRefit(Refits):
         if not refits:
             return ""
         r = refits[0]
-        ended = f"its fit ended at {r['rs']:.4f}" if "rs" in r else "not run to its own stop"
         return (f"preset refit: the self-check gave the prior preset's run way (its fit ended at RS residual "
-                f"{r['from_rs']:.4f}, worse than the GS-only video); a second run with the fast preset: {ended}; "
-                f"the {nth(report['kept'])} run kept")
+                f"{r['from_rs']:.4f}, worse than the GS-only video); a second run with the fast preset: its fit "
+                f"{ended(r)}; the {nth(report['kept'])} run kept")

@@ -60,8 +60,7 @@ class Refits(MethodBase):
         """For a stage that makes one later run where the first ends unexplained: the ended fit's RS
         residual over its noise level where it is `ratio` or more and no later run was made yet, else
         None with report["why"] set (`made`: why, where one was)."""
-        if self.report["refits"]:
-            self.report["why"] = made
+        if self._made_once(made):
             return None
         over = self._over_noise(best, res)
         if over is None:
@@ -72,6 +71,13 @@ class Refits(MethodBase):
             self.report["why"] = f"the first run's RS residual is within {ratio}x its noise level"
             return None
         return over
+
+    def _made_once(self, made: str) -> bool:
+        """For a stage that makes one later run: whether it was made (report["why"] then says `made`)."""
+        if self.report["refits"]:
+            self.report["why"] = made
+            return True
+        return False
 
     @staticmethod
     def _over_noise(fit, res: float) -> float | None:
@@ -247,6 +253,11 @@ class Refits(MethodBase):
 
 def _copy(report: dict) -> dict:
     return {**report, "refits": [dict(r) for r in report.get("refits", [])]}
+
+
+def ended(refit: dict) -> str:
+    """How a later run ended, for a stage's note: its RS residual, or that it was cut short."""
+    return f"ended at {refit['rs']:.4f}" if "rs" in refit else "not run to its own stop"
 
 
 _ORDINALS = ("first", "second", "third", "fourth")

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from rngcam.recon.methods.stfm.refits import Refits, nth
+from rngcam.recon.methods.stfm.refits import Refits, ended, nth
 from rngcam.recon.methods.stfm.stage_configs import StopConfig
 
 
@@ -58,7 +58,6 @@ class RowGainRefit(Refits):
         if not refits:
             return f"motion search with row gains not tried ({key}): {report.get('why', 'the first run has not ended')}"
         r = refits[0]
-        ended = f"ended at {r['rs']:.4f}" if "rs" in r else "not run to its own stop"
         return (f"motion search with row gains ({key}; the first run ended at {r['from_rs']:.4f}, "
                 f"{r['ratio']:.2f}x its noise level): a second run, each RS row scored after its own gain, "
-                f"{ended}; the {nth(report['kept'])} run kept")
+                f"{ended(r)}; the {nth(report['kept'])} run kept")

@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-from rngcam.recon.methods.stfm.refits import Refits, nth
+from rngcam.recon.methods.stfm.refits import Refits, ended, nth
 from rngcam.recon.methods.stfm.stage_configs import StopConfig, TrackRefitConfig
 
 
@@ -54,7 +54,6 @@ class TrackRefit(Refits):
         if not refits:  # most runs: nothing to say (the report has why)
             return ""
         r = refits[0]
-        ended = f"ended at {r['rs']:.4f}" if "rs" in r else "not run to its own stop"
         return (f"motion search with a smaller turn penalty (the first run ended at {r['from_rs']:.4f}, "
                 f"{r['ratio']:.2f}x its noise level): a second run, the search's turn penalty x{r['turn_scale']:g}, "
-                f"{ended}; the {nth(report['kept'])} run kept")
+                f"{ended(r)}; the {nth(report['kept'])} run kept")
