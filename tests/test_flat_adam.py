@@ -90,3 +90,20 @@ def test_flat_adam_needs_its_parameters_in_the_buffer():
     flat = flatten(params[:2])
     with pytest.raises(ValueError, match="flat buffer"):
         FlatAdam([{"params": params}], flat, lr=1e-2)
+
+
+def test_a_dropped_flat_adam_and_its_buffers_are_freed():
+    """Its parameters' hooks do not keep it alive: a finished fit's moments and gradients go when the
+    fit does (they lived to the end of the process before), and the parameters step no more."""
+    import gc
+    import weakref
+
+    params = _params()
+    optimiser = FlatAdam(_groups(params), flatten(params), lr=1e-2)
+    _run(optimiser, params, 2)
+    gone, moments = weakref.ref(optimiser), weakref.ref(optimiser.exp_avg)
+    del optimiser
+    gc.collect()
+    assert gone() is None and moments() is None
+    _loss(params).backward()  # a later backward through the parameters: their hooks find nothing to mark
+    assert all(p.grad is not None for p in params)

@@ -14,6 +14,7 @@ step runs parameter by parameter.
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Sequence
 
 import torch
@@ -43,6 +44,12 @@ def _segments(params: Sequence[Tensor], flat: Tensor) -> list[tuple[int, int]]:
     return out
 
 
+def _mark_touched(optimiser: weakref.ref, i: int) -> None:
+    held = optimiser()
+    if held is not None:
+        held._touched[i] = True
+
+
 class FlatAdam(torch.optim.Optimizer):
     """Adam over parameters that live in one buffer `flat` (from `flatten`; it may hold other
     parameters too, which it leaves alone): the moments and gradients are buffers of the same
@@ -62,8 +69,12 @@ class FlatAdam(torch.optim.Optimizer):
         # the update's constants as tensors: a number costs a conversion at every operation
         self._beta2 = torch.tensor(betas[1], dtype=flat.dtype, device=flat.device)
         self._eps = torch.tensor(eps, dtype=flat.dtype, device=flat.device)
+        # The hooks hold the optimiser weakly: a parameter's hook holding it strongly makes a cycle
+        # through a tensor that Python's collector does not break, so a finished fit's moments and
+        # gradients (the solve's largest buffers but the video) lived to the end of the process.
+        this = weakref.ref(self)
         for i, p in enumerate(self.params):
-            p.register_post_accumulate_grad_hook(lambda _p, i=i: self._touched.__setitem__(i, True))
+            p.register_post_accumulate_grad_hook(lambda _p, i=i: _mark_touched(this, i))
         self._attach()
 
     def _view(self, buffer: Tensor, i: int) -> Tensor:
