@@ -100,7 +100,7 @@ def release_before(nbytes: int) -> None:
 
 
 # mallopt's parameters (glibc's malloc.h) and the defaults they are handed back
-_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -3, -4
 _GLIBC_MMAP_MAX = 65536
 _GLIBC_TRIM_THRESHOLD = 128 * 1024
 _reuse_lock = threading.Lock()
@@ -137,3 +137,29 @@ def heap_reuse() -> Iterator[None]:
             if _reuse_depth == 0:
                 _mallopt(_M_MMAP_MAX, _GLIBC_MMAP_MAX)
                 _mallopt(_M_TRIM_THRESHOLD, _GLIBC_TRIM_THRESHOLD)
+
+
+# A one-off phase's buffers from this size up are mapped afresh (and handed back on free)
+RETURNED_BUFFER_BYTES = 2**20
+
+
+@contextmanager
+def returned_on_free() -> Iterator[None]:
+    """For one-off work (a run's last estimate, its metrics and outputs): the heap's free pages are
+    handed back before and after, and a C allocation of RETURNED_BUFFER_BYTES or more that the heap's
+    free blocks cannot hold is mapped afresh and handed back when freed (glibc's mmap threshold), so a
+    phase's temporaries do not stay beside the next phase's: at the paper grid the finish's phases had
+    raised the process's peak step by step (bench/convergence.md). The threshold is left alone while
+    `heap_reuse` holds the setting; glibc's largest (LARGE_BUFFER_BYTES) is set back after."""
+    with _reuse_lock:
+        active = _reuse_depth == 0
+        if active:
+            _mallopt(_M_MMAP_THRESHOLD, RETURNED_BUFFER_BYTES)
+    release_free_memory(collect=False)
+    try:
+        yield
+    finally:
+        if active:
+            with _reuse_lock:
+                _mallopt(_M_MMAP_THRESHOLD, LARGE_BUFFER_BYTES)
+        release_free_memory(collect=False)

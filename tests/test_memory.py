@@ -327,3 +327,27 @@ def test_inside_heap_reuse_a_steps_large_temporaries_reuse_the_heap_without_page
     outside, inside = json.loads(done.stdout.strip().splitlines()[-1])
     assert outside > 8_000  # 49,152 pages of 4 KiB
     assert inside < 1_000
+
+
+def test_returned_on_free_hands_a_freed_buffer_back():
+    """A buffer freed inside `returned_on_free` is out of the resident set when it ends; inside
+    `heap_reuse` (a step's setting) the same buffer stays in the heap for the next."""
+    import numpy as np
+
+    from rngcam import memory
+
+    if memory._glibc() is None:
+        pytest.skip("glibc's malloc_trim and mallopt only")
+    size = 24 * 2**20
+
+    def kept_after(context) -> float:
+        with context():
+            big = np.ones(size // 8)  # touched: resident
+            held = memory.current_rss_bytes()
+            del big
+        return (memory.current_rss_bytes() - (held - size)) / 2**20
+
+    kept = kept_after(memory.heap_reuse)
+    memory.release_free_memory(collect=False)
+    returned = kept_after(memory.returned_on_free)
+    assert kept > 20 and returned < 4, (kept, returned)

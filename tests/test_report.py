@@ -301,3 +301,21 @@ def test_the_page_says_a_run_stopped_above_the_noise_level(recons, tmp_path):
     res = _cli("report", run)
     assert res.exit_code == 0, res.output
     assert "stopped at 1.30x the RS noise level" in (run / "report.html").read_text()
+
+
+def test_speed_over_time_reads_chunks_and_matches_the_whole_array():
+    """STFM's |motion| player and its per-frame figures, made a chunk of frames at a time, are the
+    whole array's: the scale is the largest speed of all frames, not only of the frames shown."""
+    from rngcam.recon.report import figures
+
+    gen = np.random.default_rng(0)
+    motion = gen.normal(size=(2, 37, 12, 10)).astype(np.float32)
+    motion[:, 5, 3, 4] = 40.0  # the largest speed, on a frame the player does not show
+    frames = np.arange(0, 37, 4)
+    uris, stats, top = figures.speed_over_time(motion, frames, 1.0)
+    speed = np.linalg.norm(motion, axis=0)
+    assert top == pytest.approx(float(speed.max()))
+    np.testing.assert_allclose(stats["mean"], speed.mean((1, 2)), rtol=1e-6)
+    np.testing.assert_allclose(stats["99th percentile"], np.percentile(speed, 99, (1, 2)), rtol=1e-6)
+    np.testing.assert_allclose(stats["max"], speed.max((1, 2)), rtol=1e-6)
+    assert uris == figures.map_uris(speed[frames], 1.0, top)

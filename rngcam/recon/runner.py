@@ -30,7 +30,7 @@ import torch
 from rngcam.cpu import choose_threads, torch_threads
 from rngcam.errors import RngcamError, SettingError
 from rngcam.formats.bundle import Bundle, bundle_checksum, is_warning, open_checked
-from rngcam.memory import peak_rss_bytes, release_before, release_free_memory
+from rngcam.memory import peak_rss_bytes, release_before, release_free_memory, returned_on_free
 from rngcam.physics.operators import drop_scratch
 from rngcam.recon import ablation, checkpoint, outputs, registry
 from rngcam.recon.holdout import HELDOUT_KEYS, HoldoutScorer
@@ -256,7 +256,8 @@ def _solve(source: Source, settings: ReconSettings, out: Path | None, echo, star
                     f"and solve, {run_.finish_s:.1f} s kept for the metrics and outputs")
             made = _fit(problem, run_, extra, job)
             guard.enter("finish")
-            result = _finish(source, problem, run_, extra, made, job)
+            with returned_on_free():  # the metrics' and writers' temporaries do not pile up
+                result = _finish(source, problem, run_, extra, made, job)
             result.lines = [line.rstrip("\n") for line in log.held]  # empty where recon.log has them
             return result
     finally:
@@ -406,12 +407,14 @@ def _iterate(problem: Problem, run_: Run, method: Method, made: Fitted, rows: _R
         return {**row, **rows.truth(m.estimate(), ssim=rows.progress_ssim)}
 
     result = run(method, loop, evaluate, setup_s=setup_s)
-    if problem.truth is not None and result.log and "ssim" not in result.log[-1]:
-        result.log[-1].update(rows.truth(method.estimate()))  # the final row's SSIM, once
-    made = replace(made, video=method.estimate().detach().float().cpu().numpy(), components=method.components(),
-                   method_settings=method.resolved_settings(), log=result.log, iterations=result.iterations,
-                   solve_s=result.solve_s, wall_s=result.wall_s, events=result.events, status=result.status,
-                   message=result.message, ended_by=result.ended_by)
+    with returned_on_free():  # the last estimate's and the components' temporaries go as they are freed
+        if problem.truth is not None and result.log and "ssim" not in result.log[-1]:
+            result.log[-1].update(rows.truth(method.estimate()))  # the final row's SSIM, once
+        made = replace(made, video=method.estimate().detach().float().cpu().numpy(),
+                       components=method.components(), method_settings=method.resolved_settings(),
+                       log=result.log, iterations=result.iterations, solve_s=result.solve_s, wall_s=result.wall_s,
+                       events=result.events, status=result.status, message=result.message,
+                       ended_by=result.ended_by)
     made.notes += [n for n in method.notes if n not in made.notes]  # what it learns by the end (the floor)
     # The method's state (the solve's peak) goes before the end-of-run metrics and outputs, which
     # then add to a much smaller base (bench/large_grids.md: whole-process peak).
@@ -512,6 +515,7 @@ def _finish(source: Source, problem: Problem, run_: Run, extra: dict, fit: Fitte
     if above:
         metrics["above_noise"] = above
     metrics["settings"] = {k: v for k, v in resolved.items() if k != "method_settings"}  # that one is above
+    release_free_memory(collect=False)  # the metrics' freed heap pages go before the outputs are written
     video = np.ascontiguousarray(problem.to_sensor(video))
     result = Result(video=video, frame_times_s=np.asarray(problem.frame_times_s), metrics=metrics,
                     components=_sensor_components(problem, fit.components), notes=fit.notes,

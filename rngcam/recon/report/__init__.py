@@ -81,15 +81,12 @@ def _runs_sections(runs: list[Run], labels: list[str], truth, frames, factor, cu
         comps = r.components
         if not {"static", "alpha", "motion"} <= set(comps):
             continue
-        motion = comps["motion"]  # (2, K, H, W) px, maybe read on demand: a chunk of frames at a time
-        speed = np.concatenate([np.linalg.norm(np.asarray(motion[:, i:i + figures.CHUNK]), axis=0)
-                                for i in range(0, motion.shape[1], figures.CHUNK)])  # (K, H, W) px
+        # (1 or 2, K, H, W), maybe read on demand: a chunk of frames at a time, no video-sized copies
+        speed_uris, speed, top = figures.speed_over_time(comps["motion"], frames, factor)
         data["players"].append({"name": f"{lab}: alpha (white: static background; black: moving layer)",
-                                "frames": figures.map_uris(comps["alpha"][0, frames], factor, 1.0, "gray")})
-        data["players"].append({"name": f"{lab}: |motion| (0 to {float(speed.max()):.1f} px)",
-                                "frames": figures.map_uris(speed[frames], factor)})
-        series = {"mean": {"m": speed.mean((1, 2))}, "99th percentile": {"m": np.percentile(speed, 99, (1, 2))},
-                  "max": {"m": speed.max((1, 2))}}
+                                "frames": figures.chunked_map_uris(comps["alpha"], 0, frames, factor, 1.0, "gray")})
+        data["players"].append({"name": f"{lab}: |motion| (0 to {top:.1f} px)", "frames": speed_uris})
+        series = {name: {"m": values} for name, values in speed.items()}
         plot = figures.time_plot(times_us, series, key_us, [("m", "|motion| (px)")], dt_us)
         static = figures.image_figure({"static image": comps["static"]})
         sections.append((f"STFM's parts: {lab}",
@@ -226,7 +223,7 @@ def write_report_or_warn(folder: Path, echo=print, truth: np.ndarray | None = No
     not hashed again; `truth`: the run's, on its grid, not read again); a failure is one warning
     line: the reconstruction's outputs stand."""
     try:  # recon.h5 was just written by this run: the bundle it records is the one the run read
-        bundle = read_recon_h5(Path(folder) / "recon.h5", video=False)["attrs"].get("bundle_path") or None
+        bundle = read_recon_h5(Path(folder) / "recon.h5", video=False, lazy=True)["attrs"].get("bundle_path") or None
         path = write_report(folder, check_hash=False, truth=truth, bundle=bundle)
     except Exception as exc:  # a page must never cost the reconstruction it shows
         echo(f"warning: report.html not written ({type(exc).__name__}: {exc}); the other outputs are complete")

@@ -85,6 +85,33 @@ def map_uris(maps: np.ndarray, factor: float, vmax: float | None = None, cmap: s
     return out
 
 
+def chunked_map_uris(maps, index: int, frames: np.ndarray, factor: float, vmax: float,
+                     cmap: str = "magma") -> list[str]:
+    """`map_uris` of channel `index` of a (C, K, H, W) map (or recon.h5's, read on demand) at `frames`,
+    read and encoded CHUNK frames at a time."""
+    return [uri for i in range(0, len(frames), CHUNK)
+            for uri in map_uris(np.asarray(maps[index, frames[i:i + CHUNK]]), factor, vmax, cmap)]
+
+
+def speed_over_time(motion, frames: np.ndarray, factor: float) -> tuple[list[str], dict[str, np.ndarray], float]:
+    """A (2, K, H, W) motion in px (or recon.h5's, read on demand): its speed |motion| at `frames` as
+    data URIs (0 to its largest), its mean, 99th percentile and maximum per frame, and that largest
+    speed. Read CHUNK frames at a time, twice (the scale first): no video-sized speed array."""
+    k = motion.shape[1]
+    stats = {"mean": np.zeros(k), "99th percentile": np.zeros(k), "max": np.zeros(k)}
+    for i in range(0, k, CHUNK):
+        speed = np.linalg.norm(np.asarray(motion[:, i:i + CHUNK]), axis=0)  # (n, H, W)
+        stats["mean"][i:i + CHUNK] = speed.mean((1, 2))
+        stats["99th percentile"][i:i + CHUNK] = np.percentile(speed, 99, (1, 2))
+        stats["max"][i:i + CHUNK] = speed.max((1, 2))
+    top = float(np.max(stats["max"])) if k else 0.0
+    uris = []
+    for i in range(0, len(frames), CHUNK):
+        speed = np.linalg.norm(np.asarray(motion[:, frames[i:i + CHUNK]]), axis=0)
+        uris += map_uris(speed, factor, top)
+    return uris, stats, top
+
+
 def _psnr(err2: np.ndarray) -> float:
     mse = float(np.mean(err2)) if err2.size else math.nan
     return math.inf if mse == 0 else (10 * math.log10(1 / mse) if math.isfinite(mse) else math.nan)
