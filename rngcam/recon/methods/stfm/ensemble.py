@@ -196,13 +196,14 @@ class STFMEnsemble(MethodBase):
             with member.averaged():
                 for idx in chunks(torch.arange(m0.K, device=self.device), m0.frame_chunk):
                     video[:, idx] += member.model.video_frames(idx, native)
-        return video / len(self.members)
+        return video.div_(len(self.members))  # in place: no second video-sized buffer
 
     @torch.no_grad()
     def estimate(self) -> Tensor:
         if self.refined is not None:
             return self.refined.estimate()
         if self._cache is None or self._cache[0] != self.steps:
+            self._cache = None  # the stale video goes before the new one is made
             self._cache = (self.steps, self.average())
         return self._cache[1]
 
