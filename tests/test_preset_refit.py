@@ -51,6 +51,13 @@ def test_a_run_the_self_check_gave_way_is_made_again_with_the_fast_preset_and_th
     settings, results = split_results(method.resolved_settings())
     assert results["preset_refits"]["kept"] == kept and results["preset_refits"]["preset"] == ("prior", "fast")[kept]
     assert settings["preset_refit"] is True
+    # the output's results are the kept run's: where that is the second, what the first found stays in the report
+    first_found = results["preset_refits"].get("first_fit_found")
+    if kept:
+        assert first_found == {"start_floor": {"video": "blend", "output_is_start": True}}
+        assert results["start_floor"]["output_is_start"] is False  # the kept run's own
+    else:
+        assert first_found is None
 
 
 def test_no_second_run_where_the_self_check_kept_the_fit():

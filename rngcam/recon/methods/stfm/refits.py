@@ -19,6 +19,9 @@ from rngcam.recon.loop import MethodBase
 from rngcam.recon.methods.stfm.stage_configs import StopConfig
 
 NO_RESIDUAL = 1e30  # an ended fit's RS residual where it has none (non-finite): never the best, and a float
+# What a first fit's own stages found, kept in the report where a later fit replaces it as the output
+# (the output's results are the later fit's alone)
+FIRST_FIT_FOUND = ("start_floor", "line_time", "edge_refits", "line_refits", "row_gain_refits", "track_refits")
 
 
 class Refits(MethodBase):
@@ -183,6 +186,10 @@ class Refits(MethodBase):
         self.report[self.VALUE] = self.report["refits"][-1][self.VALUE]
 
     def _drop(self, k: int) -> None:
+        if k == 0 and 0 in self._fits:
+            resolved = self._fits[0].resolved_settings() or {}
+            self.report["first_fit_found"] = {key: resolved[key] for key in FIRST_FIT_FOUND
+                                              if resolved.get(key) is not None}
         self._fits.pop(k, None)
         self._made.pop(k, None)
 
