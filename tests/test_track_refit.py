@@ -59,6 +59,44 @@ def test_no_second_run_where_the_first_ends_near_its_noise_level():
     assert method.resolved_settings()["track_refits"]["refits"] == []
 
 
+class _Members:
+    """A run whose fits (an ensemble's members) started from searched tracks."""
+
+    def __init__(self, tracks):
+        self.members = [type("Member", (), {"motion_track_px": t})() for t in tracks]
+
+
+@pytest.mark.parametrize("moved", [False, True])
+def test_a_second_run_from_the_first_runs_very_tracks_is_built_but_not_run(moved):
+    """The softer search found the same tracks for every fit: the second run would repeat the first
+    step for step, so it is not run; a track moved anywhere: it is."""
+    import torch
+
+    tracks = [torch.tensor([[0.0, 1.0], [2.0, 3.0]]), torch.tensor([[0.5, 1.0], [2.0, 4.0]])]
+    again = [t.clone() for t in tracks]
+    if moved:
+        again[1][1, 0] += 1.0
+    first = _Fit(0.0143, "first video", noise=NOISE)
+    first.members = _Members(tracks).members
+    made = []
+
+    def another(scale, report):
+        made.append(scale)
+        fit = _Fit(0.0102, "second video", noise=NOISE)
+        fit.members = _Members(again).members
+        return fit
+
+    method = TrackRefit(first, None, another)
+    _run(method)
+    assert len(made) == 1  # built: the search is part of the build
+    if moved:
+        assert method.report["kept"] == 1 and method.estimate() == "second video"
+        return
+    assert method.report["refits"] == [] and method.report["kept"] == 0
+    assert method.report["why"].endswith("a second run would repeat it")
+    assert method.estimate() == "first video" and method.notes == ["a note"]
+
+
 def test_a_run_resumed_in_the_second_run_makes_it_again_and_a_tampered_one_is_refused(tmp_path):
     method, _ = _refit(0.0143, 0.0102)
     method.step()

@@ -11,13 +11,17 @@ So where a run whose motion came from the search ends at the fit's `explained_ra
 or more, and the row-gain stage (a PSF found too large) does not apply, it is made again with the search's turn
 penalty times `turn_scale` (the track_refit stage's config); the run whose RS residual is lower is
 the output. The recipe wraps the whole run this way; the second run has its own edge and line-time
-stages and wraps nothing more.
+stages and wraps nothing more. Where the softer search finds the very tracks the first run's fits
+started from, the second run would repeat the first step for step (a dim scene's did, at the cost of a
+whole run; bench/untuned.md): it is built (the search is part of the build) but not run.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
+
+import torch
 
 from rngcam.recon.methods.stfm.refits import Refits, ended, nth
 from rngcam.recon.methods.stfm.stage_configs import StopConfig, TrackRefitConfig
@@ -37,6 +41,20 @@ class TrackRefit(Refits):
         unexplained is made again from a softer motion search")."""
         super().__init__(first, problem, refit, {"turn_scale": 1.0}, explained_ratio=explained_ratio)
         self.turn_scale = turn_scale
+        self._first_tracks = searched_tracks(first)  # before the run's own later fits replace its first
+
+    def _next_fit(self) -> bool:
+        if not super()._next_fit():
+            return False
+        if not _same(searched_tracks(self._method), self._first_tracks):
+            return True
+        k = self._current  # the same start as the first run: it would end where the first did
+        self.report["refits"].pop()
+        self._drop(k)
+        self._current = self._best
+        self.report["why"] = ("the search with the smaller turn penalty found the tracks the first run started "
+                              "from: a second run would repeat it")
+        return False
 
     def _propose(self, best, res: float) -> tuple[float, dict] | None:
         ratio = self._unexplained_once(best, res, self.explained_ratio,
@@ -57,3 +75,17 @@ class TrackRefit(Refits):
         return (f"motion search with a smaller turn penalty (the first run ended at {r['from_rs']:.4f}, "
                 f"{r['ratio']:.2f}x its noise level): a second run, the search's turn penalty x{r['turn_scale']:g}, "
                 f"{ended(r)}; the {nth(report['kept'])} run kept")
+
+
+def searched_tracks(run) -> list:
+    """The translation tracks (K, 2) px the motion search gave a run's current fit (each ensemble
+    member's), None for a fit whose motion did not come from the search."""
+    members = getattr(run, "members", None)  # wrappers hand the attribute on to the fit inside
+    return [getattr(fit, "motion_track_px", None) for fit in (members or [run])]
+
+
+def _same(tracks: list, others: list) -> bool:
+    """Whether two runs' fits started from the same searched tracks, every one of them found."""
+    return bool(tracks) and len(tracks) == len(others) and all(
+        a is not None and b is not None and a.shape == b.shape and bool(torch.equal(a.cpu(), b.cpu()))
+        for a, b in zip(tracks, others, strict=True))
