@@ -31,7 +31,6 @@ def _run(*args, env=None):
 
 def test_step_time_times_the_code_it_is_given(bundle, tmp_path):
     # 20 steps apart: a 24 px step is a few ms, and the two runs' solve times each move by about as much
-    # (the full suite once measured -1.4 ms a step from 4 steps apart)
     rc, out, err = _run(bundle, "--iters", "2,22")
     assert rc == 0, err
     row = json.loads(out.strip().splitlines()[-1])
