@@ -73,11 +73,10 @@ def video_uris(video: np.ndarray, frames: np.ndarray, factor: float, scale: floa
             for uri in encode_images(to_display(video[:, frames[i:i + CHUNK]] * scale), factor)]
 
 
-def map_uris(maps: np.ndarray, factor: float, vmax: float | None = None, cmap: str = "magma") -> list[str]:
+def map_uris(maps: np.ndarray, factor: float, vmax: float, cmap: str = "magma") -> list[str]:
     """(N, H, W) scalar maps through a colour map (0..vmax) as data URIs."""
     import matplotlib  # heavy: matplotlib
 
-    vmax = float(np.nanmax(maps)) if vmax is None else vmax
     out = []
     for i in range(0, len(maps), CHUNK):  # the colour map makes float64 RGBA: a chunk at a time
         norm = np.clip(np.nan_to_num(maps[i:i + CHUNK]) / (vmax if vmax > 0 else 1.0), 0, 1)
