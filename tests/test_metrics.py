@@ -171,3 +171,23 @@ def test_metrics_json_is_strict_json_with_null_where_a_figure_is_not_a_number(tm
     back = json.loads(text, parse_constant=lambda name: pytest.fail(f"{name} in metrics.json"))
     assert back["error_visibility"] == {"rs": 3.1, "gs": None} and back["log"][0] == {"objective": None, "wall_s": None}
     assert back["psnr_db"] == pytest.approx(24.5) and back["steps"] == 3
+
+
+def test_psnr_works_in_chunks_of_a_few_mb_and_equals_the_whole_array_formula():
+    """A large grid's frames are scored a few at a time (each float64 temporary at most CHUNK_BYTES, at
+    least one frame): the figure is the whole array's, over all frames and over a frame subset."""
+    from rngcam.recon.metrics import CHUNK_BYTES, _frame_chunks, psnr
+
+    gen = torch.Generator().manual_seed(1)
+    truth = torch.rand(3, 20, 96, 128, generator=gen)  # 295 kB a frame in float64: 14 frames a chunk
+    est = (truth + 0.05 * torch.randn(truth.shape, generator=gen)).clamp(0, 1)
+    chunks = [e.shape[1] for e, _ in _frame_chunks(est, truth)]
+    assert sum(chunks) == 20 and len(chunks) > 1
+    assert max(chunks) * 8 * 3 * 96 * 128 <= CHUNK_BYTES
+    frames = np.array([0, 3, 4, 19])
+    for f in (None, frames):
+        e, t = (est, truth) if f is None else (est[:, f], truth[:, f])
+        whole = 10 * math.log10(1 / float(((e.double() - t.double()) ** 2).mean()))
+        assert math.isclose(psnr(est, truth, frames=f), whole, rel_tol=1e-12)
+    big = torch.zeros(3, 2, 700, 700)  # one frame over the budget: one frame a chunk
+    assert [e.shape[1] for e, _ in _frame_chunks(big, big)] == [1, 1]

@@ -157,6 +157,25 @@ def test_decoder_function_is_the_linear_layers(widths, relu_after):
             results.append([out.detach(), x.grad] + [p.grad.clone() for p in decoder.parameters()])
         for a, b in zip(*results, strict=True):
             assert torch.equal(a, b)
+        with torch.no_grad():  # without autograd: the same products, no layer's output kept
+            x = feats.t() if transposed else feats
+            assert torch.equal(decode(decoder, x), decoder(x))
+            assert not decode(decoder, x).requires_grad
+
+
+def test_decoder_without_autograd_keeps_no_layer(monkeypatch):
+    """Under no_grad the decoder does not go through the autograd function, which holds every layer's
+    output until it returns (at a large grid's chunk, tens of MB a layer)."""
+    torch.manual_seed(0)
+    decoder = nn.Sequential(nn.Linear(8, 32), nn.ReLU(), nn.Linear(32, 32), nn.ReLU(), nn.Linear(32, 4))
+    from rngcam.recon.methods.stfm import decoder as module
+    calls = []
+    monkeypatch.setattr(module._Decode, "apply", lambda *a: calls.append(a) or decoder(a[0]))
+    with torch.no_grad():
+        decode(decoder, torch.rand(50, 8))
+    assert calls == []
+    decode(decoder, torch.rand(50, 8))
+    assert len(calls) == 1
 
 
 def test_interpolation_matrices_built_on_the_host_are_the_tensor_formulas():

@@ -117,6 +117,10 @@ class Method(Protocol):
     def resolved_settings(self) -> dict | None:
         """The settings with every preset value filled in, for metrics.json (None: nothing to add)."""
 
+    def end_fit(self) -> None:
+        """The loop is over and the video taken: what only steps need (gradients, an optimiser's
+        state) and cached videos may go; estimate(), components() and the reports still work."""
+
 
 class MethodBase:
     """The defaults of Method's optional parts: no held-out fitting, no stop of its own, nothing
@@ -140,6 +144,9 @@ class MethodBase:
         return {}
 
     def resolved_settings(self) -> dict | None:
+        return None
+
+    def end_fit(self) -> None:
         return None
 
 
@@ -184,6 +191,9 @@ class Wrapped(MethodBase):
 
     def resolved_settings(self) -> dict | None:
         return self._method.resolved_settings()
+
+    def end_fit(self) -> None:
+        self._method.end_fit()
 
 
 @dataclass

@@ -35,9 +35,22 @@ def psnr(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range
     return 10 * math.log10(data_range ** 2 / mse)
 
 
-def _frame_chunks(a: Tensor, b: Tensor, frames: np.ndarray | None = None, chunk: int = 16):
-    """Pairs of (C, n, H, W) chunks of two videos, `chunk` of `frames` (default all) at a time:
-    views where the frames are consecutive, small copies otherwise."""
+# The bytes of one float64 chunk a metric works on: a large grid's chunk (several such temporaries at
+# once) would otherwise raise the heap by hundreds of MB at every log row (bench/convergence.md, seventh round)
+CHUNK_BYTES = 4 * 2**20
+
+
+def chunk_frames(video: Tensor, value_bytes: int = 8) -> int:
+    """Frames of a ([C,] K, H, W) video whose values, `value_bytes` each (float64), fill CHUNK_BYTES
+    (at least one)."""
+    per_frame = value_bytes * math.prod(video.shape[:-3]) * video.shape[-2] * video.shape[-1]
+    return max(1, CHUNK_BYTES // max(1, per_frame))
+
+
+def _frame_chunks(a: Tensor, b: Tensor, frames: np.ndarray | None = None, chunk: int | None = None):
+    """Pairs of (C, n, H, W) chunks of two videos, `chunk` of `frames` (default all) at a time
+    (default: `chunk_frames`): views where the frames are consecutive, small copies otherwise."""
+    chunk = chunk or chunk_frames(a)
     if frames is None:
         for i in range(0, a.shape[1], chunk):
             yield a[:, i:i + chunk], b[:, i:i + chunk]
@@ -259,9 +272,10 @@ def _dilate(mask: Tensor, px: int) -> Tensor:
     if px <= 0:
         return mask
     out = torch.empty_like(mask, dtype=torch.bool)
-    for i in range(0, mask.shape[0], 16):  # frame chunks: float temporaries of 16 frames, not of the video
-        m = mask[i:i + 16].float()[:, None]
-        out[i:i + 16] = torch.nn.functional.max_pool2d(m, 2 * px + 1, stride=1, padding=px)[:, 0] > 0
+    step = chunk_frames(mask, 4)
+    for i in range(0, mask.shape[0], step):  # frame chunks: float temporaries of a few frames, not of the video
+        m = mask[i:i + step].float()[:, None]
+        out[i:i + step] = torch.nn.functional.max_pool2d(m, 2 * px + 1, stride=1, padding=px)[:, 0] > 0
     return out
 
 
@@ -270,8 +284,9 @@ def dynamic_region(truth: Tensor, threshold: float = DYNAMIC_THRESHOLD,
     """(K, H, W) boolean: where the truth (C, K, H, W) differs from its own temporal median by more
     than `threshold` in any channel, grown by `dilation_px` pixels: the moving region, per frame."""
     background = temporal_median(truth).double()  # (C, H, W)
-    moving = torch.cat([(truth[:, i:i + 16].double() - background[:, None]).abs().amax(0) > threshold
-                        for i in range(0, truth.shape[1], 16)])  # frame chunks: bounded temporaries
+    step = chunk_frames(truth)
+    moving = torch.cat([(truth[:, i:i + step].double() - background[:, None]).abs().amax(0) > threshold
+                        for i in range(0, truth.shape[1], step)])  # frame chunks: bounded temporaries
     return _dilate(moving, dilation_px)
 
 
@@ -291,8 +306,9 @@ def psnr_dynamic(estimate: Tensor, truth: Tensor, frames: np.ndarray | None = No
     region = dynamic_region(truth)
     idx = torch.arange(truth.shape[1]) if frames is None else torch.as_tensor(np.asarray(frames), dtype=torch.long)
     total, count = 0.0, 0
-    for i in range(0, len(idx), 16):  # 16 frames at a time: bounded float64 temporaries at any size
-        j = idx[i:i + 16].to(truth.device)
+    step = chunk_frames(truth)
+    for i in range(0, len(idx), step):  # a few frames at a time: bounded float64 temporaries at any size
+        j = idx[i:i + step].to(truth.device)
         r = region.index_select(0, j)[None]
         e = estimate.index_select(1, j.to(estimate.device)).double().to(truth.device)
         diff = (e - truth.index_select(1, j).double()) ** 2
@@ -337,8 +353,9 @@ def object_metrics(estimate: Tensor, truth: Tensor, frames: np.ndarray | None = 
     background = temporal_median(truth).double()
     idx = torch.arange(truth.shape[1]) if frames is None else torch.as_tensor(np.asarray(frames), dtype=torch.long)
     errs, ghosts = [], []
-    for i in range(0, len(idx), 16):
-        j = idx[i:i + 16]
+    step = chunk_frames(truth)
+    for i in range(0, len(idx), step):
+        j = idx[i:i + step]
         s_true = object_signal(truth.index_select(1, j.to(truth.device)), background)
         s_est = object_signal(estimate.index_select(1, j.to(estimate.device)).to(truth.device), background)
         floor = OBJECT_FRACTION * s_true.amax((1, 2), keepdim=True)

@@ -410,8 +410,9 @@ def _iterate(problem: Problem, run_: Run, method: Method, made: Fitted, rows: _R
     with returned_on_free():  # the last estimate's and the components' temporaries go as they are freed
         if problem.truth is not None and result.log and "ssim" not in result.log[-1]:
             result.log[-1].update(rows.truth(method.estimate()))  # the final row's SSIM, once
-        made = replace(made, video=method.estimate().detach().float().cpu().numpy(),
-                       components=method.components(), method_settings=method.resolved_settings(),
+        video = method.estimate().detach().float().cpu().numpy()
+        method.end_fit()  # the optimiser's buffers and the cached raw video go before the components
+        made = replace(made, video=video, components=method.components(), method_settings=method.resolved_settings(),
                        log=result.log, iterations=result.iterations, solve_s=result.solve_s, wall_s=result.wall_s,
                        events=result.events, status=result.status, message=result.message,
                        ended_by=result.ended_by)

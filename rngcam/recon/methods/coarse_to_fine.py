@@ -380,6 +380,9 @@ class CoarseToFine(MethodBase):
     def reduce_step(self, factor: float) -> None:
         self.method.reduce_step(factor)
 
+    def end_fit(self) -> None:
+        self.method.end_fit()
+
     def resolved_settings(self) -> dict:
         """The current level's method's settings, and how each finished level went."""
         inner = self.method.resolved_settings() or {}

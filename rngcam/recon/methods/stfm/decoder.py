@@ -74,4 +74,9 @@ def decode(decoder: nn.Sequential, x: Tensor) -> Tensor:
             return decoder(x)
     if not relu or x.dim() != 2:
         return decoder(x)
+    if not torch.is_grad_enabled():  # the same products, each layer's input let go as the next is made
+        for i, after in enumerate(relu):
+            x = torch.addmm(params[2 * i + 1], x, _transposed(params[2 * i]))
+            x = torch.relu_(x) if after else x
+        return x
     return _Decode.apply(x, tuple(relu), *params)

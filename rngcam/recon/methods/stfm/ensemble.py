@@ -283,6 +283,11 @@ class STFMEnsemble(MethodBase):
         for m in [*self.members, *([self.refined] if self.refined is not None else [])]:
             m.reduce_step(factor)
 
+    def end_fit(self) -> None:
+        self._cache = None
+        for m in [*self.members, *([self.refined] if self.refined is not None else [])]:
+            m.end_fit()
+
     def budget_cut(self) -> str:
         """Said when a time budget ends the run: which fits had not stopped by themselves."""
         open_members = [i + 1 for i, d in enumerate(self._done) if d is None]

@@ -408,6 +408,15 @@ class STFM(MethodBase):
         return (f"the fit had not converged (RS residual {history[step]:.4f} at step {step}{noise}); "
                 "its output is the state at the budget")
 
+    def end_fit(self) -> None:
+        """The run is over: the gradients and Adam's moments (three buffers the size of the parameters)
+        and the cached video go before the components and outputs are made; step() and state_dict()
+        no longer work (bench/convergence.md, seventh round)."""
+        self._cache = None
+        for q in self._params:
+            q.grad = None
+        self.optimiser = None
+
     def reduce_step(self, factor: float) -> None:
         self.base_lr *= factor
         for g in self.optimiser.param_groups:

@@ -125,6 +125,10 @@ class Refits(MethodBase):
     def reduce_step(self, factor: float) -> None:
         self._method.reduce_step(factor)
 
+    def end_fit(self) -> None:
+        for fit in self._fits.values():
+            fit.end_fit()
+
     def components(self) -> dict:
         return self._output().components()
 
