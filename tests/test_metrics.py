@@ -191,3 +191,19 @@ def test_psnr_works_in_chunks_of_a_few_mb_and_equals_the_whole_array_formula():
         assert math.isclose(psnr(est, truth, frames=f), whole, rel_tol=1e-12)
     big = torch.zeros(3, 2, 700, 700)  # one frame over the budget: one frame a chunk
     assert [e.shape[1] for e, _ in _frame_chunks(big, big)] == [1, 1]
+
+
+def test_gs_forward_in_chunks_is_the_operator():
+    """The GS prediction the visibility and residuals use (float64, a few frames at a time) is the
+    operator's weighted sum of frames, for any chunk."""
+    from rngcam.recon.metrics import gs_forward
+
+    problem = tiny_sineball_problem()
+    gen = torch.Generator().manual_seed(2)
+    video = torch.rand(problem.shape, generator=gen)
+    op = problem.gs_op()
+    expected = torch.einsum("ckhw,gk->cghw", video.double(), op.weights.double())
+    for chunk in (None, 1, 3, 1000):
+        got = gs_forward(op, video, chunk)
+        assert got.dtype == torch.float64 and got.shape == expected.shape
+        assert torch.allclose(got, expected, rtol=1e-12, atol=1e-12)

@@ -161,7 +161,7 @@ def relative_residual(pred: Tensor, meas: Tensor) -> float:
 _CONSISTENT_NOISE_RATIO = 3.0
 
 
-def _visibility_sensors(problem, frame_chunk: int) -> dict:
+def _visibility_sensors(problem, frame_chunk: int | None) -> dict:
     """name -> (measurement, forward operator computing in float64, 0/1 valid mask or None) for the
     sensors in use; they take a chunk of frames at a time (GS: `frame_chunk`) and copy no whole video."""
     rs, gs = problem.rs_op(), problem.gs_op()
@@ -172,13 +172,15 @@ def _visibility_sensors(problem, frame_chunk: int) -> dict:
     return {name: s for name, s in sensors.items() if s[0] is not None and s[0].numel()}
 
 
-def gs_forward(op, video: Tensor, frame_chunk: int = 16, dtype=torch.float64) -> Tensor:
-    """The GS operator's A(video) computed in `dtype`, `frame_chunk` frames at a time (no cast copy
-    of the whole video)."""
+def gs_forward(op, video: Tensor, frame_chunk: int | None = None, dtype=torch.float64) -> Tensor:
+    """The GS operator's A(video) computed in `dtype`, `frame_chunk` frames at a time (default:
+    `chunk_frames`: the einsum's permuted copies of 16 frames had raised a large grid's peak by 0.2 GiB;
+    no cast copy of the whole video)."""
     w = op.weights.to(dtype=dtype, device=video.device)
+    step = frame_chunk or chunk_frames(video)
     out = None
-    for i in range(0, video.shape[1], frame_chunk):
-        part = torch.einsum("ckhw,gk->cghw", video[:, i:i + frame_chunk].to(dtype), w[:, i:i + frame_chunk])
+    for i in range(0, video.shape[1], step):
+        part = torch.einsum("ckhw,gk->cghw", video[:, i:i + step].to(dtype), w[:, i:i + step])
         out = part if out is None else out.add_(part)
     return out
 
@@ -197,7 +199,7 @@ def _noise_estimate_norm(name: str, meas: Tensor, mask: Tensor | None) -> float:
     return std * math.sqrt(count)
 
 
-def error_visibility(problem, estimate: Tensor, frame_chunk: int = 16) -> dict[str, float]:
+def error_visibility(problem, estimate: Tensor, frame_chunk: int | None = None) -> dict[str, float]:
     """What each measurement sees of an estimate's error, in units of its noise: per sensor
     ("rs", "gs"), ||M A (estimate - truth)|| / ||M (A truth - b)|| (needs the truth; gains taken
     as 1), M the pixels that carry linear information (Problem.rs_valid / gs_valid).
@@ -226,7 +228,7 @@ def error_visibility(problem, estimate: Tensor, frame_chunk: int = 16) -> dict[s
     return out
 
 
-def error_visibility_caveats(problem, frame_chunk: int = 16) -> list[str]:
+def error_visibility_caveats(problem, frame_chunk: int | None = None) -> list[str]:
     """Why `error_visibility` cannot vouch for a result: data inconsistent with the truth (by how
     many times their noise), pixels or measurements left out. [] when there is nothing to say."""
     if problem.truth is None:
