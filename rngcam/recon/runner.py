@@ -412,6 +412,7 @@ def _iterate(problem: Problem, run_: Run, method: Method, made: Fitted, rows: _R
             result.log[-1].update(rows.truth(method.estimate()))  # the final row's SSIM, once
         video = method.estimate().detach().float().cpu().numpy()
         method.end_fit()  # the optimiser's buffers and the cached raw video go before the components
+        release_free_memory(collect=False)  # their pages too: in the heap, the components' buffers would not reuse them
         made = replace(made, video=video, components=method.components(), method_settings=method.resolved_settings(),
                        log=result.log, iterations=result.iterations, solve_s=result.solve_s, wall_s=result.wall_s,
                        events=result.events, status=result.status, message=result.message,
