@@ -40,7 +40,7 @@ def psnr(estimate: Tensor, truth: Tensor, mask: Tensor | None = None, data_range
 CHUNK_BYTES = 4 * 2**20
 
 
-def chunk_frames(video: Tensor, value_bytes: int = 8) -> int:
+def metric_chunk_frames(video: Tensor, value_bytes: int = 8) -> int:
     """Frames of a ([C,] K, H, W) video whose values, `value_bytes` each (float64), fill CHUNK_BYTES
     (at least one)."""
     per_frame = value_bytes * math.prod(video.shape[:-3]) * video.shape[-2] * video.shape[-1]
@@ -49,8 +49,8 @@ def chunk_frames(video: Tensor, value_bytes: int = 8) -> int:
 
 def _frame_chunks(a: Tensor, b: Tensor, frames: np.ndarray | None = None, chunk: int | None = None):
     """Pairs of (C, n, H, W) chunks of two videos, `chunk` of `frames` (default all) at a time
-    (default: `chunk_frames`): views where the frames are consecutive, small copies otherwise."""
-    chunk = chunk or chunk_frames(a)
+    (default: `metric_chunk_frames`): views where the frames are consecutive, small copies otherwise."""
+    chunk = chunk or metric_chunk_frames(a)
     if frames is None:
         for i in range(0, a.shape[1], chunk):
             yield a[:, i:i + chunk], b[:, i:i + chunk]
@@ -174,10 +174,10 @@ def _visibility_sensors(problem, frame_chunk: int | None) -> dict:
 
 def gs_forward(op, video: Tensor, frame_chunk: int | None = None, dtype=torch.float64) -> Tensor:
     """The GS operator's A(video) computed in `dtype`, `frame_chunk` frames at a time (default:
-    `chunk_frames`: the einsum's permuted copies of 16 frames had raised a large grid's peak by 0.2 GiB;
+    `metric_chunk_frames`: the einsum's permuted copies of 16 frames had raised a large grid's peak by 0.2 GiB;
     no cast copy of the whole video)."""
     w = op.weights.to(dtype=dtype, device=video.device)
-    step = frame_chunk or chunk_frames(video)
+    step = frame_chunk or metric_chunk_frames(video)
     out = None
     for i in range(0, video.shape[1], step):
         part = torch.einsum("ckhw,gk->cghw", video[:, i:i + step].to(dtype), w[:, i:i + step])
@@ -274,7 +274,7 @@ def _dilate(mask: Tensor, px: int) -> Tensor:
     if px <= 0:
         return mask
     out = torch.empty_like(mask, dtype=torch.bool)
-    step = chunk_frames(mask, 4)
+    step = metric_chunk_frames(mask, 4)
     for i in range(0, mask.shape[0], step):  # frame chunks: float temporaries of a few frames, not of the video
         m = mask[i:i + step].float()[:, None]
         out[i:i + step] = torch.nn.functional.max_pool2d(m, 2 * px + 1, stride=1, padding=px)[:, 0] > 0
@@ -286,7 +286,7 @@ def dynamic_region(truth: Tensor, threshold: float = DYNAMIC_THRESHOLD,
     """(K, H, W) boolean: where the truth (C, K, H, W) differs from its own temporal median by more
     than `threshold` in any channel, grown by `dilation_px` pixels: the moving region, per frame."""
     background = temporal_median(truth).double()  # (C, H, W)
-    step = chunk_frames(truth)
+    step = metric_chunk_frames(truth)
     moving = torch.cat([(truth[:, i:i + step].double() - background[:, None]).abs().amax(0) > threshold
                         for i in range(0, truth.shape[1], step)])  # frame chunks: bounded temporaries
     return _dilate(moving, dilation_px)
@@ -308,7 +308,7 @@ def psnr_dynamic(estimate: Tensor, truth: Tensor, frames: np.ndarray | None = No
     region = dynamic_region(truth)
     idx = torch.arange(truth.shape[1]) if frames is None else torch.as_tensor(np.asarray(frames), dtype=torch.long)
     total, count = 0.0, 0
-    step = chunk_frames(truth)
+    step = metric_chunk_frames(truth)
     for i in range(0, len(idx), step):  # a few frames at a time: bounded float64 temporaries at any size
         j = idx[i:i + step].to(truth.device)
         r = region.index_select(0, j)[None]
@@ -355,7 +355,7 @@ def object_metrics(estimate: Tensor, truth: Tensor, frames: np.ndarray | None = 
     background = temporal_median(truth).double()
     idx = torch.arange(truth.shape[1]) if frames is None else torch.as_tensor(np.asarray(frames), dtype=torch.long)
     errs, ghosts = [], []
-    step = chunk_frames(truth)
+    step = metric_chunk_frames(truth)
     for i in range(0, len(idx), step):
         j = idx[i:i + step]
         s_true = object_signal(truth.index_select(1, j.to(truth.device)), background)

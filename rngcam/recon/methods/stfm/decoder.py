@@ -13,19 +13,25 @@ def _transposed(m: Tensor) -> Tensor:
     return m.as_strided((m.shape[1], m.shape[0]), (m.stride(1), m.stride(0)), m.storage_offset())
 
 
+def _layers(x: Tensor, relu: tuple[bool, ...], params: tuple[Tensor, ...], kept: list | None = None) -> Tensor:
+    """x (N, in) through layers (weight, bias, ReLU after it or not) as nn.Linear computes them
+    (addmm(bias, x, weight.t())); each layer's output appended to `kept` where one is given."""
+    for i, after in enumerate(relu):
+        x = torch.addmm(params[2 * i + 1], x, _transposed(params[2 * i]))
+        if after:
+            x = torch.relu(x)
+        if kept is not None:
+            kept.append(x)
+    return x
+
+
 class _Decode(torch.autograd.Function):
-    """x (N, in) through layers (weight, bias, ReLU after it or not); the products are those of
-    nn.Linear on 2-D inputs (addmm(bias, x, weight.t())) and of its backward."""
+    """x (N, in) through `_layers`; the backward's products are those of nn.Linear's."""
 
     @staticmethod
     def forward(ctx, x: Tensor, relu: tuple[bool, ...], *params: Tensor) -> Tensor:
         inputs = [x]
-        h = x
-        for i, after in enumerate(relu):
-            h = torch.addmm(params[2 * i + 1], h, _transposed(params[2 * i]))
-            if after:
-                h = torch.relu(h)
-            inputs.append(h)
+        h = _layers(x, relu, params, inputs)
         ctx.relu = relu
         ctx.save_for_backward(*inputs, *params)
         return h
@@ -74,9 +80,6 @@ def decode(decoder: nn.Sequential, x: Tensor) -> Tensor:
             return decoder(x)
     if not relu or x.dim() != 2:
         return decoder(x)
-    if not torch.is_grad_enabled():  # the same products, each layer's input let go as the next is made
-        for i, after in enumerate(relu):
-            x = torch.addmm(params[2 * i + 1], x, _transposed(params[2 * i]))
-            x = torch.relu_(x) if after else x
-        return x
+    if not torch.is_grad_enabled():  # the same products, no layer's output kept past the next
+        return _layers(x, tuple(relu), tuple(params))
     return _Decode.apply(x, tuple(relu), *params)
