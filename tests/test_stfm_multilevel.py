@@ -261,3 +261,22 @@ def test_the_full_levels_start_has_the_gs_only_videos_detail():
         assert started.shape == p.shape and float(started.min()) >= 0
         gain = _psnr(started, p.truth) - _psnr(coarse_truth, p.truth)
         assert gain > 1, (frames, gain)  # the detail the half grid could not hold
+
+
+@pytest.mark.parametrize("preset", ["fast", "prior"])
+def test_a_coarse_level_wrapped_by_a_refit_stage_hands_its_fit_to_the_next(preset):
+    """A refit stage wraps a level's fit where it applies (`--set fit.base=video` on a capture whose key rows
+    find the PSF too large raised AttributeError at the level's end): the next level takes the wrapped fit."""
+    from dataclasses import replace
+
+    from rngcam.recon.methods.stfm.refits import Refits
+
+    class Stage(Refits):  # a stage that wraps its fit and proposes nothing
+        pass
+
+    p = _toy_problem()
+    one = STFMSettings(preset=preset, rows_per_step=4, dynamic_base="interp" if preset == "fast" else None)
+    m = make_multilevel(p, one, "cpu", (2, 1),
+                        lambda q, s: Stage(STFM(q, replace(s, fits=1)), q, lambda *a: None, {}), max_level_steps=5)
+    run(m, LoopSettings(time_budget_s=None, max_iters=8, progress=False))
+    assert m.final and isinstance(m.method, STFM) and torch.isfinite(m.estimate()).all()

@@ -145,10 +145,14 @@ def make_multilevel(problem, settings: STFMSettings, device, factors: tuple[int,
 
 
 def _fit_of(method) -> STFM:
-    """The single fit whose fields a finer level takes (an ensemble's refinement or first member)."""
-    if isinstance(method, STFM):
-        return method
-    return method.refined if getattr(method, "refined", None) is not None else method.members[0]
+    """The single fit whose fields a finer level takes (an ensemble's refinement or first member). A
+    level may come wrapped by a refit stage, which hands on what its current fit has: so asked by
+    attribute, not by type."""
+    refined = getattr(method, "refined", None)
+    if refined is not None:
+        return refined
+    members = getattr(method, "members", None)
+    return members[0] if members else method
 
 
 @torch.no_grad()
