@@ -263,6 +263,43 @@ def test_the_full_levels_start_has_the_gs_only_videos_detail():
         assert gain > 1, (frames, gain)  # the detail the half grid could not hold
 
 
+def test_a_coarse_levels_key_warps_start_as_the_finer_grids_warps_binned():
+    """Warped on the coarse grid, bilinear sampling blurs the binned key frames at each sub-pixel shift;
+    the start is the warp made on the finer grid (where the flows are), binned; the fit's changes move it."""
+    import torch.nn.functional as F
+
+    from rngcam.recon.methods.baselines import interp_warps
+    from rngcam.recon.methods.coarse_to_fine import bin_space, coarsen
+
+    p = _toy_problem(scene="smoke")
+    q = coarsen(p, 2)
+    fine = p.gs_images()
+    warps = interp_warps(fine.numpy(), p.gs_times_s, q.frame_times_s)
+    order = np.argsort(p.gs_times_s, kind="stable")
+    keys = fine[:, order].permute(1, 0, 2, 3)
+    flows = torch.from_numpy(np.concatenate([warps.flow0, warps.flow1], axis=-1)) / torch.tensor([23.5, 15.5] * 2)
+    gx, gy = torch.linspace(-1, 1, 48).view(1, 1, -1), torch.linspace(-1, 1, 32).view(1, -1, 1)
+    left = torch.from_numpy(warps.left)
+
+    def warped(images, f):
+        grid = torch.stack([gx + f[..., 0], gy + f[..., 1]], dim=-1)
+        return F.grid_sample(images, grid, mode="bilinear", padding_mode="border", align_corners=True)
+
+    w0 = torch.from_numpy(warps.weight0).clamp(1e-6, 1 - 1e-6)[:, None]
+    expected = w0 * warped(keys[left], flows[..., :2]) + (1 - w0) * warped(keys[left + 1], flows[..., 2:])
+    expected = bin_space(expected, 16, 24).permute(1, 0, 2, 3)
+
+    fit = STFM(q, STFMSettings(preset="fast", dynamic_base="keys_interp"), "cpu")
+    k = q.shape[1]
+    u = torch.zeros(k, 16, 24, 4, requires_grad=True)
+    start = fit.base.keys_at(u, torch.zeros(k, 16, 24), torch.arange(k))
+    assert torch.allclose(start, expected.float(), atol=1e-5)
+    coarse_only = fit.base.keys_at(u, torch.zeros(k, 16, 24), torch.arange(k)) - fit.base._fine.offset.permute(1, 0, 2, 3)
+    assert float((coarse_only - expected).abs().max()) > 1e-3  # the blur this removes is there on this scene
+    start.sum().backward()
+    assert float(u.grad.abs().sum()) > 0  # the flows' corrections still move the warps
+
+
 @pytest.mark.parametrize("preset", ["fast", "prior"])
 def test_a_coarse_level_wrapped_by_a_refit_stage_hands_its_fit_to_the_next(preset):
     """A refit stage wraps a level's fit where it applies (`--set fit.base=video` on a capture whose key rows

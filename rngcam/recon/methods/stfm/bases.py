@@ -10,7 +10,7 @@ from torch import Tensor
 from rngcam.errors import ConfigError
 from rngcam.recon.methods import rife as rife_method  # looked up at each call: a test may replace them
 from rngcam.recon.methods.baselines import BaselineInputError, interp, interp_warps
-from rngcam.recon.methods.coarse_to_fine import bin_space
+from rngcam.recon.methods.coarse_to_fine import area_matrix, bin_space
 from rngcam.recon.methods.rife import RifeUnavailableError
 from rngcam.recon.methods.stfm.settings import BASE_VIDEOS, HDV3_SUFFIX, KEY_WARPS, MIN_FLOW_SIZE_PX
 
@@ -24,6 +24,7 @@ class DynamicBase:
     def __init__(self, grid, problem, resolved, parts, given: Tensor | None = None, gains: Tensor | None = None):
         self.grid, self.device = grid, grid.device
         self.keys = self.weights = self.video = None
+        self._fine: _FineWarps | None = None  # a coarse level's key warps made on the finer grid
         self.source = None
         self.gains = None if gains is None else gains.to(self.device, torch.float32)
         self.substitutes: list[tuple[str, str]] = []
@@ -98,30 +99,28 @@ class DynamicBase:
         h, w = source.shape[-2:]
         px = torch.tensor([(w - 1) / 2, (h - 1) / 2]).clamp_min(0.5).repeat(2)  # the source grid's pixels
         flows, w0 = flows / px, torch.from_numpy(warps.weight0)  # coordinate units: the same on every grid
+        fine_flows, fine_w0 = flows, w0
         if source is not keys:
             flows = bin_space(flows.permute(0, 3, 1, 2), self.grid.H, self.grid.W).permute(0, 2, 3, 1)
             w0 = bin_space(w0, self.grid.H, self.grid.W)
         self.key_flow = flows.to(self.device, torch.float32).contiguous()  # (K, H, W, 4)
-        w0 = w0.to(self.device, torch.float32).clamp(1e-6, 1 - 1e-6)
-        self.key_logit = torch.log(w0) - torch.log1p(-w0)
+        self.key_logit = _logit(w0.to(self.device, torch.float32))
+        if source is not keys:  # the start warped where the flows were computed, then binned (keys_at)
+            self._fine = _FineWarps(source[:, order], fine_flows, fine_w0, self.key_images, self.key_left,
+                                    self.key_flow, self.key_logit, self.grid, self.device)
         self.source = name
         return True
 
     def keys_at(self, u: Tensor, blend_logit: Tensor, idx: Tensor) -> Tensor:
         """Base "keys": the two key frames around each frame idx warped by the interpolation's
         flows plus u (n, H, W, 4) and blended with its weights plus blend_logit (n, H, W)."""
-        flow = self.key_flow.index_select(0, idx) + u
         left = self.key_left.index_select(0, idx)
-        gx, gy = self.grid.xs.view(1, 1, -1), self.grid.ys.view(1, -1, 1)
-
-        def warped(keys, f):
-            grid = torch.stack([gx + f[..., 0], gy + f[..., 1]], dim=-1)
-            return F.grid_sample(keys, grid, mode="bilinear", padding_mode="border", align_corners=True)
-
-        w0 = warped(self.key_images.index_select(0, left), flow[..., :2])
-        w1 = warped(self.key_images.index_select(0, left + 1), flow[..., 2:])
-        m = torch.sigmoid(self.key_logit.index_select(0, idx) + blend_logit)[:, None]
-        return (m * w0 + (1 - m) * w1).permute(1, 0, 2, 3)
+        flow = self.key_flow.index_select(0, idx) + u
+        logit = self.key_logit.index_select(0, idx) + blend_logit
+        warped = _warp_pair(self.key_images, left, flow, logit, self.grid.xs, self.grid.ys)
+        if self._fine is not None:
+            warped = self._fine.add_to(warped, idx)
+        return warped.permute(1, 0, 2, 3)
 
     def at(self, x: Tensor, y: Tensor, idx: Tensor) -> Tensor:
         """The base video (C, n, H, W) of frames idx sampled at the points (x, y) (n, H, W)."""
@@ -136,6 +135,56 @@ class DynamicBase:
         keys = F.grid_sample(self.keys, grid, mode="bilinear", padding_mode="border",
                              align_corners=True).view(C, -1, n, H, W)
         return torch.einsum("cgnhw,ng->cnhw", keys, self.weights[idx])
+
+
+class _FineWarps:
+    """A coarse level's key-frame warps at the flows it starts from, made on the finer grid the flows were
+    computed on (`Problem.fine_gs`) and binned to the level: warped on the coarse grid, bilinear sampling
+    blurred the binned key frames' detail at every sub-pixel shift (a pan: 6 dB under the same warps made
+    finer and binned; bench/untuned.md, 2026-12-08, second round). What the fit changes (flow, blend) is
+    still warped on the coarse grid, as a difference from the coarse warp at the start: the same cost a
+    step, and at the start the fine warp exactly."""
+
+    def __init__(self, images: Tensor, flows: Tensor, weight0: Tensor, coarse_keys: Tensor, left: Tensor,
+                 coarse_flow: Tensor, coarse_logit: Tensor, grid, device, chunk: int = 16):
+        h, w = images.shape[-2:]
+        images = images.permute(1, 0, 2, 3).to(device, torch.float32).contiguous()  # (G, C, h, w)
+        xs, ys = (torch.linspace(-1.0, 1.0, n, device=device) for n in (w, h))
+        rows = area_matrix(grid.H, h).to(device, torch.float32)
+        cols_t = area_matrix(grid.W, w).to(device, torch.float32).T
+        k = flows.shape[0]
+        self.offset = torch.empty(k, images.shape[1], grid.H, grid.W, device=device)  # (K, C, H, W)
+        with torch.no_grad():
+            for i in range(0, k, chunk):
+                idx = torch.arange(i, min(k, i + chunk), device=device)
+                fine = _warp_pair(images, left[idx], flows[i:i + chunk].to(device, torch.float32),
+                                  _logit(weight0[i:i + chunk].to(device, torch.float32)), xs, ys)
+                coarse = _warp_pair(coarse_keys, left[idx], coarse_flow[idx], coarse_logit[idx], grid.xs, grid.ys)
+                self.offset[i:i + chunk] = rows @ fine @ cols_t - coarse
+
+    def add_to(self, warped: Tensor, idx: Tensor) -> Tensor:
+        """The coarse warps (n, C, H, W) of frames idx, with the fine warps' difference at the start."""
+        return warped + self.offset.index_select(0, idx)
+
+
+def _warp_pair(images: Tensor, left: Tensor, flow: Tensor, logit: Tensor, xs: Tensor, ys: Tensor) -> Tensor:
+    """(n, C, H, W): per frame, key frames `left` and `left + 1` of `images` (G, C, H, W) warped by the
+    flows' halves (n, H, W, 4) on the axes xs, ys, blended by sigmoid(logit) (n, H, W)."""
+    gx, gy = xs.view(1, 1, -1), ys.view(1, -1, 1)
+
+    def warped(keys, f):
+        grid = torch.stack([gx + f[..., 0], gy + f[..., 1]], dim=-1)
+        return F.grid_sample(keys, grid, mode="bilinear", padding_mode="border", align_corners=True)
+
+    w0 = warped(images.index_select(0, left), flow[..., :2])
+    w1 = warped(images.index_select(0, left + 1), flow[..., 2:])
+    m = torch.sigmoid(logit)[:, None]
+    return m * w0 + (1 - m) * w1
+
+
+def _logit(weight: Tensor) -> Tensor:
+    weight = weight.clamp(1e-6, 1 - 1e-6)
+    return torch.log(weight) - torch.log1p(-weight)
 
 
 def _rife_model_of(kind: str) -> tuple[str, str | None]:
