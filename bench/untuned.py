@@ -149,6 +149,10 @@ def strip(scene: str, family: str, runs: Path, bundle: Path, cells: dict, folder
     method, _ = best_gs(cells)
     if method is None or "psnr_intermediate_db" not in cells.get("stfm", {}):
         return None
+    missing = [m for m in ("stfm", method) if not (runs / m / "recon.h5").is_file()]
+    if missing:  # rows read from an earlier --out, made elsewhere: nothing here to draw
+        print(f"{scene} {family}: no strip (no output of {' or '.join(missing)} under {runs})", flush=True)
+        return None
     truth, keys, inter = truth_and_frames(bundle)
     stfm = estimate(runs / "stfm")
     worst = inter[int(np.argmin(frame_psnr(truth, stfm, inter)))]
