@@ -294,7 +294,7 @@ def test_a_coarse_levels_key_warps_start_as_the_finer_grids_warps_binned():
     u = torch.zeros(k, 16, 24, 4, requires_grad=True)
     start = fit.base.keys_at(u, torch.zeros(k, 16, 24), torch.arange(k))
     assert torch.allclose(start, expected.float(), atol=1e-5)
-    coarse_only = fit.base.keys_at(u, torch.zeros(k, 16, 24), torch.arange(k)) - fit.base._fine.offset.permute(1, 0, 2, 3)
+    coarse_only = fit.base.keys_at(u, torch.zeros(k, 16, 24), torch.arange(k)) - fit.base._start_offset.permute(1, 0, 2, 3)
     assert float((coarse_only - expected).abs().max()) > 1e-3  # the blur this removes is there on this scene
     start.sum().backward()
     assert float(u.grad.abs().sum()) > 0  # the flows' corrections still move the warps

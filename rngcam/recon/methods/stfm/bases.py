@@ -10,7 +10,7 @@ from torch import Tensor
 from rngcam.errors import ConfigError
 from rngcam.recon.methods import rife as rife_method  # looked up at each call: a test may replace them
 from rngcam.recon.methods.baselines import BaselineInputError, interp, interp_warps
-from rngcam.recon.methods.coarse_to_fine import area_matrix, bin_space
+from rngcam.recon.methods.coarse_to_fine import bin_space
 from rngcam.recon.methods.rife import RifeUnavailableError
 from rngcam.recon.methods.stfm.settings import BASE_VIDEOS, HDV3_SUFFIX, KEY_WARPS, MIN_FLOW_SIZE_PX
 
@@ -24,7 +24,7 @@ class DynamicBase:
     def __init__(self, grid, problem, resolved, parts, given: Tensor | None = None, gains: Tensor | None = None):
         self.grid, self.device = grid, grid.device
         self.keys = self.weights = self.video = None
-        self._fine: _FineWarps | None = None  # a coarse level's key warps made on the finer grid
+        self._start_offset: Tensor | None = None  # a coarse level's key warps: _fine_start_offset
         self.source = None
         self.gains = None if gains is None else gains.to(self.device, torch.float32)
         self.substitutes: list[tuple[str, str]] = []
@@ -106,8 +106,7 @@ class DynamicBase:
         self.key_flow = flows.to(self.device, torch.float32).contiguous()  # (K, H, W, 4)
         self.key_logit = _logit(w0.to(self.device, torch.float32))
         if source is not keys:  # the start warped where the flows were computed, then binned (keys_at)
-            self._fine = _FineWarps(source[:, order], fine_flows, fine_w0, self.key_images, self.key_left,
-                                    self.key_flow, self.key_logit, self.grid, self.device)
+            self._start_offset = _fine_start_offset(self, source[:, order], fine_flows, fine_w0)
         self.source = name
         return True
 
@@ -118,8 +117,8 @@ class DynamicBase:
         flow = self.key_flow.index_select(0, idx) + u
         logit = self.key_logit.index_select(0, idx) + blend_logit
         warped = _warp_pair(self.key_images, left, flow, logit, self.grid.xs, self.grid.ys)
-        if self._fine is not None:
-            warped = self._fine.add_to(warped, idx)
+        if self._start_offset is not None:
+            warped = warped + self._start_offset.index_select(0, idx)
         return warped.permute(1, 0, 2, 3)
 
     def at(self, x: Tensor, y: Tensor, idx: Tensor) -> Tensor:
@@ -137,34 +136,29 @@ class DynamicBase:
         return torch.einsum("cgnhw,ng->cnhw", keys, self.weights[idx])
 
 
-class _FineWarps:
-    """A coarse level's key-frame warps at the flows it starts from, made on the finer grid the flows were
-    computed on (`Problem.fine_gs`) and binned to the level: warped on the coarse grid, bilinear sampling
-    blurred the binned key frames' detail at every sub-pixel shift (a pan: 6 dB under the same warps made
-    finer and binned; bench/untuned.md, 2026-12-08, second round). What the fit changes (flow, blend) is
-    still warped on the coarse grid, as a difference from the coarse warp at the start: the same cost a
-    step, and at the start the fine warp exactly."""
-
-    def __init__(self, images: Tensor, flows: Tensor, weight0: Tensor, coarse_keys: Tensor, left: Tensor,
-                 coarse_flow: Tensor, coarse_logit: Tensor, grid, device, chunk: int = 16):
-        h, w = images.shape[-2:]
-        images = images.permute(1, 0, 2, 3).to(device, torch.float32).contiguous()  # (G, C, h, w)
-        xs, ys = (torch.linspace(-1.0, 1.0, n, device=device) for n in (w, h))
-        rows = area_matrix(grid.H, h).to(device, torch.float32)
-        cols_t = area_matrix(grid.W, w).to(device, torch.float32).T
-        k = flows.shape[0]
-        self.offset = torch.empty(k, images.shape[1], grid.H, grid.W, device=device)  # (K, C, H, W)
-        with torch.no_grad():
-            for i in range(0, k, chunk):
-                idx = torch.arange(i, min(k, i + chunk), device=device)
-                fine = _warp_pair(images, left[idx], flows[i:i + chunk].to(device, torch.float32),
-                                  _logit(weight0[i:i + chunk].to(device, torch.float32)), xs, ys)
-                coarse = _warp_pair(coarse_keys, left[idx], coarse_flow[idx], coarse_logit[idx], grid.xs, grid.ys)
-                self.offset[i:i + chunk] = rows @ fine @ cols_t - coarse
-
-    def add_to(self, warped: Tensor, idx: Tensor) -> Tensor:
-        """The coarse warps (n, C, H, W) of frames idx, with the fine warps' difference at the start."""
-        return warped + self.offset.index_select(0, idx)
+def _fine_start_offset(base: DynamicBase, images: Tensor, flows: Tensor, weight0: Tensor, chunk: int = 16) -> Tensor:
+    """(K, C, H, W): a coarse level's key-frame warps at the flows it starts from, made on the finer grid the
+    flows were computed on (`images` (C, G, h, w) sorted by time, `flows` and `weight0` there) and binned,
+    less the same warps made on the coarse grid. Warped on the coarse grid, bilinear sampling blurred the
+    binned key frames' detail at every sub-pixel shift (a pan: 6 dB under the fine warps binned;
+    bench/untuned.md, 2026-12-08, second round); what the fit changes (flow, blend) is still warped on the
+    coarse grid, so with this added a step costs the same and starts at the fine warp exactly."""
+    device, grid = base.device, base.grid
+    h, w = images.shape[-2:]
+    images = images.permute(1, 0, 2, 3).to(device, torch.float32).contiguous()  # (G, C, h, w)
+    xs, ys = (torch.linspace(-1.0, 1.0, n, device=device) for n in (w, h))
+    k = flows.shape[0]
+    offset = torch.empty(k, images.shape[1], grid.H, grid.W, device=device)
+    with torch.no_grad():
+        for i in range(0, k, chunk):
+            idx = torch.arange(i, min(k, i + chunk), device=device)
+            left = base.key_left.index_select(0, idx)
+            fine = _warp_pair(images, left, flows[i:i + chunk].to(device, torch.float32),
+                              _logit(weight0[i:i + chunk].to(device, torch.float32)), xs, ys)
+            coarse = _warp_pair(base.key_images, left, base.key_flow.index_select(0, idx),
+                                base.key_logit.index_select(0, idx), grid.xs, grid.ys)
+            offset[i:i + chunk] = bin_space(fine, grid.H, grid.W) - coarse
+    return offset
 
 
 def _warp_pair(images: Tensor, left: Tensor, flow: Tensor, logit: Tensor, xs: Tensor, ys: Tensor) -> Tensor:
